@@ -1,0 +1,1 @@
+"""xyzcyl.model_export"""

@@ -1,0 +1,1 @@
+"""`xyzcyl` subcommands that need the train extra (torch)."""

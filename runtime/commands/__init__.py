@@ -1,0 +1,1 @@
+"""Local `xyzcyl` subcommands backed by the runtime (no torch)."""
