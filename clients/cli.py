@@ -27,6 +27,7 @@ class Command:
 
 # One line per subcommand. Local (non-HTTP) commands live in runtime/ or model_export/.
 COMMANDS: tuple[Command, ...] = (
+    Command("cylinder", "xyzcyl.runtime.commands.cylinder", "project a rig's images onto the UCCM cylinder"),
 )
 
 
