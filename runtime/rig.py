@@ -515,3 +515,33 @@ def _equirect_dirs(uv: np.ndarray, width: int, height: int) -> np.ndarray:
     colat = (uv[..., 1] + 0.5) / height * np.pi
     s = np.sin(colat)
     return np.stack([s * np.sin(lon), -np.cos(colat), s * np.cos(lon)], axis=-1)
+
+
+def look_rotation(yaw: float, pitch: float = 0.0) -> np.ndarray:
+    """[3, 3] cam_to_ego rotation of an upright OpenCV camera looking at ego azimuth `yaw` (radians, 0 = ego
+    forward, counter-clockwise positive seen from above) and elevation `pitch` (radians, + looks up)."""
+    cy, sy, cp, sp = math.cos(yaw), math.sin(yaw), math.cos(pitch), math.sin(pitch)
+    fwd = np.array([cp * cy, cp * sy, sp])
+    right = np.array([sy, -cy, 0.0])
+    down = np.cross(fwd, right)
+    return np.stack([right, down, fwd], axis=1)
+
+
+def ring_rig(n: int = 6, hfov_deg: float = 70.0, width: int = 160, height: int = 90, ring_radius: float = 0.5,
+             mount_height: float = 1.5, first_yaw_deg: float = 0.0, clockwise: bool = True) -> Rig:
+    """A synthetic rig of n identical pinhole cameras on a horizontal ring, looking outwards.
+
+    Camera k sits at ring_radius metres from (0, 0, mount_height) and looks at yaw first_yaw - k 360/n degrees
+    (clockwise seen from above, the paper's F+ order) or + k 360/n (clockwise=False). Square pixels,
+    principal point at the image centre ((W-1)/2, (H-1)/2). Names are "cam0".."cam{n-1}".
+    """
+    f = width / (2.0 * math.tan(math.radians(hfov_deg) / 2.0))
+    K = np.array([[f, 0.0, (width - 1) / 2.0], [0.0, f, (height - 1) / 2.0], [0.0, 0.0, 1.0]])
+    cams = []
+    for k in range(n):
+        yaw = math.radians(first_yaw_deg + (-1 if clockwise else 1) * 360.0 * k / n)
+        T = np.eye(4)
+        T[:3, :3] = look_rotation(yaw)
+        T[:3, 3] = [ring_radius * math.cos(yaw), ring_radius * math.sin(yaw), mount_height]
+        cams.append(Camera(name=f"cam{k}", width=width, height=height, K=K, cam_to_ego=T))
+    return Rig(cameras=tuple(cams))

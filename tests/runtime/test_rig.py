@@ -1,0 +1,206 @@
+"""Rig I/O, validation and camera projection."""
+
+from __future__ import annotations
+
+import copy
+import json
+import math
+
+import cv2
+import numpy as np
+import pytest
+
+from xyzcyl.runtime.rig import Camera, Rig, RigError, load_rig, ring_rig, save_rig
+
+
+def _cam_dict(name="CAM_A", w=64, h=48, image=None):
+    return {
+        "name": name,
+        "image": image,
+        "width": w,
+        "height": h,
+        "K": [[50.0, 0.0, 31.5], [0.0, 50.0, 23.5], [0.0, 0.0, 1.0]],
+        "cam_to_ego": [[0.0, 0.0, 1.0, 1.0], [-1.0, 0.0, 0.0, 0.0], [0.0, -1.0, 0.0, 1.5], [0, 0, 0, 1]],
+        "distortion": None,
+        "timestamp_s": 12.5,
+    }
+
+
+def _rig_dict(n=2):
+    return {"source": "test", "cameras": [_cam_dict(f"CAM_{k}") for k in range(n)]}
+
+
+def _set(d, path, value):
+    *head, last = path
+    for key in head:
+        d = d[key]
+    d[last] = value
+
+
+# Each case: (mutation of a 2-camera rig dict, substrings the error message must contain).
+_BAD = {
+    "K_nan": (lambda d: _set(d, ["cameras", 0, "K", 0, 2], float("nan")), ["CAM_0", "K[0][2]", "finite"]),
+    "pose_inf": (lambda d: _set(d, ["cameras", 1, "cam_to_ego", 0, 3], float("inf")),
+                 ["CAM_1", "cam_to_ego[0][3]", "finite"]),
+    "K_skew": (lambda d: _set(d, ["cameras", 0, "K", 0, 1], 0.5), ["CAM_0", "K[0][1]"]),
+    "K_10": (lambda d: _set(d, ["cameras", 0, "K", 1, 0], 1.0), ["CAM_0", "K[1][0]"]),
+    "K_row2": (lambda d: _set(d, ["cameras", 0, "K", 2, 0], 1e-3), ["CAM_0", "K[2][0]"]),
+    "K_22": (lambda d: _set(d, ["cameras", 0, "K", 2, 2], 2.0), ["CAM_0", "K[2][2]"]),
+    "fx_neg": (lambda d: _set(d, ["cameras", 0, "K", 0, 0], -50.0), ["CAM_0", "K[0][0]", "fx"]),
+    "fy_zero": (lambda d: _set(d, ["cameras", 1, "K", 1, 1], 0.0), ["CAM_1", "K[1][1]", "fy"]),
+    "K_shape": (lambda d: _set(d, ["cameras", 0, "K"], [[1, 0], [0, 1]]), ["CAM_0", "K", "3x3"]),
+    "K_text": (lambda d: _set(d, ["cameras", 0, "K"], "eye"), ["CAM_0", "K", "numbers"]),
+    "K_missing": (lambda d: d["cameras"][0].pop("K"), ["CAM_0", "K", "missing"]),
+    "not_ortho": (lambda d: _set(d, ["cameras", 0, "cam_to_ego", 0, 2], 1.01), ["CAM_0", "cam_to_ego", "orthonormal"]),
+    "reflection": (lambda d: _set(d, ["cameras", 0, "cam_to_ego", 1, 0], 1.0), ["CAM_0", "cam_to_ego", "det"]),
+    "bottom_row": (lambda d: _set(d, ["cameras", 0, "cam_to_ego", 3, 0], 0.1), ["CAM_0", "cam_to_ego", "bottom row"]),
+    "pose_shape": (lambda d: _set(d, ["cameras", 0, "cam_to_ego"], np.eye(3).tolist()), ["CAM_0", "cam_to_ego", "4x4"]),
+    "width_zero": (lambda d: _set(d, ["cameras", 0, "width"], 0), ["CAM_0", "width"]),
+    "height_big": (lambda d: _set(d, ["cameras", 1, "height"], 16385), ["CAM_1", "height"]),
+    "width_float": (lambda d: _set(d, ["cameras", 0, "width"], 64.5), ["CAM_0", "width", "integer"]),
+    "width_nan": (lambda d: _set(d, ["cameras", 0, "width"], float("nan")), ["CAM_0", "width"]),
+    "duplicate": (lambda d: _set(d, ["cameras", 1, "name"], "CAM_0"), ["CAM_0", "name", "duplicate"]),
+    "no_cameras": (lambda d: _set(d, ["cameras"], []), ["rig", "cameras", "1..16"]),
+    "too_many": (lambda d: _set(d, ["cameras"], [_cam_dict(f"C{k}") for k in range(17)]), ["rig", "cameras", "17"]),
+    "no_name": (lambda d: d["cameras"][1].pop("name"), ["camera #1", "name"]),
+    "model": (lambda d: _set(d, ["cameras", 0, "model"], "fisheye"), ["CAM_0", "model"]),
+    "distortion_len": (lambda d: _set(d, ["cameras", 0, "distortion"], [0.1, 0.2]), ["CAM_0", "distortion"]),
+    "distortion_nan": (lambda d: _set(d, ["cameras", 0, "distortion"], [0.1, float("nan"), 0, 0]),
+                       ["CAM_0", "distortion[1]", "finite"]),
+}
+
+
+@pytest.mark.parametrize("case", sorted(_BAD))
+def test_validation_names_camera_and_field(case):
+    d = _rig_dict()
+    mutate, needles = _BAD[case]
+    mutate(d)
+    with pytest.raises(RigError) as info:
+        Rig.from_dict(d)
+    for needle in needles:
+        assert needle in str(info.value), (case, str(info.value))
+
+
+def test_valid_rig_round_trips_with_extras(tmp_path):
+    d = _rig_dict(3)
+    d["cameras"][2]["model"] = "pinhole"
+    d["cameras"][1]["depth"] = "d.exr"
+    rig = Rig.from_dict(d)
+    out = rig.to_dict()
+    assert out["source"] == "test" and out["cameras"][0]["timestamp_s"] == 12.5
+    assert out["cameras"][1]["depth"] == "d.exr"
+    again = Rig.from_dict(json.loads(json.dumps(out)))
+    for a, b in zip(rig.cameras, again.cameras):
+        np.testing.assert_array_equal(a.K, b.K)
+        np.testing.assert_array_equal(a.cam_to_ego, b.cam_to_ego)
+    save_rig(rig, tmp_path / "rig.json")
+    assert load_rig(tmp_path / "rig.json", check_images=False).to_dict() == out
+
+
+def test_arrays_are_read_only():
+    cam = ring_rig(1).cameras[0]
+    with pytest.raises(ValueError):
+        cam.K[0, 0] = 1.0
+
+
+def _write_png(path, w, h, bgr=(0, 0, 255)):
+    img = np.zeros((h, w, 3), np.uint8)
+    img[:] = bgr
+    assert cv2.imwrite(str(path), img)
+
+
+def test_image_checks(tmp_path):
+    d = _rig_dict(1)
+    d["cameras"][0]["image"] = "a.png"
+    (tmp_path / "rig.json").write_text(json.dumps(d))
+    with pytest.raises(RigError, match=r"camera 'CAM_0': image: file .* does not exist"):
+        load_rig(tmp_path / "rig.json")
+    _write_png(tmp_path / "a.png", 65, 48)
+    with pytest.raises(RigError, match=r"camera 'CAM_0': image 'a.png' is 65x48, but width x height is 64x48"):
+        load_rig(tmp_path / "rig.json")
+    (tmp_path / "a.png").write_bytes(b"not an image")
+    with pytest.raises(RigError, match=r"camera 'CAM_0': image: cannot read"):
+        load_rig(tmp_path / "rig.json")
+    _write_png(tmp_path / "a.png", 64, 48, bgr=(0, 0, 255))  # pure red in BGR
+    rig = load_rig(tmp_path / "rig.json")
+    (img,) = rig.load_images()
+    assert img.dtype == np.float32 and img.shape == (48, 64, 3)
+    np.testing.assert_array_equal(img[0, 0], [1.0, 0.0, 0.0])  # RGB order
+
+
+def test_load_rig_bad_json(tmp_path):
+    (tmp_path / "rig.json").write_text("{")
+    with pytest.raises(RigError, match="rig: .* not valid JSON"):
+        load_rig(tmp_path / "rig.json")
+    with pytest.raises(RigError, match="rig: cannot read"):
+        load_rig(tmp_path / "missing.json")
+
+
+@pytest.mark.parametrize("distortion", [None, (0.1, -0.05, 0.001, -0.002), (0.1, -0.05, 0.001, -0.002, 0.01)])
+def test_project_matches_cv2(distortion):
+    rng = np.random.default_rng(0)
+    rig = ring_rig(3, hfov_deg=80, width=320, height=200)
+    for cam in rig.cameras:
+        cam = cam.replace(distortion=distortion)
+        pts_cam = np.column_stack([rng.uniform(-3, 3, 50), rng.uniform(-2, 2, 50), rng.uniform(2, 30, 50)])
+        pts_ego = pts_cam @ cam.rotation.T + cam.position
+        uv, z, in_front = cam.project(pts_ego)
+        E = cam.ego_to_cam
+        rvec, _ = cv2.Rodrigues(E[:3, :3])
+        ref, _ = cv2.projectPoints(pts_ego.reshape(-1, 1, 3), rvec, E[:3, 3], cam.K,
+                                   None if distortion is None else np.asarray(distortion))
+        # 1e-6 px: both are float64 evaluations of the same formula; differences are round-off only.
+        np.testing.assert_allclose(uv, ref.reshape(-1, 2), atol=1e-6)
+        np.testing.assert_allclose(z, pts_cam[:, 2], atol=1e-9)
+        assert in_front.all()
+        behind = cam.project(cam.position - cam.rotation[:, 2])[2]
+        assert not behind
+
+
+@pytest.mark.parametrize("model", ["pinhole", "distorted", "equirectangular"])
+def test_pixel_rays_invert_project(model):
+    cam = ring_rig(2, width=120, height=80).cameras[1]
+    if model == "distorted":
+        cam = cam.replace(distortion=(-0.1, 0.02, 0.0005, 0.0003))
+    if model == "equirectangular":
+        cam = cam.replace(model="equirectangular", K=None)
+    rng = np.random.default_rng(1)
+    uv = np.column_stack([rng.uniform(-0.5, cam.width - 0.5, 200), rng.uniform(-0.5, cam.height - 0.5, 200)])
+    o, d = cam.pixel_rays(uv)
+    np.testing.assert_allclose(np.linalg.norm(d, axis=-1), 1.0, atol=1e-12)
+    back, _, ok = cam.project(o + 7.0 * d)
+    assert ok.all()
+    # 1e-4 px for the distorted case: cv2.undistortPoints is iterative (default 5 iterations); 1e-8 otherwise.
+    np.testing.assert_allclose(back, uv, atol=1e-4 if model == "distorted" else 1e-8)
+    full_o, full_d = cam.pixel_rays()
+    assert full_d.shape == (cam.height, cam.width, 3)
+
+
+def test_equirectangular_convention():
+    cam = ring_rig(1, width=360, height=180).cameras[0].replace(model="equirectangular", K=None)
+    c = cam.position
+    fwd, right, up = cam.rotation[:, 2], cam.rotation[:, 0], -cam.rotation[:, 1]
+    uv = cam.project(np.stack([c + fwd, c + right, c - fwd + 1e-9 * right, c + up]))[0]
+    # forward -> centre column (W-1)/2, middle row (H-1)/2; right -> +90 deg -> 3/4 of the width;
+    # behind -> right edge W-1/2; zenith -> top edge -1/2.
+    np.testing.assert_allclose(uv, [[179.5, 89.5], [269.5, 89.5], [359.5, 89.5], [uv[3, 0], -0.5]], atol=1e-6)
+    assert cam.vertical_fov == pytest.approx(math.pi)
+
+
+def test_real_rigs_load(real_data):
+    for folder in ("nuscenes_ca9a282c", "pandaset_002_00"):
+        rig = load_rig(real_data / folder / "rig.json")
+        assert len(rig) == 6
+        d = rig.to_dict()
+        assert d["cameras"][0]["timestamp_s"] == rig.cameras[0].extra["timestamp_s"]
+        again = Rig.from_dict(copy.deepcopy(d))
+        np.testing.assert_array_equal(again.cameras[3].cam_to_ego, rig.cameras[3].cam_to_ego)
+
+
+def test_ring_rig_geometry():
+    rig = ring_rig(4, ring_radius=0.5, mount_height=1.5)
+    # camera 1 looks clockwise of camera 0: ego -y (right)
+    np.testing.assert_allclose(rig.cameras[1].rotation[:, 2], [0, -1, 0], atol=1e-12)
+    np.testing.assert_allclose(rig.cameras[1].position, [0, -0.5, 1.5], atol=1e-12)
+    for cam in rig.cameras:
+        np.testing.assert_allclose(cam.rotation[:, 1], [0, 0, -1], atol=1e-12)  # image down = ego down
