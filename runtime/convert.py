@@ -1,0 +1,345 @@
+"""One function per foreign camera convention, into and out of the project's rig model (runtime/rig.py).
+
+- nerfstudio / instant-ngp `transforms.json` (camera-to-world in OpenGL axes: x right, y up, z back; COLMAP
+  pixel convention: pixel k's centre at k + 0.5)            -> rig_from_nerfstudio / rig_to_nerfstudio
+- CARLA camera sensors (Unreal, left-handed: x forward, y right, z up; pitch/yaw/roll in degrees; horizontal
+  FoV; image_size_x/y)                                       -> camera_from_carla / camera_to_carla
+- nuScenes `calibrated_sensor` records (translation, rotation wxyz, camera_intrinsic; already OpenCV camera
+  axes and the ego frame)                                    -> camera_from_nuscenes / camera_to_nuscenes
+- the paper's Waymo completion (5 cameras -> 8 with mirrored virtual cameras)  -> complete_waymo_rig
+docs/conventions.md derives each mapping.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Any, Mapping, Sequence
+
+import numpy as np
+
+from .rig import Camera, Rig, RigError
+
+# OpenGL camera (x right, y up, z back) <-> OpenCV camera (x right, y down, z forward): flip y and z.
+GL_FROM_CV = np.diag([1.0, -1.0, -1.0, 1.0])
+# Unreal/CARLA camera actor axes (x forward, y right, z up) from OpenCV camera axes: columns are the images of
+# OpenCV x (-> UE y), y (-> UE -z) and z (-> UE x).
+UE_FROM_CV = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
+# Ego (x forward, y left, z up) from CARLA vehicle axes (x forward, y right, z up): negate y.
+EGO_FROM_CARLA = np.diag([1.0, -1.0, 1.0])
+WAYMO_NAMES = {"front": "FRONT", "front_left": "FRONT_LEFT", "front_right": "FRONT_RIGHT",
+               "side_left": "SIDE_LEFT", "side_right": "SIDE_RIGHT"}
+_NS_DIST = ("k1", "k2", "p1", "p2", "k3")  # nerfstudio keys in OpenCV coefficient order
+_CARLA_TOL_PX = 1e-3  # principal point must be within this of the image centre to be a CARLA camera
+
+
+class ConversionError(RigError):
+    """A foreign record that cannot be converted; the message names the record and field."""
+
+
+# -- small rotation helpers ----------------------------------------------------------------------------------
+
+def quat_wxyz_to_matrix(q: Sequence[float]) -> np.ndarray:
+    """Unit quaternion (w, x, y, z) (normalised here) -> [3, 3] rotation matrix."""
+    w, x, y, z = np.asarray(q, dtype=np.float64) / np.linalg.norm(q)
+    return np.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+    ])
+
+
+def matrix_to_quat_wxyz(R: np.ndarray) -> np.ndarray:
+    """[3, 3] rotation -> unit quaternion (w, x, y, z) with w >= 0 (Shepperd's method)."""
+    R = np.asarray(R, dtype=np.float64)
+    t = np.trace(R)
+    if t > 0:
+        s = 2.0 * math.sqrt(t + 1.0)
+        q = [0.25 * s, (R[2, 1] - R[1, 2]) / s, (R[0, 2] - R[2, 0]) / s, (R[1, 0] - R[0, 1]) / s]
+    elif R[0, 0] > R[1, 1] and R[0, 0] > R[2, 2]:
+        s = 2.0 * math.sqrt(1.0 + R[0, 0] - R[1, 1] - R[2, 2])
+        q = [(R[2, 1] - R[1, 2]) / s, 0.25 * s, (R[0, 1] + R[1, 0]) / s, (R[0, 2] + R[2, 0]) / s]
+    elif R[1, 1] > R[2, 2]:
+        s = 2.0 * math.sqrt(1.0 + R[1, 1] - R[0, 0] - R[2, 2])
+        q = [(R[0, 2] - R[2, 0]) / s, (R[0, 1] + R[1, 0]) / s, 0.25 * s, (R[1, 2] + R[2, 1]) / s]
+    else:
+        s = 2.0 * math.sqrt(1.0 + R[2, 2] - R[0, 0] - R[1, 1])
+        q = [(R[1, 0] - R[0, 1]) / s, (R[0, 2] + R[2, 0]) / s, (R[1, 2] + R[2, 1]) / s, 0.25 * s]
+    q = np.array(q)
+    q /= np.linalg.norm(q)
+    return -q if q[0] < 0 else q
+
+
+def _pose(R: np.ndarray, t: Sequence[float]) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = t
+    return T
+
+
+def _num(record: Mapping[str, Any], key: str, where: str) -> float:
+    if key not in record:
+        raise ConversionError(f"{where}: {key} is missing")
+    v = record[key]
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+        raise ConversionError(f"{where}: {key} must be a finite number (got {v!r})")
+    return float(v)
+
+
+# -- nerfstudio ----------------------------------------------------------------------------------------------
+
+def rig_from_nerfstudio(transforms: Mapping[str, Any], root: str | Path | None = None) -> Rig:
+    """nerfstudio `transforms.json` (dict) -> Rig, world frame taken as the ego frame.
+
+    Intrinsics fl_x, fl_y, cx, cy, w, h (and OpenCV k1 k2 p1 p2 k3) at the top level or per frame;
+    camera_model PINHOLE / OPENCV / SIMPLE_PINHOLE / EQUIRECTANGULAR. transform_matrix is camera-to-world in
+    OpenGL camera axes, so cam_to_ego = transform_matrix @ diag(1, -1, -1, 1). nerfstudio puts pixel k's centre
+    at k + 0.5, OpenCV at k: cx_opencv = cx - 0.5, cy_opencv = cy - 0.5. Camera names: the frame's "name" if
+    present (written by rig_to_nerfstudio), else the file name without extension.
+    """
+    frames = transforms.get("frames")
+    if not isinstance(frames, list) or not frames:
+        raise ConversionError("transforms.json: frames must be a non-empty list")
+    cams = []
+    used: set[str] = set()
+    for k, fr in enumerate(frames):
+        where = f"transforms.json: frames[{k}]"
+        if not isinstance(fr, Mapping):
+            raise ConversionError(f"{where}: must be an object")
+        merged = {**{key: v for key, v in transforms.items() if key != "frames"}, **fr}
+        model = str(merged.get("camera_model", "OPENCV")).upper()
+        if model not in ("PINHOLE", "OPENCV", "SIMPLE_PINHOLE", "EQUIRECTANGULAR"):
+            raise ConversionError(f"{where}: camera_model {model!r} is not supported (PINHOLE, OPENCV, "
+                                  f"SIMPLE_PINHOLE, EQUIRECTANGULAR)")
+        if "transform_matrix" not in fr:
+            raise ConversionError(f"{where}: transform_matrix is missing")
+        try:
+            c2w = np.array(fr["transform_matrix"], dtype=np.float64)
+        except (TypeError, ValueError):
+            raise ConversionError(f"{where}: transform_matrix must be 4x4 numbers") from None
+        if c2w.shape == (3, 4):
+            c2w = np.vstack([c2w, [0.0, 0.0, 0.0, 1.0]])
+        if c2w.shape != (4, 4):
+            raise ConversionError(f"{where}: transform_matrix must be 4x4 (got shape {c2w.shape})")
+        w, h = _num(merged, "w", where), _num(merged, "h", where)
+        if w != int(w) or h != int(h):
+            raise ConversionError(f"{where}: w and h must be integers (got {w}, {h})")
+        file_path = fr.get("file_path")
+        name = fr.get("name") or (Path(file_path).stem if file_path else f"camera_{k}")
+        if name in used:
+            name = f"{name}_{k}"
+        used.add(name)
+        extra = {key: v for key, v in fr.items()
+                 if key not in ("file_path", "transform_matrix", "name", "depth_file_path", "camera_model",
+                                "fl_x", "fl_y", "cx", "cy", "w", "h", *_NS_DIST)}
+        K, distortion, cam_model = None, None, "pinhole"
+        if model == "EQUIRECTANGULAR":
+            cam_model = "equirectangular"
+        else:
+            fx = _num(merged, "fl_x", where)
+            fy = _num(merged, "fl_y", where) if "fl_y" in merged else fx
+            cx, cy = _num(merged, "cx", where) - 0.5, _num(merged, "cy", where) - 0.5
+            K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+            coeffs = [float(merged.get(key, 0.0)) for key in _NS_DIST]
+            distortion = tuple(coeffs) if any(coeffs) else None
+        try:
+            cams.append(Camera(name=name, width=int(w), height=int(h), K=K, cam_to_ego=c2w @ GL_FROM_CV,
+                               model=cam_model, distortion=distortion, image=file_path,
+                               depth=fr.get("depth_file_path"), extra=extra))
+        except RigError as exc:
+            raise ConversionError(f"{where}: {exc}") from None
+    top = {key: v for key, v in transforms.items()
+           if key not in ("frames", "camera_model", "fl_x", "fl_y", "cx", "cy", "w", "h", *_NS_DIST)}
+    return Rig(cameras=tuple(cams), root=None if root is None else Path(root), extra=top)
+
+
+def rig_to_nerfstudio(rig: Rig) -> dict[str, Any]:
+    """Rig -> nerfstudio `transforms.json` dict with per-frame intrinsics (inverse of rig_from_nerfstudio)."""
+    frames = []
+    for cam in rig.cameras:
+        fr: dict[str, Any] = {"name": cam.name, "w": cam.width, "h": cam.height}
+        if cam.image is not None:
+            fr["file_path"] = cam.image
+        if cam.depth is not None:
+            fr["depth_file_path"] = cam.depth
+        if cam.model == "equirectangular":
+            fr["camera_model"] = "EQUIRECTANGULAR"
+        else:
+            K = cam.K
+            fr.update(camera_model="OPENCV", fl_x=K[0, 0], fl_y=K[1, 1], cx=K[0, 2] + 0.5, cy=K[1, 2] + 0.5)
+            d = cam.distortion or ()
+            if len(d) > 5:
+                raise ConversionError(f"camera {cam.name!r}: distortion has {len(d)} coefficients; nerfstudio "
+                                      f"OPENCV holds k1 k2 p1 p2 k3 only")
+            fr.update({key: float(v) for key, v in zip(_NS_DIST, d)})
+        fr["transform_matrix"] = (cam.cam_to_ego @ GL_FROM_CV).tolist()
+        fr.update(cam.extra)
+        frames.append(fr)
+    return {**dict(rig.extra), "frames": frames}
+
+
+# -- CARLA ---------------------------------------------------------------------------------------------------
+
+def _carla_matrix(pitch: float, yaw: float, roll: float) -> np.ndarray:
+    """CARLA's Transform rotation (degrees) as a [3, 3] matrix, actor axes -> parent axes (CARLA's
+    carla::geom::Transform::GetMatrix: yaw about z, pitch about y, roll about x, left-handed Unreal frame)."""
+    p, y, r = (math.radians(a) for a in (pitch, yaw, roll))
+    cp, sp, cy, sy, cr, sr = math.cos(p), math.sin(p), math.cos(y), math.sin(y), math.cos(r), math.sin(r)
+    return np.array([
+        [cp * cy, cy * sp * sr - sy * cr, -(cy * sp * cr + sy * sr)],
+        [cp * sy, sy * sp * sr + cy * cr, cy * sr - sy * sp * cr],
+        [sp, -cp * sr, cp * cr],
+    ])
+
+
+def camera_from_carla(sensor: Mapping[str, Any], name: str | None = None, image: str | None = None) -> Camera:
+    """A CARLA camera sensor, relative to its vehicle, -> Camera in the ego frame.
+
+    sensor: {"transform": {"location": {"x", "y", "z"} metres, "rotation": {"pitch", "yaw", "roll"} degrees},
+             "fov": horizontal FoV degrees, "image_size_x": W, "image_size_y": H} (CARLA blueprint attribute
+             names; an optional "name"). CARLA is left-handed (x forward, y right, z up); ego is y left, so
+    cam_to_ego = [diag(1,-1,1) M(pitch,yaw,roll) UE_FROM_CV | diag(1,-1,1) location] (det +1).
+    K: f = W / (2 tan(fov/2)) for both axes, principal point at the image centre ((W-1)/2, (H-1)/2) in
+    OpenCV pixel coordinates (CARLA's examples use W/2, H/2: half a pixel off).
+    """
+    where = f"carla sensor {name or sensor.get('name') or ''!s}".rstrip()
+    tf = sensor.get("transform")
+    if not isinstance(tf, Mapping) or not isinstance(tf.get("location"), Mapping) \
+            or not isinstance(tf.get("rotation"), Mapping):
+        raise ConversionError(f"{where}: transform must hold location {{x, y, z}} and rotation {{pitch, yaw, roll}}")
+    loc = [_num(tf["location"], k, f"{where}: transform.location") for k in ("x", "y", "z")]
+    rot = [_num(tf["rotation"], k, f"{where}: transform.rotation") for k in ("pitch", "yaw", "roll")]
+    fov = _num(sensor, "fov", where)
+    if not 0 < fov < 180:
+        raise ConversionError(f"{where}: fov must be in (0, 180) degrees (got {fov})")
+    W, H = _num(sensor, "image_size_x", where), _num(sensor, "image_size_y", where)
+    if W != int(W) or H != int(H):
+        raise ConversionError(f"{where}: image_size_x/y must be integers (got {W}, {H})")
+    W, H = int(W), int(H)
+    f = W / (2.0 * math.tan(math.radians(fov) / 2.0))
+    K = np.array([[f, 0.0, (W - 1) / 2.0], [0.0, f, (H - 1) / 2.0], [0.0, 0.0, 1.0]])
+    R = EGO_FROM_CARLA @ _carla_matrix(*rot) @ UE_FROM_CV
+    extra = {k: v for k, v in sensor.items() if k not in ("transform", "fov", "image_size_x", "image_size_y", "name")}
+    return Camera(name=name or str(sensor.get("name") or "carla_camera"), width=W, height=H, K=K,
+                  cam_to_ego=_pose(R, EGO_FROM_CARLA @ np.array(loc)), image=image, extra=extra)
+
+
+def camera_to_carla(camera: Camera) -> dict[str, Any]:
+    """Camera -> CARLA sensor dict (inverse of camera_from_carla). Refuses cameras CARLA cannot express:
+    non-square pixels, off-centre principal point (> 1e-3 px), distortion, equirectangular."""
+    where = f"camera {camera.name!r}"
+    if camera.model != "pinhole" or camera.distortion is not None:
+        raise ConversionError(f"{where}: model/distortion: CARLA cameras are undistorted pinholes")
+    K, W, H = camera.K, camera.width, camera.height
+    if abs(K[0, 0] - K[1, 1]) > 1e-9 * K[0, 0]:
+        raise ConversionError(f"{where}: K: fx != fy, CARLA has square pixels")
+    if abs(K[0, 2] - (W - 1) / 2) > _CARLA_TOL_PX or abs(K[1, 2] - (H - 1) / 2) > _CARLA_TOL_PX:
+        raise ConversionError(f"{where}: K: principal point must be the image centre ((W-1)/2, (H-1)/2) for CARLA")
+    M = EGO_FROM_CARLA @ camera.rotation @ UE_FROM_CV.T
+    pitch = math.degrees(math.asin(max(-1.0, min(1.0, M[2, 0]))))
+    if math.hypot(M[0, 0], M[1, 0]) > 1e-9:
+        yaw = math.degrees(math.atan2(M[1, 0], M[0, 0]))
+        roll = math.degrees(math.atan2(-M[2, 1], M[2, 2]))
+    else:  # looking straight up/down: yaw and roll share one axis; put it all in yaw
+        yaw, roll = math.degrees(math.atan2(-M[0, 1], M[1, 1])), 0.0
+    x, y, z = (EGO_FROM_CARLA @ camera.position).tolist()
+    return {"name": camera.name,
+            "transform": {"location": {"x": x, "y": y, "z": z}, "rotation": {"pitch": pitch, "yaw": yaw, "roll": roll}},
+            "fov": math.degrees(camera.horizontal_fov), "image_size_x": W, "image_size_y": H, **camera.extra}
+
+
+# -- nuScenes ------------------------------------------------------------------------------------------------
+
+def camera_from_nuscenes(record: Mapping[str, Any], name: str, width: int = 1600, height: int = 900,
+                         image: str | None = None) -> Camera:
+    """nuScenes `calibrated_sensor` record (camera) -> Camera. The record's translation [3] metres and rotation
+    (w, x, y, z) map the OpenCV camera frame to the ego frame; camera_intrinsic is K. Image size is not in the
+    record (sample_data holds it): 1600 x 900 for every nuScenes camera. Other keys (token, sensor_token)
+    are kept in `extra`."""
+    where = f"nuscenes calibrated_sensor {name!r}"
+    for key in ("translation", "rotation", "camera_intrinsic"):
+        if key not in record:
+            raise ConversionError(f"{where}: {key} is missing")
+    try:
+        t = np.array(record["translation"], dtype=np.float64)
+        q = np.array(record["rotation"], dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ConversionError(f"{where}: translation/rotation must be numbers") from None
+    if t.shape != (3,) or not np.all(np.isfinite(t)):
+        raise ConversionError(f"{where}: translation must be 3 finite numbers")
+    if q.shape != (4,) or not np.all(np.isfinite(q)) or not abs(np.linalg.norm(q) - 1.0) < 1e-3:
+        raise ConversionError(f"{where}: rotation must be a unit quaternion (w, x, y, z)")
+    extra = {k: v for k, v in record.items() if k not in ("translation", "rotation", "camera_intrinsic")}
+    try:
+        return Camera(name=name, width=width, height=height, K=record["camera_intrinsic"],
+                      cam_to_ego=_pose(quat_wxyz_to_matrix(q), t), image=image, extra=extra)
+    except RigError as exc:
+        raise ConversionError(f"{where}: {exc}") from None
+
+
+def camera_to_nuscenes(camera: Camera) -> dict[str, Any]:
+    """Camera -> nuScenes calibrated_sensor-style record (inverse of camera_from_nuscenes; w >= 0)."""
+    if camera.model != "pinhole":
+        raise ConversionError(f"camera {camera.name!r}: model: nuScenes cameras are pinholes")
+    return {**camera.extra, "translation": camera.position.tolist(),
+            "rotation": matrix_to_quat_wxyz(camera.rotation).tolist(), "camera_intrinsic": camera.K.tolist()}
+
+
+# -- Waymo completion ----------------------------------------------------------------------------------------
+
+def mirror_camera(camera: Camera, plane_x: float, name: str) -> Camera:
+    """The virtual camera that sees, in the horizontally flipped image, the world mirrored across the plane
+    x = plane_x (ego frame, perpendicular to ego x).
+
+    A point P seen at pixel (u, v) by `camera` is seen at (W-1-u, v) by the result after mirroring the point to
+    S P + (2 plane_x, 0, 0), S = diag(-1, 1, 1). Pose: R' = S R F, t' = S t + (2 plane_x, 0, 0) with
+    F = diag(-1, 1, 1) in the camera frame (det +1 again); K: cx' = W-1-cx.
+    """
+    if camera.model != "pinhole" or camera.distortion is not None:
+        raise ConversionError(f"camera {camera.name!r}: model: only undistorted pinhole cameras can be mirrored")
+    S = np.diag([-1.0, 1.0, 1.0])
+    R = S @ camera.rotation @ S  # S doubles as the camera-frame x flip F
+    t = S @ camera.position + [2.0 * plane_x, 0.0, 0.0]
+    K = camera.K.copy()
+    K[0, 2] = camera.width - 1 - K[0, 2]
+    return Camera(name=name, width=camera.width, height=camera.height, K=K, cam_to_ego=_pose(R, t),
+                  extra={"virtual": f"mirror of {camera.name} across x = {plane_x:.6g}"})
+
+
+def complete_waymo_rig(rig: Rig, images: Sequence[np.ndarray], names: Mapping[str, str] = WAYMO_NAMES
+                       ) -> tuple[Rig, list[np.ndarray]]:
+    """The paper's zero-shot completion of Waymo's 5 cameras to 8 (appendix, "More Zero-shot Visualization").
+
+    rig: holds the cameras named names["front"], ["front_left"], ["front_right"], ["side_left"],
+    ["side_right"] (other cameras are refused); images: one [H, W, C] array per rig camera, rig order.
+    All five are mirrored across the lateral plane x = mean x of the five camera centres (mirror_camera, with
+    horizontally flipped images). The 3 mirrored front cameras become REAR, REAR_LEFT, REAR_RIGHT; the 2
+    mirrored side cameras replace the real side cameras (the paper's "flip the side images along the vertical
+    centre line": exact when a side camera looks perpendicular to x). Output order is clockwise seen from
+    above starting at the front (FRONT, FRONT_RIGHT, SIDE_RIGHT, REAR_RIGHT, REAR, REAR_LEFT, SIDE_LEFT,
+    FRONT_LEFT), the F+ order. Virtual cameras have image = None; their arrays are in the returned list.
+    """
+    roles = ("front", "front_left", "front_right", "side_left", "side_right")
+    if set(rig.names) != {names[r] for r in roles} or len(rig) != 5:
+        raise ConversionError(f"rig: cameras must be exactly {[names[r] for r in roles]} (got {rig.names})")
+    if len(images) != len(rig):
+        raise ConversionError(f"images: need {len(rig)} images, one per camera (got {len(images)})")
+    by_role = {r: rig.camera(names[r]) for r in roles}
+    img = {r: np.asarray(images[rig.names.index(names[r])]) for r in roles}
+    for r in roles:
+        if img[r].shape[:2] != (by_role[r].height, by_role[r].width):
+            raise ConversionError(f"camera {names[r]!r}: image is {img[r].shape[1]}x{img[r].shape[0]}, but width "
+                                  f"x height is {by_role[r].width}x{by_role[r].height}")
+    plane_x = float(np.mean([c.position[0] for c in by_role.values()]))
+    virtual = {"rear": ("front", "REAR"), "rear_left": ("front_left", "REAR_LEFT"),
+               "rear_right": ("front_right", "REAR_RIGHT"), "side_left": ("side_left", names["side_left"]),
+               "side_right": ("side_right", names["side_right"])}
+    cams = {r: by_role[r] for r in ("front", "front_left", "front_right")}
+    imgs = {r: img[r] for r in cams}
+    for r, (src, nm) in virtual.items():
+        cams[r] = mirror_camera(by_role[src], plane_x, nm)
+        imgs[r] = np.ascontiguousarray(img[src][:, ::-1])
+    order = ("front", "front_right", "side_right", "rear_right", "rear", "rear_left", "side_left", "front_left")
+    out = Rig(cameras=tuple(cams[r] for r in order), root=rig.root,
+              extra={**rig.extra, "waymo_completion": f"mirrored across x = {plane_x:.6g} (docs/conventions.md)"})
+    return out, [imgs[r] for r in order]
