@@ -1,0 +1,220 @@
+"""The fast renderer: `render` (forward) and `render_backward`, driving the numba kernels."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from . import kernels as K
+from .cameras import EquirectCamera, PinholeCamera
+from .gaussians import Gaussians
+from .projection import RenderOptions, pinhole_limits, project_reference
+from .result import GaussianGrads, RenderResult, background_image
+from .sh import sh_basis, sh_colours
+
+
+@dataclass(frozen=True)
+class _State:
+    """What the backward pass needs from a forward pass (kept in RenderResult.state)."""
+    opts: RenderOptions
+    ntx: int
+    start: np.ndarray     # [ntiles + 1] int64 instance offsets per tile
+    ids: np.ndarray       # [n_inst] int32 Gaussian id per instance
+    feat: np.ndarray      # [n_inst, 12] float32 per-instance features
+    bg: np.ndarray        # [H, W, 3] float32
+    last: np.ndarray      # [H, W] int32
+    t_final: np.ndarray   # [H, W] float32
+    timings: dict         # seconds per stage: project, sort, raster
+
+
+def _camera_args(camera):
+    w2c = np.linalg.inv(camera.cam_to_world)
+    Rw, tw = np.ascontiguousarray(w2c[:3, :3]), np.ascontiguousarray(w2c[:3, 3])
+    if isinstance(camera, PinholeCamera):
+        k = camera.K
+        return Rw, tw, 0, k[0, 0], k[1, 1], k[0, 2], k[1, 2], *pinhole_limits(camera)
+    if isinstance(camera, EquirectCamera):
+        return Rw, tw, 1, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
+    raise TypeError(f"camera: expected PinholeCamera or EquirectCamera, got {type(camera).__name__}")
+
+
+def _c(a):
+    return np.ascontiguousarray(a)
+
+
+def _prepare(g: Gaussians, camera, opts: RenderOptions):
+    W, H = camera.width, camera.height
+    ntx, nty = (W + K.TILE - 1) // K.TILE, (H + K.TILE - 1) // K.TILE
+    t0 = time.perf_counter()
+    n = len(g)
+    proj = np.empty((n, 8), np.float64)
+    tiles = np.empty((n, 5), np.int32)
+    if n:
+        K.project_kernel(_c(g.means), _c(g.quats), _c(g.log_scales), _c(g.opacity_logits),
+                         *_camera_args(camera), W, H, float(opts.near), float(opts.far), float(opts.low_pass),
+                         bool(opts.antialiased), opts.radius_mode == "opacity", proj, tiles)
+    visible = np.flatnonzero(tiles[:, 4] > 0)
+    colours = np.zeros((n, 3), np.float32)
+    if visible.size:
+        colours[visible] = sh_colours(g.means[visible], g.sh[visible], camera.cam_to_world[:3, 3])[0]
+    t1 = time.perf_counter()
+    order = visible[np.argsort(proj[visible, 7], kind="stable")].astype(np.int32)
+    start, ids = K.bin_kernel(order, tiles, ntx, ntx * nty)
+    t2 = time.perf_counter()
+    feat = K.gather_kernel(start, ids, proj, colours, ntx, W, isinstance(camera, EquirectCamera))
+    t3 = time.perf_counter()
+    return ntx, start, ids, feat, {"project": t1 - t0, "sort": t2 - t1, "gather": t3 - t2}
+
+
+def render(gaussians: Gaussians, camera, background=None, **options) -> RenderResult:
+    """Render Gaussians from a PinholeCamera or EquirectCamera.
+
+    background: None (black), an RGB triple, or an image [H, W, 3] (0..1). Options: see RenderOptions.
+    Returns RenderResult(rgb [H, W, 3], alpha [H, W], depth [H, W]) float32; depth is the expected camera z
+    (pinhole) or distance (equirect), sum(w z) / alpha, 0 where alpha == 0."""
+    opts = RenderOptions.from_kwargs(options)
+    W, H = camera.width, camera.height
+    bg = background_image(background, H, W)
+    ntx, start, ids, feat, timings = _prepare(gaussians, camera, opts)
+    t0 = time.perf_counter()
+    rgb = np.empty((H, W, 3), np.float32)
+    alpha = np.empty((H, W), np.float32)
+    depth = np.empty((H, W), np.float32)
+    last = np.empty((H, W), np.int32)
+    t_final = np.empty((H, W), np.float32)
+    K.raster_forward(start, feat, ntx, W, H, isinstance(camera, EquirectCamera), bg, rgb, alpha, depth, last, t_final)
+    timings["raster"] = time.perf_counter() - t0
+    state = _State(opts, ntx, start, ids, feat, bg, last, t_final, timings)
+    return RenderResult(rgb, alpha, depth, state)
+
+
+def _as_grad(arr, shape, name):
+    a = np.zeros(shape, np.float32) if arr is None else np.asarray(arr, dtype=np.float32)
+    if a.shape != shape:
+        raise ValueError(f"{name}: expected shape {list(shape)}, got {list(a.shape)}")
+    if not np.all(np.isfinite(a)):
+        raise ValueError(f"{name}: {int(np.count_nonzero(~np.isfinite(a)))} non-finite values")
+    return np.ascontiguousarray(a)
+
+
+def render_backward(gaussians: Gaussians, camera, result: RenderResult, d_rgb, d_alpha=None, d_depth=None,
+                    background=None, **options) -> GaussianGrads:
+    """Gradients of a scalar loss w.r.t. the raw Gaussian parameters (and the background), given
+    d_rgb [H, W, 3], d_alpha [H, W], d_depth [H, W] (None = zero) for `result = render(gaussians, camera,
+    background, **options)` with the same arguments. Pinhole cameras only (equirect backward is not
+    implemented: ValueError)."""
+    if not isinstance(camera, PinholeCamera):
+        raise ValueError("camera: render_backward supports PinholeCamera only (equirectangular backward "
+                         "is not implemented)")
+    opts = RenderOptions.from_kwargs(options)
+    W, H = camera.width, camera.height
+    st = result.state
+    if not isinstance(st, _State) or st.opts != opts or st.last.shape != (H, W):
+        result = render(gaussians, camera, background, **options)
+        st = result.state
+    g_rgb = _as_grad(d_rgb, (H, W, 3), "d_rgb")
+    g_al = _as_grad(d_alpha, (H, W), "d_alpha")
+    g_d = _as_grad(d_depth, (H, W), "d_depth")
+    n = len(gaussians)
+    g_inst = np.zeros((st.ids.shape[0], 10), np.float64)
+    g_bg = np.zeros((H, W, 3), np.float64)
+    K.raster_backward(st.start, st.feat, st.ntx, W, H, st.bg, result.depth, st.last, st.t_final,
+                      g_rgb, g_al, g_d, g_inst, g_bg)
+    g2 = K.reduce_kernel(st.ids, g_inst, n) if n else np.zeros((0, 10))
+    grads = _chain_pinhole(gaussians, camera, opts, g2)
+    if background is None:
+        gb = None
+    elif np.asarray(background).shape == (3,):
+        gb = g_bg.sum(axis=(0, 1))
+    else:
+        gb = g_bg
+    return GaussianGrads(*grads, background=gb)
+
+
+def _sym(a, b, c):
+    """[N] entries -> symmetric [N, 2, 2] [[a, b], [b, c]]."""
+    return np.stack([np.stack([a, b], -1), np.stack([b, c], -1)], -2)
+
+
+def _adj(m):
+    return _sym(m[:, 1, 1], -m[:, 0, 1], m[:, 0, 0])
+
+
+def _chain_pinhole(g: Gaussians, camera: PinholeCamera, opts: RenderOptions, g2: np.ndarray):
+    """2D gradients per Gaussian [N, 10] (mean2d x y, conic a b c, opacity, colour rgb, depth) -> 3D."""
+    n = len(g)
+    pr = project_reference(g, camera, opts)
+    g_mx, g_my, g_ca, g_cb, g_cc, g_op = (g2[:, k] for k in range(6))
+    g_col, g_z = g2[:, 6:9], g2[:, 9].copy()
+    conic = _sym(pr["conic"][:, 0], pr["conic"][:, 1], pr["conic"][:, 2])
+    G = _sym(g_ca, 0.5 * g_cb, g_cc)
+    GS = -conic @ G @ conic                                   # dL/dcov2 (symmetric-matrix gradient)
+    opa, comp = pr["opa"], pr["comp"]
+    g_logit = g_op * comp * opa * (1.0 - opa)
+    if opts.antialiased:
+        det = pr["det"]
+        c2r = pr["cov2_raw"]
+        det_raw = c2r[:, 0, 0] * c2r[:, 1, 1] - c2r[:, 0, 1] ** 2
+        safe = comp > 0
+        cs = np.where(safe, comp, 1.0)
+        dcomp = (_adj(pr["cov2_raw"]) * det[:, None, None] - det_raw[:, None, None] * _adj(pr["cov2"])) \
+            / (det ** 2 * 2 * cs)[:, None, None]
+        GS = GS + np.where(safe, g_op * opa, 0.0)[:, None, None] * dcomp
+    Rw, J, cov3 = pr["Rw"], pr["J"], pr["cov3"]
+    T = J @ Rw[None]
+    g_cov3 = T.transpose(0, 2, 1) @ GS @ T
+    g_T = 2.0 * GS @ T @ cov3
+    g_J = g_T @ Rw.T[None]
+    # camera-frame point
+    x, y, z = pr["p_cam"][:, 0], pr["p_cam"][:, 1], pr["p_cam"][:, 2]
+    zs = np.where(z > 0, z, 1.0)
+    fx, fy = camera.K[0, 0], camera.K[1, 1]
+    fr_x, fr_y = (~pr["clamp"][:, 0]).astype(np.float64), (~pr["clamp"][:, 1]).astype(np.float64)
+    lxn, lxp, lyn, lyp = pinhole_limits(camera)
+    sxc, syc = np.clip(x / zs, -lxn, lxp), np.clip(y / zs, -lyn, lyp)
+    dsx_dx, dsx_dz = fr_x / zs, -fr_x * x / zs ** 2
+    dsy_dy, dsy_dz = fr_y / zs, -fr_y * y / zs ** 2
+    gp = np.zeros((n, 3))
+    gp[:, 0] = g_mx * fx / zs + g_J[:, 0, 2] * (-fx / zs * dsx_dx)
+    gp[:, 1] = g_my * fy / zs + g_J[:, 1, 2] * (-fy / zs * dsy_dy)
+    gp[:, 2] = (g_z - g_mx * fx * x / zs ** 2 - g_my * fy * y / zs ** 2
+                - g_J[:, 0, 0] * fx / zs ** 2 - g_J[:, 1, 1] * fy / zs ** 2
+                + g_J[:, 0, 2] * (fx * sxc / zs ** 2 - fx / zs * dsx_dz)
+                + g_J[:, 1, 2] * (fy * syc / zs ** 2 - fy / zs * dsy_dz))
+    g_means = gp @ Rw
+    # covariance -> scales, rotation
+    R, s, M = pr["R"], pr["s"], pr["M"]
+    g_M = 2.0 * g_cov3 @ M
+    g_s = np.einsum("nki,nki->ni", g_M, R)
+    g_log_scales = g_s * s
+    gR = g_M * s[:, None, :]
+    q = g.quats.astype(np.float64)
+    qnorm = np.linalg.norm(q, axis=1, keepdims=True)
+    qn = q / qnorm
+    w, qx, qy, qz = qn[:, 0], qn[:, 1], qn[:, 2], qn[:, 3]
+    G_ = gR
+    g_qn = 2.0 * np.stack([
+        -qz * G_[:, 0, 1] + qy * G_[:, 0, 2] + qz * G_[:, 1, 0] - qx * G_[:, 1, 2] - qy * G_[:, 2, 0]
+        + qx * G_[:, 2, 1],
+        qy * G_[:, 0, 1] + qz * G_[:, 0, 2] + qy * G_[:, 1, 0] - 2 * qx * G_[:, 1, 1] - w * G_[:, 1, 2]
+        + qz * G_[:, 2, 0] + w * G_[:, 2, 1] - 2 * qx * G_[:, 2, 2],
+        -2 * qy * G_[:, 0, 0] + qx * G_[:, 0, 1] + w * G_[:, 0, 2] + qx * G_[:, 1, 0] + qz * G_[:, 1, 2]
+        - w * G_[:, 2, 0] + qz * G_[:, 2, 1] - 2 * qy * G_[:, 2, 2],
+        -2 * qz * G_[:, 0, 0] - w * G_[:, 0, 1] + qx * G_[:, 0, 2] + w * G_[:, 1, 0] - 2 * qz * G_[:, 1, 1]
+        + qy * G_[:, 1, 2] + qx * G_[:, 2, 0] + qy * G_[:, 2, 1]], 1)
+    g_quats = (g_qn - qn * np.einsum("ni,ni->n", qn, g_qn)[:, None]) / qnorm
+    # colour -> SH (and view direction -> means)
+    kc = g.sh.shape[1]
+    g_col = g_col * pr["colour_unclamped"]
+    v = g.means.astype(np.float64) - camera.cam_to_world[:3, 3][None]
+    vn = np.maximum(np.linalg.norm(v, axis=1, keepdims=True), 1e-12)
+    d = v / vn
+    basis, dbasis = sh_basis(d, kc, with_grad=True)
+    g_sh = basis[:, :, None] * g_col[:, None, :]
+    if kc > 1:
+        coef = np.einsum("nkc,nc->nk", g.sh.astype(np.float64), g_col)
+        g_dir = np.einsum("nk,nkj->nj", coef, dbasis)
+        g_means = g_means + (g_dir - d * np.einsum("nj,nj->n", d, g_dir)[:, None]) / vn
+    return g_means, g_quats, g_log_scales, g_logit, g_sh

@@ -1,0 +1,262 @@
+"""3D Gaussians: the container, its validation, and the INRIA 3DGS PLY / antimatter15 `.splat` formats.
+
+Raw (optimised) parameters are stored, as in 3DGS: `log_scales`, `opacity_logits`, `quats` (wxyz, not
+necessarily normalised) and spherical-harmonic coefficients `sh` [N, (d+1)^2, 3] with `sh[:, 0, :]` the DC
+term (colour = SH_C0 * dc + 0.5 + higher bands, clamped at 0). See docs/renderer.md.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+SH_C0 = 0.28209479177387814
+DEFAULT_MAX_POINTS = 20_000_000  # PLY reader refuses headers claiming more vertices (memory guard)
+_INT_TYPES = {"char": 1, "uchar": 1, "int8": 1, "uint8": 1, "short": 2, "ushort": 2, "int16": 2,
+              "uint16": 2, "int": 4, "uint": 4, "int32": 4, "uint32": 4, "float": 4, "float32": 4,
+              "double": 8, "float64": 8}
+
+
+class GaussianError(ValueError):
+    """Invalid Gaussian parameters or file; the message names the field."""
+
+
+def sigmoid(x: np.ndarray) -> np.ndarray:
+    return 1.0 / (1.0 + np.exp(-x))
+
+
+def _n_rest_to_degree(n_rest: int) -> int | None:
+    for d in range(4):
+        if 3 * ((d + 1) ** 2 - 1) == n_rest:
+            return d
+    return None
+
+
+@dataclass(frozen=True)
+class Gaussians:
+    """N anisotropic 3D Gaussians in a world frame (the ego frame in this project).
+
+    means: np.ndarray           # [N, 3] metres, world frame
+    quats: np.ndarray           # [N, 4] rotation wxyz, any non-zero norm (normalised when used)
+    log_scales: np.ndarray      # [N, 3] log of the standard deviations along the rotated axes (metres)
+    opacity_logits: np.ndarray  # [N] logit of the opacity
+    sh: np.ndarray              # [N, (d+1)^2, 3] SH coefficients, d in 0..3, sh[:, 0, :] DC
+
+    Arrays keep their floating dtype (float32 normally; float64 is accepted for gradient checks).
+    Construction validates shapes and finiteness and raises GaussianError naming the field.
+    """
+
+    means: np.ndarray
+    quats: np.ndarray
+    log_scales: np.ndarray
+    opacity_logits: np.ndarray
+    sh: np.ndarray
+
+    def __post_init__(self) -> None:
+        fields = {}
+        for name in ("means", "quats", "log_scales", "opacity_logits", "sh"):
+            arr = np.asarray(getattr(self, name))
+            if not np.issubdtype(arr.dtype, np.floating):
+                arr = arr.astype(np.float32)
+            object.__setattr__(self, name, arr)
+            fields[name] = arr
+        means = fields["means"]
+        if means.ndim != 2 or means.shape[1] != 3:
+            raise GaussianError(f"means: expected shape [N, 3], got {list(means.shape)}")
+        n = means.shape[0]
+        expect = {"quats": (n, 4), "log_scales": (n, 3), "opacity_logits": (n,)}
+        for name, shape in expect.items():
+            if fields[name].shape != shape:
+                raise GaussianError(f"{name}: expected shape {list(shape)}, got {list(fields[name].shape)}")
+        sh = fields["sh"]
+        if sh.ndim != 3 or sh.shape[0] != n or sh.shape[2] != 3 or sh.shape[1] not in (1, 4, 9, 16):
+            raise GaussianError(f"sh: expected shape [N, (d+1)^2 with d in 0..3, 3] with N={n}, got {list(sh.shape)}")
+        for name, arr in fields.items():
+            bad = int(np.count_nonzero(~np.isfinite(arr)))
+            if bad:
+                raise GaussianError(f"{name}: {bad} non-finite values")
+        qn = np.einsum("ij,ij->i", fields["quats"].astype(np.float64), fields["quats"].astype(np.float64))
+        zero = int(np.count_nonzero(qn < 1e-20))
+        if zero:
+            raise GaussianError(f"quats: {zero} quaternions with zero norm")
+
+    # ----------------------------------------------------------------------------------------------------
+    def __len__(self) -> int:
+        return int(self.means.shape[0])
+
+    @property
+    def sh_degree(self) -> int:
+        return int(round(np.sqrt(self.sh.shape[1]))) - 1
+
+    @property
+    def scales(self) -> np.ndarray:  # [N, 3] metres
+        return np.exp(self.log_scales)
+
+    @property
+    def opacities(self) -> np.ndarray:  # [N] in (0, 1)
+        return sigmoid(self.opacity_logits)
+
+    @classmethod
+    def empty(cls, sh_degree: int = 0, dtype=np.float32) -> Gaussians:
+        k = (sh_degree + 1) ** 2
+        return cls(np.zeros((0, 3), dtype), np.zeros((0, 4), dtype), np.zeros((0, 3), dtype),
+                   np.zeros((0,), dtype), np.zeros((0, k, 3), dtype))
+
+    def astype(self, dtype) -> Gaussians:
+        return Gaussians(*(np.asarray(getattr(self, f), dtype=dtype) for f in
+                           ("means", "quats", "log_scales", "opacity_logits", "sh")))
+
+    # ---------------------------------------------------------------------------------------- PLY (INRIA)
+    def save_ply(self, path: str | os.PathLike) -> None:
+        """Write the INRIA 3DGS layout: binary little endian, float32, properties
+        x y z nx ny nz f_dc_0..2 f_rest_0.. opacity scale_0..2 rot_0..3; f_rest channel-major
+        (f_rest index = c * ((d+1)^2 - 1) + k for colour channel c and SH coefficient k >= 1)."""
+        from plyfile import PlyData, PlyElement
+
+        n, k = len(self), self.sh.shape[1]
+        names = ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"]
+        names += [f"f_rest_{i}" for i in range(3 * (k - 1))]
+        names += ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
+        data = np.empty(n, dtype=[(name, "<f4") for name in names])
+        cols = [self.means, np.zeros((n, 3)), self.sh[:, 0, :],
+                self.sh[:, 1:, :].transpose(0, 2, 1).reshape(n, 3 * (k - 1)),  # channel-major
+                self.opacity_logits[:, None], self.log_scales, self.quats]
+        flat = np.concatenate([np.asarray(c, dtype=np.float64).reshape(n, -1) for c in cols], axis=1)
+        for i, name in enumerate(names):
+            data[name] = flat[:, i]
+        PlyData([PlyElement.describe(data, "vertex")], text=False, byte_order="<").write(str(path))
+
+    @classmethod
+    def load_ply(cls, path: str | os.PathLike, max_points: int = DEFAULT_MAX_POINTS) -> Gaussians:
+        """Read a 3DGS PLY (properties looked up by name; SH degree 0..3 inferred from the f_rest count).
+
+        Refuses (GaussianError naming the field): a header claiming more than `max_points` vertices (checked
+        before any data is read), a truncated binary body, missing properties, an f_rest count that is not
+        3*((d+1)^2-1), and non-finite values (with their count)."""
+        from plyfile import PlyData
+
+        path = Path(path)
+        n, props, fmt, header_len = _read_ply_header(path)
+        if n > max_points:
+            raise GaussianError(f"{path.name}: element vertex: header claims {n} points, more than the "
+                                f"maximum {max_points}")
+        if fmt != "ascii":
+            row = sum(_INT_TYPES[t] for _, t in props)
+            need = header_len + n * row
+            size = path.stat().st_size
+            if size < need:
+                raise GaussianError(f"{path.name}: truncated: {size} bytes, header needs {need} "
+                                    f"({n} vertices x {row} bytes + {header_len} header bytes)")
+        try:
+            ply = PlyData.read(str(path))
+            vert = ply["vertex"].data
+        except Exception as exc:  # plyfile raises various types on malformed bodies
+            raise GaussianError(f"{path.name}: unreadable PLY body: {exc}") from None
+        names = set(vert.dtype.names or ())
+        required = ["x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity",
+                    "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
+        missing = [p for p in required if p not in names]
+        if missing:
+            raise GaussianError(f"{path.name}: vertex property {missing[0]!r} missing")
+        n_rest = sum(1 for p in names if p.startswith("f_rest_"))
+        degree = _n_rest_to_degree(n_rest)
+        if degree is None:
+            raise GaussianError(f"{path.name}: f_rest: {n_rest} properties, expected 0, 9, 24 or 45 "
+                                "(SH degree 0..3)")
+        for i in range(n_rest):
+            if f"f_rest_{i}" not in names:
+                raise GaussianError(f"{path.name}: vertex property 'f_rest_{i}' missing")
+
+        def col(*ps):
+            return np.stack([np.asarray(vert[p], dtype=np.float32) for p in ps], axis=1)
+
+        k = (degree + 1) ** 2
+        sh = np.empty((n, k, 3), np.float32)
+        sh[:, 0, :] = col("f_dc_0", "f_dc_1", "f_dc_2")
+        if k > 1:
+            rest = col(*[f"f_rest_{i}" for i in range(n_rest)])  # [N, 3*(k-1)] channel-major
+            sh[:, 1:, :] = rest.reshape(n, 3, k - 1).transpose(0, 2, 1)
+        arrays = dict(means=col("x", "y", "z"), quats=col("rot_0", "rot_1", "rot_2", "rot_3"),
+                      log_scales=col("scale_0", "scale_1", "scale_2"),
+                      opacity_logits=np.asarray(vert["opacity"], dtype=np.float32), sh=sh)
+        for name, arr in arrays.items():
+            bad = int(np.count_nonzero(~np.isfinite(arr)))
+            if bad:
+                raise GaussianError(f"{path.name}: {name}: {bad} non-finite values")
+        try:
+            return cls(**arrays)
+        except GaussianError as exc:
+            raise GaussianError(f"{path.name}: {exc}") from None
+
+    # ---------------------------------------------------------------------------------- .splat (antimatter15)
+    def splat_bytes(self) -> bytes:
+        """antimatter15/splat `.splat`: 32 bytes per splat, no header, little endian, rows sorted by
+        exp(sum log_scales) * sigmoid(opacity) descending (as its convert.py):
+          float32 x, y, z | float32 exp(scale_0..2) | uint8 R, G, B, A | uint8 qw, qx, qy, qz
+        RGB = clip(255 * (0.5 + SH_C0 * dc), 0, 255) truncated, A = 255 * sigmoid(opacity) truncated,
+        quaternion normalised, clip(q * 128 + 128, 0, 255) truncated. Higher SH bands are dropped."""
+        n = len(self)
+        ls = self.log_scales.astype(np.float64)
+        opa = sigmoid(self.opacity_logits.astype(np.float64))
+        order = np.argsort(-np.exp(ls.sum(axis=1)) * opa, kind="stable")
+        rec = np.empty(n, dtype=[("pos", "<f4", 3), ("scale", "<f4", 3), ("rgba", "u1", 4), ("rot", "u1", 4)])
+        rec["pos"] = self.means[order]
+        rec["scale"] = np.exp(ls[order])
+        rgba = np.concatenate([0.5 + SH_C0 * self.sh[order, 0, :].astype(np.float64), opa[order, None]], axis=1)
+        rec["rgba"] = np.clip(rgba * 255.0, 0, 255).astype(np.uint8)
+        q = self.quats[order].astype(np.float64)
+        q = q / np.linalg.norm(q, axis=1, keepdims=True)
+        rec["rot"] = np.clip(q * 128.0 + 128.0, 0, 255).astype(np.uint8)
+        return rec.tobytes()
+
+    def save_splat(self, path: str | os.PathLike) -> None:
+        Path(path).write_bytes(self.splat_bytes())
+
+
+def _read_ply_header(path: Path) -> tuple[int, list[tuple[str, str]], str, int]:
+    """Parse only the PLY header: (vertex count, vertex properties [(name, type)], format, header bytes)."""
+    with open(path, "rb") as f:
+        head = f.read(65536)
+    end = head.find(b"end_header")
+    if not head.startswith(b"ply") or end < 0:
+        raise GaussianError(f"{path.name}: not a PLY file (missing 'ply' magic or 'end_header')")
+    nl = head.find(b"\n", end)
+    if nl < 0:
+        raise GaussianError(f"{path.name}: truncated header")
+    header_len = nl + 1
+    lines = head[:end].decode("ascii", errors="replace").splitlines()
+    fmt, n, props, element, seen_vertex, before = None, None, [], None, False, 0
+    for line in lines:
+        tok = line.split()
+        if not tok:
+            continue
+        if tok[0] == "format" and len(tok) >= 2:
+            fmt = tok[1]
+        elif tok[0] == "element" and len(tok) == 3:
+            element = tok[1]
+            if element == "vertex":
+                seen_vertex = True
+                try:
+                    n = int(tok[2])
+                except ValueError:
+                    raise GaussianError(f"{path.name}: element vertex: bad count {tok[2]!r}") from None
+            elif not seen_vertex:
+                before += 1
+        elif tok[0] == "property" and element == "vertex":
+            if tok[1] == "list":
+                raise GaussianError(f"{path.name}: vertex property {tok[-1]!r}: list properties not supported")
+            if len(tok) != 3 or tok[1] not in _INT_TYPES:
+                raise GaussianError(f"{path.name}: vertex property line {line!r} not understood")
+            props.append((tok[2], tok[1]))
+    if fmt not in ("ascii", "binary_little_endian", "binary_big_endian"):
+        raise GaussianError(f"{path.name}: format {fmt!r} not supported")
+    if n is None:
+        raise GaussianError(f"{path.name}: no 'element vertex' in header")
+    if n < 0:
+        raise GaussianError(f"{path.name}: element vertex: negative count {n}")
+    if before:
+        raise GaussianError(f"{path.name}: element vertex must come first")
+    return n, props, fmt, header_len

@@ -1,0 +1,431 @@
+"""numba kernels of the fast renderer: projection, tile binning, tile rasterisation (forward and backward).
+
+Numbers: projection in float64, rasterisation in float32 with Gaussian means stored relative to their
+tile's origin (so float32 keeps ~1e-6 px precision at any image size). exp(-power) is a polynomial
+(`_exp_neg`, relative error < 2e-6 on the footprint range) because numba from PyPI has no SVML, so np.exp
+would not vectorise. The backward pass replays the forward decisions with the same float32 expressions.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit, prange
+
+TILE = 16
+TILE_PIX = TILE * TILE
+NFEAT = 12  # per-instance features: mx, my (tile-local px), conic a b c, opacity, pmax, r g b, depth, pad
+
+F0 = np.float32(0.0)
+F1 = np.float32(1.0)
+HALF = np.float32(0.5)
+A_MAX = np.float32(0.99)
+A_MIN = np.float32(1.0 / 255.0)
+T_STOP = np.float32(1e-4)
+P_CLIP = np.float32(6.0)      # the exp argument is clamped here; powers above every cutoff (<= 5.55) anyway
+INV16 = np.float32(1.0 / 16.0)
+E1 = np.float32(1.0)
+E2 = np.float32(1.0 / 2.0)
+E3 = np.float32(1.0 / 3.0)
+E4 = np.float32(1.0 / 4.0)
+E5 = np.float32(1.0 / 5.0)
+E6 = np.float32(1.0 / 6.0)
+E7 = np.float32(1.0 / 7.0)
+
+
+@njit(inline="always")
+def _exp_neg(p):
+    """exp(-p) for float32 p in [0, 6]: exp(-p/16) by a degree-7 Taylor polynomial (|t| <= 0.375, remainder
+    < 1e-8), then squared four times. Relative error < 2e-6 including float32 rounding."""
+    t = -p * INV16
+    e = E1 + t * (E1 + t * E2 * (E1 + t * E3 * (E1 + t * E4 * (E1 + t * E5 * (E1 + t * E6 * (E1 + t * E7))))))
+    e = e * e
+    e = e * e
+    e = e * e
+    return e * e
+
+
+@njit(inline="always")
+def _alpha(dx, dy, ca, cb, cc, op, pmax):
+    """(ok, alpha, G, power) for one pixel and one Gaussian, float32; ok = contributes (before the stop test)."""
+    power = HALF * (ca * dx * dx + cc * dy * dy) + cb * dx * dy
+    g = _exp_neg(min(max(power, F0), P_CLIP))
+    a = min(A_MAX, op * g)
+    ok = (power >= F0) and (power <= pmax) and (a >= A_MIN)
+    return ok, a, g, power
+
+
+# ------------------------------------------------------------------------------------------------ projection
+@njit(cache=True, parallel=True)
+def project_kernel(means, quats, log_scales, opacity_logits, Rw, tw, model, fx, fy, cx, cy,
+                   lxn, lxp, lyn, lyp, width, height, near, far, low_pass, antialiased, opacity_mode,
+                   proj, tiles):
+    """Per Gaussian (float64): proj[i] = (mx, my, conic a, b, c, opacity, pmax, depth);
+    tiles[i] = (tx0, tx1, ty0, ty1, count) with count 0 when culled; tx1 < tx0 means the range wraps
+    around the azimuth seam (equirect). model 0 = pinhole, 1 = equirect."""
+    n = means.shape[0]
+    ntx = (width + TILE - 1) // TILE
+    nty = (height + TILE - 1) // TILE
+    for i in prange(n):
+        tiles[i, 4] = 0
+        mxw, myw, mzw = np.float64(means[i, 0]), np.float64(means[i, 1]), np.float64(means[i, 2])
+        x = Rw[0, 0] * mxw + Rw[0, 1] * myw + Rw[0, 2] * mzw + tw[0]
+        y = Rw[1, 0] * mxw + Rw[1, 1] * myw + Rw[1, 2] * mzw + tw[1]
+        z = Rw[2, 0] * mxw + Rw[2, 1] * myw + Rw[2, 2] * mzw + tw[2]
+        if model == 0:
+            depth = z
+            if not (z >= near and z <= far):
+                continue
+            sx = x / z
+            sy = y / z
+            u = fx * sx + cx
+            v = fy * sy + cy
+            sxc = min(max(sx, -lxn), lxp)
+            syc = min(max(sy, -lyn), lyp)
+            j00 = fx / z
+            j01 = 0.0
+            j02 = -fx * sxc / z
+            j10 = 0.0
+            j11 = fy / z
+            j12 = -fy * syc / z
+        else:
+            r = math.sqrt(x * x + y * y + z * z)
+            depth = r
+            if not (r >= near and r <= far):
+                continue
+            rho = math.sqrt(x * x + z * z)
+            rho_j = max(rho, r * math.sin(math.pi / (2.0 * height)))
+            u = width * (math.atan2(x, z) + math.pi) / (2.0 * math.pi) - 0.5
+            v = height * math.atan2(rho, -y) / math.pi - 0.5
+            ku = width / (2.0 * math.pi)
+            kv = height / math.pi
+            j00 = ku * z / (rho_j * rho_j)
+            j01 = 0.0
+            j02 = -ku * x / (rho_j * rho_j)
+            j10 = -kv * y * x / (r * r * rho_j)
+            j11 = kv * rho / (r * r)
+            j12 = -kv * y * z / (r * r * rho_j)
+        # rotation from the normalised quaternion
+        qw, qx, qy, qz = np.float64(quats[i, 0]), np.float64(quats[i, 1]), np.float64(quats[i, 2]), \
+            np.float64(quats[i, 3])
+        qn = 1.0 / math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
+        qw *= qn
+        qx *= qn
+        qy *= qn
+        qz *= qn
+        r00 = 1 - 2 * (qy * qy + qz * qz)
+        r01 = 2 * (qx * qy - qw * qz)
+        r02 = 2 * (qx * qz + qw * qy)
+        r10 = 2 * (qx * qy + qw * qz)
+        r11 = 1 - 2 * (qx * qx + qz * qz)
+        r12 = 2 * (qy * qz - qw * qx)
+        r20 = 2 * (qx * qz - qw * qy)
+        r21 = 2 * (qy * qz + qw * qx)
+        r22 = 1 - 2 * (qx * qx + qy * qy)
+        s0 = math.exp(np.float64(log_scales[i, 0]))
+        s1 = math.exp(np.float64(log_scales[i, 1]))
+        s2 = math.exp(np.float64(log_scales[i, 2]))
+        # T = J Rw (2x3); A = T R S (2x3); cov2 = A A^T
+        t00 = j00 * Rw[0, 0] + j01 * Rw[1, 0] + j02 * Rw[2, 0]
+        t01 = j00 * Rw[0, 1] + j01 * Rw[1, 1] + j02 * Rw[2, 1]
+        t02 = j00 * Rw[0, 2] + j01 * Rw[1, 2] + j02 * Rw[2, 2]
+        t10 = j10 * Rw[0, 0] + j11 * Rw[1, 0] + j12 * Rw[2, 0]
+        t11 = j10 * Rw[0, 1] + j11 * Rw[1, 1] + j12 * Rw[2, 1]
+        t12 = j10 * Rw[0, 2] + j11 * Rw[1, 2] + j12 * Rw[2, 2]
+        a00 = (t00 * r00 + t01 * r10 + t02 * r20) * s0
+        a01 = (t00 * r01 + t01 * r11 + t02 * r21) * s1
+        a02 = (t00 * r02 + t01 * r12 + t02 * r22) * s2
+        a10 = (t10 * r00 + t11 * r10 + t12 * r20) * s0
+        a11 = (t10 * r01 + t11 * r11 + t12 * r21) * s1
+        a12 = (t10 * r02 + t11 * r12 + t12 * r22) * s2
+        c00 = a00 * a00 + a01 * a01 + a02 * a02
+        c01 = a00 * a10 + a01 * a11 + a02 * a12
+        c11 = a10 * a10 + a11 * a11 + a12 * a12
+        det_raw = c00 * c11 - c01 * c01
+        c00 += low_pass
+        c11 += low_pass
+        det = c00 * c11 - c01 * c01
+        if not (det > 0.0):
+            continue
+        opa = 1.0 / (1.0 + math.exp(-np.float64(opacity_logits[i])))
+        if antialiased:
+            opa *= math.sqrt(max(det_raw / det, 0.0))
+        if not (opa >= 1.0 / 255.0):
+            continue
+        if opacity_mode:
+            ext = min(3.33, math.sqrt(2.0 * math.log(opa * 255.0)))
+        else:
+            ext = 3.0
+        pmax = 0.5 * ext * ext
+        rx = ext * math.sqrt(c00)
+        ry = ext * math.sqrt(c11)
+        v_lo = max(0, int(math.ceil(max(v - ry, -1e9))))
+        v_hi = min(height - 1, int(math.floor(min(v + ry, 1e9))))
+        if v_lo > v_hi:
+            continue
+        u_lo_f = math.ceil(max(u - rx, -1e9))
+        u_hi_f = math.floor(min(u + rx, 1e9))
+        if model == 0:
+            u_lo = max(0, int(u_lo_f))
+            u_hi = min(width - 1, int(u_hi_f))
+            if u_lo > u_hi:
+                continue
+            tx0 = u_lo // TILE
+            tx1 = u_hi // TILE
+            nx = tx1 - tx0 + 1
+        else:
+            if u_hi_f < u_lo_f:
+                continue
+            if u_hi_f - u_lo_f + 1 >= width:
+                tx0 = 0
+                tx1 = ntx - 1
+            else:
+                tx0 = (int(u_lo_f) % width) // TILE
+                tx1 = (int(u_hi_f) % width) // TILE
+                if int(u_lo_f) % width > int(u_hi_f) % width and tx1 >= tx0:
+                    tx0 = 0
+                    tx1 = ntx - 1
+            nx = tx1 - tx0 + 1 if tx1 >= tx0 else ntx - tx0 + tx1 + 1
+        ty0 = v_lo // TILE
+        ty1 = v_hi // TILE
+        proj[i, 0] = u
+        proj[i, 1] = v
+        proj[i, 2] = c11 / det
+        proj[i, 3] = -c01 / det
+        proj[i, 4] = c00 / det
+        proj[i, 5] = opa
+        proj[i, 6] = pmax
+        proj[i, 7] = depth
+        tiles[i, 0] = tx0
+        tiles[i, 1] = tx1
+        tiles[i, 2] = ty0
+        tiles[i, 3] = ty1
+        tiles[i, 4] = nx * (ty1 - ty0 + 1)
+    _ = nty
+
+
+# --------------------------------------------------------------------------------------------------- binning
+@njit(cache=True)
+def bin_kernel(order, tiles, ntx, ntiles):
+    """order: Gaussian ids front to back (culled ones excluded). Returns (tile_start [ntiles+1], ids [n_inst])
+    with each tile's ids in front-to-back order (a stable counting sort by tile)."""
+    counts = np.zeros(ntiles + 1, np.int64)
+    for k in range(order.shape[0]):
+        i = order[k]
+        tx0, tx1, ty0, ty1 = tiles[i, 0], tiles[i, 1], tiles[i, 2], tiles[i, 3]
+        nx = tx1 - tx0 + 1 if tx1 >= tx0 else ntx - tx0 + tx1 + 1
+        for ty in range(ty0, ty1 + 1):
+            for kx in range(nx):
+                tx = (tx0 + kx) % ntx
+                counts[ty * ntx + tx + 1] += 1
+    start = np.cumsum(counts)
+    cursor = start[:-1].copy()
+    ids = np.empty(start[-1], np.int32)
+    for k in range(order.shape[0]):
+        i = order[k]
+        tx0, tx1, ty0, ty1 = tiles[i, 0], tiles[i, 1], tiles[i, 2], tiles[i, 3]
+        nx = tx1 - tx0 + 1 if tx1 >= tx0 else ntx - tx0 + tx1 + 1
+        for ty in range(ty0, ty1 + 1):
+            for kx in range(nx):
+                t = ty * ntx + (tx0 + kx) % ntx
+                ids[cursor[t]] = i
+                cursor[t] += 1
+    return start, ids
+
+
+@njit(cache=True, parallel=True)
+def gather_kernel(start, ids, proj, colours, ntx, width, wrap):
+    """Per-instance float32 features, tile-local means (wrapped to the nearest copy for equirect)."""
+    n_inst = ids.shape[0]
+    feat = np.empty((n_inst, NFEAT), np.float32)
+    ntiles = start.shape[0] - 1
+    for t in prange(ntiles):
+        x0 = (t % ntx) * TILE
+        y0 = (t // ntx) * TILE
+        for j in range(start[t], start[t + 1]):
+            i = ids[j]
+            mx = proj[i, 0] - x0
+            if wrap:
+                mx -= width * np.floor((mx - 7.5) / width + 0.5)  # nearest copy to the tile centre
+            feat[j, 0] = mx
+            feat[j, 1] = proj[i, 1] - y0
+            feat[j, 2] = proj[i, 2]
+            feat[j, 3] = proj[i, 3]
+            feat[j, 4] = proj[i, 4]
+            feat[j, 5] = proj[i, 5]
+            feat[j, 6] = proj[i, 6]
+            feat[j, 7] = colours[i, 0]
+            feat[j, 8] = colours[i, 1]
+            feat[j, 9] = colours[i, 2]
+            feat[j, 10] = proj[i, 7]
+            feat[j, 11] = 0.0
+    return feat
+
+
+# ----------------------------------------------------------------------------------------------- rasterise
+@njit(cache=True, parallel=True)
+def raster_forward(start, feat, ntx, width, height, wrap, bg, rgb, alpha, depth, last, t_final):
+    """Front-to-back blend per tile. bg [H, W, 3] f32. Outputs rgb [H, W, 3], alpha, depth [H, W] f32,
+    last [H, W] int32 (index of the last blended instance, -1 if none), t_final [H, W] f32.
+    wrap (equirect): dx is taken to the nearest copy of the Gaussian across the azimuth seam, per pixel."""
+    ntiles = start.shape[0] - 1
+    wf = np.float32(width)
+    inv_w = np.float32(1.0 / width) if wrap else F0
+    for t in prange(ntiles):
+        x0 = (t % ntx) * TILE
+        y0 = (t // ntx) * TILE
+        px = np.empty(TILE_PIX, np.float32)
+        py = np.empty(TILE_PIX, np.float32)
+        T = np.ones(TILE_PIX, np.float32)
+        c0 = np.zeros(TILE_PIX, np.float32)
+        c1 = np.zeros(TILE_PIX, np.float32)
+        c2 = np.zeros(TILE_PIX, np.float32)
+        dd = np.zeros(TILE_PIX, np.float32)
+        act = np.zeros(TILE_PIX, np.int32)
+        lst = np.full(TILE_PIX, -1, np.int32)
+        nact = 0
+        for p in range(TILE_PIX):
+            px[p] = p % TILE
+            py[p] = p // TILE
+            if x0 + p % TILE < width and y0 + p // TILE < height:
+                act[p] = 1
+                nact += 1
+        for j in range(start[t], start[t + 1]):
+            if nact == 0:
+                break
+            mx = feat[j, 0]
+            my = feat[j, 1]
+            ca = feat[j, 2]
+            cb = feat[j, 3]
+            cc = feat[j, 4]
+            op = feat[j, 5]
+            pm = feat[j, 6]
+            cr = feat[j, 7]
+            cg = feat[j, 8]
+            cbl = feat[j, 9]
+            z = feat[j, 10]
+            nstop = 0
+            for p in range(TILE_PIX):
+                dx = px[p] - mx
+                dx = dx - wf * np.floor(dx * inv_w + HALF)
+                dy = py[p] - my
+                power = HALF * (ca * dx * dx + cc * dy * dy) + cb * dx * dy
+                g = _exp_neg(min(max(power, F0), P_CLIP))
+                a = min(A_MAX, op * g)
+                ok = (power >= F0) & (power <= pm) & (a >= A_MIN) & (act[p] != 0)
+                tb = T[p]
+                tt = tb * (F1 - a)
+                stop = ok & (tt <= T_STOP)
+                blend = ok & (tt > T_STOP)
+                w = a * tb if blend else F0
+                c0[p] += w * cr
+                c1[p] += w * cg
+                c2[p] += w * cbl
+                dd[p] += w * z
+                T[p] = tt if blend else tb
+                lst[p] = j if blend else lst[p]
+                act[p] = 0 if stop else act[p]
+                nstop += 1 if stop else 0
+            nact -= nstop
+        for p in range(TILE_PIX):
+            xx = x0 + p % TILE
+            yy = y0 + p // TILE
+            if xx < width and yy < height:
+                tf = T[p]
+                rgb[yy, xx, 0] = c0[p] + tf * bg[yy, xx, 0]
+                rgb[yy, xx, 1] = c1[p] + tf * bg[yy, xx, 1]
+                rgb[yy, xx, 2] = c2[p] + tf * bg[yy, xx, 2]
+                al = F1 - tf
+                alpha[yy, xx] = al
+                depth[yy, xx] = dd[p] / al if al > F0 else F0
+                last[yy, xx] = lst[p]
+                t_final[yy, xx] = tf
+
+
+@njit(cache=True, parallel=True)
+def raster_backward(start, feat, ntx, width, height, bg, depth, last, t_final, d_rgb, d_alpha, d_depth,
+                    g_inst, g_bg):
+    """Reverse traversal per pixel. g_inst [n_inst, 10] f64 (d mx, d my, d conic a, b, c, d opacity,
+    d r, d g, d b, d depth) is written only by the instance's own tile, so tiles run in parallel.
+    g_bg [H, W, 3] f64 receives dL/dbackground per pixel."""
+    ntiles = start.shape[0] - 1
+    for t in prange(ntiles):
+        x0 = (t % ntx) * TILE
+        y0 = (t // ntx) * TILE
+        s = start[t]
+        for p in range(TILE_PIX):
+            xx = x0 + p % TILE
+            yy = y0 + p // TILE
+            if xx >= width or yy >= height:
+                continue
+            tf = np.float64(t_final[yy, xx])
+            gc0 = np.float64(d_rgb[yy, xx, 0])
+            gc1 = np.float64(d_rgb[yy, xx, 1])
+            gc2 = np.float64(d_rgb[yy, xx, 2])
+            g_bg[yy, xx, 0] = gc0 * tf
+            g_bg[yy, xx, 1] = gc1 * tf
+            g_bg[yy, xx, 2] = gc2 * tf
+            j_last = last[yy, xx]
+            if j_last < s:
+                continue
+            al = 1.0 - tf
+            g_dn = np.float64(d_depth[yy, xx]) / al
+            g_tf = -(np.float64(d_alpha[yy, xx]) - np.float64(d_depth[yy, xx]) * np.float64(depth[yy, xx]) / al)
+            acc0 = np.float64(bg[yy, xx, 0])
+            acc1 = np.float64(bg[yy, xx, 1])
+            acc2 = np.float64(bg[yy, xx, 2])
+            accd = 0.0
+            T = tf
+            pxf = np.float32(p % TILE)
+            pyf = np.float32(p // TILE)
+            for j in range(j_last, s - 1, -1):
+                dx = pxf - feat[j, 0]
+                dy = pyf - feat[j, 1]
+                ok, a32, g32, _power = _alpha(dx, dy, feat[j, 2], feat[j, 3], feat[j, 4], feat[j, 5], feat[j, 6])
+                if not ok:
+                    continue
+                a = np.float64(a32)
+                tb = T / (1.0 - a)
+                w = a * tb
+                cr = np.float64(feat[j, 7])
+                cg = np.float64(feat[j, 8])
+                cb_ = np.float64(feat[j, 9])
+                z = np.float64(feat[j, 10])
+                g_inst[j, 6] += w * gc0
+                g_inst[j, 7] += w * gc1
+                g_inst[j, 8] += w * gc2
+                g_inst[j, 9] += w * g_dn
+                g_a = tb * ((cr - acc0) * gc0 + (cg - acc1) * gc1 + (cb_ - acc2) * gc2 + (z - accd) * g_dn) \
+                    - g_tf * tf / (1.0 - a)
+                acc0 = a * cr + (1.0 - a) * acc0
+                acc1 = a * cg + (1.0 - a) * acc1
+                acc2 = a * cb_ + (1.0 - a) * acc2
+                accd = a * z + (1.0 - a) * accd
+                T = tb
+                op = np.float64(feat[j, 5])
+                g = np.float64(g32)
+                if op * g < 0.99:  # unclamped alpha = o G
+                    g_inst[j, 5] += g * g_a
+                    g_pow = -op * g * g_a
+                    fdx = np.float64(dx)
+                    fdy = np.float64(dy)
+                    ca = np.float64(feat[j, 2])
+                    cb = np.float64(feat[j, 3])
+                    cc = np.float64(feat[j, 4])
+                    g_inst[j, 0] += -g_pow * (ca * fdx + cb * fdy)
+                    g_inst[j, 1] += -g_pow * (cb * fdx + cc * fdy)
+                    g_inst[j, 2] += g_pow * 0.5 * fdx * fdx
+                    g_inst[j, 3] += g_pow * fdx * fdy
+                    g_inst[j, 4] += g_pow * 0.5 * fdy * fdy
+
+
+@njit(cache=True)
+def reduce_kernel(ids, g_inst, n):
+    """Sum instance gradients per Gaussian -> [n, 10] float64."""
+    out = np.zeros((n, g_inst.shape[1]), np.float64)
+    for j in range(ids.shape[0]):
+        i = ids[j]
+        for k in range(g_inst.shape[1]):
+            out[i, k] += g_inst[j, k]
+    return out

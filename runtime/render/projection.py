@@ -1,0 +1,139 @@
+"""Render options and the float64 numpy projection (EWA splatting) used by the reference renderer and by the
+backward pass. The numba projection in kernels.py implements the same formulas for the fast path."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, fields
+
+import numpy as np
+
+from .cameras import EquirectCamera, PinholeCamera
+from .gaussians import Gaussians
+from .sh import sh_colours
+
+ALPHA_MIN = 1.0 / 255.0      # alphas below are skipped; opacities below are culled
+ALPHA_MAX = 0.99             # alpha clamp
+T_MIN = 1e-4                 # stop when T * (1 - alpha) <= T_MIN; that Gaussian is not blended
+TILE = 16                    # tile edge, pixels
+OPACITY_EXTENT_MAX = 3.33    # gsplat's cap on the opacity-aware extent (sigmas)
+
+
+@dataclass(frozen=True)
+class RenderOptions:
+    near: float = 0.01             # metres; Gaussians closer (camera z, or distance for equirect) are culled
+    far: float = 1.0e4             # metres; farther ones are culled
+    low_pass: float = 0.3          # pixels^2 added to the 2D covariance diagonal (3DGS / gsplat eps2d)
+    antialiased: bool = False      # gsplat "antialiased": opacity *= sqrt(det(cov2d) / det(cov2d + low_pass I))
+    radius_mode: str = "3sigma"    # "3sigma": footprint = 3-sigma ellipse; "opacity": gsplat's opacity-aware
+    #                                extent min(3.33, sqrt(2 ln(255 o))) sigmas
+
+    def __post_init__(self) -> None:
+        if not (np.isfinite(self.near) and self.near > 0):
+            raise ValueError(f"near: must be > 0, got {self.near!r}")
+        if not (self.far > self.near):
+            raise ValueError(f"far: must be > near, got {self.far!r}")
+        if not (np.isfinite(self.low_pass) and self.low_pass >= 0):
+            raise ValueError(f"low_pass: must be >= 0, got {self.low_pass!r}")
+        if self.radius_mode not in ("3sigma", "opacity"):
+            raise ValueError(f"radius_mode: must be '3sigma' or 'opacity', got {self.radius_mode!r}")
+
+    @classmethod
+    def from_kwargs(cls, options: dict) -> RenderOptions:
+        names = {f.name for f in fields(cls)}
+        for key in options:
+            if key not in names:
+                raise ValueError(f"{key}: unknown render option (known: {', '.join(sorted(names))})")
+        return cls(**options)
+
+
+def quat_to_rotmat(q: np.ndarray) -> np.ndarray:
+    """q [N, 4] wxyz (any norm) -> R [N, 3, 3] float64."""
+    q = q.astype(np.float64)
+    q = q / np.linalg.norm(q, axis=1, keepdims=True)
+    w, x, y, z = q[:, 0], q[:, 1], q[:, 2], q[:, 3]
+    return np.stack([
+        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
+        np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
+        np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1)], 1)
+
+
+def pinhole_limits(camera: PinholeCamera) -> tuple[float, float, float, float]:
+    """Jacobian clamp on x/z and y/z (as gsplat): the image plus 0.3 * tan(half fov) beyond each edge.
+    Returns (lim_x_neg, lim_x_pos, lim_y_neg, lim_y_pos), all >= 0, x/z is clamped to [-lim_x_neg, lim_x_pos]."""
+    fx, fy, cx, cy = camera.K[0, 0], camera.K[1, 1], camera.K[0, 2], camera.K[1, 2]
+    tan_x, tan_y = 0.5 * camera.width / fx, 0.5 * camera.height / fy
+    return (cx / fx + 0.3 * tan_x, (camera.width - cx) / fx + 0.3 * tan_x,
+            cy / fy + 0.3 * tan_y, (camera.height - cy) / fy + 0.3 * tan_y)
+
+
+def project_reference(g: Gaussians, camera, opts: RenderOptions) -> dict:
+    """Project every Gaussian (float64). Returns arrays over all N (invalid ones flagged):
+    valid [N] bool; mean2d [N, 2] px; conic [N, 3] (a, b, c) with power = 0.5 a dx^2 + b dx dy + 0.5 c dy^2;
+    opacity [N] (after the optional antialiasing compensation); pmax [N] (power cutoff of the footprint);
+    depth [N] (camera z for pinhole, distance for equirect); colour [N, 3]; plus intermediates for backward."""
+    n = len(g)
+    w2c = np.linalg.inv(camera.cam_to_world)
+    Rw, tw = w2c[:3, :3], w2c[:3, 3]
+    means = g.means.astype(np.float64)
+    p = means @ Rw.T + tw                                   # [N, 3] camera frame
+    x, y, z = p[:, 0], p[:, 1], p[:, 2]
+    J = np.zeros((n, 2, 3))
+    clamp = np.zeros((n, 2), bool)
+    if isinstance(camera, PinholeCamera):
+        fx, fy, cx, cy = camera.K[0, 0], camera.K[1, 1], camera.K[0, 2], camera.K[1, 2]
+        depth = z
+        zs = np.where(z > 0, z, 1.0)
+        lxn, lxp, lyn, lyp = pinhole_limits(camera)
+        sx, sy = x / zs, y / zs
+        sxc, syc = np.clip(sx, -lxn, lxp), np.clip(sy, -lyn, lyp)
+        clamp[:, 0], clamp[:, 1] = sxc != sx, syc != sy
+        mean2d = np.stack([fx * sx + cx, fy * sy + cy], 1)
+        J[:, 0, 0] = fx / zs
+        J[:, 0, 2] = -fx * sxc / zs
+        J[:, 1, 1] = fy / zs
+        J[:, 1, 2] = -fy * syc / zs
+    elif isinstance(camera, EquirectCamera):
+        W, H = camera.width, camera.height
+        r = np.linalg.norm(p, axis=1)
+        depth = r
+        rho = np.hypot(x, z)
+        rs = np.where(r > 0, r, 1.0)
+        rho_j = np.maximum(rho, rs * np.sin(np.pi / (2 * H)))  # Jacobian clamp near the poles
+        phi, theta = np.arctan2(x, z), np.arctan2(rho, -y)
+        mean2d = np.stack([W * (phi + np.pi) / (2 * np.pi) - 0.5, H * theta / np.pi - 0.5], 1)
+        ku, kv = W / (2 * np.pi), H / np.pi
+        J[:, 0, 0] = ku * z / rho_j ** 2
+        J[:, 0, 2] = -ku * x / rho_j ** 2
+        J[:, 1, 0] = -kv * y * x / (rs ** 2 * rho_j)
+        J[:, 1, 1] = kv * rho / rs ** 2
+        J[:, 1, 2] = -kv * y * z / (rs ** 2 * rho_j)
+    else:
+        raise TypeError(f"camera: expected PinholeCamera or EquirectCamera, got {type(camera).__name__}")
+
+    R = quat_to_rotmat(g.quats)
+    s = np.exp(g.log_scales.astype(np.float64))
+    M = R * s[:, None, :]                                   # R S
+    cov3 = M @ M.transpose(0, 2, 1)
+    T = J @ Rw[None]                                        # [N, 2, 3]
+    cov2_raw = T @ cov3 @ T.transpose(0, 2, 1)
+    cov2 = cov2_raw + opts.low_pass * np.eye(2)[None]
+    det = cov2[:, 0, 0] * cov2[:, 1, 1] - cov2[:, 0, 1] ** 2
+    dets = np.where(det > 0, det, 1.0)
+    conic = np.stack([cov2[:, 1, 1] / dets, -cov2[:, 0, 1] / dets, cov2[:, 0, 0] / dets], 1)
+    opa = 1.0 / (1.0 + np.exp(-g.opacity_logits.astype(np.float64)))
+    if opts.antialiased:
+        det_raw = cov2_raw[:, 0, 0] * cov2_raw[:, 1, 1] - cov2_raw[:, 0, 1] ** 2
+        comp = np.sqrt(np.maximum(det_raw / dets, 0.0))
+    else:
+        comp = np.ones(n)
+    opa_eff = opa * comp
+    if opts.radius_mode == "3sigma":
+        pmax = np.full(n, 4.5)
+    else:
+        ext = np.minimum(OPACITY_EXTENT_MAX, np.sqrt(2 * np.log(np.maximum(opa_eff, ALPHA_MIN) / ALPHA_MIN)))
+        pmax = 0.5 * ext * ext
+    valid = (depth >= opts.near) & (depth <= opts.far) & (det > 0) & (opa_eff >= ALPHA_MIN)
+    colour, unclamped = sh_colours(g.means, g.sh, camera.cam_to_world[:3, 3])
+    return dict(valid=valid, mean2d=mean2d, conic=conic, opacity=opa_eff, pmax=pmax, depth=depth,
+                colour=colour, colour_unclamped=unclamped, p_cam=p, J=J, clamp=clamp, Rw=Rw, R=R, s=s, M=M,
+                cov3=cov3, cov2_raw=cov2_raw, cov2=cov2, det=det, opa=opa, comp=comp)

@@ -1,0 +1,42 @@
+"""Scene builders shared by the renderer tests."""
+
+from __future__ import annotations
+
+import numpy as np
+from xyzcyl.runtime.render import Gaussians, PinholeCamera
+
+
+def random_gaussians(rng, n, lo=(-3, -2, 2), hi=(3, 2, 10), scale=(0.05, 0.5), opacity=(-3.0, 3.0), degree=0,
+                     sh_sigma=0.5) -> Gaussians:
+    """float32 values (so float32 and float64 renders see exactly the same parameters)."""
+    means = rng.uniform(lo, hi, size=(n, 3))
+    k = (degree + 1) ** 2
+    return Gaussians(means.astype(np.float32), rng.normal(size=(n, 4)).astype(np.float32),
+                     np.log(rng.uniform(*scale, size=(n, 3))).astype(np.float32),
+                     rng.uniform(*opacity, size=n).astype(np.float32),
+                     (rng.normal(size=(n, k, 3)) * sh_sigma).astype(np.float32))
+
+
+def look_at(eye, target, up=(0, 0, 1)) -> np.ndarray:
+    """cam_to_world for an OpenCV camera at eye looking at target (world z up)."""
+    eye, target, up = (np.asarray(a, float) for a in (eye, target, up))
+    f = target - eye
+    f /= np.linalg.norm(f)
+    r = np.cross(f, up)
+    r /= np.linalg.norm(r)
+    d = np.cross(f, r)
+    m = np.eye(4)
+    m[:3, 0], m[:3, 1], m[:3, 2], m[:3, 3] = r, d, f, eye
+    return m
+
+
+def pinhole(width=83, height=61, f=60.0, cx=None, cy=None, c2w=None) -> PinholeCamera:
+    cx = (width - 1) / 2 + 0.3 if cx is None else cx
+    cy = (height - 1) / 2 - 0.2 if cy is None else cy
+    K = np.array([[f, 0, cx], [0, f * 1.05, cy], [0, 0, 1.0]])
+    return PinholeCamera(K, np.eye(4) if c2w is None else c2w, width, height)
+
+
+def concat(*gs: Gaussians) -> Gaussians:
+    return Gaussians(*(np.concatenate([getattr(g, f) for g in gs]) for f in
+                       ("means", "quats", "log_scales", "opacity_logits", "sh")))

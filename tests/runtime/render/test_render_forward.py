@@ -1,0 +1,161 @@
+"""Fast renderer vs the per-pixel float64 reference, and analytic checks of the conventions."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from render_scenes import concat, look_at, pinhole, random_gaussians
+from xyzcyl.runtime.render import (
+    EquirectCamera,
+    Gaussians,
+    PinholeCamera,
+    RenderOptions,
+    render,
+    render_reference,
+)
+
+# 1e-4: the fast path rasterises in float32 with a polynomial exp (relative error < 2e-6) and sums up to a
+# few hundred float32 terms per pixel; the float64 reference differs by ~1e-6 typically. 1e-4 leaves room
+# for accumulation but catches any real semantic difference (a single missed Gaussian is > 1/255 * 1e-2).
+TOL = 1e-4
+# depth is sum(w z)/alpha in metres: the same relative float32 error, scaled by the depth (up to ~40 m here).
+DEPTH_REL = 1e-5
+
+
+def _compare(g, cam, background=None, **options):
+    fast = render(g, cam, background, **options)
+    ref = render_reference(g, cam, background, **options)
+    assert np.abs(fast.rgb - ref.rgb).max() <= TOL
+    assert np.abs(fast.alpha - ref.alpha).max() <= TOL
+    assert np.all(np.abs(fast.depth - ref.depth) <= TOL + DEPTH_REL * ref.depth)
+    # where the reference saw nothing, the fast path must also see exactly nothing
+    assert np.array_equal(fast.alpha == 0, ref.alpha == 0)
+    return fast, ref
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_random_scene_matches_reference(seed):
+    rng = np.random.default_rng(seed)
+    g = random_gaussians(rng, 400, degree=seed * 3)
+    fast, _ = _compare(g, pinhole(), background=(0.2, 0.3, 0.4))
+    assert 0.3 < fast.alpha.mean() < 1.0  # the scene is not trivially empty
+
+
+def test_rotated_camera_sh3_and_background_image():
+    rng = np.random.default_rng(2)
+    g = random_gaussians(rng, 300, lo=(-4, -4, -1), hi=(4, 4, 2), degree=3)
+    cam = pinhole(70, 50, f=45.0, c2w=look_at((-9.0, 1.0, 2.5), (0.0, 0.0, 0.0)))
+    bg = rng.uniform(0, 1, size=(50, 70, 3)).astype(np.float32)
+    _compare(g, cam, background=bg)
+
+
+@pytest.mark.parametrize("options", [dict(antialiased=True), dict(radius_mode="opacity"),
+                                     dict(near=3.0, far=7.0, low_pass=0.1)])
+def test_options_match_reference(options):
+    g = random_gaussians(np.random.default_rng(3), 300)
+    _compare(g, pinhole(), (1.0, 1.0, 1.0), **options)
+
+
+def test_structured_scene_tile_borders_behind_huge_tiny():
+    rng = np.random.default_rng(4)
+    cam = pinhole(83, 61, f=60.0, cx=41.0, cy=30.0)
+    f, fy = 60.0, 63.0
+    # means exactly on tile borders (pixel 15.5, 16, 31.5 ... in x and y) at several depths
+    uv = np.array([(u, v) for u in (15.5, 16.0, 31.5, 47.75, 64.0) for v in (15.5, 16.0, 31.9, 47.5)])
+    z = rng.uniform(3, 8, size=len(uv))
+    borders = random_gaussians(rng, len(uv), scale=(0.02, 0.3))
+    means = np.stack([(uv[:, 0] - 41.0) * z / f, (uv[:, 1] - 30.0) * z / fy, z], 1).astype(np.float32)
+    borders = Gaussians(means, borders.quats, borders.log_scales, borders.opacity_logits, borders.sh)
+    behind = random_gaussians(rng, 30, lo=(-3, -2, -6), hi=(3, 2, 0.005))     # behind / inside near plane
+    huge = random_gaussians(rng, 3, lo=(-1, -1, 4), hi=(1, 1, 6), scale=(5.0, 30.0), opacity=(-2, -1))
+    tiny = random_gaussians(rng, 50, scale=(1e-5, 1e-3), opacity=(2, 4))
+    edge = random_gaussians(rng, 40, lo=(-12, -8, 2), hi=(12, 8, 6))          # many straddle the image edge
+    _compare(concat(borders, behind, huge, tiny, edge), cam, (0.1, 0.5, 0.9))
+
+
+def test_no_gaussians_gives_the_background():
+    cam = pinhole()
+    bg = np.random.default_rng(5).uniform(size=(61, 83, 3)).astype(np.float32)
+    for g in (Gaussians.empty(), random_gaussians(np.random.default_rng(6), 20, lo=(-3, -2, -9), hi=(3, 2, -1))):
+        res = render(g, cam, bg)
+        assert np.array_equal(res.rgb, bg) and not res.alpha.any() and not res.depth.any()
+
+
+def test_opaque_wall_stops_early_and_saturates():
+    # 40 nearly opaque large Gaussians stacked: transmittance hits the 1e-4 stop; alpha = 1 - T, T > 1e-4.
+    # Opacities stay below the 0.99 clamp: clamped alphas make T = 0.01^k land exactly on the 1e-4 stop,
+    # where float32 and float64 legitimately decide differently.
+    rng = np.random.default_rng(7)
+    g = random_gaussians(rng, 40, lo=(-0.2, -0.2, 3), hi=(0.2, 0.2, 6), scale=(1.0, 2.0), opacity=(2.5, 3.5))
+    fast, _ = _compare(g, pinhole(40, 30, f=30.0))
+    assert fast.alpha[10:20, 15:25].min() > 0.99 and fast.alpha.max() < 1.0 - 1e-4 + 1e-7  # T stays > 1e-4
+
+
+def test_single_gaussian_closed_form_and_pixel_convention():
+    # isotropic Gaussian of sigma s at camera z = d on the optical axis: footprint centred at (cx, cy) exactly
+    # (OpenCV convention: pixel (u, v) is evaluated at x = u), alpha = o exp(-r^2 / (2 (sigma_px^2 + 0.3))).
+    s, d, f, o = 0.1, 5.0, 50.0, 0.8
+    g = Gaussians(np.array([[0, 0, d]], np.float32), np.array([[1, 0, 0, 0]], np.float32),
+                  np.full((1, 3), np.log(s), np.float32), np.array([np.log(o / (1 - o))], np.float32),
+                  np.zeros((1, 1, 3), np.float32))
+    cam = PinholeCamera(np.array([[f, 0, 20.0], [0, f, 13.0], [0, 0, 1]]), np.eye(4), 41, 27)
+    var = (f * s / d) ** 2 + 0.3
+    u, v = np.meshgrid(np.arange(41), np.arange(27))
+    expect = o * np.exp(-((u - 20.0) ** 2 + (v - 13.0) ** 2) / (2 * var))
+    expect = np.where((expect >= 1 / 255) & (((u - 20.0) ** 2 + (v - 13.0) ** 2) / var <= 9), expect, 0)
+    for res in (render(g, cam), render_reference(g, cam)):
+        assert np.abs(res.alpha - expect).max() < 1e-5  # float32 evaluation of the same closed form
+        assert np.unravel_index(np.argmax(res.alpha), res.alpha.shape) == (13, 20)
+        assert np.allclose(res.depth[res.alpha > 0], d, atol=1e-5)
+        assert np.allclose(res.rgb, 0.5 * res.alpha[..., None], atol=1e-5)  # dc = 0 -> colour 0.5
+
+
+def test_equirect_matches_reference_across_the_seam_and_poles():
+    rng = np.random.default_rng(8)
+    all_round = random_gaussians(rng, 300, lo=(-8, -3, -8), hi=(8, 3, 8), scale=(0.1, 0.8))
+    seam = random_gaussians(rng, 20, lo=(-0.3, -1, -6), hi=(0.3, 1, -3), scale=(0.2, 0.5))  # straight behind
+    poles = random_gaussians(rng, 10, lo=(-0.2, -6, -0.2), hi=(0.2, 6, 0.2), scale=(0.1, 0.4))
+    g = concat(all_round, seam, poles)
+    cam = EquirectCamera(np.eye(4), 96, 48)
+    _compare(g, cam, (0.0, 0.2, 0.1))
+    # a Gaussian straight behind the camera shows on both the first and the last columns
+    behind = Gaussians(np.array([[0, 0, -4]], np.float32), np.array([[1, 0, 0, 0]], np.float32),
+                       np.full((1, 3), np.log(0.3), np.float32), np.array([2.0], np.float32),
+                       np.zeros((1, 1, 3), np.float32))
+    res = render(behind, cam)
+    assert res.alpha[24, 0] > 0.5 and np.isclose(res.alpha[24, 0], res.alpha[24, 95], atol=1e-5)
+
+
+def test_equirect_pixel_convention():
+    # forward (+z) -> u = (W-1)/2, right (+x) -> u = 3W/4 - 0.5, up (-y) -> top rows, horizon -> v = (H-1)/2
+    W, H = 64, 32
+    cam = EquirectCamera(np.eye(4), W, H)
+    pts = {"fwd": ((0, 0, 5), (H / 2 - 0.5, W / 2 - 0.5)), "right": ((5, 0, 0), (H / 2 - 0.5, 3 * W / 4 - 0.5))}
+    for name, (p, (v0, u0)) in pts.items():
+        g = Gaussians(np.array([p], np.float32), np.array([[1, 0, 0, 0]], np.float32),
+                      np.full((1, 3), np.log(0.02), np.float32), np.array([3.0], np.float32),
+                      np.zeros((1, 1, 3), np.float32))
+        a = render(g, cam).alpha
+        vs, us = np.nonzero(a > 0)
+        w = a[vs, us]
+        assert abs((w * us).sum() / w.sum() - u0) < 1e-3, name  # symmetric footprint centred on u0
+        assert abs((w * vs).sum() / w.sum() - v0) < 1e-3, name
+    up = Gaussians(np.array([[0.5, -5, 0]], np.float32), np.array([[1, 0, 0, 0]], np.float32),
+                   np.full((1, 3), np.log(0.2), np.float32), np.array([3.0], np.float32),
+                   np.zeros((1, 1, 3), np.float32))
+    assert render(up, cam).alpha[:3].sum() > 0 and render(up, cam).alpha[H // 2:].sum() == 0
+
+
+def test_bad_inputs_name_the_field():
+    g = random_gaussians(np.random.default_rng(9), 5)
+    with pytest.raises(ValueError, match="background"):
+        render(g, pinhole(), background=np.zeros((2, 2, 3)))
+    with pytest.raises(ValueError, match="radius_mode"):
+        render(g, pinhole(), radius_mode="5sigma")
+    with pytest.raises(ValueError, match="bogus"):
+        render(g, pinhole(), bogus=1)
+    with pytest.raises(ValueError, match="K"):
+        PinholeCamera(np.eye(3) * -1, np.eye(4), 10, 10)
+    with pytest.raises(ValueError, match="cam_to_world"):
+        PinholeCamera(np.eye(3), np.diag([1, 1, 2, 1.0]), 10, 10)
+    assert RenderOptions().near == 0.01

@@ -1,0 +1,136 @@
+"""PLY (INRIA 3DGS layout) and .splat I/O."""
+
+from __future__ import annotations
+
+import struct
+
+import numpy as np
+import pytest
+from plyfile import PlyData
+from render_scenes import pinhole, random_gaussians
+from xyzcyl.runtime.render import GaussianError, Gaussians, render
+from xyzcyl.runtime.render.gaussians import SH_C0
+
+
+@pytest.mark.parametrize("degree", [0, 1, 2, 3])
+def test_ply_round_trip_renders_identically(tmp_path, degree):
+    g = random_gaussians(np.random.default_rng(degree), 200, degree=degree)
+    path = tmp_path / "g.ply"
+    g.save_ply(path)
+    h = Gaussians.load_ply(path)
+    assert h.sh_degree == degree
+    for f in ("means", "quats", "log_scales", "opacity_logits", "sh"):
+        assert np.array_equal(getattr(g, f), getattr(h, f)), f
+    a, b = render(g, pinhole(), (0.1, 0.2, 0.3)), render(h, pinhole(), (0.1, 0.2, 0.3))
+    assert np.array_equal(a.rgb, b.rgb) and np.array_equal(a.depth, b.depth)
+
+
+def test_ply_layout_is_inria(tmp_path):
+    g = random_gaussians(np.random.default_rng(1), 7, degree=2)
+    g.save_ply(tmp_path / "g.ply")
+    ply = PlyData.read(str(tmp_path / "g.ply"))
+    assert ply.header.splitlines()[1] == "format binary_little_endian 1.0"
+    v = ply["vertex"]
+    names = [p.name for p in v.properties]
+    assert names == (["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"]
+                     + [f"f_rest_{i}" for i in range(24)]
+                     + ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"])
+    assert all(p.val_dtype in ("f4", "<f4", "float32") or str(p.val_dtype).endswith("f4") for p in v.properties)
+    # channel-major f_rest: index c * 8 + (k - 1) holds sh[:, k, c]
+    assert np.array_equal(v["f_rest_9"], g.sh[:, 2, 1])      # c = 1, k = 2
+    assert np.array_equal(v["f_rest_23"], g.sh[:, 8, 2])     # c = 2, k = 8
+    assert np.array_equal(v["rot_0"], g.quats[:, 0])         # w first
+
+
+def test_ply_properties_by_name_in_any_order(tmp_path):
+    rng = np.random.default_rng(2)
+    n = 5
+    names = ["rot_3", "scale_2", "opacity", "f_dc_2", "z", "rot_0", "f_dc_0", "x", "scale_0", "rot_1", "y",
+             "scale_1", "f_dc_1", "rot_2", "extra_field"]
+    data = np.zeros(n, dtype=[(nm, "<f4") for nm in names])
+    for nm in names:
+        data[nm] = rng.normal(size=n)
+    from plyfile import PlyElement
+    PlyData([PlyElement.describe(data, "vertex")]).write(str(tmp_path / "p.ply"))
+    g = Gaussians.load_ply(tmp_path / "p.ply")
+    assert np.array_equal(g.means[:, 1], data["y"]) and np.array_equal(g.quats[:, 3], data["rot_3"])
+    assert g.sh_degree == 0 and np.array_equal(g.sh[:, 0, 2], data["f_dc_2"])
+
+
+def _write(tmp_path, g, name="g.ply"):
+    path = tmp_path / name
+    g.save_ply(path)
+    return path
+
+
+def test_ply_refusals(tmp_path):
+    g = random_gaussians(np.random.default_rng(3), 50, degree=1)
+    path = _write(tmp_path, g)
+    raw = path.read_bytes()
+    # truncated body
+    (tmp_path / "t.ply").write_bytes(raw[:-5])
+    with pytest.raises(GaussianError, match="truncated"):
+        Gaussians.load_ply(tmp_path / "t.ply")
+    # header claiming more points than allowed: refused before reading data (the body here is tiny)
+    big = raw.replace(b"element vertex 50", b"element vertex 900000000", 1)
+    (tmp_path / "b.ply").write_bytes(big)
+    with pytest.raises(GaussianError, match="more than the maximum"):
+        Gaussians.load_ply(tmp_path / "b.ply")
+    with pytest.raises(GaussianError, match="more than the maximum 10"):
+        Gaussians.load_ply(path, max_points=10)
+    # non-finite values, counted
+    means = g.means.copy()
+    means[3, 1] = np.nan
+    means[7, 0] = np.inf
+    bad = Gaussians.__new__(Gaussians)
+    for f in ("quats", "log_scales", "opacity_logits", "sh"):
+        object.__setattr__(bad, f, getattr(g, f))
+    object.__setattr__(bad, "means", means)
+    Gaussians.save_ply(bad, tmp_path / "n.ply")
+    with pytest.raises(GaussianError, match="means: 2 non-finite"):
+        Gaussians.load_ply(tmp_path / "n.ply")
+    # not a PLY; an f_rest count that is no SH degree
+    (tmp_path / "x.ply").write_bytes(b"hello")
+    with pytest.raises(GaussianError, match="not a PLY"):
+        Gaussians.load_ply(tmp_path / "x.ply")
+    odd = raw.replace(b"property float f_rest_8\n", b"", 1)
+    odd = odd.replace(b"element vertex 50", b"element vertex 0", 1)
+    head = odd[: odd.index(b"end_header\n") + len(b"end_header\n")]
+    (tmp_path / "o.ply").write_bytes(head)
+    with pytest.raises(GaussianError, match="f_rest"):
+        Gaussians.load_ply(tmp_path / "o.ply")
+
+
+def test_gaussians_validation_names_the_field():
+    g = random_gaussians(np.random.default_rng(4), 4)
+    with pytest.raises(GaussianError, match="quats: expected shape"):
+        Gaussians(g.means, g.quats[:, :3], g.log_scales, g.opacity_logits, g.sh)
+    with pytest.raises(GaussianError, match="sh: expected shape"):
+        Gaussians(g.means, g.quats, g.log_scales, g.opacity_logits, np.zeros((4, 5, 3)))
+    ls = g.log_scales.copy()
+    ls[0, 0] = np.nan
+    with pytest.raises(GaussianError, match="log_scales: 1 non-finite"):
+        Gaussians(g.means, g.quats, ls, g.opacity_logits, g.sh)
+    with pytest.raises(GaussianError, match="quats: 1 quaternions with zero norm"):
+        Gaussians(g.means, np.vstack([np.zeros((1, 4)), g.quats[1:]]), g.log_scales, g.opacity_logits, g.sh)
+
+
+def test_splat_layout(tmp_path):
+    g = random_gaussians(np.random.default_rng(5), 30, degree=1)
+    g.save_splat(tmp_path / "g.splat")
+    raw = (tmp_path / "g.splat").read_bytes()
+    assert len(raw) == 32 * 30
+    opa = 1 / (1 + np.exp(-g.opacity_logits.astype(np.float64)))
+    key = np.exp(g.log_scales.astype(np.float64).sum(1)) * opa
+    first = int(np.argmax(key))                                  # largest splat first
+    rec = struct.unpack("<3f3f4B4B", raw[:32])
+    assert np.allclose(rec[0:3], g.means[first]) and np.allclose(rec[3:6], np.exp(g.log_scales[first]), rtol=1e-6)
+    rgb = np.clip((0.5 + SH_C0 * g.sh[first, 0].astype(np.float64)) * 255, 0, 255).astype(np.uint8)
+    assert rec[6:9] == tuple(rgb) and rec[9] == int(opa[first] * 255)
+    q = g.quats[first].astype(np.float64) / np.linalg.norm(g.quats[first])
+    assert rec[10:14] == tuple(np.clip(q * 128 + 128, 0, 255).astype(np.uint8))
+    # every row sorted by volume * opacity, descending (antimatter15's convert.py order)
+    rows = np.frombuffer(raw, dtype=np.float32).reshape(30, 8)
+    order = np.argsort(-key, kind="stable")
+    assert np.array_equal(rows[:, 0:3], g.means[order])
+    assert np.all(np.diff(key[order]) <= 0)
