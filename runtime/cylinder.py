@@ -15,8 +15,9 @@ Cylinder geometry (docs/conventions.md states all of it):
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Any, Literal, Mapping
+from typing import Any, Literal
 
 import numpy as np
 
@@ -88,7 +89,7 @@ class CylinderSpec:
 
     @classmethod
     def from_rig(cls, rig: Rig, z_range: tuple[float, float] = DEFAULT_Z_RANGE, rho: float = 0.9,
-                 dh: float = 0.0, height: int = 224, width: int = 1024) -> "CylinderSpec":
+                 dh: float = 0.0, height: int = 224, width: int = 1024) -> CylinderSpec:
         """The paper's construction: centre = mean camera position + (0, 0, dh), R_u = (Z_u/2)/tan(rho f_min/2).
 
         f_min = min over cameras of the vertical FoV (pinhole 2 atan(H / 2 fy); equirectangular pi).
@@ -115,7 +116,7 @@ class CylinderSpec:
                    rho=rho, dh=dh)
 
     @classmethod
-    def from_preset(cls, rig: Rig, dataset: str, module: str = "occupancy", **kwargs: Any) -> "CylinderSpec":
+    def from_preset(cls, rig: Rig, dataset: str, module: str = "occupancy", **kwargs: Any) -> CylinderSpec:
         """from_rig with the paper's (rho, dh) for `dataset` and `module` (see PRESETS)."""
         if dataset not in PRESETS:
             raise CylinderError(f"preset must be one of {sorted(PRESETS)} (got {dataset!r})")
@@ -164,7 +165,7 @@ class CylinderSpec:
                 "height": self.height, "width": self.width, "rho": self.rho, "dh": self.dh}
 
     @classmethod
-    def from_dict(cls, d: Mapping[str, Any]) -> "CylinderSpec":
+    def from_dict(cls, d: Mapping[str, Any]) -> CylinderSpec:
         missing = [k for k in ("centre", "radius", "z_min", "z_max", "height", "width") if k not in d]
         if missing:
             raise CylinderError(f"{missing[0]} is missing from the cylinder spec")

@@ -15,10 +15,11 @@ from __future__ import annotations
 import json
 import math
 import os
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from types import MappingProxyType
-from typing import Any, Literal, Mapping, Sequence
+from typing import Any, Literal
 
 import numpy as np
 
@@ -188,7 +189,7 @@ class Camera:
         d /= np.linalg.norm(d, axis=-1, keepdims=True)
         return np.broadcast_to(self.position, d.shape).copy(), d
 
-    def replace(self, **changes: Any) -> "Camera":
+    def replace(self, **changes: Any) -> Camera:
         """A copy with some fields changed (validated again)."""
         kw = {k: getattr(self, k) for k in self.__dataclass_fields__}
         kw.update(changes)
@@ -196,7 +197,7 @@ class Camera:
 
     # -- JSON -----------------------------------------------------------------------------------------------
     @classmethod
-    def from_dict(cls, d: Mapping[str, Any], index: int | None = None) -> "Camera":
+    def from_dict(cls, d: Mapping[str, Any], index: int | None = None) -> Camera:
         """Parse one `cameras[]` entry of rig.json (see docs/conventions.md). Unknown keys go to `extra`."""
         if not isinstance(d, Mapping):
             raise RigError(f"{_where(None, index)}: entry must be an object (got {type(d).__name__})")
@@ -279,7 +280,7 @@ class Rig:
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any], root: str | os.PathLike | None = None,
-                  check_images: bool = False) -> "Rig":
+                  check_images: bool = False) -> Rig:
         if not isinstance(d, Mapping):
             raise RigError(f"rig: top level must be an object (got {type(d).__name__})")
         cams = d.get("cameras")
@@ -374,6 +375,16 @@ def save_rig(rig: Rig, path: str | os.PathLike) -> None:
 
 def image_size(path: Path, what: str) -> tuple[int, int]:
     """(width, height) from the file header (OpenImageIO; no pixel decoding)."""
+    inp = _open_image(path, what)
+    try:
+        spec = inp.spec()
+        return int(spec.width), int(spec.height)
+    finally:
+        inp.close()
+
+
+def _open_image(path: Path, what: str):
+    """An OpenImageIO ImageInput for `path` (caller closes it); RigError naming `what` if absent/unreadable."""
     import OpenImageIO as oiio
 
     if not Path(path).is_file():
@@ -381,11 +392,7 @@ def image_size(path: Path, what: str) -> tuple[int, int]:
     inp = oiio.ImageInput.open(str(path))
     if inp is None:
         raise RigError(f"{what}: cannot read {str(path)!r} ({oiio.geterror()})")
-    try:
-        spec = inp.spec()
-        return int(spec.width), int(spec.height)
-    finally:
-        inp.close()
+    return inp
 
 
 def read_image(path: Path, what: str, channels: int = 3, scale: bool = True) -> np.ndarray:
@@ -396,11 +403,7 @@ def read_image(path: Path, what: str, channels: int = 3, scale: bool = True) -> 
     """
     import OpenImageIO as oiio
 
-    if not Path(path).is_file():
-        raise RigError(f"{what}: file {str(path)!r} does not exist")
-    inp = oiio.ImageInput.open(str(path))
-    if inp is None:
-        raise RigError(f"{what}: cannot read {str(path)!r} ({oiio.geterror()})")
+    inp = _open_image(path, what)
     try:
         spec = inp.spec()
         native = inp.read_image(0, 0, 0, spec.nchannels)  # native type: integers stay exact

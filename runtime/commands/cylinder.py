@@ -11,7 +11,16 @@ from pathlib import Path
 
 import numpy as np
 
-from ..cylinder import DEFAULT_Z_RANGE, MODULES, PRESETS, CylinderError, CylinderSpec, coverage, overlay, project_rig
+from ..cylinder import (
+    DEFAULT_Z_RANGE,
+    MODULES,
+    PRESETS,
+    CylinderError,
+    CylinderSpec,
+    coverage,
+    overlay,
+    project_rig,
+)
 from ..rig import RigError, load_rig
 
 

@@ -7,7 +7,6 @@ import math
 
 import numpy as np
 import pytest
-
 from xyzcyl.runtime.convert import (
     ConversionError,
     camera_from_carla,

@@ -6,7 +6,6 @@ import math
 
 import numpy as np
 import pytest
-
 from xyzcyl.runtime.cylinder import (
     PRESETS,
     CylinderError,
@@ -105,7 +104,7 @@ def test_cylinder_camera_round_trip():
     n_valid = 0
     for cam in rig.cameras:
         grid, valid = camera_sampling_grid(spec, cam)
-        uv, z, _ = cam.project(pts[valid])
+        uv, _, _ = cam.project(pts[valid])
         # the grid is the align_corners=False normalisation of uv
         np.testing.assert_allclose(grid[valid][:, 0], (2 * uv[:, 0] + 1) / cam.width - 1, atol=1e-6)
         o, d = cam.pixel_rays(uv)
@@ -255,7 +254,7 @@ def test_ray_cylinder_far_root():
     np.testing.assert_allclose(uv[:, 0], -np.arctan2(rel[:, 1], rel[:, 0]) / np.pi, atol=1e-12)
     np.testing.assert_allclose(uv[:, 1], -rel[:, 2] / spec.Z_u, atol=1e-12)
     _, uv2 = ray_cylinder_intersection(o, d, spec, paper_v=False)
-    i, j = spec.point_to_pixel(p)
+    i, _ = spec.point_to_pixel(p)
     np.testing.assert_allclose(uv2[:, 1], (2 * i + 1) / spec.height - 1, atol=1e-9)
     # from outside, a ray through the cylinder hits twice: the far root is the one further along the ray
     o_out = spec.centre + [-50.0, 0.0, 0.0]

@@ -9,8 +9,7 @@ import math
 import cv2
 import numpy as np
 import pytest
-
-from xyzcyl.runtime.rig import Camera, Rig, RigError, load_rig, ring_rig, save_rig
+from xyzcyl.runtime.rig import Rig, RigError, load_rig, ring_rig, save_rig
 
 
 def _cam_dict(name="CAM_A", w=64, h=48, image=None):
@@ -172,7 +171,7 @@ def test_pixel_rays_invert_project(model):
     assert ok.all()
     # 1e-4 px for the distorted case: cv2.undistortPoints is iterative (default 5 iterations); 1e-8 otherwise.
     np.testing.assert_allclose(back, uv, atol=1e-4 if model == "distorted" else 1e-8)
-    full_o, full_d = cam.pixel_rays()
+    _, full_d = cam.pixel_rays()
     assert full_d.shape == (cam.height, cam.width, 3)
 
 
@@ -204,3 +203,32 @@ def test_ring_rig_geometry():
     np.testing.assert_allclose(rig.cameras[1].position, [0, -0.5, 1.5], atol=1e-12)
     for cam in rig.cameras:
         np.testing.assert_allclose(cam.rotation[:, 1], [0, 0, -1], atol=1e-12)  # image down = ego down
+
+
+def test_image_formats_and_depth(tmp_path):
+    import OpenImageIO as oiio
+
+    d = _rig_dict(1)
+    d["cameras"][0].update(image="a16.png", depth="d.exr")
+    img16 = np.zeros((48, 64, 3), np.uint16)
+    img16[..., 2] = 65535  # blue
+    out = oiio.ImageOutput.create(str(tmp_path / "a16.png"))
+    out.open(str(tmp_path / "a16.png"), oiio.ImageSpec(64, 48, 3, "uint16"))
+    out.write_image(img16)
+    out.close()
+    depth = np.linspace(1, 80, 48 * 64, dtype=np.float32).reshape(48, 64)
+    out = oiio.ImageOutput.create(str(tmp_path / "d.exr"))
+    out.open(str(tmp_path / "d.exr"), oiio.ImageSpec(64, 48, 1, "float"))
+    out.write_image(depth[..., None])  # [H, W, 1]: OIIO misreads a 2-D array
+    out.close()
+    (tmp_path / "rig.json").write_text(json.dumps(d))
+    rig = load_rig(tmp_path / "rig.json")
+    np.testing.assert_array_equal(rig.load_images()[0][5, 5], [0, 0, 1])
+    np.testing.assert_array_equal(rig.load_depths()[0], depth)  # EXR float32 is lossless
+    depth[3, 3] = np.nan
+    out = oiio.ImageOutput.create(str(tmp_path / "d.exr"))
+    out.open(str(tmp_path / "d.exr"), oiio.ImageSpec(64, 48, 1, "float"))
+    out.write_image(depth[..., None])  # [H, W, 1]: OIIO misreads a 2-D array
+    out.close()
+    with pytest.raises(RigError, match="camera 'CAM_0': depth has non-finite"):
+        rig.load_depths()
