@@ -286,8 +286,10 @@ def coverage(valid: np.ndarray) -> tuple[float, list[float]]:
 
 
 def project_rig(spec: CylinderSpec, rig: Rig, images: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
-    """Sample each camera's image [H, W, C] onto the cylinder: per-camera maps [N, H_u, W_u, C] float32 (0 where
-    invalid) and valid [N, H_u, W_u]."""
+    """Sample each camera's image or feature map [h, w, C] onto the cylinder: per-camera maps [N, H_u, W_u, C]
+    float32 (0 where invalid) and valid [N, H_u, W_u]. The grids are normalised, so a map of any resolution
+    covering the camera's full field of view (e.g. a downsampled backbone feature map) samples correctly;
+    validity is decided at the camera's image resolution. All maps need the same channel count C."""
     if len(images) != len(rig.cameras):
         raise ValueError(f"images: need {len(rig.cameras)} images, one per camera (got {len(images)})")
     grids, valid = rig_sampling_grids(spec, rig)

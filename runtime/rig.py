@@ -335,6 +335,19 @@ class Rig:
             out.append(img)
         return out
 
+    def check_arrays(self, images: Sequence[np.ndarray], what: str = "image") -> None:
+        """Refuse in-memory images (e.g. uploaded) that do not match the rig: one [H, W, C] (or [H, W]) array per
+        camera, in rig order, of the declared size, with finite values."""
+        if len(images) != len(self.cameras):
+            raise RigError(f"rig: {what}s: need {len(self.cameras)}, one per camera (got {len(images)})")
+        for c, img in zip(self.cameras, images):
+            a = np.asarray(img)
+            if a.ndim not in (2, 3) or a.shape[:2] != (c.height, c.width):
+                raise RigError(f"camera {c.name!r}: {what} has shape {list(a.shape)}, but width x height is "
+                               f"{c.width}x{c.height}")
+            if np.issubdtype(a.dtype, np.floating) and not np.all(np.isfinite(a)):
+                raise RigError(f"camera {c.name!r}: {what} has non-finite values")
+
     def load_depths(self) -> list[np.ndarray | None]:
         """Each camera's depth map [H, W] float32 metres (None where the camera has none)."""
         out: list[np.ndarray | None] = []

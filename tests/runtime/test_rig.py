@@ -232,3 +232,16 @@ def test_image_formats_and_depth(tmp_path):
     out.close()
     with pytest.raises(RigError, match="camera 'CAM_0': depth has non-finite"):
         rig.load_depths()
+
+
+def test_check_arrays():
+    rig = ring_rig(2, width=8, height=6)
+    rig.check_arrays([np.zeros((6, 8, 3), np.float32), np.zeros((6, 8), np.uint8)])
+    with pytest.raises(RigError, match="rig: images: need 2"):
+        rig.check_arrays([np.zeros((6, 8, 3))])
+    with pytest.raises(RigError, match=r"camera 'cam1': image has shape \[8, 6, 3\]"):
+        rig.check_arrays([np.zeros((6, 8, 3)), np.zeros((8, 6, 3))])
+    bad = np.zeros((6, 8), np.float32)
+    bad[1, 1] = np.inf
+    with pytest.raises(RigError, match="camera 'cam0': depth has non-finite"):
+        rig.check_arrays([bad, bad], what="depth")
