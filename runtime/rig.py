@@ -272,6 +272,22 @@ class Rig:
     def names(self) -> list[str]:
         return [c.name for c in self.cameras]
 
+    def clockwise_order(self) -> list[int]:
+        """Camera indices sorted clockwise seen from above by the optical axis' azimuth
+        a = (-atan2(axis_y, axis_x)) mod 2 pi, starting at the camera whose axis is nearest ego forward; ties
+        kept in rig order. This is the order the paper's F+ overlay assumes (nuScenes: FRONT, FRONT_RIGHT,
+        BACK_RIGHT, BACK, BACK_LEFT, FRONT_LEFT)."""
+        two_pi = 2.0 * math.pi
+        cw = [(-math.atan2(c.rotation[1, 2], c.rotation[0, 2])) % two_pi for c in self.cameras]
+        start = cw[min(range(len(cw)), key=lambda k: min(cw[k], two_pi - cw[k]))]
+        return sorted(range(len(cw)), key=lambda k: (cw[k] - start) % two_pi)
+
+    def reordered(self, order: Sequence[int]) -> "Rig":
+        """The same rig with its cameras in `order` (a permutation of camera indices)."""
+        if sorted(order) != list(range(len(self.cameras))):
+            raise RigError(f"rig: order must be a permutation of 0..{len(self.cameras) - 1} (got {list(order)})")
+        return Rig(cameras=tuple(self.cameras[k] for k in order), root=self.root, extra=self.extra)
+
     def camera(self, name: str) -> Camera:
         for c in self.cameras:
             if c.name == name:

@@ -39,6 +39,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "preset's)")
     parser.add_argument("--preset", choices=sorted(PRESETS), default=None,
                         help="take rho and dh from the paper's table for this dataset (unless --rho/--dh given)")
+    parser.add_argument("--sort-clockwise", action="store_true",
+                        help="reorder the cameras clockwise from the front before overlaying (default: rig order)")
     parser.add_argument("--module", choices=MODULES, default="occupancy",
                         help="which module's preset (rho, dh) to use with --preset (default occupancy)")
 
@@ -65,6 +67,8 @@ def run(args: argparse.Namespace) -> int:
         rig = load_rig(args.rig, check_images=True)
         spec = CylinderSpec.from_rig(rig, z_range=tuple(args.z_range), rho=rho, dh=dh, height=args.height,
                                      width=args.width)
+        if args.sort_clockwise:
+            rig = rig.reordered(rig.clockwise_order())
         images = rig.load_images()
     except (RigError, CylinderError) as exc:
         return _fail(str(exc))

@@ -29,7 +29,7 @@ def test_ccw_and_preset_options(real_data, tmp_path, capsys):
     a, b = tmp_path / "a.png", tmp_path / "b.png"
     assert main(["cylinder", rig, "--out", str(a), "--order", "cw", "--height", "32", "--width", "128"]) == 0
     assert main(["cylinder", rig, "--out", str(b), "--order", "ccw", "--height", "32", "--width", "128",
-                 "--preset", "pandaset", "--module", "volume"]) == 0
+                 "--preset", "pandaset", "--module", "volume", "--sort-clockwise"]) == 0
     text = capsys.readouterr().out
     assert "rho 1.6, dh 0" in text
     assert cv2.imread(str(a)).shape == (32, 128, 3)

@@ -245,3 +245,18 @@ def test_check_arrays():
     bad[1, 1] = np.inf
     with pytest.raises(RigError, match="camera 'cam0': depth has non-finite"):
         rig.check_arrays([bad, bad], what="depth")
+
+
+def test_clockwise_order(real_data):
+    rig = ring_rig(6, clockwise=False)  # counter-clockwise ring: cam0 front, cam1 front-left, ...
+    assert rig.clockwise_order() == [0, 5, 4, 3, 2, 1]
+    again = rig.reordered(rig.clockwise_order())
+    assert again.names == ["cam0", "cam5", "cam4", "cam3", "cam2", "cam1"]
+    with pytest.raises(RigError, match="permutation"):
+        rig.reordered([0, 0, 1, 2, 3, 4])
+    nus = load_rig(real_data / "nuscenes_ca9a282c" / "rig.json", check_images=False)
+    assert nus.clockwise_order() == list(range(6))  # the sample is already listed clockwise
+    # PandaSet's front camera looks slightly left of forward (azimuth > 0): it still comes first
+    pan = load_rig(real_data / "pandaset_002_00" / "rig.json", check_images=False)
+    assert pan.clockwise_order() == list(range(6))
+    assert pan.reordered([3, 4, 5, 0, 1, 2]).clockwise_order() == [3, 4, 5, 0, 1, 2]
