@@ -282,7 +282,7 @@ class Rig:
         start = cw[min(range(len(cw)), key=lambda k: min(cw[k], two_pi - cw[k]))]
         return sorted(range(len(cw)), key=lambda k: (cw[k] - start) % two_pi)
 
-    def reordered(self, order: Sequence[int]) -> "Rig":
+    def reordered(self, order: Sequence[int]) -> Rig:
         """The same rig with its cameras in `order` (a permutation of camera indices)."""
         if sorted(order) != list(range(len(self.cameras))):
             raise RigError(f"rig: order must be a permutation of 0..{len(self.cameras) - 1} (got {list(order)})")
