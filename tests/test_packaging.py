@@ -6,8 +6,10 @@ import re
 import subprocess
 import sys
 import tomllib
+from pathlib import Path
 
-from conftest import REPO
+# Not imported from conftest: several conftest.py files exist and would shadow each other as modules.
+REPO = Path(__file__).resolve().parents[1]
 
 TOP = {"runtime": "xyzcyl.runtime", "model_export": "xyzcyl.model_export",
        "server": "xyzcyl.server", "clients": "xyzcyl.clients"}
