@@ -1,0 +1,343 @@
+"""The XYZCylinder network (paper Sec. 3, appendix architecture tables), one scene per call.
+
+    model = XYZCylinder(preset("cpu"))
+    inp = rig_inputs(rig, model.cfg)                    # numpy geometry from xyzcyl.runtime.lifting, as tensors
+    out = model(images, inp)                            # images [N, 3, H, W] float RGB 0..1
+    out["gaussians"]                                    # dict of tensors (means, quats, log_scales, opacity_logits, sh)
+    bg = model.background(out["app_plane"], bg_grids)   # [T, 3, H_t, W_t] sky images for T target views
+
+See docs/architecture.md for the paper-to-code map.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from .backbone import DepthHead, build_backbone
+from .blocks import CylConv, ResBlock, XNet, YNet, flip_w, groups_for, init_last_linear, mlp
+from .config import ModelConfig
+from .lifting import (cpfg, frustum_coords_torch, lift, overlay_sum, sample_cameras, sample_cpfg,
+                      sample_plane_wrapped)
+
+SH_C0 = 0.28209479177387814
+GAUSSIAN_KEYS = ("means", "quats", "log_scales", "opacity_logits", "sh")
+MASKED_LOGIT = -30.0  # opacity logit of pixel Gaussians no camera sees (sigmoid ~ 1e-13: invisible)
+
+
+def n_sh(deg: int) -> int:
+    return (deg + 1) ** 2
+
+
+class GaussianDecoder(nn.Module):
+    """Per-anchor MLP outputs -> Gaussian parameters (everything but the mean's anchor).
+
+    Appearance layout per Gaussian: [dc rgb (3), scale (3), rotation (4), opacity (1), higher SH (3*(S-1))].
+    colour = sigmoid(raw) (sh DC = (colour - 0.5)/SH_C0, so the renderer's SH_C0*dc + 0.5 gives it back);
+    scale = max_scale * sigmoid(raw) (bounded above); quats raw + (1, 0, 0, 0); opacity logit raw.
+    """
+
+    def __init__(self, sh_degree: int):
+        super().__init__()
+        self.S = n_sh(sh_degree)
+        self.dim = 11 + 3 * (self.S - 1)
+
+    def bias(self, g: int, opacity_logit: float = -1.0, scale_logit: float = -0.5) -> torch.Tensor:
+        b = torch.zeros(g, self.dim)
+        b[:, 3:6] = scale_logit
+        b[:, 6] = 1.0
+        b[:, 10] = opacity_logit
+        return b.flatten()
+
+    def forward(self, raw: torch.Tensor, max_scale: torch.Tensor) -> dict[str, torch.Tensor]:
+        """raw [M, G, dim]; max_scale [M, 1] metres -> dict of [M*G, ...] tensors (means missing)."""
+        M, G, _ = raw.shape
+        rgb = torch.sigmoid(raw[..., 0:3])
+        dc = ((rgb - 0.5) / SH_C0).unsqueeze(-2)
+        rest = raw[..., 11:].reshape(M, G, self.S - 1, 3) * 0.1
+        sh = torch.cat([dc, rest], dim=-2)
+        log_scales = torch.log(max_scale).unsqueeze(1) + F.logsigmoid(raw[..., 3:6])
+        return {"quats": raw[..., 6:10].reshape(M * G, 4), "log_scales": log_scales.reshape(M * G, 3),
+                "opacity_logits": raw[..., 10].reshape(M * G), "sh": sh.reshape(M * G, self.S, 3)}
+
+
+class ModConv(nn.Module):
+    """StyleGAN2 modulated 3x3 conv (weight demodulation); style shared by all target views of a scene."""
+
+    def __init__(self, cin: int, cout: int, style_dim: int, demod: bool = True):
+        super().__init__()
+        self.weight = nn.Parameter(torch.randn(cout, cin, 3, 3) / math.sqrt(cin * 9))
+        self.bias = nn.Parameter(torch.zeros(cout))
+        self.affine = nn.Linear(style_dim, cin)
+        nn.init.normal_(self.affine.weight, std=0.1 / math.sqrt(style_dim))  # styles start near 1
+        nn.init.zeros_(self.affine.bias)
+        self.demod = demod
+
+    def forward(self, x, w):
+        s = self.affine(w).view(-1) + 1.0                                       # [cin]
+        y = F.conv2d(x * s.view(1, -1, 1, 1), self.weight, padding=1)
+        if self.demod:
+            d = torch.rsqrt(((self.weight * s.view(1, -1, 1, 1)) ** 2).sum(dim=(1, 2, 3)) + 1e-8)
+            y = y * d.view(1, -1, 1, 1)
+        return y + self.bias.view(1, -1, 1, 1)
+
+
+class ZNet(nn.Module):
+    """ZNet_bg: ResNet blocks with a 2x upsample on the appearance plane, ray-cylinder sampling per target view,
+    StyleGAN-like modulated synthesis at k x the target resolution, average-pool back to the target size."""
+
+    def __init__(self, cin: int, cfg):
+        super().__init__()
+        b = cfg.block_dims
+        self.k = cfg.k
+        self.stem = nn.Conv2d(cin, b[0], 1)
+        self.pre = ResBlock(b[0], b[0])
+        self.post = nn.Sequential(*[ResBlock(b[max(i - 1, 0)], b[i]) for i in range(1, len(b))])
+        self.mapping = mlp(cin, cfg.style_dim, cfg.style_dim, 2, act=lambda: nn.LeakyReLU(0.2))
+        s = cfg.synth_dims
+        self.inp = nn.Conv2d(b[-1], s[0], 1) if b[-1] != s[0] else nn.Identity()
+        self.synth = nn.ModuleList(ModConv(s[i], s[i + 1], cfg.style_dim, demod=i < len(s) - 2)
+                                   for i in range(len(s) - 1))
+
+    def forward(self, app_plane: torch.Tensor, grids: torch.Tensor) -> torch.Tensor:
+        """app_plane [1, C, H_u, W_u]; grids [T, H_t, W_t, 2] (runtime.lifting.background_grid) -> [T, 3, H_t, W_t]."""
+        x = self.pre(self.stem(app_plane))
+        x = F.interpolate(x, scale_factor=2, mode="nearest")
+        x = self.post(x)
+        w = self.mapping(app_plane.mean(dim=(2, 3)))
+        T, H, W, _ = grids.shape
+        # border padding along p: rays above the cylinder's top see its top row (sky), below its bottom row
+        y = sample_plane_wrapped(x.expand(T, -1, -1, -1), grids, padding_mode="border")
+        if self.k > 1:
+            y = F.interpolate(y, scale_factor=self.k, mode="bilinear", align_corners=False)
+        y = self.inp(y)
+        for i, layer in enumerate(self.synth):
+            y = layer(y, w)
+            if i < len(self.synth) - 1:
+                y = F.leaky_relu(y, 0.2)
+        y = torch.sigmoid(y)
+        return F.avg_pool2d(y, self.k) if self.k > 1 else y
+
+
+class XYZCylinder(nn.Module):
+    def __init__(self, cfg: ModelConfig):
+        super().__init__()
+        self.cfg = cfg
+        ab = cfg.ablation
+        D = cfg.backbone.feature_dim
+        self.backbone = build_backbone(cfg.backbone)
+        self.depth_head = DepthHead(D, cfg.backbone.depth_hidden, cfg.backbone.max_depth)
+        self.grid_shape = cfg.grid.shape  # (L_z, L_y, L_x)
+        Lz = self.grid_shape[0]
+
+        o = cfg.occupancy
+        self.occ_net = YNet(D, o.unet, o.out_dim, ab.flips, ab.dual_encoder)
+        self.occ_proj = nn.Conv2d(o.out_dim, o.k * o.d_occ, 1) if o.out_dim != o.k * o.d_occ else nn.Identity()
+        self.occ_head = mlp(o.d_occ, o.mlp_width, o.num_classes, o.mlp_layers)
+        self.bev_proj = nn.Linear(o.d_occ * Lz, o.bev_in_dim)
+        self.bev_head = mlp(o.bev_in_dim, o.bev_width, o.bev_out, o.bev_layers)
+
+        self.dec = GaussianDecoder(cfg.sh_degree)
+        v = cfg.volume
+        self.use_volume = ab.volume_branch
+        self.use_background = ab.separate_background
+        if self.use_volume or self.use_background:  # XNet_vol also feeds the background's appearance plane
+            self.vol_net = XNet(D, v.unet, v.geo_out_dim, v.app_out_dim, ab.flips, ab.dual_encoder)
+            self.geo_proj = nn.Conv2d(v.geo_out_dim, v.k * v.d_geo, 1)
+            self.app_proj = nn.Conv2d(v.app_out_dim, v.k * v.d_app, 1)
+        if self.use_volume:
+            self.geo_mlp = mlp(v.d_geo, v.mlp_width, 3 * v.g_v, v.mlp_layers)
+            self.app_mlp = mlp(v.d_geo + v.d_app, v.mlp_width, self.dec.dim * v.g_v, v.mlp_layers)
+            init_last_linear(self.geo_mlp, torch.zeros(3 * v.g_v))
+            init_last_linear(self.app_mlp, self.dec.bias(v.g_v))
+
+        p = cfg.pixel
+        self.use_pixel = ab.pixel_branch
+        if self.use_pixel:
+            self.pix_net = YNet(D + 2, p.unet, p.out_dim, ab.flips, ab.dual_encoder)
+            self.pix_out = nn.Conv2d(p.out_dim, p.d_pix, 1)
+            self.pix_norm = nn.GroupNorm(p.gn_groups, p.d_pix)
+            self.pix_mlp = mlp(p.d_pix, p.mlp_width, (3 + self.dec.dim) * p.g_p, p.mlp_layers)
+            b = torch.cat([torch.zeros(p.g_p, 3), self.dec.bias(p.g_p, opacity_logit=0.0).view(p.g_p, -1)], 1)
+            init_last_linear(self.pix_mlp, b.flatten())
+            self.use_projection = ab.pixel_projection and self.use_volume
+            if self.use_projection:
+                self.proj_conv = nn.Sequential(nn.Conv2d(p.d_pix * v.k, D, 1), nn.SiLU(), CylConv(D, D))
+                # small last layer: the projection starts as a gentle perturbation of the lifted features
+                nn.init.normal_(self.proj_conv[-1].conv.weight, std=1e-3)
+                nn.init.zeros_(self.proj_conv[-1].conv.bias)
+        else:
+            self.use_projection = False
+        if self.use_background:
+            self.bg_net = ZNet(v.app_out_dim, cfg.background)
+
+    # -- stages -------------------------------------------------------------------------------------------------
+    def encode_images(self, images, depth=None, depth_mask=None):
+        feats = self.backbone(images)
+        d, c = self.depth_head(feats, depth, depth_mask)
+        return feats, d, c
+
+    def occupancy(self, feats, inp):
+        """-> (occ_logits [C, L_z, L_y, L_x], bev_logits [bev_out, L_y, L_x])."""
+        o = self.cfg.occupancy
+        fp, fm = lift(feats, inp["grid_occ"], inp["sel_cw_occ"], inp["sel_ccw_occ"])
+        group = cpfg(self.occ_proj(self.occ_net(fp, fm)), o.k)
+        vf = sample_cpfg(group, inp["occ_coords"].reshape(-1, 3))              # [V, d_occ]
+        Lz, Ly, Lx = self.grid_shape
+        occ = self.occ_head(vf).t().reshape(-1, Lz, Ly, Lx)
+        col = vf.reshape(Lz, Ly, Lx, o.d_occ).permute(1, 2, 0, 3).reshape(Ly, Lx, Lz * o.d_occ)
+        bev = self.bev_head(self.bev_proj(col)).permute(2, 0, 1)
+        return occ, bev
+
+    def select_voxels(self, occ_logits, occ_gt=None) -> torch.Tensor:
+        """Flat indices [M] of occupied voxels: argmax of the occupancy head (paper), or the ground-truth mask
+        (``volume_selection = ground_truth`` in training); at most ``volume.max_voxels`` (highest margin)."""
+        if self.cfg.volume_selection == "ground_truth" and occ_gt is not None:
+            margin = occ_gt.reshape(-1).float() - 0.5
+        else:
+            margin = (occ_logits[1] - occ_logits[0]).reshape(-1).detach()
+        idx = torch.nonzero(margin > 0).view(-1)
+        if idx.numel() > self.cfg.volume.max_voxels:
+            idx = idx[torch.topk(margin[idx], self.cfg.volume.max_voxels).indices]
+        return idx
+
+    def pixel_branch(self, feats, depth, conf, inp):
+        p, D = self.cfg.pixel, feats.shape[1]
+        grid = inp["grid_pix"]
+        s = sample_cameras(feats, grid)
+        dn = F.grid_sample(depth, grid, mode="bilinear", padding_mode="border", align_corners=False)  # [N,1,H,W]
+        cn = F.grid_sample(conf, grid, mode="bilinear", padding_mode="border", align_corners=False)
+        rays = inp["pix_rays"].permute(0, 3, 1, 2)                           # [N, 3, H, W]
+        xrel = inp["pix_offsets"].view(-1, 3, 1, 1) + dn * rays             # X - centre, per camera
+        r_max = self.cfg.grid.r_max
+        planes, geo = [], []
+        for key in ("sel_cw_pix", "sel_ccw_pix"):
+            sel = inp[key]
+            x = overlay_sum(xrel, sel)                                      # [1, 3, H, W]
+            r = torch.sqrt(x[:, 0:1] ** 2 + x[:, 1:2] ** 2 + 1e-12)
+            planes.append(torch.cat([overlay_sum(s, sel), r / r_max, overlay_sum(cn, sel)], dim=1))
+            geo.append((x, r))
+        fp, fm = planes
+        if p.k_in > 1:
+            fp = F.interpolate(fp, scale_factor=p.k_in, mode="bilinear", align_corners=False)
+            fm = F.interpolate(fm, scale_factor=p.k_in, mode="bilinear", align_corners=False)
+        y = self.pix_net(fp, fm)
+        if p.k_out > 1:
+            y = F.interpolate(y, scale_factor=p.k_out, mode="bilinear", align_corners=False)
+        fpix = self.pix_norm(self.pix_out(y))                               # [1, d_pix, kH, kW]
+        k = p.k_in * p.k_out
+        x, r = geo[0]                                                       # anchors from F+ (cw overlay)
+        valid = inp["sel_cw_pix"].sum(0, keepdim=True).unsqueeze(0)         # [1, 1, H, W]
+        if k > 1:
+            x = F.interpolate(x, scale_factor=k, mode="bilinear", align_corners=False)
+            r = F.interpolate(r, scale_factor=k, mode="bilinear", align_corners=False)
+            valid = F.interpolate(valid, scale_factor=k, mode="nearest")
+        centre = inp["spec_pix"][:3]
+        if p.placement == "cylinder_ray":
+            anchor = centre + r[0].permute(1, 2, 0) * inp["pix_dirs"]      # [kH, kW, 3]
+        else:
+            anchor = centre + x[0].permute(1, 2, 0)
+        anchor = anchor.reshape(-1, 1, 3)
+        feat = fpix[0].permute(1, 2, 0).reshape(-1, p.d_pix)                # [P, d_pix]
+        raw = self.pix_mlp(feat).view(feat.shape[0], p.g_p, -1)
+        # pixel footprint: horizontal radius x angular pixel size, floor 1 cm
+        fp_size = (r[0].reshape(-1, 1) * (2 * math.pi / (self.cfg.cylinder.width * k))).clamp_min(0.01)
+        g = self.dec(raw[..., 3:], 4.0 * fp_size)
+        g["means"] = (anchor + p.offset_scale * torch.tanh(raw[..., :3])).reshape(-1, 3)
+        vmask = valid.reshape(-1, 1).expand(-1, p.g_p).reshape(-1) > 0.5
+        g["opacity_logits"] = torch.where(vmask, g["opacity_logits"], torch.full_like(g["opacity_logits"],
+                                                                                       MASKED_LOGIT))
+        return g, feat, vmask
+
+    def pixel_projection(self, means, feat, vmask, spec_vol):
+        """Appendix eq. 41: scatter pixel features [P, d_pix] (one per pixel; G_p Gaussians share it, the first
+        one's centre places it) into the volume CPFG grid [1, d_pix*K, H_u, W_u] with linear weights between
+        the two nearest planes; -> CV_proj(F_proj) [1, D_feat, H_u, W_u] (eq. 42)."""
+        v, cyl = self.cfg.volume, self.cfg.cylinder
+        K, H, W = v.k, cyl.height, cyl.width
+        g_p = self.cfg.pixel.g_p
+        c = frustum_coords_torch(means.view(-1, g_p, 3)[:, 0], spec_vol, self.cfg.grid.r_min, self.cfg.grid.r_max)
+        t, s, pp = (c[:, 0] + 1) / 2, (c[:, 1] + 1) / 2, (c[:, 2] + 1) / 2
+        tk = t * K
+        k0f = torch.floor(tk).detach()
+        q = tk - k0f
+        k0 = k0f.long()
+        col = torch.remainder(torch.floor(s * W).long(), W)
+        row = torch.floor(pp * H).long()
+        ok_row = (row >= 0) & (row < H) & vmask.view(-1, g_p)[:, 0]
+        out = feat.new_zeros(K * H * W, feat.shape[1])
+        for kk, w in ((k0, 1 - q), (k0 + 1, q)):
+            ok = ok_row & (kk >= 0) & (kk < K)
+            flat = (kk.clamp(0, K - 1) * H + row.clamp(0, H - 1)) * W + col
+            out = out.index_add(0, flat, feat * (w * ok.to(feat.dtype)).unsqueeze(1))
+        proj = out.view(K, H, W, -1).permute(3, 0, 1, 2).reshape(1, -1, H, W)   # channel = d*K + k
+        return self.proj_conv(proj)
+
+    def volume_gaussians(self, geo_g, app_g, idx, inp):
+        v = self.cfg.volume
+        coords = inp["vol_coords"].reshape(-1, 3)[idx]
+        centres = inp["voxel_centres"].reshape(-1, 3)[idx]
+        fg = sample_cpfg(geo_g, coords)
+        fa = sample_cpfg(app_g, coords)
+        vs = self.cfg.grid.voxel_size
+        off = torch.tanh(self.geo_mlp(fg)).view(-1, v.g_v, 3) * (v.offset_scale * vs)
+        raw = self.app_mlp(torch.cat([fg, fa], dim=1)).view(-1, v.g_v, self.dec.dim)
+        g = self.dec(raw, torch.full((raw.shape[0], 1), vs, dtype=raw.dtype, device=raw.device))
+        g["means"] = (centres.unsqueeze(1) + off).reshape(-1, 3)
+        return g
+
+    # -- full forward -------------------------------------------------------------------------------------------
+    def forward(self, images, inp, depth=None, depth_mask=None, occ_gt=None, voxel_idx=None):
+        """images [N, 3, H, W] RGB 0..1; inp: lifting inputs (tensors); depth [N, 1, h, w] metres + depth_mask [N]
+        (1 = use the given depth, confidence 1); occ_gt [L_z, L_y, L_x] bool (training selection);
+        voxel_idx: precomputed occupied-voxel flat indices (skips the selection).
+
+        Returns dict: depth, conf [N, 1, h, w]; occ_logits [2, L_z, L_y, L_x]; bev_logits [2, L_y, L_x];
+        voxel_idx [M]; app_plane [1, C_app, H_u, W_u] (background input, or None); gaussians (dict of
+        [G, ...] tensors: means, quats, log_scales, opacity_logits, sh); n_volume, n_pixel counts."""
+        feats, d, c = self.encode_images(images, depth, depth_mask)
+        occ, bev = self.occupancy(feats, inp)
+        out = {"depth": d, "conf": c, "occ_logits": occ, "bev_logits": bev, "app_plane": None}
+        parts = []
+        pix = None
+        if self.use_pixel:
+            pix, pfeat, vmask = self.pixel_branch(feats, d, c, inp)
+        if self.use_volume or self.use_background:
+            v = self.cfg.volume
+            fp, fm = lift(feats, inp["grid_vol"], inp["sel_cw_vol"], inp["sel_ccw_vol"])
+            if self.use_projection:
+                pr = self.pixel_projection(pix["means"], pfeat, vmask, inp["spec_vol"])
+                fp, fm = fp + pr, fm + pr
+            geo, app = self.vol_net(fp, fm)
+            out["app_plane"] = app
+            if self.use_volume:
+                idx = voxel_idx if voxel_idx is not None else self.select_voxels(occ, occ_gt)
+                out["voxel_idx"] = idx
+                parts.append(self.volume_gaussians(cpfg(self.geo_proj(geo), v.k), cpfg(self.app_proj(app), v.k),
+                                                   idx, inp))
+        out["n_volume"] = parts[0]["means"].shape[0] if parts else 0
+        if pix is not None:
+            parts.append(pix)
+        out["n_pixel"] = pix["means"].shape[0] if pix is not None else 0
+        out["gaussians"] = {k: torch.cat([p[k] for p in parts], dim=0) for k in GAUSSIAN_KEYS}
+        return out
+
+    def background(self, app_plane, grids):
+        """[T, 3, H_t, W_t] background images for T target views (grids from runtime.lifting.background_grid);
+        None when the separate background is ablated (the blend then uses black)."""
+        if not self.use_background:
+            return None
+        return self.bg_net(app_plane, grids)
+
+
+def blend(fg_rgb, fg_alpha, bg_rgb):
+    """I = I_fg + (1 - A_fg) * I_bg; fg_rgb [T, 3, H, W] rendered over black, fg_alpha [T, 1, H, W]."""
+    if bg_rgb is None:
+        return fg_rgb
+    return fg_rgb + (1 - fg_alpha) * bg_rgb
+
+
+__all__ = ["XYZCylinder", "ZNet", "ModConv", "GaussianDecoder", "blend", "flip_w", "groups_for"]

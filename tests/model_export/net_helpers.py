@@ -1,0 +1,20 @@
+"""Helpers for the network tests: a tiny config and synthetic ring rigs (xyzcyl.runtime.rig.ring_rig)."""
+
+from __future__ import annotations
+
+from xyzcyl.model_export.config import GridConfig, ModelConfig, preset
+from xyzcyl.runtime.rig import Rig, ring_rig
+
+
+def tiny_config(**changes) -> ModelConfig:
+    """The cpu preset shrunk to test size: 64x128 input, 8x64 cylinder, 20x20x4 grid of 4 m voxels."""
+    cfg = preset("cpu")
+    cfg = cfg.replace(backbone=cfg.backbone.replace(input_height=64, input_width=128, pretrained=False),
+                      cylinder=cfg.cylinder.replace(height=8, width=64),
+                      grid=GridConfig(voxel_size=4.0))
+    return cfg.replace(**changes)
+
+
+def overlap_rig(n: int, width: int = 128, height: int = 64, ring_radius: float = 0.5) -> Rig:
+    """n outward cameras with overlapping fields of view (1.3 x 360/n degrees each)."""
+    return ring_rig(n, hfov_deg=min(1.3 * 360.0 / n, 150.0), width=width, height=height, ring_radius=ring_radius)

@@ -1,0 +1,196 @@
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from net_helpers import overlap_rig, tiny_config
+from xyzcyl.model_export.blocks import CylConv, YNet
+from xyzcyl.model_export.config import AblationConfig, UNetConfig, preset
+from xyzcyl.model_export.lifting import rig_inputs
+from xyzcyl.model_export.model import GAUSSIAN_KEYS, XYZCylinder, blend
+from xyzcyl.model_export.render_fn import render_views
+from xyzcyl.runtime.lifting import background_grid, spec_from_array
+from xyzcyl.runtime.render import PinholeCamera
+
+
+def _images(n, cfg, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    return torch.rand(n, 3, cfg.backbone.input_height, cfg.backbone.input_width, generator=g)
+
+
+def _check_shapes(out, cfg, n):
+    Lz, Ly, Lx = cfg.grid.shape
+    k = cfg.pixel.k_in * cfg.pixel.k_out
+    h, w = cfg.backbone.input_height // cfg.backbone.feature_stride, cfg.backbone.input_width // cfg.backbone.feature_stride
+    assert out["occ_logits"].shape == (2, Lz, Ly, Lx)
+    assert out["bev_logits"].shape == (2, Ly, Lx)
+    assert out["depth"].shape == (n, 1, h, w) and out["conf"].shape == (n, 1, h, w)
+    assert out["n_pixel"] == k * cfg.cylinder.height * k * cfg.cylinder.width * cfg.pixel.g_p
+    assert out["n_volume"] == out["voxel_idx"].numel() * cfg.volume.g_v
+    G = out["n_pixel"] + out["n_volume"]
+    g = out["gaussians"]
+    assert g["means"].shape == (G, 3) and g["quats"].shape == (G, 4) and g["log_scales"].shape == (G, 3)
+    assert g["opacity_logits"].shape == (G,) and g["sh"].shape == (G, (cfg.sh_degree + 1) ** 2, 3)
+    for v in g.values():
+        assert torch.isfinite(v).all()
+    assert out["app_plane"].shape == (1, cfg.volume.app_out_dim, cfg.cylinder.height, cfg.cylinder.width)
+
+
+def test_same_weights_on_5_6_7_cameras():
+    torch.manual_seed(0)
+    cfg = tiny_config(volume_selection="ground_truth")
+    model = XYZCylinder(cfg).eval()
+    gt = torch.zeros(cfg.grid.shape, dtype=torch.bool)
+    gt[1, 8:12, 8:12] = True
+    counts = set()
+    for n in (5, 6, 7):
+        inp = rig_inputs(overlap_rig(n), cfg)
+        with torch.no_grad():
+            out = model(_images(n, cfg), inp, occ_gt=gt)
+        _check_shapes(out, cfg, n)
+        assert out["n_volume"] == 16 * cfg.volume.g_v
+        counts.add(out["n_pixel"])
+    assert len(counts) == 1
+
+
+def test_paper_preset_shapes_on_meta_device():
+    cfg = preset("paper")
+    cfg = cfg.replace(backbone=cfg.backbone.replace(pretrained=False))
+    with torch.device("meta"):
+        model = XYZCylinder(cfg)
+    inp = rig_inputs(overlap_rig(6, width=1600, height=900), cfg, device="meta")
+    idx = torch.arange(1000, device="meta")
+    with torch.no_grad():
+        out = model(torch.empty(6, 3, 896, 1600, device="meta"), inp, voxel_idx=idx)
+    assert out["depth"].shape == (6, 1, 56, 100)
+    assert out["occ_logits"].shape == (2, 40, 200, 200) and out["bev_logits"].shape == (2, 200, 200)
+    assert out["n_pixel"] == 224 * 2048 and out["n_volume"] == 3000
+    assert out["gaussians"]["means"].shape == (224 * 2048 + 3000, 3)
+    assert out["app_plane"].shape == (1, 432, 56, 512)
+    grids = torch.empty(2, 224, 400, 2, device="meta")
+    assert model.background(out["app_plane"], grids).shape == (2, 3, 224, 400)
+
+
+def test_cpu_preset_shapes_tiny_rig():
+    """The shipped preset itself (pretrained Lite0 weights) on one forward pass."""
+    torch.manual_seed(0)
+    cfg = preset("cpu").replace(volume_selection="ground_truth")
+    model = XYZCylinder(cfg).eval()
+    gt = torch.zeros(cfg.grid.shape, dtype=torch.bool)
+    gt[2, 40:50, 40:50] = True
+    inp = rig_inputs(overlap_rig(6, width=400, height=224), cfg)
+    with torch.no_grad():
+        out = model(_images(6, cfg), inp, occ_gt=gt)
+    _check_shapes(out, cfg, 6)
+
+
+def test_determinism_with_seed():
+    cfg = tiny_config()
+    inp = rig_inputs(overlap_rig(6), cfg)
+    outs = []
+    for _ in range(2):
+        torch.manual_seed(123)
+        model = XYZCylinder(cfg).eval()
+        with torch.no_grad():
+            outs.append(model(_images(6, cfg, seed=4), inp))
+    for k in GAUSSIAN_KEYS:
+        assert torch.equal(outs[0]["gaussians"][k], outs[1]["gaussians"][k])
+    assert torch.equal(outs[0]["occ_logits"], outs[1]["occ_logits"])
+
+
+def test_supplied_depth_replaces_head():
+    torch.manual_seed(0)
+    cfg = tiny_config()
+    model = XYZCylinder(cfg).eval()
+    n = 5
+    h, w = 8, 16
+    given = torch.full((n, 1, h, w), 7.5)
+    mask = torch.tensor([1.0, 0, 1, 0, 0])
+    with torch.no_grad():
+        feats, d0, c0 = model.encode_images(_images(n, cfg))
+        _, d, c = model.encode_images(_images(n, cfg), given, mask)
+    assert torch.all(d[[0, 2]] == 7.5) and torch.all(c[[0, 2]] == 1.0)
+    assert torch.equal(d[[1, 3, 4]], d0[[1, 3, 4]]) and torch.equal(c[[1, 3, 4]], c0[[1, 3, 4]])
+
+
+def test_cylinder_convs_wrap_theta():
+    """Rolling the input along W (theta) by a multiple of the total stride rolls every output: the circular
+    padding makes the networks equivariant to rotations of the rig about the cylinder axis."""
+    torch.manual_seed(0)
+    x = torch.randn(1, 4, 8, 32)
+    conv = CylConv(4, 5)
+    torch.testing.assert_close(conv(torch.roll(x, 3, -1)), torch.roll(conv(x), 3, -1))
+    net = YNet(4, UNetConfig(down_dims=(8, 8, 16), up_dims=(16, 8, 8)), 6).eval()
+    y = net(x, x)
+    y_roll = net(torch.roll(x, 4, -1), torch.roll(x, 4, -1))
+    # flipped branch: flip(roll(x, 4)) = roll(flip(x), -4), still a multiple of the stride
+    torch.testing.assert_close(y_roll, torch.roll(y, 4, -1), rtol=1e-4, atol=1e-5)  # float32 conv reassociation
+
+
+def _target_views(rig, inp, cfg):
+    """Two target views: camera 0 as is, and camera 1 pitched up 50 degrees (sees sky: alpha < 1)."""
+    cams = []
+    for i, pitch in ((0, 0.0), (1, math.radians(50))):
+        c = rig.cameras[i]
+        T = c.cam_to_ego.copy()
+        ca, sa = math.cos(pitch), math.sin(pitch)
+        Rx = np.array([[1, 0, 0], [0, ca, -sa], [0, sa, ca]])  # about camera x: looks up for positive pitch
+        T[:3, :3] = T[:3, :3] @ Rx
+        cams.append(PinholeCamera(c.K, T, c.width, c.height))
+    spec = spec_from_array(inp["spec_vol"].numpy(), cfg.cylinder.height, cfg.cylinder.width)
+    grids = np.stack([background_grid(spec, c.K, c.cam_to_world, c.width, c.height) for c in cams])
+    return cams, torch.from_numpy(grids)
+
+
+OCC_MODULES = ("occ_net", "occ_proj", "occ_head", "bev_proj", "bev_head")
+
+
+def test_gradients_reach_every_trainable_module():
+    """An image loss (render + background blend) reaches every trainable parameter except the occupancy
+    module's, which the paper trains in stage 1 through its own losses (checked here with a CE loss)."""
+    torch.manual_seed(0)
+    cfg = tiny_config(volume_selection="ground_truth")
+    model = XYZCylinder(cfg).train()
+    rig = overlap_rig(6)
+    inp = rig_inputs(rig, cfg)
+    gt = torch.zeros(cfg.grid.shape, dtype=torch.bool)
+    gt[1, 8:12, 8:12] = True
+    out = model(_images(6, cfg), inp, occ_gt=gt)
+    cams, grids = _target_views(rig, inp, cfg)
+    rgb, alpha, depth = render_views(out["gaussians"], cams)
+    assert 0.05 < alpha.mean().item() < 0.999
+    image = blend(rgb, alpha, model.background(out["app_plane"], grids))
+    target = torch.rand_like(image)
+    loss = (image - target).abs().mean() + 0.01 * (depth - 5.0).abs().mean()
+    occ_loss = torch.nn.functional.cross_entropy(out["occ_logits"].reshape(2, -1).t(), gt.reshape(-1).long())
+    occ_loss = occ_loss + out["bev_logits"].square().mean()
+    occ_params = {n for n, _ in model.named_parameters() if n.split(".")[0] in OCC_MODULES}
+    loss.backward(retain_graph=True)
+    missing = [n for n, p in model.named_parameters()
+               if p.requires_grad and n not in occ_params and (p.grad is None or not p.grad.abs().sum() > 0)]
+    assert not missing, missing
+    model.zero_grad()
+    occ_loss.backward()
+    missing = [n for n, p in model.named_parameters()
+               if n in occ_params and (p.grad is None or not p.grad.abs().sum() > 0)]
+    assert not missing, missing
+    frozen = [n for n, p in model.named_parameters() if not p.requires_grad]
+    assert frozen and all(n.startswith("backbone.") for n in frozen)  # frozen EfficientNet trunk
+
+
+@pytest.mark.parametrize("ablation", [
+    AblationConfig(separate_background=False), AblationConfig(volume_branch=False),
+    AblationConfig(pixel_branch=False), AblationConfig(flips=False), AblationConfig(dual_encoder=False)])
+def test_ablations_run(ablation):
+    torch.manual_seed(0)
+    cfg = tiny_config(ablation=ablation, volume_selection="ground_truth")
+    model = XYZCylinder(cfg).eval()
+    gt = torch.zeros(cfg.grid.shape, dtype=torch.bool)
+    gt[1, 8:10, 8:10] = True
+    with torch.no_grad():
+        out = model(_images(6, cfg), rig_inputs(overlap_rig(6), cfg), occ_gt=gt)
+    assert (out["n_volume"] > 0) == ablation.volume_branch
+    assert (out["n_pixel"] > 0) == ablation.pixel_branch
+    assert (model.background(out["app_plane"], torch.zeros(1, 4, 4, 2)) is None) == (not ablation.separate_background)
+    assert torch.isfinite(out["gaussians"]["means"]).all()
