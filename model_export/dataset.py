@@ -1,0 +1,321 @@
+"""torch Datasets over the synthetic on-disk format (docs/data.md) and over real rig folders.
+
+One item = one scene (the network is unbatched over scenes; use ``collate_scenes`` with a DataLoader):
+
+    item["images"]      [N, 3, H, W] float32 0..1   input cameras, rig order (after the optional flip)
+    item["depth"]       [N, 1, H, W] float32 metres along the optical axis, 0 where sky / unknown
+    item["depth_valid"] [N, 1, H, W] bool           depth > 0 and finite
+    item["sky"]         [N, 1, H, W] float32        1 = sky
+    item["rig"]         xyzcyl.runtime.rig.Rig      input calibration (consistent with the images)
+    item["targets"]     dict: images [T, 3, H, W], depth [T, H, W], depth_valid [T, H, W] bool, sky [T, H, W],
+                        K [T, 3, 3] float64 pixels, cam_to_ego [T, 4, 4] float64, names list[str], width, height
+    item["occupancy"]   [L_z, L_y, L_x] int64  0 empty / 1 occupied (grid of ``voxel_size``)
+    item["bev"]         [L_y, L_x] int64       1 where the column holds an occupied voxel that is not ground
+                                               (road / sidewalk / terrain): the obstacle map
+    item["lifting"]     dict of float32 tensors (runtime.lifting.build_lifting_inputs) if a model config is given,
+                        plus item["targets"]["background_grid"] [T, H, W, 2] for ZNet_bg
+    item["scene"]       scene folder name; item["flipped"] bool
+
+Randomness (target subset, colour jitter, flip) comes from numpy's default_rng((seed, epoch, index)), so an
+item is reproducible and ``set_epoch`` draws new subsets per epoch.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from xyzcyl.runtime.rig import Camera, Rig, load_rig, read_image
+
+from .config import ConfigError, _Frozen
+from .data.classes import ROAD, SIDEWALK, TERRAIN
+
+GROUND_CLASSES = (ROAD, SIDEWALK, TERRAIN)   # BEV target: a column is "occupied" if it holds anything else
+
+SETTINGS = ("ego-forward", "ego-inward")
+
+
+class DataError(ValueError):
+    """A data folder is malformed; the message names the file and field."""
+
+
+@dataclass(frozen=True)
+class DatasetConfig(_Frozen):
+    setting: str = "ego-forward"        # which targets.json setting supervises rendering
+    num_targets: int = 4                # T: random target views per item (all if fewer exist)
+    voxel_size: float = 0.8             # occupancy grid to load (tag in occupancy.npz, e.g. 0.8 -> "0p8")
+    pc_range: tuple[float, float, float, float, float, float] | None = None  # must match the file when given
+    seed: int = 0
+    skip_occluded: bool = True          # drop targets the generator marked "occluded" (camera inside geometry)
+    brightness: float = 0.0             # colour jitter: factor drawn from [1 - b, 1 + b] (0 = off)
+    contrast: float = 0.0               # blend with the image mean, factor in [1 - c, 1 + c]
+    saturation: float = 0.0             # blend with grey, factor in [1 - s, 1 + s]
+    flip_prob: float = 0.0              # mirror the scene across the ego x-z plane (y -> -y) with this probability
+
+    def __post_init__(self):
+        if self.setting not in SETTINGS:
+            raise ConfigError(f"setting: must be one of {', '.join(SETTINGS)}, got {self.setting!r}")
+        if isinstance(self.num_targets, bool) or not isinstance(self.num_targets, int) or self.num_targets < 1:
+            raise ConfigError(f"num_targets: must be a positive integer, got {self.num_targets!r}")
+        if not self.voxel_size > 0:
+            raise ConfigError(f"voxel_size: must be > 0, got {self.voxel_size!r}")
+        for n in ("brightness", "contrast", "saturation"):
+            v = getattr(self, n)
+            if not 0 <= v < 1:
+                raise ConfigError(f"{n}: must be in [0, 1), got {v!r}")
+        if not 0 <= self.flip_prob <= 1:
+            raise ConfigError(f"flip_prob: must be in [0, 1], got {self.flip_prob!r}")
+
+    @property
+    def voxel_tag(self) -> str:
+        return f"{self.voxel_size:g}".replace(".", "p")
+
+
+# ---------------------------------------------------------------------------------------------- augmentation
+
+
+def colour_jitter(images: np.ndarray, rng: np.random.Generator, brightness: float, contrast: float,
+                  saturation: float) -> np.ndarray:
+    """One random photometric change applied to every image of a scene (inputs and targets alike, so the
+    render targets stay consistent with the inputs). images [M, H, W, 3] float32 0..1 -> same, clipped."""
+    b = rng.uniform(1 - brightness, 1 + brightness)
+    c = rng.uniform(1 - contrast, 1 + contrast)
+    s = rng.uniform(1 - saturation, 1 + saturation)
+    x = images * b
+    mean = x.mean(axis=(1, 2, 3), keepdims=True)
+    x = mean + c * (x - mean)
+    grey = (x @ np.array([0.299, 0.587, 0.114], np.float32))[..., None]
+    x = grey + s * (x - grey)
+    return np.clip(x, 0.0, 1.0).astype(np.float32)
+
+
+_MIRROR_Y = np.diag([1.0, -1.0, 1.0, 1.0])   # ego (x, y, z) -> (x, -y, z)
+_FLIP_X_CAM = np.diag([-1.0, 1.0, 1.0, 1.0])  # camera-frame x flip (image columns reversed)
+
+
+def mirror_camera_y(camera: Camera) -> Camera:
+    """The camera that sees the world mirrored across the ego x-z plane (y -> -y) in the horizontally flipped
+    image: a point P seen at pixel (u, v) by ``camera`` is seen at (W - 1 - u, v), same depth, after P -> M P.
+    cam_to_ego' = M cam_to_ego F (M = diag(1, -1, 1), F = camera x flip; det stays +1); cx' = W - 1 - cx.
+    Only undistorted pinhole cameras (DataError otherwise). Files (image/depth) are dropped: the arrays are
+    flipped by the caller."""
+    if camera.model != "pinhole" or camera.distortion is not None:
+        raise DataError(f"camera {camera.name!r}: model: only undistorted pinhole cameras can be mirrored")
+    K = camera.K.copy()
+    K[0, 2] = camera.width - 1 - K[0, 2]
+    return Camera(name=camera.name, width=camera.width, height=camera.height, K=K,
+                  cam_to_ego=_MIRROR_Y @ camera.cam_to_ego @ _FLIP_X_CAM, extra=dict(camera.extra))
+
+
+def mirror_order(n: int) -> list[int]:
+    """Camera order after a mirror: the first camera stays first, the ring direction is restored."""
+    return [0] + list(range(n - 1, 0, -1))
+
+
+def can_flip(cameras: list[Camera], pc_range) -> bool:
+    """Flips need undistorted pinhole cameras and an occupancy y range symmetric about 0."""
+    return (all(c.model == "pinhole" and c.distortion is None for c in cameras)
+            and abs(pc_range[1] + pc_range[4]) < 1e-6)
+
+
+# ------------------------------------------------------------------------------------------------- reading
+
+
+def _read_mask(path: Path, what: str) -> np.ndarray:
+    return read_image(path, what, channels=1)[..., 0] > 0.5
+
+
+def _read_depth(path: Path, what: str) -> np.ndarray:
+    d = read_image(path, what, channels=1, scale=False)[..., 0]
+    if np.isnan(d).any():
+        raise DataError(f"{what}: depth {path} contains NaN")
+    return d.astype(np.float32)
+
+
+def _view_arrays(root: Path, cams: list[dict[str, Any]], where: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """images [M, H, W, 3], depth [M, H, W] (0 = unknown/sky), sky [M, H, W] bool of camera entries."""
+    imgs, depths, skies = [], [], []
+    for c in cams:
+        name = c.get("name", "?")
+        for key in ("image", "depth", "sky"):
+            if not isinstance(c.get(key), str):
+                raise DataError(f"{where}: camera {name!r}: {key} file missing from the entry")
+        img = read_image(root / c["image"], f"{where}: camera {name!r}: image")
+        if img.shape[:2] != (c["height"], c["width"]):
+            raise DataError(f"{where}: camera {name!r}: image is {img.shape[1]}x{img.shape[0]}, "
+                            f"declared {c['width']}x{c['height']}")
+        imgs.append(img)
+        depths.append(_read_depth(root / c["depth"], f"{where}: camera {name!r}: depth"))
+        skies.append(_read_mask(root / c["sky"], f"{where}: camera {name!r}: sky"))
+    return np.stack(imgs), np.stack(depths), np.stack(skies)
+
+
+def _chw(a: np.ndarray) -> torch.Tensor:
+    return torch.from_numpy(np.ascontiguousarray(a.transpose(0, 3, 1, 2)))
+
+
+def list_scenes(root: Path) -> list[Path]:
+    """Complete scene folders (scene_XXXXXX with rig.json, targets.json and occupancy.npz), sorted."""
+    root = Path(root)
+    if not root.is_dir():
+        raise DataError(f"data: {root} is not a folder")
+    out = [p for p in sorted(root.glob("scene_*"))
+           if p.is_dir() and all((p / f).is_file() for f in ("rig.json", "targets.json", "occupancy.npz"))]
+    if not out:
+        raise DataError(f"data: no complete scene_* folders in {root}")
+    return out
+
+
+class SceneDataset(torch.utils.data.Dataset):
+    """Synthetic scenes (``xyzcyl data synth`` output). ``model_cfg`` (a ModelConfig) adds lifting inputs."""
+
+    def __init__(self, root: str | Path, cfg: DatasetConfig = DatasetConfig(), model_cfg=None):
+        self.root = Path(root)
+        self.cfg = cfg
+        self.scenes = list_scenes(self.root)
+        self.epoch = 0
+        self.model_cfg = model_cfg
+        self._lifting_params = None
+        if model_cfg is not None:
+            from xyzcyl.runtime.lifting import LiftingParams
+
+            self._lifting_params = LiftingParams.from_config_dict(model_cfg.to_dict())
+            grid = model_cfg.grid
+            if abs(grid.voxel_size - cfg.voxel_size) > 1e-9:
+                raise ConfigError(f"voxel_size: data {cfg.voxel_size} differs from the model grid {grid.voxel_size}")
+
+    def __len__(self) -> int:
+        return len(self.scenes)
+
+    def set_epoch(self, epoch: int) -> None:
+        self.epoch = int(epoch)
+
+    def _occupancy(self, folder: Path) -> tuple[np.ndarray, np.ndarray, tuple[float, ...]]:
+        """(occupied [L_z, L_y, L_x] bool, bev [L_y, L_x] bool, range) from occupancy.npz."""
+        z = np.load(folder / "occupancy.npz")
+        key = f"semantic_{self.cfg.voxel_tag}"
+        if key not in z:
+            raise DataError(f"{folder / 'occupancy.npz'}: voxel_size: no grid {key!r} "
+                            f"(have {sorted(k for k in z.files if k.startswith('semantic_'))})")
+        rng_m = tuple(float(v) for v in z["range"])
+        want = self.cfg.pc_range or (self.model_cfg.grid.pc_range if self.model_cfg is not None else None)
+        if want is not None and not np.allclose(rng_m, want, atol=1e-6):
+            raise DataError(f"{folder / 'occupancy.npz'}: pc_range: file has {rng_m}, expected {tuple(want)}")
+        sem = z[key]                                           # [X, Y, Z] uint8, index 0 at the range minimum
+        occ = sem.transpose(2, 1, 0) > 0                       # -> [L_z, L_y, L_x]
+        bev = np.isin(sem, GROUND_CLASSES + (0,), invert=True).any(axis=2).T   # [L_y, L_x]
+        return np.ascontiguousarray(occ), np.ascontiguousarray(bev), rng_m
+
+    def __getitem__(self, index: int) -> dict[str, Any]:
+        cfg = self.cfg
+        folder = self.scenes[index]
+        rng = np.random.default_rng((cfg.seed, self.epoch, index))
+        rig = load_rig(folder / "rig.json", check_images=False)
+        rig_doc = json.loads((folder / "rig.json").read_text())
+        tdoc = json.loads((folder / "targets.json").read_text())
+        setting = tdoc.get("settings", {}).get(cfg.setting)
+        if setting is None:
+            raise DataError(f"{folder / 'targets.json'}: settings: no {cfg.setting!r} targets in this data set")
+        tcams = [c for c in setting["cameras"] if not (cfg.skip_occluded and c.get("occluded", False))]
+        if not tcams:
+            raise DataError(f"{folder / 'targets.json'}: {cfg.setting}: no usable target camera")
+        pick = np.sort(rng.choice(len(tcams), size=min(cfg.num_targets, len(tcams)), replace=False))
+        tcams = [tcams[i] for i in pick]
+        trig = Rig.from_dict({"cameras": tcams})
+
+        img, depth, sky = _view_arrays(folder, rig_doc["cameras"], f"{folder.name}/rig.json")
+        timg, tdepth, tsky = _view_arrays(folder, tcams, f"{folder.name}/targets.json")
+        if cfg.brightness or cfg.contrast or cfg.saturation:
+            both = colour_jitter(np.concatenate([img, timg]), rng, cfg.brightness, cfg.contrast, cfg.saturation)
+            img, timg = both[:len(img)], both[len(img):]
+        occ, bev, rng_m = self._occupancy(folder)
+
+        in_cams, t_cams = list(rig.cameras), list(trig.cameras)
+        flipped = bool(cfg.flip_prob > 0 and rng.random() < cfg.flip_prob and can_flip(in_cams + t_cams, rng_m))
+        if flipped:
+            order = mirror_order(len(in_cams))
+            in_cams = [mirror_camera_y(in_cams[k]) for k in order]
+            img, depth, sky = (a[order][:, :, ::-1] for a in (img, depth, sky))
+            t_cams = [mirror_camera_y(c) for c in t_cams]
+            timg, tdepth, tsky = (a[:, :, ::-1] for a in (timg, tdepth, tsky))
+            occ, bev = occ[:, ::-1, :], bev[::-1, :]
+            rig = Rig(cameras=tuple(in_cams), root=rig.root, extra=rig.extra)
+
+        dvalid = np.isfinite(depth) & (depth > 0)
+        tvalid = np.isfinite(tdepth) & (tdepth > 0)
+        occ_t = torch.from_numpy(np.ascontiguousarray(occ).astype(np.int64))
+        item: dict[str, Any] = {
+            "scene": folder.name,
+            "flipped": flipped,
+            "rig": rig,
+            "images": _chw(img),
+            "depth": torch.from_numpy(np.ascontiguousarray(np.where(dvalid, depth, 0)[:, None], np.float32)),
+            "depth_valid": torch.from_numpy(np.ascontiguousarray(dvalid[:, None])),
+            "sky": torch.from_numpy(np.ascontiguousarray(sky[:, None], np.float32)),
+            "targets": {
+                "images": _chw(timg),
+                "depth": torch.from_numpy(np.ascontiguousarray(np.where(tvalid, tdepth, 0), np.float32)),
+                "depth_valid": torch.from_numpy(np.ascontiguousarray(tvalid)),
+                "sky": torch.from_numpy(np.ascontiguousarray(tsky, np.float32)),
+                "K": np.stack([c.K for c in t_cams]),
+                "cam_to_ego": np.stack([c.cam_to_ego for c in t_cams]),
+                "names": [c.name for c in t_cams],
+                "width": int(t_cams[0].width), "height": int(t_cams[0].height),
+            },
+            "occupancy": occ_t,
+            "bev": torch.from_numpy(np.ascontiguousarray(bev).astype(np.int64)),
+        }
+        if self._lifting_params is not None:
+            add_lifting(item, self._lifting_params)
+        return item
+
+
+def add_lifting(item: dict[str, Any], params) -> None:
+    """Attach the rig's lifting inputs and the targets' background grids (float32 tensors) to ``item``."""
+    from xyzcyl.runtime.lifting import background_grid, build_lifting_inputs
+
+    lift = build_lifting_inputs(item["rig"], params)
+    item["lifting"] = {k: torch.from_numpy(np.ascontiguousarray(v, np.float32)) for k, v in lift.items()}
+    t = item.get("targets")
+    if t is not None:
+        spec = params.spec(item["rig"], "volume")
+        grids = [background_grid(spec, K, T, t["width"], t["height"]) for K, T in zip(t["K"], t["cam_to_ego"])]
+        t["background_grid"] = torch.from_numpy(np.stack(grids))
+
+
+def collate_scenes(items: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """DataLoader collate: keep scenes as a list (each scene has its own rig and camera count)."""
+    return list(items)
+
+
+# ------------------------------------------------------------------------------------------ real rig folders
+
+
+def load_rig_folder(folder: str | Path, model_cfg=None) -> dict[str, Any]:
+    """A real rig folder (rig.json + images, optional per-camera depth; no targets) for inference smoke tests.
+
+    Returns {"rig", "images" [N, 3, H, W] float32 0..1, "depth" [N, 1, H, W] float32 or None,
+    "depth_mask" [N] float32 (1 = that camera has depth), "scene"} (+ "lifting" with ``model_cfg``).
+    Images of different sizes are kept as a list of [3, H_n, W_n] tensors instead of one stacked tensor."""
+    folder = Path(folder)
+    path = folder / "rig.json" if folder.is_dir() else folder
+    rig = load_rig(path)
+    imgs = [torch.from_numpy(np.ascontiguousarray(a.transpose(2, 0, 1))) for a in rig.load_images()]
+    same = len({tuple(i.shape) for i in imgs}) == 1
+    depths = rig.load_depths()
+    item: dict[str, Any] = {"scene": path.parent.name, "rig": rig,
+                            "images": torch.stack(imgs) if same else imgs, "depth": None,
+                            "depth_mask": torch.tensor([d is not None for d in depths], dtype=torch.float32)}
+    if same and any(d is not None for d in depths):
+        h, w = imgs[0].shape[1:]
+        item["depth"] = torch.from_numpy(np.stack([d if d is not None else np.zeros((h, w), np.float32)
+                                                   for d in depths])[:, None].astype(np.float32))
+    if model_cfg is not None:
+        from xyzcyl.runtime.lifting import LiftingParams
+
+        add_lifting(item, LiftingParams.from_config_dict(model_cfg.to_dict()))
+    return item

@@ -1,0 +1,164 @@
+"""Evaluation metrics (paper appendix "Overview of Evaluation Metrics"), numpy only.
+
+    psnr(pred, target)            dB, data range 1 (images float in [0, 1])
+    ssim(pred, target)            Wang et al. 2004: 11x11 Gaussian window (sigma 1.5), K1 0.01, K2 0.03,
+                                  population (co)variances, mean over valid windows, then over channels
+    depth_pcc(pred, gt, valid)    Pearson correlation over valid pixels
+    occupancy_iou / semantic_miou voxel IoU of the occupied class / mean IoU over classes
+    lpips(pred, target, ...)      only with local weights; otherwise (None, reason) — never estimated
+
+torch is imported only by ``lpips`` when weights are given. Definitions are in docs/training.md.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+def _check_pair(pred: np.ndarray, target: np.ndarray, name: str = "pred") -> tuple[np.ndarray, np.ndarray]:
+    pred = np.asarray(pred, dtype=np.float64)
+    target = np.asarray(target, dtype=np.float64)
+    if pred.shape != target.shape:
+        raise ValueError(f"{name}: shape {pred.shape} differs from target {target.shape}")
+    if not (np.isfinite(pred).all() and np.isfinite(target).all()):
+        raise ValueError(f"{name}: images contain NaN or inf")
+    return pred, target
+
+
+def psnr(pred: np.ndarray, target: np.ndarray, data_range: float = 1.0) -> float:
+    """PSNR = 10 log10(L^2 / MSE) in dB over all pixels and channels. pred/target [H, W, C] or [H, W] in
+    [0, data_range]. Identical images give inf."""
+    pred, target = _check_pair(pred, target)
+    mse = float(np.mean((pred - target) ** 2))
+    return float("inf") if mse == 0 else float(10 * np.log10(data_range ** 2 / mse))
+
+
+def _gauss1d(size: int, sigma: float) -> np.ndarray:
+    x = np.arange(size, dtype=np.float64) - (size - 1) / 2
+    g = np.exp(-0.5 * (x / sigma) ** 2)
+    return g / g.sum()
+
+
+def _filter_valid(img: np.ndarray, g: np.ndarray) -> np.ndarray:
+    """Separable 'valid' correlation of [H, W] with the window g ⊗ g -> [H - n + 1, W - n + 1]."""
+    n = g.size
+    rows = np.lib.stride_tricks.sliding_window_view(img, n, axis=1) @ g          # [H, W - n + 1]
+    return np.lib.stride_tricks.sliding_window_view(rows, n, axis=0) @ g         # [H - n + 1, W - n + 1]
+
+
+def ssim(pred: np.ndarray, target: np.ndarray, data_range: float = 1.0, win_size: int = 11,
+         sigma: float = 1.5, k1: float = 0.01, k2: float = 0.03) -> float:
+    """Mean SSIM. pred/target [H, W, C] (channels last) or [H, W], H, W >= win_size.
+
+    Local statistics use a normalised Gaussian window (win_size x win_size, sigma) over the windows that lie
+    entirely inside the image; sigma_x^2 = E[x^2] - mu_x^2 (population), c1 = (k1 L)^2, c2 = (k2 L)^2;
+    SSIM = mean over windows, then over channels."""
+    pred, target = _check_pair(pred, target)
+    if pred.ndim == 2:
+        pred, target = pred[..., None], target[..., None]
+    if pred.ndim != 3 or min(pred.shape[:2]) < win_size:
+        raise ValueError(f"pred: need [H, W(, C)] with H, W >= {win_size}, got shape {pred.shape}")
+    g = _gauss1d(win_size, sigma)
+    c1, c2 = (k1 * data_range) ** 2, (k2 * data_range) ** 2
+    vals = []
+    for c in range(pred.shape[2]):
+        x, y = pred[..., c], target[..., c]
+        mx, my = _filter_valid(x, g), _filter_valid(y, g)
+        sxx = _filter_valid(x * x, g) - mx * mx
+        syy = _filter_valid(y * y, g) - my * my
+        sxy = _filter_valid(x * y, g) - mx * my
+        s = ((2 * mx * my + c1) * (2 * sxy + c2)) / ((mx * mx + my * my + c1) * (sxx + syy + c2))
+        vals.append(s.mean())
+    return float(np.mean(vals))
+
+
+def depth_pcc(pred: np.ndarray, gt: np.ndarray, valid: np.ndarray | None = None) -> float:
+    """Pearson correlation of predicted and ground-truth depth over the valid pixels (paper appendix):
+    sum (D - mu_D)(D^ - mu_D^) / sqrt(sum (D - mu_D)^2 * sum (D^ - mu_D^)^2). [H, W] each; valid [H, W] bool
+    (default: gt finite and > 0, pred finite). NaN when fewer than 2 valid pixels or a constant map."""
+    pred = np.asarray(pred, dtype=np.float64)
+    gt = np.asarray(gt, dtype=np.float64)
+    if pred.shape != gt.shape:
+        raise ValueError(f"pred: shape {pred.shape} differs from gt {gt.shape}")
+    if valid is None:
+        valid = np.isfinite(gt) & (gt > 0) & np.isfinite(pred)
+    valid = np.asarray(valid, dtype=bool)
+    if valid.shape != gt.shape:
+        raise ValueError(f"valid: shape {valid.shape} differs from gt {gt.shape}")
+    x, y = pred[valid], gt[valid]
+    if not np.isfinite(x).all():
+        raise ValueError("pred: NaN or inf at valid pixels")
+    if x.size < 2:
+        return float("nan")
+    xc, yc = x - x.mean(), y - y.mean()
+    den = np.sqrt((xc * xc).sum() * (yc * yc).sum())
+    return float((xc * yc).sum() / den) if den > 0 else float("nan")
+
+
+def occupancy_iou(pred: np.ndarray, gt: np.ndarray, ignore: np.ndarray | None = None) -> float:
+    """Binary occupancy IoU = |pred ∩ gt| / |pred ∪ gt| over known voxels. pred/gt [...] bool (or ints,
+    nonzero = occupied); ignore [...] bool marks unknown voxels. NaN when both are empty."""
+    pred = np.asarray(pred) != 0
+    gt = np.asarray(gt) != 0
+    if pred.shape != gt.shape:
+        raise ValueError(f"pred: shape {pred.shape} differs from gt {gt.shape}")
+    keep = np.ones_like(gt) if ignore is None else ~np.asarray(ignore, dtype=bool)
+    inter = int((pred & gt & keep).sum())
+    union = int(((pred | gt) & keep).sum())
+    return float("nan") if union == 0 else inter / union
+
+
+def semantic_miou(pred: np.ndarray, gt: np.ndarray, num_classes: int, ignore_index: int = 255,
+                  skip_classes: tuple[int, ...] = (0,)) -> tuple[float, list[float]]:
+    """Mean IoU over classes (per-class IoU = TP / (TP + FP + FN) over voxels with gt != ignore_index).
+    Classes in ``skip_classes`` (default: 0 = empty, as SSC benchmarks do) and classes absent from both pred
+    and gt (NaN) are left out of the mean. Returns (mIoU, per-class IoU list)."""
+    pred = np.asarray(pred)
+    gt = np.asarray(gt)
+    if pred.shape != gt.shape:
+        raise ValueError(f"pred: shape {pred.shape} differs from gt {gt.shape}")
+    keep = gt != ignore_index
+    p, g = pred[keep], gt[keep]
+    ious = []
+    for c in range(num_classes):
+        inter = int(((p == c) & (g == c)).sum())
+        union = int(((p == c) | (g == c)).sum())
+        ious.append(float("nan") if union == 0 else inter / union)
+    use = [v for c, v in enumerate(ious) if c not in skip_classes and not np.isnan(v)]
+    return (float(np.mean(use)) if use else float("nan")), ious
+
+
+@dataclass(frozen=True)
+class LpipsResult:
+    value: float | None      # None when unavailable
+    reason: str | None       # why it is unavailable (None when computed)
+
+
+_LPIPS_CACHE: dict = {}
+
+
+def lpips(pred: np.ndarray, target: np.ndarray, backbone_path: str | None = None, lin_path: str | None = None,
+          net: str = "vgg") -> LpipsResult:
+    """LPIPS v0.1 from local weights (see xyzcyl.model_export.losses.LPIPS), pred/target [H, W, 3] in [0, 1].
+    Without both paths, or when the files cannot be loaded, returns LpipsResult(None, reason)."""
+    if backbone_path is None or lin_path is None:
+        return LpipsResult(None, "LPIPS unavailable: no local VGG/AlexNet + LPIPS linear weights were given "
+                                 "(no package ships them and model hubs are unreachable)")
+    pred, target = _check_pair(pred, target)
+    import torch
+
+    from .losses import LPIPS, LPIPSUnavailable
+
+    key = (str(backbone_path), str(lin_path), net)
+    try:
+        if key not in _LPIPS_CACHE:
+            _LPIPS_CACHE[key] = LPIPS(backbone_path, lin_path, net)
+    except LPIPSUnavailable as e:
+        return LpipsResult(None, f"LPIPS unavailable: {e}")
+    model = _LPIPS_CACHE[key]
+    with torch.no_grad():
+        a = torch.from_numpy(pred).float().permute(2, 0, 1)[None]
+        b = torch.from_numpy(target).float().permute(2, 0, 1)[None]
+        return LpipsResult(float(model(a, b)[0]), None)

@@ -1,0 +1,98 @@
+"""Metrics against scikit-image / numpy references and hand-made grids."""
+
+import math
+
+import numpy as np
+import pytest
+from skimage.metrics import peak_signal_noise_ratio, structural_similarity
+from xyzcyl.model_export import metrics as M
+
+
+def _pair(rng, shape):
+    a = rng.random(shape)
+    b = np.clip(a + rng.normal(0, 0.1, shape), 0, 1)
+    return a, b
+
+
+def test_psnr_matches_skimage():
+    rng = np.random.default_rng(0)
+    a, b = _pair(rng, (32, 48, 3))
+    # float64 both sides: only summation order differs
+    assert M.psnr(b, a) == pytest.approx(peak_signal_noise_ratio(a, b, data_range=1.0), rel=1e-12)
+    assert M.psnr(a, a) == math.inf
+
+
+def test_psnr_hand_value():
+    a = np.zeros((2, 2))
+    b = np.array([[0.1, 0.0], [0.0, 0.0]])   # MSE = 0.01 / 4 = 0.0025 -> 10 log10(400) = 26.0206 dB
+    assert M.psnr(b, a) == pytest.approx(10 * math.log10(400), abs=1e-12)
+
+
+@pytest.mark.parametrize("shape", [(32, 48, 3), (20, 25, 1), (40, 17)])
+def test_ssim_matches_skimage(shape):
+    rng = np.random.default_rng(1)
+    a, b = _pair(rng, shape)
+    kw = {"gaussian_weights": True, "sigma": 1.5, "use_sample_covariance": False, "data_range": 1.0}
+    if len(shape) == 3:
+        ref = structural_similarity(a, b, channel_axis=2, **kw)
+    else:
+        ref = structural_similarity(a, b, **kw)
+    # skimage filters the whole image (reflect padding) and crops 5 px; the interior windows are the same
+    # numbers, so only floating-point summation order differs
+    assert M.ssim(b, a) == pytest.approx(ref, abs=1e-10)
+    assert M.ssim(a, a) == pytest.approx(1.0, abs=1e-12)
+
+
+def test_ssim_rejects_small_and_nan():
+    with pytest.raises(ValueError, match="pred"):
+        M.ssim(np.zeros((8, 8)), np.zeros((8, 8)))
+    x = np.zeros((12, 12))
+    y = x.copy()
+    y[0, 0] = np.nan
+    with pytest.raises(ValueError, match="NaN"):
+        M.ssim(y, x)
+
+
+def test_depth_pcc_matches_corrcoef():
+    rng = np.random.default_rng(2)
+    gt = rng.uniform(1, 50, (24, 40))
+    pred = 0.5 * gt + rng.normal(0, 5, gt.shape)
+    valid = rng.random(gt.shape) > 0.3
+    ref = np.corrcoef(pred[valid], gt[valid])[0, 1]
+    assert M.depth_pcc(pred, gt, valid) == pytest.approx(ref, abs=1e-12)  # float64 rounding only
+    # default mask: gt > 0 and finite
+    gt2 = gt.copy()
+    gt2[~valid] = 0.0
+    assert M.depth_pcc(pred, gt2) == pytest.approx(ref, abs=1e-12)
+    # scale/shift invariance
+    assert M.depth_pcc(3 * gt + 2, gt) == pytest.approx(1.0, abs=1e-12)
+    assert math.isnan(M.depth_pcc(np.ones((4, 4)), gt[:4, :4]))
+
+
+def test_occupancy_iou_hand_grid():
+    gt = np.zeros((2, 3, 3), bool)
+    pred = np.zeros((2, 3, 3), bool)
+    gt[0, :2, :2] = True          # 4 voxels
+    pred[0, 1:, 1:] = True        # 4 voxels, overlap 1 (voxel [0,1,1]) -> IoU 1/7
+    assert M.occupancy_iou(pred, gt) == pytest.approx(1 / 7)
+    ignore = np.zeros_like(gt)
+    ignore[0, 2, 2] = True        # drops one pred-only voxel -> 1/6
+    assert M.occupancy_iou(pred, gt, ignore) == pytest.approx(1 / 6)
+    assert math.isnan(M.occupancy_iou(np.zeros(3), np.zeros(3)))
+
+
+def test_semantic_miou_hand_grid():
+    gt = np.array([0, 1, 1, 2, 2, 255])
+    pred = np.array([0, 1, 2, 2, 2, 1])
+    # class 1: TP 1, FP 0 (the 255 voxel is ignored), FN 1 -> 1/2; class 2: TP 2, FP 1 -> 2/3
+    miou, per = M.semantic_miou(pred, gt, num_classes=3)
+    assert per[1] == pytest.approx(0.5) and per[2] == pytest.approx(2 / 3) and per[0] == pytest.approx(1.0)
+    assert miou == pytest.approx((0.5 + 2 / 3) / 2)
+
+
+def test_lpips_unavailable_without_weights(tmp_path):
+    a = np.zeros((16, 16, 3))
+    r = M.lpips(a, a)
+    assert r.value is None and "unavailable" in r.reason
+    r = M.lpips(a, a, backbone_path=str(tmp_path / "none.pth"), lin_path=str(tmp_path / "none2.pth"))
+    assert r.value is None and "no such file" in r.reason
