@@ -134,7 +134,7 @@ def ellipsoid_overlaps(geo_p, vx, vy, vz, h):
     return best + qz < 1.0
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, nogil=True, error_model="numpy")
 def _voxelize(kind, geo, cls, G, rng, v, thick, prio, sem):
     X, Y, Z = sem.shape
     h = 0.5 * v

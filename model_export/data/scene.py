@@ -143,15 +143,15 @@ def _car(b: _Builder, rng, u, v, yaw, ego=False, kind=None):
     if kind == "bus":
         # window band on a bus: a slightly wider glass box
         b.add(BOX, (cu, cv, z0 + Hb + 0.35), (L / 2 - 0.1, W / 2 - 0.02, 0.35), yaw,
-              C.EGO if ego else C.VEHICLE, T_GLASS, glass, ego=ego)
+              C.EGO if ego else C.VEHICLE, T_GLASS, glass, col, ego=ego)
     elif cab == "ell":
         gu, gv = at(-0.08 * L, 0.0)
         b.add(ELL, (gu, gv, z0 + Hb), (0.30 * L, 0.46 * W, 0.50), yaw, C.EGO if ego else C.VEHICLE, T_GLASS,
-              glass, ego=ego)
+              glass, col, ego=ego)
     elif kind == "suv":
         gu, gv = at(-0.1 * L, 0.0)
         b.add(BOX, (gu, gv, z0 + Hb + 0.30), (0.32 * L, 0.45 * W, 0.30), yaw, C.EGO if ego else C.VEHICLE,
-              T_GLASS, glass, ego=ego)
+              T_GLASS, glass, col, ego=ego)
     for du in (L / 2 - 0.85, -(L / 2 - 0.85)):
         for dv in (W / 2 - 0.12, -(W / 2 - 0.12)):
             wu, wv = at(du, dv)
@@ -417,7 +417,7 @@ def sample_scene(seed: int, index: int, config: SceneConfig = SceneConfig()) -> 
     sky[S_CLOUD] = rng.uniform(0.55, 0.9) if overcast else rng.uniform(0.0, 0.6)
     sky[S_CSCALE] = rng.uniform(0.3, 0.9)
     sky[S_COFF:S_COFF + 2] = rng.uniform(-100, 100, 2)
-    amb = 0.5 * (zen + hor) * (0.85 if overcast else 0.55)
+    amb = 0.5 * (zen + hor) * (0.95 if overcast else 0.68)
     sky[S_AMB:S_AMB + 3] = amb
     sky[S_FOG] = rng.uniform(250.0, 900.0)
 

@@ -191,7 +191,7 @@ def _hit_prim(p, kind, geo, ox, oy, oz, dx, dy, dz, tmax):
     return BIG, -1
 
 
-@njit(cache=True, error_model="numpy", fastmath=True)
+@njit(cache=True, inline="always", error_model="numpy", fastmath=True)
 def trace(ox, oy, oz, dx, dy, dz, tmax, any_hit, skip_ego, kind, geo, ego, meta, start, items, zmax):
     """Closest (or any, if any_hit) hit with t < tmax among the primitives: (t, prim, face); (BIG, -1, -1)."""
     x0, y0, cs = meta[0], meta[1], meta[2]
@@ -240,10 +240,12 @@ def trace(ox, oy, oz, dx, dy, dz, tmax, any_hit, skip_ego, kind, geo, ego, meta,
         if dz >= 0.0 and za > ztop:
             break
         c = ix * ny + iy
-        if min(za, zb) <= zmax[c]:
+        zlo = min(za, zb)
+        if zlo <= zmax[c]:
+            zhi = max(za, zb)
             for q in range(start[c], start[c + 1]):
                 p = items[q]
-                if skip_ego and ego[p]:
+                if (skip_ego and ego[p]) or zlo > geo[p, 2] + geo[p, 5] or zhi < geo[p, 2] - geo[p, 5]:
                     continue
                 th, f = _hit_prim(p, kind, geo, ox, oy, oz, dx, dy, dz, best)
                 if th < best:
@@ -266,7 +268,7 @@ def trace(ox, oy, oz, dx, dy, dz, tmax, any_hit, skip_ego, kind, geo, ego, meta,
     return best, bp, bf
 
 
-@njit(cache=True, error_model="numpy", fastmath=True)
+@njit(cache=True, inline="always", error_model="numpy", fastmath=True)
 def closest_hit(ox, oy, oz, dx, dy, dz, skip_ego, kind, geo, ego, meta, start, items, zmax):
     """Closest hit including the ground plane z = 0: (t, prim or GROUND or NO_HIT, face)."""
     tg = BIG
@@ -506,9 +508,11 @@ def _material(p, face, px, py, pz, kind, geo, tex, col, col2, par):
         n = 0.75 + 0.4 * _noise2(math.atan2(ry, rx) * 3.0, pz * 4.0, 23)
         r, g, b = r * n, g * n, b * n
     elif t == T_GLASS:
-        # fake reflection: upward-facing glass shows more sky
-        q = 0.6 + 0.6 * max(nz, 0.0)
-        r, g, b = r * q, g * q, b * q
+        if nz > 0.8:  # roof in the body colour (col2)
+            r, g, b = col2[p, 0], col2[p, 1], col2[p, 2]
+        else:  # fake reflection: upward-facing glass shows more sky
+            q = 0.6 + 0.6 * max(nz, 0.0)
+            r, g, b = r * q, g * q, b * q
     elif t == T_CARBODY:
         if face < 2:
             zr = rz / hz
@@ -603,7 +607,7 @@ def _semantic(p, cls, G, px, py):
     return cls[p]
 
 
-@njit(parallel=True, cache=True, error_model="numpy", fastmath=True)
+@njit(parallel=True, cache=True, nogil=True, error_model="numpy", fastmath=True)
 def render_kernel(fx, fy, cx, cy, Rm, T, H, W, ss, skip_ego, shadows, kind, geo, cls, tex, col, col2, par, ego,
                   meta, start, items, zmax, G, S, rgb, depth, sem):
     """Render one pinhole view into rgb [H,W,3] uint8, depth [H,W] float32, sem [H,W] uint8."""
