@@ -9,7 +9,6 @@ from __future__ import annotations
 import numpy as np
 import torch
 import torch.nn.functional as F
-
 from xyzcyl.runtime.lifting import LiftingParams, build_lifting_inputs
 from xyzcyl.runtime.rig import Rig
 

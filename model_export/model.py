@@ -20,8 +20,15 @@ from torch import nn
 from .backbone import DepthHead, build_backbone
 from .blocks import CylConv, ResBlock, XNet, YNet, flip_w, groups_for, init_last_linear, mlp
 from .config import ModelConfig
-from .lifting import (cpfg, frustum_coords_torch, lift, overlay_sum, sample_cameras, sample_cpfg,
-                      sample_plane_wrapped)
+from .lifting import (
+    cpfg,
+    frustum_coords_torch,
+    lift,
+    overlay_sum,
+    sample_cameras,
+    sample_cpfg,
+    sample_plane_wrapped,
+)
 
 SH_C0 = 0.28209479177387814
 GAUSSIAN_KEYS = ("means", "quats", "log_scales", "opacity_logits", "sh")
@@ -205,7 +212,7 @@ class XYZCylinder(nn.Module):
         return idx
 
     def pixel_branch(self, feats, depth, conf, inp):
-        p, D = self.cfg.pixel, feats.shape[1]
+        p = self.cfg.pixel
         grid = inp["grid_pix"]
         s = sample_cameras(feats, grid)
         dn = F.grid_sample(depth, grid, mode="bilinear", padding_mode="border", align_corners=False)  # [N,1,H,W]
@@ -232,8 +239,10 @@ class XYZCylinder(nn.Module):
         x, r = geo[0]                                                       # anchors from F+ (cw overlay)
         valid = inp["sel_cw_pix"].sum(0, keepdim=True).unsqueeze(0)         # [1, 1, H, W]
         if k > 1:
-            x = F.interpolate(x, scale_factor=k, mode="bilinear", align_corners=False)
-            r = F.interpolate(r, scale_factor=k, mode="bilinear", align_corners=False)
+            # normalised interpolation: pixels no camera sees (x = r = 0) must not pull their neighbours inwards
+            up = lambda t: F.interpolate(t, scale_factor=k, mode="bilinear", align_corners=False)
+            wsum = up(valid).clamp_min(1e-6)
+            x, r = up(x * valid) / wsum, up(r * valid) / wsum
             valid = F.interpolate(valid, scale_factor=k, mode="nearest")
         centre = inp["spec_pix"][:3]
         if p.placement == "cylinder_ray":
@@ -250,7 +259,7 @@ class XYZCylinder(nn.Module):
         vmask = valid.reshape(-1, 1).expand(-1, p.g_p).reshape(-1) > 0.5
         g["opacity_logits"] = torch.where(vmask, g["opacity_logits"], torch.full_like(g["opacity_logits"],
                                                                                        MASKED_LOGIT))
-        return g, feat, vmask
+        return g, feat, vmask, anchor.reshape(-1, 3)
 
     def pixel_projection(self, means, feat, vmask, spec_vol):
         """Appendix eq. 41: scatter pixel features [P, d_pix] (one per pixel; G_p Gaussians share it, the first
@@ -304,7 +313,7 @@ class XYZCylinder(nn.Module):
         parts = []
         pix = None
         if self.use_pixel:
-            pix, pfeat, vmask = self.pixel_branch(feats, d, c, inp)
+            pix, pfeat, vmask, _ = self.pixel_branch(feats, d, c, inp)
         if self.use_volume or self.use_background:
             v = self.cfg.volume
             fp, fm = lift(feats, inp["grid_vol"], inp["sel_cw_vol"], inp["sel_ccw_vol"])
@@ -340,4 +349,4 @@ def blend(fg_rgb, fg_alpha, bg_rgb):
     return fg_rgb + (1 - fg_alpha) * bg_rgb
 
 
-__all__ = ["XYZCylinder", "ZNet", "ModConv", "GaussianDecoder", "blend", "flip_w", "groups_for"]
+__all__ = ["GaussianDecoder", "ModConv", "XYZCylinder", "ZNet", "blend", "flip_w", "groups_for"]

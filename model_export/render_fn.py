@@ -13,11 +13,10 @@ gsplat import; ``render_views_auto`` picks it.
 
 from __future__ import annotations
 
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 import torch
-
 from xyzcyl.runtime.render import Gaussians, PinholeCamera, render, render_backward
 
 KEYS = ("means", "quats", "log_scales", "opacity_logits", "sh")

@@ -28,13 +28,19 @@ pixel's ray leaves the volume cylinder (ray_cylinder_intersection, paper_v=False
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Any, Mapping
+from typing import Any
 
 import numpy as np
 
-from .cylinder import (MODULES, CylinderSpec, frustum_annulus_coords, ray_cylinder_intersection,
-                       rig_sampling_grids)
+from .cylinder import (
+    MODULES,
+    CylinderSpec,
+    frustum_annulus_coords,
+    ray_cylinder_intersection,
+    rig_sampling_grids,
+)
 from .rig import Rig
 
 SHORT = {"occupancy": "occ", "volume": "vol", "pixel": "pix"}
@@ -60,7 +66,7 @@ class LiftingParams:
     pixel_upsample: int = 2                       # k_i * k_o
 
     @classmethod
-    def from_config_dict(cls, d: Mapping[str, Any]) -> "LiftingParams":
+    def from_config_dict(cls, d: Mapping[str, Any]) -> LiftingParams:
         try:
             cyl, grid, pix = d["cylinder"], d["grid"], d["pixel"]
             return cls(height=int(cyl["height"]), width=int(cyl["width"]), z_range=tuple(cyl["z_range"]),

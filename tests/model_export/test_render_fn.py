@@ -1,7 +1,6 @@
 import numpy as np
 import pytest
 import torch
-
 from xyzcyl.model_export.render_fn import KEYS, render_views
 from xyzcyl.runtime.render import PinholeCamera
 

@@ -3,28 +3,16 @@ import math
 import numpy as np
 import pytest
 import torch
-
-from net_helpers import overlap_rig, tiny_config
-from xyzcyl.model_export.lifting import (frustum_coords_torch, lift, rig_inputs, sample_cpfg,
-                                         sample_plane_wrapped)
+from net_helpers import tiny_config
+from xyzcyl.model_export.lifting import (
+    frustum_coords_torch,
+    lift,
+    rig_inputs,
+    sample_cpfg,
+    sample_plane_wrapped,
+)
 from xyzcyl.runtime.cylinder import CylinderSpec, frustum_annulus_coords, overlay, project_rig
-from xyzcyl.runtime.lifting import (background_grid, overlay_selection, overlay_selection_reference,
-                                    voxel_centres)
 from xyzcyl.runtime.rig import ring_rig
-
-
-def test_overlay_selection_matches_gamma_fold():
-    rng = np.random.default_rng(0)
-    valid = rng.random((5, 7, 9)) < 0.4
-    cw, ccw = overlay_selection(valid)
-    rcw, rccw = overlay_selection_reference(valid)
-    np.testing.assert_array_equal(cw, rcw)
-    np.testing.assert_array_equal(ccw, rccw)
-    # and with runtime.cylinder.overlay on one-hot camera indicators (channel axis last)
-    onehot = np.broadcast_to(np.eye(5)[:, None, None, :], (5, 7, 9, 5)) * valid[..., None]
-    np.testing.assert_array_equal(np.moveaxis(overlay(onehot, "cw"), -1, 0), cw)
-    np.testing.assert_array_equal(np.moveaxis(overlay(onehot, "ccw"), -1, 0), ccw)
-    assert np.all(cw.sum(0) == valid.any(0)) and np.all(ccw.sum(0) == valid.any(0))
 
 
 @pytest.mark.parametrize("n", [5, 6])
@@ -97,21 +85,3 @@ def test_sample_cpfg_planes_and_wrap():
     assert sample_plane_wrapped(plane, grid).item() == pytest.approx((W - 1) / 2, abs=1e-9)
 
 
-def test_background_grid_forward_camera():
-    rig = overlap_rig(6)
-    spec = CylinderSpec(centre=rig.cameras[0].position, radius=20.0, z_min=-3, z_max=13, height=8, width=64)
-    cam = rig.cameras[0]
-    g = background_grid(spec, cam.K, cam.cam_to_ego, cam.width, cam.height)
-    assert g.shape == (cam.height, cam.width, 2)
-    # principal ray: horizontal, from the centre -> theta = yaw 0 (u = 0), dz = 0 (v = 0)
-    cx, cy = cam.K[0, 2], cam.K[1, 2]
-    u = (g[int(cy), int(cx)] + g[int(cy) + 1, int(cx) + 1]) / 2
-    np.testing.assert_allclose(u, [0.0, 0.0], atol=0.05)
-    assert np.all(np.diff(g[:, int(cx), 1]) > 0)  # rows go down the cylinder
-
-
-def test_voxel_centres_layout():
-    c = voxel_centres((-40, -40, -3, 40, 40, 13), 4.0)
-    assert c.shape == (4, 20, 20, 3)
-    np.testing.assert_allclose(c[0, 0, 0], [-38, -38, -1])
-    np.testing.assert_allclose(c[1, 2, 3], [-40 + 14, -40 + 10, -3 + 6])

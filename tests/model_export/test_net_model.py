@@ -3,7 +3,6 @@ import math
 import numpy as np
 import pytest
 import torch
-
 from net_helpers import overlap_rig, tiny_config
 from xyzcyl.model_export.blocks import CylConv, YNet
 from xyzcyl.model_export.config import AblationConfig, UNetConfig, preset
@@ -194,3 +193,40 @@ def test_ablations_run(ablation):
     assert (out["n_pixel"] > 0) == ablation.pixel_branch
     assert (model.background(out["app_plane"], torch.zeros(1, 4, 4, 2)) is None) == (not ablation.separate_background)
     assert torch.isfinite(out["gaussians"]["means"]).all()
+
+
+@pytest.mark.parametrize("placement", ["cylinder_ray", "camera_ray"])
+def test_pixel_anchors_land_on_known_surface(placement):
+    """Supplied exact depth of a vertical wall (a cylinder of radius 12 m about the pixel cylinder's axis):
+    pixel-Gaussian anchors must lie on the wall (horizontal radius 12 m) in both placement modes."""
+    torch.manual_seed(0)
+    cfg = tiny_config()
+    cfg = cfg.replace(pixel=cfg.pixel.replace(placement=placement))
+    model = XYZCylinder(cfg).eval()
+    rig = overlap_rig(6, ring_radius=0.8)
+    inp = rig_inputs(rig, cfg)
+    centre = inp["spec_pix"][:3].numpy().astype(np.float64)
+    s = cfg.backbone.feature_stride
+    h, w = cfg.backbone.input_height // s, cfg.backbone.input_width // s
+    R = 12.0
+    depths = []
+    for cam in rig.cameras:  # exact camera-z depth of the wall at feature-pixel centres
+        sx, sy = cam.width / w, cam.height / h
+        vv, uu = np.meshgrid((np.arange(h) + 0.5) * sy - 0.5, (np.arange(w) + 0.5) * sx - 0.5, indexing="ij")
+        o, d = cam.pixel_rays(np.stack([uu, vv], -1))
+        ox, oy = o[..., 0] - centre[0], o[..., 1] - centre[1]
+        a = d[..., 0] ** 2 + d[..., 1] ** 2
+        b = ox * d[..., 0] + oy * d[..., 1]
+        t = (-b + np.sqrt(b * b - a * (ox ** 2 + oy ** 2 - R ** 2))) / a      # distance along the unit ray
+        depths.append(t * (d @ cam.rotation[:, 2]))                            # -> optical-axis depth
+    depth = torch.tensor(np.stack(depths)[:, None], dtype=torch.float32)
+    with torch.no_grad():
+        feats, d, c = model.encode_images(_images(6, cfg), depth, torch.ones(6))
+        g, _, vmask, anchor = model.pixel_branch(feats, d, c, inp)
+    r = torch.linalg.norm(anchor[:, :2] - torch.from_numpy(centre[:2]).float(), dim=1)
+    r = r[vmask]
+    assert vmask.float().mean() > 0.5
+    # bilinear interpolation of a smooth (but curved) depth field sampled at 8x16 feature resolution and of the
+    # anchors on the 2x finer lattice: measured max 0.08 m at 12 m; 0.15 m (1.25 %) bounds it. A wrong depth
+    # convention (z-depth used as radius, or missing camera offsets) errs by metres.
+    assert torch.abs(r - R).max().item() < 0.15

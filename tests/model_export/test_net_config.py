@@ -1,5 +1,4 @@
 import pytest
-
 from xyzcyl.model_export.config import ConfigError, ModelConfig, preset
 
 
