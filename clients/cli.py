@@ -28,6 +28,7 @@ class Command:
 # One line per subcommand. Local (non-HTTP) commands live in runtime/ or model_export/.
 COMMANDS: tuple[Command, ...] = (
     Command("cylinder", "xyzcyl.runtime.commands.cylinder", "project a rig's images onto the UCCM cylinder"),
+    Command("render", "xyzcyl.runtime.commands.render", "render a Gaussian PLY from a camera pose"),
     Command("data", "xyzcyl.model_export.commands.data", "synthetic training data: synth, gallery", "train"),
 )
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 
 from . import kernels as K
@@ -12,7 +13,7 @@ from .cameras import EquirectCamera, PinholeCamera
 from .gaussians import Gaussians
 from .projection import RenderOptions, pinhole_limits, project_reference
 from .result import GaussianGrads, RenderResult, background_image
-from .sh import sh_basis, sh_colours
+from .sh import sh_basis
 
 
 @dataclass(frozen=True)
@@ -22,11 +23,11 @@ class _State:
     ntx: int
     start: np.ndarray     # [ntiles + 1] int64 instance offsets per tile
     ids: np.ndarray       # [n_inst] int32 Gaussian id per instance
-    feat: np.ndarray      # [n_inst, 12] float32 per-instance features
+    feat: np.ndarray      # [n_inst, 16] float32 per-instance features (kernels.NFEAT)
     bg: np.ndarray        # [H, W, 3] float32
     last: np.ndarray      # [H, W] int32
     t_final: np.ndarray   # [H, W] float32
-    timings: dict         # seconds per stage: project, sort, raster
+    timings: dict         # seconds per stage: project, sort_bin, raster
 
 
 def _camera_args(camera):
@@ -49,23 +50,21 @@ def _prepare(g: Gaussians, camera, opts: RenderOptions):
     ntx, nty = (W + K.TILE - 1) // K.TILE, (H + K.TILE - 1) // K.TILE
     t0 = time.perf_counter()
     n = len(g)
-    proj = np.empty((n, 8), np.float64)
+    proj = np.empty((n, 13), np.float64)
     tiles = np.empty((n, 5), np.int32)
     if n:
-        K.project_kernel(_c(g.means), _c(g.quats), _c(g.log_scales), _c(g.opacity_logits),
+        K.project_kernel(_c(g.means), _c(g.quats), _c(g.log_scales), _c(g.opacity_logits), _c(g.sh),
+                         np.ascontiguousarray(camera.cam_to_world[:3, 3]),
                          *_camera_args(camera), W, H, float(opts.near), float(opts.far), float(opts.low_pass),
                          bool(opts.antialiased), opts.radius_mode == "opacity", proj, tiles)
-    visible = np.flatnonzero(tiles[:, 4] > 0)
-    colours = np.zeros((n, 3), np.float32)
-    if visible.size:
-        colours[visible] = sh_colours(g.means[visible], g.sh[visible], camera.cam_to_world[:3, 3])[0]
     t1 = time.perf_counter()
-    order = visible[np.argsort(proj[visible, 7], kind="stable")].astype(np.int32)
-    start, ids = K.bin_kernel(order, tiles, ntx, ntx * nty)
+    visible = np.flatnonzero(tiles[:, 4] > 0).astype(np.int32)
+    order = K.depth_order(visible, np.ascontiguousarray(proj[visible, 7]).view(np.uint64))
+    rows_per_chunk = max(1, nty // (4 * numba.get_num_threads()))
+    start, ids, feat = K.bin_kernel(order, proj, tiles, ntx, nty, W, isinstance(camera, EquirectCamera),
+                                    rows_per_chunk)
     t2 = time.perf_counter()
-    feat = K.gather_kernel(start, ids, proj, colours, ntx, W, isinstance(camera, EquirectCamera))
-    t3 = time.perf_counter()
-    return ntx, start, ids, feat, {"project": t1 - t0, "sort": t2 - t1, "gather": t3 - t2}
+    return ntx, start, ids, feat, {"project": t1 - t0, "sort_bin": t2 - t1}
 
 
 def render(gaussians: Gaussians, camera, background=None, **options) -> RenderResult:
@@ -84,7 +83,8 @@ def render(gaussians: Gaussians, camera, background=None, **options) -> RenderRe
     depth = np.empty((H, W), np.float32)
     last = np.empty((H, W), np.int32)
     t_final = np.empty((H, W), np.float32)
-    K.raster_forward(start, feat, ntx, W, H, isinstance(camera, EquirectCamera), bg, rgb, alpha, depth, last, t_final)
+    K.raster_forward(start, feat, ntx, W, H, isinstance(camera, EquirectCamera), bg, rgb, alpha, depth, last,
+                     t_final)
     timings["raster"] = time.perf_counter() - t0
     state = _State(opts, ntx, start, ids, feat, bg, last, t_final, timings)
     return RenderResult(rgb, alpha, depth, state)

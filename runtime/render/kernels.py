@@ -15,7 +15,8 @@ from numba import njit, prange
 
 TILE = 16
 TILE_PIX = TILE * TILE
-NFEAT = 12  # per-instance features: mx, my (tile-local px), conic a b c, opacity, pmax, r g b, depth, pad
+NFEAT = 16  # per-instance features (one 64-byte row): mx, my (tile-local px), A = a/2, B = b, C = c/2 (conic),
+#             opacity, pmax, r, g, b, depth, first row, last row (tile-local rows the footprint can touch), pad
 
 F0 = np.float32(0.0)
 F1 = np.float32(1.0)
@@ -25,43 +26,54 @@ A_MIN = np.float32(1.0 / 255.0)
 T_STOP = np.float32(1e-4)
 P_CLIP = np.float32(6.0)      # the exp argument is clamped here; powers above every cutoff (<= 5.55) anyway
 INV16 = np.float32(1.0 / 16.0)
-E1 = np.float32(1.0)
-E2 = np.float32(1.0 / 2.0)
-E3 = np.float32(1.0 / 3.0)
-E4 = np.float32(1.0 / 4.0)
-E5 = np.float32(1.0 / 5.0)
-E6 = np.float32(1.0 / 6.0)
-E7 = np.float32(1.0 / 7.0)
 
 
-@njit(inline="always")
+def _fit_exp_coefficients():
+    """Degree-5 least-squares fit of exp(t) on t in [-6/16, 0] (Chebyshev nodes): max relative error ~1e-9,
+    far below float32 rounding, so exp(-p) = fit(-p/16)^16 is accurate to ~1e-6 relative."""
+    k = np.arange(200)
+    t = -0.1875 * (1 + np.cos(np.pi * (k + 0.5) / 200))
+    c = np.polyfit(t, np.exp(t), 5)  # highest power first
+    return tuple(np.float32(v) for v in c)
+
+
+E5, E4, E3, E2, E1, E0 = _fit_exp_coefficients()
+RASTER_MATH = {"contract"}  # allow FMA contraction in the raster kernels (forward and backward alike)
+
+
+@njit(inline="always", fastmath=RASTER_MATH)
 def _exp_neg(p):
-    """exp(-p) for float32 p in [0, 6]: exp(-p/16) by a degree-7 Taylor polynomial (|t| <= 0.375, remainder
-    < 1e-8), then squared four times. Relative error < 2e-6 including float32 rounding."""
+    """exp(-p) for float32 p in [0, 6], relative error < 2e-6 (see _fit_exp_coefficients)."""
     t = -p * INV16
-    e = E1 + t * (E1 + t * E2 * (E1 + t * E3 * (E1 + t * E4 * (E1 + t * E5 * (E1 + t * E6 * (E1 + t * E7))))))
+    e = E0 + t * (E1 + t * (E2 + t * (E3 + t * (E4 + t * E5))))
     e = e * e
     e = e * e
     e = e * e
     return e * e
 
 
-@njit(inline="always")
-def _alpha(dx, dy, ca, cb, cc, op, pmax):
-    """(ok, alpha, G, power) for one pixel and one Gaussian, float32; ok = contributes (before the stop test)."""
-    power = HALF * (ca * dx * dx + cc * dy * dy) + cb * dx * dy
+@njit(inline="always", fastmath=RASTER_MATH)
+def _power(dx, dy, A, B, C):
+    return (A * dx + B * dy) * dx + C * dy * dy
+
+
+@njit(inline="always", fastmath=RASTER_MATH)
+def _alpha(dx, dy, A, B, C, op, pmax):
+    """(ok, alpha, G) for one pixel and one Gaussian, float32; ok = contributes (before the stop test)."""
+    power = _power(dx, dy, A, B, C)
     g = _exp_neg(min(max(power, F0), P_CLIP))
     a = min(A_MAX, op * g)
     ok = (power >= F0) and (power <= pmax) and (a >= A_MIN)
-    return ok, a, g, power
+    return ok, a, g
 
 
 # ------------------------------------------------------------------------------------------------ projection
 @njit(cache=True, parallel=True)
-def project_kernel(means, quats, log_scales, opacity_logits, Rw, tw, model, fx, fy, cx, cy,
+def project_kernel(means, quats, log_scales, opacity_logits, sh, campos, Rw, tw, model, fx, fy, cx, cy,
                    lxn, lxp, lyn, lyp, width, height, near, far, low_pass, antialiased, opacity_mode,
                    proj, tiles):
-    """Per Gaussian (float64): proj[i] = (mx, my, conic a, b, c, opacity, pmax, depth);
+    """Per Gaussian (float64): proj[i] = (mx, my, conic a, b, c, opacity, pmax, depth, rx, ry, r, g, b)
+    with rx, ry the footprint's bounding half-widths (px) and r, g, b the SH colour seen from campos [3];
     tiles[i] = (tx0, tx1, ty0, ty1, count) with count 0 when culled; tx1 < tx0 means the range wraps
     around the azimuth seam (equirect). model 0 = pinhole, 1 = equirect."""
     n = means.shape[0]
@@ -83,6 +95,13 @@ def project_kernel(means, quats, log_scales, opacity_logits, Rw, tw, model, fx, 
             v = fy * sy + cy
             sxc = min(max(sx, -lxn), lxp)
             syc = min(max(sy, -lyn), lyp)
+            # cheap conservative cull before the covariance: sigma_u <= |J row 0| * max scale, etc.
+            smax = math.exp(max(np.float64(log_scales[i, 0]), np.float64(log_scales[i, 1]),
+                                np.float64(log_scales[i, 2])))
+            ru = 3.34 * math.sqrt((fx / z) ** 2 * (1.0 + sxc * sxc) * smax * smax + low_pass)
+            rv = 3.34 * math.sqrt((fy / z) ** 2 * (1.0 + syc * syc) * smax * smax + low_pass)
+            if u - ru > width - 1 or u + ru < 0.0 or v - rv > height - 1 or v + rv < 0.0:
+                continue
             j00 = fx / z
             j01 = 0.0
             j02 = -fx * sxc / z
@@ -197,6 +216,9 @@ def project_kernel(means, quats, log_scales, opacity_logits, Rw, tw, model, fx, 
         proj[i, 5] = opa
         proj[i, 6] = pmax
         proj[i, 7] = depth
+        proj[i, 8] = rx
+        proj[i, 9] = ry
+        _sh_colour(sh, i, mxw - campos[0], myw - campos[1], mzw - campos[2], proj)
         tiles[i, 0] = tx0
         tiles[i, 1] = tx1
         tiles[i, 2] = ty0
@@ -205,116 +227,227 @@ def project_kernel(means, quats, log_scales, opacity_logits, Rw, tw, model, fx, 
     _ = nty
 
 
+@njit(inline="always")
+def _sh_colour(sh, i, vx, vy, vz, proj):
+    """3DGS SH evaluation (degree from sh.shape[1]) -> proj[i, 10:13], clamped at 0. v = mean - camera centre."""
+    k = sh.shape[1]
+    for c in range(3):
+        proj[i, 10 + c] = 0.28209479177387814 * sh[i, 0, c]
+    if k > 1:
+        nrm = math.sqrt(vx * vx + vy * vy + vz * vz)
+        nrm = 1.0 / max(nrm, 1e-12)
+        x = vx * nrm
+        y = vy * nrm
+        z = vz * nrm
+        xx, yy, zz, xy, yz, xz = x * x, y * y, z * z, x * y, y * z, x * z
+        for c in range(3):
+            r = -0.4886025119029199 * y * sh[i, 1, c] + 0.4886025119029199 * z * sh[i, 2, c] \
+                - 0.4886025119029199 * x * sh[i, 3, c]
+            if k > 4:
+                r += (1.0925484305920792 * xy * sh[i, 4, c] - 1.0925484305920792 * yz * sh[i, 5, c]
+                      + 0.31539156525252005 * (2 * zz - xx - yy) * sh[i, 6, c]
+                      - 1.0925484305920792 * xz * sh[i, 7, c] + 0.5462742152960396 * (xx - yy) * sh[i, 8, c])
+            if k > 9:
+                r += (-0.5900435899266435 * y * (3 * xx - yy) * sh[i, 9, c]
+                      + 2.890611442640554 * xy * z * sh[i, 10, c]
+                      - 0.4570457994644658 * y * (4 * zz - xx - yy) * sh[i, 11, c]
+                      + 0.3731763325901154 * z * (2 * zz - 3 * xx - 3 * yy) * sh[i, 12, c]
+                      - 0.4570457994644658 * x * (4 * zz - xx - yy) * sh[i, 13, c]
+                      + 1.445305721320277 * z * (xx - yy) * sh[i, 14, c]
+                      - 0.5900435899266435 * x * (xx - 3 * yy) * sh[i, 15, c])
+            proj[i, 10 + c] += r
+    for c in range(3):
+        proj[i, 10 + c] = max(proj[i, 10 + c] + 0.5, 0.0)
+
+
 # --------------------------------------------------------------------------------------------------- binning
 @njit(cache=True)
-def bin_kernel(order, tiles, ntx, ntiles):
-    """order: Gaussian ids front to back (culled ones excluded). Returns (tile_start [ntiles+1], ids [n_inst])
-    with each tile's ids in front-to-back order (a stable counting sort by tile)."""
-    counts = np.zeros(ntiles + 1, np.int64)
-    for k in range(order.shape[0]):
-        i = order[k]
-        tx0, tx1, ty0, ty1 = tiles[i, 0], tiles[i, 1], tiles[i, 2], tiles[i, 3]
-        nx = tx1 - tx0 + 1 if tx1 >= tx0 else ntx - tx0 + tx1 + 1
-        for ty in range(ty0, ty1 + 1):
-            for kx in range(nx):
-                tx = (tx0 + kx) % ntx
-                counts[ty * ntx + tx + 1] += 1
-    start = np.cumsum(counts)
-    cursor = start[:-1].copy()
-    ids = np.empty(start[-1], np.int32)
-    for k in range(order.shape[0]):
-        i = order[k]
-        tx0, tx1, ty0, ty1 = tiles[i, 0], tiles[i, 1], tiles[i, 2], tiles[i, 3]
-        nx = tx1 - tx0 + 1 if tx1 >= tx0 else ntx - tx0 + tx1 + 1
-        for ty in range(ty0, ty1 + 1):
-            for kx in range(nx):
-                t = ty * ntx + (tx0 + kx) % ntx
-                ids[cursor[t]] = i
-                cursor[t] += 1
-    return start, ids
+def depth_order(visible, keys):
+    """Stable LSD radix sort of `visible` (Gaussian ids, ascending) by keys [n] uint64 (the bit patterns of
+    positive float64 depths, which order like the values): 4 passes of 16 bits, passes where all keys share
+    the digit skipped. Ties keep id order, as the reference's lexsort."""
+    n = visible.shape[0]
+    src = visible.astype(np.int32)
+    srck = keys
+    dst = np.empty(n, np.int32)
+    dstk = np.empty(n, np.uint64)
+    for shift in range(0, 64, 16):
+        hist = np.zeros(65537, np.int64)
+        sh_ = np.uint64(shift)
+        for k in range(n):
+            hist[((srck[k] >> sh_) & np.uint64(0xFFFF)) + 1] += 1
+        if n == 0 or hist.max() == n:
+            continue
+        for b in range(65536):
+            hist[b + 1] += hist[b]
+        for k in range(n):
+            b = (srck[k] >> sh_) & np.uint64(0xFFFF)
+            pos = hist[b]
+            hist[b] = pos + 1
+            dst[pos] = src[k]
+            dstk[pos] = srck[k]
+        src, dst = dst, src
+        srck, dstk = dstk, srck
+    return src
 
 
 @njit(cache=True, parallel=True)
-def gather_kernel(start, ids, proj, colours, ntx, width, wrap):
-    """Per-instance float32 features, tile-local means (wrapped to the nearest copy for equirect)."""
-    n_inst = ids.shape[0]
+def bin_kernel(order, proj, tiles, ntx, nty, width, wrap, rows_per_chunk):
+    """Duplicate each visible Gaussian into every tile its footprint's bounding box touches, in depth order
+    (`order`: Gaussian ids front to back), and build the per-instance float32 features (see NFEAT) with
+    tile-local means (the copy nearest the tile centre for equirect) and the tile-local rows the bounding box
+    touches. Returns (tile_start [ntiles + 1] int64, ids [n_inst] int32, feat [n_inst, NFEAT] float32).
+
+    Parallel over chunks of tile rows (disjoint tiles, so no races); every chunk scans the depth-ordered,
+    compacted Gaussians sequentially, which keeps the memory traffic streaming."""
+    nv = order.shape[0]
+    ntiles = ntx * nty
+    # compact, depth-ordered copies (one random read per visible Gaussian)
+    cf = np.empty((nv, 12), np.float64)
+    ct = np.empty((nv, 4), np.int32)
+    for k in prange(nv):
+        i = order[k]
+        cf[k, 0] = proj[i, 0]
+        cf[k, 1] = proj[i, 1]
+        cf[k, 2] = 0.5 * proj[i, 2]
+        cf[k, 3] = proj[i, 3]
+        cf[k, 4] = 0.5 * proj[i, 4]
+        cf[k, 5] = proj[i, 5]
+        cf[k, 6] = proj[i, 6]
+        cf[k, 7] = proj[i, 10]
+        cf[k, 8] = proj[i, 11]
+        cf[k, 9] = proj[i, 12]
+        cf[k, 10] = proj[i, 7]
+        cf[k, 11] = proj[i, 9]
+        for c in range(4):
+            ct[k, c] = tiles[i, c]
+    nchunks = (nty + rows_per_chunk - 1) // rows_per_chunk
+    counts = np.zeros(ntiles + 1, np.int64)
+    for ch in prange(nchunks):
+        r_lo = ch * rows_per_chunk
+        r_hi = min(nty - 1, r_lo + rows_per_chunk - 1)
+        for k in range(nv):
+            ty0 = max(ct[k, 2], r_lo)
+            ty1 = min(ct[k, 3], r_hi)
+            if ty0 > ty1:
+                continue
+            tx0 = ct[k, 0]
+            tx1 = ct[k, 1]
+            a_hi = tx1 if tx1 >= tx0 else ntx - 1
+            for ty in range(ty0, ty1 + 1):
+                row = ty * ntx + 1
+                for tx in range(tx0, a_hi + 1):
+                    counts[row + tx] += 1
+                if tx1 < tx0:
+                    for tx in range(0, tx1 + 1):
+                        counts[row + tx] += 1
+    for t in range(ntiles):
+        counts[t + 1] += counts[t]
+    start = counts
+    n_inst = start[ntiles]
+    ids = np.empty(n_inst, np.int32)
     feat = np.empty((n_inst, NFEAT), np.float32)
-    ntiles = start.shape[0] - 1
-    for t in prange(ntiles):
-        x0 = (t % ntx) * TILE
-        y0 = (t // ntx) * TILE
-        for j in range(start[t], start[t + 1]):
-            i = ids[j]
-            mx = proj[i, 0] - x0
-            if wrap:
-                mx -= width * np.floor((mx - 7.5) / width + 0.5)  # nearest copy to the tile centre
-            feat[j, 0] = mx
-            feat[j, 1] = proj[i, 1] - y0
-            feat[j, 2] = proj[i, 2]
-            feat[j, 3] = proj[i, 3]
-            feat[j, 4] = proj[i, 4]
-            feat[j, 5] = proj[i, 5]
-            feat[j, 6] = proj[i, 6]
-            feat[j, 7] = colours[i, 0]
-            feat[j, 8] = colours[i, 1]
-            feat[j, 9] = colours[i, 2]
-            feat[j, 10] = proj[i, 7]
-            feat[j, 11] = 0.0
-    return feat
+    cursor = start[:-1].copy()
+    for ch in prange(nchunks):
+        r_lo = ch * rows_per_chunk
+        r_hi = min(nty - 1, r_lo + rows_per_chunk - 1)
+        for k in range(nv):
+            ty0 = max(ct[k, 2], r_lo)
+            ty1 = min(ct[k, 3], r_hi)
+            if ty0 > ty1:
+                continue
+            tx0 = ct[k, 0]
+            tx1 = ct[k, 1]
+            nx = tx1 - tx0 + 1 if tx1 >= tx0 else ntx - tx0 + tx1 + 1
+            for ty in range(ty0, ty1 + 1):
+                y0 = ty * TILE
+                my = cf[k, 1] - y0
+                row0 = max(0.0, math.floor(my - cf[k, 11]))
+                row1 = min(TILE - 1.0, math.ceil(my + cf[k, 11]))
+                for kx in range(nx):
+                    tx = tx0 + kx
+                    if tx >= ntx:
+                        tx -= ntx
+                    t = ty * ntx + tx
+                    pos = cursor[t]
+                    cursor[t] = pos + 1
+                    ids[pos] = order[k]
+                    x0 = tx * TILE
+                    mx = cf[k, 0] - x0
+                    if wrap:
+                        mx -= width * np.floor((mx - 7.5) / width + 0.5)
+                    feat[pos, 0] = mx
+                    feat[pos, 1] = my
+                    for c in range(2, 11):
+                        feat[pos, c] = cf[k, c]
+                    feat[pos, 11] = row0
+                    feat[pos, 12] = row1
+                    feat[pos, 13] = 0.0
+                    feat[pos, 14] = 0.0
+                    feat[pos, 15] = 0.0
+    return start, ids, feat
 
 
 # ----------------------------------------------------------------------------------------------- rasterise
-@njit(cache=True, parallel=True)
+@njit(cache=True, parallel=True, fastmath=RASTER_MATH)
 def raster_forward(start, feat, ntx, width, height, wrap, bg, rgb, alpha, depth, last, t_final):
     """Front-to-back blend per tile. bg [H, W, 3] f32. Outputs rgb [H, W, 3], alpha, depth [H, W] f32,
     last [H, W] int32 (index of the last blended instance, -1 if none), t_final [H, W] f32.
-    wrap (equirect): dx is taken to the nearest copy of the Gaussian across the azimuth seam, per pixel."""
+    wrap (equirect): dx is taken to the nearest copy of the Gaussian across the azimuth seam, per pixel.
+    Each Gaussian is evaluated on the tile rows its bounding box touches, in one branch-free SIMD loop.
+    A pixel that stopped (or lies outside the image) keeps -T in T: negative T means inactive."""
     ntiles = start.shape[0] - 1
     wf = np.float32(width)
-    inv_w = np.float32(1.0 / width) if wrap else F0
+    inv_w = np.float32(1.0 / width)
     for t in prange(ntiles):
         x0 = (t % ntx) * TILE
         y0 = (t // ntx) * TILE
         px = np.empty(TILE_PIX, np.float32)
         py = np.empty(TILE_PIX, np.float32)
-        T = np.ones(TILE_PIX, np.float32)
+        T = np.empty(TILE_PIX, np.float32)
         c0 = np.zeros(TILE_PIX, np.float32)
         c1 = np.zeros(TILE_PIX, np.float32)
         c2 = np.zeros(TILE_PIX, np.float32)
         dd = np.zeros(TILE_PIX, np.float32)
-        act = np.zeros(TILE_PIX, np.int32)
         lst = np.full(TILE_PIX, -1, np.int32)
         nact = 0
         for p in range(TILE_PIX):
             px[p] = p % TILE
             py[p] = p // TILE
             if x0 + p % TILE < width and y0 + p // TILE < height:
-                act[p] = 1
+                T[p] = F1
                 nact += 1
+            else:
+                T[p] = -F1
         for j in range(start[t], start[t + 1]):
             if nact == 0:
                 break
             mx = feat[j, 0]
             my = feat[j, 1]
-            ca = feat[j, 2]
-            cb = feat[j, 3]
-            cc = feat[j, 4]
+            A = feat[j, 2]
+            B = feat[j, 3]
+            C = feat[j, 4]
             op = feat[j, 5]
             pm = feat[j, 6]
             cr = feat[j, 7]
             cg = feat[j, 8]
             cbl = feat[j, 9]
             z = feat[j, 10]
+            jj = np.int32(j)
             nstop = 0
-            for p in range(TILE_PIX):
+            # unsigned pixel index: numba then emits no negative-index wraparound, which would block SIMD
+            p0 = np.uint64(feat[j, 11]) * np.uint64(TILE)
+            for q in range((np.int64(feat[j, 12]) + 1) * TILE - np.int64(p0)):
+                p = p0 + np.uint64(q)
                 dx = px[p] - mx
-                dx = dx - wf * np.floor(dx * inv_w + HALF)
+                if wrap:
+                    dx = dx - wf * np.floor(dx * inv_w + HALF)
                 dy = py[p] - my
-                power = HALF * (ca * dx * dx + cc * dy * dy) + cb * dx * dy
+                power = (A * dx + B * dy) * dx + C * dy * dy
                 g = _exp_neg(min(max(power, F0), P_CLIP))
                 a = min(A_MAX, op * g)
-                ok = (power >= F0) & (power <= pm) & (a >= A_MIN) & (act[p] != 0)
                 tb = T[p]
+                ok = (power >= F0) & (power <= pm) & (a >= A_MIN) & (tb > F0)
                 tt = tb * (F1 - a)
                 stop = ok & (tt <= T_STOP)
                 blend = ok & (tt > T_STOP)
@@ -323,16 +456,15 @@ def raster_forward(start, feat, ntx, width, height, wrap, bg, rgb, alpha, depth,
                 c1[p] += w * cg
                 c2[p] += w * cbl
                 dd[p] += w * z
-                T[p] = tt if blend else tb
-                lst[p] = j if blend else lst[p]
-                act[p] = 0 if stop else act[p]
+                T[p] = tt if blend else (-tb if stop else tb)
+                lst[p] = jj if blend else lst[p]
                 nstop += 1 if stop else 0
             nact -= nstop
         for p in range(TILE_PIX):
             xx = x0 + p % TILE
             yy = y0 + p // TILE
             if xx < width and yy < height:
-                tf = T[p]
+                tf = abs(T[p])
                 rgb[yy, xx, 0] = c0[p] + tf * bg[yy, xx, 0]
                 rgb[yy, xx, 1] = c1[p] + tf * bg[yy, xx, 1]
                 rgb[yy, xx, 2] = c2[p] + tf * bg[yy, xx, 2]
@@ -343,7 +475,7 @@ def raster_forward(start, feat, ntx, width, height, wrap, bg, rgb, alpha, depth,
                 t_final[yy, xx] = tf
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, parallel=True, fastmath=RASTER_MATH)
 def raster_backward(start, feat, ntx, width, height, bg, depth, last, t_final, d_rgb, d_alpha, d_depth,
                     g_inst, g_bg):
     """Reverse traversal per pixel. g_inst [n_inst, 10] f64 (d mx, d my, d conic a, b, c, d opacity,
@@ -382,7 +514,7 @@ def raster_backward(start, feat, ntx, width, height, bg, depth, last, t_final, d
             for j in range(j_last, s - 1, -1):
                 dx = pxf - feat[j, 0]
                 dy = pyf - feat[j, 1]
-                ok, a32, g32, _power = _alpha(dx, dy, feat[j, 2], feat[j, 3], feat[j, 4], feat[j, 5], feat[j, 6])
+                ok, a32, g32 = _alpha(dx, dy, feat[j, 2], feat[j, 3], feat[j, 4], feat[j, 5], feat[j, 6])
                 if not ok:
                     continue
                 a = np.float64(a32)
@@ -410,9 +542,9 @@ def raster_backward(start, feat, ntx, width, height, bg, depth, last, t_final, d
                     g_pow = -op * g * g_a
                     fdx = np.float64(dx)
                     fdy = np.float64(dy)
-                    ca = np.float64(feat[j, 2])
+                    ca = 2.0 * np.float64(feat[j, 2])
                     cb = np.float64(feat[j, 3])
-                    cc = np.float64(feat[j, 4])
+                    cc = 2.0 * np.float64(feat[j, 4])
                     g_inst[j, 0] += -g_pow * (ca * fdx + cb * fdy)
                     g_inst[j, 1] += -g_pow * (cb * fdx + cc * fdy)
                     g_inst[j, 2] += g_pow * 0.5 * fdx * fdx

@@ -1,0 +1,75 @@
+"""`xyzcyl render`: PNG / EXR outputs and user-input errors (exit 2, one line naming the field)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from render_scenes import random_gaussians
+
+from xyzcyl.clients import cli
+from xyzcyl.runtime.render import Gaussians, PinholeCamera, render
+
+EYE = [str(v) for v in np.eye(4).ravel()]
+
+
+@pytest.fixture
+def ply(tmp_path):
+    g = random_gaussians(np.random.default_rng(0), 150, degree=1)
+    path = tmp_path / "g.ply"
+    g.save_ply(path)
+    return path
+
+
+def _argv(ply, out, *extra):
+    return ["render", str(ply), "--width", "48", "--height", "32", "--K", "40", "40", "23.5", "15.5",
+            "--cam-to-world", *EYE, "--out", str(out), *extra]
+
+
+def test_png_and_exr(ply, tmp_path):
+    import cv2
+    import OpenImageIO as oiio
+
+    assert cli.main(_argv(ply, tmp_path / "a.png", "--background", "0.1", "0.2", "0.3")) == 0
+    assert cli.main(_argv(ply, tmp_path / "a.exr", "--background", "0.1", "0.2", "0.3")) == 0
+    cam = PinholeCamera(np.array([[40, 0, 23.5], [0, 40, 15.5], [0, 0, 1.0]]), np.eye(4), 48, 32)
+    ref = render(Gaussians.load_ply(ply), cam, (0.1, 0.2, 0.3))
+    png = cv2.imread(str(tmp_path / "a.png"), cv2.IMREAD_UNCHANGED)[..., ::-1]
+    assert png.shape == (32, 48, 3) and png.dtype == np.uint8
+    assert np.abs(png.astype(np.float64) - np.clip(ref.rgb, 0, 1) * 255).max() <= 0.5 + 1e-3  # rounding only
+    inp = oiio.ImageInput.open(str(tmp_path / "a.exr"))
+    assert inp.spec().channelnames == ("R", "G", "B", "A", "Z")
+    exr = inp.read_image(oiio.FLOAT)
+    inp.close()
+    assert np.array_equal(exr, np.dstack([ref.rgb, ref.alpha, ref.depth]))  # float32 stored exactly
+
+
+def test_equirect(ply, tmp_path):
+    argv = ["render", str(ply), "--width", "64", "--height", "32", "--cam-to-world", *EYE,
+            "--out", str(tmp_path / "p.png"), "--equirect"]
+    assert cli.main(argv) == 0
+
+
+@pytest.mark.parametrize("change, field", [
+    (("--out", "x.jpg"), "--out"),
+    (("--K", "-1", "40", "1", "1"), "--K"),
+    (("--width", "0"), "--width"),
+    (("--cam-to-world", *(["2"] + EYE[1:])), "--cam-to-world"),
+    (("--max-points", "3"), "PLY"),
+])
+def test_user_errors_exit_2_naming_the_field(ply, tmp_path, capsys, change, field):
+    argv = _argv(ply, tmp_path / "a.png")
+    flag = change[0]
+    i = argv.index(flag) if flag in argv else len(argv)
+    n = {"--out": 1, "--K": 4, "--width": 1, "--cam-to-world": 16}.get(flag, 0)
+    value = list(change[1:])
+    if flag == "--out":
+        value = [str(tmp_path / value[0])]
+    argv = argv[:i] + [flag, *value] + argv[i + 1 + n:]
+    assert cli.main(argv) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"xyzcyl render: {field}")
+
+
+def test_missing_ply(tmp_path, capsys):
+    assert cli.main(_argv(tmp_path / "nope.ply", tmp_path / "a.png")) == 2
+    assert "PLY" in capsys.readouterr().err
