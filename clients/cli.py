@@ -30,6 +30,7 @@ COMMANDS: tuple[Command, ...] = (
     Command("cylinder", "xyzcyl.runtime.commands.cylinder", "project a rig's images onto the UCCM cylinder"),
     Command("render", "xyzcyl.runtime.commands.render", "render a Gaussian PLY from a camera pose"),
     Command("data", "xyzcyl.model_export.commands.data", "synthetic training data: synth, gallery", "train"),
+    Command("train", "xyzcyl.model_export.commands.train", "train one stage (occ | render) of the network", "train"),
 )
 
 

@@ -211,9 +211,13 @@ class SceneDataset(torch.utils.data.Dataset):
         return np.ascontiguousarray(occ), np.ascontiguousarray(bev), rng_m
 
     def __getitem__(self, index: int) -> dict[str, Any]:
+        return self.item(index, self.epoch)
+
+    def item(self, index: int, epoch: int) -> dict[str, Any]:
+        """Scene ``index`` as drawn in ``epoch`` (thread-safe: no shared state is changed)."""
         cfg = self.cfg
         folder = self.scenes[index]
-        rng = np.random.default_rng((cfg.seed, self.epoch, index))
+        rng = np.random.default_rng((cfg.seed, int(epoch), index))
         rig = load_rig(folder / "rig.json", check_images=False)
         rig_doc = json.loads((folder / "rig.json").read_text())
         tdoc = json.loads((folder / "targets.json").read_text())

@@ -23,3 +23,15 @@ def real_data() -> Path:
     if path is None:
         pytest.skip("real data (../shared/data/real or $XYZCYL_REAL_DATA) not present")
     return path
+
+
+@pytest.fixture(scope="session")
+def tiny_synth_data(tmp_path_factory) -> Path:
+    """Two synthetic scenes (nuScenes rig, 32x56 px, 3 inward views, 0.8 and 1.6 m occupancy) in a temp folder."""
+    from xyzcyl.model_export.data.synth import SynthConfig, synth
+
+    out = tmp_path_factory.mktemp("tiny_synth")
+    cfg = SynthConfig(rig="nuscenes", height=32, width=56, inward_views=3, supersample=1, shadows=False,
+                      voxels=(0.8, 1.6), seed=3)
+    synth(out, 2, cfg, progress=False)
+    return out

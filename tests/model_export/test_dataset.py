@@ -4,7 +4,6 @@ import numpy as np
 import pytest
 import torch
 from xyzcyl.model_export.config import ConfigError, preset
-from xyzcyl.model_export.data.synth import SynthConfig, synth
 from xyzcyl.model_export.dataset import (
     DataError,
     DatasetConfig,
@@ -17,13 +16,9 @@ from xyzcyl.model_export.dataset import (
 PC = (-40.0, -40.0, -3.0, 40.0, 40.0, 13.0)
 
 
-@pytest.fixture(scope="module")
-def tiny_data(tmp_path_factory):
-    out = tmp_path_factory.mktemp("synth")
-    cfg = SynthConfig(rig="nuscenes", height=32, width=56, inward_views=3, supersample=1, shadows=False,
-                      voxels=(0.8,), seed=3)
-    synth(out, 1, cfg, progress=False)
-    return out
+@pytest.fixture
+def tiny_data(tiny_synth_data):
+    return tiny_synth_data
 
 
 def _points(cam, depth, uv):

@@ -1,0 +1,104 @@
+"""`xyzcyl train`: one training stage of XYZCylinder on a synthetic data set (docs/training.md).
+
+    xyzcyl train --preset cpu --data DIR --stage occ --out RUN_OCC --steps 2000
+    xyzcyl train --data DIR --stage render --init RUN_OCC/occ.pt --out RUN_RENDER --steps 4000
+    xyzcyl train ... --resume          # continue RUN_DIR from last.pt
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+ABLATIONS = {"none": {}, "no-volume": {"volume_branch": False}, "no-pixel": {"pixel_branch": False},
+             "no-background": {"separate_background": False}}
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--preset", default=None, help="model preset: cpu or paper (default: cpu, or the --init "
+                                                       "checkpoint's config)")
+    parser.add_argument("--data", required=True, type=Path, help="training data set (xyzcyl data synth output)")
+    parser.add_argument("--val", type=Path, default=None, help="validation data set (metrics + sheets)")
+    parser.add_argument("--stage", required=True, choices=("occ", "render"))
+    parser.add_argument("--out", required=True, type=Path, help="run folder (checkpoints, logs, curves)")
+    parser.add_argument("--resume", action="store_true", help="continue the run in --out from last.pt")
+    parser.add_argument("--init", type=Path, default=None, help="start from this checkpoint's weights "
+                                                                 "(stage render: the stage-1 occ.pt)")
+    parser.add_argument("--steps", type=int, default=2000, help="optimiser steps of this stage (one scene each)")
+    parser.add_argument("--setting", default="ego-forward", choices=("ego-forward", "ego-inward"))
+    parser.add_argument("--targets", type=int, default=4, help="T, random target views per step")
+    parser.add_argument("--lr", type=float, default=1e-4)
+    parser.add_argument("--warmup", type=int, default=None,
+                        help="warm-up steps (default: min(1000, steps // 10), the paper uses 1000 of 100k)")
+    parser.add_argument("--ckpt-every", type=int, default=50, help="steps between checkpoints")
+    parser.add_argument("--val-every", type=int, default=0, help="steps between validation passes (0: at the end)")
+    parser.add_argument("--val-scenes", type=int, default=4)
+    parser.add_argument("--voxel-size", type=float, default=None, help="occupancy voxel (default: the preset's)")
+    parser.add_argument("--ablation", default="none", choices=sorted(ABLATIONS))
+    parser.add_argument("--flip-prob", type=float, default=0.5, help="scene mirror (y -> -y) probability")
+    parser.add_argument("--jitter", type=float, default=0.1, help="colour jitter strength (brightness, contrast, "
+                                                                  "saturation), 0 disables")
+    parser.add_argument("--lpips-backbone", default=None, help="local VGG16/AlexNet features state dict")
+    parser.add_argument("--lpips-lin", default=None, help="local LPIPS v0.1 linear-layer weights")
+    parser.add_argument("--lpips-net", default="vgg", choices=("vgg", "alex"))
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's)")
+    parser.add_argument("--quiet", action="store_true", help="no progress bar")
+
+
+def run(args: argparse.Namespace) -> int:
+    from xyzcyl.model_export.config import ConfigError, preset
+    from xyzcyl.model_export.dataset import DataError, DatasetConfig
+    from xyzcyl.model_export.losses import LPIPSUnavailable, OptimConfig, RenderLossConfig, TrainLossConfig
+    from xyzcyl.model_export.train import TrainConfig, train
+    from xyzcyl.runtime.rig import RigError
+
+    try:
+        import torch
+
+        if args.threads is not None:
+            if args.threads < 1:
+                raise ValueError(f"threads: must be >= 1, got {args.threads}")
+            torch.set_num_threads(args.threads)
+        if not args.data.is_dir():
+            raise ValueError(f"data: {args.data} is not a folder")
+        if args.steps < 1:
+            raise ValueError(f"steps: must be >= 1, got {args.steps}")
+        if args.resume and not (args.out / "last.pt").is_file():
+            raise ValueError(f"resume: no checkpoint {args.out / 'last.pt'}")
+        model_cfg = None
+        if args.preset is not None or (args.init is None and not args.resume):
+            model_cfg = preset(args.preset or "cpu")
+            model_cfg = model_cfg.replace(ablation=model_cfg.ablation.replace(**ABLATIONS[args.ablation]))
+            if args.voxel_size is not None:
+                model_cfg = model_cfg.replace(grid=model_cfg.grid.replace(voxel_size=args.voxel_size))
+        elif args.ablation != "none" or args.voxel_size is not None:
+            raise ValueError("preset: --ablation / --voxel-size need --preset (the model config is built from it)")
+        voxel = model_cfg.grid.voxel_size if model_cfg is not None else None
+        if voxel is None:
+            from xyzcyl.model_export.train import load_checkpoint
+
+            src = args.init if args.init is not None else args.out / "last.pt"
+            voxel = float(load_checkpoint(src)["model_cfg"]["grid"]["voxel_size"])
+        warm = args.warmup if args.warmup is not None else min(1000, max(1, args.steps // 10))
+        j = args.jitter
+        tcfg = TrainConfig(
+            stage=args.stage, steps=args.steps, ckpt_every=args.ckpt_every, val_every=args.val_every,
+            val_scenes=args.val_scenes, seed=args.seed,
+            data=DatasetConfig(setting=args.setting, num_targets=args.targets, voxel_size=voxel, seed=args.seed,
+                               brightness=j, contrast=j, saturation=j, flip_prob=args.flip_prob),
+            loss=TrainLossConfig(
+                render=RenderLossConfig(lpips_net=args.lpips_net, lpips_backbone_path=args.lpips_backbone,
+                                        lpips_lin_path=args.lpips_lin),
+                optim=OptimConfig(lr=args.lr, warmup_steps=warm, total_steps=args.steps)))
+        summary = train(args.data, args.out, model_cfg, tcfg, resume=args.resume, init=args.init,
+                        val_dir=args.val, progress=not args.quiet)
+    except (ValueError, ConfigError, DataError, RigError, LPIPSUnavailable, FileNotFoundError) as exc:
+        print(f"xyzcyl train: {exc}", file=sys.stderr)
+        return 2
+    state = "interrupted at" if summary["interrupted"] else "finished at"
+    print(f"{state} step {summary['steps']}; run folder {summary['run_dir']}")
+    if summary.get("val"):
+        print("validation: " + ", ".join(f"{k}={v}" for k, v in summary["val"].items()))
+    return 130 if summary["interrupted"] else 0
