@@ -243,7 +243,7 @@ def sample_scene(seed: int, index: int, config: SceneConfig = SceneConfig()) -> 
                 vb0 = v1 + sign * rng.uniform(3.0, 12.0)
                 vb1 = vb0 + sign * rng.uniform(10.0, 25.0)
                 building(u0 + rng.uniform(-5, 3), u1 + rng.uniform(-3, 5), min(vb0, vb1), max(vb0, vb1),
-                         rng.uniform(8.0, 45.0))
+                         rng.uniform(8.0, 40.0))
         return gaps
 
     gaps_l = street_side(+1, vl + sw_l)
@@ -417,7 +417,8 @@ def sample_scene(seed: int, index: int, config: SceneConfig = SceneConfig()) -> 
     sky[S_CLOUD] = rng.uniform(0.55, 0.9) if overcast else rng.uniform(0.0, 0.6)
     sky[S_CSCALE] = rng.uniform(0.3, 0.9)
     sky[S_COFF:S_COFF + 2] = rng.uniform(-100, 100, 2)
-    amb = 0.5 * (zen + hor) * (0.95 if overcast else 0.68)
+    amb = 0.5 * (zen + hor)
+    amb = (0.6 * amb + 0.4 * amb.mean()) * (1.0 if overcast else 0.78)  # sky light, partly desaturated
     sky[S_AMB:S_AMB + 3] = amb
     sky[S_FOG] = rng.uniform(250.0, 900.0)
 

@@ -32,6 +32,7 @@ from .scene import (BOX, CYL, ELL, G_ASPH, G_COS, G_CSTYLE, G_DASH, G_HASX, G_LA
 BIG = 1e30
 NO_HIT = -1
 GROUND = -2
+EXPOSURE = 1.7  # surface tone curve c -> 1 - exp(-EXPOSURE c)
 T_EPS = 1e-7  # metres (times |d|): hits closer than this to the ray origin are ignored
 
 
@@ -92,6 +93,22 @@ def _bin(bb, x0, y0, cs, nx, ny):
 
 
 @njit(cache=True, inline="always", error_model="numpy", fastmath=True)
+def _slab(lo, ld, h, tn, tf, face, face0):
+    """Clip the ray's [tn, tf] to the slab |lo + t ld| <= h; the entry face is face0 (-side) or face0 + 1.
+    Returns (tn, tf, face, miss)."""
+    if ld != 0.0:
+        t1 = (-h - lo) / ld
+        t2 = (h - lo) / ld
+        if t1 > t2:
+            t1, t2 = t2, t1
+        if t1 > tn:
+            tn = t1
+            face = face0 if ld > 0.0 else face0 + 1
+        return tn, min(tf, t2), face, False
+    return tn, tf, face, abs(lo) > h
+
+
+@njit(cache=True, inline="always", error_model="numpy", fastmath=True)
 def _hit_prim(p, kind, geo, ox, oy, oz, dx, dy, dz, tmax):
     """(t, face) of the first entry of the ray into primitive p with T_EPS < t < tmax, else (BIG, -1).
 
@@ -134,42 +151,12 @@ def _hit_prim(p, kind, geo, ox, oy, oz, dx, dy, dz, tmax):
     ldx = dx * c + dy * s
     ldy = -dx * s + dy * c
     if k == BOX:
-        tn = -BIG
-        tf = BIG
-        face = -1
-        # x slab
-        if ldx != 0.0:
-            t1 = (-hx - lx) / ldx
-            t2 = (hx - lx) / ldx
-            if t1 > t2:
-                t1, t2 = t2, t1
-            if t1 > tn:
-                tn = t1
-                face = 0 if ldx > 0.0 else 1
-            tf = min(tf, t2)
-        elif abs(lx) > hx:
-            return BIG, -1
-        if ldy != 0.0:
-            t1 = (-hy - ly) / ldy
-            t2 = (hy - ly) / ldy
-            if t1 > t2:
-                t1, t2 = t2, t1
-            if t1 > tn:
-                tn = t1
-                face = 2 if ldy > 0.0 else 3
-            tf = min(tf, t2)
-        elif abs(ly) > hy:
-            return BIG, -1
-        if dz != 0.0:
-            t1 = (-hz - rz) / dz
-            t2 = (hz - rz) / dz
-            if t1 > t2:
-                t1, t2 = t2, t1
-            if t1 > tn:
-                tn = t1
-                face = 4 if dz > 0.0 else 5
-            tf = min(tf, t2)
-        elif abs(rz) > hz:
+        tn, tf, face, miss = _slab(lx, ldx, hx, -BIG, BIG, -1, 0)
+        if not miss:
+            tn, tf, face, miss = _slab(ly, ldy, hy, tn, tf, face, 2)
+        if not miss:
+            tn, tf, face, miss = _slab(rz, dz, hz, tn, tf, face, 4)
+        if miss:
             return BIG, -1
         if tn <= tf and T_EPS < tn < tmax:
             return tn, face
@@ -592,6 +579,10 @@ def _shade(ox, oy, oz, dx, dy, dz, t, p, face, skip_ego, shadows, vis_given, kin
     sr = r * (S[S_AMB] * amb + S[S_SUNCOL] * ndl * vis) + er
     sg = g * (S[S_AMB + 1] * amb + S[S_SUNCOL + 1] * ndl * vis) + eg
     sb = b * (S[S_AMB + 2] * amb + S[S_SUNCOL + 2] * ndl * vis) + eb
+    # exposure / tone curve for lit surfaces (lifts shade, compresses highlights); the sky is shown as is
+    sr = 1.0 - math.exp(-EXPOSURE * sr)
+    sg = 1.0 - math.exp(-EXPOSURE * sg)
+    sb = 1.0 - math.exp(-EXPOSURE * sb)
     dist = t * math.sqrt(dx * dx + dy * dy + dz * dz)
     f = math.exp(-dist / S[S_FOG])
     hr, hg, hb = S[S_HORIZON], S[S_HORIZON + 1], S[S_HORIZON + 2]
@@ -613,7 +604,9 @@ def render_kernel(fx, fy, cx, cy, Rm, T, H, W, ss, skip_ego, shadows, kind, geo,
     """Render one pinhole view into rgb [H,W,3] uint8, depth [H,W] float32, sem [H,W] uint8."""
     ox, oy, oz = T[0], T[1], T[2]
     inv = 1.0 / (ss * ss)
-    for v in prange(H):
+    half = (H + 1) // 2
+    for k in prange(H):
+        v = 2 * k if k < half else 2 * (k - half) + 1  # even rows, then odd rows: balances sky vs ground
         for u in range(W):
             # geometry ray through the pixel centre; camera-frame direction (x, y, 1) so that t = depth
             xc = (u - cx) / fx
