@@ -32,6 +32,7 @@ def main() -> int:
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--occupied", type=float, default=0.08, help="fraction of voxels selected as occupied")
     ap.add_argument("--views", type=int, default=4, help="target views per training step")
+    ap.add_argument("--override", default="{}", help='JSON merged into the preset, e.g. \'{"background": {"k": 2}}\'')
     args = ap.parse_args()
 
     torch.set_num_threads(args.threads)
@@ -39,7 +40,7 @@ def main() -> int:
 
     numba.set_num_threads(min(args.threads, numba.config.NUMBA_NUM_THREADS))
 
-    from xyzcyl.model_export.config import preset
+    from xyzcyl.model_export.config import ModelConfig, preset
     from xyzcyl.model_export.lifting import rig_inputs
     from xyzcyl.model_export.model import XYZCylinder, blend
     from xyzcyl.model_export.render_fn import render_views
@@ -48,7 +49,12 @@ def main() -> int:
     from xyzcyl.runtime.rig import ring_rig
 
     torch.manual_seed(0)
-    cfg = preset(args.preset).replace(volume_selection="ground_truth")
+    def merge(a, b):
+        return {k: merge(a[k], v) if isinstance(v, dict) and isinstance(a.get(k), dict) else v
+                for k, v in {**a, **b}.items()}
+
+    cfg = ModelConfig.from_dict(merge(preset(args.preset).to_dict(), json.loads(args.override)))
+    cfg = cfg.replace(volume_selection="ground_truth")
     H, W = cfg.backbone.input_height, cfg.backbone.input_width
     model = XYZCylinder(cfg)
     rig = ring_rig(6, hfov_deg=70.0, width=W, height=H)
@@ -73,7 +79,7 @@ def main() -> int:
     def train_once():
         model.train()
         out = model(images, inp, occ_gt=gt)
-        rgb, alpha, depth = render_views(out["gaussians"], cams)
+        rgb, alpha, _ = render_views(out["gaussians"], cams)
         img = blend(rgb, alpha, model.background(out["app_plane"], grids))
         loss = (img - target).abs().mean()
         opt.zero_grad(set_to_none=True)
@@ -96,6 +102,7 @@ def main() -> int:
             "gaussians": int(out["n_volume"] + out["n_pixel"]), "volume": int(out["n_volume"]),
             "pixel": int(out["n_pixel"]), "median_s": round(statistics.median(times), 3),
             "min_s": round(min(times), 3), "target_s": 1.5 if name == "forward" else 4.0,
+            "override": json.loads(args.override),
             "loadavg_1m_at_start": round(load, 2)}), flush=True)
     return 0
 

@@ -169,11 +169,11 @@ class GridConfig(_Frozen):
 
 @dataclass(frozen=True)
 class UNetConfig(_Frozen):
-    down_dims: tuple[int, ...] = (32, 48, 64)
-    up_dims: tuple[int, ...] = (64, 48, 32)
+    down_dims: tuple[int, ...] = (24, 48, 64)
+    up_dims: tuple[int, ...] = (64, 48, 24)
     blocks_per_res: int = 1
     attention: Literal["ema", "mha", "none"] = "ema"
-    ema_groups: int = 8
+    ema_groups: int = 4
     heads: int = 4                   # plain attention heads (mha)
 
     def __post_init__(self):
@@ -263,7 +263,7 @@ class BackgroundConfig(_Frozen):
     block_dims: tuple[int, ...] = (16, 16, 16)       # ResNet blocks before the 2x upsample / ray cast
     synth_dims: tuple[int, ...] = (16, 8, 4, 3)      # "block dims after ray cast" (last = RGB)
     style_dim: int = 32
-    k: int = 2                                      # synthesis at k x target resolution
+    k: int = 1                                      # synthesis at k x target resolution
 
     def __post_init__(self):
         _pos_ints("block_dims", self.block_dims)

@@ -115,7 +115,7 @@ class ZNet(nn.Module):
         x = F.interpolate(x, scale_factor=2, mode="nearest")
         x = self.post(x)
         w = self.mapping(app_plane.mean(dim=(2, 3)))
-        T, H, W, _ = grids.shape
+        T = grids.shape[0]
         # border padding along p: rays above the cylinder's top see its top row (sky), below its bottom row
         y = sample_plane_wrapped(x.expand(T, -1, -1, -1), grids, padding_mode="border")
         if self.k > 1:

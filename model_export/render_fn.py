@@ -91,7 +91,7 @@ def render_views_gsplat(gaussians: dict[str, torch.Tensor], cameras: Sequence[Pi
     S = g["sh"].shape[1]
     colors, alphas, _ = gsplat.rasterization(
         g["means"], g["quats"], torch.exp(g["log_scales"]), torch.sigmoid(g["opacity_logits"]), g["sh"],
-        viewmats.to(dev), Ks.to(dev), W, H, sh_degree=int(round(S ** 0.5)) - 1, render_mode="RGB+ED")
+        viewmats.to(dev), Ks.to(dev), W, H, sh_degree=round(S ** 0.5) - 1, render_mode="RGB+ED")
     # gsplat's SH evaluation adds 0.5 and clamps at 0 like the runtime renderer
     return colors[..., :3].permute(0, 3, 1, 2), alphas.permute(0, 3, 1, 2), colors[..., 3:].permute(0, 3, 1, 2)
 

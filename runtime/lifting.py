@@ -144,7 +144,7 @@ def pixel_directions(spec: CylinderSpec, k: int) -> np.ndarray:
 def voxel_centres(pc_range, voxel_size: float) -> np.ndarray:
     """[L_z, L_y, L_x, 3] ego metres: centres of the occupancy grid's voxels (z slowest, x fastest)."""
     x0, y0, z0, x1, y1, z1 = (float(v) for v in pc_range)
-    n = [int(round((b - a) / voxel_size)) for a, b in ((x0, x1), (y0, y1), (z0, z1))]
+    n = [round((b - a) / voxel_size) for a, b in ((x0, x1), (y0, y1), (z0, z1))]
     xs = x0 + (np.arange(n[0]) + 0.5) * voxel_size
     ys = y0 + (np.arange(n[1]) + 0.5) * voxel_size
     zs = z0 + (np.arange(n[2]) + 0.5) * voxel_size

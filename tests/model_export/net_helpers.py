@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import pytest
+import torch
 from xyzcyl.model_export.config import GridConfig, ModelConfig, preset
 from xyzcyl.runtime.rig import Rig, ring_rig
 
@@ -18,3 +20,13 @@ def tiny_config(**changes) -> ModelConfig:
 def overlap_rig(n: int, width: int = 128, height: int = 64, ring_radius: float = 0.5) -> Rig:
     """n outward cameras with overlapping fields of view (1.3 x 360/n degrees each)."""
     return ring_rig(n, hfov_deg=min(1.3 * 360.0 / n, 150.0), width=width, height=height, ring_radius=ring_radius)
+
+
+@pytest.fixture(autouse=True)
+def one_thread():
+    """Tiny tensors: one intra-op thread is faster than two and immune to OpenMP spin-waiting when the CI
+    machine's two cores are shared with other jobs. Restored afterwards."""
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)

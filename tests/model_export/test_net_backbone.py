@@ -1,5 +1,6 @@
 import pytest
 import torch
+from net_helpers import one_thread
 from xyzcyl.model_export.backbone import BackboneError, EfficientLiteBackbone, ExternalBackbone
 from xyzcyl.model_export.config import BackboneConfig, preset
 
@@ -44,3 +45,5 @@ def test_external_backbone_exported(tmp_path):
                          input_width=128, feature_dim=16)
     y = ExternalBackbone(cfg)(torch.rand(2, 3, 64, 128))
     assert y.shape == (2, 16, 8, 16)
+
+__all__ = ["one_thread"]  # autouse fixture, imported for pytest

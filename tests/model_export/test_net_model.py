@@ -3,7 +3,7 @@ import math
 import numpy as np
 import pytest
 import torch
-from net_helpers import overlap_rig, tiny_config
+from net_helpers import one_thread, overlap_rig, tiny_config
 from xyzcyl.model_export.blocks import CylConv, YNet
 from xyzcyl.model_export.config import AblationConfig, UNetConfig, preset
 from xyzcyl.model_export.lifting import rig_inputs
@@ -107,7 +107,7 @@ def test_supplied_depth_replaces_head():
     given = torch.full((n, 1, h, w), 7.5)
     mask = torch.tensor([1.0, 0, 1, 0, 0])
     with torch.no_grad():
-        feats, d0, c0 = model.encode_images(_images(n, cfg))
+        _, d0, c0 = model.encode_images(_images(n, cfg))
         _, d, c = model.encode_images(_images(n, cfg), given, mask)
     assert torch.all(d[[0, 2]] == 7.5) and torch.all(c[[0, 2]] == 1.0)
     assert torch.equal(d[[1, 3, 4]], d0[[1, 3, 4]]) and torch.equal(c[[1, 3, 4]], c0[[1, 3, 4]])
@@ -222,7 +222,7 @@ def test_pixel_anchors_land_on_known_surface(placement):
     depth = torch.tensor(np.stack(depths)[:, None], dtype=torch.float32)
     with torch.no_grad():
         feats, d, c = model.encode_images(_images(6, cfg), depth, torch.ones(6))
-        g, _, vmask, anchor = model.pixel_branch(feats, d, c, inp)
+        _, _, vmask, anchor = model.pixel_branch(feats, d, c, inp)
     r = torch.linalg.norm(anchor[:, :2] - torch.from_numpy(centre[:2]).float(), dim=1)
     r = r[vmask]
     assert vmask.float().mean() > 0.5
@@ -230,3 +230,5 @@ def test_pixel_anchors_land_on_known_surface(placement):
     # anchors on the 2x finer lattice: measured max 0.08 m at 12 m; 0.15 m (1.25 %) bounds it. A wrong depth
     # convention (z-depth used as radius, or missing camera offsets) errs by metres.
     assert torch.abs(r - R).max().item() < 0.15
+
+__all__ = ["one_thread"]  # autouse fixture, imported for pytest

@@ -1,6 +1,7 @@
 import numpy as np
 import pytest
 import torch
+from net_helpers import one_thread
 from xyzcyl.model_export.render_fn import KEYS, render_views
 from xyzcyl.runtime.render import PinholeCamera
 
@@ -81,3 +82,5 @@ def test_rejects_mixed_sizes():
     K = np.array([[40.0, 0, 23.5], [0, 40.0, 15.5], [0, 0, 1]])
     with pytest.raises(ValueError, match="cameras"):
         render_views(g, [PinholeCamera(K, np.eye(4), 48, 32), PinholeCamera(K, np.eye(4), 40, 32)])
+
+__all__ = ["one_thread"]  # autouse fixture, imported for pytest

@@ -3,7 +3,7 @@ import math
 import numpy as np
 import pytest
 import torch
-from net_helpers import tiny_config
+from net_helpers import one_thread, tiny_config
 from xyzcyl.model_export.lifting import (
     frustum_coords_torch,
     lift,
@@ -84,4 +84,4 @@ def test_sample_cpfg_planes_and_wrap():
     grid = torch.tensor([[[[-1.0, 0.0]]]], dtype=torch.float64)
     assert sample_plane_wrapped(plane, grid).item() == pytest.approx((W - 1) / 2, abs=1e-9)
 
-
+__all__ = ["one_thread"]  # autouse fixture, imported for pytest
