@@ -20,7 +20,6 @@ import time
 
 import numba
 import numpy as np
-
 from xyzcyl.runtime.render import Gaussians, PinholeCamera, render
 
 RESOLUTIONS = ((400, 224), (1600, 900))

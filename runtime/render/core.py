@@ -11,7 +11,7 @@ import numpy as np
 from . import kernels as K
 from .cameras import EquirectCamera, PinholeCamera
 from .gaussians import Gaussians
-from .projection import RenderOptions, pinhole_limits, project_reference
+from .projection import RenderOptions, equirect_jacobian, pinhole_limits, project_reference
 from .result import GaussianGrads, RenderResult, background_image
 from .sh import sh_basis
 
@@ -103,11 +103,7 @@ def render_backward(gaussians: Gaussians, camera, result: RenderResult, d_rgb, d
                     background=None, **options) -> GaussianGrads:
     """Gradients of a scalar loss w.r.t. the raw Gaussian parameters (and the background), given
     d_rgb [H, W, 3], d_alpha [H, W], d_depth [H, W] (None = zero) for `result = render(gaussians, camera,
-    background, **options)` with the same arguments. Pinhole cameras only (equirect backward is not
-    implemented: ValueError)."""
-    if not isinstance(camera, PinholeCamera):
-        raise ValueError("camera: render_backward supports PinholeCamera only (equirectangular backward "
-                         "is not implemented)")
+    background, **options)` with the same arguments. Pinhole and equirectangular cameras."""
     opts = RenderOptions.from_kwargs(options)
     W, H = camera.width, camera.height
     st = result.state
@@ -120,10 +116,10 @@ def render_backward(gaussians: Gaussians, camera, result: RenderResult, d_rgb, d
     n = len(gaussians)
     g_inst = np.zeros((st.ids.shape[0], 10), np.float64)
     g_bg = np.zeros((H, W, 3), np.float64)
-    K.raster_backward(st.start, st.feat, st.ntx, W, H, st.bg, result.depth, st.last, st.t_final,
+    K.raster_backward(st.start, st.feat, st.ntx, W, H, isinstance(camera, EquirectCamera), st.bg, result.depth, st.last, st.t_final,
                       g_rgb, g_al, g_d, g_inst, g_bg)
     g2 = K.reduce_kernel(st.ids, g_inst, n) if n else np.zeros((0, 10))
-    grads = _chain_pinhole(gaussians, camera, opts, g2)
+    grads = _chain(gaussians, camera, opts, g2)
     if background is None:
         gb = None
     elif np.asarray(background).shape == (3,):
@@ -142,7 +138,7 @@ def _adj(m):
     return _sym(m[:, 1, 1], -m[:, 0, 1], m[:, 0, 0])
 
 
-def _chain_pinhole(g: Gaussians, camera: PinholeCamera, opts: RenderOptions, g2: np.ndarray):
+def _chain(g: Gaussians, camera, opts: RenderOptions, g2: np.ndarray):
     """2D gradients per Gaussian [N, 10] (mean2d x y, conic a b c, opacity, colour rgb, depth) -> 3D."""
     n = len(g)
     pr = project_reference(g, camera, opts)
@@ -167,22 +163,10 @@ def _chain_pinhole(g: Gaussians, camera: PinholeCamera, opts: RenderOptions, g2:
     g_cov3 = T.transpose(0, 2, 1) @ GS @ T
     g_T = 2.0 * GS @ T @ cov3
     g_J = g_T @ Rw.T[None]
-    # camera-frame point
-    x, y, z = pr["p_cam"][:, 0], pr["p_cam"][:, 1], pr["p_cam"][:, 2]
-    zs = np.where(z > 0, z, 1.0)
-    fx, fy = camera.K[0, 0], camera.K[1, 1]
-    fr_x, fr_y = (~pr["clamp"][:, 0]).astype(np.float64), (~pr["clamp"][:, 1]).astype(np.float64)
-    lxn, lxp, lyn, lyp = pinhole_limits(camera)
-    sxc, syc = np.clip(x / zs, -lxn, lxp), np.clip(y / zs, -lyn, lyp)
-    dsx_dx, dsx_dz = fr_x / zs, -fr_x * x / zs ** 2
-    dsy_dy, dsy_dz = fr_y / zs, -fr_y * y / zs ** 2
-    gp = np.zeros((n, 3))
-    gp[:, 0] = g_mx * fx / zs + g_J[:, 0, 2] * (-fx / zs * dsx_dx)
-    gp[:, 1] = g_my * fy / zs + g_J[:, 1, 2] * (-fy / zs * dsy_dy)
-    gp[:, 2] = (g_z - g_mx * fx * x / zs ** 2 - g_my * fy * y / zs ** 2
-                - g_J[:, 0, 0] * fx / zs ** 2 - g_J[:, 1, 1] * fy / zs ** 2
-                + g_J[:, 0, 2] * (fx * sxc / zs ** 2 - fx / zs * dsx_dz)
-                + g_J[:, 1, 2] * (fy * syc / zs ** 2 - fy / zs * dsy_dz))
+    if isinstance(camera, EquirectCamera):
+        gp = _equirect_point_grad(pr, camera, g_J, g_mx, g_my, g_z)
+    else:
+        gp = _pinhole_point_grad(pr, camera, g_J, g_mx, g_my, g_z)
     g_means = gp @ Rw
     # covariance -> scales, rotation
     R, s, M = pr["R"], pr["s"], pr["M"]
@@ -218,3 +202,43 @@ def _chain_pinhole(g: Gaussians, camera: PinholeCamera, opts: RenderOptions, g2:
         g_dir = np.einsum("nk,nkj->nj", coef, dbasis)
         g_means = g_means + (g_dir - d * np.einsum("nj,nj->n", d, g_dir)[:, None]) / vn
     return g_means, g_quats, g_log_scales, g_logit, g_sh
+
+
+def _pinhole_point_grad(pr, camera: PinholeCamera, g_J, g_mx, g_my, g_z):
+    """dL/d(camera-frame point) [N, 3] through mean2d, depth z and the (clamped) EWA Jacobian."""
+    n = g_J.shape[0]
+    x, y, z = pr["p_cam"][:, 0], pr["p_cam"][:, 1], pr["p_cam"][:, 2]
+    zs = np.where(z > 0, z, 1.0)
+    fx, fy = camera.K[0, 0], camera.K[1, 1]
+    fr_x, fr_y = (~pr["clamp"][:, 0]).astype(np.float64), (~pr["clamp"][:, 1]).astype(np.float64)
+    lxn, lxp, lyn, lyp = pinhole_limits(camera)
+    sxc, syc = np.clip(x / zs, -lxn, lxp), np.clip(y / zs, -lyn, lyp)
+    dsx_dx, dsx_dz = fr_x / zs, -fr_x * x / zs ** 2
+    dsy_dy, dsy_dz = fr_y / zs, -fr_y * y / zs ** 2
+    gp = np.zeros((n, 3))
+    gp[:, 0] = g_mx * fx / zs + g_J[:, 0, 2] * (-fx / zs * dsx_dx)
+    gp[:, 1] = g_my * fy / zs + g_J[:, 1, 2] * (-fy / zs * dsy_dy)
+    gp[:, 2] = (g_z - g_mx * fx * x / zs ** 2 - g_my * fy * y / zs ** 2
+                - g_J[:, 0, 0] * fx / zs ** 2 - g_J[:, 1, 1] * fy / zs ** 2
+                + g_J[:, 0, 2] * (fx * sxc / zs ** 2 - fx / zs * dsx_dz)
+                + g_J[:, 1, 2] * (fy * syc / zs ** 2 - fy / zs * dsy_dz))
+    return gp
+
+
+def _equirect_point_grad(pr, camera: EquirectCamera, g_J, g_mx, g_my, g_z):
+    """dL/d(camera-frame point) [N, 3] for the equirect map: mean2d's derivative is the unclamped spherical
+    Jacobian, depth r's is p / r, and the Jacobian's own derivative is taken by complex step (exact to
+    rounding for this analytic map; the pole clamp is held fixed, as a max() is)."""
+    p = pr["p_cam"]
+    W, H = camera.width, camera.height
+    r = np.linalg.norm(p, axis=1)
+    J_mean = equirect_jacobian(p, W, H, np.zeros(p.shape[0], bool))
+    gp = g_mx[:, None] * J_mean[:, 0, :] + g_my[:, None] * J_mean[:, 1, :]
+    gp += g_z[:, None] * p / np.where(r > 0, r, 1.0)[:, None]
+    h = 1e-20 * np.maximum(r, 1e-3)
+    for k in range(3):
+        pc = p.astype(np.complex128)
+        pc[:, k] += 1j * h
+        dJ = equirect_jacobian(pc, W, H, pr["clamp"][:, 0]).imag / h[:, None, None]
+        gp[:, k] += np.einsum("nab,nab->n", g_J, dJ)
+    return gp

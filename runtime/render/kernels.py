@@ -339,7 +339,7 @@ def bin_kernel(order, proj, tiles, ntx, nty, width, wrap, rows_per_chunk):
                 for tx in range(tx0, a_hi + 1):
                     counts[row + tx] += 1
                 if tx1 < tx0:
-                    for tx in range(0, tx1 + 1):
+                    for tx in range(tx1 + 1):
                         counts[row + tx] += 1
     for t in range(ntiles):
         counts[t + 1] += counts[t]
@@ -476,12 +476,14 @@ def raster_forward(start, feat, ntx, width, height, wrap, bg, rgb, alpha, depth,
 
 
 @njit(cache=True, parallel=True, fastmath=RASTER_MATH)
-def raster_backward(start, feat, ntx, width, height, bg, depth, last, t_final, d_rgb, d_alpha, d_depth,
+def raster_backward(start, feat, ntx, width, height, wrap, bg, depth, last, t_final, d_rgb, d_alpha, d_depth,
                     g_inst, g_bg):
     """Reverse traversal per pixel. g_inst [n_inst, 10] f64 (d mx, d my, d conic a, b, c, d opacity,
     d r, d g, d b, d depth) is written only by the instance's own tile, so tiles run in parallel.
     g_bg [H, W, 3] f64 receives dL/dbackground per pixel."""
     ntiles = start.shape[0] - 1
+    wf = np.float32(width)
+    inv_w = np.float32(1.0 / width)
     for t in prange(ntiles):
         x0 = (t % ntx) * TILE
         y0 = (t // ntx) * TILE
@@ -513,6 +515,8 @@ def raster_backward(start, feat, ntx, width, height, bg, depth, last, t_final, d
             pyf = np.float32(p // TILE)
             for j in range(j_last, s - 1, -1):
                 dx = pxf - feat[j, 0]
+                if wrap:
+                    dx = dx - wf * np.floor(dx * inv_w + HALF)  # as the forward (nearest copy)
                 dy = pyf - feat[j, 1]
                 ok, a32, g32 = _alpha(dx, dy, feat[j, 2], feat[j, 3], feat[j, 4], feat[j, 5], feat[j, 6])
                 if not ok:

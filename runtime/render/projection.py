@@ -66,6 +66,26 @@ def pinhole_limits(camera: PinholeCamera) -> tuple[float, float, float, float]:
             cy / fy + 0.3 * tan_y, (camera.height - cy) / fy + 0.3 * tan_y)
 
 
+def equirect_jacobian(p: np.ndarray, width: int, height: int, pole_clamp: np.ndarray) -> np.ndarray:
+    """d(u, v)/d(camera-frame point) [N, 2, 3] of the equirect map, with 1/rho clamped near the poles
+    (rho >= r sin(pi / 2H), where pole_clamp is True). Works on complex p too (complex-step derivatives)."""
+    x, y, z = p[:, 0], p[:, 1], p[:, 2]
+    r2 = x * x + y * y + z * z
+    r = np.sqrt(r2)
+    rho = np.sqrt(x * x + z * z)
+    rho_j = np.where(pole_clamp, r * np.sin(np.pi / (2 * height)), rho)
+    r2 = np.where(r2 == 0, 1.0, r2)
+    rho_j = np.where(rho_j == 0, 1.0, rho_j)
+    ku, kv = width / (2 * np.pi), height / np.pi
+    J = np.zeros((p.shape[0], 2, 3), dtype=p.dtype)
+    J[:, 0, 0] = ku * z / rho_j ** 2
+    J[:, 0, 2] = -ku * x / rho_j ** 2
+    J[:, 1, 0] = -kv * y * x / (r2 * rho_j)
+    J[:, 1, 1] = kv * rho / r2
+    J[:, 1, 2] = -kv * y * z / (r2 * rho_j)
+    return J
+
+
 def project_reference(g: Gaussians, camera, opts: RenderOptions) -> dict:
     """Project every Gaussian (float64). Returns arrays over all N (invalid ones flagged):
     valid [N] bool; mean2d [N, 2] px; conic [N, 3] (a, b, c) with power = 0.5 a dx^2 + b dx dy + 0.5 c dy^2;
@@ -97,16 +117,10 @@ def project_reference(g: Gaussians, camera, opts: RenderOptions) -> dict:
         r = np.linalg.norm(p, axis=1)
         depth = r
         rho = np.hypot(x, z)
-        rs = np.where(r > 0, r, 1.0)
-        rho_j = np.maximum(rho, rs * np.sin(np.pi / (2 * H)))  # Jacobian clamp near the poles
         phi, theta = np.arctan2(x, z), np.arctan2(rho, -y)
         mean2d = np.stack([W * (phi + np.pi) / (2 * np.pi) - 0.5, H * theta / np.pi - 0.5], 1)
-        ku, kv = W / (2 * np.pi), H / np.pi
-        J[:, 0, 0] = ku * z / rho_j ** 2
-        J[:, 0, 2] = -ku * x / rho_j ** 2
-        J[:, 1, 0] = -kv * y * x / (rs ** 2 * rho_j)
-        J[:, 1, 1] = kv * rho / rs ** 2
-        J[:, 1, 2] = -kv * y * z / (rs ** 2 * rho_j)
+        clamp[:, 0] = rho < r * np.sin(np.pi / (2 * H))
+        J = equirect_jacobian(p, W, H, clamp[:, 0])
     else:
         raise TypeError(f"camera: expected PinholeCamera or EquirectCamera, got {type(camera).__name__}")
 

@@ -101,5 +101,17 @@ def test_background_gradient_and_argument_checks():
     assert grads3.background.shape == (3,)
     with pytest.raises(ValueError, match="d_rgb"):
         render_backward(g, cam, res, np.ones((3, 3, 3)))
-    with pytest.raises(ValueError, match="equirectangular"):
-        render_backward(g, EquirectCamera(np.eye(4), 20, 10), res, d)
+
+
+def test_backward_equirect_across_the_seam():
+    # Gaussians all around the camera, some straddling the azimuth seam (straight behind) and some high up
+    rng = np.random.default_rng(7)
+    ring = random_gaussians(rng, 14, lo=(-4, -1.5, -4), hi=(4, 1.5, 4), scale=(0.15, 0.5), opacity=(-2.2, 0.4),
+                            degree=1, sh_sigma=0.3)
+    seam = random_gaussians(rng, 4, lo=(-0.3, -0.5, -4), hi=(0.3, 0.5, -3), scale=(0.2, 0.4),
+                            opacity=(-2, 0), degree=1, sh_sigma=0.3)
+    high = random_gaussians(rng, 2, lo=(-0.8, -4, -0.8), hi=(0.8, -3, 0.8), scale=(0.2, 0.4),
+                            opacity=(-2, 0), degree=1, sh_sigma=0.3)
+    g = Gaussians(*(np.concatenate([getattr(a, f) for a in (ring, seam, high)]) for f in FIELDS))
+    c2w = look_at((0.1, 0.2, -0.1), (0.3, 0.1, 5.0), up=(0, -1, 0))
+    _fd_check(g, EquirectCamera(c2w, 48, 24), (0.1, 0.1, 0.2), seed=8)

@@ -5,7 +5,6 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from render_scenes import random_gaussians
-
 from xyzcyl.clients import cli
 from xyzcyl.runtime.render import Gaussians, PinholeCamera, render
 
