@@ -3,8 +3,9 @@
 One item = one scene (the network is unbatched over scenes; use ``collate_scenes`` with a DataLoader):
 
     item["images"]      [N, 3, H, W] float32 0..1   input cameras, rig order (after the optional flip)
-    item["depth"]       [N, 1, H, W] float32 metres along the optical axis, 0 where sky / unknown
-    item["depth_valid"] [N, 1, H, W] bool           depth > 0 and finite
+    item["depth"]       [N, 1, H, W] float32 metres along the optical axis, 0 where not depth_valid
+    item["depth_valid"] [N, 1, H, W] bool           0 < depth <= max_depth (the ground plane is unbounded:
+                                                    rays near the horizon hit it hundreds of metres away)
     item["sky"]         [N, 1, H, W] float32        1 = sky
     item["rig"]         xyzcyl.runtime.rig.Rig      input calibration (consistent with the images)
     item["targets"]     dict: images [T, 3, H, W], depth [T, H, W], depth_valid [T, H, W] bool, sky [T, H, W],
@@ -55,6 +56,7 @@ class DatasetConfig(_Frozen):
     contrast: float = 0.0               # blend with the image mean, factor in [1 - c, 1 + c]
     saturation: float = 0.0             # blend with grey, factor in [1 - s, 1 + s]
     flip_prob: float = 0.0              # mirror the scene across the ego x-z plane (y -> -y) with this probability
+    max_depth: float = 80.0             # metres: deeper pixels (far ground near the horizon) are not depth-valid
 
     def __post_init__(self):
         if self.setting not in SETTINGS:
@@ -67,6 +69,8 @@ class DatasetConfig(_Frozen):
             v = getattr(self, n)
             if not 0 <= v < 1:
                 raise ConfigError(f"{n}: must be in [0, 1), got {v!r}")
+        if not self.max_depth > 0:
+            raise ConfigError(f"max_depth: must be > 0, got {self.max_depth!r}")
         if not 0 <= self.flip_prob <= 1:
             raise ConfigError(f"flip_prob: must be in [0, 1], got {self.flip_prob!r}")
 
@@ -249,8 +253,8 @@ class SceneDataset(torch.utils.data.Dataset):
             occ, bev = occ[:, ::-1, :], bev[::-1, :]
             rig = Rig(cameras=tuple(in_cams), root=rig.root, extra=rig.extra)
 
-        dvalid = np.isfinite(depth) & (depth > 0)
-        tvalid = np.isfinite(tdepth) & (tdepth > 0)
+        dvalid = np.isfinite(depth) & (depth > 0) & (depth <= cfg.max_depth)
+        tvalid = np.isfinite(tdepth) & (tdepth > 0) & (tdepth <= cfg.max_depth)
         occ_t = torch.from_numpy(np.ascontiguousarray(occ).astype(np.int64))
         item: dict[str, Any] = {
             "scene": folder.name,

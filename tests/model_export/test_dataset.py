@@ -42,6 +42,7 @@ def test_item_shapes_and_seeding(tiny_data):
     assert 0 <= float(it["images"].min()) and float(it["images"].max()) <= 1
     assert it["depth"].shape == (6, 1, 32, 56) and it["sky"].shape == (6, 1, 32, 56)
     assert not bool((it["depth"][it["depth_valid"]] <= 0).any())
+    assert float(it["depth"].max()) <= 80.0 and float(it["targets"]["depth"].max()) <= 80.0   # max_depth
     t = it["targets"]
     assert t["images"].shape == (3, 3, 32, 56) and t["depth"].shape == (3, 32, 56) and t["K"].shape == (3, 3, 3)
     assert it["occupancy"].shape == (20, 100, 100) and it["bev"].shape == (100, 100)
