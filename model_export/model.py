@@ -262,13 +262,21 @@ class XYZCylinder(nn.Module):
         return g, feat, vmask, anchor.reshape(-1, 3)
 
     def pixel_projection(self, means, feat, vmask, spec_vol):
-        """Appendix eq. 41: scatter pixel features [P, d_pix] (one per pixel; G_p Gaussians share it, the first
-        one's centre places it) into the volume CPFG grid [1, d_pix*K, H_u, W_u] with linear weights between
-        the two nearest planes; -> CV_proj(F_proj) [1, D_feat, H_u, W_u] (eq. 42)."""
+        """Appendix eq. 41-42: CV_proj(F_proj) [1, D_feat, H_u, W_u] from the pixel features (see
+        ``scatter_pixel_features``). The G_p Gaussians of a pixel share its feature; the first one's centre
+        places it."""
+        g_p = self.cfg.pixel.g_p
+        return self.proj_conv(self.scatter_pixel_features(means.view(-1, g_p, 3)[:, 0], feat,
+                                                          vmask.view(-1, g_p)[:, 0], spec_vol))
+
+    def scatter_pixel_features(self, points, feat, valid, spec_vol):
+        """Eq. 41: scatter features [P, d] at ego points [P, 3] into the volume CPFG grid, returned as a plane
+        [1, d*K, H_u, W_u] (channel = d*K + k). Plane index floor(t K) gets (1 - q), the next plane q, with
+        q = t K - floor(t K); column floor(s W_u), row floor(p H_u); out-of-range planes/rows and invalid
+        pixels contribute nothing. ``index_add`` (ONNX ScatterElements with add)."""
         v, cyl = self.cfg.volume, self.cfg.cylinder
         K, H, W = v.k, cyl.height, cyl.width
-        g_p = self.cfg.pixel.g_p
-        c = frustum_coords_torch(means.view(-1, g_p, 3)[:, 0], spec_vol, self.cfg.grid.r_min, self.cfg.grid.r_max)
+        c = frustum_coords_torch(points, spec_vol, self.cfg.grid.r_min, self.cfg.grid.r_max)
         t, s, pp = (c[:, 0] + 1) / 2, (c[:, 1] + 1) / 2, (c[:, 2] + 1) / 2
         tk = t * K
         k0f = torch.floor(tk).detach()
@@ -276,14 +284,13 @@ class XYZCylinder(nn.Module):
         k0 = k0f.long()
         col = torch.remainder(torch.floor(s * W).long(), W)
         row = torch.floor(pp * H).long()
-        ok_row = (row >= 0) & (row < H) & vmask.view(-1, g_p)[:, 0]
+        ok_row = (row >= 0) & (row < H) & valid
         out = feat.new_zeros(K * H * W, feat.shape[1])
         for kk, w in ((k0, 1 - q), (k0 + 1, q)):
             ok = ok_row & (kk >= 0) & (kk < K)
             flat = (kk.clamp(0, K - 1) * H + row.clamp(0, H - 1)) * W + col
             out = out.index_add(0, flat, feat * (w * ok.to(feat.dtype)).unsqueeze(1))
-        proj = out.view(K, H, W, -1).permute(3, 0, 1, 2).reshape(1, -1, H, W)   # channel = d*K + k
-        return self.proj_conv(proj)
+        return out.view(K, H, W, -1).permute(3, 0, 1, 2).reshape(1, -1, H, W)
 
     def volume_gaussians(self, geo_g, app_g, idx, inp):
         v = self.cfg.volume
