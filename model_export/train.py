@@ -3,10 +3,10 @@
     train(data_dir, run_dir, model_cfg, TrainConfig(stage="occ"|"render", steps=...), resume=..., init=...)
 
 Stage "occ": backbone (its trainable part), depth head and the occupancy module (YNet_occ, CPFG projection,
-occupancy and BEV heads) with L_occ, plus the depth-head L1 on the input cameras' ground-truth depth (our
+occupancy and BEV heads) with L_occ, plus a depth-head log-L1 on the input cameras' ground-truth depth (our
 addition: the paper uses a pre-trained depth network, none ships here).
 Stage "render": everything upstream of and inside the occupancy module is frozen (backbone, occ_*, bev_*); the
-depth head, volume, pixel and background modules train with the stage-2 render loss (+ the depth-head L1).
+depth head, volume, pixel and background modules train with the stage-2 render loss (+ the depth-head log-L1).
 
 One optimiser step = one scene with T random target views. The scene order is a seeded permutation per epoch,
 so a resumed run sees exactly the scenes the uninterrupted run would have seen.
@@ -48,7 +48,7 @@ class TrainConfig(_Frozen):
     val_every: int = 0                # steps between validation passes (0: only at the end, if a val set is given)
     val_scenes: int = 4               # validation scenes per pass
     seed: int = 0
-    depth_head_weight: float = 0.1    # L1 of the depth head against input-camera depth (metres); 0 disables
+    depth_head_weight: float = 0.1    # log-L1 of the depth head against input-camera depth; 0 disables
     data: DatasetConfig = field(default_factory=DatasetConfig)
     loss: TrainLossConfig = field(default_factory=TrainLossConfig)
 
@@ -108,13 +108,17 @@ def _resize(images: torch.Tensor, cfg: ModelConfig) -> torch.Tensor:
 
 
 def depth_head_loss(pred: torch.Tensor, depth: torch.Tensor, valid: torch.Tensor, sky: torch.Tensor) -> torch.Tensor:
-    """L1 (metres) of the depth head [N, 1, h, w] against ground truth [N, 1, H, W] taken at the head's
-    resolution by nearest sampling, over valid non-sky pixels."""
+    """Mean |log D_head - log D| of the depth head [N, 1, h, w] against ground truth [N, 1, H, W] taken at the
+    head's resolution by nearest sampling, over valid non-sky pixels. Log (relative) error: a metre L1 would be
+    dominated by distant pixels and outweigh the render loss under the global gradient clip."""
     size = pred.shape[-2:]
     d = F.interpolate(depth, size=size, mode="nearest")
-    m = F.interpolate((valid & (sky < 0.5)).float(), size=size, mode="nearest")
+    m = F.interpolate((valid & (sky < 0.5)).float(), size=size, mode="nearest") * (d > 0)
     n = m.sum()
-    return ((pred - d).abs() * m).sum() / n if bool(n > 0) else pred.sum() * 0.0
+    if not bool(n > 0):
+        return pred.sum() * 0.0
+    err = (torch.log(pred.clamp_min(1e-3)) - torch.log(d.clamp_min(1e-3))).abs()
+    return (err * m).sum() / n
 
 
 def target_cameras(targets: dict[str, Any]) -> list:

@@ -1,6 +1,7 @@
 """Training loop: both stages run, checkpoints resume exactly, logs/curves/sheets appear, CLI errors exit 2."""
 
 import csv
+import math
 import subprocess
 import sys
 
@@ -10,7 +11,7 @@ from net_helpers import tiny_config
 from xyzcyl.model_export.config import GridConfig
 from xyzcyl.model_export.dataset import DatasetConfig
 from xyzcyl.model_export.losses import OptimConfig, TrainLossConfig
-from xyzcyl.model_export.train import OCC_MODULES, TrainConfig, build_model, set_stage, train
+from xyzcyl.model_export.train import OCC_MODULES, TrainConfig, build_model, depth_head_loss, set_stage, train
 
 
 def _cfg():
@@ -29,6 +30,17 @@ def _tcfg(stage, steps, **kw):
 def _rows(path):
     with open(path, newline="") as f:
         return list(csv.DictReader(f))
+
+
+def test_depth_head_loss_by_hand():
+    pred = torch.tensor([[[[2.0, 4.0]]]])                       # head output [1, 1, 1, 2]
+    gt = torch.tensor([[[[1.0, 9.0, 4.0, 9.0], [9.0, 9.0, 9.0, 9.0]]]])  # nearest 2x4 -> 1x2 takes (0,0), (0,2)
+    valid = torch.ones_like(gt, dtype=torch.bool)
+    sky = torch.zeros_like(gt)
+    # |log 2 - log 1| and |log 4 - log 4| -> mean log(2) / 2
+    assert float(depth_head_loss(pred, gt, valid, sky)) == pytest.approx(math.log(2) / 2, rel=1e-6)
+    sky[0, 0, 0, 2] = 1.0                                        # the second pixel is sky: only log 2 is left
+    assert float(depth_head_loss(pred, gt, valid, sky)) == pytest.approx(math.log(2), rel=1e-6)
 
 
 def test_stage_parameters():
