@@ -58,14 +58,21 @@ def build_grid(scene: Scene, cell: float = 2.0) -> Grid:
 
 
 @njit(cache=True, error_model="numpy", fastmath=True)
+def _cells(bb, p, x0, y0, cs, nx, ny):
+    """Inclusive cell index ranges (i0, i1, j0, j1) covered by primitive p's xy bounds."""
+    i0 = max(0, int(math.floor((bb[p, 0] - x0) / cs)))
+    i1 = min(nx - 1, int(math.floor((bb[p, 3] - x0) / cs)))
+    j0 = max(0, int(math.floor((bb[p, 1] - y0) / cs)))
+    j1 = min(ny - 1, int(math.floor((bb[p, 4] - y0) / cs)))
+    return i0, i1, j0, j1
+
+
+@njit(cache=True, error_model="numpy", fastmath=True)
 def _bin(bb, x0, y0, cs, nx, ny):
     P = bb.shape[0]
     counts = np.zeros(nx * ny + 1, np.int32)
     for p in range(P):
-        i0 = max(0, int(math.floor((bb[p, 0] - x0) / cs)))
-        i1 = min(nx - 1, int(math.floor((bb[p, 3] - x0) / cs)))
-        j0 = max(0, int(math.floor((bb[p, 1] - y0) / cs)))
-        j1 = min(ny - 1, int(math.floor((bb[p, 4] - y0) / cs)))
+        i0, i1, j0, j1 = _cells(bb, p, x0, y0, cs, nx, ny)
         for i in range(i0, i1 + 1):
             for j in range(j0, j1 + 1):
                 counts[i * ny + j + 1] += 1
@@ -74,10 +81,7 @@ def _bin(bb, x0, y0, cs, nx, ny):
     items = np.zeros(start[-1], np.int32)
     zmax = np.full(nx * ny, -BIG)
     for p in range(P):
-        i0 = max(0, int(math.floor((bb[p, 0] - x0) / cs)))
-        i1 = min(nx - 1, int(math.floor((bb[p, 3] - x0) / cs)))
-        j0 = max(0, int(math.floor((bb[p, 1] - y0) / cs)))
-        j1 = min(ny - 1, int(math.floor((bb[p, 4] - y0) / cs)))
+        i0, i1, j0, j1 = _cells(bb, p, x0, y0, cs, nx, ny)
         for i in range(i0, i1 + 1):
             for j in range(j0, j1 + 1):
                 c = i * ny + j
@@ -179,6 +183,16 @@ def _hit_prim(p, kind, geo, ox, oy, oz, dx, dy, dz, tmax):
 
 
 @njit(cache=True, inline="always", error_model="numpy", fastmath=True)
+def _dda_axis(o, d, lo, i, cs):
+    """Grid walk along one axis from cell i: (step, t of the next cell boundary, t per cell)."""
+    if d > 0.0:
+        return 1, (lo + (i + 1) * cs - o) / d, cs / d
+    if d < 0.0:
+        return -1, (lo + i * cs - o) / d, -cs / d
+    return 0, BIG, BIG
+
+
+@njit(cache=True, inline="always", error_model="numpy", fastmath=True)
 def trace(ox, oy, oz, dx, dy, dz, tmax, any_hit, skip_ego, kind, geo, ego, meta, start, items, zmax):
     """Closest (or any, if any_hit) hit with t < tmax among the primitives: (t, prim, face); (BIG, -1, -1)."""
     x0, y0, cs = meta[0], meta[1], meta[2]
@@ -186,38 +200,16 @@ def trace(ox, oy, oz, dx, dy, dz, tmax, any_hit, skip_ego, kind, geo, ego, meta,
     ztop = meta[5]
     x1, y1 = x0 + nx * cs, y0 + ny * cs
     # clip the ray to the grid's xy rectangle
-    t0, t1 = 0.0, tmax
-    if dx != 0.0:
-        a, b = (x0 - ox) / dx, (x1 - ox) / dx
-        if a > b:
-            a, b = b, a
-        t0, t1 = max(t0, a), min(t1, b)
-    elif ox < x0 or ox >= x1:
-        return BIG, -1, -1
-    if dy != 0.0:
-        a, b = (y0 - oy) / dy, (y1 - oy) / dy
-        if a > b:
-            a, b = b, a
-        t0, t1 = max(t0, a), min(t1, b)
-    elif oy < y0 or oy >= y1:
-        return BIG, -1, -1
-    if t0 >= t1:
+    t0, t1, _f, miss = _slab(ox - 0.5 * (x0 + x1), dx, 0.5 * (x1 - x0), 0.0, tmax, -1, 0)
+    if not miss:
+        t0, t1, _f, miss = _slab(oy - 0.5 * (y0 + y1), dy, 0.5 * (y1 - y0), t0, t1, -1, 0)
+    if miss or t0 >= t1:
         return BIG, -1, -1
     px, py = ox + t0 * dx, oy + t0 * dy
     ix = min(nx - 1, max(0, int(math.floor((px - x0) / cs))))
     iy = min(ny - 1, max(0, int(math.floor((py - y0) / cs))))
-    if dx > 0.0:
-        sx, tnx, dtx = 1, (x0 + (ix + 1) * cs - ox) / dx, cs / dx
-    elif dx < 0.0:
-        sx, tnx, dtx = -1, (x0 + ix * cs - ox) / dx, -cs / dx
-    else:
-        sx, tnx, dtx = 0, BIG, BIG
-    if dy > 0.0:
-        sy, tny, dty = 1, (y0 + (iy + 1) * cs - oy) / dy, cs / dy
-    elif dy < 0.0:
-        sy, tny, dty = -1, (y0 + iy * cs - oy) / dy, -cs / dy
-    else:
-        sy, tny, dty = 0, BIG, BIG
+    sx, tnx, dtx = _dda_axis(ox, dx, x0, ix, cs)
+    sy, tny, dty = _dda_axis(oy, dy, y0, iy, cs)
     best, bp, bf = BIG, -1, -1
     t = t0
     while True:
@@ -548,7 +540,7 @@ def _material(p, face, px, py, pz, kind, geo, tex, col, col2, par):
     return r, g, b, er, eg, eb, nx, ny, nz
 
 
-@njit(cache=True, error_model="numpy", fastmath=True)
+@njit(cache=True, inline="always", error_model="numpy", fastmath=True)
 def _shade(ox, oy, oz, dx, dy, dz, t, p, face, skip_ego, shadows, vis_given, kind, geo, cls, tex, col, col2, par, ego,
            meta, start, items, zmax, G, S):
     if p == NO_HIT:
@@ -608,44 +600,41 @@ def render_kernel(fx, fy, cx, cy, Rm, T, H, W, ss, skip_ego, shadows, kind, geo,
     for k in prange(H):
         v = 2 * k if k < half else 2 * (k - half) + 1  # even rows, then odd rows: balances sky vs ground
         for u in range(W):
-            # geometry ray through the pixel centre; camera-frame direction (x, y, 1) so that t = depth
-            xc = (u - cx) / fx
-            yc = (v - cy) / fy
-            dx = Rm[0, 0] * xc + Rm[0, 1] * yc + Rm[0, 2]
-            dy = Rm[1, 0] * xc + Rm[1, 1] * yc + Rm[1, 2]
-            dz = Rm[2, 0] * xc + Rm[2, 1] * yc + Rm[2, 2]
-            t, p, f = closest_hit(ox, oy, oz, dx, dy, dz, skip_ego, kind, geo, ego, meta, start, items, zmax)
-            if p == NO_HIT:
-                depth[v, u] = 0.0
-                sem[v, u] = 0
-            else:
-                depth[v, u] = t
-                sem[v, u] = _semantic(p, cls, G, ox + t * dx, oy + t * dy)
             ar, ag, ab = 0.0, 0.0, 0.0
             vis_c = -1.0  # sun visibility of the first shaded sample, reused by samples on the same face
             p_c, f_c = -3, -3
-            for i in range(ss):
-                for j in range(ss):
-                    if ss == 1:
-                        ts, ps, fs = t, p, f
-                        sx_, sy_ = dx, dy
-                        sz_ = dz
+            # sample 0: geometry ray through the pixel centre (depth, class; shaded too when ss == 1);
+            # samples 1..ss*ss: colour rays at offsets ((j + 0.5)/ss - 0.5, (i + 0.5)/ss - 0.5). One call site
+            # of closest_hit keeps the inlined traversal code (and the compile time) small.
+            for si in range(1 if ss == 1 else ss * ss + 1):
+                if si == 0:
+                    xs = (u - cx) / fx
+                    ys = (v - cy) / fy
+                else:
+                    xs = (u + ((si - 1) % ss + 0.5) / ss - 0.5 - cx) / fx
+                    ys = (v + ((si - 1) // ss + 0.5) / ss - 0.5 - cy) / fy
+                # camera-frame direction (x, y, 1), so that t is the depth along the optical axis
+                dx = Rm[0, 0] * xs + Rm[0, 1] * ys + Rm[0, 2]
+                dy = Rm[1, 0] * xs + Rm[1, 1] * ys + Rm[1, 2]
+                dz = Rm[2, 0] * xs + Rm[2, 1] * ys + Rm[2, 2]
+                t, p, f = closest_hit(ox, oy, oz, dx, dy, dz, skip_ego, kind, geo, ego, meta, start, items, zmax)
+                if si == 0:
+                    if p == NO_HIT:
+                        depth[v, u] = 0.0
+                        sem[v, u] = 0
                     else:
-                        xs = (u + (j + 0.5) / ss - 0.5 - cx) / fx
-                        ys = (v + (i + 0.5) / ss - 0.5 - cy) / fy
-                        sx_ = Rm[0, 0] * xs + Rm[0, 1] * ys + Rm[0, 2]
-                        sy_ = Rm[1, 0] * xs + Rm[1, 1] * ys + Rm[1, 2]
-                        sz_ = Rm[2, 0] * xs + Rm[2, 1] * ys + Rm[2, 2]
-                        ts, ps, fs = closest_hit(ox, oy, oz, sx_, sy_, sz_, skip_ego, kind, geo, ego, meta, start,
-                                                 items, zmax)
-                    given = vis_c if (ps == p_c and fs == f_c) else -1.0
-                    r, g, b, vis = _shade(ox, oy, oz, sx_, sy_, sz_, ts, ps, fs, skip_ego, shadows, given, kind,
-                                          geo, cls, tex, col, col2, par, ego, meta, start, items, zmax, G, S)
-                    if p_c == -3:
-                        p_c, f_c, vis_c = ps, fs, vis
-                    ar += r
-                    ag += g
-                    ab += b
+                        depth[v, u] = t
+                        sem[v, u] = _semantic(p, cls, G, ox + t * dx, oy + t * dy)
+                    if ss > 1:
+                        continue
+                given = vis_c if (p == p_c and f == f_c) else -1.0
+                r, g, b, vis = _shade(ox, oy, oz, dx, dy, dz, t, p, f, skip_ego, shadows, given, kind,
+                                      geo, cls, tex, col, col2, par, ego, meta, start, items, zmax, G, S)
+                if p_c == -3:
+                    p_c, f_c, vis_c = p, f, vis
+                ar += r
+                ag += g
+                ab += b
             rgb[v, u, 0] = np.uint8(min(255.0, max(0.0, ar * inv * 255.0 + 0.5)))
             rgb[v, u, 1] = np.uint8(min(255.0, max(0.0, ag * inv * 255.0 + 0.5)))
             rgb[v, u, 2] = np.uint8(min(255.0, max(0.0, ab * inv * 255.0 + 0.5)))

@@ -82,3 +82,29 @@ def test_jitter_and_ego_forward():
     for c, o in zip(tg, offs):
         src = jit[tg.index(c) % 6]
         np.testing.assert_allclose(c.cam_to_ego[:3, 3] - src.cam_to_ego[:3, 3], o * lane, atol=1e-6)
+
+
+@pytest.mark.parametrize("name", PRESETS)
+def test_every_camera_of_every_preset_sees_a_street(name):
+    """360 degrees around the ego look like a street: every camera sees structures, not empty sky or an empty
+    field, and the rig sees the street surface."""
+    from xyzcyl.model_export.data.scene import sample_scene
+
+    for seed, index in ((2, 4), (0, 1), (5, 7)):
+        _check_street(sample_scene(seed, index), name)
+
+
+def _check_street(scene, name):
+    from xyzcyl.model_export.data.classes import BUILDING, ROAD, SIDEWALK, SKY
+    from xyzcyl.model_export.data.trace import build_grid, render_view
+
+    grid = build_grid(scene)
+    street = []
+    for cam in base_rig(name, 48, 27):
+        sem = render_view(scene, grid, cam.K, cam.cam_to_ego, 48, 27, ss=1, shadows=False).semantic
+        # every camera: not an empty field (structures in view) and not mostly sky
+        assert np.mean(sem == SKY) < 0.6, cam.name
+        assert np.mean(sem >= BUILDING) > 0.05, cam.name
+        street.append(np.mean(np.isin(sem, [ROAD, SIDEWALK])))
+    # the rig as a whole sees the street surface (a side camera in a narrow street may see only wall and tree)
+    assert np.mean(street) > 0.1
