@@ -57,9 +57,9 @@ def run(args: argparse.Namespace) -> int:
             n = synth(args.out, args.scenes, cfg, progress=not args.quiet)
             print(f"{n} scenes rendered into {args.out}")
             return 0
-        from xyzcyl.model_export.data.gallery import contact_sheet
-
         import cv2
+
+        from xyzcyl.model_export.data.gallery import contact_sheet
 
         if args.scenes < 1:
             raise ValueError(f"scenes: must be >= 1, got {args.scenes}")

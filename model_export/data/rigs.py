@@ -138,13 +138,6 @@ CARLA_FOV = {"CAM_BACK": 110.0}  # others 70
 PRESETS = ("nuscenes", "carla-centric", "pandaset", "waymo", "once", "argoverse")
 
 
-@dataclass(frozen=True)
-class RigSource:
-    """Where a rig comes from: a preset name or a rig JSON file."""
-
-    name: str  # a PRESETS entry, or a path to a rig.json
-
-
 def base_rig(name: str, width: int, height: int) -> list[CameraSpec]:
     """The un-jittered cameras of a preset or of a rig JSON file (raises ValueError naming 'rig')."""
     cams: list[CameraSpec] = []

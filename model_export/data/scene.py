@@ -59,10 +59,6 @@ class Scene:
     def n(self) -> int:
         return int(self.kind.shape[0])
 
-    def bounds_xy(self) -> np.ndarray:
-        """[P, 4] conservative xy bounding boxes (xmin, ymin, xmax, ymax) of the primitives, metres."""
-        return primitive_bounds(self.kind, self.geo)[:, [0, 1, 3, 4]]
-
     def arrays(self) -> dict[str, np.ndarray]:
         return {k: getattr(self, k) for k in ("kind", "geo", "cls", "tex", "col", "col2", "par", "ego",
                                               "ground", "sky", "lane_dir", "ego_centre")}
@@ -176,7 +172,6 @@ def sample_scene(seed: int, index: int, config: SceneConfig = SceneConfig()) -> 
     ego_lane = int(rng.integers(n_fwd))
     shift = vd0 + (ego_lane + 0.5) * lane_w  # ego lane centre -> v = 0
     vd0 -= shift
-    v_centre = -shift
     vr = vd0 - park_r * park_w
     vl = vd0 + n_lanes * lane_w + park_l * park_w
     sw_r, sw_l = rng.uniform(2.0, 5.0), rng.uniform(2.0, 5.0)
@@ -395,7 +390,6 @@ def sample_scene(seed: int, index: int, config: SceneConfig = SceneConfig()) -> 
     ground[G_SEED] = float(rng.integers(1 << 20))
     ground[G_DASH] = rng.uniform(0, 9)
     ground[G_MARKCOL:G_MARKCOL + 3] = rng.uniform(0.75, 0.9) * np.ones(3)
-    ground[24] = v_centre
 
     sky = np.zeros(24)
     overcast = rng.random() < 0.25

@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 
 from xyzcyl.model_export.data.occupancy import signed_distance
-from xyzcyl.model_export.data.scene import BOX, CYL, ELL, sample_scene
+from xyzcyl.model_export.data.scene import ELL, sample_scene
 from xyzcyl.model_export.data.synth import render_scene
-from xyzcyl.model_export.data.trace import GROUND, NO_HIT, build_grid, reference_closest_hit, render_view
+from xyzcyl.model_export.data.trace import NO_HIT, build_grid, reference_closest_hit, render_view
 
 SURFACE_TOL = 0.01  # metres: the bound for "lies on a primitive surface"
 
