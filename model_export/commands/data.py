@@ -74,3 +74,6 @@ def run(args: argparse.Namespace) -> int:
     except ValueError as exc:
         print(f"xyzcyl data {args.action}: {exc}", file=sys.stderr)
         return 2
+    except OSError as exc:  # e.g. --out is a file or not writable
+        print(f"xyzcyl data {args.action}: out: {exc}", file=sys.stderr)
+        return 2

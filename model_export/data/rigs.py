@@ -204,7 +204,7 @@ def ego_forward_targets(cams: list[CameraSpec], lane_dir: np.ndarray, rng: np.ra
         for c in cams:
             T = c.cam_to_ego.copy()
             T[:3, 3] += off * np.asarray(lane_dir, float)
-            out.append(CameraSpec(f"{c.name}@{tag}", c.width, c.height, c.K.copy(), T,
+            out.append(CameraSpec(f"{c.name}_{tag}", c.width, c.height, c.K.copy(), T,
                                   (("ego_offset_m", round(float(off), 6)),)))
     return out
 

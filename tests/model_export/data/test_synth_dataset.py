@@ -70,3 +70,5 @@ def test_cli_synth_and_gallery(tmp_path, capsys):
     assert "targets" in capsys.readouterr().err
     assert main(["data", "synth", "--out", str(out), "--scenes", "1", "--rig", "nope"]) == 2
     assert main(["data", "synth", "--out", str(out), "--scenes", "1", "--voxels", "0.7"]) == 2
+    (tmp_path / "file").write_text("x")
+    assert main(["data", "synth", "--out", str(tmp_path / "file"), "--scenes", "1"]) == 2

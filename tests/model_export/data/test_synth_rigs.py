@@ -77,6 +77,7 @@ def test_jitter_and_ego_forward():
     lane = np.array([math.cos(0.03), math.sin(0.03), 0.0])
     tg = ego_forward_targets(jit, lane, rng)
     assert len(tg) == 12
+    assert [c.name for c in tg[:6]] == [f"{c.name}_t0" for c in jit]
     offs = [dict(c.extra)["ego_offset_m"] for c in tg]
     assert all(-3 <= o <= -1 for o in offs[:6]) and all(1 <= o <= 3 for o in offs[6:])
     for c, o in zip(tg, offs):
