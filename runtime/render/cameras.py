@@ -34,8 +34,22 @@ def _check_size(width, height) -> tuple[int, int]:
     return int(width), int(height)
 
 
+class _Posed:
+    """Pose helpers shared by both camera models (they hold `cam_to_world` [4, 4])."""
+
+    cam_to_world: np.ndarray
+
+    @property
+    def world_to_cam(self) -> np.ndarray:  # [4, 4] world -> OpenCV camera
+        return np.linalg.inv(self.cam_to_world)
+
+    @property
+    def centre(self) -> np.ndarray:  # [3] camera centre, world metres
+        return self.cam_to_world[:3, 3].copy()
+
+
 @dataclass(frozen=True)
-class PinholeCamera:
+class PinholeCamera(_Posed):
     """K: [3, 3] pixels, OpenCV (pixel (u, v) is evaluated at exactly x = u, y = v); no skew.
     cam_to_world: [4, 4] OpenCV camera -> world (ego), metres. width, height: pixels."""
 
@@ -58,17 +72,9 @@ class PinholeCamera:
         object.__setattr__(self, "width", w)
         object.__setattr__(self, "height", h)
 
-    @property
-    def world_to_cam(self) -> np.ndarray:
-        return np.linalg.inv(self.cam_to_world)
-
-    @property
-    def centre(self) -> np.ndarray:  # [3] world
-        return self.cam_to_world[:3, 3].copy()
-
 
 @dataclass(frozen=True)
-class EquirectCamera:
+class EquirectCamera(_Posed):
     """Full 360x180 equirectangular panorama in the OpenCV camera frame (x right, y down, z forward).
 
     azimuth phi = atan2(x, z) (0 = forward, positive to the right), polar angle theta = angle from up (-y).
@@ -84,14 +90,6 @@ class EquirectCamera:
         w, h = _check_size(self.width, self.height)
         object.__setattr__(self, "width", w)
         object.__setattr__(self, "height", h)
-
-    @property
-    def world_to_cam(self) -> np.ndarray:
-        return np.linalg.inv(self.cam_to_world)
-
-    @property
-    def centre(self) -> np.ndarray:
-        return self.cam_to_world[:3, 3].copy()
 
     def pixel_rays(self) -> np.ndarray:
         """[H, W, 3] unit ray directions in the camera frame for every pixel centre."""
