@@ -191,6 +191,10 @@ class SceneDataset(torch.utils.data.Dataset):
             grid = model_cfg.grid
             if abs(grid.voxel_size - cfg.voxel_size) > 1e-9:
                 raise ConfigError(f"voxel_size: data {cfg.voxel_size} differs from the model grid {grid.voxel_size}")
+        with np.load(self.scenes[0] / "occupancy.npz") as z:   # fail early (reads the zip directory only)
+            if f"semantic_{cfg.voxel_tag}" not in z.files:
+                raise DataError(f"{self.scenes[0] / 'occupancy.npz'}: voxel_size: no {cfg.voxel_size:g} m grid "
+                                f"(have {sorted(k[9:] for k in z.files if k.startswith('semantic_'))})")
 
     def __len__(self) -> int:
         return len(self.scenes)

@@ -131,7 +131,7 @@ def test_lifting_inputs_and_errors(tiny_data):
     with pytest.raises(ConfigError, match="voxel_size"):
         SceneDataset(tiny_data, DatasetConfig(voxel_size=0.4), model_cfg=cfg)
     with pytest.raises(DataError, match="voxel_size"):
-        SceneDataset(tiny_data, DatasetConfig(voxel_size=0.4))[0]
+        SceneDataset(tiny_data, DatasetConfig(voxel_size=0.4))
     with pytest.raises(DataError, match="no complete scene"):
         SceneDataset(tiny_data / "scene_000000" / "inputs")
 
