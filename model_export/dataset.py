@@ -191,6 +191,10 @@ class SceneDataset(torch.utils.data.Dataset):
             grid = model_cfg.grid
             if abs(grid.voxel_size - cfg.voxel_size) > 1e-9:
                 raise ConfigError(f"voxel_size: data {cfg.voxel_size} differs from the model grid {grid.voxel_size}")
+        first = json.loads((self.scenes[0] / "targets.json").read_text()).get("settings", {})
+        if cfg.setting not in first:                             # fail early, not at the first validation
+            raise DataError(f"{self.scenes[0] / 'targets.json'}: setting: no {cfg.setting!r} targets "
+                            f"(have {sorted(first)})")
         with np.load(self.scenes[0] / "occupancy.npz") as z:   # fail early (reads the zip directory only)
             if f"semantic_{cfg.voxel_tag}" not in z.files:
                 raise DataError(f"{self.scenes[0] / 'occupancy.npz'}: voxel_size: no {cfg.voxel_size:g} m grid "

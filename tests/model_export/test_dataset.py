@@ -1,5 +1,7 @@
 """Dataset over a tiny generated data set: shapes, seeding, grid orientation, flip consistency, jitter."""
 
+import json
+
 import numpy as np
 import pytest
 import torch
@@ -121,7 +123,7 @@ def test_colour_jitter_only_touches_colours(tiny_data):
     assert base["targets"]["names"] == jit["targets"]["names"]
 
 
-def test_lifting_inputs_and_errors(tiny_data):
+def test_lifting_inputs_and_errors(tiny_data, tmp_path):
     cfg = preset("cpu")
     it = SceneDataset(tiny_data, DatasetConfig(setting="ego-inward", num_targets=2), model_cfg=cfg)[0]
     assert it["lifting"]["grid_occ"].shape[0] == 6
@@ -132,6 +134,14 @@ def test_lifting_inputs_and_errors(tiny_data):
         SceneDataset(tiny_data, DatasetConfig(voxel_size=0.4), model_cfg=cfg)
     with pytest.raises(DataError, match="voxel_size"):
         SceneDataset(tiny_data, DatasetConfig(voxel_size=0.4))
+    scene = tiny_data / "scene_000000"
+    broken = tmp_path / "broken"
+    (broken / "scene_000000").mkdir(parents=True)
+    for f in ("rig.json", "occupancy.npz"):
+        (broken / "scene_000000" / f).write_bytes((scene / f).read_bytes())
+    (broken / "scene_000000" / "targets.json").write_text(json.dumps({"settings": {}}))
+    with pytest.raises(DataError, match="setting"):
+        SceneDataset(broken, DatasetConfig(setting="ego-inward"))
     with pytest.raises(DataError, match="no complete scene"):
         SceneDataset(tiny_data / "scene_000000" / "inputs")
 
