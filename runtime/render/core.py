@@ -22,8 +22,9 @@ class _State:
     opts: RenderOptions
     ntx: int
     start: np.ndarray     # [ntiles + 1] int64 instance offsets per tile
-    ids: np.ndarray       # [n_inst] int32 Gaussian id per instance
-    feat: np.ndarray      # [n_inst, 16] float32 per-instance features (kernels.NFEAT)
+    rank: np.ndarray      # [n_inst] int32 depth rank (row of cg) per instance, front to back per tile
+    order: np.ndarray     # [nv] int32 Gaussian id per depth rank
+    cg: np.ndarray        # [nv, kernels.NCG] float32 compact 64-byte rows per depth rank
     bg: np.ndarray        # [H, W, 3] float32
     last: np.ndarray      # [H, W] int32
     t_final: np.ndarray   # [H, W] float32
@@ -45,6 +46,15 @@ def _c(a):
     return np.ascontiguousarray(a)
 
 
+def _aligned_rows(n: int, width: int, dtype) -> np.ndarray:
+    """Uninitialised C-contiguous [n, width] array whose rows start on 64-byte (cache-line) boundaries
+    when a row is 64 bytes (numpy puts large arrays on huge pages where the kernel allows)."""
+    item = np.dtype(dtype).itemsize
+    raw = np.empty(n * width + 64 // item, dtype)
+    off = (-raw.ctypes.data % 64) // item
+    return raw[off:off + n * width].reshape(n, width)
+
+
 def _prepare(g: Gaussians, camera, opts: RenderOptions):
     W, H = camera.width, camera.height
     ntx, nty = (W + K.TILE - 1) // K.TILE, (H + K.TILE - 1) // K.TILE
@@ -60,11 +70,11 @@ def _prepare(g: Gaussians, camera, opts: RenderOptions):
     t1 = time.perf_counter()
     visible = np.flatnonzero(tiles[:, 4] > 0).astype(np.int32)
     order = K.depth_order(visible, np.ascontiguousarray(proj[visible, 7]).view(np.uint64))
-    rows_per_chunk = max(1, nty // (4 * numba.get_num_threads()))
-    start, ids, feat = K.bin_kernel(order, proj, tiles, ntx, nty, W, isinstance(camera, EquirectCamera),
-                                    rows_per_chunk)
+    cg = _aligned_rows(order.shape[0], K.NCG, np.float32)
+    ct = np.empty((order.shape[0], 4), np.int32)
+    start, rank = K.bin_kernel(order, proj, tiles, ntx, nty, numba.get_num_threads(), cg, ct)
     t2 = time.perf_counter()
-    return ntx, start, ids, feat, {"project": t1 - t0, "sort_bin": t2 - t1}
+    return ntx, start, rank, order, cg, {"project": t1 - t0, "sort_bin": t2 - t1}
 
 
 def render(gaussians: Gaussians, camera, background=None, **options) -> RenderResult:
@@ -76,17 +86,17 @@ def render(gaussians: Gaussians, camera, background=None, **options) -> RenderRe
     opts = RenderOptions.from_kwargs(options)
     W, H = camera.width, camera.height
     bg = background_image(background, H, W)
-    ntx, start, ids, feat, timings = _prepare(gaussians, camera, opts)
+    ntx, start, rank, order, cg, timings = _prepare(gaussians, camera, opts)
     t0 = time.perf_counter()
     rgb = np.empty((H, W, 3), np.float32)
     alpha = np.empty((H, W), np.float32)
     depth = np.empty((H, W), np.float32)
     last = np.empty((H, W), np.int32)
     t_final = np.empty((H, W), np.float32)
-    K.raster_forward(start, feat, ntx, W, H, isinstance(camera, EquirectCamera), bg, rgb, alpha, depth, last,
+    K.raster_forward(start, rank, cg, ntx, W, H, isinstance(camera, EquirectCamera), bg, rgb, alpha, depth, last,
                      t_final)
     timings["raster"] = time.perf_counter() - t0
-    state = _State(opts, ntx, start, ids, feat, bg, last, t_final, timings)
+    state = _State(opts, ntx, start, rank, order, cg, bg, last, t_final, timings)
     return RenderResult(rgb, alpha, depth, state)
 
 
@@ -114,11 +124,14 @@ def render_backward(gaussians: Gaussians, camera, result: RenderResult, d_rgb, d
     g_al = _as_grad(d_alpha, (H, W), "d_alpha")
     g_d = _as_grad(d_depth, (H, W), "d_depth")
     n = len(gaussians)
-    g_inst = np.zeros((st.ids.shape[0], 10), np.float64)
+    wrap = isinstance(camera, EquirectCamera)
+    feat = K.instance_features(st.start, st.rank, st.cg, st.ntx, W, wrap)
+    ids = st.order[st.rank]
+    g_inst = np.zeros((ids.shape[0], 10), np.float64)
     g_bg = np.zeros((H, W, 3), np.float64)
-    K.raster_backward(st.start, st.feat, st.ntx, W, H, isinstance(camera, EquirectCamera), st.bg, result.depth, st.last, st.t_final,
+    K.raster_backward(st.start, feat, st.ntx, W, H, wrap, st.bg, result.depth, st.last, st.t_final,
                       g_rgb, g_al, g_d, g_inst, g_bg)
-    g2 = K.reduce_kernel(st.ids, g_inst, n) if n else np.zeros((0, 10))
+    g2 = K.reduce_kernel(ids, g_inst, n) if n else np.zeros((0, 10))
     grads = _chain(gaussians, camera, opts, g2)
     if background is None:
         gb = None

@@ -15,6 +15,10 @@ from numba import njit, prange
 
 TILE = 16
 TILE_PIX = TILE * TILE
+NCG = 16    # compact per-Gaussian float32 row (64 bytes, depth order): mean x, y and bounding half-height ry
+#             as float32 hi + lo pairs (float64 precision), A, B, C (half conic), opacity, pmax, r, g, b, depth, pad
+STOP_CHECK = 16  # the raster tests for a fully stopped tile every this many instances (a power of 2)
+GATHER = 128  # instances gathered per batch into the raster's per-tile buffer (8 KB: stays in L1)
 NFEAT = 16  # per-instance features (one 64-byte row): mx, my (tile-local px), A = a/2, B = b, C = c/2 (conic),
 #             opacity, pmax, r, g, b, depth, first row, last row (tile-local rows the footprint can touch), pad
 
@@ -292,105 +296,162 @@ def depth_order(visible, keys):
 
 
 @njit(cache=True, parallel=True)
-def bin_kernel(order, proj, tiles, ntx, nty, width, wrap, rows_per_chunk):
-    """Duplicate each visible Gaussian into every tile its footprint's bounding box touches, in depth order
-    (`order`: Gaussian ids front to back), and build the per-instance float32 features (see NFEAT) with
-    tile-local means (the copy nearest the tile centre for equirect) and the tile-local rows the bounding box
-    touches. Returns (tile_start [ntiles + 1] int64, ids [n_inst] int32, feat [n_inst, NFEAT] float32).
+def bin_kernel(order, proj, tiles, ntx, nty, nchunks, cg, ct):
+    """Compact the visible Gaussians in depth order (`order`: Gaussian ids front to back) and list, per
+    16x16 tile, the depth ranks of the Gaussians whose footprint's bounding box touches it.
 
-    Parallel over chunks of tile rows (disjoint tiles, so no races); every chunk scans the depth-ordered,
-    compacted Gaussians sequentially, which keeps the memory traffic streaming."""
+    Fills cg [nv, NCG] float32 (one 64-byte row per Gaussian, see NCG; the caller aligns it to 64 bytes) and
+    ct [nv, 4] int32 (tx0, tx1, ty0, ty1); returns (tile_start [ntiles + 1] int64, rank [n_inst] int32
+    (row of cg, ascending = front to back within each tile)). The per-instance features are not built
+    here: the raster gathers them per tile (gather_row), one cache line per instance.
+
+    Counting sort by tile over `nchunks` contiguous chunks of ranks (parallel): per-chunk tile histograms,
+    a tile-major prefix sum, then each chunk writes its ranks in order, so lists stay depth-ordered."""
     nv = order.shape[0]
     ntiles = ntx * nty
-    # compact, depth-ordered copies (one random read per visible Gaussian)
-    cf = np.empty((nv, 12), np.float64)
-    ct = np.empty((nv, 4), np.int32)
     for k in prange(nv):
         i = order[k]
-        cf[k, 0] = proj[i, 0]
-        cf[k, 1] = proj[i, 1]
-        cf[k, 2] = 0.5 * proj[i, 2]
-        cf[k, 3] = proj[i, 3]
-        cf[k, 4] = 0.5 * proj[i, 4]
-        cf[k, 5] = proj[i, 5]
-        cf[k, 6] = proj[i, 6]
-        cf[k, 7] = proj[i, 10]
-        cf[k, 8] = proj[i, 11]
-        cf[k, 9] = proj[i, 12]
-        cf[k, 10] = proj[i, 7]
-        cf[k, 11] = proj[i, 9]
+        for c in range(3):  # mean x, y, half-height ry (float64) as float32 hi + lo pairs
+            v = proj[i, (0, 1, 9)[c]]
+            hi = np.float32(v)
+            cg[k, 2 * c] = hi
+            cg[k, 2 * c + 1] = np.float32(v - np.float64(hi))
+        cg[k, 6] = 0.5 * proj[i, 2]
+        cg[k, 7] = proj[i, 3]
+        cg[k, 8] = 0.5 * proj[i, 4]
+        cg[k, 9] = proj[i, 5]
+        cg[k, 10] = proj[i, 6]
+        cg[k, 11] = proj[i, 10]
+        cg[k, 12] = proj[i, 11]
+        cg[k, 13] = proj[i, 12]
+        cg[k, 14] = proj[i, 7]
+        cg[k, 15] = 0.0
         for c in range(4):
             ct[k, c] = tiles[i, c]
-    nchunks = (nty + rows_per_chunk - 1) // rows_per_chunk
-    counts = np.zeros(ntiles + 1, np.int64)
+    hist = np.zeros((nchunks, ntiles), np.int64)
     for ch in prange(nchunks):
-        r_lo = ch * rows_per_chunk
-        r_hi = min(nty - 1, r_lo + rows_per_chunk - 1)
-        for k in range(nv):
-            ty0 = max(ct[k, 2], r_lo)
-            ty1 = min(ct[k, 3], r_hi)
-            if ty0 > ty1:
-                continue
+        k0 = nv * ch // nchunks
+        k1 = nv * (ch + 1) // nchunks
+        for k in range(k0, k1):
             tx0 = ct[k, 0]
             tx1 = ct[k, 1]
             a_hi = tx1 if tx1 >= tx0 else ntx - 1
-            for ty in range(ty0, ty1 + 1):
-                row = ty * ntx + 1
+            for ty in range(ct[k, 2], ct[k, 3] + 1):
+                row = ty * ntx
                 for tx in range(tx0, a_hi + 1):
-                    counts[row + tx] += 1
+                    hist[ch, row + tx] += 1
                 if tx1 < tx0:
                     for tx in range(tx1 + 1):
-                        counts[row + tx] += 1
+                        hist[ch, row + tx] += 1
+    start = np.empty(ntiles + 1, np.int64)
+    run = 0
     for t in range(ntiles):
-        counts[t + 1] += counts[t]
-    start = counts
-    n_inst = start[ntiles]
-    ids = np.empty(n_inst, np.int32)
-    feat = np.empty((n_inst, NFEAT), np.float32)
-    cursor = start[:-1].copy()
+        start[t] = run
+        for ch in range(nchunks):
+            c = hist[ch, t]
+            hist[ch, t] = run
+            run += c
+    start[ntiles] = run
+    rank = np.empty(run, np.int32)
     for ch in prange(nchunks):
-        r_lo = ch * rows_per_chunk
-        r_hi = min(nty - 1, r_lo + rows_per_chunk - 1)
-        for k in range(nv):
-            ty0 = max(ct[k, 2], r_lo)
-            ty1 = min(ct[k, 3], r_hi)
-            if ty0 > ty1:
-                continue
+        k0 = nv * ch // nchunks
+        k1 = nv * (ch + 1) // nchunks
+        for k in range(k0, k1):
             tx0 = ct[k, 0]
             tx1 = ct[k, 1]
-            nx = tx1 - tx0 + 1 if tx1 >= tx0 else ntx - tx0 + tx1 + 1
-            for ty in range(ty0, ty1 + 1):
-                y0 = ty * TILE
-                my = cf[k, 1] - y0
-                row0 = max(0.0, math.floor(my - cf[k, 11]))
-                row1 = min(TILE - 1.0, math.ceil(my + cf[k, 11]))
-                for kx in range(nx):
-                    tx = tx0 + kx
-                    if tx >= ntx:
-                        tx -= ntx
-                    t = ty * ntx + tx
-                    pos = cursor[t]
-                    cursor[t] = pos + 1
-                    ids[pos] = order[k]
-                    x0 = tx * TILE
-                    mx = cf[k, 0] - x0
-                    if wrap:
-                        mx -= width * np.floor((mx - 7.5) / width + 0.5)
-                    feat[pos, 0] = mx
-                    feat[pos, 1] = my
-                    for c in range(2, 11):
-                        feat[pos, c] = cf[k, c]
-                    feat[pos, 11] = row0
-                    feat[pos, 12] = row1
-                    feat[pos, 13] = 0.0
-                    feat[pos, 14] = 0.0
-                    feat[pos, 15] = 0.0
-    return start, ids, feat
+            a_hi = tx1 if tx1 >= tx0 else ntx - 1
+            for ty in range(ct[k, 2], ct[k, 3] + 1):
+                row = ty * ntx
+                for tx in range(tx0, a_hi + 1):
+                    pos = hist[ch, row + tx]
+                    hist[ch, row + tx] = pos + 1
+                    rank[pos] = k
+                if tx1 < tx0:
+                    for tx in range(tx1 + 1):
+                        pos = hist[ch, row + tx]
+                        hist[ch, row + tx] = pos + 1
+                        rank[pos] = k
+    return start, rank
+
+
+@njit(inline="always")
+def gather_row(cg, k, x0, y0, width, wrap, out, j):
+    """Per-instance features of compact Gaussian k seen from the tile at (x0, y0) -> out[j, :NFEAT] float32:
+    tile-local mean (the copy nearest the tile for equirect), half conic A B C, opacity, pmax, r g b, depth,
+    first and last tile-local rows the bounding box touches. Forward and backward use this same code."""
+    mx = (np.float64(cg[k, 0]) + np.float64(cg[k, 1])) - x0
+    if wrap:
+        mx -= width * np.floor((mx - 7.5) / width + 0.5)
+    my = (np.float64(cg[k, 2]) + np.float64(cg[k, 3])) - y0
+    ry = np.float64(cg[k, 4]) + np.float64(cg[k, 5])
+    out[j, 0] = mx
+    out[j, 1] = my
+    for c in range(9):
+        out[j, 2 + c] = cg[k, 6 + c]
+    out[j, 11] = max(0.0, math.floor(my - ry))
+    out[j, 12] = min(TILE - 1.0, math.ceil(my + ry))
+
+
+@njit(cache=True, parallel=True)
+def instance_features(start, rank, cg, ntx, width, wrap):
+    """feat [n_inst, NFEAT] float32: every tile instance's features (gather_row), for the backward pass."""
+    ntiles = start.shape[0] - 1
+    feat = np.zeros((rank.shape[0], NFEAT), np.float32)
+    for t in prange(ntiles):
+        x0 = (t % ntx) * TILE
+        y0 = (t // ntx) * TILE
+        for j in range(start[t], start[t + 1]):
+            gather_row(cg, rank[j], x0, y0, width, wrap, feat, j)
+    return feat
 
 
 # ----------------------------------------------------------------------------------------------- rasterise
+@njit(inline="always", fastmath=RASTER_MATH)
+def _blend_one(fb, j, jj, px, py, T, c0, c1, c2, dd, lst, wrap, wf, inv_w):
+    """Blend gathered instance fb[j] (global instance index jj) into the tile's pixel state, on the tile rows
+    its bounding box touches, branch-free, one SIMD row of 16 pixels at a time. `wrap` is passed as a literal
+    by the caller, so LLVM drops the seam code for pinhole cameras."""
+    mx = fb[j, 0]
+    my = fb[j, 1]
+    A = fb[j, 2]
+    B = fb[j, 3]
+    C = fb[j, 4]
+    op = fb[j, 5]
+    pm = fb[j, 6]
+    cr = fb[j, 7]
+    cg = fb[j, 8]
+    cbl = fb[j, 9]
+    z = fb[j, 10]
+    # rows outer, a constant 16-pixel row inner: one AVX-512 vector per row, no remainder loop; unsigned
+    # pixel index: numba then emits no negative-index wraparound, which would block SIMD
+    for row in range(np.uint64(fb[j, 11]), np.uint64(fb[j, 12]) + np.uint64(1)):
+        dy = py[row * np.uint64(TILE)] - my
+        bdy = B * dy
+        cdy = C * dy * dy
+        for q in range(TILE):
+            p = row * np.uint64(TILE) + np.uint64(q)
+            dx = px[p] - mx
+            if wrap:
+                dx = dx - wf * np.floor(dx * inv_w + HALF)
+            power = (A * dx + bdy) * dx + cdy
+            g = _exp_neg(min(max(power, F0), P_CLIP))
+            a = min(A_MAX, op * g)
+            tb = T[p]
+            ok = (power >= F0) & (power <= pm) & (a >= A_MIN) & (tb > F0)
+            tt = tb * (F1 - a)
+            stop = ok & (tt <= T_STOP)
+            blend = ok & (tt > T_STOP)
+            w = a * tb if blend else F0
+            c0[p] += w * cr
+            c1[p] += w * cg
+            c2[p] += w * cbl
+            dd[p] += w * z
+            T[p] = tt if blend else (-tb if stop else tb)
+            lst[p] = jj if blend else lst[p]
+
+
 @njit(cache=True, parallel=True, fastmath=RASTER_MATH)
-def raster_forward(start, feat, ntx, width, height, wrap, bg, rgb, alpha, depth, last, t_final):
+def raster_forward(start, rank, cg, ntx, width, height, wrap, bg, rgb, alpha, depth, last, t_final):
     """Front-to-back blend per tile. bg [H, W, 3] f32. Outputs rgb [H, W, 3], alpha, depth [H, W] f32,
     last [H, W] int32 (index of the last blended instance, -1 if none), t_final [H, W] f32.
     wrap (equirect): dx is taken to the nearest copy of the Gaussian across the azimuth seam, per pixel.
@@ -419,47 +480,26 @@ def raster_forward(start, feat, ntx, width, height, wrap, bg, rgb, alpha, depth,
                 nact += 1
             else:
                 T[p] = -F1
-        for j in range(start[t], start[t + 1]):
+        fb = np.empty((GATHER, NFEAT), np.float32)
+        for b0 in range(start[t], start[t + 1], GATHER):
             if nact == 0:
                 break
-            mx = feat[j, 0]
-            my = feat[j, 1]
-            A = feat[j, 2]
-            B = feat[j, 3]
-            C = feat[j, 4]
-            op = feat[j, 5]
-            pm = feat[j, 6]
-            cr = feat[j, 7]
-            cg = feat[j, 8]
-            cbl = feat[j, 9]
-            z = feat[j, 10]
-            jj = np.int32(j)
-            nstop = 0
-            # unsigned pixel index: numba then emits no negative-index wraparound, which would block SIMD
-            p0 = np.uint64(feat[j, 11]) * np.uint64(TILE)
-            for q in range((np.int64(feat[j, 12]) + 1) * TILE - np.int64(p0)):
-                p = p0 + np.uint64(q)
-                dx = px[p] - mx
+            nb = min(GATHER, start[t + 1] - b0)
+            for jb in range(nb):  # gather this batch's features into a small contiguous buffer
+                gather_row(cg, rank[b0 + jb], x0, y0, width, wrap, fb, jb)
+            for jb in range(nb):
                 if wrap:
-                    dx = dx - wf * np.floor(dx * inv_w + HALF)
-                dy = py[p] - my
-                power = (A * dx + B * dy) * dx + C * dy * dy
-                g = _exp_neg(min(max(power, F0), P_CLIP))
-                a = min(A_MAX, op * g)
-                tb = T[p]
-                ok = (power >= F0) & (power <= pm) & (a >= A_MIN) & (tb > F0)
-                tt = tb * (F1 - a)
-                stop = ok & (tt <= T_STOP)
-                blend = ok & (tt > T_STOP)
-                w = a * tb if blend else F0
-                c0[p] += w * cr
-                c1[p] += w * cg
-                c2[p] += w * cbl
-                dd[p] += w * z
-                T[p] = tt if blend else (-tb if stop else tb)
-                lst[p] = jj if blend else lst[p]
-                nstop += 1 if stop else 0
-            nact -= nstop
+                    _blend_one(fb, jb, np.int32(b0 + jb), px, py, T, c0, c1, c2, dd, lst, True, wf, inv_w)
+                else:
+                    _blend_one(fb, jb, np.int32(b0 + jb), px, py, T, c0, c1, c2, dd, lst, False, wf, inv_w)
+                if (jb & (STOP_CHECK - 1)) == STOP_CHECK - 1 or jb == nb - 1:
+                    # every STOP_CHECK instances: does any pixel still blend? (stopped pixels hold T < 0)
+                    tmax = -F1
+                    for p in range(TILE_PIX):
+                        tmax = max(tmax, T[p])
+                    if tmax <= F0:
+                        nact = 0
+                        break
         for p in range(TILE_PIX):
             xx = x0 + p % TILE
             yy = y0 + p // TILE
