@@ -62,13 +62,13 @@ def main() -> None:
                     cpus.append(time.process_time() - c0)
                     stages.append(res.state.timings)
                 st = res.state
-                n_inst = int(st.rank.shape[0])
+                n_inst = int(st.ids.shape[0])
                 row = {
                     "case": f"{n}@{width}x{height}/t{threads}", "gaussians": n, "width": width,
                     "height": height, "threads": threads, "seconds": round(float(np.median(totals)), 4),
                     "cpu_s": round(float(np.median(cpus)), 4),
                     "stages_s": {k: round(float(np.median([s[k] for s in stages])), 4) for k in stages[0]},
-                    "visible": int(st.order.size), "tile_instances": n_inst,
+                    "visible": int(np.unique(st.ids).size), "tile_instances": n_inst,
                     "evals_per_pixel": round(n_inst * 256 / (width * height), 1),
                     "mean_alpha": round(float(res.alpha.mean()), 3),
                     "load_avg_1m": round(os.getloadavg()[0], 2),

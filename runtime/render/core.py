@@ -22,9 +22,8 @@ class _State:
     opts: RenderOptions
     ntx: int
     start: np.ndarray     # [ntiles + 1] int64 instance offsets per tile
-    rank: np.ndarray      # [n_inst] int32 depth rank (row of cg) per instance, front to back per tile
-    order: np.ndarray     # [nv] int32 Gaussian id per depth rank
-    cg: np.ndarray        # [nv, kernels.NCG] float32 compact 64-byte rows per depth rank
+    ids: np.ndarray       # [n_inst] int32 Gaussian id per tile instance, front to back per tile
+    rows: np.ndarray      # [n, kernels.NCG] float32 64-byte projected row per Gaussian (culled: unwritten)
     bg: np.ndarray        # [H, W, 3] float32
     last: np.ndarray      # [H, W] int32
     t_final: np.ndarray   # [H, W] float32
@@ -58,23 +57,24 @@ def _aligned_rows(n: int, width: int, dtype) -> np.ndarray:
 def _prepare(g: Gaussians, camera, opts: RenderOptions):
     W, H = camera.width, camera.height
     ntx, nty = (W + K.TILE - 1) // K.TILE, (H + K.TILE - 1) // K.TILE
+    if ntx > 0x7FFF or nty > 0x7FFF:  # tile ranges are packed as two 16-bit fields in an int32
+        raise ValueError(f"camera: width and height must be at most {0x7FFF * K.TILE} px, got {W}x{H}")
     t0 = time.perf_counter()
     n = len(g)
-    proj = np.empty((n, 13), np.float64)
-    tiles = np.empty((n, 5), np.int32)
+    rows = _aligned_rows(n, K.NCG, np.float32)
+    dep = np.empty(n, np.float64)
+    trange = np.empty((n, 2), np.int32)
     if n:
         K.project_kernel(_c(g.means), _c(g.quats), _c(g.log_scales), _c(g.opacity_logits), _c(g.sh),
                          np.ascontiguousarray(camera.cam_to_world[:3, 3]),
                          *_camera_args(camera), W, H, float(opts.near), float(opts.far), float(opts.low_pass),
-                         bool(opts.antialiased), opts.radius_mode == "opacity", proj, tiles)
+                         bool(opts.antialiased), opts.radius_mode == "opacity", rows, trange, dep)
     t1 = time.perf_counter()
-    visible = np.flatnonzero(tiles[:, 4] > 0).astype(np.int32)
-    order = K.depth_order(visible, np.ascontiguousarray(proj[visible, 7]).view(np.uint64))
-    cg = _aligned_rows(order.shape[0], K.NCG, np.float32)
-    ct = np.empty((order.shape[0], 4), np.int32)
-    start, rank = K.bin_kernel(order, proj, tiles, ntx, nty, numba.get_num_threads(), cg, ct)
+    visible = np.flatnonzero(dep >= 0.0).astype(np.int32)
+    order = K.depth_order(visible, dep[visible].view(np.uint64))
+    start, ids = K.bin_kernel(order, trange, ntx, nty, numba.get_num_threads())
     t2 = time.perf_counter()
-    return ntx, start, rank, order, cg, {"project": t1 - t0, "sort_bin": t2 - t1}
+    return ntx, start, ids, rows, {"project": t1 - t0, "sort_bin": t2 - t1}
 
 
 def render(gaussians: Gaussians, camera, background=None, **options) -> RenderResult:
@@ -86,17 +86,17 @@ def render(gaussians: Gaussians, camera, background=None, **options) -> RenderRe
     opts = RenderOptions.from_kwargs(options)
     W, H = camera.width, camera.height
     bg = background_image(background, H, W)
-    ntx, start, rank, order, cg, timings = _prepare(gaussians, camera, opts)
+    ntx, start, ids, rows, timings = _prepare(gaussians, camera, opts)
     t0 = time.perf_counter()
     rgb = np.empty((H, W, 3), np.float32)
     alpha = np.empty((H, W), np.float32)
     depth = np.empty((H, W), np.float32)
     last = np.empty((H, W), np.int32)
     t_final = np.empty((H, W), np.float32)
-    K.raster_forward(start, rank, cg, ntx, W, H, isinstance(camera, EquirectCamera), bg, rgb, alpha, depth, last,
+    K.raster_forward(start, ids, rows, ntx, W, H, isinstance(camera, EquirectCamera), bg, rgb, alpha, depth, last,
                      t_final)
     timings["raster"] = time.perf_counter() - t0
-    state = _State(opts, ntx, start, rank, order, cg, bg, last, t_final, timings)
+    state = _State(opts, ntx, start, ids, rows, bg, last, t_final, timings)
     return RenderResult(rgb, alpha, depth, state)
 
 
@@ -125,8 +125,8 @@ def render_backward(gaussians: Gaussians, camera, result: RenderResult, d_rgb, d
     g_d = _as_grad(d_depth, (H, W), "d_depth")
     n = len(gaussians)
     wrap = isinstance(camera, EquirectCamera)
-    feat = K.instance_features(st.start, st.rank, st.cg, st.ntx, W, wrap)
-    ids = st.order[st.rank]
+    feat = K.instance_features(st.start, st.ids, st.rows, st.ntx, W, wrap)
+    ids = st.ids
     g_inst = np.zeros((ids.shape[0], 10), np.float64)
     g_bg = np.zeros((H, W, 3), np.float64)
     K.raster_backward(st.start, feat, st.ntx, W, H, wrap, st.bg, result.depth, st.last, st.t_final,

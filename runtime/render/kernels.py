@@ -15,12 +15,14 @@ from numba import njit, prange
 
 TILE = 16
 TILE_PIX = TILE * TILE
-NCG = 16    # compact per-Gaussian float32 row (64 bytes, depth order): mean x, y and bounding half-height ry
-#             as float32 hi + lo pairs (float64 precision), A, B, C (half conic), opacity, pmax, r, g, b, depth, pad
+NCG = 16    # per-Gaussian float32 row (64 bytes): mean x, y (px) as float32 hi + lo pairs (float64 precision),
+#             bounding half-height ry, A, B, C (half conic), opacity, pmax, r, g, b, depth, pad, pad
+ROW_PAD = 1e-3  # px added to ry when choosing the tile rows a Gaussian is evaluated on (float32 ry rounding)
 STOP_CHECK = 16  # the raster tests for a fully stopped tile every this many instances (a power of 2)
 GATHER = 128  # instances gathered per batch into the raster's per-tile buffer (8 KB: stays in L1)
 NFEAT = 16  # per-instance features (one 64-byte row): mx, my (tile-local px), A = a/2, B = b, C = c/2 (conic),
-#             opacity, pmax, r, g, b, depth, first row, last row (tile-local rows the footprint can touch), pad
+#             opacity, pmax, r, g, b, depth, first row, last row (tile-local rows the footprint can touch),
+#             pad
 
 F0 = np.float32(0.0)
 F1 = np.float32(1.0)
@@ -75,16 +77,16 @@ def _alpha(dx, dy, A, B, C, op, pmax):
 @njit(cache=True, parallel=True)
 def project_kernel(means, quats, log_scales, opacity_logits, sh, campos, Rw, tw, model, fx, fy, cx, cy,
                    lxn, lxp, lyn, lyp, width, height, near, far, low_pass, antialiased, opacity_mode,
-                   proj, tiles):
-    """Per Gaussian (float64): proj[i] = (mx, my, conic a, b, c, opacity, pmax, depth, rx, ry, r, g, b)
-    with rx, ry the footprint's bounding half-widths (px) and r, g, b the SH colour seen from campos [3];
-    tiles[i] = (tx0, tx1, ty0, ty1, count) with count 0 when culled; tx1 < tx0 means the range wraps
-    around the azimuth seam (equirect). model 0 = pinhole, 1 = equirect."""
+                   rows, trange, depth_out):
+    """Per Gaussian i (computed in float64): rows[i] = its 64-byte float32 row (layout: NCG), trange[i] [n, 2]
+    int32 = (tx0 | tx1 << 16, ty0 | ty1 << 16) the tiles its bounding box touches (tx1 < tx0: the range wraps
+    around the azimuth seam, equirect), depth_out[i] [n] float64 = depth, or -1 when culled (rows[i] and
+    trange[i] are then left unwritten). model 0 = pinhole, 1 = equirect."""
     n = means.shape[0]
     ntx = (width + TILE - 1) // TILE
     nty = (height + TILE - 1) // TILE
     for i in prange(n):
-        tiles[i, 4] = 0
+        depth_out[i] = -1.0
         mxw, myw, mzw = np.float64(means[i, 0]), np.float64(means[i, 1]), np.float64(means[i, 2])
         x = Rw[0, 0] * mxw + Rw[0, 1] * myw + Rw[0, 2] * mzw + tw[0]
         y = Rw[1, 0] * mxw + Rw[1, 1] * myw + Rw[1, 2] * mzw + tw[1]
@@ -212,31 +214,37 @@ def project_kernel(means, quats, log_scales, opacity_logits, sh, campos, Rw, tw,
             nx = tx1 - tx0 + 1 if tx1 >= tx0 else ntx - tx0 + tx1 + 1
         ty0 = v_lo // TILE
         ty1 = v_hi // TILE
-        proj[i, 0] = u
-        proj[i, 1] = v
-        proj[i, 2] = c11 / det
-        proj[i, 3] = -c01 / det
-        proj[i, 4] = c00 / det
-        proj[i, 5] = opa
-        proj[i, 6] = pmax
-        proj[i, 7] = depth
-        proj[i, 8] = rx
-        proj[i, 9] = ry
-        _sh_colour(sh, i, mxw - campos[0], myw - campos[1], mzw - campos[2], proj)
-        tiles[i, 0] = tx0
-        tiles[i, 1] = tx1
-        tiles[i, 2] = ty0
-        tiles[i, 3] = ty1
-        tiles[i, 4] = nx * (ty1 - ty0 + 1)
+        hi = np.float32(u)
+        rows[i, 0] = hi
+        rows[i, 1] = np.float32(u - np.float64(hi))
+        hi = np.float32(v)
+        rows[i, 2] = hi
+        rows[i, 3] = np.float32(v - np.float64(hi))
+        rows[i, 4] = ry
+        rows[i, 5] = 0.5 * c11 / det
+        rows[i, 6] = -c01 / det
+        rows[i, 7] = 0.5 * c00 / det
+        rows[i, 8] = opa
+        rows[i, 9] = pmax
+        vx, vy, vz = mxw - campos[0], myw - campos[1], mzw - campos[2]
+        for c in range(3):
+            rows[i, 10 + c] = _sh_colour(sh, i, c, vx, vy, vz)
+        rows[i, 13] = depth
+        rows[i, 14] = 0.0
+        rows[i, 15] = 0.0
+        trange[i, 0] = tx0 | (tx1 << 16)
+        trange[i, 1] = ty0 | (ty1 << 16)
+        depth_out[i] = depth
     _ = nty
+    _ = nx
 
 
 @njit(inline="always")
-def _sh_colour(sh, i, vx, vy, vz, proj):
-    """3DGS SH evaluation (degree from sh.shape[1]) -> proj[i, 10:13], clamped at 0. v = mean - camera centre."""
+def _sh_colour(sh, i, c, vx, vy, vz):
+    """3DGS SH evaluation (degree from sh.shape[1]) of channel c, clamped at 0 (float64). v = mean - camera
+    centre."""
     k = sh.shape[1]
-    for c in range(3):
-        proj[i, 10 + c] = 0.28209479177387814 * sh[i, 0, c]
+    r = 0.28209479177387814 * sh[i, 0, c]
     if k > 1:
         nrm = math.sqrt(vx * vx + vy * vy + vz * vz)
         nrm = 1.0 / max(nrm, 1e-12)
@@ -244,24 +252,21 @@ def _sh_colour(sh, i, vx, vy, vz, proj):
         y = vy * nrm
         z = vz * nrm
         xx, yy, zz, xy, yz, xz = x * x, y * y, z * z, x * y, y * z, x * z
-        for c in range(3):
-            r = -0.4886025119029199 * y * sh[i, 1, c] + 0.4886025119029199 * z * sh[i, 2, c] \
-                - 0.4886025119029199 * x * sh[i, 3, c]
-            if k > 4:
-                r += (1.0925484305920792 * xy * sh[i, 4, c] - 1.0925484305920792 * yz * sh[i, 5, c]
-                      + 0.31539156525252005 * (2 * zz - xx - yy) * sh[i, 6, c]
-                      - 1.0925484305920792 * xz * sh[i, 7, c] + 0.5462742152960396 * (xx - yy) * sh[i, 8, c])
-            if k > 9:
-                r += (-0.5900435899266435 * y * (3 * xx - yy) * sh[i, 9, c]
-                      + 2.890611442640554 * xy * z * sh[i, 10, c]
-                      - 0.4570457994644658 * y * (4 * zz - xx - yy) * sh[i, 11, c]
-                      + 0.3731763325901154 * z * (2 * zz - 3 * xx - 3 * yy) * sh[i, 12, c]
-                      - 0.4570457994644658 * x * (4 * zz - xx - yy) * sh[i, 13, c]
-                      + 1.445305721320277 * z * (xx - yy) * sh[i, 14, c]
-                      - 0.5900435899266435 * x * (xx - 3 * yy) * sh[i, 15, c])
-            proj[i, 10 + c] += r
-    for c in range(3):
-        proj[i, 10 + c] = max(proj[i, 10 + c] + 0.5, 0.0)
+        r += -0.4886025119029199 * y * sh[i, 1, c] + 0.4886025119029199 * z * sh[i, 2, c] \
+            - 0.4886025119029199 * x * sh[i, 3, c]
+        if k > 4:
+            r += (1.0925484305920792 * xy * sh[i, 4, c] - 1.0925484305920792 * yz * sh[i, 5, c]
+                  + 0.31539156525252005 * (2 * zz - xx - yy) * sh[i, 6, c]
+                  - 1.0925484305920792 * xz * sh[i, 7, c] + 0.5462742152960396 * (xx - yy) * sh[i, 8, c])
+        if k > 9:
+            r += (-0.5900435899266435 * y * (3 * xx - yy) * sh[i, 9, c]
+                  + 2.890611442640554 * xy * z * sh[i, 10, c]
+                  - 0.4570457994644658 * y * (4 * zz - xx - yy) * sh[i, 11, c]
+                  + 0.3731763325901154 * z * (2 * zz - 3 * xx - 3 * yy) * sh[i, 12, c]
+                  - 0.4570457994644658 * x * (4 * zz - xx - yy) * sh[i, 13, c]
+                  + 1.445305721320277 * z * (xx - yy) * sh[i, 14, c]
+                  - 0.5900435899266435 * x * (xx - 3 * yy) * sh[i, 15, c])
+    return max(r + 0.5, 0.0)
 
 
 # --------------------------------------------------------------------------------------------------- binning
@@ -296,38 +301,23 @@ def depth_order(visible, keys):
 
 
 @njit(cache=True, parallel=True)
-def bin_kernel(order, proj, tiles, ntx, nty, nchunks, cg, ct):
-    """Compact the visible Gaussians in depth order (`order`: Gaussian ids front to back) and list, per
-    16x16 tile, the depth ranks of the Gaussians whose footprint's bounding box touches it.
+def bin_kernel(order, trange, ntx, nty, nchunks):
+    """List, per 16x16 tile, the ids of the Gaussians whose footprint's bounding box touches it (trange, see
+    project_kernel), front to back (`order`: visible Gaussian ids in depth order). Returns
+    (tile_start [ntiles + 1] int64, ids [n_inst] int32). The per-instance features are not built here: the
+    raster gathers each tile's rows (gather_row), one 64-byte line per instance.
 
-    Fills cg [nv, NCG] float32 (one 64-byte row per Gaussian, see NCG; the caller aligns it to 64 bytes) and
-    ct [nv, 4] int32 (tx0, tx1, ty0, ty1); returns (tile_start [ntiles + 1] int64, rank [n_inst] int32
-    (row of cg, ascending = front to back within each tile)). The per-instance features are not built
-    here: the raster gathers them per tile (gather_row), one cache line per instance.
-
-    Counting sort by tile over `nchunks` contiguous chunks of ranks (parallel): per-chunk tile histograms,
-    a tile-major prefix sum, then each chunk writes its ranks in order, so lists stay depth-ordered."""
+    Counting sort by tile over `nchunks` contiguous chunks of `order` (parallel): per-chunk tile histograms,
+    a tile-major prefix sum, then each chunk writes its ids in order, so lists stay depth-ordered."""
     nv = order.shape[0]
     ntiles = ntx * nty
+    ct = np.empty((nv, 4), np.int32)
     for k in prange(nv):
         i = order[k]
-        for c in range(3):  # mean x, y, half-height ry (float64) as float32 hi + lo pairs
-            v = proj[i, (0, 1, 9)[c]]
-            hi = np.float32(v)
-            cg[k, 2 * c] = hi
-            cg[k, 2 * c + 1] = np.float32(v - np.float64(hi))
-        cg[k, 6] = 0.5 * proj[i, 2]
-        cg[k, 7] = proj[i, 3]
-        cg[k, 8] = 0.5 * proj[i, 4]
-        cg[k, 9] = proj[i, 5]
-        cg[k, 10] = proj[i, 6]
-        cg[k, 11] = proj[i, 10]
-        cg[k, 12] = proj[i, 11]
-        cg[k, 13] = proj[i, 12]
-        cg[k, 14] = proj[i, 7]
-        cg[k, 15] = 0.0
-        for c in range(4):
-            ct[k, c] = tiles[i, c]
+        ct[k, 0] = trange[i, 0] & 0xFFFF
+        ct[k, 1] = trange[i, 0] >> 16
+        ct[k, 2] = trange[i, 1] & 0xFFFF
+        ct[k, 3] = trange[i, 1] >> 16
     hist = np.zeros((nchunks, ntiles), np.int64)
     for ch in prange(nchunks):
         k0 = nv * ch // nchunks
@@ -352,7 +342,7 @@ def bin_kernel(order, proj, tiles, ntx, nty, nchunks, cg, ct):
             hist[ch, t] = run
             run += c
     start[ntiles] = run
-    rank = np.empty(run, np.int32)
+    ids = np.empty(run, np.int32)
     for ch in prange(nchunks):
         k0 = nv * ch // nchunks
         k1 = nv * (ch + 1) // nchunks
@@ -365,13 +355,13 @@ def bin_kernel(order, proj, tiles, ntx, nty, nchunks, cg, ct):
                 for tx in range(tx0, a_hi + 1):
                     pos = hist[ch, row + tx]
                     hist[ch, row + tx] = pos + 1
-                    rank[pos] = k
+                    ids[pos] = order[k]
                 if tx1 < tx0:
                     for tx in range(tx1 + 1):
                         pos = hist[ch, row + tx]
                         hist[ch, row + tx] = pos + 1
-                        rank[pos] = k
-    return start, rank
+                        ids[pos] = order[k]
+    return start, ids
 
 
 @njit(inline="always")
@@ -383,34 +373,56 @@ def gather_row(cg, k, x0, y0, width, wrap, out, j):
     if wrap:
         mx -= width * np.floor((mx - 7.5) / width + 0.5)
     my = (np.float64(cg[k, 2]) + np.float64(cg[k, 3])) - y0
-    ry = np.float64(cg[k, 4]) + np.float64(cg[k, 5])
+    # rows: the bounding box widened by ROW_PAD px, so float32 ry never drops a row the footprint touches
+    # (the power test decides per pixel; an extra row only costs time)
+    ry = np.float64(cg[k, 4]) + ROW_PAD
     out[j, 0] = mx
     out[j, 1] = my
     for c in range(9):
-        out[j, 2 + c] = cg[k, 6 + c]
+        out[j, 2 + c] = cg[k, 5 + c]
     out[j, 11] = max(0.0, math.floor(my - ry))
     out[j, 12] = min(TILE - 1.0, math.ceil(my + ry))
 
 
 @njit(cache=True, parallel=True)
-def instance_features(start, rank, cg, ntx, width, wrap):
+def instance_features(start, ids, rows, ntx, width, wrap):
     """feat [n_inst, NFEAT] float32: every tile instance's features (gather_row), for the backward pass."""
     ntiles = start.shape[0] - 1
-    feat = np.zeros((rank.shape[0], NFEAT), np.float32)
+    feat = np.zeros((ids.shape[0], NFEAT), np.float32)
     for t in prange(ntiles):
         x0 = (t % ntx) * TILE
         y0 = (t // ntx) * TILE
         for j in range(start[t], start[t + 1]):
-            gather_row(cg, rank[j], x0, y0, width, wrap, feat, j)
+            gather_row(rows, ids[j], x0, y0, width, wrap, feat, j)
     return feat
 
 
 # ----------------------------------------------------------------------------------------------- rasterise
 @njit(inline="always", fastmath=RASTER_MATH)
+def _blend_px(p, power, op, pm, cr, cg, cbl, z, jj, T, c0, c1, c2, dd, lst):
+    """The blend of one Gaussian into pixel p (float32, branch-free: selects, so the caller's loop is SIMD)."""
+    g = _exp_neg(min(max(power, F0), P_CLIP))
+    a = min(A_MAX, op * g)
+    tb = T[p]
+    ok = (power >= F0) & (power <= pm) & (a >= A_MIN) & (tb > F0)
+    tt = tb * (F1 - a)
+    stop = ok & (tt <= T_STOP)
+    blend = ok & (tt > T_STOP)
+    w = a * tb if blend else F0
+    c0[p] += w * cr
+    c1[p] += w * cg
+    c2[p] += w * cbl
+    dd[p] += w * z
+    T[p] = tt if blend else (-tb if stop else tb)
+    lst[p] = jj if blend else lst[p]
+
+
+@njit(inline="always", fastmath=RASTER_MATH)
 def _blend_one(fb, j, jj, px, py, T, c0, c1, c2, dd, lst, wrap, wf, inv_w):
     """Blend gathered instance fb[j] (global instance index jj) into the tile's pixel state, on the tile rows
-    its bounding box touches, branch-free, one SIMD row of 16 pixels at a time. `wrap` is passed as a literal
-    by the caller, so LLVM drops the seam code for pinhole cameras."""
+    its bounding box touches, one SIMD vector (16 pixels, AVX-512) per row: a constant trip count, so no
+    remainder loop. Unsigned pixel indices: numba then emits no negative-index wraparound, which would block
+    SIMD. `wrap` is passed as a literal by the caller, so LLVM drops the seam code for pinhole cameras."""
     mx = fb[j, 0]
     my = fb[j, 1]
     A = fb[j, 2]
@@ -422,36 +434,22 @@ def _blend_one(fb, j, jj, px, py, T, c0, c1, c2, dd, lst, wrap, wf, inv_w):
     cg = fb[j, 8]
     cbl = fb[j, 9]
     z = fb[j, 10]
-    # rows outer, a constant 16-pixel row inner: one AVX-512 vector per row, no remainder loop; unsigned
-    # pixel index: numba then emits no negative-index wraparound, which would block SIMD
     for row in range(np.uint64(fb[j, 11]), np.uint64(fb[j, 12]) + np.uint64(1)):
-        dy = py[row * np.uint64(TILE)] - my
+        base = row * np.uint64(TILE)
+        dy = py[base] - my
         bdy = B * dy
         cdy = C * dy * dy
         for q in range(TILE):
-            p = row * np.uint64(TILE) + np.uint64(q)
+            p = base + np.uint64(q)
             dx = px[p] - mx
             if wrap:
                 dx = dx - wf * np.floor(dx * inv_w + HALF)
             power = (A * dx + bdy) * dx + cdy
-            g = _exp_neg(min(max(power, F0), P_CLIP))
-            a = min(A_MAX, op * g)
-            tb = T[p]
-            ok = (power >= F0) & (power <= pm) & (a >= A_MIN) & (tb > F0)
-            tt = tb * (F1 - a)
-            stop = ok & (tt <= T_STOP)
-            blend = ok & (tt > T_STOP)
-            w = a * tb if blend else F0
-            c0[p] += w * cr
-            c1[p] += w * cg
-            c2[p] += w * cbl
-            dd[p] += w * z
-            T[p] = tt if blend else (-tb if stop else tb)
-            lst[p] = jj if blend else lst[p]
+            _blend_px(p, power, op, pm, cr, cg, cbl, z, jj, T, c0, c1, c2, dd, lst)
 
 
 @njit(cache=True, parallel=True, fastmath=RASTER_MATH)
-def raster_forward(start, rank, cg, ntx, width, height, wrap, bg, rgb, alpha, depth, last, t_final):
+def raster_forward(start, ids, rows, ntx, width, height, wrap, bg, rgb, alpha, depth, last, t_final):
     """Front-to-back blend per tile. bg [H, W, 3] f32. Outputs rgb [H, W, 3], alpha, depth [H, W] f32,
     last [H, W] int32 (index of the last blended instance, -1 if none), t_final [H, W] f32.
     wrap (equirect): dx is taken to the nearest copy of the Gaussian across the azimuth seam, per pixel.
@@ -486,7 +484,7 @@ def raster_forward(start, rank, cg, ntx, width, height, wrap, bg, rgb, alpha, de
                 break
             nb = min(GATHER, start[t + 1] - b0)
             for jb in range(nb):  # gather this batch's features into a small contiguous buffer
-                gather_row(cg, rank[b0 + jb], x0, y0, width, wrap, fb, jb)
+                gather_row(rows, ids[b0 + jb], x0, y0, width, wrap, fb, jb)
             for jb in range(nb):
                 if wrap:
                     _blend_one(fb, jb, np.int32(b0 + jb), px, py, T, c0, c1, c2, dd, lst, True, wf, inv_w)
