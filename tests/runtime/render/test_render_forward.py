@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import numba
 import numpy as np
 import pytest
 from render_scenes import concat, look_at, pinhole, random_gaussians
@@ -10,6 +11,7 @@ from xyzcyl.runtime.render import (
     Gaussians,
     PinholeCamera,
     RenderOptions,
+    kernels,
     render,
     render_reference,
 )
@@ -54,6 +56,26 @@ def test_rotated_camera_sh3_and_background_image():
 def test_options_match_reference(options):
     g = random_gaussians(np.random.default_rng(3), 300)
     _compare(g, pinhole(), (1.0, 1.0, 1.0), **options)
+
+
+def test_long_tile_lists_match_reference_and_do_not_depend_on_threads():
+    """Hundreds of faint Gaussians per tile: more instances than one raster gather batch (kernels.GATHER),
+    no early stop; the tile lists are built over one chunk per thread, so 1 and 2 threads must agree
+    bit for bit."""
+    rng = np.random.default_rng(7)
+    g = random_gaussians(rng, 1500, lo=(-2, -1.5, 3), hi=(2, 1.5, 8), scale=(0.1, 0.4), opacity=(-5.0, -3.0))
+    cam = pinhole(40, 30, f=30.0)
+    fast, _ = _compare(g, cam, background=(0.1, 0.2, 0.3))
+    starts = fast.state.start
+    assert np.diff(starts).max() > 2 * kernels.GATHER
+    threads = numba.get_num_threads()
+    try:
+        numba.set_num_threads(1)
+        one = render(g, cam, (0.1, 0.2, 0.3))
+    finally:
+        numba.set_num_threads(threads)
+    assert np.array_equal(one.state.ids, fast.state.ids)
+    assert np.array_equal(one.rgb, fast.rgb) and np.array_equal(one.depth, fast.depth)
 
 
 def test_structured_scene_tile_borders_behind_huge_tiny():
