@@ -31,6 +31,7 @@ COMMANDS: tuple[Command, ...] = (
     Command("render", "xyzcyl.runtime.commands.render", "render a Gaussian PLY from a camera pose"),
     Command("data", "xyzcyl.model_export.commands.data", "synthetic training data: synth, gallery", "train"),
     Command("train", "xyzcyl.model_export.commands.train", "train one stage (occ | render) of the network", "train"),
+    Command("eval", "xyzcyl.model_export.commands.eval", "novel-view metrics of a model or a baseline", "train"),
 )
 
 

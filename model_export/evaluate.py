@@ -1,0 +1,411 @@
+"""Evaluation of novel-view quality on synthetic data sets (paper Sec. 4, appendix "Evaluation Metrics").
+
+    result = evaluate([data_dir], EvalConfig(settings=("ego-forward",), method="model"), checkpoint="render.pt")
+    write_reports(result, out_dir)          # <tag>.json (per-view rows + aggregate) and <tag>.md (table)
+
+Methods:
+- ``model``: the network of a stage-2 checkpoint (its config, ablation switches included, comes from the
+  checkpoint). One forward pass per scene (no gradients), the Gaussians rendered with the runtime renderer at
+  every target view of the setting, the background network's image blended behind (I = I_fg + (1 - A) I_bg).
+  Voxels are selected from the predicted occupancy (the paper's inference), or from the ground truth with
+  ``occupancy="ground-truth"`` (labelled in the reports).
+- ``unproject`` / ``unproject-gt-depth``: the pixel-unprojection ("2.5D") baseline. Every input pixel becomes
+  one isotropic Gaussian at its depth: the checkpoint's depth head (bilinearly upsampled to the input
+  resolution) or, for the oracle, the ground-truth input depth (sky pixels, which have no depth, get no
+  Gaussian). sigma = (depth / sqrt(fx fy)) / sqrt(12): the standard deviation of the pixel's square footprint;
+  opacity 0.99; colour = the pixel's RGB as the SH DC term. Rendered over black: the baseline has no background model, so sky it does not cover is black.
+
+Metrics per target view (``metrics.py``): PSNR, SSIM (rendered image clipped to [0, 1]), depth PCC over the
+pixels whose ground-truth depth is in (0, ``pcc_max_depth``] and not sky (the training's depth-validity rule),
+LPIPS only with local weights (otherwise ``null`` and the reason). Aggregates are means over views per
+(setting, rig); views with an undefined PCC (fewer than 2 valid pixels, constant map) are counted, not hidden.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .config import ConfigError, _Frozen
+
+METHODS = ("model", "unproject", "unproject-gt-depth")
+OCCUPANCY = ("predicted", "ground-truth")
+SH_C0 = 0.28209479177387814
+ALL_TARGETS = 1 << 30      # DatasetConfig.num_targets that keeps every target view of a setting
+# baseline sigma in units of the pixel footprint depth / f: the standard deviation of a uniform pixel square
+# (1 / sqrt(12)), so a Gaussian has the second moment of the pixel it replaces (docs/training.md)
+UNPROJECT_SCALE = 1 / math.sqrt(12)
+
+
+class EvalError(ValueError):
+    """Bad evaluation input (checkpoint, data set, option); the message names the field."""
+
+
+@dataclass(frozen=True)
+class EvalConfig(_Frozen):
+    settings: tuple[str, ...] = ("ego-forward",)
+    method: str = "model"                 # model | unproject | unproject-gt-depth
+    occupancy: str = "predicted"          # voxel selection of the model: predicted (paper) | ground-truth (oracle)
+    rig: str | None = None                # only data sets generated with this rig (None: any; label from index.json)
+    max_scenes: int | None = None         # first N scenes of each data set (None: all)
+    pcc_max_depth: float = 80.0           # metres; PCC over gt depth in (0, this] (= the training's max_depth)
+    unproject_scale: float = UNPROJECT_SCALE  # baseline sigma = scale * depth / sqrt(fx fy)
+    unproject_opacity: float = 0.99       # baseline opacity
+    lpips_backbone_path: str | None = None
+    lpips_lin_path: str | None = None
+    lpips_net: str = "vgg"
+
+    def __post_init__(self):
+        from .dataset import SETTINGS
+
+        if not self.settings:
+            raise ConfigError("setting: at least one setting is needed")
+        for s in self.settings:
+            if s not in SETTINGS:
+                raise ConfigError(f"setting: must be one of {', '.join(SETTINGS)}, got {s!r}")
+        if self.method not in METHODS:
+            raise ConfigError(f"method: must be one of {', '.join(METHODS)}, got {self.method!r}")
+        if self.occupancy not in OCCUPANCY:
+            raise ConfigError(f"occupancy: must be one of {', '.join(OCCUPANCY)}, got {self.occupancy!r}")
+        if self.max_scenes is not None and (isinstance(self.max_scenes, bool) or not isinstance(self.max_scenes, int)
+                                            or self.max_scenes < 1):
+            raise ConfigError(f"max_scenes: must be a positive integer, got {self.max_scenes!r}")
+        for n in ("pcc_max_depth", "unproject_scale"):
+            if not (math.isfinite(getattr(self, n)) and getattr(self, n) > 0):
+                raise ConfigError(f"{n}: must be a finite number > 0, got {getattr(self, n)!r}")
+        if not 0 < self.unproject_opacity < 1:
+            raise ConfigError(f"unproject_opacity: must be in (0, 1), got {self.unproject_opacity!r}")
+        if self.lpips_net not in ("vgg", "alex"):
+            raise ConfigError(f"lpips_net: must be vgg or alex, got {self.lpips_net!r}")
+
+
+# ------------------------------------------------------------------------------------------------ the baseline
+
+
+def unproject_gaussians(images: np.ndarray, depth: np.ndarray, K: np.ndarray, cam_to_ego: np.ndarray,
+                        scale: float = UNPROJECT_SCALE, opacity: float = 0.99):
+    """Pixel unprojection: one isotropic Gaussian per input pixel with depth > 0.
+
+    images: [N, H, W, 3] float 0..1; depth: [N, H, W] metres along the optical axis (<= 0 or non-finite: no
+    Gaussian); K: [N, 3, 3] pixels; cam_to_ego: [N, 4, 4] OpenCV camera -> ego, metres.
+    Pixel (u, v) (integer pixel centres, the data set's convention) with depth z goes to the ego point
+    cam_to_ego @ [z inv(K) [u, v, 1], 1]; sigma = scale * z / sqrt(fx fy) metres; opacity logit = logit(opacity);
+    SH DC = (rgb - 0.5) / SH_C0 (the renderer returns SH_C0 dc + 0.5 = rgb). Returns runtime Gaussians (float32)."""
+    from xyzcyl.runtime.render import Gaussians
+
+    images = np.asarray(images, np.float64)
+    depth = np.asarray(depth, np.float64)
+    n, h, w = depth.shape
+    if images.shape != (n, h, w, 3):
+        raise ValueError(f"images: expected shape {[n, h, w, 3]}, got {list(images.shape)}")
+    v, u = np.mgrid[0:h, 0:w].astype(np.float64)
+    pix = np.stack([u, v, np.ones_like(u)], -1)                               # [H, W, 3]
+    means, sig, cols = [], [], []
+    for k in range(n):
+        z = depth[k]
+        keep = np.isfinite(z) & (z > 0)
+        rays = pix[keep] @ np.linalg.inv(K[k]).T                              # [P, 3], z component 1
+        p_cam = rays * z[keep][:, None]
+        means.append(p_cam @ cam_to_ego[k][:3, :3].T + cam_to_ego[k][:3, 3])
+        sig.append(scale * z[keep] / math.sqrt(K[k][0, 0] * K[k][1, 1]))
+        cols.append(images[k][keep])
+    m = np.concatenate(means).astype(np.float32)
+    s = np.concatenate(sig)
+    c = np.concatenate(cols)
+    g = len(m)
+    quats = np.zeros((g, 4), np.float32)
+    quats[:, 0] = 1.0
+    return Gaussians(m, quats, np.repeat(np.log(s)[:, None], 3, 1).astype(np.float32),
+                     np.full(g, math.log(opacity / (1 - opacity)), np.float32),
+                     ((c - 0.5) / SH_C0)[:, None, :].astype(np.float32))
+
+
+def _native_depth_head(model, item: dict[str, Any]) -> np.ndarray:
+    """The checkpoint's depth head at the input resolution: [N, H, W] metres (bilinear upsampling)."""
+    import torch
+    import torch.nn.functional as F
+
+    from .train import _resize
+
+    with torch.no_grad():
+        _, d, _ = model.encode_images(_resize(item["images"], model.cfg))
+        d = F.interpolate(d, size=item["images"].shape[-2:], mode="bilinear", align_corners=False)
+    return d[:, 0].numpy()
+
+
+# ------------------------------------------------------------------------------------------------ rendering
+
+
+def _cameras(item: dict[str, Any]) -> list:
+    from .train import target_cameras
+
+    return target_cameras(item["targets"])
+
+
+def model_views(model, item: dict[str, Any], occupancy: str = "predicted") -> Iterator[tuple[np.ndarray, np.ndarray, int]]:
+    """Per target view of ``item``: (rgb [H, W, 3] composited over the background network's image, foreground
+    depth [H, W] metres (0 where no Gaussian), number of Gaussians)."""
+    import torch
+    import torch.nn.functional as F
+    from xyzcyl.runtime.render import Gaussians, render
+
+    from .model import GAUSSIAN_KEYS
+    from .train import _resize
+
+    with torch.no_grad():   # never across a yield: grad mode is thread state the caller would inherit
+        occ_gt = item["occupancy"].bool() if occupancy == "ground-truth" else None
+        out = model(_resize(item["images"], model.cfg), item["lifting"], occ_gt=occ_gt)
+    g = Gaussians(*(out["gaussians"][k].float().numpy() for k in GAUSSIAN_KEYS))
+    grids = item["targets"]["background_grid"]
+    for k, cam in enumerate(_cameras(item)):
+        r = render(g, cam)
+        rgb = r.rgb
+        if out["app_plane"] is not None:
+            with torch.no_grad():
+                bg = model.background(out["app_plane"], grids[k:k + 1])
+            if bg is not None:
+                if bg.shape[-2:] != rgb.shape[:2]:
+                    bg = F.interpolate(bg, size=rgb.shape[:2], mode="bilinear", align_corners=False)
+                rgb = rgb + (1 - r.alpha[..., None]) * bg[0].permute(1, 2, 0).numpy()
+        yield rgb, r.depth, len(g)
+
+
+def unproject_views(item: dict[str, Any], depth: np.ndarray, cfg: EvalConfig
+                    ) -> Iterator[tuple[np.ndarray, np.ndarray, int]]:
+    """Per target view: (rgb [H, W, 3] over black, depth [H, W], number of Gaussians) of the baseline built
+    from the input images and ``depth`` [N, H, W] metres."""
+    from xyzcyl.runtime.render import render
+
+    rig = item["rig"]
+    g = unproject_gaussians(item["images"].permute(0, 2, 3, 1).numpy(), depth,
+                            np.stack([c.K for c in rig.cameras]), np.stack([c.cam_to_ego for c in rig.cameras]),
+                            cfg.unproject_scale, cfg.unproject_opacity)
+    for cam in _cameras(item):
+        r = render(g, cam)
+        yield r.rgb, r.depth, len(g)
+
+
+# ------------------------------------------------------------------------------------------------ the driver
+
+
+def load_eval_model(checkpoint: str | Path, need_render_stage: bool):
+    """(model in eval mode, checkpoint dict) from a training checkpoint; ``need_render_stage``: refuse a
+    stage-1 (occ) checkpoint, whose render modules are untrained."""
+    from .config import ModelConfig
+    from .train import build_model, load_checkpoint
+
+    try:
+        ck = load_checkpoint(checkpoint)
+    except (FileNotFoundError, ValueError) as e:
+        raise EvalError(str(e)) from None
+    stage = (ck.get("train_cfg") or {}).get("stage")
+    if need_render_stage and stage != "render":
+        raise EvalError(f"checkpoint: {checkpoint} is a stage {stage!r} checkpoint; the model needs a stage-2 "
+                        "(render) checkpoint such as RUN/render.pt")
+    model = build_model(ModelConfig.from_dict(ck["model_cfg"]))
+    model.load_state_dict(ck["model"])
+    model.eval()
+    return model, ck
+
+
+def data_rig(root: Path) -> str | None:
+    """The rig a synthetic data set was generated with (index.json config.rig; a rig-file path gives its
+    parent folder's name), or None without index.json."""
+    p = Path(root) / "index.json"
+    if not p.is_file():
+        return None
+    try:
+        rig = json.loads(p.read_text()).get("config", {}).get("rig")
+    except json.JSONDecodeError as e:
+        raise EvalError(f"data: {p} is not valid JSON ({e})") from None
+    if not isinstance(rig, str):
+        return None
+    if rig.endswith(".json"):
+        return Path(rig).parent.name or rig
+    return rig
+
+
+def _voxel_size(root: Path, model_cfg) -> float:
+    """The model grid's voxel size, or (no model) the first grid stored in the first scene's occupancy.npz."""
+    if model_cfg is not None:
+        return float(model_cfg.grid.voxel_size)
+    from .dataset import list_scenes
+
+    with np.load(list_scenes(root)[0] / "occupancy.npz") as z:
+        tags = sorted(k[len("semantic_"):] for k in z.files if k.startswith("semantic_"))
+    if not tags:
+        raise EvalError(f"data: {root} has no occupancy grid in occupancy.npz")
+    return float(tags[0].replace("p", "."))
+
+
+def _finite(x: float | None) -> float | None:
+    return None if x is None or not math.isfinite(x) else float(x)
+
+
+def method_label(cfg: EvalConfig, model_cfg=None) -> str:
+    """Row label: the method, the model's ablation switches that are off, and oracle choices."""
+    if cfg.method == "unproject":
+        return "unproject (depth head)"
+    if cfg.method == "unproject-gt-depth":
+        return "unproject (GT depth, oracle)"
+    off = [k for k, v in model_cfg.ablation.to_dict().items() if v is False] if model_cfg is not None else []
+    label = "XYZCylinder" + (f" ({model_cfg.name}" + "".join(f", no {k}" for k in off) + ")"
+                             if model_cfg is not None else "")
+    return label + (", GT occupancy (oracle)" if cfg.occupancy == "ground-truth" else "")
+
+
+def evaluate(data_dirs: Sequence[str | Path], cfg: EvalConfig, checkpoint: str | Path | None = None,
+             progress: bool = True) -> dict[str, Any]:
+    """Evaluate ``cfg.method`` on every scene (up to ``max_scenes``) of each data set and every target view
+    of each setting. Returns {"method", "label", "checkpoint", "config", "lpips_unavailable", "views": [...],
+    "aggregate": [...]} (JSON-ready: NaN / inf become null)."""
+    from tqdm import tqdm
+
+    from . import metrics as M
+    from .dataset import DatasetConfig, SceneDataset
+
+    model = ck = None
+    if cfg.method in ("model", "unproject"):
+        if checkpoint is None:
+            raise EvalError(f"checkpoint: method {cfg.method!r} needs --checkpoint")
+        model, ck = load_eval_model(checkpoint, need_render_stage=cfg.method == "model")
+    model_cfg = model.cfg if model is not None else None
+    lp_reason = M.lpips(np.zeros((1, 1, 3)), np.zeros((1, 1, 3)), None, None).reason \
+        if cfg.lpips_backbone_path is None or cfg.lpips_lin_path is None else None
+
+    jobs = []
+    for root in data_dirs:
+        root = Path(root)
+        if not root.is_dir():
+            raise EvalError(f"data: {root} is not a folder")
+        rig = data_rig(root)
+        if cfg.rig is not None and rig is not None and rig != cfg.rig:
+            raise EvalError(f"rig: data set {root} was generated with rig {rig!r}, not {cfg.rig!r}")
+        rig = rig or cfg.rig or "unknown"
+        for setting in cfg.settings:
+            # max_depth huge: the oracle unprojects every non-sky pixel; the PCC applies pcc_max_depth itself
+            dcfg = DatasetConfig(setting=setting, num_targets=ALL_TARGETS, voxel_size=_voxel_size(root, model_cfg if cfg.method == "model" else None),
+                                 max_depth=1e12)
+            ds = SceneDataset(root, dcfg, model_cfg=model_cfg if cfg.method == "model" else None)
+            n = len(ds) if cfg.max_scenes is None else min(cfg.max_scenes, len(ds))
+            jobs.append((root, rig, setting, ds, n))
+
+    rows: list[dict[str, Any]] = []
+    bar = tqdm(total=sum(j[4] for j in jobs), desc=f"eval {cfg.method}", unit="scene", disable=not progress,
+               dynamic_ncols=True)
+    for root, rig, setting, ds, n in jobs:
+        for i in range(n):
+            item = ds.item(i, 0)
+            t = item["targets"]
+            if cfg.method == "model":
+                views = model_views(model, item, cfg.occupancy)
+            elif cfg.method == "unproject":
+                views = unproject_views(item, _native_depth_head(model, item), cfg)
+            else:
+                views = unproject_views(item, item["depth"][:, 0].numpy(), cfg)
+            for k, (rgb, depth, n_g) in enumerate(views):
+                pred = np.clip(rgb, 0, 1)
+                gt = t["images"][k].permute(1, 2, 0).numpy()
+                gd = t["depth"][k].numpy()
+                valid = (gd > 0) & (gd <= cfg.pcc_max_depth) & (t["sky"][k].numpy() < 0.5)
+                lp = M.lpips(pred, gt, cfg.lpips_backbone_path, cfg.lpips_lin_path, cfg.lpips_net)
+                if lp.value is None and lp_reason is None:
+                    lp_reason = lp.reason
+                rows.append({"data": str(root), "rig": rig, "setting": setting, "scene": item["scene"],
+                             "view": t["names"][k], "psnr": _finite(M.psnr(pred, gt)),
+                             "psnr_inf": bool(np.array_equal(pred, gt)),
+                             "ssim": M.ssim(pred, gt) if min(gt.shape[:2]) >= 11 else None,
+                             "pcc": _finite(M.depth_pcc(depth, gd, valid)), "pcc_pixels": int(valid.sum()),
+                             "lpips": lp.value, "n_gaussians": int(n_g)})
+            bar.update(1)
+            done = [r["psnr"] for r in rows if r["psnr"] is not None]
+            bar.set_postfix(psnr=f"{np.mean(done):.2f}" if done else "-")
+    bar.close()
+    return {"method": cfg.method, "label": method_label(cfg, model_cfg),
+            "checkpoint": None if checkpoint is None else str(checkpoint),
+            "checkpoint_step": None if ck is None else ck.get("step"),
+            "model_config": None if model_cfg is None else model_cfg.to_dict(),
+            "config": cfg.to_dict(), "lpips_unavailable": lp_reason,
+            "background": "none: rendered over black" if cfg.method != "model" or model_cfg is None or
+            not model_cfg.ablation.separate_background else "background network (ZNet_bg)",
+            "views": rows, "aggregate": aggregate(rows)}
+
+
+def aggregate(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """Means over views per (setting, rig). PSNR of an identical view (inf) counts as undefined and is
+    reported in ``psnr_undefined``; PCC likewise in ``pcc_undefined``; SSIM is undefined below 11 px."""
+    groups: dict[tuple[str, str], list[dict[str, Any]]] = {}
+    for r in rows:
+        groups.setdefault((r["setting"], r["rig"]), []).append(r)
+    out = []
+    for (setting, rig), rs in groups.items():
+        def mean(key):
+            v = [r[key] for r in rs if r[key] is not None]
+            return (float(np.mean(v)) if v else None), len(rs) - len(v)
+
+        psnr, p_u = mean("psnr")
+        ssim, s_u = mean("ssim")
+        pcc, c_u = mean("pcc")
+        lp, l_u = mean("lpips")
+        out.append({"setting": setting, "rig": rig, "scenes": len({(r["data"], r["scene"]) for r in rs}),
+                    "views": len(rs), "psnr": psnr, "ssim": ssim, "lpips": lp, "pcc": pcc,
+                    "psnr_undefined": p_u, "ssim_undefined": s_u, "pcc_undefined": c_u,
+                    "lpips_undefined": l_u})
+    return out
+
+
+# ------------------------------------------------------------------------------------------------ reports
+
+
+def _fmt(v: float | None, digits: int) -> str:
+    return "n/a" if v is None else f"{v:.{digits}f}"
+
+
+def markdown(result: dict[str, Any]) -> str:
+    """The Markdown table (one row per setting and rig) with notes on what is unavailable or oracle."""
+    lines = [f"# Evaluation: {result['label']}", ""]
+    if result["checkpoint"]:
+        lines.append(f"Checkpoint: `{result['checkpoint']}` (step {result['checkpoint_step']})")
+    lines.append(f"Background: {result['background']}.")
+    lines += ["", "| method | setting | rig | scenes | views | PSNR ↑ | SSIM ↑ | LPIPS ↓ | PCC ↑ |",
+              "| --- | --- | --- | ---: | ---: | ---: | ---: | ---: | ---: |"]
+    for a in result["aggregate"]:
+        lines.append(f"| {result['label']} | {a['setting']} | {a['rig']} | {a['scenes']} | {a['views']} | "
+                     f"{_fmt(a['psnr'], 2)} | {_fmt(a['ssim'], 3)} | {_fmt(a['lpips'], 3)} | {_fmt(a['pcc'], 3)} |")
+    lines.append("")
+    if result["lpips_unavailable"]:
+        lines.append(f"LPIPS: n/a. {result['lpips_unavailable']}.")
+    for a in result["aggregate"]:
+        for key in ("psnr", "ssim", "pcc"):
+            if a[f"{key}_undefined"]:
+                lines.append(f"{a['setting']} / {a['rig']}: {key.upper()} undefined for {a[f'{key}_undefined']} of "
+                             f"{a['views']} views (left out of the mean).")
+    lines.append(f"PCC over ground-truth depth in (0, {result['config']['pcc_max_depth']:g}] m, sky excluded.")
+    return "\n".join(lines) + "\n"
+
+
+def report_tag(result: dict[str, Any]) -> str:
+    tag = result["method"]
+    mc = result.get("model_config")
+    if result["method"] == "model" and mc is not None:
+        tag += "".join(f"-no-{k.replace('_', '-')}" for k, v in mc["ablation"].items() if v is False)
+        if result["config"]["occupancy"] == "ground-truth":
+            tag += "-gt-occupancy"
+    return tag + "_" + "+".join(result["config"]["settings"])
+
+
+def write_reports(result: dict[str, Any], out_dir: str | Path) -> tuple[Path, Path]:
+    """Write <tag>.json and <tag>.md into ``out_dir`` (created); returns their paths."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    tag = report_tag(result)
+    jp, mp = out / f"{tag}.json", out / f"{tag}.md"
+    jp.write_text(json.dumps(result, indent=1, allow_nan=False) + "\n")
+    mp.write_text(markdown(result))
+    return jp, mp
