@@ -12,6 +12,8 @@ import argparse
 import sys
 from pathlib import Path
 
+from xyzcyl.model_export.commands.common import add_runtime_arguments, set_threads
+
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--checkpoint", type=Path, default=None,
@@ -29,11 +31,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="select the model's voxels from the ground-truth occupancy (oracle, labelled)")
     parser.add_argument("--out", type=Path, default=Path("eval"), help="report folder (default: ./eval)")
     parser.add_argument("--max-scenes", type=int, default=None, help="first N scenes of each data set")
-    parser.add_argument("--lpips-backbone", default=None, help="local VGG16/AlexNet features state dict")
-    parser.add_argument("--lpips-lin", default=None, help="local LPIPS v0.1 linear-layer weights")
-    parser.add_argument("--lpips-net", default="vgg", choices=("vgg", "alex"))
-    parser.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's)")
-    parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_runtime_arguments(parser)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -43,12 +41,7 @@ def run(args: argparse.Namespace) -> int:
     from xyzcyl.runtime.rig import RigError
 
     try:
-        if args.threads is not None:
-            if args.threads < 1:
-                raise ValueError(f"threads: must be >= 1, got {args.threads}")
-            import torch
-
-            torch.set_num_threads(args.threads)
+        set_threads(args.threads)
         if args.baseline == "unproject-gt-depth" and args.checkpoint is not None:
             raise ValueError("checkpoint: --baseline unproject-gt-depth uses ground-truth depth, not a checkpoint")
         if args.baseline is not None and args.gt_occupancy:

@@ -11,6 +11,8 @@ import argparse
 import sys
 from pathlib import Path
 
+from xyzcyl.model_export.commands.common import add_runtime_arguments, set_threads
+
 ABLATIONS = {"none": {}, "no-volume": {"volume_branch": False}, "no-pixel": {"pixel_branch": False},
              "no-background": {"separate_background": False}}
 
@@ -39,12 +41,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--flip-prob", type=float, default=0.5, help="scene mirror (y -> -y) probability")
     parser.add_argument("--jitter", type=float, default=0.1, help="colour jitter strength (brightness, contrast, "
                                                                   "saturation), 0 disables")
-    parser.add_argument("--lpips-backbone", default=None, help="local VGG16/AlexNet features state dict")
-    parser.add_argument("--lpips-lin", default=None, help="local LPIPS v0.1 linear-layer weights")
-    parser.add_argument("--lpips-net", default="vgg", choices=("vgg", "alex"))
     parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's)")
-    parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_runtime_arguments(parser)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -55,12 +53,7 @@ def run(args: argparse.Namespace) -> int:
     from xyzcyl.runtime.rig import RigError
 
     try:
-        import torch
-
-        if args.threads is not None:
-            if args.threads < 1:
-                raise ValueError(f"threads: must be >= 1, got {args.threads}")
-            torch.set_num_threads(args.threads)
+        set_threads(args.threads)
         if not args.data.is_dir():
             raise ValueError(f"data: {args.data} is not a folder")
         if args.steps < 1:
