@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 
 from .rig import Camera, Rig, RigError
+from .rotations import quat_to_rotmat
 
 # OpenGL camera (x right, y up, z back) <-> OpenCV camera (x right, y down, z forward): flip y and z.
 GL_FROM_CV = np.diag([1.0, -1.0, -1.0, 1.0])
@@ -42,12 +43,7 @@ class ConversionError(RigError):
 
 def quat_wxyz_to_matrix(q: Sequence[float]) -> np.ndarray:
     """Unit quaternion (w, x, y, z) (normalised here) -> [3, 3] rotation matrix."""
-    w, x, y, z = np.asarray(q, dtype=np.float64) / np.linalg.norm(q)
-    return np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-    ])
+    return quat_to_rotmat(np.asarray(q, dtype=np.float64))
 
 
 def matrix_to_quat_wxyz(R: np.ndarray) -> np.ndarray:

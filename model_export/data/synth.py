@@ -10,6 +10,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
+from xyzcyl.runtime.rig import read_image
 
 from . import classes as C
 from .occupancy import PAPER_RANGE, OccupancyGrid, bev, occupancy
@@ -153,16 +154,7 @@ def write_exr(path: Path, depth: np.ndarray) -> None:
 
 def read_exr(path: Path) -> np.ndarray:
     """[H, W] float32 depth from a single-channel EXR written by write_exr."""
-    import OpenImageIO as oiio
-
-    inp = oiio.ImageInput.open(str(path))
-    if inp is None:
-        raise OSError(f"cannot read {path}: {oiio.geterror()}")
-    try:
-        a = inp.read_image(0, 0, 0, 1, "float")
-    finally:
-        inp.close()
-    return np.asarray(a, np.float32).reshape(a.shape[0], a.shape[1])
+    return read_image(path, "depth", channels=1, scale=False)[..., 0]
 
 
 def _write_png(path: Path, img: np.ndarray) -> None:

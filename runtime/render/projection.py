@@ -7,6 +7,7 @@ from dataclasses import dataclass, fields
 
 import numpy as np
 
+from ..rotations import quat_to_rotmat
 from .cameras import EquirectCamera, PinholeCamera
 from .gaussians import Gaussians
 from .sh import sh_colours
@@ -44,17 +45,6 @@ class RenderOptions:
             if key not in names:
                 raise ValueError(f"{key}: unknown render option (known: {', '.join(sorted(names))})")
         return cls(**options)
-
-
-def quat_to_rotmat(q: np.ndarray) -> np.ndarray:
-    """q [N, 4] wxyz (any norm) -> R [N, 3, 3] float64."""
-    q = q.astype(np.float64)
-    q = q / np.linalg.norm(q, axis=1, keepdims=True)
-    w, x, y, z = q[:, 0], q[:, 1], q[:, 2], q[:, 3]
-    return np.stack([
-        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
-        np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
-        np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1)], 1)
 
 
 def pinhole_limits(camera: PinholeCamera) -> tuple[float, float, float, float]:
