@@ -38,6 +38,7 @@ from .data.classes import ROAD, SIDEWALK, TERRAIN
 GROUND_CLASSES = (ROAD, SIDEWALK, TERRAIN)   # BEV target: a column is "occupied" if it holds anything else
 
 SETTINGS = ("ego-forward", "ego-inward")
+MIXED = "both"   # DatasetConfig.setting: draw the T targets from the union of both settings' cameras
 
 
 class DataError(ValueError):
@@ -46,7 +47,7 @@ class DataError(ValueError):
 
 @dataclass(frozen=True)
 class DatasetConfig(_Frozen):
-    setting: str = "ego-forward"        # which targets.json setting supervises rendering
+    setting: str = "ego-forward"        # which targets.json setting supervises rendering ("both": either)
     num_targets: int = 4                # T: random target views per item (all if fewer exist)
     voxel_size: float = 0.8             # occupancy grid to load (tag in occupancy.npz, e.g. 0.8 -> "0p8")
     pc_range: tuple[float, float, float, float, float, float] | None = None  # must match the file when given
@@ -57,10 +58,11 @@ class DatasetConfig(_Frozen):
     saturation: float = 0.0             # blend with grey, factor in [1 - s, 1 + s]
     flip_prob: float = 0.0              # mirror the scene across the ego x-z plane (y -> -y) with this probability
     max_depth: float = 80.0             # metres: deeper pixels (far ground near the horizon) are not depth-valid
+    target_scale: float = 1.0           # targets resampled to this fraction of their size (cheaper rendering)
 
     def __post_init__(self):
-        if self.setting not in SETTINGS:
-            raise ConfigError(f"setting: must be one of {', '.join(SETTINGS)}, got {self.setting!r}")
+        if self.setting not in SETTINGS + (MIXED,):
+            raise ConfigError(f"setting: must be one of {', '.join(SETTINGS + (MIXED,))}, got {self.setting!r}")
         if isinstance(self.num_targets, bool) or not isinstance(self.num_targets, int) or self.num_targets < 1:
             raise ConfigError(f"num_targets: must be a positive integer, got {self.num_targets!r}")
         if not self.voxel_size > 0:
@@ -73,6 +75,13 @@ class DatasetConfig(_Frozen):
             raise ConfigError(f"max_depth: must be > 0, got {self.max_depth!r}")
         if not 0 <= self.flip_prob <= 1:
             raise ConfigError(f"flip_prob: must be in [0, 1], got {self.flip_prob!r}")
+        if not 0 < self.target_scale <= 1:
+            raise ConfigError(f"target_scale: must be in (0, 1], got {self.target_scale!r}")
+
+    @property
+    def settings(self) -> tuple[str, ...]:
+        """The targets.json settings whose cameras are drawn from."""
+        return SETTINGS if self.setting == MIXED else (self.setting,)
 
     @property
     def voxel_tag(self) -> str:
@@ -118,6 +127,32 @@ def mirror_camera_y(camera: Camera) -> Camera:
 def mirror_order(n: int) -> list[int]:
     """Camera order after a mirror: the first camera stays first, the ring direction is restored."""
     return [0] + list(range(n - 1, 0, -1))
+
+
+def downscale_views(cams: list[Camera], images: np.ndarray, depth: np.ndarray, sky: np.ndarray, scale: float,
+                    max_depth: float) -> tuple[list[Camera], np.ndarray, np.ndarray, np.ndarray]:
+    """Resample views to ``scale`` x their size (area averaging, cv2.INTER_AREA) with matching calibrations
+    (``Camera.resized``). images [M, H, W, 3], depth [M, H, W] metres (0 / non-finite / > max_depth = unknown),
+    sky [M, H, W] -> [M, h, w, 3], [M, h, w] (the mean depth of output pixels whose every input pixel has a
+    known depth, else 0: no depth is invented across a silhouette or the horizon), [M, h, w] float32 sky fraction.
+    W * scale and H * scale must be whole numbers."""
+    import cv2
+
+    m, H, W = depth.shape
+    w, h = W * scale, H * scale
+    if abs(w - round(w)) > 1e-6 or abs(h - round(h)) > 1e-6:
+        raise DataError(f"target_scale: {scale:g} x {W}x{H} pixels is not a whole number of pixels")
+    w, h = int(round(w)), int(round(h))
+    valid = (np.isfinite(depth) & (depth > 0) & (depth <= max_depth)).astype(np.float32)
+    known = np.where(valid > 0, depth, 0).astype(np.float32)
+    out_i, out_d, out_s = [], [], []
+    for k in range(m):
+        out_i.append(cv2.resize(images[k], (w, h), interpolation=cv2.INTER_AREA))
+        frac = cv2.resize(valid[k], (w, h), interpolation=cv2.INTER_AREA)
+        mean = cv2.resize(known[k], (w, h), interpolation=cv2.INTER_AREA) / np.maximum(frac, 1e-6)
+        out_d.append(np.where(frac > 1 - 1e-5, mean, 0).astype(np.float32))  # 1e-5: float32 area weights
+        out_s.append(cv2.resize(sky[k].astype(np.float32), (w, h), interpolation=cv2.INTER_AREA))
+    return [c.resized(w, h) for c in cams], np.stack(out_i), np.stack(out_d), np.stack(out_s)
 
 
 def can_flip(cameras: list[Camera], pc_range) -> bool:
@@ -192,9 +227,10 @@ class SceneDataset(torch.utils.data.Dataset):
             if abs(grid.voxel_size - cfg.voxel_size) > 1e-9:
                 raise ConfigError(f"voxel_size: data {cfg.voxel_size} differs from the model grid {grid.voxel_size}")
         first = json.loads((self.scenes[0] / "targets.json").read_text()).get("settings", {})
-        if cfg.setting not in first:                             # fail early, not at the first validation
-            raise DataError(f"{self.scenes[0] / 'targets.json'}: setting: no {cfg.setting!r} targets "
-                            f"(have {sorted(first)})")
+        for name in cfg.settings:                                # fail early, not at the first validation
+            if name not in first:
+                raise DataError(f"{self.scenes[0] / 'targets.json'}: setting: no {name!r} targets "
+                                f"(have {sorted(first)})")
         with np.load(self.scenes[0] / "occupancy.npz") as z:   # fail early (reads the zip directory only)
             if f"semantic_{cfg.voxel_tag}" not in z.files:
                 raise DataError(f"{self.scenes[0] / 'occupancy.npz'}: voxel_size: no {cfg.voxel_size:g} m grid "
@@ -233,10 +269,12 @@ class SceneDataset(torch.utils.data.Dataset):
         rig = load_rig(folder / "rig.json", check_images=False)
         rig_doc = json.loads((folder / "rig.json").read_text())
         tdoc = json.loads((folder / "targets.json").read_text())
-        setting = tdoc.get("settings", {}).get(cfg.setting)
-        if setting is None:
-            raise DataError(f"{folder / 'targets.json'}: settings: no {cfg.setting!r} targets in this data set")
-        tcams = [c for c in setting["cameras"] if not (cfg.skip_occluded and c.get("occluded", False))]
+        tcams = []
+        for name in cfg.settings:
+            setting = tdoc.get("settings", {}).get(name)
+            if setting is None:
+                raise DataError(f"{folder / 'targets.json'}: settings: no {name!r} targets in this data set")
+            tcams += [c for c in setting["cameras"] if not (cfg.skip_occluded and c.get("occluded", False))]
         if not tcams:
             raise DataError(f"{folder / 'targets.json'}: {cfg.setting}: no usable target camera")
         pick = np.sort(rng.choice(len(tcams), size=min(cfg.num_targets, len(tcams)), replace=False))
@@ -261,6 +299,8 @@ class SceneDataset(torch.utils.data.Dataset):
             occ, bev = occ[:, ::-1, :], bev[::-1, :]
             rig = Rig(cameras=tuple(in_cams), root=rig.root, extra=rig.extra)
 
+        if cfg.target_scale != 1.0:
+            t_cams, timg, tdepth, tsky = downscale_views(t_cams, timg, tdepth, tsky, cfg.target_scale, cfg.max_depth)
         dvalid = np.isfinite(depth) & (depth > 0) & (depth <= cfg.max_depth)
         tvalid = np.isfinite(tdepth) & (tdepth > 0) & (tdepth <= cfg.max_depth)
         occ_t = torch.from_numpy(np.ascontiguousarray(occ).astype(np.int64))

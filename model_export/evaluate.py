@@ -367,17 +367,23 @@ def _fmt(v: float | None, digits: int) -> str:
     return "n/a" if v is None else f"{v:.{digits}f}"
 
 
+_TABLE_HEAD = ("| method | setting | rig | scenes | views | PSNR ↑ | SSIM ↑ | LPIPS ↓ | PCC ↑ |",
+               "| --- | --- | --- | ---: | ---: | ---: | ---: | ---: | ---: |")
+
+
+def _table_row(label: str, a: dict[str, Any]) -> str:
+    return (f"| {label} | {a['setting']} | {a['rig']} | {a['scenes']} | {a['views']} | {_fmt(a['psnr'], 2)} | "
+            f"{_fmt(a['ssim'], 3)} | {_fmt(a['lpips'], 3)} | {_fmt(a['pcc'], 3)} |")
+
+
 def markdown(result: dict[str, Any]) -> str:
     """The Markdown table (one row per setting and rig) with notes on what is unavailable or oracle."""
     lines = [f"# Evaluation: {result['label']}", ""]
     if result["checkpoint"]:
         lines.append(f"Checkpoint: `{result['checkpoint']}` (step {result['checkpoint_step']})")
     lines.append(f"Background: {result['background']}.")
-    lines += ["", "| method | setting | rig | scenes | views | PSNR ↑ | SSIM ↑ | LPIPS ↓ | PCC ↑ |",
-              "| --- | --- | --- | ---: | ---: | ---: | ---: | ---: | ---: |"]
-    for a in result["aggregate"]:
-        lines.append(f"| {result['label']} | {a['setting']} | {a['rig']} | {a['scenes']} | {a['views']} | "
-                     f"{_fmt(a['psnr'], 2)} | {_fmt(a['ssim'], 3)} | {_fmt(a['lpips'], 3)} | {_fmt(a['pcc'], 3)} |")
+    lines += ["", *_TABLE_HEAD]
+    lines += [_table_row(result["label"], a) for a in result["aggregate"]]
     lines.append("")
     if result["lpips_unavailable"]:
         lines.append(f"LPIPS: n/a. {result['lpips_unavailable']}.")
@@ -387,6 +393,17 @@ def markdown(result: dict[str, Any]) -> str:
                 lines.append(f"{a['setting']} / {a['rig']}: {key.upper()} undefined for {a[f'{key}_undefined']} of "
                              f"{a['views']} views (left out of the mean).")
     lines.append(f"PCC over ground-truth depth in (0, {result['config']['pcc_max_depth']:g}] m, sky excluded.")
+    return "\n".join(lines) + "\n"
+
+
+def summary_markdown(results: list[dict[str, Any]]) -> str:
+    """One table over several reports (e.g. a model, its ablations and the baselines): a row per report and
+    (setting, rig), grouped by setting in the order first seen, then by report in the given order."""
+    rows = [(a, r) for r in results for a in r["aggregate"]]
+    keys = list(dict.fromkeys((a["setting"], a["rig"]) for a, _ in rows))
+    lines = list(_TABLE_HEAD)
+    for key in keys:
+        lines += [_table_row(r["label"], a) for a, r in rows if (a["setting"], a["rig"]) == key]
     return "\n".join(lines) + "\n"
 
 

@@ -187,6 +187,24 @@ def load_checkpoint(path: str | Path) -> dict[str, Any]:
     return ck
 
 
+def load_init(model: torch.nn.Module, state: dict[str, torch.Tensor], where: str) -> None:
+    """Load a previous stage's weights. Entries of modules the model does not have (an ablated branch) are
+    skipped; anything else that is missing, unexpected or of another shape is an error naming the key."""
+    own = model.state_dict()
+    tops = {k.split(".", 1)[0] for k in own}
+    kept = {k: v for k, v in state.items() if k.split(".", 1)[0] in tops}
+    for k, v in kept.items():
+        if k not in own:
+            raise ValueError(f"init: {where} has {k!r}, which this model does not (another model config?)")
+        if tuple(v.shape) != tuple(own[k].shape):
+            raise ValueError(f"init: {where}: {k} has shape {tuple(v.shape)}, the model {tuple(own[k].shape)}")
+    missing = sorted(set(own) - set(kept))
+    if missing:
+        raise ValueError(f"init: {where} lacks {missing[0]!r} (and {len(missing) - 1} more): not a checkpoint of "
+                         "this model")
+    model.load_state_dict(kept)
+
+
 def scene_order(n: int, seed: int, epoch: int) -> np.ndarray:
     return np.random.default_rng((seed, 7919, epoch)).permutation(n)
 
@@ -361,7 +379,7 @@ def train(data_dir: str | Path, run_dir: str | Path, model_cfg: ModelConfig | No
     model = build_model(model_cfg)
     base_flags = {n: p.requires_grad for n, p in model.named_parameters()}
     if init_ck is not None:
-        model.load_state_dict(init_ck["model"])
+        load_init(model, init_ck["model"], str(init))
     params = set_stage(model, tcfg.stage, base_flags)
     opt, sched = build_optimizer(params, tcfg.loss.optim)
     start = 0

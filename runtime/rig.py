@@ -225,6 +225,21 @@ class Camera:
             extra={k: v for k, v in d.items() if k not in CAMERA_KEYS},
         )
 
+    def resized(self, width: int, height: int) -> Camera:
+        """The same camera imaging at ``width`` x ``height`` pixels (an image resampled to that size). With the
+        OpenCV pixel-centre convention (column u spans [u - 1/2, u + 1/2]) a scale s = width / self.width maps
+        u -> s (u + 1/2) - 1/2: fx' = s fx, cx' = s (cx + 1/2) - 1/2 (likewise v, fy, cy with height). Distortion
+        acts on normalised coordinates and stays; an equirectangular camera needs no K. Files are dropped (the
+        caller resamples the arrays)."""
+        K = None
+        if self.K is not None:
+            sx, sy = width / self.width, height / self.height
+            K = self.K.copy()
+            K[0, 0], K[0, 2] = sx * K[0, 0], sx * (K[0, 2] + 0.5) - 0.5
+            K[1, 1], K[1, 2] = sy * K[1, 1], sy * (K[1, 2] + 0.5) - 0.5
+        return Camera(name=self.name, width=width, height=height, K=K, cam_to_ego=self.cam_to_ego,
+                      model=self.model, distortion=self.distortion, extra=dict(self.extra))
+
     def to_dict(self) -> dict[str, Any]:
         d: dict[str, Any] = {"name": self.name}
         if self.image is not None:

@@ -28,8 +28,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--init", type=Path, default=None, help="start from this checkpoint's weights "
                                                                  "(stage render: the stage-1 occ.pt)")
     parser.add_argument("--steps", type=int, default=2000, help="optimiser steps of this stage (one scene each)")
-    parser.add_argument("--setting", default="ego-forward", choices=("ego-forward", "ego-inward"))
+    parser.add_argument("--setting", default="ego-forward", choices=("ego-forward", "ego-inward", "both"),
+                        help="target views that supervise stage render (both: drawn from either setting)")
     parser.add_argument("--targets", type=int, default=4, help="T, random target views per step")
+    parser.add_argument("--target-scale", type=float, default=1.0,
+                        help="render and supervise the targets at this fraction of their size (e.g. 0.5: 4x "
+                             "fewer pixels per step; evaluation stays at full size)")
     parser.add_argument("--lr", type=float, default=1e-4)
     parser.add_argument("--warmup", type=int, default=None,
                         help="warm-up steps (default: min(1000, steps // 10), the paper uses 1000 of 100k)")
@@ -38,6 +42,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--val-scenes", type=int, default=4)
     parser.add_argument("--voxel-size", type=float, default=None, help="occupancy voxel (default: the preset's)")
     parser.add_argument("--ablation", default="none", choices=sorted(ABLATIONS))
+    parser.add_argument("--volume-selection", default=None, choices=("predicted", "ground_truth"),
+                        help="voxels that carry volume Gaussians in stage render (default: the preset's, "
+                             "predicted); evaluation always uses the predicted occupancy")
+    parser.add_argument("--max-voxels", type=int, default=None,
+                        help="cap on occupied voxels per scene (default: the preset's)")
     parser.add_argument("--flip-prob", type=float, default=0.5, help="scene mirror (y -> -y) probability")
     parser.add_argument("--jitter", type=float, default=0.1, help="colour jitter strength (brightness, contrast, "
                                                                   "saturation), 0 disables")
@@ -46,10 +55,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from xyzcyl.model_export.config import ConfigError, preset
+    from xyzcyl.model_export.config import ConfigError, ModelConfig, preset
     from xyzcyl.model_export.dataset import DataError, DatasetConfig
     from xyzcyl.model_export.losses import LPIPSUnavailable, OptimConfig, RenderLossConfig, TrainLossConfig
-    from xyzcyl.model_export.train import TrainConfig, train
+    from xyzcyl.model_export.train import TrainConfig, load_checkpoint, train
     from xyzcyl.runtime.rig import RigError
 
     try:
@@ -60,27 +69,27 @@ def run(args: argparse.Namespace) -> int:
             raise ValueError(f"steps: must be >= 1, got {args.steps}")
         if args.resume and not (args.out / "last.pt").is_file():
             raise ValueError(f"resume: no checkpoint {args.out / 'last.pt'}")
-        model_cfg = None
         if args.preset is not None or (args.init is None and not args.resume):
             model_cfg = preset(args.preset or "cpu")
-            model_cfg = model_cfg.replace(ablation=model_cfg.ablation.replace(**ABLATIONS[args.ablation]))
-            if args.voxel_size is not None:
-                model_cfg = model_cfg.replace(grid=model_cfg.grid.replace(voxel_size=args.voxel_size))
-        elif args.ablation != "none" or args.voxel_size is not None:
-            raise ValueError("preset: --ablation / --voxel-size need --preset (the model config is built from it)")
-        voxel = model_cfg.grid.voxel_size if model_cfg is not None else None
-        if voxel is None:
-            from xyzcyl.model_export.train import load_checkpoint
-
-            src = args.init if args.init is not None else args.out / "last.pt"
-            voxel = float(load_checkpoint(src)["model_cfg"]["grid"]["voxel_size"])
+        else:       # the config of the checkpoint this run starts from (or continues)
+            src = args.out / "last.pt" if args.resume else args.init
+            model_cfg = ModelConfig.from_dict(load_checkpoint(src)["model_cfg"])
+        model_cfg = model_cfg.replace(ablation=model_cfg.ablation.replace(**ABLATIONS[args.ablation]))
+        if args.voxel_size is not None:
+            model_cfg = model_cfg.replace(grid=model_cfg.grid.replace(voxel_size=args.voxel_size))
+        if args.volume_selection is not None:
+            model_cfg = model_cfg.replace(volume_selection=args.volume_selection)
+        if args.max_voxels is not None:
+            model_cfg = model_cfg.replace(volume=model_cfg.volume.replace(max_voxels=args.max_voxels))
+        voxel = model_cfg.grid.voxel_size
         warm = args.warmup if args.warmup is not None else min(1000, max(1, args.steps // 10))
         j = args.jitter
         tcfg = TrainConfig(
             stage=args.stage, steps=args.steps, ckpt_every=args.ckpt_every, val_every=args.val_every,
             val_scenes=args.val_scenes, seed=args.seed,
             data=DatasetConfig(setting=args.setting, num_targets=args.targets, voxel_size=voxel, seed=args.seed,
-                               brightness=j, contrast=j, saturation=j, flip_prob=args.flip_prob),
+                               brightness=j, contrast=j, saturation=j, flip_prob=args.flip_prob,
+                               target_scale=args.target_scale),
             loss=TrainLossConfig(
                 render=RenderLossConfig(lpips_net=args.lpips_net, lpips_backbone_path=args.lpips_backbone,
                                         lpips_lin_path=args.lpips_lin),

@@ -150,3 +150,43 @@ def test_real_rig_folder(real_data):
     it = load_rig_folder(real_data / "nuscenes_ca9a282c")
     assert it["images"].shape == (6, 3, 900, 1600) and it["depth"] is None
     assert float(it["images"].max()) <= 1.0
+
+
+def test_both_settings_draw_from_the_union(tiny_data):
+    fwd = SceneDataset(tiny_data, DatasetConfig(setting="ego-forward", num_targets=100))[0]["targets"]["names"]
+    inw = SceneDataset(tiny_data, DatasetConfig(setting="ego-inward", num_targets=100))[0]["targets"]["names"]
+    both = SceneDataset(tiny_data, DatasetConfig(setting="both", num_targets=100))[0]["targets"]
+    assert len(both["names"]) == len(fwd) + len(inw) and both["images"].shape[0] == len(fwd) + len(inw)
+    assert sorted(both["names"]) == sorted(fwd + inw)
+    # a small T mixes: over a few epochs both settings' cameras are drawn
+    ds = SceneDataset(tiny_data, DatasetConfig(setting="both", num_targets=2))
+    seen = set()
+    for e in range(8):
+        seen.update(ds.item(0, e)["targets"]["names"])
+    assert seen & set(fwd) and seen & set(inw)
+
+
+def test_target_scale_keeps_targets_consistent(tiny_data):
+    full = SceneDataset(tiny_data, DatasetConfig(setting="ego-forward", num_targets=2))[0]["targets"]
+    half = SceneDataset(tiny_data, DatasetConfig(setting="ego-forward", num_targets=2, target_scale=0.5))[0]
+    t = half["targets"]
+    assert t["names"] == full["names"] and (t["width"], t["height"]) == (28, 16)
+    assert t["images"].shape == (2, 3, 16, 28) and t["depth"].shape == (2, 16, 28) and t["sky"].shape == (2, 16, 28)
+    # 2x2 area means of the full-size arrays
+    img = full["images"].numpy().reshape(2, 3, 16, 2, 28, 2).mean(axis=(3, 5))
+    np.testing.assert_allclose(t["images"].numpy(), img, atol=1e-5)       # float32 area weights
+    np.testing.assert_allclose(t["sky"].numpy(), full["sky"].numpy().reshape(2, 16, 2, 28, 2).mean(axis=(2, 4)),
+                               atol=1e-6)
+    # depth only where all four input pixels had depth, then their mean; no depth across the horizon
+    v4 = full["depth_valid"].numpy().reshape(2, 16, 2, 28, 2).all(axis=(2, 4))
+    d4 = full["depth"].numpy().reshape(2, 16, 2, 28, 2).mean(axis=(2, 4))
+    assert np.array_equal(t["depth_valid"].numpy(), v4) and v4.any() and not v4.all()
+    np.testing.assert_allclose(t["depth"].numpy()[v4], d4[v4], rtol=1e-5)
+    assert not t["depth"].numpy()[~v4].any()
+    # calibration: K follows u -> (u + 1/2) / 2 - 1/2
+    K, K2 = full["K"][0], t["K"][0]
+    assert K2[0, 0] == pytest.approx(K[0, 0] / 2) and K2[0, 2] == pytest.approx((K[0, 2] + 0.5) / 2 - 0.5)
+    with pytest.raises(ConfigError, match="target_scale"):
+        DatasetConfig(target_scale=0.0)
+    with pytest.raises(DataError, match="target_scale"):          # 56 x 0.3 is not whole
+        SceneDataset(tiny_data, DatasetConfig(target_scale=0.3))[0]

@@ -18,6 +18,7 @@ from xyzcyl.model_export.evaluate import (
     EvalConfig,
     EvalError,
     evaluate,
+    summary_markdown,
     unproject_gaussians,
     write_reports,
 )
@@ -126,6 +127,14 @@ def test_eval_baseline_reports(tiny_synth_data, tmp_path, capsys):
             assert 0 < r["psnr"] < 60 and -1 <= r["ssim"] <= 1
             assert r["pcc"] is None or -1 <= r["pcc"] <= 1
     assert "wrote" in capsys.readouterr().out
+    # the combined table: one row per report and setting, grouped by setting, in the reports' order
+    other = dict(res, label="other", aggregate=[dict(a, psnr=None) for a in res["aggregate"]])
+    table = summary_markdown([res, other]).splitlines()
+    assert len(table) == 2 + 4
+    assert [line.split(" | ")[:2] for line in table[2:]] == [
+        ["| unproject (GT depth, oracle)", "ego-inward"], ["| other", "ego-inward"],
+        ["| unproject (GT depth, oracle)", "ego-forward"], ["| other", "ego-forward"]]
+    assert " n/a " in table[3] and table[2] in md
 
 
 def test_eval_model_and_depth_head_baseline(tiny_synth_data, tmp_path):

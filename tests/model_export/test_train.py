@@ -11,7 +11,15 @@ from net_helpers import tiny_config
 from xyzcyl.model_export.config import GridConfig
 from xyzcyl.model_export.dataset import DatasetConfig
 from xyzcyl.model_export.losses import OptimConfig, TrainLossConfig
-from xyzcyl.model_export.train import OCC_MODULES, TrainConfig, build_model, depth_head_loss, set_stage, train
+from xyzcyl.model_export.train import (
+    OCC_MODULES,
+    TrainConfig,
+    build_model,
+    depth_head_loss,
+    load_init,
+    set_stage,
+    train,
+)
 
 
 def _cfg():
@@ -112,3 +120,60 @@ def test_cli_errors_exit_2(tmp_path, tiny_synth_data):
     r = subprocess.run(exe + ["--data", str(tiny_synth_data), "--stage", "occ", "--out", str(tmp_path / "r"),
                               "--targets", "0"], check=False, capture_output=True, text=True)
     assert r.returncode == 2 and "num_targets" in r.stderr
+
+
+def test_load_init_skips_ablated_modules_only():
+    full = build_model(_cfg())
+    state = full.state_dict()
+    cfg = _cfg()
+    ablated = build_model(cfg.replace(ablation=cfg.ablation.replace(volume_branch=False)))
+    dropped = {k.split(".")[0] for k in state} - {k.split(".")[0] for k in ablated.state_dict()}
+    assert dropped                                      # the volume modules are not in the ablated model
+    load_init(ablated, state, "full.pt")
+    for k, v in ablated.state_dict().items():
+        assert torch.equal(v, state[k]), k
+    with pytest.raises(ValueError, match="lacks"):       # the ablated model's weights cannot start the full one
+        load_init(build_model(_cfg()), ablated.state_dict(), "ablated.pt")
+    bad = dict(state)
+    k = next(k for k in bad if bad[k].ndim == 2)
+    bad[k] = torch.zeros(bad[k].shape[0] + 1, bad[k].shape[1])
+    with pytest.raises(ValueError, match="shape"):
+        load_init(build_model(_cfg()), bad, "bad.pt")
+
+
+def test_cli_config_overrides(tmp_path, tiny_synth_data):
+    import json
+
+    exe = [sys.executable, "-m", "xyzcyl.clients.cli", "train", "--data", str(tiny_synth_data), "--stage", "occ",
+           "--steps", "1", "--quiet", "--threads", "1"]
+    r = subprocess.run(exe + ["--out", str(tmp_path / "a"), "--volume-selection", "ground_truth", "--max-voxels",
+                              "1234", "--ablation", "no-pixel", "--voxel-size", "1.6"],
+                       check=False, capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    model = json.loads((tmp_path / "a" / "config.json").read_text())["model"]
+    assert model["volume_selection"] == "ground_truth" and model["volume"]["max_voxels"] == 1234
+    assert model["ablation"]["pixel_branch"] is False and model["grid"]["voxel_size"] == 1.6
+    # without --preset the overrides apply to the --init checkpoint's config
+    r = subprocess.run(exe + ["--out", str(tmp_path / "b"), "--init", str(tmp_path / "a" / "occ.pt"),
+                              "--max-voxels", "99"], check=False, capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    model = json.loads((tmp_path / "b" / "config.json").read_text())["model"]
+    assert model["volume"]["max_voxels"] == 99 and model["volume_selection"] == "ground_truth"
+    assert model["grid"]["voxel_size"] == 1.6
+
+
+def test_threads_option_sets_torch_and_numba():
+    import numba
+    from xyzcyl.model_export.commands.common import set_threads
+
+    n_torch, n_numba = torch.get_num_threads(), numba.get_num_threads()
+    try:
+        set_threads(1)
+        assert torch.get_num_threads() == 1 and numba.get_num_threads() == 1
+        set_threads(10_000)                       # numba's pool is capped at its size, not an error
+        assert numba.get_num_threads() == numba.config.NUMBA_NUM_THREADS
+        with pytest.raises(ValueError, match="threads"):
+            set_threads(0)
+    finally:
+        torch.set_num_threads(n_torch)
+        numba.set_num_threads(n_numba)

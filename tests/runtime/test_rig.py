@@ -260,3 +260,30 @@ def test_clockwise_order(real_data):
     pan = load_rig(real_data / "pandaset_002_00" / "rig.json", check_images=False)
     assert pan.clockwise_order() == list(range(6))
     assert pan.reordered([3, 4, 5, 0, 1, 2]).clockwise_order() == [3, 4, 5, 0, 1, 2]
+
+
+@pytest.mark.parametrize("distortion", [None, (0.1, -0.05, 0.001, 0.002, 0.01)])
+def test_resized_camera_maps_pixel_centres(distortion):
+    cam = ring_rig(1, width=160, height=90).cameras[0]
+    cam = type(cam)(name="c", width=160, height=90, K=cam.K, cam_to_ego=cam.cam_to_ego, distortion=distortion)
+    small = cam.resized(40, 30)                  # s = 1/4 horizontally, 1/3 vertically
+    o, d = cam.pixel_rays(np.array([[10.0, 20.0], [80.0, 45.0], [150.0, 3.0]]))
+    pts = o + 7.0 * d
+    uv, _, _ = cam.project(pts)
+    uv2, _, _ = small.project(pts)
+    # u -> s (u + 1/2) - 1/2: exact up to float64 round-off of the (un)distortion iterations
+    np.testing.assert_allclose(uv2[:, 0], 0.25 * (uv[:, 0] + 0.5) - 0.5, atol=1e-6)
+    np.testing.assert_allclose(uv2[:, 1], (uv[:, 1] + 0.5) / 3 - 0.5, atol=1e-6)
+    assert small.distortion == cam.distortion and small.image is None
+
+
+def test_resized_camera_matches_cv2_area_resampling():
+    cam = ring_rig(1, width=8, height=6).cameras[0]
+    img = np.zeros((6, 8), np.float32)
+    img[2:4, 4:6] = 1.0                          # a 2x2 block centred on pixel coordinates (4.5, 2.5)
+    small = cv2.resize(img, (4, 3), interpolation=cv2.INTER_AREA)
+    v, u = np.unravel_index(np.argmax(small), small.shape)
+    half = cam.resized(4, 3)
+    o, d = cam.pixel_rays(np.array([[4.5, 2.5]]))
+    uv, _, _ = half.project(o + 5.0 * d)
+    np.testing.assert_allclose(uv[0], [u, v], atol=1e-9)   # the block lands exactly on one output pixel
