@@ -199,10 +199,17 @@ class XYZCylinder(nn.Module):
         bev = self.bev_head(self.bev_proj(col)).permute(2, 0, 1)
         return occ, bev
 
-    def select_voxels(self, occ_logits, occ_gt=None) -> torch.Tensor:
+    def select_voxels(self, occ_logits, occ_gt=None, source: str | None = None) -> torch.Tensor:
         """Flat indices [M] of occupied voxels: argmax of the occupancy head (paper), or the ground-truth mask
-        (``volume_selection = ground_truth`` in training); at most ``volume.max_voxels`` (highest margin)."""
-        if self.cfg.volume_selection == "ground_truth" and occ_gt is not None:
+        occ_gt [L_z, L_y, L_x]; at most ``volume.max_voxels`` (highest margin). ``source`` None follows
+        ``cfg.volume_selection`` (ground truth only when occ_gt is given, as in training); "ground_truth" forces
+        the mask (evaluation's oracle; occ_gt required), "predicted" the head."""
+        if source is None:
+            source = "ground_truth" if self.cfg.volume_selection == "ground_truth" and occ_gt is not None \
+                else "predicted"
+        if source == "ground_truth":
+            if occ_gt is None:
+                raise ValueError("occ_gt: required for ground-truth voxel selection")
             margin = occ_gt.reshape(-1).float() - 0.5
         else:
             margin = (occ_logits[1] - occ_logits[0]).reshape(-1).detach()

@@ -22,6 +22,7 @@ from xyzcyl.model_export.evaluate import (
     unproject_gaussians,
     write_reports,
 )
+from xyzcyl.model_export.dataset import DatasetConfig, SceneDataset
 from xyzcyl.model_export.train import build_model
 from xyzcyl.runtime.render import PinholeCamera, render
 
@@ -155,6 +156,23 @@ def test_eval_model_and_depth_head_baseline(tiny_synth_data, tmp_path):
     res_ab = evaluate([tiny_synth_data], cfg, tmp_path / "ab.pt", progress=False)
     assert "no separate_background" in res_ab["label"] and "black" in res_ab["background"]
     assert write_reports(res_ab, tmp_path / "ev")[0].name == "model-no-separate-background_ego-inward.json"
+    # the oracle takes the voxels from the ground truth even for a model trained on its predicted occupancy
+    pred = _cfg().replace(volume_selection="predicted")
+    pred = pred.replace(volume=pred.volume.replace(max_voxels=50 * 50 * 10))   # no cap on the 1.6 m grid
+    torch.save({"model": build_model(pred).state_dict(), "model_cfg": pred.to_dict(),
+                "train_cfg": {"stage": "render"}}, tmp_path / "pred.pt")
+    one = cfg.replace(max_scenes=1)
+    r_pred = evaluate([tiny_synth_data], one, tmp_path / "pred.pt", progress=False)["views"][0]["n_gaussians"]
+    r_gt = evaluate([tiny_synth_data], one.replace(occupancy="ground-truth"), tmp_path / "pred.pt",
+                    progress=False)["views"][0]["n_gaussians"]
+    model = build_model(pred)
+    n_pix = model(torch.zeros(6, 3, 32, 56), {k: v for k, v in SceneDataset(
+        tiny_synth_data, DatasetConfig(setting="ego-inward", voxel_size=1.6), model_cfg=pred)[0]["lifting"].items()}
+    )["n_pixel"]
+    occupied = int(SceneDataset(tiny_synth_data, DatasetConfig(setting="ego-inward", voxel_size=1.6))[0]
+                   ["occupancy"].sum())
+    assert r_gt == min(occupied, pred.volume.max_voxels) * pred.volume.g_v + n_pix
+    assert r_gt != r_pred
     # the depth-head baseline: one Gaussian per input pixel (the head predicts every pixel, sky included)
     res_u = evaluate([tiny_synth_data], cfg.replace(method="unproject"), ck, progress=False)
     assert res_u["label"] == "unproject (depth head)"
