@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # The first cpu-preset training run (docs/results.md): data, stage 1, four stage-2 runs (full model and the
 # three ablations, same data, steps and schedule), evaluation of each plus the unprojection baselines.
-# Every step is resumable: rerun the script after a kill and finished steps are skipped, started ones resume.
+# Resumable: rerun the script after a kill; finished data and training steps are skipped, started training
+# resumes from its last checkpoint (evaluations are redone).
 #   bash docs/runs/cpu_2026-11-22/run.sh            (from the repository root, after the README's set-up)
 # Environment knobs (defaults = the recorded run): OCC_STEPS, REN_STEPS, TARGETS, THREADS, RUNS, EVAL.
 set -euo pipefail
