@@ -142,7 +142,7 @@ def downscale_views(cams: list[Camera], images: np.ndarray, depth: np.ndarray, s
     w, h = W * scale, H * scale
     if abs(w - round(w)) > 1e-6 or abs(h - round(h)) > 1e-6:
         raise DataError(f"target_scale: {scale:g} x {W}x{H} pixels is not a whole number of pixels")
-    w, h = int(round(w)), int(round(h))
+    w, h = round(w), round(h)
     valid = (np.isfinite(depth) & (depth > 0) & (depth <= max_depth)).astype(np.float32)
     known = np.where(valid > 0, depth, 0).astype(np.float32)
     out_i, out_d, out_s = [], [], []

@@ -60,6 +60,7 @@ class EvalConfig(_Frozen):
     lpips_backbone_path: str | None = None
     lpips_lin_path: str | None = None
     lpips_net: str = "vgg"
+    sheet_scenes: int = 0                 # first view of the first N scenes per data set and setting -> sheet
 
     def __post_init__(self):
         from .dataset import SETTINGS
@@ -83,6 +84,8 @@ class EvalConfig(_Frozen):
             raise ConfigError(f"unproject_opacity: must be in (0, 1), got {self.unproject_opacity!r}")
         if self.lpips_net not in ("vgg", "alex"):
             raise ConfigError(f"lpips_net: must be vgg or alex, got {self.lpips_net!r}")
+        if isinstance(self.sheet_scenes, bool) or not isinstance(self.sheet_scenes, int) or self.sheet_scenes < 0:
+            raise ConfigError(f"sheet_scenes: must be an integer >= 0, got {self.sheet_scenes!r}")
 
 
 # ------------------------------------------------------------------------------------------------ the baseline
@@ -263,10 +266,12 @@ def method_label(cfg: EvalConfig, model_cfg=None) -> str:
 
 
 def evaluate(data_dirs: Sequence[str | Path], cfg: EvalConfig, checkpoint: str | Path | None = None,
-             progress: bool = True) -> dict[str, Any]:
+             progress: bool = True, sheet: list[dict[str, Any]] | None = None) -> dict[str, Any]:
     """Evaluate ``cfg.method`` on every scene (up to ``max_scenes``) of each data set and every target view
     of each setting. Returns {"method", "label", "checkpoint", "config", "lpips_unavailable", "views": [...],
-    "aggregate": [...]} (JSON-ready: NaN / inf become null)."""
+    "aggregate": [...]} (JSON-ready: NaN / inf become null). ``sheet``: a list that receives, for the first
+    ``cfg.sheet_scenes`` scenes of each data set and setting, their first view as {"title", "gt", "pred",
+    "gt_depth", "depth", "psnr"} (images [H, W, 3] 0..1, depths [H, W] metres) for ``write_sheet``."""
     from tqdm import tqdm
 
     from . import metrics as M
@@ -319,6 +324,9 @@ def evaluate(data_dirs: Sequence[str | Path], cfg: EvalConfig, checkpoint: str |
                 lp = M.lpips(pred, gt, cfg.lpips_backbone_path, cfg.lpips_lin_path, cfg.lpips_net)
                 if lp.value is None and lp_reason is None:
                     lp_reason = lp.reason
+                if sheet is not None and k == 0 and i < cfg.sheet_scenes:
+                    sheet.append({"title": f"{setting} {item['scene']}", "gt": gt, "pred": pred, "gt_depth": gd,
+                                  "depth": depth, "psnr": _finite(M.psnr(pred, gt))})
                 rows.append({"data": str(root), "rig": rig, "setting": setting, "scene": item["scene"],
                              "view": t["names"][k], "psnr": _finite(M.psnr(pred, gt)),
                              "psnr_inf": bool(np.array_equal(pred, gt)),
@@ -417,6 +425,43 @@ def report_tag(result: dict[str, Any]) -> str:
         if result["config"]["occupancy"] == "ground-truth":
             tag += "-gt-occupancy"
     return tag + "_" + "+".join(result["config"]["settings"])
+
+
+def put_label(img: np.ndarray, text: str, y: int) -> None:
+    """Write ``text`` (white on a black outline, readable on any background) into a uint8 BGR image, in place;
+    ``y`` is the baseline row."""
+    import cv2
+
+    cv2.putText(img, text, (3, y), cv2.FONT_HERSHEY_SIMPLEX, 0.35, (0, 0, 0), 3, cv2.LINE_AA)
+    cv2.putText(img, text, (3, y), cv2.FONT_HERSHEY_SIMPLEX, 0.35, (255, 255, 255), 1, cv2.LINE_AA)
+
+
+def write_sheet(tiles: list[dict[str, Any]], path: str | Path) -> Path:
+    """A picture of ``evaluate(..., sheet=tiles)``: one column per tile; rows: ground truth, render (with its
+    PSNR), ground-truth depth, rendered depth (turbo colour map, 0 to the 95th percentile of the column's
+    ground-truth depth in (0, 80] m; black = no depth). Tiles of different sizes are padded to the largest."""
+    import cv2
+
+    from .train import _depth_vis
+
+    h = max(t["gt"].shape[0] for t in tiles)
+    w = max(t["gt"].shape[1] for t in tiles)
+    cols = []
+    for t in tiles:
+        gd = t["gt_depth"]
+        ok = (gd > 0) & (gd <= 80.0)
+        vmax = float(np.percentile(gd[ok], 95)) if ok.any() else 1.0
+        col = [t["gt"], np.clip(t["pred"], 0, 1), _depth_vis(np.where(ok, gd, 0), vmax), _depth_vis(t["depth"], vmax)]
+        col = [np.pad(a.astype(np.float32), ((0, h - a.shape[0]), (0, w - a.shape[1]), (0, 0))) for a in col]
+        img = (np.concatenate(col, axis=0)[..., ::-1] * 255).round().astype(np.uint8).copy()
+        psnr = "n/a" if t["psnr"] is None else f"{t['psnr']:.1f} dB"
+        put_label(img, t["title"], 12)
+        put_label(img, f"render {psnr}", h + 12)
+        cols.append(img)
+    path = Path(path)
+    if not cv2.imwrite(str(path), np.concatenate(cols, axis=1)):
+        raise OSError(f"sheet: could not write {path}")
+    return path
 
 
 def write_reports(result: dict[str, Any], out_dir: str | Path) -> tuple[Path, Path]:

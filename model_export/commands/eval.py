@@ -31,13 +31,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="select the model's voxels from the ground-truth occupancy (oracle, labelled)")
     parser.add_argument("--out", type=Path, default=Path("eval"), help="report folder (default: ./eval)")
     parser.add_argument("--max-scenes", type=int, default=None, help="first N scenes of each data set")
+    parser.add_argument("--sheet", type=int, default=4, metavar="N",
+                        help="picture <tag>_sheet.png of the first view of the first N scenes per data set and "
+                             "setting: ground truth, render, depths (default 4; 0: none)")
     add_runtime_arguments(parser)
 
 
 def run(args: argparse.Namespace) -> int:
     from xyzcyl.model_export.config import ConfigError
     from xyzcyl.model_export.dataset import DataError
-    from xyzcyl.model_export.evaluate import EvalConfig, EvalError, evaluate, write_reports
+    from xyzcyl.model_export.evaluate import EvalConfig, EvalError, evaluate, write_reports, write_sheet
     from xyzcyl.runtime.rig import RigError
 
     try:
@@ -48,16 +51,22 @@ def run(args: argparse.Namespace) -> int:
             raise ValueError("gt_occupancy: applies to the model only, not to --baseline")
         if args.max_scenes is not None and args.max_scenes < 1:
             raise ValueError(f"max_scenes: must be >= 1, got {args.max_scenes}")
+        if args.sheet < 0:
+            raise ValueError(f"sheet: must be >= 0, got {args.sheet}")
         cfg = EvalConfig(settings=tuple(s.strip() for s in args.setting.split(",") if s.strip()),
                          method=args.baseline or "model",
                          occupancy="ground-truth" if args.gt_occupancy else "predicted", rig=args.rig,
                          max_scenes=args.max_scenes, lpips_backbone_path=args.lpips_backbone,
-                         lpips_lin_path=args.lpips_lin, lpips_net=args.lpips_net)
-        result = evaluate(args.data, cfg, args.checkpoint, progress=not args.quiet)
+                         lpips_lin_path=args.lpips_lin, lpips_net=args.lpips_net, sheet_scenes=args.sheet)
+        tiles: list = []
+        result = evaluate(args.data, cfg, args.checkpoint, progress=not args.quiet, sheet=tiles)
     except (ValueError, ConfigError, DataError, EvalError, RigError, FileNotFoundError) as exc:
         print(f"xyzcyl eval: {exc}", file=sys.stderr)
         return 2
     json_path, md_path = write_reports(result, args.out)
     print(md_path.read_text(), end="")
     print(f"wrote {json_path} and {md_path}")
+    if tiles:
+        sheet = write_sheet(tiles, json_path.with_name(json_path.stem + "_sheet.png"))
+        print(f"wrote {sheet}")
     return 0

@@ -22,7 +22,6 @@ from xyzcyl.model_export.evaluate import (
     unproject_gaussians,
     write_reports,
 )
-from xyzcyl.model_export.dataset import DatasetConfig, SceneDataset
 from xyzcyl.model_export.train import build_model
 from xyzcyl.runtime.render import PinholeCamera, render
 
@@ -128,6 +127,15 @@ def test_eval_baseline_reports(tiny_synth_data, tmp_path, capsys):
             assert 0 < r["psnr"] < 60 and -1 <= r["ssim"] <= 1
             assert r["pcc"] is None or -1 <= r["pcc"] <= 1
     assert "wrote" in capsys.readouterr().out
+    # the sheet (default 4 scenes; the fixture has 2): first view of each scene and setting, 4 rows
+    import cv2
+
+    sheet = cv2.imread(str(out / "unproject-gt-depth_ego-inward+ego-forward_sheet.png"))
+    assert sheet.shape == (4 * 32, 4 * 56, 3)
+    first = SceneDataset(tiny_synth_data, DatasetConfig(setting="ego-inward", num_targets=1 << 30, voxel_size=1.6)
+                         ).item(0, 0)["targets"]["images"][0].permute(1, 2, 0).numpy()
+    # below the title text, the first column's top tile is that scene's first ego-inward target (8-bit rounding)
+    np.testing.assert_allclose(sheet[16:32, :56, ::-1] / 255.0, first[16:32], atol=0.5 / 255 + 1e-6)
     # the combined table: one row per report and setting, grouped by setting, in the reports' order
     other = dict(res, label="other", aggregate=[dict(a, psnr=None) for a in res["aggregate"]])
     table = summary_markdown([res, other]).splitlines()
@@ -189,6 +197,7 @@ def test_eval_model_and_depth_head_baseline(tiny_synth_data, tmp_path):
     (["--setting", "sideways", "--baseline", "unproject-gt-depth"], "setting"),
     (["--setting", "ego-forward", "--baseline", "unproject"], "checkpoint"),
     (["--setting", "ego-forward", "--baseline", "unproject-gt-depth", "--max-scenes", "0"], "max_scenes"),
+    (["--setting", "ego-forward", "--baseline", "unproject-gt-depth", "--sheet", "-1"], "sheet"),
     (["--setting", "ego-forward", "--baseline", "unproject-gt-depth", "--rig", "waymo"], "rig"),
     (["--setting", "ego-forward", "--checkpoint", "nope.pt"], "checkpoint"),
     (["--setting", "ego-forward", "--baseline", "unproject-gt-depth", "--checkpoint", "x.pt"], "checkpoint"),

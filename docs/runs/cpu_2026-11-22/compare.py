@@ -21,6 +21,7 @@ from xyzcyl.model_export.evaluate import (
     _native_depth_head,
     load_eval_model,
     model_views,
+    put_label,
     unproject_views,
 )
 
@@ -46,8 +47,7 @@ def tile(img: np.ndarray, gt: np.ndarray | None, text: str) -> np.ndarray:
     h, w = img.shape[:2]
     out = (cv2.resize(img, (w // 2, h // 2), interpolation=cv2.INTER_AREA)[..., ::-1] * 255).round()
     out = out.astype(np.uint8).copy()
-    cv2.putText(out, label, (3, 12), cv2.FONT_HERSHEY_SIMPLEX, 0.35, (0, 0, 0), 3, cv2.LINE_AA)
-    cv2.putText(out, label, (3, 12), cv2.FONT_HERSHEY_SIMPLEX, 0.35, (255, 255, 255), 1, cv2.LINE_AA)
+    put_label(out, label, 12)
     return out
 
 

@@ -10,8 +10,8 @@ from pathlib import Path
 import matplotlib
 
 matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
+import matplotlib.pyplot as plt
+import numpy as np
 
 RUNS = {"full model": "render_none", "no volume": "render_no-volume", "no pixel": "render_no-pixel",
         "no separate background": "render_no-background"}
