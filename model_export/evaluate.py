@@ -271,7 +271,8 @@ def evaluate(data_dirs: Sequence[str | Path], cfg: EvalConfig, checkpoint: str |
     of each setting. Returns {"method", "label", "checkpoint", "config", "lpips_unavailable", "views": [...],
     "aggregate": [...]} (JSON-ready: NaN / inf become null). ``sheet``: a list that receives, for the first
     ``cfg.sheet_scenes`` scenes of each data set and setting, their first view as {"title", "gt", "pred",
-    "gt_depth", "depth", "psnr"} (images [H, W, 3] 0..1, depths [H, W] metres) for ``write_sheet``."""
+    "gt_depth", "depth", "psnr"} (images [H, W, 3] 0..1, depths [H, W] metres; gt_depth 0 outside the PCC's
+    pixels) for ``write_sheet``."""
     from tqdm import tqdm
 
     from . import metrics as M
@@ -324,11 +325,12 @@ def evaluate(data_dirs: Sequence[str | Path], cfg: EvalConfig, checkpoint: str |
                 lp = M.lpips(pred, gt, cfg.lpips_backbone_path, cfg.lpips_lin_path, cfg.lpips_net)
                 if lp.value is None and lp_reason is None:
                     lp_reason = lp.reason
+                psnr = _finite(M.psnr(pred, gt))
                 if sheet is not None and k == 0 and i < cfg.sheet_scenes:
-                    sheet.append({"title": f"{setting} {item['scene']}", "gt": gt, "pred": pred, "gt_depth": gd,
-                                  "depth": depth, "psnr": _finite(M.psnr(pred, gt))})
+                    sheet.append({"title": f"{setting} {item['scene']}", "gt": gt, "pred": pred,
+                                  "gt_depth": np.where(valid, gd, 0), "depth": depth, "psnr": psnr})
                 rows.append({"data": str(root), "rig": rig, "setting": setting, "scene": item["scene"],
-                             "view": t["names"][k], "psnr": _finite(M.psnr(pred, gt)),
+                             "view": t["names"][k], "psnr": psnr,
                              "psnr_inf": bool(np.array_equal(pred, gt)),
                              "ssim": M.ssim(pred, gt) if min(gt.shape[:2]) >= 11 else None,
                              "pcc": _finite(M.depth_pcc(depth, gd, valid)), "pcc_pixels": int(valid.sum()),
@@ -355,7 +357,7 @@ def aggregate(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
         groups.setdefault((r["setting"], r["rig"]), []).append(r)
     out = []
     for (setting, rig), rs in groups.items():
-        def mean(key):
+        def mean(key, rs=rs):
             v = [r[key] for r in rs if r[key] is not None]
             return (float(np.mean(v)) if v else None), len(rs) - len(v)
 
@@ -439,7 +441,7 @@ def put_label(img: np.ndarray, text: str, y: int) -> None:
 def write_sheet(tiles: list[dict[str, Any]], path: str | Path) -> Path:
     """A picture of ``evaluate(..., sheet=tiles)``: one column per tile; rows: ground truth, render (with its
     PSNR), ground-truth depth, rendered depth (turbo colour map, 0 to the 95th percentile of the column's
-    ground-truth depth in (0, 80] m; black = no depth). Tiles of different sizes are padded to the largest."""
+    ground-truth depth; black = no depth). Tiles of different sizes are padded to the largest."""
     import cv2
 
     from .train import _depth_vis
@@ -449,9 +451,8 @@ def write_sheet(tiles: list[dict[str, Any]], path: str | Path) -> Path:
     cols = []
     for t in tiles:
         gd = t["gt_depth"]
-        ok = (gd > 0) & (gd <= 80.0)
-        vmax = float(np.percentile(gd[ok], 95)) if ok.any() else 1.0
-        col = [t["gt"], np.clip(t["pred"], 0, 1), _depth_vis(np.where(ok, gd, 0), vmax), _depth_vis(t["depth"], vmax)]
+        vmax = float(np.percentile(gd[gd > 0], 95)) if (gd > 0).any() else 1.0
+        col = [t["gt"], np.clip(t["pred"], 0, 1), _depth_vis(gd, vmax), _depth_vis(t["depth"], vmax)]
         col = [np.pad(a.astype(np.float32), ((0, h - a.shape[0]), (0, w - a.shape[1]), (0, 0))) for a in col]
         img = (np.concatenate(col, axis=0)[..., ::-1] * 255).round().astype(np.uint8).copy()
         psnr = "n/a" if t["psnr"] is None else f"{t['psnr']:.1f} dB"

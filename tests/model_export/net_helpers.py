@@ -17,6 +17,15 @@ def tiny_config(**changes) -> ModelConfig:
     return cfg.replace(**changes)
 
 
+def synth_test_config(**changes) -> ModelConfig:
+    """tiny_config for the 32x56 ``tiny_synth_data`` scenes: 32x56 backbone input, 1.6 m grid, ground-truth
+    volume selection, at most 3000 voxels x G_v Gaussians (about a second of CPU splatting per stage-2 step)."""
+    cfg = tiny_config(volume_selection="ground_truth")
+    cfg = cfg.replace(grid=GridConfig(voxel_size=1.6), volume=cfg.volume.replace(max_voxels=3000),
+                      backbone=cfg.backbone.replace(input_height=32, input_width=56))
+    return cfg.replace(**changes)
+
+
 def overlap_rig(n: int, width: int = 128, height: int = 64, ring_radius: float = 0.5) -> Rig:
     """n outward cameras with overlapping fields of view (1.3 x 360/n degrees each)."""
     return ring_rig(n, hfov_deg=min(1.3 * 360.0 / n, 150.0), width=width, height=height, ring_radius=ring_radius)

@@ -8,10 +8,9 @@ import cv2
 import numpy as np
 import pytest
 import torch
-from net_helpers import tiny_config
+from net_helpers import synth_test_config
 from xyzcyl.clients.cli import main
 from xyzcyl.model_export import metrics as M
-from xyzcyl.model_export.config import GridConfig
 from xyzcyl.model_export.dataset import DatasetConfig, SceneDataset
 from xyzcyl.model_export.evaluate import (
     SH_C0,
@@ -26,15 +25,9 @@ from xyzcyl.model_export.train import build_model
 from xyzcyl.runtime.render import PinholeCamera, render
 
 
-def _cfg():
-    cfg = tiny_config(volume_selection="ground_truth")
-    return cfg.replace(grid=GridConfig(voxel_size=1.6), volume=cfg.volume.replace(max_voxels=3000),
-                       backbone=cfg.backbone.replace(input_height=32, input_width=56))
-
-
 def _checkpoint(path, stage="render"):
     torch.manual_seed(0)
-    cfg = _cfg()
+    cfg = synth_test_config()
     torch.save({"model": build_model(cfg).state_dict(), "model_cfg": cfg.to_dict(), "train_cfg": {"stage": stage},
                 "step": 0}, path)
     return path
@@ -154,10 +147,10 @@ def test_eval_model_and_depth_head_baseline(tiny_synth_data, tmp_path):
     assert len(res["views"]) == want and res["aggregate"][0]["scenes"] == 1
     assert res["label"].startswith("XYZCylinder (cpu") and "background network" in res["background"]
     assert all(r["n_gaussians"] > 0 and r["psnr"] is not None for r in res["views"])
-    jp, mp = write_reports(res, tmp_path / "ev")
+    jp, _ = write_reports(res, tmp_path / "ev")
     assert jp.name == "model_ego-inward.json" and _strict_json(jp)["aggregate"][0]["views"] == want
     # ablation switches show in the label and the report name
-    ab = _cfg()
+    ab = synth_test_config()
     ab = ab.replace(ablation=ab.ablation.replace(separate_background=False))
     torch.save({"model": build_model(ab).state_dict(), "model_cfg": ab.to_dict(), "train_cfg": {"stage": "render"}},
                tmp_path / "ab.pt")
@@ -165,7 +158,7 @@ def test_eval_model_and_depth_head_baseline(tiny_synth_data, tmp_path):
     assert "no separate_background" in res_ab["label"] and "black" in res_ab["background"]
     assert write_reports(res_ab, tmp_path / "ev")[0].name == "model-no-separate-background_ego-inward.json"
     # the oracle takes the voxels from the ground truth even for a model trained on its predicted occupancy
-    pred = _cfg().replace(volume_selection="predicted")
+    pred = synth_test_config().replace(volume_selection="predicted")
     pred = pred.replace(volume=pred.volume.replace(max_voxels=50 * 50 * 10))   # no cap on the 1.6 m grid
     torch.save({"model": build_model(pred).state_dict(), "model_cfg": pred.to_dict(),
                 "train_cfg": {"stage": "render"}}, tmp_path / "pred.pt")

@@ -7,8 +7,7 @@ import sys
 
 import pytest
 import torch
-from net_helpers import tiny_config
-from xyzcyl.model_export.config import GridConfig
+from net_helpers import synth_test_config
 from xyzcyl.model_export.dataset import DatasetConfig
 from xyzcyl.model_export.losses import OptimConfig, TrainLossConfig
 from xyzcyl.model_export.train import (
@@ -20,13 +19,6 @@ from xyzcyl.model_export.train import (
     set_stage,
     train,
 )
-
-
-def _cfg():
-    cfg = tiny_config(volume_selection="ground_truth")
-    # at most 3000 voxels x G_v Gaussians: keeps the CPU splatting of stage 2 to about a second per step
-    return cfg.replace(grid=GridConfig(voxel_size=1.6), volume=cfg.volume.replace(max_voxels=3000),
-                       backbone=cfg.backbone.replace(input_height=32, input_width=56))
 
 
 def _tcfg(stage, steps, **kw):
@@ -52,7 +44,7 @@ def test_depth_head_loss_by_hand():
 
 
 def test_stage_parameters():
-    model = build_model(_cfg())
+    model = build_model(synth_test_config())
     base = {n: p.requires_grad for n, p in model.named_parameters()}
     occ = {id(p) for p in set_stage(model, "occ", base)}
     ren = {id(p) for p in set_stage(model, "render", base)}
@@ -66,13 +58,13 @@ def test_stage_parameters():
 
 
 def test_occ_resume_matches_uninterrupted(tiny_synth_data, tmp_path):
-    a = train(tiny_synth_data, tmp_path / "a", _cfg(), _tcfg("occ", 3), progress=False)
+    a = train(tiny_synth_data, tmp_path / "a", synth_test_config(), _tcfg("occ", 3), progress=False)
     assert not a["interrupted"] and a["steps"] == 3
-    b1 = train(tiny_synth_data, tmp_path / "b", _cfg(), _tcfg("occ", 3), progress=False, max_steps_now=2)
+    b1 = train(tiny_synth_data, tmp_path / "b", synth_test_config(), _tcfg("occ", 3), progress=False, max_steps_now=2)
     assert b1["steps"] == 2
     with pytest.raises(ValueError, match="resume"):
-        train(tiny_synth_data, tmp_path / "b", _cfg(), _tcfg("occ", 3), progress=False, max_steps_now=0)
-    b2 = train(tiny_synth_data, tmp_path / "b", _cfg(), _tcfg("occ", 3), progress=False, resume=True)
+        train(tiny_synth_data, tmp_path / "b", synth_test_config(), _tcfg("occ", 3), progress=False, max_steps_now=0)
+    b2 = train(tiny_synth_data, tmp_path / "b", synth_test_config(), _tcfg("occ", 3), progress=False, resume=True)
     assert b2["steps"] == 3
     ra, rb = _rows(tmp_path / "a" / "log.csv"), _rows(tmp_path / "b" / "log.csv")
     assert [r["step"] for r in rb] == ["1", "2", "3"]
@@ -92,7 +84,7 @@ def test_occ_resume_matches_uninterrupted(tiny_synth_data, tmp_path):
 
 @pytest.mark.slow
 def test_render_stage_from_occ(tiny_synth_data, tmp_path):
-    train(tiny_synth_data, tmp_path / "occ", _cfg(), _tcfg("occ", 1), progress=False)
+    train(tiny_synth_data, tmp_path / "occ", synth_test_config(), _tcfg("occ", 1), progress=False)
     s = train(tiny_synth_data, tmp_path / "ren", None, _tcfg("render", 2), init=tmp_path / "occ" / "occ.pt",
               val_dir=tiny_synth_data, progress=False)
     assert s["steps"] == 2 and s["val"] is not None
@@ -123,9 +115,9 @@ def test_cli_errors_exit_2(tmp_path, tiny_synth_data):
 
 
 def test_load_init_skips_ablated_modules_only():
-    full = build_model(_cfg())
+    full = build_model(synth_test_config())
     state = full.state_dict()
-    cfg = _cfg()
+    cfg = synth_test_config()
     ablated = build_model(cfg.replace(ablation=cfg.ablation.replace(volume_branch=False)))
     dropped = {k.split(".")[0] for k in state} - {k.split(".")[0] for k in ablated.state_dict()}
     assert dropped                                      # the volume modules are not in the ablated model
@@ -133,12 +125,12 @@ def test_load_init_skips_ablated_modules_only():
     for k, v in ablated.state_dict().items():
         assert torch.equal(v, state[k]), k
     with pytest.raises(ValueError, match="lacks"):       # the ablated model's weights cannot start the full one
-        load_init(build_model(_cfg()), ablated.state_dict(), "ablated.pt")
+        load_init(build_model(synth_test_config()), ablated.state_dict(), "ablated.pt")
     bad = dict(state)
     k = next(k for k in bad if bad[k].ndim == 2)
     bad[k] = torch.zeros(bad[k].shape[0] + 1, bad[k].shape[1])
     with pytest.raises(ValueError, match="shape"):
-        load_init(build_model(_cfg()), bad, "bad.pt")
+        load_init(build_model(synth_test_config()), bad, "bad.pt")
 
 
 def test_cli_config_overrides(tmp_path, tiny_synth_data):
@@ -189,7 +181,7 @@ def test_overfit_one_scene_halves_the_render_loss(tiny_synth_data, tmp_path):
 
     data = tmp_path / "one"
     shutil.copytree(tiny_synth_data / "scene_000000", data / "scene_000000")
-    cfg = _cfg()
+    cfg = synth_test_config()
     cfg = cfg.replace(volume=cfg.volume.replace(max_voxels=20000))    # all ~13k occupied 1.6 m voxels
     steps = 80
     tcfg = TrainConfig(stage="render", steps=steps, ckpt_every=steps, seed=1, depth_head_weight=0.0,
