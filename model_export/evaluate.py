@@ -15,10 +15,12 @@ Methods:
   Gaussian). sigma = (depth / sqrt(fx fy)) / sqrt(12): the standard deviation of the pixel's square footprint;
   opacity 0.99; colour = the pixel's RGB as the SH DC term. Rendered over black: the baseline has no background model, so sky it does not cover is black.
 
-Metrics per target view (``metrics.py``): PSNR, SSIM (rendered image clipped to [0, 1]), depth PCC over the
-pixels whose ground-truth depth is in (0, ``pcc_max_depth``] and not sky (the training's depth-validity rule),
-LPIPS only with local weights (otherwise ``null`` and the reason). Aggregates are means over views per
-(setting, rig); views with an undefined PCC (fewer than 2 valid pixels, constant map) are counted, not hidden.
+Metrics per target view (``metrics.py``): PSNR, SSIM (rendered image clipped to [0, 1]), ``psnr_fg`` (PSNR over
+the target's non-sky pixels, sky < 0.5), ``colour_err`` (mean colour error over all pixels: a grey blur of a
+coloured scene scores badly), depth PCC over the pixels whose ground-truth depth is in (0, ``pcc_max_depth``]
+and not sky (the training's depth-validity rule), LPIPS only with local weights (otherwise ``null`` and the
+reason). Aggregates are means over views per (setting, rig); views with an undefined value (PCC: fewer than 2
+valid pixels, constant map; PSNR: an exact copy; PSNR fg: no non-sky pixel) are counted, not hidden.
 """
 
 from __future__ import annotations
@@ -321,7 +323,8 @@ def evaluate(data_dirs: Sequence[str | Path], cfg: EvalConfig, checkpoint: str |
                 pred = np.clip(rgb, 0, 1)
                 gt = t["images"][k].permute(1, 2, 0).numpy()
                 gd = t["depth"][k].numpy()
-                valid = (gd > 0) & (gd <= cfg.pcc_max_depth) & (t["sky"][k].numpy() < 0.5)
+                fg = t["sky"][k].numpy() < 0.5
+                valid = (gd > 0) & (gd <= cfg.pcc_max_depth) & fg
                 lp = M.lpips(pred, gt, cfg.lpips_backbone_path, cfg.lpips_lin_path, cfg.lpips_net)
                 if lp.value is None and lp_reason is None:
                     lp_reason = lp.reason
@@ -332,6 +335,9 @@ def evaluate(data_dirs: Sequence[str | Path], cfg: EvalConfig, checkpoint: str |
                 rows.append({"data": str(root), "rig": rig, "setting": setting, "scene": item["scene"],
                              "view": t["names"][k], "psnr": psnr,
                              "psnr_inf": bool(np.array_equal(pred, gt)),
+                             "psnr_fg": _finite(M.psnr_masked(pred, gt, fg)),
+                             "psnr_fg_inf": bool(fg.any() and np.array_equal(pred[fg], gt[fg])),
+                             "colour_err": _finite(M.mean_colour_error(pred, gt)),
                              "ssim": M.ssim(pred, gt) if min(gt.shape[:2]) >= 11 else None,
                              "pcc": _finite(M.depth_pcc(depth, gd, valid)), "pcc_pixels": int(valid.sum()),
                              "lpips": lp.value, "n_gaussians": int(n_g)})
@@ -349,9 +355,16 @@ def evaluate(data_dirs: Sequence[str | Path], cfg: EvalConfig, checkpoint: str |
             "views": rows, "aggregate": aggregate(rows)}
 
 
+# per-view columns averaged by ``aggregate`` (each with a ``<key>_undefined`` count)
+AGGREGATED = ("psnr", "psnr_fg", "ssim", "lpips", "pcc", "colour_err")
+# Markdown names of the columns whose undefined views the report notes
+_NAMES = {"psnr": "PSNR", "psnr_fg": "PSNR fg", "ssim": "SSIM", "pcc": "PCC", "colour_err": "colour error"}
+
+
 def aggregate(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
     """Means over views per (setting, rig). PSNR of an identical view (inf) counts as undefined and is
-    reported in ``psnr_undefined``; PCC likewise in ``pcc_undefined``; SSIM is undefined below 11 px."""
+    reported in ``psnr_undefined``; PSNR fg (inf, or no non-sky pixel) in ``psnr_fg_undefined``; PCC likewise
+    in ``pcc_undefined``; SSIM is undefined below 11 px."""
     groups: dict[tuple[str, str], list[dict[str, Any]]] = {}
     for r in rows:
         groups.setdefault((r["setting"], r["rig"]), []).append(r)
@@ -361,14 +374,12 @@ def aggregate(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
             v = [r[key] for r in rs if r[key] is not None]
             return (float(np.mean(v)) if v else None), len(rs) - len(v)
 
-        psnr, p_u = mean("psnr")
-        ssim, s_u = mean("ssim")
-        pcc, c_u = mean("pcc")
-        lp, l_u = mean("lpips")
-        out.append({"setting": setting, "rig": rig, "scenes": len({(r["data"], r["scene"]) for r in rs}),
-                    "views": len(rs), "psnr": psnr, "ssim": ssim, "lpips": lp, "pcc": pcc,
-                    "psnr_undefined": p_u, "ssim_undefined": s_u, "pcc_undefined": c_u,
-                    "lpips_undefined": l_u})
+        a = {"setting": setting, "rig": rig, "scenes": len({(r["data"], r["scene"]) for r in rs}),
+             "views": len(rs)}
+        means = {key: mean(key) for key in AGGREGATED}
+        a.update({key: m for key, (m, _) in means.items()})
+        a.update({f"{key}_undefined": u for key, (_, u) in means.items()})
+        out.append(a)
     return out
 
 
@@ -379,13 +390,16 @@ def _fmt(v: float | None, digits: int) -> str:
     return "n/a" if v is None else f"{v:.{digits}f}"
 
 
-_TABLE_HEAD = ("| method | setting | rig | scenes | views | PSNR ↑ | SSIM ↑ | LPIPS ↓ | PCC ↑ |",
-               "| --- | --- | --- | ---: | ---: | ---: | ---: | ---: | ---: |")
+_TABLE_HEAD = (("| method | setting | rig | scenes | views | PSNR ↑ | PSNR fg ↑ | SSIM ↑ | LPIPS ↓ | PCC ↑ "
+                "| colour err ↓ |"),
+               "| --- | --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |")
 
 
 def _table_row(label: str, a: dict[str, Any]) -> str:
+    """One table row; reports written before PSNR fg and colour error existed show n/a for them."""
     return (f"| {label} | {a['setting']} | {a['rig']} | {a['scenes']} | {a['views']} | {_fmt(a['psnr'], 2)} | "
-            f"{_fmt(a['ssim'], 3)} | {_fmt(a['lpips'], 3)} | {_fmt(a['pcc'], 3)} |")
+            f"{_fmt(a.get('psnr_fg'), 2)} | {_fmt(a['ssim'], 3)} | {_fmt(a['lpips'], 3)} | {_fmt(a['pcc'], 3)} | "
+            f"{_fmt(a.get('colour_err'), 4)} |")
 
 
 def markdown(result: dict[str, Any]) -> str:
@@ -400,11 +414,13 @@ def markdown(result: dict[str, Any]) -> str:
     if result["lpips_unavailable"]:
         lines.append(f"LPIPS: n/a. {result['lpips_unavailable']}.")
     for a in result["aggregate"]:
-        for key in ("psnr", "ssim", "pcc"):
-            if a[f"{key}_undefined"]:
-                lines.append(f"{a['setting']} / {a['rig']}: {key.upper()} undefined for {a[f'{key}_undefined']} of "
+        for key, name in _NAMES.items():
+            if a.get(f"{key}_undefined"):
+                lines.append(f"{a['setting']} / {a['rig']}: {name} undefined for {a[f'{key}_undefined']} of "
                              f"{a['views']} views (left out of the mean).")
     lines.append(f"PCC over ground-truth depth in (0, {result['config']['pcc_max_depth']:g}] m, sky excluded.")
+    lines.append("PSNR fg: PSNR over the target's non-sky pixels. Colour err: mean over R, G, B of |mean colour of "
+                 "the render - mean colour of the target| over all pixels, in [0, 1] intensity.")
     return "\n".join(lines) + "\n"
 
 

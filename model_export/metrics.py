@@ -1,6 +1,8 @@
 """Evaluation metrics (paper appendix "Overview of Evaluation Metrics"), numpy only.
 
     psnr(pred, target)            dB, data range 1 (images float in [0, 1])
+    psnr_masked(pred, target, m)  the same over the pixels where m is True (eval: non-sky pixels)
+    mean_colour_error(pred, t)    mean over channels of |mean colour of pred - mean colour of target|
     ssim(pred, target)            Wang et al. 2004: 11x11 Gaussian window (sigma 1.5), K1 0.01, K2 0.03,
                                   population (co)variances, mean over valid windows, then over channels
     depth_pcc(pred, gt, valid)    Pearson correlation over valid pixels
@@ -33,6 +35,42 @@ def psnr(pred: np.ndarray, target: np.ndarray, data_range: float = 1.0) -> float
     pred, target = _check_pair(pred, target)
     mse = float(np.mean((pred - target) ** 2))
     return float("inf") if mse == 0 else float(10 * np.log10(data_range ** 2 / mse))
+
+
+def _pixel_mask(mask: np.ndarray | None, pred: np.ndarray) -> np.ndarray:
+    """The [H, W] bool pixel mask for channels-last ``pred`` [H, W, C] (None: every pixel)."""
+    if pred.ndim != 3:
+        raise ValueError(f"pred: need [H, W, C] (channels last), got shape {pred.shape}")
+    if mask is None:
+        return np.ones(pred.shape[:2], dtype=bool)
+    mask = np.asarray(mask, dtype=bool)
+    if mask.shape != pred.shape[:2]:
+        raise ValueError(f"mask: shape {mask.shape} differs from the image's {pred.shape[:2]}")
+    return mask
+
+
+def psnr_masked(pred: np.ndarray, target: np.ndarray, mask: np.ndarray, data_range: float = 1.0) -> float:
+    """PSNR = 10 log10(L^2 / MSE) in dB with the MSE over the pixels where ``mask`` is True, all channels.
+    pred/target [H, W, C] (channels last, in [0, data_range]); mask [H, W] bool. Identical masked pixels give
+    inf; an empty mask gives NaN. Evaluation uses it over the target's non-sky pixels (sky < 0.5)."""
+    pred, target = _check_pair(pred, target)
+    mask = _pixel_mask(mask, pred)
+    if not mask.any():
+        return float("nan")
+    return psnr(pred[mask], target[mask], data_range)
+
+
+def mean_colour_error(pred: np.ndarray, target: np.ndarray, mask: np.ndarray | None = None) -> float:
+    """Mean colour error: mean over the C channels of |mean_pred - mean_target|, where mean_x is the image's
+    mean colour (a C-vector, the mean over the pixels where ``mask`` is True; all pixels without a mask).
+    pred/target [H, W, 3] float in [0, 1] (channels last); mask [H, W] bool or None. Units: [0, 1] intensity
+    (0 = same mean colour). NaN for an empty mask. Blind to blur and structure (a flat image of the target's
+    mean colour scores 0); it catches a colour cast, e.g. a grey image standing in for a coloured scene."""
+    pred, target = _check_pair(pred, target)
+    mask = _pixel_mask(mask, pred)
+    if not mask.any():
+        return float("nan")
+    return float(np.mean(np.abs(pred[mask].mean(axis=0) - target[mask].mean(axis=0))))
 
 
 def _gauss1d(size: int, sigma: float) -> np.ndarray:

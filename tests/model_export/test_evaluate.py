@@ -114,11 +114,17 @@ def test_eval_baseline_reports(tiny_synth_data, tmp_path, capsys):
         assert len(agg) == 1 and agg[0]["rig"] == "nuscenes"
         assert agg[0]["scenes"] == 2 and agg[0]["views"] == sum(want.values())
         assert agg[0]["psnr"] == pytest.approx(np.mean([r["psnr"] for r in rows]))
+        for key in ("psnr_fg", "colour_err"):      # the new columns, aggregated like PSNR
+            assert agg[0][key] == pytest.approx(np.mean([r[key] for r in rows])) and agg[0][f"{key}_undefined"] == 0
         assert agg[0]["lpips"] is None
         assert f"| unproject (GT depth, oracle) | {setting} | nuscenes | 2 | {agg[0]['views']} |" in md
+        assert (f"| {agg[0]['psnr']:.2f} | {agg[0]['psnr_fg']:.2f} | {agg[0]['ssim']:.3f} | n/a | "
+                f"{agg[0]['pcc']:.3f} | {agg[0]['colour_err']:.4f} |") in md
         for r in rows:
             assert 0 < r["psnr"] < 60 and -1 <= r["ssim"] <= 1
             assert r["pcc"] is None or -1 <= r["pcc"] <= 1
+            assert 0 < r["psnr_fg"] < 60 and r["psnr_fg_inf"] is False and 0 <= r["colour_err"] <= 1
+    assert "| PSNR ↑ | PSNR fg ↑ | SSIM ↑ | LPIPS ↓ | PCC ↑ | colour err ↓ |" in md
     assert "wrote" in capsys.readouterr().out
     # the sheet (default 4 scenes; the fixture has 2): first view of each scene and setting, 4 rows
     import cv2
@@ -137,6 +143,32 @@ def test_eval_baseline_reports(tiny_synth_data, tmp_path, capsys):
         ["| unproject (GT depth, oracle)", "ego-inward"], ["| other", "ego-inward"],
         ["| unproject (GT depth, oracle)", "ego-forward"], ["| other", "ego-forward"]]
     assert " n/a " in table[3] and table[2] in md
+
+
+def test_eval_view_colour_error_and_non_sky_psnr(tiny_synth_data):
+    """A view's colour_err and psnr_fg are the metrics of its render (the sheet tile) against its target over
+    all pixels / the target's non-sky pixels; the GT-depth baseline leaves the sky black, so the non-sky PSNR is
+    the higher one."""
+    tiles: list = []
+    res = evaluate([tiny_synth_data], EvalConfig(settings=("ego-inward",), method="unproject-gt-depth",
+                                                 max_scenes=1, sheet_scenes=1), progress=False, sheet=tiles)
+    row, tile = res["views"][0], tiles[0]
+    t = SceneDataset(tiny_synth_data, DatasetConfig(setting="ego-inward", num_targets=1 << 30, voxel_size=1.6)
+                     ).item(0, 0)["targets"]
+    gt = t["images"][0].permute(1, 2, 0).numpy()
+    np.testing.assert_array_equal(tile["gt"], gt)
+    pred, gt = tile["pred"].astype(np.float64), gt.astype(np.float64)      # float32 images; metrics use float64
+    fg = t["sky"][0].numpy() < 0.5
+    assert 0 < fg.sum() < fg.size                      # the view has sky and non-sky pixels
+    # by hand: mean colour per channel, then the mean of the absolute differences
+    by_hand = np.abs(pred.reshape(-1, 3).mean(0) - gt.reshape(-1, 3).mean(0)).mean()
+    assert row["colour_err"] == pytest.approx(by_hand, abs=1e-12)
+    assert row["colour_err"] == M.mean_colour_error(pred, gt)
+    mse_fg = np.mean((pred[fg] - gt[fg]) ** 2)
+    assert row["psnr_fg"] == pytest.approx(10 * math.log10(1 / mse_fg), abs=1e-9)
+    assert row["psnr_fg"] == M.psnr_masked(pred, gt, fg)
+    assert row["psnr_fg"] > row["psnr"] and row["psnr_fg_inf"] is False
+    assert res["aggregate"][0]["colour_err"] == pytest.approx(np.mean([r["colour_err"] for r in res["views"]]))
 
 
 def test_eval_model_and_depth_head_baseline(tiny_synth_data, tmp_path):

@@ -28,6 +28,54 @@ def test_psnr_hand_value():
     assert M.psnr(b, a) == pytest.approx(10 * math.log10(400), abs=1e-12)
 
 
+def test_psnr_masked_hand_value():
+    target = np.zeros((2, 2, 3))
+    pred = np.zeros((2, 2, 3))
+    pred[0, 0] = [0.3, 0.0, 0.0]       # inside the mask: squared error 0.09 in one channel
+    pred[1, 1] = [1.0, 1.0, 1.0]       # outside the mask: must not count
+    mask = np.array([[True, True], [True, False]])
+    # MSE over 3 pixels x 3 channels = 0.09 / 9 = 0.01 -> 10 log10(100) = 20 dB
+    assert M.psnr_masked(pred, target, mask) == pytest.approx(20.0, abs=1e-12)
+    assert M.psnr_masked(pred, target, np.ones((2, 2), bool)) == pytest.approx(M.psnr(pred, target), abs=1e-12)
+    assert M.psnr_masked(pred, target, np.array([[False, True], [True, False]])) == math.inf   # identical there
+    assert math.isnan(M.psnr_masked(pred, target, np.zeros((2, 2), bool)))
+    with pytest.raises(ValueError, match="mask"):
+        M.psnr_masked(pred, target, np.ones((2, 3), bool))
+
+
+def test_mean_colour_error_hand_value():
+    pred = np.array([[[0.2, 0.4, 0.6], [0.4, 0.4, 0.0]],
+                     [[0.0, 0.8, 0.2], [0.2, 0.0, 0.4]]])           # mean colour (0.2, 0.4, 0.3)
+    target = np.array([[[0.1, 0.1, 0.1], [0.3, 0.3, 0.3]],
+                       [[0.5, 0.5, 0.5], [0.7, 0.7, 0.7]]])         # mean colour (0.4, 0.4, 0.4)
+    # |0.2 - 0.4|, |0.4 - 0.4|, |0.3 - 0.4| -> (0.2 + 0 + 0.1) / 3 = 0.1
+    assert M.mean_colour_error(pred, target) == pytest.approx(0.1, abs=1e-12)
+    mask = np.array([[True, False], [False, True]])
+    # masked means: pred (0.2, 0.2, 0.5), target (0.4, 0.4, 0.4) -> (0.2 + 0.2 + 0.1) / 3
+    assert M.mean_colour_error(pred, target, mask) == pytest.approx(0.5 / 3, abs=1e-12)
+    assert M.mean_colour_error(target, target) == 0.0
+    assert math.isnan(M.mean_colour_error(pred, target, np.zeros((2, 2), bool)))
+    with pytest.raises(ValueError, match="pred"):
+        M.mean_colour_error(pred[..., 0], target[..., 0])
+
+
+def test_mean_colour_error_catches_a_grey_blur():
+    # a grey scene (checkerboard 0.2 / 0.8) and a flat grey of its global mean: same mean colour -> ~0
+    # (blur is PSNR's and SSIM's job), although the PSNR is poor
+    grey_target = np.repeat(np.where(np.indices((4, 4)).sum(0) % 2 == 0, 0.2, 0.8)[..., None], 3, axis=2)
+    flat = np.full((4, 4, 3), 0.5)
+    assert M.mean_colour_error(flat, grey_target) == pytest.approx(0.0, abs=1e-12)
+    assert M.psnr(flat, grey_target) == pytest.approx(10 * math.log10(1 / 0.09))
+    # a red / blue scene (mean colour (0.5, 0, 0.5)) against a constant grey of the same mean intensity 1/3:
+    # |1/3 - 1/2| + |1/3 - 0| + |1/3 - 1/2| = 2/3 -> 2/9
+    rb = np.zeros((4, 4, 3))
+    rb[:, :2, 0] = 1.0
+    rb[:, 2:, 2] = 1.0
+    assert M.mean_colour_error(np.full((4, 4, 3), 1 / 3), rb) == pytest.approx(2 / 9, abs=1e-12)
+    # while a flat image of the scene's own mean colour is a blur with the right colour
+    assert M.mean_colour_error(np.broadcast_to(rb.mean(axis=(0, 1)), rb.shape), rb) == pytest.approx(0, abs=1e-12)
+
+
 @pytest.mark.parametrize("shape", [(32, 48, 3), (20, 25, 1), (40, 17)])
 def test_ssim_matches_skimage(shape):
     rng = np.random.default_rng(1)
