@@ -247,9 +247,13 @@ class PixelConfig(_Frozen):
     g_p: int = 1
     placement: Literal["cylinder_ray", "camera_ray"] = "cylinder_ray"
     offset_scale: float = 0.5        # metres: offsets bounded to +-offset_scale (tanh)
+    # colour path (ablation.rgb_path): the input image is area-pooled by this factor before its colour is sampled
+    # at the pixel Gaussians' own (k_i k_o-upsampled) lattice -- anti-aliasing: a 112x1024 lattice spans about
+    # half the columns of six 400-pixel images
+    colour_pool: int = 2
 
     def __post_init__(self):
-        for n in ("k_in", "k_out", "out_dim", "d_pix", "gn_groups", "mlp_layers", "mlp_width", "g_p"):
+        for n in ("k_in", "k_out", "out_dim", "d_pix", "gn_groups", "mlp_layers", "mlp_width", "g_p", "colour_pool"):
             _pos_int(n, getattr(self, n))
         if self.d_pix % self.gn_groups:
             raise ConfigError("gn_groups: must divide d_pix")
@@ -282,6 +286,10 @@ class AblationConfig(_Frozen):
     flips: bool = True                 # False: F- enters the encoder unflipped
     dual_encoder: bool = True          # False: single-branch encoders on F+ only
     pixel_projection: bool = True      # pixel projection features into the CPFG (eq. 41-42)
+    # ours, not the paper's: the input RGB reaches the Gaussians -- concatenated (area-pooled to the feature
+    # stride) to the backbone features before every module's lifting, and each pixel Gaussian's colour is a
+    # learned residual on the input colour sampled along its own ray (docs/architecture.md)
+    rgb_path: bool = True
 
     def __post_init__(self):
         if not (self.volume_branch or self.pixel_branch):

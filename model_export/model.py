@@ -32,6 +32,8 @@ from .lifting import (
 
 SH_C0 = 0.28209479177387814
 GAUSSIAN_KEYS = ("means", "quats", "log_scales", "opacity_logits", "sh")
+RGB_MEAN, RGB_STD = 0.45, 0.25   # standardisation of the lifted input RGB (about the data's mean / spread)
+COLOUR_CLAMP = 0.02              # input colours clamped to [c, 1 - c] before the logit (finite residual base)
 MASKED_LOGIT = -30.0  # opacity logit of pixel Gaussians no camera sees (sigmoid ~ 1e-13: invisible)
 
 
@@ -137,6 +139,8 @@ class XYZCylinder(nn.Module):
         D = cfg.backbone.feature_dim
         self.backbone = build_backbone(cfg.backbone)
         self.depth_head = DepthHead(D, cfg.backbone.depth_hidden, cfg.backbone.max_depth)
+        self.use_rgb = ab.rgb_path
+        D = D + 3 if self.use_rgb else D   # lifted features: backbone features (+ pooled input RGB)
         self.grid_shape = cfg.grid.shape  # (L_z, L_y, L_x)
         Lz = self.grid_shape[0]
 
@@ -183,9 +187,23 @@ class XYZCylinder(nn.Module):
 
     # -- stages -------------------------------------------------------------------------------------------------
     def encode_images(self, images, depth=None, depth_mask=None):
+        """-> (lifted features [N, D_feat (+3), h, w], depth [N, 1, h, w] metres, confidence [N, 1, h, w]).
+        With ``ablation.rgb_path`` the input RGB, area-pooled to the feature map's size and standardised, is
+        concatenated to the backbone features: the frozen ImageNet features are largely colour-invariant."""
         feats = self.backbone(images)
         d, c = self.depth_head(feats, depth, depth_mask)
+        if self.use_rgb:
+            rgb = F.adaptive_avg_pool2d(images, feats.shape[-2:])
+            feats = torch.cat([feats, (rgb - RGB_MEAN) / RGB_STD], dim=1)
         return feats, d, c
+
+    def input_colour(self, images, inp):
+        """Colour path: the input colour along each pixel Gaussian's ray, [1, 3, kH_u, kW_u] in 0..1 (0 where no
+        camera sees it): the images area-pooled by ``pixel.colour_pool``, sampled at the fine lattice
+        (``grid_pixc``) and overlaid with the cw selection, the camera the anchors come from."""
+        q = self.cfg.pixel.colour_pool
+        img = F.avg_pool2d(images, q) if q > 1 else images
+        return overlay_sum(sample_cameras(img, inp["grid_pixc"]), inp["sel_pixc"])
 
     def occupancy(self, feats, inp):
         """-> (occ_logits [C, L_z, L_y, L_x], bev_logits [bev_out, L_y, L_x])."""
@@ -218,7 +236,8 @@ class XYZCylinder(nn.Module):
             idx = idx[torch.topk(margin[idx], self.cfg.volume.max_voxels).indices]
         return idx
 
-    def pixel_branch(self, feats, depth, conf, inp):
+    def pixel_branch(self, feats, depth, conf, inp, images=None):
+        """Pixel Gaussians; ``images`` [N, 3, H, W] (the network's input) feed the colour path (rgb_path)."""
         p = self.cfg.pixel
         grid = inp["grid_pix"]
         s = sample_cameras(feats, grid)
@@ -261,6 +280,15 @@ class XYZCylinder(nn.Module):
         raw = self.pix_mlp(feat).view(feat.shape[0], p.g_p, -1)
         # pixel footprint: horizontal radius x angular pixel size, floor 1 cm
         fp_size = (r[0].reshape(-1, 1) * (2 * math.pi / (self.cfg.cylinder.width * k))).clamp_min(0.01)
+        if self.use_rgb:
+            if images is None:
+                raise ValueError("images: the colour path (ablation.rgb_path) needs the input images")
+            # colour = sigmoid(logit(c_in) + residual): the MLP's colour output starts at 0, so an untrained
+            # branch already shows the input colours at full resolution
+            cin = self.input_colour(images, inp)[0].permute(1, 2, 0).reshape(-1, 1, 3)
+            base = torch.logit(cin.clamp(COLOUR_CLAMP, 1 - COLOUR_CLAMP))
+            raw = torch.cat([raw[..., :3], raw[..., 3:6] + base, raw[..., 6:]], dim=-1)
+            valid = valid * (inp["sel_pixc"].sum(0) > 0.5).to(valid.dtype)[None, None]
         g = self.dec(raw[..., 3:], 4.0 * fp_size)
         g["means"] = (anchor + p.offset_scale * torch.tanh(raw[..., :3])).reshape(-1, 3)
         vmask = valid.reshape(-1, 1).expand(-1, p.g_p).reshape(-1) > 0.5
@@ -327,7 +355,7 @@ class XYZCylinder(nn.Module):
         parts = []
         pix = None
         if self.use_pixel:
-            pix, pfeat, vmask, _ = self.pixel_branch(feats, d, c, inp)
+            pix, pfeat, vmask, _ = self.pixel_branch(feats, d, c, inp, images)
         if self.use_volume or self.use_background:
             v = self.cfg.volume
             fp, fm = lift(feats, inp["grid_vol"], inp["sel_cw_vol"], inp["sel_ccw_vol"])

@@ -18,6 +18,8 @@ Pixel module only (depth geometry; see docs/architecture.md "pixel Gaussians"):
 - ``pix_offsets`` [N, 3]: c_n - centre_pix, so X - centre_pix = pix_offsets[n] + D * pix_rays[n];
 - ``pix_dirs`` [k H_u, k W_u, 3]: (P' - centre)/R_u for the upsampled (k = k_i k_o) pixel lattice, i.e. the
   horizontal-unit direction of the cylinder ray: a point at horizontal radius r along it is centre + r * dir.
+- ``grid_pixc`` [N, k H_u, k W_u, 2], ``sel_pixc`` [N, k H_u, k W_u]: ``grid_pix`` / ``sel_cw_pix`` of that
+  upsampled lattice (the colour path samples the input images there: one colour per pixel Gaussian).
 Grid:
 - ``voxel_centres`` [L_z, L_y, L_x, 3] ego metres; ``occ_coords`` / ``vol_coords`` [L_z, L_y, L_x, 3]: the
   frustum-annulus coordinates (2t-1, 2s-1, 2p-1) of the voxel centres for the occupancy / volume cylinders
@@ -28,6 +30,7 @@ pixel's ray leaves the volume cylinder (ray_cylinder_intersection, paper_v=False
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
@@ -141,6 +144,13 @@ def pixel_directions(spec: CylinderSpec, k: int) -> np.ndarray:
     return ((spec.pixel_to_point(i, j) - spec.centre) / spec.radius).astype(np.float32)
 
 
+def fine_module_inputs(rig: Rig, spec: CylinderSpec, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """(grid [N, k H_u, k W_u, 2], sel_cw [N, k H_u, k W_u]) of the k-times upsampled lattice of ``spec``: the
+    cylinder with k H_u x k W_u pixels, whose pixel i' sits at coarse row (i' + 1/2)/k - 1/2 (as pix_dirs)."""
+    g, cw, _ = module_inputs(rig, dataclasses.replace(spec, height=k * spec.height, width=k * spec.width))
+    return g, cw
+
+
 def voxel_centres(pc_range, voxel_size: float) -> np.ndarray:
     """[L_z, L_y, L_x, 3] ego metres: centres of the occupancy grid's voxels (z slowest, x fastest)."""
     x0, y0, z0, x1, y1, z1 = (float(v) for v in pc_range)
@@ -182,6 +192,7 @@ def build_lifting_inputs(rig: Rig, params: LiftingParams) -> dict[str, np.ndarra
         out[f"spec_{s}"] = np.array([*spec.centre, spec.radius, spec.z_min, spec.z_max], dtype=np.float32)
     out["pix_rays"], out["pix_offsets"] = depth_rays(rig, specs["pixel"])
     out["pix_dirs"] = pixel_directions(specs["pixel"], params.pixel_upsample)
+    out["grid_pixc"], out["sel_pixc"] = fine_module_inputs(rig, specs["pixel"], params.pixel_upsample)
     centres = voxel_centres(params.pc_range, params.voxel_size)
     out["voxel_centres"] = centres
     out["occ_coords"] = voxel_coords(centres, specs["occupancy"], params.r_min, params.r_max)

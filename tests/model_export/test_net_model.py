@@ -221,8 +221,9 @@ def test_pixel_anchors_land_on_known_surface(placement):
         depths.append(t * (d @ cam.rotation[:, 2]))                            # -> optical-axis depth
     depth = torch.tensor(np.stack(depths)[:, None], dtype=torch.float32)
     with torch.no_grad():
-        feats, d, c = model.encode_images(_images(6, cfg), depth, torch.ones(6))
-        _, _, vmask, anchor = model.pixel_branch(feats, d, c, inp)
+        images = _images(6, cfg)
+        feats, d, c = model.encode_images(images, depth, torch.ones(6))
+        _, _, vmask, anchor = model.pixel_branch(feats, d, c, inp, images)
     r = torch.linalg.norm(anchor[:, :2] - torch.from_numpy(centre[:2]).float(), dim=1)
     r = r[vmask]
     assert vmask.float().mean() > 0.5
@@ -308,3 +309,83 @@ def test_pixel_feature_scatter_matches_eq41_loop():
                 ref[:, kk, row, col] += w * feat[i].numpy()
     np.testing.assert_allclose(got.numpy(), ref, atol=1e-9)  # float64 both sides
     assert np.count_nonzero(ref) > 100
+
+
+def _flat_colour_images(n, cfg):
+    """Each camera a flat colour of its own (well inside (0.02, 0.98), the colour path's clamp)."""
+    cols = torch.tensor([[0.8, 0.2, 0.1], [0.1, 0.7, 0.3], [0.2, 0.3, 0.9], [0.9, 0.9, 0.2], [0.5, 0.1, 0.6],
+                         [0.3, 0.6, 0.6], [0.6, 0.4, 0.2]])[:n]
+    return cols.view(n, 3, 1, 1).expand(n, 3, cfg.backbone.input_height, cfg.backbone.input_width).contiguous()
+
+
+@pytest.mark.parametrize("k_out", [2, 4])
+def test_rgb_path_pixel_colours_start_at_the_input_colour(k_out):
+    """Untrained, the colour path's residual is near 0 (small last-layer init), so each pixel Gaussian shows
+    the colour of the camera its anchor comes from (cw selection), at the pixel branch's own lattice."""
+    from xyzcyl.model_export.model import SH_C0
+
+    torch.manual_seed(0)
+    cfg = tiny_config()
+    cfg = cfg.replace(pixel=cfg.pixel.replace(k_out=k_out), ablation=AblationConfig(volume_branch=False))
+    model = XYZCylinder(cfg).eval()
+    rig = overlap_rig(6)
+    inp = rig_inputs(rig, cfg)
+    images = _flat_colour_images(6, cfg)
+    with torch.no_grad():
+        out = model(images, inp)
+    k = k_out
+    assert out["n_pixel"] == k * cfg.cylinder.height * k * cfg.cylinder.width
+    colour = out["gaussians"]["sh"][:, 0] * SH_C0 + 0.5                                   # [P, 3]
+    sel = inp["sel_pixc"].reshape(6, -1)                                                   # [N, P]
+    cam = sel.argmax(0)
+    seen = sel.sum(0) > 0.5
+    assert seen.float().mean() > 0.9
+    expected = images[:, :, 0, 0][cam]                                                     # [P, 3]
+    err = (colour - expected).abs().max(dim=1).values[seen]
+    # the residual starts at ~N(0, 0.1) in logit space (init_last_linear gain 0.1) -> |dc| ~ 0.025; the 2% of
+    # pixels next to an image border blend the zero padding in bilinear sampling
+    assert err.median() < 0.05
+    assert (err < 0.1).float().mean() > 0.9
+
+
+def test_rgb_path_off_ignores_colour_and_on_uses_it():
+    """Ablation rgb_path=False: the lifted features are the backbone's alone (D_feat channels); the colour of a
+    flat-colour rig changes the pixel colours only through the backbone. rgb_path=True adds 3 channels."""
+    torch.manual_seed(0)
+    on = tiny_config()
+    off = on.replace(ablation=AblationConfig(rgb_path=False))
+    images = _flat_colour_images(6, on)
+    for cfg, extra in ((on, 3), (off, 0)):
+        model = XYZCylinder(cfg).eval()
+        with torch.no_grad():
+            feats, _, _ = model.encode_images(images)
+        assert feats.shape[1] == cfg.backbone.feature_dim + extra
+    with pytest.raises(ValueError, match="images"):
+        model = XYZCylinder(on).eval()
+        inp = rig_inputs(overlap_rig(6), on)
+        feats, d, c = model.encode_images(images)
+        model.pixel_branch(feats, d, c, inp)
+
+
+def test_gradients_reach_the_rgb_inputs_of_every_module():
+    """The weights that read the 3 lifted RGB channels (the first layer of YNet_occ, XNet_vol and YNet_pix)
+    receive gradient from their losses: the colour reaches each module."""
+    torch.manual_seed(0)
+    cfg = tiny_config(volume_selection="ground_truth")
+    model = XYZCylinder(cfg).train()
+    rig = overlap_rig(6)
+    inp = rig_inputs(rig, cfg)
+    gt = torch.zeros(cfg.grid.shape, dtype=torch.bool)
+    gt[1, 8:12, 8:12] = True
+    out = model(_images(6, cfg), inp, occ_gt=gt)
+    cams, grids = _target_views(rig, inp, cfg)
+    rgb, alpha, _ = render_views(out["gaussians"], cams)
+    loss = (blend(rgb, alpha, model.background(out["app_plane"], grids)) - 0.3).abs().mean()
+    loss = loss + torch.nn.functional.cross_entropy(out["occ_logits"].reshape(2, -1).t(), gt.reshape(-1).long())
+    loss.backward()
+    D = cfg.backbone.feature_dim
+    for module, cin in (("occ_net", D + 3), ("vol_net", D + 3), ("pix_net", D + 3 + 2)):
+        first = next(m for m in getattr(model, module).modules()
+                     if isinstance(m, torch.nn.Conv2d) and m.in_channels == cin)
+        g = first.weight.grad[:, D:D + 3]
+        assert g is not None and g.abs().sum() > 0, module

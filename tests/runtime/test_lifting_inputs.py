@@ -62,6 +62,11 @@ def test_build_lifting_inputs_shapes_and_selection():
         assert inp[f"grid_{m}"].dtype == np.float32
     assert inp["pix_rays"].shape == (5, 8, 32, 3) and inp["pix_offsets"].shape == (5, 3)
     assert inp["pix_dirs"].shape == (16, 64, 3)
+    assert inp["grid_pixc"].shape == (5, 16, 64, 2) and inp["sel_pixc"].shape == (5, 16, 64)
+    assert set(np.unique(inp["sel_pixc"].sum(0))) <= {0.0, 1.0}                       # one-hot or unseen
+    # the fine lattice's cylinder points are pix_dirs' rays at radius R_u: every seen fine pixel's grid value
+    # lies inside its camera's image
+    assert (np.abs(inp["grid_pixc"][inp["sel_pixc"] > 0]) <= 1.0 + 1e-6).all()
     np.testing.assert_allclose(np.hypot(inp["pix_dirs"][..., 0], inp["pix_dirs"][..., 1]), 1.0, atol=1e-6)
     assert inp["occ_coords"].shape == (2, 10, 10, 3) and np.isfinite(inp["occ_coords"]).all()
     # the volume cylinder is higher (dh 0.4) and wider (rho 0.98 -> smaller radius) than the occupancy one
