@@ -10,7 +10,10 @@ One item = one scene (the network is unbatched over scenes; use ``collate_scenes
     item["rig"]         xyzcyl.runtime.rig.Rig      input calibration (consistent with the images)
     item["targets"]     dict: images [T, 3, H, W], depth [T, H, W], depth_valid [T, H, W] bool, sky [T, H, W],
                         K [T, 3, 3] float64 pixels, cam_to_ego [T, 4, 4] float64, names list[str], width, height
-    item["occupancy"]   [L_z, L_y, L_x] int64  0 empty / 1 occupied (grid of ``voxel_size``)
+    item["occupancy"]   [L_z, L_y, L_x] int64  0 empty / 1 occupied (grid of ``voxel_size``); with
+                                               occupancy_labels "surface": 1 only for occupied voxels an input
+                                               camera sees, 255 (OCC_UNKNOWN) for hidden occupied voxels —
+                                               select voxels with ``== 1``, never ``.bool()``
     item["bev"]         [L_y, L_x] int64       1 where the column holds an occupied voxel that is not ground
                                                (road / sidewalk / terrain): the obstacle map
     item["lifting"]     dict of float32 tensors (runtime.lifting.build_lifting_inputs) if a model config is given,
@@ -39,6 +42,8 @@ GROUND_CLASSES = (ROAD, SIDEWALK, TERRAIN)   # BEV target: a column is "occupied
 
 SETTINGS = ("ego-forward", "ego-inward")
 MIXED = "both"   # DatasetConfig.setting: draw the T targets from the union of both settings' cameras
+OCCUPANCY_LABELS = ("solid", "surface")
+OCC_UNKNOWN = 255   # occupancy label ignored by every loss (losses.IGNORE_INDEX)
 
 
 class DataError(ValueError):
@@ -59,6 +64,8 @@ class DatasetConfig(_Frozen):
     flip_prob: float = 0.0              # mirror the scene across the ego x-z plane (y -> -y) with this probability
     max_depth: float = 80.0             # metres: deeper pixels (far ground near the horizon) are not depth-valid
     target_scale: float = 1.0           # targets resampled to this fraction of their size (cheaper rendering)
+    occupancy_labels: str = "solid"     # "surface": only occupied voxels the input cameras see, hidden ones 255
+    surface_dilation: int = 0           # "surface": also occupied voxels within this many voxels (26-neighbours)
 
     def __post_init__(self):
         if self.setting not in SETTINGS + (MIXED,):
@@ -77,6 +84,12 @@ class DatasetConfig(_Frozen):
             raise ConfigError(f"flip_prob: must be in [0, 1], got {self.flip_prob!r}")
         if not 0 < self.target_scale <= 1:
             raise ConfigError(f"target_scale: must be in (0, 1], got {self.target_scale!r}")
+        if self.occupancy_labels not in OCCUPANCY_LABELS:
+            raise ConfigError(f"occupancy_labels: must be one of {', '.join(OCCUPANCY_LABELS)}, "
+                              f"got {self.occupancy_labels!r}")
+        d = self.surface_dilation
+        if isinstance(d, bool) or not isinstance(d, int) or d < 0:
+            raise ConfigError(f"surface_dilation: must be an integer >= 0, got {d!r}")
 
     @property
     def settings(self) -> tuple[str, ...]:
@@ -159,6 +172,78 @@ def can_flip(cameras: list[Camera], pc_range) -> bool:
     """Flips need undistorted pinhole cameras and an occupancy y range symmetric about 0."""
     return (all(c.model == "pinhole" and c.distortion is None for c in cameras)
             and abs(pc_range[1] + pc_range[4]) < 1e-6)
+
+
+# ------------------------------------------------------------------------------------------- occupancy labels
+
+
+def _dilate(mask: np.ndarray, k: int) -> np.ndarray:
+    """Binary dilation by a (2k+1)^3 cube (k steps of the 26-neighbourhood), separable along the axes."""
+    for ax in range(mask.ndim):
+        out = mask.copy()
+        for s in range(1, k + 1):
+            lo = [slice(None)] * mask.ndim
+            hi = [slice(None)] * mask.ndim
+            lo[ax], hi[ax] = slice(None, -s), slice(s, None)
+            out[tuple(lo)] |= mask[tuple(hi)]
+            out[tuple(hi)] |= mask[tuple(lo)]
+        mask = out
+    return mask
+
+
+def surface_hits(shape: tuple[int, int, int], pc_range, voxel_size: float, cameras: list[Camera],
+                 depth: np.ndarray, valid: np.ndarray, stride: int = 1, eps: float = 2e-3) -> np.ndarray:
+    """[L_z, L_y, L_x] bool: voxels holding the ego point X = cam_to_ego @ [d inv(K) [u, v, 1], 1] of some
+    valid input pixel (u, v) with depth d (every ``stride``-th pixel per row and column). X is pushed ``eps``
+    metres further along its ray, so a hit on a solid's face that lies on a voxel boundary lands in the voxel
+    behind it (the solid's side). depth / valid [N, H, W]. Pinhole cameras only (distortion allowed)."""
+    lz, ly, lx = shape
+    lo = np.asarray(pc_range[:3], np.float64)
+    hit = np.zeros(lz * ly * lx, bool)
+    for cam, d, m in zip(cameras, depth, valid):
+        if cam.model != "pinhole":
+            raise DataError(f"camera {cam.name!r}: model: surface occupancy labels need pinhole depth maps")
+        m = m[::stride, ::stride]
+        vv, uu = np.nonzero(m)
+        if not len(vv):
+            continue
+        vv, uu = vv * stride, uu * stride
+        z = d[vv, uu].astype(np.float64)
+        if cam.distortion is None:      # ray = R inv(K) [u, v, 1] (camera z = 1), X = c + z ray, one axis at a time
+            A = cam.rotation @ np.linalg.inv(cam.K)
+            ze = z + eps                                                # >= eps metres further along the ray
+            idx = np.zeros(len(vv), np.int64)
+            ok = np.ones(len(vv), bool)
+            for j, (size, mul) in enumerate(((lx, 1), (ly, lx), (lz, lx * ly))):
+                x = cam.position[j] - lo[j] + ze * (A[j, 0] * uu + A[j, 1] * vv + A[j, 2])
+                k = np.floor(x / voxel_size).astype(np.int64)
+                ok &= (k >= 0) & (k < size)
+                idx += k * mul
+            hit[idx[ok]] = True
+            continue
+        _, ray = cam.pixel_rays(np.stack([uu, vv], -1).astype(np.float64))   # unit rays, ego frame
+        p = cam.position + ray * (z / (ray @ cam.rotation[:, 2]) + eps)[:, None]
+        ijk = np.floor((p - lo) / voxel_size).astype(np.int64)         # (x, y, z)
+        ok = ((ijk >= 0) & (ijk < (lx, ly, lz))).all(axis=1)
+        ijk = ijk[ok]
+        hit[(ijk[:, 2] * ly + ijk[:, 1]) * lx + ijk[:, 0]] = True
+    return hit.reshape(shape)
+
+
+def surface_labels(occupied: np.ndarray, pc_range, voxel_size: float, cameras: list[Camera], depth: np.ndarray,
+                   valid: np.ndarray, dilation: int = 0, stride: int = 1) -> np.ndarray:
+    """Visibility-carved occupancy labels [L_z, L_y, L_x] uint8 from the solid grid occupied [L_z, L_y, L_x]:
+    1 = occupied voxel holding a point an input camera sees (``surface_hits``; with ``dilation`` k also occupied
+    voxels within k voxels of one, 26-neighbourhood), OCC_UNKNOWN = 255 = occupied voxel no camera sees (inside
+    a building, behind a facade: the network cannot know it, so no loss), 0 = free (the generator's exact
+    geometry, wherever it is; the space in front of every hit is free). depth / valid [N, H, W] as in the item."""
+    hit = surface_hits(occupied.shape, pc_range, voxel_size, cameras, depth, valid, stride)
+    if dilation:
+        hit = _dilate(hit, dilation)
+    out = np.zeros(occupied.shape, np.uint8)
+    out[occupied] = OCC_UNKNOWN
+    out[occupied & hit] = 1
+    return out
 
 
 # ------------------------------------------------------------------------------------------------- reading
@@ -287,6 +372,9 @@ class SceneDataset(torch.utils.data.Dataset):
             both = colour_jitter(np.concatenate([img, timg]), rng, cfg.brightness, cfg.contrast, cfg.saturation)
             img, timg = both[:len(img)], both[len(img):]
         occ, bev, rng_m = self._occupancy(folder)
+        if cfg.occupancy_labels == "surface":   # before the flip: unflipped cameras and depths, flipped below
+            seen = np.isfinite(depth) & (depth > 0) & (depth <= cfg.max_depth) & ~sky
+            occ = surface_labels(occ, rng_m, cfg.voxel_size, list(rig.cameras), depth, seen, cfg.surface_dilation)
 
         in_cams, t_cams = list(rig.cameras), list(trig.cameras)
         flipped = bool(cfg.flip_prob > 0 and rng.random() < cfg.flip_prob and can_flip(in_cams + t_cams, rng_m))

@@ -1,0 +1,96 @@
+"""Surface (visibility-carved) occupancy labels of dataset.py."""
+
+import numpy as np
+import pytest
+import torch
+from xyzcyl.model_export.config import ConfigError
+from xyzcyl.model_export.dataset import (
+    OCC_UNKNOWN,
+    DatasetConfig,
+    SceneDataset,
+    surface_labels,
+)
+from xyzcyl.runtime.rig import Camera
+
+# ------------------------------------------------------------------------------------------ surface labels
+
+# grid x 0..10, y -2..2, z -2..2 at 1 m: [L_z, L_y, L_x] = [4, 4, 10]; a wall at x in [5, 8) (3 voxels thick)
+RANGE = (0.0, -2.0, -2.0, 10.0, 2.0, 2.0)
+CAM_FORWARD = np.array([[0.0, 0.0, 1.0, 0.5],    # OpenCV camera at (0.5, 0, 0) looking down ego +x:
+                        [-1.0, 0.0, 0.0, 0.0],   # camera x (right) = ego -y, camera y (down) = ego -z
+                        [0.0, -1.0, 0.0, 0.0],
+                        [0.0, 0.0, 0.0, 1.0]])
+
+
+def _wall_scene(distortion=None):
+    occ = np.zeros((4, 4, 10), bool)
+    occ[:, :, 5:8] = True
+    w = h = 64
+    f = w / 2 / np.tan(np.radians(50))                  # 100 deg FoV: the wall face (+-24 deg) is well inside
+    K = np.array([[f, 0, (w - 1) / 2], [0, f, (h - 1) / 2], [0, 0, 1]])
+    cam = Camera(name="front", width=w, height=h, K=K, cam_to_ego=CAM_FORWARD, distortion=distortion)
+    depth = np.full((1, h, w), 4.5, np.float32)        # plane x = 5 seen from x = 0.5, depth along the axis
+    valid = np.ones((1, h, w), bool)
+    return occ, cam, depth, valid
+
+
+def test_surface_labels_keep_the_front_layer_of_a_wall():
+    occ, cam, depth, valid = _wall_scene()
+    lab = surface_labels(occ, RANGE, 1.0, [cam], depth, valid)
+    assert lab.dtype == np.uint8 and lab.shape == occ.shape
+    assert (lab[:, :, 5] == 1).all()                   # the face the camera sees (a hit on x = 5 lands behind it)
+    assert (lab[:, :, 6:8] == OCC_UNKNOWN).all()        # inside the wall: unknown, ignored by the losses
+    assert (lab[:, :, :5] == 0).all() and (lab[:, :, 8:] == 0).all()   # free in front and behind stays free
+    # pixels not valid (sky / too deep) mark nothing: the hidden wall is all unknown
+    assert (surface_labels(occ, RANGE, 1.0, [cam], depth, ~valid)[occ] == OCC_UNKNOWN).all()
+    # dilation 1: occupied 26-neighbours of seen voxels join the surface, free voxels stay free
+    dil = surface_labels(occ, RANGE, 1.0, [cam], depth, valid, dilation=1)
+    assert (dil[:, :, 5:7] == 1).all() and (dil[:, :, 7] == OCC_UNKNOWN).all() and (dil[~occ] == 0).all()
+    # seen from behind (camera at x = 9.5 looking down -x): the face x = 8 lies on a voxel boundary, and its hits
+    # must land in the wall voxel (x index 7), not in the free one behind it
+    pose = np.diag([-1.0, -1.0, 1.0, 1.0]) @ CAM_FORWARD     # turned 180 deg about z: at (-0.5, 0, 0) ...
+    pose[0, 3] += 10.0                                       # ... moved to (9.5, 0, 0)
+    back = Camera(name="back", width=cam.width, height=cam.height, K=cam.K, cam_to_ego=pose)
+    assert np.allclose(back.position, [9.5, 0, 0]) and np.allclose(back.rotation[:, 2], [-1, 0, 0])
+    lab_b = surface_labels(occ, RANGE, 1.0, [back], np.full_like(depth, 1.5), valid)
+    assert (lab_b[:, :, 7] == 1).all() and (lab_b[:, :, 5:7] == OCC_UNKNOWN).all() and (lab_b[~occ] == 0).all()
+    both = surface_labels(occ, RANGE, 1.0, [cam, back], np.concatenate([depth, np.full_like(depth, 1.5)]),
+                          np.concatenate([valid, valid]))
+    assert (both[:, :, [5, 7]] == 1).all() and (both[:, :, 6] == OCC_UNKNOWN).all()
+    # the general (distorted-camera) path agrees with the pinhole fast path
+    occ2, cam2, depth2, valid2 = _wall_scene(distortion=(1e-9, 0.0, 0.0, 0.0))
+    assert cam2.distortion is not None
+    assert np.array_equal(surface_labels(occ2, RANGE, 1.0, [cam2], depth2, valid2), lab)
+
+
+@pytest.fixture
+def tiny_data(tiny_synth_data):
+    return tiny_synth_data
+
+
+def test_surface_labels_in_items_and_flip(tiny_data):
+    solid = SceneDataset(tiny_data, DatasetConfig())[0]
+    cfg = DatasetConfig(occupancy_labels="surface")
+    surf = SceneDataset(tiny_data, cfg)[0]
+    occ, lab = solid["occupancy"].numpy(), surf["occupancy"].numpy()
+    assert set(np.unique(lab)) == {0, 1, OCC_UNKNOWN}
+    assert np.array_equal(lab == 0, occ == 0)           # only occupied voxels are relabelled
+    assert 0 < (lab == 1).sum() < 0.5 * occ.sum()
+    assert torch.equal(surf["bev"], solid["bev"])       # the BEV obstacle map is unchanged
+    # the flipped item's labels are the flipped labels ...
+    flip = SceneDataset(tiny_data, cfg.replace(flip_prob=1.0))[0]
+    assert flip["flipped"] and torch.equal(flip["occupancy"], surf["occupancy"].flip(1))
+    # ... and what the mirrored cameras see in the flipped depths (the mirror maps voxels onto voxels)
+    again = surface_labels(occ[:, ::-1] > 0, (-40.0, -40.0, -3.0, 40.0, 40.0, 13.0), 0.8,
+                           list(flip["rig"].cameras), flip["depth"][:, 0].numpy(),
+                           (flip["depth_valid"] & (flip["sky"] < 0.5))[:, 0].numpy())
+    assert (again == flip["occupancy"].numpy()).mean() > 0.9999
+
+
+def test_surface_config_validation():
+    with pytest.raises(ConfigError, match="occupancy_labels"):
+        DatasetConfig(occupancy_labels="visible")
+    for bad in (-1, 1.5, True):
+        with pytest.raises(ConfigError, match="surface_dilation"):
+            DatasetConfig(surface_dilation=bad)
+    assert DatasetConfig(occupancy_labels="surface", surface_dilation=2).surface_dilation == 2
