@@ -245,7 +245,10 @@ class PixelConfig(_Frozen):
     mlp_layers: int = 1
     mlp_width: int = 16
     g_p: int = 1
-    placement: Literal["cylinder_ray", "camera_ray"] = "cylinder_ray"
+    # camera_ray: the anchor is the point X the camera sees (the colour path samples X's colour); cylinder_ray
+    # puts it at X's radius on the cylinder ray, measured 5.4 px median / 16 px p90 off X at 400 px wide
+    # (docs/runs/cpu_2026-11-23/parallax.py)
+    placement: Literal["cylinder_ray", "camera_ray"] = "camera_ray"
     offset_scale: float = 0.5        # metres: offsets bounded to +-offset_scale (tanh)
     # colour path (ablation.rgb_path): the input image is area-pooled by this factor before its colour is sampled
     # at the pixel Gaussians' own (k_i k_o-upsampled) lattice -- anti-aliasing: a 112x1024 lattice spans about
@@ -290,6 +293,9 @@ class AblationConfig(_Frozen):
     # stride) to the backbone features before every module's lifting, and each pixel Gaussian's colour is a
     # learned residual on the input colour sampled along its own ray (docs/architecture.md)
     rgb_path: bool = True
+    # the occupancy module lifts the input RGB too (it only decides which voxels carry Gaussians, never their
+    # colour); kept on in the no-RGB ablation so that it shares the full model's stage-1 weights
+    rgb_occupancy: bool = True
 
     def __post_init__(self):
         if not (self.volume_branch or self.pixel_branch):

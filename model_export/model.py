@@ -140,12 +140,15 @@ class XYZCylinder(nn.Module):
         self.backbone = build_backbone(cfg.backbone)
         self.depth_head = DepthHead(D, cfg.backbone.depth_hidden, cfg.backbone.max_depth)
         self.use_rgb = ab.rgb_path
-        D = D + 3 if self.use_rgb else D   # lifted features: backbone features (+ pooled input RGB)
+        self.rgb_occ = ab.rgb_occupancy
+        self.d_feat = D                    # backbone channels; the lifted features append 3 RGB channels
+        D_occ = D + 3 if self.rgb_occ else D
+        D = D + 3 if self.use_rgb else D   # lifted features of the volume and pixel modules
         self.grid_shape = cfg.grid.shape  # (L_z, L_y, L_x)
         Lz = self.grid_shape[0]
 
         o = cfg.occupancy
-        self.occ_net = YNet(D, o.unet, o.out_dim, ab.flips, ab.dual_encoder)
+        self.occ_net = YNet(D_occ, o.unet, o.out_dim, ab.flips, ab.dual_encoder)
         self.occ_proj = nn.Conv2d(o.out_dim, o.k * o.d_occ, 1) if o.out_dim != o.k * o.d_occ else nn.Identity()
         self.occ_head = mlp(o.d_occ, o.mlp_width, o.num_classes, o.mlp_layers)
         self.bev_proj = nn.Linear(o.d_occ * Lz, o.bev_in_dim)
@@ -189,13 +192,19 @@ class XYZCylinder(nn.Module):
     def encode_images(self, images, depth=None, depth_mask=None):
         """-> (lifted features [N, D_feat (+3), h, w], depth [N, 1, h, w] metres, confidence [N, 1, h, w]).
         With ``ablation.rgb_path`` the input RGB, area-pooled to the feature map's size and standardised, is
-        concatenated to the backbone features: the frozen ImageNet features are largely colour-invariant."""
+        concatenated to the backbone features (with ``rgb_occupancy`` alone, only the occupancy module reads them:
+        ``module_features``)."""
         feats = self.backbone(images)
         d, c = self.depth_head(feats, depth, depth_mask)
-        if self.use_rgb:
+        if self.use_rgb or self.rgb_occ:
             rgb = F.adaptive_avg_pool2d(images, feats.shape[-2:])
             feats = torch.cat([feats, (rgb - RGB_MEAN) / RGB_STD], dim=1)
         return feats, d, c
+
+    def module_features(self, feats, module: str):
+        """The lifted features a module reads: all channels, or the backbone's alone where its RGB is off."""
+        rgb = self.rgb_occ if module == "occupancy" else self.use_rgb
+        return feats if rgb or feats.shape[1] == self.d_feat else feats[:, :self.d_feat]
 
     def input_colour(self, images, inp):
         """Colour path: the input colour along each pixel Gaussian's ray, [1, 3, kH_u, kW_u] in 0..1 (0 where no
@@ -208,6 +217,7 @@ class XYZCylinder(nn.Module):
     def occupancy(self, feats, inp):
         """-> (occ_logits [C, L_z, L_y, L_x], bev_logits [bev_out, L_y, L_x])."""
         o = self.cfg.occupancy
+        feats = self.module_features(feats, "occupancy")
         fp, fm = lift(feats, inp["grid_occ"], inp["sel_cw_occ"], inp["sel_ccw_occ"])
         group = cpfg(self.occ_proj(self.occ_net(fp, fm)), o.k)
         vf = sample_cpfg(group, inp["occ_coords"].reshape(-1, 3))              # [V, d_occ]
@@ -239,6 +249,7 @@ class XYZCylinder(nn.Module):
     def pixel_branch(self, feats, depth, conf, inp, images=None):
         """Pixel Gaussians; ``images`` [N, 3, H, W] (the network's input) feed the colour path (rgb_path)."""
         p = self.cfg.pixel
+        feats = self.module_features(feats, "pixel")
         grid = inp["grid_pix"]
         s = sample_cameras(feats, grid)
         dn = F.grid_sample(depth, grid, mode="bilinear", padding_mode="border", align_corners=False)  # [N,1,H,W]
@@ -358,7 +369,7 @@ class XYZCylinder(nn.Module):
             pix, pfeat, vmask, _ = self.pixel_branch(feats, d, c, inp, images)
         if self.use_volume or self.use_background:
             v = self.cfg.volume
-            fp, fm = lift(feats, inp["grid_vol"], inp["sel_cw_vol"], inp["sel_ccw_vol"])
+            fp, fm = lift(self.module_features(feats, "volume"), inp["grid_vol"], inp["sel_cw_vol"], inp["sel_ccw_vol"])
             if self.use_projection:
                 pr = self.pixel_projection(pix["means"], pfeat, vmask, inp["spec_vol"])
                 fp, fm = fp + pr, fm + pr

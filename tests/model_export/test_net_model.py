@@ -349,17 +349,20 @@ def test_rgb_path_pixel_colours_start_at_the_input_colour(k_out):
 
 
 def test_rgb_path_off_ignores_colour_and_on_uses_it():
-    """Ablation rgb_path=False: the lifted features are the backbone's alone (D_feat channels); the colour of a
-    flat-colour rig changes the pixel colours only through the backbone. rgb_path=True adds 3 channels."""
+    """rgb_path=True lifts 3 RGB channels beside the backbone's D_feat into every module; rgb_path=False keeps
+    them for the occupancy module only (rgb_occupancy) and both off lifts D_feat channels alone."""
     torch.manual_seed(0)
     on = tiny_config()
-    off = on.replace(ablation=AblationConfig(rgb_path=False))
     images = _flat_colour_images(6, on)
-    for cfg, extra in ((on, 3), (off, 0)):
-        model = XYZCylinder(cfg).eval()
+    D = on.backbone.feature_dim
+    for ab, occ, pix in ((AblationConfig(), 3, 3), (AblationConfig(rgb_path=False), 3, 0),
+                         (AblationConfig(rgb_path=False, rgb_occupancy=False), 0, 0)):
+        model = XYZCylinder(on.replace(ablation=ab)).eval()
         with torch.no_grad():
             feats, _, _ = model.encode_images(images)
-        assert feats.shape[1] == cfg.backbone.feature_dim + extra
+        assert model.module_features(feats, "occupancy").shape[1] == D + occ
+        assert model.module_features(feats, "pixel").shape[1] == D + pix
+        assert model.module_features(feats, "volume").shape[1] == D + pix
     with pytest.raises(ValueError, match="images"):
         model = XYZCylinder(on).eval()
         inp = rig_inputs(overlap_rig(6), on)
