@@ -21,7 +21,8 @@ One item = one scene (the network is unbatched over scenes; use ``collate_scenes
     item["scene"]       scene folder name; item["flipped"] bool
 
 Randomness (target subset, colour jitter, flip) comes from numpy's default_rng((seed, epoch, index)), so an
-item is reproducible and ``set_epoch`` draws new subsets per epoch.
+item is reproducible and ``set_epoch`` draws new subsets per epoch. The per-camera input augmentation draws from
+a child of that generator (``Generator.spawn``), so switching it on changes neither the targets nor the flip.
 """
 
 from __future__ import annotations
@@ -44,6 +45,9 @@ SETTINGS = ("ego-forward", "ego-inward")
 MIXED = "both"   # DatasetConfig.setting: draw the T targets from the union of both settings' cameras
 OCCUPANCY_LABELS = ("solid", "surface")
 OCC_UNKNOWN = 255   # occupancy label ignored by every loss (losses.IGNORE_INDEX)
+# xyzcyl train --camera-aug S: DatasetConfig fields at S = 1 (each scaled by S)
+CAMERA_AUG_PRESET = {"camera_exposure": 0.3, "camera_white_balance": 0.1, "vignetting": 0.4, "blur": 0.3,
+                     "jpeg": 0.5, "noise": 0.02}
 
 
 class DataError(ValueError):
@@ -66,6 +70,12 @@ class DatasetConfig(_Frozen):
     target_scale: float = 1.0           # targets resampled to this fraction of their size (cheaper rendering)
     occupancy_labels: str = "solid"     # "surface": only occupied voxels the input cameras see, hidden ones 255
     surface_dilation: int = 0           # "surface": also occupied voxels within this many voxels (26-neighbours)
+    camera_exposure: float = 0.0        # input cameras only, per camera: gain drawn from [1 - e, 1 + e]
+    camera_white_balance: float = 0.0   # per camera and channel: gain drawn from [1 - w, 1 + w]
+    vignetting: float = 0.0             # per camera: gain 1 - s (r / r_corner)^2, s drawn from [0, v]
+    blur: float = 0.0                   # per camera: probability of a Gaussian blur, sigma drawn from [0.3, 1.2] px
+    jpeg: float = 0.0                   # per camera: probability of a JPEG re-encode, quality drawn from [40, 95]
+    noise: float = 0.0                  # per camera: Gaussian noise, sigma drawn from [0, n]
 
     def __post_init__(self):
         if self.setting not in SETTINGS + (MIXED,):
@@ -90,6 +100,21 @@ class DatasetConfig(_Frozen):
         d = self.surface_dilation
         if isinstance(d, bool) or not isinstance(d, int) or d < 0:
             raise ConfigError(f"surface_dilation: must be an integer >= 0, got {d!r}")
+        for n, top in (("camera_exposure", "1)"), ("camera_white_balance", "1)"), ("vignetting", "1]"),
+                       ("blur", "1]"), ("jpeg", "1]"), ("noise", "1]")):
+            v = getattr(self, n)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not (0 <= v < 1 or (top == "1]" and v == 1)):
+                raise ConfigError(f"{n}: must be in [0, {top}, got {v!r}")
+
+    @property
+    def camera_aug(self) -> bool:
+        """Whether any per-camera input augmentation is on."""
+        return any(getattr(self, n) for n in CAMERA_AUG_PRESET)
+
+    def without_augmentation(self) -> DatasetConfig:
+        """The same data with every augmentation off (flip, colour jitter, camera effects): for validation."""
+        return self.replace(flip_prob=0.0, brightness=0.0, contrast=0.0, saturation=0.0,
+                            **{n: 0.0 for n in CAMERA_AUG_PRESET})
 
     @property
     def settings(self) -> tuple[str, ...]:
@@ -117,6 +142,77 @@ def colour_jitter(images: np.ndarray, rng: np.random.Generator, brightness: floa
     grey = (x @ np.array([0.299, 0.587, 0.114], np.float32))[..., None]
     x = grey + s * (x - grey)
     return np.clip(x, 0.0, 1.0).astype(np.float32)
+
+
+def camera_aug_fields(strength: float) -> dict[str, float]:
+    """The DatasetConfig fields of ``xyzcyl train --camera-aug S``: CAMERA_AUG_PRESET scaled by S in [0, 1]."""
+    if isinstance(strength, bool) or not isinstance(strength, (int, float)) or not 0 <= strength <= 1:
+        raise ConfigError(f"camera_aug: must be in [0, 1], got {strength!r}")
+    return {k: v * strength for k, v in CAMERA_AUG_PRESET.items()}
+
+
+@dataclass(frozen=True)
+class CameraAug:
+    """One input camera's drawn augmentation (``draw_camera_aug``); the defaults change nothing."""
+    vignetting: float = 0.0                           # s: gain 1 - s (r / r_corner)^2
+    gain: tuple[float, float, float] = (1.0, 1.0, 1.0)   # exposure x white balance, per RGB channel
+    blur_sigma: float = 0.0                           # pixels; 0 = no blur
+    noise_sigma: float = 0.0                          # 0..1 image units; 0 = no noise
+    jpeg_quality: int = 0                             # 0 = no JPEG re-encode
+
+
+def draw_camera_aug(rng: np.random.Generator, cfg: DatasetConfig) -> CameraAug:
+    """Draw one camera's augmentation. Every parameter is drawn whatever the config, in a fixed order, so each
+    operation's draw does not depend on which others are on."""
+    s = rng.uniform(0.0, cfg.vignetting)
+    e = rng.uniform(1 - cfg.camera_exposure, 1 + cfg.camera_exposure)
+    wb = rng.uniform(1 - cfg.camera_white_balance, 1 + cfg.camera_white_balance, size=3)
+    do_blur, sigma = rng.random() < cfg.blur, rng.uniform(0.3, 1.2)
+    n = rng.uniform(0.0, cfg.noise)
+    do_jpeg, q = rng.random() < cfg.jpeg, int(rng.integers(40, 96))
+    return CameraAug(vignetting=float(s), gain=tuple(float(e * w) for w in wb),
+                     blur_sigma=float(sigma) if do_blur else 0.0, noise_sigma=float(n),
+                     jpeg_quality=q if do_jpeg else 0)
+
+
+def apply_camera_aug(image: np.ndarray, aug: CameraAug, rng: np.random.Generator | None = None) -> np.ndarray:
+    """Apply ``aug`` to one image [H, W, 3] float32 0..1 (RGB) in the physical order vignetting, exposure / white
+    balance, blur, noise (drawn from ``rng``; default_rng(0) when None), clip to [0, 1], JPEG. Returns a new
+    float32 array."""
+    import cv2
+
+    x = np.array(image, np.float32)
+    h, w = x.shape[:2]
+    if aug.vignetting:
+        yy, xx = np.mgrid[:h, :w].astype(np.float32)
+        cy, cx = (h - 1) / 2, (w - 1) / 2
+        r2 = ((xx - cx) ** 2 + (yy - cy) ** 2) / max(cx * cx + cy * cy, 1e-12)
+        x *= (1 - aug.vignetting * r2)[..., None]
+    if aug.gain != (1.0, 1.0, 1.0):
+        x *= np.asarray(aug.gain, np.float32)
+    if aug.blur_sigma:
+        x = cv2.GaussianBlur(x, (0, 0), sigmaX=aug.blur_sigma, sigmaY=aug.blur_sigma,
+                             borderType=cv2.BORDER_REFLECT_101)
+    if aug.noise_sigma:
+        rng = rng if rng is not None else np.random.default_rng(0)
+        x += aug.noise_sigma * rng.standard_normal(x.shape, dtype=np.float32)
+    x = np.clip(x, 0.0, 1.0)
+    if aug.jpeg_quality:
+        bgr = np.ascontiguousarray(np.round(x[..., ::-1] * 255).astype(np.uint8))
+        ok, buf = cv2.imencode(".jpg", bgr, [cv2.IMWRITE_JPEG_QUALITY, int(aug.jpeg_quality)])
+        if not ok:
+            raise DataError("jpeg: cv2.imencode failed")
+        x = cv2.imdecode(buf, cv2.IMREAD_COLOR)[..., ::-1].astype(np.float32) / 255
+    return np.ascontiguousarray(x, dtype=np.float32)
+
+
+def camera_augment(images: np.ndarray, rng: np.random.Generator, cfg: DatasetConfig) -> np.ndarray:
+    """Independent real-camera effects per input camera (docs/training.md): images [N, H, W, 3] float32 0..1 ->
+    same. Camera k draws from the k-th child of ``rng`` (parameters first, then its noise)."""
+    out = []
+    for img, g in zip(images, rng.spawn(len(images))):
+        out.append(apply_camera_aug(img, draw_camera_aug(g, cfg), g))
+    return np.stack(out)
 
 
 _MIRROR_Y = np.diag([1.0, -1.0, 1.0, 1.0])   # ego (x, y, z) -> (x, -y, z)
@@ -371,6 +467,8 @@ class SceneDataset(torch.utils.data.Dataset):
         if cfg.brightness or cfg.contrast or cfg.saturation:
             both = colour_jitter(np.concatenate([img, timg]), rng, cfg.brightness, cfg.contrast, cfg.saturation)
             img, timg = both[:len(img)], both[len(img):]
+        if cfg.camera_aug:      # inputs only, after the jitter; a child stream leaves rng's draws unchanged
+            img = camera_augment(img, rng.spawn(1)[0], cfg)
         occ, bev, rng_m = self._occupancy(folder)
         if cfg.occupancy_labels == "surface":   # before the flip: unflipped cameras and depths, flipped below
             seen = np.isfinite(depth) & (depth > 0) & (depth <= cfg.max_depth) & ~sky

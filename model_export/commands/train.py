@@ -50,13 +50,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--flip-prob", type=float, default=0.5, help="scene mirror (y -> -y) probability")
     parser.add_argument("--jitter", type=float, default=0.1, help="colour jitter strength (brightness, contrast, "
                                                                   "saturation), 0 disables")
+    parser.add_argument("--camera-aug", type=float, default=0.0,
+                        help="real-camera effects on the input images only, S in [0, 1] scales the preset "
+                             "(per camera: exposure 0.3S, white balance 0.1S, vignetting 0.4S, blur prob. 0.3S, "
+                             "JPEG prob. 0.5S, noise sigma 0.02S; docs/training.md); 0 disables")
     parser.add_argument("--seed", type=int, default=0)
     add_runtime_arguments(parser)
 
 
 def run(args: argparse.Namespace) -> int:
     from xyzcyl.model_export.config import ConfigError, ModelConfig, preset
-    from xyzcyl.model_export.dataset import DataError, DatasetConfig
+    from xyzcyl.model_export.dataset import DataError, DatasetConfig, camera_aug_fields
     from xyzcyl.model_export.losses import LPIPSUnavailable, OptimConfig, RenderLossConfig, TrainLossConfig
     from xyzcyl.model_export.train import TrainConfig, load_checkpoint, train
     from xyzcyl.runtime.rig import RigError
@@ -89,6 +93,7 @@ def run(args: argparse.Namespace) -> int:
             val_scenes=args.val_scenes, seed=args.seed,
             data=DatasetConfig(setting=args.setting, num_targets=args.targets, voxel_size=voxel, seed=args.seed,
                                brightness=j, contrast=j, saturation=j, flip_prob=args.flip_prob,
+                               **camera_aug_fields(args.camera_aug),
                                target_scale=args.target_scale),
             loss=TrainLossConfig(
                 render=RenderLossConfig(lpips_net=args.lpips_net, lpips_backbone_path=args.lpips_backbone,

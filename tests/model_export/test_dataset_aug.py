@@ -1,13 +1,17 @@
-"""Surface (visibility-carved) occupancy labels of dataset.py."""
+"""Surface (visibility-carved) occupancy labels and the per-camera input augmentation of dataset.py."""
 
 import numpy as np
 import pytest
 import torch
 from xyzcyl.model_export.config import ConfigError
 from xyzcyl.model_export.dataset import (
+    CAMERA_AUG_PRESET,
     OCC_UNKNOWN,
+    CameraAug,
     DatasetConfig,
     SceneDataset,
+    apply_camera_aug,
+    camera_aug_fields,
     surface_labels,
 )
 from xyzcyl.runtime.rig import Camera
@@ -94,3 +98,104 @@ def test_surface_config_validation():
         with pytest.raises(ConfigError, match="surface_dilation"):
             DatasetConfig(surface_dilation=bad)
     assert DatasetConfig(occupancy_labels="surface", surface_dilation=2).surface_dilation == 2
+
+
+# --------------------------------------------------------------------------------------- camera augmentation
+
+STRONG = {"camera_exposure": 0.5, "camera_white_balance": 0.3, "vignetting": 1.0, "blur": 1.0, "jpeg": 1.0,
+          "noise": 0.05}
+
+
+def _base(**kw):
+    return DatasetConfig(setting="both", num_targets=3, brightness=0.2, contrast=0.2, saturation=0.2, flip_prob=0.5,
+                         **kw)
+
+
+def test_each_camera_aug_changes_inputs_only(tiny_data):
+    ds0 = SceneDataset(tiny_data, _base())
+    for index in (0, 1):
+        off = ds0[index]
+        for field, value in STRONG.items():
+            on = SceneDataset(tiny_data, _base(**{field: value}))[index]
+            x = on["images"]
+            assert not torch.equal(x, off["images"]), field
+            assert 0 <= float(x.min()) and float(x.max()) <= 1 and x.dtype == torch.float32, field
+            # targets (colour-jittered as before), flip, geometry: untouched, the rng stream included
+            assert on["flipped"] == off["flipped"] and on["targets"]["names"] == off["targets"]["names"], field
+            for a, b in ((on["targets"]["images"], off["targets"]["images"]), (on["depth"], off["depth"]),
+                         (on["sky"], off["sky"]), (on["occupancy"], off["occupancy"])):
+                assert torch.equal(a, b), field
+
+
+def test_camera_aug_is_reproducible_and_per_camera(tiny_data):
+    cfg = _base(**STRONG)
+    ds = SceneDataset(tiny_data, cfg)
+    a, b = ds.item(1, 3), SceneDataset(tiny_data, cfg).item(1, 3)
+    assert torch.equal(a["images"], b["images"])
+    assert not torch.equal(ds.item(1, 4)["images"], a["images"])
+    # exposure alone: each camera gets its own gain (ratio to the un-augmented input differs per camera)
+    off = SceneDataset(tiny_data, DatasetConfig())[0]["images"]
+    exp = SceneDataset(tiny_data, DatasetConfig(camera_exposure=0.5))[0]["images"]
+    m = (off > 0.05) & (off < 0.6)                     # no clipping at 1.5 x
+    ratios = [float((exp[k][m[k]] / off[k][m[k]]).median()) for k in range(len(off))]
+    assert len({round(r, 3) for r in ratios}) == len(ratios)
+    assert all(0.5 - 1e-3 <= r <= 1.5 + 1e-3 for r in ratios)
+
+
+def test_camera_aug_off_is_the_raw_input(tiny_data):
+    from xyzcyl.runtime.rig import load_rig
+
+    it = SceneDataset(tiny_data, DatasetConfig(**{k: 0.0 for k in CAMERA_AUG_PRESET}))[0]
+    raw = np.stack(load_rig(tiny_data / "scene_000000" / "rig.json").load_images())
+    assert np.array_equal(it["images"].numpy(), raw.transpose(0, 3, 1, 2))
+    assert not DatasetConfig().camera_aug and DatasetConfig(noise=0.01).camera_aug
+
+
+def test_apply_camera_aug_operations():
+    img = np.full((30, 40, 3), 0.5, np.float32)
+    v = apply_camera_aug(img, CameraAug(vignetting=0.4))
+    assert v[15, 20, 0] == pytest.approx(0.5, abs=2e-3) and v[0, 0, 0] == pytest.approx(0.5 * 0.6, abs=1e-6)
+    g = apply_camera_aug(img, CameraAug(gain=(1.2, 1.0, 0.8)))
+    np.testing.assert_allclose(g[0, 0], [0.6, 0.5, 0.4], atol=1e-6)
+    rng = np.random.default_rng(0)
+    tex = rng.random((30, 40, 3)).astype(np.float32)
+    b = apply_camera_aug(tex, CameraAug(blur_sigma=1.2))
+    assert b.std() < 0.7 * tex.std()
+    n = apply_camera_aug(img, CameraAug(noise_sigma=0.05), np.random.default_rng(1))
+    assert 0.04 < float((n - img).std()) < 0.06
+    j = apply_camera_aug(tex, CameraAug(jpeg_quality=40))
+    assert 0.01 < float(np.abs(j - tex).mean()) and (j * 255 == np.round(j * 255)).all()   # 8-bit decode
+    s = apply_camera_aug(img, CameraAug(gain=(3.0, 3.0, 3.0), noise_sigma=0.5), np.random.default_rng(2))
+    assert s.min() >= 0 and s.max() <= 1 and s.dtype == np.float32
+    assert np.array_equal(apply_camera_aug(tex, CameraAug()), tex)
+
+
+def test_camera_aug_config_and_preset():
+    for field in CAMERA_AUG_PRESET:
+        for bad in (-0.1, 1.5, True):
+            with pytest.raises(ConfigError, match=field):
+                DatasetConfig(**{field: bad})
+    with pytest.raises(ConfigError, match="camera_exposure"):
+        DatasetConfig(camera_exposure=1.0)             # a gain of 0
+    assert DatasetConfig(blur=1.0, jpeg=1.0, vignetting=1.0, noise=1.0).camera_aug
+    assert camera_aug_fields(0.0) == {k: 0.0 for k in CAMERA_AUG_PRESET}
+    full = camera_aug_fields(1.0)
+    assert full == CAMERA_AUG_PRESET and DatasetConfig(**full).camera_aug
+    assert camera_aug_fields(0.5)["jpeg"] == pytest.approx(0.25)
+    with pytest.raises(ConfigError, match="camera_aug"):
+        camera_aug_fields(1.5)
+    plain = DatasetConfig(flip_prob=0.5, brightness=0.1, num_targets=2, **full).without_augmentation()
+    assert plain == DatasetConfig(num_targets=2)
+
+
+def test_train_cli_camera_aug(tiny_data, tmp_path, capsys):
+    import argparse
+
+    from xyzcyl.model_export.commands import train as cmd
+
+    parser = argparse.ArgumentParser()
+    cmd.add_arguments(parser)
+    args = parser.parse_args(["--data", str(tiny_data), "--stage", "occ", "--out", str(tmp_path / "r"),
+                              "--camera-aug", "1.5"])
+    assert cmd.run(args) == 2 and "camera_aug" in capsys.readouterr().err
+    assert parser.parse_args(["--data", "d", "--stage", "occ", "--out", "o"]).camera_aug == 0.0
