@@ -1,7 +1,8 @@
 """`xyzcyl data`: synthetic training data.
 
     xyzcyl data synth --out DIR --scenes N --rig nuscenes --height H --width W \
-        --targets ego-forward,ego-inward --seed S [--inward-views V] [--supersample 2] [--voxels 0.4,0.8]
+        --targets ego-forward,ego-inward --seed S [--inward-views V] [--supersample 2] [--voxels 0.4,0.8] \
+        [--workers N]
     xyzcyl data gallery DIR --out sheet.png [--scenes 8]
 """
 
@@ -28,6 +29,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     s.add_argument("--no-shadows", action="store_true", help="no sun shadows (faster)")
     s.add_argument("--voxels", default="0.4,0.8", help="comma list of occupancy voxel sizes, metres")
     s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--workers", type=int, default=1,
+                   help="scenes rendered at once, each in its own process with cores/N numba threads (default 1: "
+                        "one process, all cores per scene); the files are identical for any N")
     s.add_argument("--quiet", action="store_true", help="no progress bar")
     g = sub.add_parser("gallery", help="contact sheet of a data set")
     g.add_argument("dataset", type=Path)
@@ -54,7 +58,7 @@ def run(args: argparse.Namespace) -> int:
                               targets=tuple(t.strip() for t in args.targets.split(",") if t.strip()),
                               inward_views=args.inward_views, supersample=args.supersample,
                               shadows=not args.no_shadows, voxels=_floats(args.voxels, "voxels"), seed=args.seed)
-            n = synth(args.out, args.scenes, cfg, progress=not args.quiet)
+            n = synth(args.out, args.scenes, cfg, progress=not args.quiet, workers=args.workers)
             print(f"{n} scenes rendered into {args.out}")
             return 0
         import cv2

@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 import os
 import shutil
-from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import Future, ProcessPoolExecutor, ThreadPoolExecutor, as_completed
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -141,6 +141,7 @@ def write_exr(path: Path, depth: np.ndarray) -> None:
 
     spec = oiio.ImageSpec(depth.shape[1], depth.shape[0], 1, "float")
     spec.attribute("compression", "zip")
+    spec.attribute("DateTime", "")  # no capDate header (OIIO stamps the wall clock): files depend on the data only
     spec.channelnames = ("Z",)
     out = oiio.ImageOutput.create(str(path))
     if out is None or not out.open(str(path), spec):
@@ -217,14 +218,57 @@ def index_doc(cfg: SynthConfig, n: int) -> dict:
             "classes": {str(k): v[0] for k, v in C.CLASSES.items()}, "scene_folders": "scene_{index:06d}"}
 
 
-def synth(out: Path, n: int, cfg: SynthConfig, progress: bool = True) -> int:
+def _write_atomic(data: SceneData, out: Path, cfg: SynthConfig) -> None:
+    """Write the scene into out/.tmp/<name> (replacing a leftover partial folder), then rename it to out/<name>."""
+    name = scene_name(data.scene.index)
+    part = out / ".tmp" / name
+    if part.exists():
+        shutil.rmtree(part)
+    write_scene(data, part, cfg)
+    os.replace(part, out / name)
+
+
+def cores() -> int:
+    """CPU cores this process may use (its affinity mask), at most numba's pool size (NUMBA_NUM_THREADS)."""
+    import numba
+
+    n = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    return max(1, min(n, numba.config.NUMBA_NUM_THREADS))
+
+
+def _worker_init(threads: int) -> None:
+    """Pool worker set-up: `threads` numba threads (workers x threads <= cores); OpenImageIO's pool likewise."""
+    import numba
+
+    numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
+    try:
+        import OpenImageIO as oiio
+
+        oiio.attribute("threads", threads)
+        oiio.attribute("exr_threads", threads)
+    except ImportError:  # write_exr reports the missing module itself
+        pass
+
+
+def _render_and_write(cfg: SynthConfig, index: int, out: Path) -> int:
+    _write_atomic(render_scene(cfg, index), out, cfg)
+    return index
+
+
+def synth(out: Path, n: int, cfg: SynthConfig, progress: bool = True, workers: int = 1) -> int:
     """Render scenes 0..n-1 into `out`, skipping finished ones; returns the number rendered now.
 
     Each scene is written into a temporary folder and renamed into place, so a folder named scene_XXXXXX is
     always complete. An existing index.json must have the same config (ValueError naming the field).
+
+    workers 1: one process; numba renders each scene on all its threads while a background thread writes the
+    previous one. workers N > 1: N spawned processes render and write whole scenes side by side, each with
+    max(1, cores() // N) numba threads. The files are the same byte for byte whatever `workers` is.
     """
     from tqdm import tqdm
 
+    if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
+        raise ValueError(f"workers: must be an integer >= 1, got {workers!r}")
     cfg.validate()
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -241,24 +285,32 @@ def synth(out: Path, n: int, cfg: SynthConfig, progress: bool = True) -> int:
     tmp = out / ".tmp"
     tmp.mkdir(exist_ok=True)
     todo = [i for i in range(n) if not (out / scene_name(i)).is_dir()]
-    pending: Future | None = None
+    workers = min(workers, len(todo))
+    with tqdm(total=len(todo), desc="synth", unit="scene", disable=not progress) as bar:
+        if workers <= 1:
+            pending: Future | None = None
+            with ThreadPoolExecutor(1) as pool:
+                for i in todo:
+                    data = render_scene(cfg, i)
+                    if pending is not None:
+                        pending.result()
+                        bar.update()
+                    pending = pool.submit(_write_atomic, data, out, cfg)
+                if pending is not None:
+                    pending.result()
+                    bar.update()
+        else:
+            # spawn, not fork: numba's omp threading layer (GNU OpenMP) is not fork-safe once its pool has started
+            import multiprocessing
 
-    def finish(data: SceneData) -> None:
-        name = scene_name(data.scene.index)
-        part = tmp / name
-        if part.exists():
-            shutil.rmtree(part)
-        write_scene(data, part, cfg)
-        os.replace(part, out / name)
-
-    with ThreadPoolExecutor(1) as pool:
-        for i in tqdm(todo, desc="synth", unit="scene", disable=not progress):
-            data = render_scene(cfg, i)
-            if pending is not None:
-                pending.result()
-            pending = pool.submit(finish, data)
-        if pending is not None:
-            pending.result()
+            pool = ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"),
+                                       initializer=_worker_init, initargs=(max(1, cores() // workers),))
+            try:
+                for f in as_completed([pool.submit(_render_and_write, cfg, i, out) for i in todo]):
+                    f.result()
+                    bar.update()
+            finally:
+                pool.shutdown(wait=True, cancel_futures=True)
     idx_path.write_text(json.dumps(index_doc(cfg, n_total), indent=1) + "\n")
     shutil.rmtree(tmp, ignore_errors=True)
     return len(todo)
