@@ -5,10 +5,12 @@ renderer (xyzcyl.runtime.render.render / render_backward), several target views 
     image = blend(rgb, alpha, background)                       # I = I_fg + (1 - A_fg) * I_bg (model.blend)
 
 The splat render is always over black; the background is blended in torch so its gradient flows to ZNet_bg.
-All views of one call must share width and height. Tensors are moved to numpy (float32, or float64 when the
-inputs are float64 -- used by the finite-difference test) and gradients come back as tensors of the inputs'
-dtype and device. ``render_views_gsplat`` is the optional CUDA path (gsplat), used only when both CUDA and
-gsplat import; ``render_views_auto`` picks it.
+All views of one call must share width and height. The renderer runs on the host CPU whatever the device of
+the Gaussians: they are copied to numpy (float32, or float64 when the inputs are float64 -- used by the
+finite-difference test), the images come back on the Gaussians' device and dtype, and each gradient on its
+input's device and dtype (so a network on CUDA trains through the CPU renderer; `xyzcyl train --device`).
+``render_views_gsplat`` is an optional CUDA rasteriser (gsplat) that training does not use: it is untested
+here (no GPU in CI) and cuts footprints differently from the runtime renderer that evaluation uses.
 """
 
 from __future__ import annotations
@@ -33,6 +35,7 @@ class RenderViews(torch.autograd.Function):
         g = Gaussians(_np(means), _np(quats), _np(log_scales), _np(opacity_logits), _np(sh))
         results = [render(g, cam, None, **options) for cam in cameras]
         ctx.g, ctx.results, ctx.cameras, ctx.options = g, results, cameras, options
+        ctx.inputs = [(t.device, t.dtype) for t in (means, quats, log_scales, opacity_logits, sh)]
         ref = means
         rgb = torch.as_tensor(np.stack([r.rgb for r in results]), device=ref.device, dtype=ref.dtype)
         alpha = torch.as_tensor(np.stack([r.alpha for r in results]), device=ref.device, dtype=ref.dtype)
@@ -48,8 +51,7 @@ class RenderViews(torch.autograd.Function):
                                  None, **ctx.options)
             parts = [gr.means, gr.quats, gr.log_scales, gr.opacity_logits, gr.sh]
             acc = parts if acc is None else [a + p for a, p in zip(acc, parts)]
-        ref = d_rgb
-        out = [torch.as_tensor(a, device=ref.device, dtype=ref.dtype) for a in acc]
+        out = [torch.as_tensor(a, device=dev, dtype=dt) for a, (dev, dt) in zip(acc, ctx.inputs)]
         ctx.g = ctx.results = None
         return (*out, None, None)
 
@@ -79,14 +81,17 @@ def gsplat_available() -> bool:
 
 
 def render_views_gsplat(gaussians: dict[str, torch.Tensor], cameras: Sequence[PinholeCamera]):
-    """CUDA path with gsplat.rasterization (same outputs as render_views). Requires CUDA and gsplat; not
-    exercised by the CPU test-suite (no GPU in CI)."""
+    """CUDA path with gsplat.rasterization (the outputs of render_views). Requires CUDA and gsplat; not
+    exercised by the CPU test-suite (no GPU in CI). gsplat samples pixel (u, v) at (u + 0.5, v + 0.5), the
+    runtime renderer at (u, v) (OpenCV), so the principal point is shifted by half a pixel to match."""
     import gsplat
 
     dev = torch.device("cuda")
     g = {k: v.to(dev) for k, v in gaussians.items()}
     viewmats = torch.stack([torch.as_tensor(np.linalg.inv(c.cam_to_world), dtype=torch.float32) for c in cameras])
     Ks = torch.stack([torch.as_tensor(c.K, dtype=torch.float32) for c in cameras])
+    Ks[:, 0, 2] += 0.5
+    Ks[:, 1, 2] += 0.5
     W, H = cameras[0].width, cameras[0].height
     S = g["sh"].shape[1]
     colors, alphas, _ = gsplat.rasterization(
@@ -95,9 +100,3 @@ def render_views_gsplat(gaussians: dict[str, torch.Tensor], cameras: Sequence[Pi
     # gsplat's SH evaluation adds 0.5 and clamps at 0 like the runtime renderer
     return colors[..., :3].permute(0, 3, 1, 2), alphas.permute(0, 3, 1, 2), colors[..., 3:].permute(0, 3, 1, 2)
 
-
-def render_views_auto(gaussians, cameras, **options):
-    """gsplat on CUDA when available, else the runtime's CPU renderer."""
-    if gsplat_available() and gaussians["means"].is_cuda:
-        return render_views_gsplat(gaussians, cameras)
-    return render_views(gaussians, cameras, **options)

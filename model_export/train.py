@@ -133,12 +133,12 @@ def forward_render(model, item: dict[str, Any]) -> dict[str, torch.Tensor]:
     Returns rgb [T, 3, H, W] (composited), alpha [T, 1, H, W] (foreground), depth [T, 1, H, W] (foreground),
     bg [T, 3, H, W] or None, depth_head [N, 1, h, w], n_gaussians."""
     from .model import blend
-    from .render_fn import render_views_auto
+    from .render_fn import render_views
 
     cfg = model.cfg
     inp = item["lifting"]
     out = model(_resize(item["images"], cfg), inp, occ_gt=item["occupancy"].bool())
-    rgb, alpha, depth = render_views_auto(out["gaussians"], target_cameras(item["targets"]))
+    rgb, alpha, depth = render_views(out["gaussians"], target_cameras(item["targets"]))  # host CPU, any device
     bg = model.background(out["app_plane"], item["targets"]["background_grid"]) if out["app_plane"] is not None \
         else None
     if bg is not None and bg.shape[-2:] != rgb.shape[-2:]:
@@ -166,6 +166,35 @@ def step_loss(model, item: dict[str, Any], tcfg: TrainConfig, lpips=None) -> tup
         loss = loss + tcfg.depth_head_weight * dl
         parts["depth_head"] = float(dl.detach())
     return loss, parts
+
+
+def resolve_device(device: str | torch.device = "cpu") -> torch.device:
+    """"cpu", "cuda" or "cuda:N" as a torch.device; ValueError naming `device` when it is none of these or
+    CUDA is asked for but not available."""
+    try:
+        dev = torch.device(device)
+    except (RuntimeError, TypeError):
+        raise ValueError(f"device: expected cpu, cuda or cuda:N, got {device!r}") from None
+    if dev.type not in ("cpu", "cuda"):
+        raise ValueError(f"device: expected cpu, cuda or cuda:N, got {device!r}")
+    if dev.type == "cuda":
+        if not torch.cuda.is_available():
+            raise ValueError(f"device: {str(device)!r} asked for, but CUDA is not available here (torch "
+                             f"{torch.__version__}, CUDA build: {torch.version.cuda or 'none'}); use --device cpu")
+        if dev.index is not None and dev.index >= torch.cuda.device_count():
+            raise ValueError(f"device: {str(device)!r} asked for, but only {torch.cuda.device_count()} CUDA "
+                             "device(s) are visible")
+    return dev
+
+
+def to_device(item: Any, device: torch.device) -> Any:
+    """The item with every tensor (nested dicts included: targets, lifting) on `device`; other values (rig,
+    numpy K / cam_to_ego, names) as they are. A no-op copy of the dicts on the tensors' own device."""
+    if isinstance(item, torch.Tensor):
+        return item.to(device)
+    if isinstance(item, dict):
+        return {k: to_device(v, device) for k, v in item.items()}
+    return item
 
 
 # ------------------------------------------------------------------------------------------------ checkpoints
@@ -278,18 +307,20 @@ def validate(model, ds: SceneDataset, tcfg: TrainConfig, step: int, run_dir: Pat
     from . import metrics as M
 
     model.eval()
+    dev = next(model.parameters()).device
     res: dict[str, list[float]] = {}
     sheet = None
     with torch.no_grad():
         for i in range(min(tcfg.val_scenes, len(ds))):
-            item = ds.item(i, 0)
+            item = ds.item(i, 0)            # host tensors for the metrics; the model reads a copy on its device
+            x = to_device(item, dev)
             if tcfg.stage == "occ":
-                feats, _, _ = model.encode_images(_resize(item["images"], model.cfg))
-                occ, bev = model.occupancy(feats, item["lifting"])
+                feats, _, _ = model.encode_images(_resize(x["images"], model.cfg))
+                occ, bev = (a.cpu() for a in model.occupancy(feats, x["lifting"]))
                 res.setdefault("occ_iou", []).append(M.occupancy_iou(occ.argmax(0).numpy(), item["occupancy"].numpy()))
                 res.setdefault("bev_iou", []).append(M.occupancy_iou(bev.argmax(0).numpy(), item["bev"].numpy()))
                 continue
-            r = forward_render(model, item)
+            r = to_device(forward_render(model, x), torch.device("cpu"))
             t = item["targets"]
             for k in range(t["images"].shape[0]):
                 pred = r["rgb"][k].clamp(0, 1).permute(1, 2, 0).numpy()
@@ -347,12 +378,16 @@ class _Stop(Exception):
 
 def train(data_dir: str | Path, run_dir: str | Path, model_cfg: ModelConfig | None, tcfg: TrainConfig,
           resume: bool = False, init: str | Path | None = None, val_dir: str | Path | None = None,
-          progress: bool = True, max_steps_now: int | None = None) -> dict[str, Any]:
+          progress: bool = True, max_steps_now: int | None = None,
+          device: str | torch.device = "cpu") -> dict[str, Any]:
     """Run (or resume) one stage. ``model_cfg`` None: taken from ``init`` (or the resumed checkpoint).
     ``max_steps_now``: stop after this many steps in this call (checkpointed; for tests and time-boxed runs).
+    ``device``: where the network, its inputs and the losses live (resolve_device); the splatting renderer
+    always runs on the host CPU (render_fn.RenderViews copies across). Checkpoints load onto any device.
     Returns a summary dict (steps done, last losses, wall time, paths)."""
     from tqdm import tqdm
 
+    dev = resolve_device(device)
     run_dir = Path(run_dir)
     last = run_dir / "last.pt"
     ck = None
@@ -376,7 +411,7 @@ def train(data_dir: str | Path, run_dir: str | Path, model_cfg: ModelConfig | No
     run_dir.mkdir(parents=True, exist_ok=True)
 
     torch.manual_seed(tcfg.seed)
-    model = build_model(model_cfg)
+    model = build_model(model_cfg).to(dev)
     base_flags = {n: p.requires_grad for n, p in model.named_parameters()}
     if init_ck is not None:
         load_init(model, init_ck["model"], str(init))
@@ -391,8 +426,10 @@ def train(data_dir: str | Path, run_dir: str | Path, model_cfg: ModelConfig | No
         torch.set_rng_state(ck["torch_rng"])
     (run_dir / "config.json").write_text(json.dumps({"model": model_cfg.to_dict(), "train": tcfg.to_dict(),
                                                      "data": str(data_dir), "init": None if init is None else
-                                                     str(init)}, indent=1) + "\n")
+                                                     str(init), "device": str(dev)}, indent=1) + "\n")
     lpips = load_lpips(tcfg.loss.render) if tcfg.stage == "render" else None
+    if lpips is not None:
+        lpips = lpips.to(dev)
     ds = SceneDataset(data_dir, tcfg.data, model_cfg=model_cfg)
     val_ds = SceneDataset(val_dir, tcfg.data.replace(flip_prob=0.0, brightness=0.0, contrast=0.0, saturation=0.0),
                           model_cfg=model_cfg) if val_dir is not None else None
@@ -412,7 +449,7 @@ def train(data_dir: str | Path, run_dir: str | Path, model_cfg: ModelConfig | No
 
     def fetch(step: int) -> dict[str, Any]:
         epoch, pos = divmod(step, len(ds))
-        return ds.item(int(scene_order(len(ds), tcfg.seed, epoch)[pos]), epoch)
+        return to_device(ds.item(int(scene_order(len(ds), tcfg.seed, epoch)[pos]), epoch), dev)
 
     end = tcfg.steps if max_steps_now is None else min(tcfg.steps, start + max_steps_now)
     stop = {"flag": False}

@@ -55,6 +55,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "(per camera: exposure 0.3S, white balance 0.1S, vignetting 0.4S, blur prob. 0.3S, "
                              "JPEG prob. 0.5S, noise sigma 0.02S; docs/training.md); 0 disables")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--device", default="cpu",
+                        help="cpu or cuda (cuda:N): where the network and its losses run; the splatting renderer "
+                             "stays on the host CPU (default cpu)")
     add_runtime_arguments(parser)
 
 
@@ -62,11 +65,12 @@ def run(args: argparse.Namespace) -> int:
     from xyzcyl.model_export.config import ConfigError, ModelConfig, preset
     from xyzcyl.model_export.dataset import DataError, DatasetConfig, camera_aug_fields
     from xyzcyl.model_export.losses import LPIPSUnavailable, OptimConfig, RenderLossConfig, TrainLossConfig
-    from xyzcyl.model_export.train import TrainConfig, load_checkpoint, train
+    from xyzcyl.model_export.train import TrainConfig, load_checkpoint, resolve_device, train
     from xyzcyl.runtime.rig import RigError
 
     try:
         set_threads(args.threads)
+        device = resolve_device(args.device)
         if not args.data.is_dir():
             raise ValueError(f"data: {args.data} is not a folder")
         if args.steps < 1:
@@ -100,7 +104,7 @@ def run(args: argparse.Namespace) -> int:
                                         lpips_lin_path=args.lpips_lin),
                 optim=OptimConfig(lr=args.lr, warmup_steps=warm, total_steps=args.steps)))
         summary = train(args.data, args.out, model_cfg, tcfg, resume=args.resume, init=args.init,
-                        val_dir=args.val, progress=not args.quiet)
+                        val_dir=args.val, progress=not args.quiet, device=device)
     except (ValueError, ConfigError, DataError, RigError, LPIPSUnavailable, FileNotFoundError) as exc:
         print(f"xyzcyl train: {exc}", file=sys.stderr)
         return 2
