@@ -166,7 +166,7 @@ def model_views(model, item: dict[str, Any], occupancy: str = "predicted") -> It
     with torch.no_grad():   # never across a yield: grad mode is thread state the caller would inherit
         idx = None   # predicted: the occupancy head decides, whatever selection the model was trained with
         if occupancy == "ground-truth" and model.use_volume:
-            idx = model.select_voxels(None, item["occupancy"].bool(), source="ground_truth")
+            idx = model.select_voxels(None, item["occupancy"] == 1, source="ground_truth")
         out = model(_resize(item["images"], model.cfg), item["lifting"], voxel_idx=idx)
     g = Gaussians(*(out["gaussians"][k].float().numpy() for k in GAUSSIAN_KEYS))
     grids = item["targets"]["background_grid"]

@@ -137,7 +137,7 @@ def forward_render(model, item: dict[str, Any]) -> dict[str, torch.Tensor]:
 
     cfg = model.cfg
     inp = item["lifting"]
-    out = model(_resize(item["images"], cfg), inp, occ_gt=item["occupancy"].bool())
+    out = model(_resize(item["images"], cfg), inp, occ_gt=item["occupancy"] == 1)   # 255 = unknown
     rgb, alpha, depth = render_views(out["gaussians"], target_cameras(item["targets"]))  # host CPU, any device
     bg = model.background(out["app_plane"], item["targets"]["background_grid"]) if out["app_plane"] is not None \
         else None
@@ -216,12 +216,20 @@ def load_checkpoint(path: str | Path) -> dict[str, Any]:
     return ck
 
 
-def load_init(model: torch.nn.Module, state: dict[str, torch.Tensor], where: str) -> None:
+def load_init(model: torch.nn.Module, state: dict[str, torch.Tensor], where: str,
+              untrained: tuple[str, ...] = ()) -> None:
     """Load a previous stage's weights. Entries of modules the model does not have (an ablated branch) are
-    skipped; anything else that is missing, unexpected or of another shape is an error naming the key."""
+    skipped; anything else that is missing, unexpected or of another shape is an error naming the key.
+    ``untrained``: top-level modules the previous stage did not train (stage 1 leaves the render modules at
+    their initialisation); where their shapes differ (e.g. the no-RGB ablation reads 3 fewer input channels)
+    the model keeps its own initialisation instead."""
     own = model.state_dict()
     tops = {k.split(".", 1)[0] for k in own}
     kept = {k: v for k, v in state.items() if k.split(".", 1)[0] in tops}
+    for k in list(kept):
+        if k.split(".", 1)[0] in untrained and (k not in own or tuple(kept[k].shape) != tuple(own[k].shape)):
+            del kept[k]
+    kept.update({k: v for k, v in own.items() if k.split(".", 1)[0] in untrained and k not in kept})
     for k, v in kept.items():
         if k not in own:
             raise ValueError(f"init: {where} has {k!r}, which this model does not (another model config?)")
@@ -317,7 +325,8 @@ def validate(model, ds: SceneDataset, tcfg: TrainConfig, step: int, run_dir: Pat
             if tcfg.stage == "occ":
                 feats, _, _ = model.encode_images(_resize(x["images"], model.cfg))
                 occ, bev = (a.cpu() for a in model.occupancy(feats, x["lifting"]))
-                res.setdefault("occ_iou", []).append(M.occupancy_iou(occ.argmax(0).numpy(), item["occupancy"].numpy()))
+                occ_t = item["occupancy"].numpy()
+                res.setdefault("occ_iou", []).append(M.occupancy_iou(occ.argmax(0).numpy(), occ_t == 1, occ_t == 255))
                 res.setdefault("bev_iou", []).append(M.occupancy_iou(bev.argmax(0).numpy(), item["bev"].numpy()))
                 continue
             r = to_device(forward_render(model, x), torch.device("cpu"))
@@ -414,7 +423,10 @@ def train(data_dir: str | Path, run_dir: str | Path, model_cfg: ModelConfig | No
     model = build_model(model_cfg).to(dev)
     base_flags = {n: p.requires_grad for n, p in model.named_parameters()}
     if init_ck is not None:
-        load_init(model, init_ck["model"], str(init))
+        untrained = ()
+        if (init_ck.get("train_cfg") or {}).get("stage") == "occ":
+            untrained = tuple({n.split(".", 1)[0] for n in model.state_dict()} - set(OCC_MODULES) - {"depth_head"})
+        load_init(model, init_ck["model"], str(init), untrained)
     params = set_stage(model, tcfg.stage, base_flags)
     opt, sched = build_optimizer(params, tcfg.loss.optim)
     start = 0
@@ -431,8 +443,8 @@ def train(data_dir: str | Path, run_dir: str | Path, model_cfg: ModelConfig | No
     if lpips is not None:
         lpips = lpips.to(dev)
     ds = SceneDataset(data_dir, tcfg.data, model_cfg=model_cfg)
-    val_ds = SceneDataset(val_dir, tcfg.data.replace(flip_prob=0.0, brightness=0.0, contrast=0.0, saturation=0.0),
-                          model_cfg=model_cfg) if val_dir is not None else None
+    val_ds = SceneDataset(val_dir, tcfg.data.without_augmentation(), model_cfg=model_cfg) \
+        if val_dir is not None else None
     log_path = run_dir / "log.csv"
     rows = [r for r in read_log(log_path) if int(r["step"]) <= start]   # drop steps after the checkpoint
     val_rows = [r for r in read_log(run_dir / "val.csv") if int(r["step"]) <= start]

@@ -14,7 +14,7 @@ from pathlib import Path
 from xyzcyl.model_export.commands.common import add_runtime_arguments, set_threads
 
 ABLATIONS = {"none": {}, "no-volume": {"volume_branch": False}, "no-pixel": {"pixel_branch": False},
-             "no-background": {"separate_background": False}}
+             "no-background": {"separate_background": False}, "no-rgb": {"rgb_path": False}}
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -45,8 +45,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--volume-selection", default=None, choices=("predicted", "ground_truth"),
                         help="voxels that carry volume Gaussians in stage render (default: the preset's, "
                              "predicted); evaluation always uses the predicted occupancy")
+    parser.add_argument("--pixel-upsample", type=int, default=None,
+                        help="k_o: pixel Gaussians on a k_o-times finer cylinder lattice (2: 56x512, 4: 112x1024 at "
+                             "the cpu preset's 28x256; default: the preset's)")
+    parser.add_argument("--placement", default=None, choices=("cylinder_ray", "camera_ray"),
+                        help="pixel-Gaussian anchor (docs/architecture.md; default: the preset's)")
     parser.add_argument("--max-voxels", type=int, default=None,
                         help="cap on occupied voxels per scene (default: the preset's)")
+    parser.add_argument("--occupancy-labels", default="solid", choices=("solid", "surface"),
+                        help="stage-1 targets: every occupied voxel (solid) or only those an input camera sees "
+                             "(surface; hidden ones are ignored; docs/training.md)")
     parser.add_argument("--flip-prob", type=float, default=0.5, help="scene mirror (y -> -y) probability")
     parser.add_argument("--jitter", type=float, default=0.1, help="colour jitter strength (brightness, contrast, "
                                                                   "saturation), 0 disables")
@@ -87,6 +95,10 @@ def run(args: argparse.Namespace) -> int:
             model_cfg = model_cfg.replace(grid=model_cfg.grid.replace(voxel_size=args.voxel_size))
         if args.volume_selection is not None:
             model_cfg = model_cfg.replace(volume_selection=args.volume_selection)
+        if args.pixel_upsample is not None:
+            model_cfg = model_cfg.replace(pixel=model_cfg.pixel.replace(k_out=args.pixel_upsample))
+        if args.placement is not None:
+            model_cfg = model_cfg.replace(pixel=model_cfg.pixel.replace(placement=args.placement))
         if args.max_voxels is not None:
             model_cfg = model_cfg.replace(volume=model_cfg.volume.replace(max_voxels=args.max_voxels))
         voxel = model_cfg.grid.voxel_size
@@ -97,6 +109,7 @@ def run(args: argparse.Namespace) -> int:
             val_scenes=args.val_scenes, seed=args.seed,
             data=DatasetConfig(setting=args.setting, num_targets=args.targets, voxel_size=voxel, seed=args.seed,
                                brightness=j, contrast=j, saturation=j, flip_prob=args.flip_prob,
+                               occupancy_labels=args.occupancy_labels,
                                **camera_aug_fields(args.camera_aug),
                                target_scale=args.target_scale),
             loss=TrainLossConfig(

@@ -133,6 +133,28 @@ def test_load_init_skips_ablated_modules_only():
         load_init(build_model(synth_test_config()), bad, "bad.pt")
 
 
+def test_load_init_keeps_own_init_of_untrained_modules_that_changed_shape():
+    """The no-RGB ablation starts from the full model's stage-1 checkpoint: its occupancy weights load, its
+    volume/pixel modules (3 fewer input channels, untrained in stage 1) keep their own initialisation."""
+    cfg = synth_test_config()
+    state = build_model(cfg).state_dict()
+    ablated = build_model(cfg.replace(ablation=cfg.ablation.replace(rgb_path=False)))
+    own = {k: v.clone() for k, v in ablated.state_dict().items()}
+    with pytest.raises(ValueError, match="shape"):
+        load_init(ablated, state, "full_occ.pt")
+    untrained = ("pix_net", "pix_out", "pix_norm", "pix_mlp", "proj_conv", "vol_net", "geo_proj", "app_proj",
+                 "geo_mlp", "app_mlp", "bg_net")
+    load_init(ablated, state, "full_occ.pt", untrained)
+    new = ablated.state_dict()
+    for k, v in new.items():
+        top = k.split(".")[0]
+        if top in untrained and tuple(state[k].shape) != tuple(v.shape):
+            assert torch.equal(v, own[k]), k
+        else:
+            assert torch.equal(v, state[k]), k
+    assert any(tuple(state[k].shape) != tuple(v.shape) for k, v in new.items())
+
+
 def test_cli_config_overrides(tmp_path, tiny_synth_data):
     import json
 
@@ -152,6 +174,16 @@ def test_cli_config_overrides(tmp_path, tiny_synth_data):
     model = json.loads((tmp_path / "b" / "config.json").read_text())["model"]
     assert model["volume"]["max_voxels"] == 99 and model["volume_selection"] == "ground_truth"
     assert model["grid"]["voxel_size"] == 1.6
+    # the issue-10 switches: no-RGB ablation, pixel lattice, placement, surface occupancy labels
+    r = subprocess.run(exe + ["--out", str(tmp_path / "c"), "--ablation", "no-rgb", "--pixel-upsample", "4",
+                              "--placement", "cylinder_ray", "--occupancy-labels", "surface", "--voxel-size", "1.6"],
+                       check=False, capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    doc = json.loads((tmp_path / "c" / "config.json").read_text())
+    model = doc["model"]
+    assert model["ablation"]["rgb_path"] is False and model["ablation"]["rgb_occupancy"] is True
+    assert model["pixel"]["k_out"] == 4 and model["pixel"]["placement"] == "cylinder_ray"
+    assert doc["train"]["data"]["occupancy_labels"] == "surface"
 
 
 def test_threads_option_sets_torch_and_numba():

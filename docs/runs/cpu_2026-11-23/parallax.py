@@ -6,17 +6,20 @@ cylinder ray. Prints the reprojection error (pixels at 400 wide) and distance of
 
     .venv/bin/python docs/runs/cpu_2026-11-23/parallax.py      (reads data/train/scene_00000[0-4])
 """
-import json, numpy as np, dataclasses
-from xyzcyl.runtime.rig import load_rig, read_image
-from xyzcyl.runtime.lifting import LiftingParams, build_lifting_inputs
+import json
+from pathlib import Path
+
+import numpy as np
 from xyzcyl.model_export.config import preset
-from xyzcyl.runtime.cylinder import sample_bilinear
+from xyzcyl.runtime.lifting import LiftingParams, build_lifting_inputs
+from xyzcyl.runtime.rig import load_rig, read_image
+
 cfg = preset("cpu"); cfg = cfg.replace(pixel=cfg.pixel.replace(k_out=4))
 res = []
 for i in range(5):
     folder = f"data/train/scene_{i:06d}"
     rig = load_rig(folder + "/rig.json")
-    doc = json.load(open(folder + "/rig.json"))
+    doc = json.loads(Path(folder, "rig.json").read_text())
     p = LiftingParams.from_config_dict(cfg.to_dict())
     inp = build_lifting_inputs(rig, p)
     spec = p.spec(rig, "pixel")
@@ -25,7 +28,7 @@ for i in range(5):
     dirs = inp["pix_dirs"]
     for n, cam in enumerate(rig.cameras):
         m = sel[n] > 0
-        d = read_image(__import__("pathlib").Path(folder) / doc["cameras"][n]["depth"], "d", channels=1, scale=False)[..., 0]
+        d = read_image(Path(folder) / doc["cameras"][n]["depth"], "d", channels=1, scale=False)[..., 0]
         u = (g[n][..., 0] + 1) * cam.width / 2 - 0.5; v = (g[n][..., 1] + 1) * cam.height / 2 - 0.5
         ui, vi = np.clip(np.round(u).astype(int), 0, cam.width - 1), np.clip(np.round(v).astype(int), 0, cam.height - 1)
         z = d[vi, ui]
@@ -38,4 +41,7 @@ for i in range(5):
         err = np.hypot(uv[:, 0] - uu, uv[:, 1] - vv) * 400 / cam.width
         res.append(np.stack([err, np.linalg.norm(A - X, axis=1)], 1))
 e = np.concatenate(res)
-print("cylinder_ray anchor vs camera point: reprojection px @400 wide: median %.2f p90 %.2f p99 %.2f; metres median %.3f p90 %.3f" % (np.median(e[:,0]), np.percentile(e[:,0],90), np.percentile(e[:,0],99), np.median(e[:,1]), np.percentile(e[:,1],90)))
+px, m = e[:, 0], e[:, 1]
+print(f"cylinder_ray anchor vs camera point: reprojection px @400 wide: median {np.median(px):.2f} "
+      f"p90 {np.percentile(px, 90):.2f} p99 {np.percentile(px, 99):.2f}; metres median {np.median(m):.3f} "
+      f"p90 {np.percentile(m, 90):.3f}")

@@ -24,7 +24,7 @@ import json
 import numpy as np
 import torch
 import torch.nn.functional as F
-from xyzcyl.model_export.backbone import EfficientLiteBackbone, _TAPS
+from xyzcyl.model_export.backbone import _TAPS, EfficientLiteBackbone
 from xyzcyl.model_export.config import BackboneConfig
 from xyzcyl.model_export.dataset import list_scenes
 from xyzcyl.runtime.rig import load_rig

@@ -37,10 +37,9 @@ def main() -> None:
     import cv2
     import torch
     from xyzcyl.model_export import metrics as M
-    from xyzcyl.model_export.dataset import load_rig_folder
+    from xyzcyl.model_export.dataset import add_lifting, load_rig_folder
     from xyzcyl.model_export.evaluate import load_eval_model, model_views, put_label
     from xyzcyl.runtime.lifting import LiftingParams
-    from xyzcyl.model_export.dataset import add_lifting
 
     torch.set_num_threads(args.threads)
     rows, sheets = [], {}

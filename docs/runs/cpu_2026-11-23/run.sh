@@ -1,0 +1,74 @@
+#!/usr/bin/env bash
+# The second cpu-preset run (issue 10, docs/results.md): the RGB path, the 112x1024 pixel lattice, surface
+# occupancy labels; the full model beside its ablations under one step budget, the baselines, the other rigs
+# and the real rigs. Resumable: rerun after a kill; finished data and stages are skipped, started stages
+# resume from their last checkpoint (evaluations are redone).
+#   bash docs/runs/cpu_2026-11-23/run.sh            (from the repository root, after the README's set-up)
+# Knobs (defaults = the recorded run): OCC_STEPS, REN_STEPS, TARGETS, RUNS, EVAL, STAGE2 (the stage-2 runs).
+set -euo pipefail
+X=${X:-.venv/bin/xyzcyl}
+P=${P:-.venv/bin/python}
+D=docs/runs/cpu_2026-11-23
+RUNS=${RUNS:-runs/cpu2}
+EVAL=${EVAL:-$RUNS/eval}
+OCC_STEPS=${OCC_STEPS:-1000}
+REN_STEPS=${REN_STEPS:-500}
+TARGETS=${TARGETS:-4}
+VOXEL=${VOXEL:-1.6}
+STAGE2=${STAGE2:-"full no-rgb k2"}
+
+$X data synth --out data/train --scenes 200 --seed 0 --voxels 0.8,1.6 --quiet   # training set (seed 0)
+$X data synth --out data/val --scenes 50 --seed 1 --voxels 0.8,1.6 --quiet      # disjoint validation set (seed 1)
+# other rigs, never trained on: 5 (waymo), 7 (argoverse) and 8 cameras (ring8.json: 60 deg every 45 deg)
+declare -A RIGS=([waymo]=waymo [argoverse]=argoverse [ring8]=$D/ring8.json)
+for r in "${!RIGS[@]}"; do
+  $X data synth --out "data/val_$r" --scenes 10 --seed 1 --rig "${RIGS[$r]}" --voxels 1.6 --quiet
+done
+
+stage() {  # stage OUT STAGE_PT THREADS ARGS...: train unless OUT/STAGE_PT exists; resume if OUT/last.pt does
+  local out=$1 done=$2 threads=$3; shift 3
+  if [ -f "$out/$done" ]; then return; fi
+  if [ -f "$out/last.pt" ]; then set -- "$@" --resume; fi
+  $X train "$@" --out "$out" --threads "$threads" --quiet > "$out.log" 2>&1
+}
+mkdir -p "$RUNS"
+
+# stage 1 (occupancy, with the RGB channels) on surface labels: only voxels an input camera sees are occupied
+stage "$RUNS/occ" occ.pt 2 --preset cpu --voxel-size "$VOXEL" --occupancy-labels surface --data data/train \
+  --val data/val --stage occ --steps "$OCC_STEPS" --lr 1e-3 --val-every 250 --val-scenes 8
+
+# stage 2, side by side (one thread each) from the same stage-1 weights, same data order and schedule:
+#   full   = RGB path, pixel lattice k_o = 4 (112x1024);  no-rgb = the same without the RGB path;
+#   k2     = RGB path at k_o = 2 (56x512, the first model's lattice)
+declare -A EXTRA=([full]="--pixel-upsample 4" [no-rgb]="--pixel-upsample 4 --ablation no-rgb"
+                  [k2]="--pixel-upsample 2" [no-volume]="--pixel-upsample 4 --ablation no-volume"
+                  [no-pixel]="--pixel-upsample 4 --ablation no-pixel"
+                  [no-background]="--pixel-upsample 4 --ablation no-background")
+pids=""
+for run in $STAGE2; do
+  # shellcheck disable=SC2086
+  stage "$RUNS/render_$run" render.pt 1 --init "$RUNS/occ/occ.pt" ${EXTRA[$run]} --data data/train --val data/val \
+    --stage render --setting both --targets "$TARGETS" --target-scale 0.5 --steps "$REN_STEPS" --lr 1e-3 \
+    --val-every 100 --val-scenes 4 &
+  pids="$pids $!"
+done
+for p in $pids; do wait "$p"; done   # set -e: stop here if a run failed (its log: $RUNS/render_<run>.log)
+
+for run in $STAGE2; do
+  $X eval --checkpoint "$RUNS/render_$run/render.pt" --data data/val --setting ego-forward,ego-inward \
+    --out "$EVAL/$run" --threads 2 --quiet
+done
+$X eval --baseline unproject --checkpoint "$RUNS/render_full/render.pt" --data data/val \
+  --setting ego-forward,ego-inward --out "$EVAL/unproject" --threads 2 --quiet
+$X eval --baseline unproject-gt-depth --data data/val --setting ego-forward,ego-inward \
+  --out "$EVAL/unproject-gt-depth" --threads 2 --quiet
+for r in "${!RIGS[@]}"; do
+  $X eval --checkpoint "$RUNS/render_full/render.pt" --data "data/val_$r" --setting ego-forward,ego-inward \
+    --out "$EVAL/rig_$r" --threads 2 --quiet
+done
+sha256sum "$RUNS/occ/occ.pt" "$RUNS"/render_*/render.pt
+
+# the real rigs at their own input cameras, and the probe of where the colour was lost
+$P $D/real.py --out $D/real --checkpoint full="$RUNS/render_full/render.pt" \
+  --checkpoint no-rgb="$RUNS/render_no-rgb/render.pt"
+$P $D/probe.py data/train data/val > $D/probe.json
