@@ -56,6 +56,9 @@ sha256sum $RUNS/occ/occ.pt $RUNS/render_*/render.pt
 
 D=docs/runs/cpu_2026-11-22
 P=${P:-.venv/bin/python}
-$P $D/table.py $EVAL > $D/table.md
-$P $D/curves.py $RUNS $D/render_curves.png
-$P $D/compare.py $RUNS data/val $D/compare.jpg
+$P docs/runs/table.py $EVAL > $D/table.md
+$P docs/runs/curves.py $D/render_curves.png "full model=$RUNS/render_none" "no volume=$RUNS/render_no-volume" \
+  "no pixel=$RUNS/render_no-pixel" "no separate background=$RUNS/render_no-background"
+$P docs/runs/compare.py data/val $D/compare.jpg --model "full=$RUNS/render_none" --gt-occupancy full \
+  --model "no volume=$RUNS/render_no-volume" --model "no pixel=$RUNS/render_no-pixel" \
+  --model "no separate bg=$RUNS/render_no-background"

@@ -1,10 +1,13 @@
-"""Side-by-side renders of the run's models and baselines on validation scenes (docs/results.md).
+"""Side-by-side renders of a run's models and baselines on validation scenes (docs/results.md).
 
-    .venv/bin/python docs/runs/cpu_2026-11-22/compare.py runs/cpu1 data/val docs/runs/cpu_2026-11-22/compare.jpg
+    .venv/bin/python docs/runs/compare.py DATA OUT.jpg --model full=runs/cpu2/render_full \
+        --model "no RGB=runs/cpu2/render_no-rgb" [--gt-occupancy full] [--scenes 0,1] [--voxel-size 1.6]
 
-Columns: the first ego-forward and the first two ego-inward targets of each scene given by --scenes (default
-0 and 1), at full size. Rows: ground truth, then each method exactly as `xyzcyl eval` renders it
-(evaluate.model_views / unproject_views), each tile labelled with its PSNR.
+Columns: the first ego-forward and the first two ego-inward targets of each scene given by --scenes, at full size.
+Rows: ground truth, then each --model (LABEL=RUN_DIR with RUN_DIR/render.pt) in the order given, the first
+model with the ground-truth occupancy if --gt-occupancy names it, then the unprojection baselines from the
+first model's depth head and from the ground-truth depth, each exactly as `xyzcyl eval` renders it
+(evaluate.model_views / unproject_views) and labelled with its PSNR at full size.
 """
 
 import argparse
@@ -26,16 +29,20 @@ from xyzcyl.model_export.evaluate import (
 )
 
 ap = argparse.ArgumentParser()
-ap.add_argument("runs", type=Path)
 ap.add_argument("data", type=Path)
 ap.add_argument("out", type=Path)
+ap.add_argument("--model", action="append", required=True, help="LABEL=RUN_DIR (repeatable, first = reference)")
+ap.add_argument("--gt-occupancy", default=None, help="also render this model with the ground-truth occupancy")
 ap.add_argument("--scenes", default="0,1")
+ap.add_argument("--voxel-size", type=float, default=1.6)
 args = ap.parse_args()
 torch.set_num_threads(2)
 
-models = {k: load_eval_model(args.runs / f"render_{v}" / "render.pt", True)[0]
-          for k, v in [("full", "none"), ("no volume", "no-volume"), ("no pixel", "no-pixel"),
-                       ("no separate bg", "no-background")]}
+models = {}
+for spec in args.model:
+    label, run = spec.split("=", 1)
+    models[label] = load_eval_model(Path(run) / "render.pt", True)[0]
+first = next(iter(models))
 ecfg = EvalConfig(settings=("ego-forward",))
 rows: dict[str, list[np.ndarray]] = {}
 
@@ -53,27 +60,28 @@ def tile(img: np.ndarray, gt: np.ndarray | None, text: str) -> np.ndarray:
 
 for scene in (int(s) for s in args.scenes.split(",")):
     for setting, count in (("ego-forward", 1), ("ego-inward", 2)):
-        dcfg = DatasetConfig(setting=setting, num_targets=ALL_TARGETS, voxel_size=1.6, max_depth=1e12)
+        dcfg = DatasetConfig(setting=setting, num_targets=ALL_TARGETS, voxel_size=args.voxel_size, max_depth=1e12)
         for name, model in models.items():
             item = SceneDataset(args.data, dcfg, model_cfg=model.cfg).item(scene, 0)
             gts = [t.permute(1, 2, 0).numpy() for t in item["targets"]["images"][:count]]
-            if name == "full":
+            if name == first:
                 rows.setdefault("ground truth", []).extend(tile(g, None, f"GT {item['scene']} {setting}")
                                                            for g in gts)
             views = list(zip(range(count), model_views(model, item)))
             rows.setdefault(name, []).extend(tile(v[0], gts[k], name) for k, v in views)
-            if name == "full":
+            if name == args.gt_occupancy:
                 oracle = list(zip(range(count), model_views(model, item, "ground-truth")))
-                rows.setdefault("full, GT occupancy", []).extend(
-                    tile(v[0], gts[k], "full, GT occ (oracle)") for k, v in oracle)
+                rows.setdefault(f"{name}, GT occupancy", []).extend(
+                    tile(v[0], gts[k], f"{name}, GT occ (oracle)") for k, v in oracle)
+            if name == first:
                 base = list(zip(range(count), unproject_views(item, _native_depth_head(model, item), ecfg)))
                 rows.setdefault("unproject", []).extend(tile(v[0], gts[k], "unproject") for k, v in base)
                 gtd = list(zip(range(count), unproject_views(item, item["depth"][:, 0].numpy(), ecfg)))
                 rows.setdefault("unproject GT depth", []).extend(
                     tile(v[0], gts[k], "unproject, GT depth (oracle)") for k, v in gtd)
 
-order = ["ground truth", "full", "full, GT occupancy", "no volume", "no pixel", "no separate bg", "unproject",
-         "unproject GT depth"]
+order = ["ground truth", *[r for r in rows if r not in ("ground truth", "unproject", "unproject GT depth")],
+         "unproject", "unproject GT depth"]
 sheet = np.concatenate([np.concatenate(rows[k], axis=1) for k in order], axis=0)
 cv2.imwrite(str(args.out), sheet, [cv2.IMWRITE_JPEG_QUALITY, 88])
 print(f"wrote {args.out} ({sheet.shape[1]}x{sheet.shape[0]})")

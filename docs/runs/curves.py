@@ -1,6 +1,8 @@
-"""Stage-2 training curves of the run's four models in one figure (docs/results.md).
+"""Stage-2 training curves of a run's models in one figure (docs/results.md).
 
-    .venv/bin/python docs/runs/cpu_2026-11-22/curves.py runs/cpu1 docs/runs/cpu_2026-11-22/render_curves.png
+    .venv/bin/python docs/runs/curves.py OUT.png "full model=runs/cpu1/render_none" "no volume=runs/cpu1/render_no-volume"
+
+Each argument after OUT.png is LABEL=RUN_DIR (its log.csv); missing logs are skipped.
 """
 
 import csv
@@ -13,8 +15,6 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 
-RUNS = {"full model": "render_none", "no volume": "render_no-volume", "no pixel": "render_no-pixel",
-        "no separate background": "render_no-background"}
 TERMS = [("loss", "weighted total"), ("l1", "image L1"), ("sky", "sky-alpha L1"), ("pearson", "1 - depth PCC")]
 
 
@@ -26,10 +26,11 @@ def ema(y: np.ndarray, k: float = 0.95) -> np.ndarray:
     return out
 
 
-root, dest = Path(sys.argv[1]), Path(sys.argv[2])
+dest = Path(sys.argv[1])
+RUNS = dict(a.split("=", 1) for a in sys.argv[2:])
 fig, axes = plt.subplots(1, len(TERMS), figsize=(16, 3.8), dpi=90)
 for label, sub in RUNS.items():
-    path = root / sub / "log.csv"
+    path = Path(sub) / "log.csv"
     if not path.is_file():
         continue
     with path.open(newline="") as f:
