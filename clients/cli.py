@@ -28,10 +28,13 @@ class Command:
 # One line per subcommand. Local (non-HTTP) commands live in runtime/ or model_export/.
 COMMANDS: tuple[Command, ...] = (
     Command("cylinder", "xyzcyl.runtime.commands.cylinder", "project a rig's images onto the UCCM cylinder"),
-    Command("render", "xyzcyl.runtime.commands.render", "render a Gaussian PLY from a camera pose"),
+    Command("reconstruct", "xyzcyl.runtime.commands.reconstruct",
+            "rig.json + images -> scene folder of Gaussians and background (onnxruntime, no torch)"),
+    Command("render", "xyzcyl.runtime.commands.render", "render a Gaussian PLY or a scene folder from a camera pose"),
     Command("data", "xyzcyl.model_export.commands.data", "synthetic training data: synth, gallery", "train"),
     Command("train", "xyzcyl.model_export.commands.train", "train one stage (occ | render) of the network", "train"),
     Command("eval", "xyzcyl.model_export.commands.eval", "novel-view metrics of a model or a baseline", "train"),
+    Command("export", "xyzcyl.model_export.commands.export", "export a checkpoint to an ONNX model folder", "train"),
 )
 
 

@@ -66,8 +66,10 @@ class GaussianDecoder(nn.Module):
         M, G, _ = raw.shape
         rgb = torch.sigmoid(raw[..., 0:3])
         dc = ((rgb - 0.5) / SH_C0).unsqueeze(-2)
-        rest = raw[..., 11:].reshape(M, G, self.S - 1, 3) * 0.1
-        sh = torch.cat([dc, rest], dim=-2)
+        if self.S > 1:   # degree 0: no empty reshape (it breaks ONNX shape inference)
+            sh = torch.cat([dc, raw[..., 11:].reshape(M, G, self.S - 1, 3) * 0.1], dim=-2)
+        else:
+            sh = dc
         log_scales = torch.log(max_scale).unsqueeze(1) + F.logsigmoid(raw[..., 3:6])
         return {"quats": raw[..., 6:10].reshape(M * G, 4), "log_scales": log_scales.reshape(M * G, 3),
                 "opacity_logits": raw[..., 10].reshape(M * G), "sh": sh.reshape(M * G, self.S, 3)}
@@ -319,7 +321,8 @@ class XYZCylinder(nn.Module):
         """Eq. 41: scatter features [P, d] at ego points [P, 3] into the volume CPFG grid, returned as a plane
         [1, d*K, H_u, W_u] (channel = d*K + k). Plane index floor(t K) gets (1 - q), the next plane q, with
         q = t K - floor(t K); column floor(s W_u), row floor(p H_u); out-of-range planes/rows and invalid
-        pixels contribute nothing. ``index_add`` (ONNX ScatterElements with add)."""
+        pixels contribute nothing. ``scatter_add`` (ONNX ScatterElements with add, deterministic in onnxruntime;
+        ``index_add`` exports to ScatterND with add, which loses updates with several onnxruntime threads)."""
         v, cyl = self.cfg.volume, self.cfg.cylinder
         K, H, W = v.k, cyl.height, cyl.width
         c = frustum_coords_torch(points, spec_vol, self.cfg.grid.r_min, self.cfg.grid.r_max)
@@ -335,7 +338,8 @@ class XYZCylinder(nn.Module):
         for kk, w in ((k0, 1 - q), (k0 + 1, q)):
             ok = ok_row & (kk >= 0) & (kk < K)
             flat = (kk.clamp(0, K - 1) * H + row.clamp(0, H - 1)) * W + col
-            out = out.index_add(0, flat, feat * (w * ok.to(feat.dtype)).unsqueeze(1))
+            src = feat * (w * ok.to(feat.dtype)).unsqueeze(1)
+            out = out.scatter_add(0, flat.unsqueeze(1).expand(-1, src.shape[1]), src)
         return out.view(K, H, W, -1).permute(3, 0, 1, 2).reshape(1, -1, H, W)
 
     def volume_gaussians(self, geo_g, app_g, idx, inp):

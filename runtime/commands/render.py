@@ -1,5 +1,8 @@
-"""`xyzcyl render PLY ...`: render a 3DGS PLY (INRIA layout) from one camera pose to PNG (RGB) or EXR
-(float32 channels R G B A Z; Z = expected depth in metres, 0 where A == 0). See docs/renderer.md."""
+"""`xyzcyl render PLY|SCENE_DIR ...`: render a 3DGS PLY (INRIA layout) or a scene folder (`xyzcyl reconstruct`:
+Gaussians composited over the scene's background panorama) from one camera pose to PNG (RGB) or EXR (float32
+channels R G B A Z; Z = expected depth in metres, 0 where A == 0). The pose: --K/--cam-to-world, or --camera NAME
+(an input camera of the scene's rig), optionally moved --forward M metres along ego x. See docs/renderer.md and
+docs/inference.md."""
 
 from __future__ import annotations
 
@@ -9,24 +12,36 @@ from pathlib import Path
 
 import numpy as np
 
+from ..rig import RigError
+
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("ply", metavar="PLY", help="Gaussians in the 3DGS PLY layout (world = ego frame)")
-    parser.add_argument("--width", type=int, required=True, help="image width, pixels")
-    parser.add_argument("--height", type=int, required=True, help="image height, pixels")
+    parser.add_argument("ply", metavar="PLY|SCENE_DIR",
+                        help="Gaussians in the 3DGS PLY layout (world = ego frame), or a scene folder written by "
+                             "`xyzcyl reconstruct` (its background is composited)")
+    parser.add_argument("--width", type=int, default=None, help="image width, pixels (required unless --camera; "
+                        "with --camera: resize that camera)")
+    parser.add_argument("--height", type=int, default=None, help="image height, pixels (as --width)")
     parser.add_argument("--K", type=float, nargs=4, metavar=("FX", "FY", "CX", "CY"),
                         help="pinhole intrinsics in pixels, OpenCV (pixel u is centred at x = u); required "
-                             "unless --equirect")
-    parser.add_argument("--cam-to-world", type=float, nargs=16, required=True, metavar="M",
-                        help="4x4 camera-to-world matrix, row-major (OpenCV camera: x right, y down, z forward)")
+                             "unless --equirect or --camera")
+    parser.add_argument("--cam-to-world", type=float, nargs=16, default=None, metavar="M",
+                        help="4x4 camera-to-world matrix, row-major (OpenCV camera: x right, y down, z forward); "
+                             "required unless --camera")
+    parser.add_argument("--camera", default=None, metavar="NAME",
+                        help="SCENE_DIR only: render from this input camera of the scene's rig (its K, size, pose)")
+    parser.add_argument("--forward", type=float, default=0.0, metavar="M",
+                        help="move the camera M metres along ego x (forward) before rendering")
     parser.add_argument("--out", required=True, metavar="PATH", help="output .png (RGB, 8 bit) or .exr "
                         "(float32 R G B A Z)")
     parser.add_argument("--background", type=float, nargs=3, default=None, metavar=("R", "G", "B"),
-                        help="background colour in 0..1 (default black)")
+                        help="background colour in 0..1 (default: the scene's background panorama for a "
+                             "SCENE_DIR, black for a PLY)")
     parser.add_argument("--equirect", action="store_true",
                         help="render a full 360x180 equirectangular panorama instead (K not used)")
     parser.add_argument("--antialiased", action="store_true", help="gsplat's antialiased opacity compensation")
     parser.add_argument("--max-points", type=int, default=None, help="refuse PLYs with more Gaussians")
+    parser.add_argument("--threads", type=int, default=None, help="renderer threads (default: all cores)")
 
 
 def _fail(msg: str) -> int:
@@ -34,28 +49,11 @@ def _fail(msg: str) -> int:
     return 2
 
 
-def write_exr(path: str, channels: np.ndarray, names: tuple[str, ...]) -> None:
-    """channels [H, W, C] float32 -> EXR. OpenImageIO needs a C-contiguous array (it returns False and writes
-    a broken file otherwise), so the array is made contiguous and every return value is checked."""
-    import OpenImageIO as oiio
-
-    data = np.ascontiguousarray(channels, dtype=np.float32)
-    h, w, c = data.shape
-    spec = oiio.ImageSpec(w, h, c, oiio.FLOAT)
-    spec.channelnames = names
-    out = oiio.ImageOutput.create(path)
-    if out is None:
-        raise OSError(f"cannot create an EXR writer for {path}: {oiio.geterror()}")
-    ok = out.open(path, spec) and out.write_image(data)
-    err = out.geterror() if not ok else ""
-    closed = out.close()
-    if not ok or not closed:
-        raise OSError(f"writing {path} failed: {err or oiio.geterror()}")
-
-
 def run(args: argparse.Namespace) -> int:
+    from ..imageio import write_exr, write_png
     from ..render import CameraError, EquirectCamera, GaussianError, Gaussians, PinholeCamera, render
     from ..render.gaussians import DEFAULT_MAX_POINTS
+    from ..scene import JSON_NAME, Scene, SceneError, rig_camera
 
     out = Path(args.out)
     suffix = out.suffix.lower()
@@ -65,38 +63,86 @@ def run(args: argparse.Namespace) -> int:
         return _fail(f"--out: folder {str(out.parent)!r} does not exist")
     if args.background is not None and not all(np.isfinite(args.background)):
         return _fail("--background: values must be finite")
-    if not args.equirect and args.K is None:
-        return _fail("--K: required for a pinhole camera (or pass --equirect)")
-    if not Path(args.ply).is_file():
+    if not np.isfinite(args.forward):
+        return _fail("--forward: must be finite")
+    if args.threads is not None:
+        if args.threads < 1:
+            return _fail(f"--threads: must be >= 1, got {args.threads}")
+        import numba
+
+        numba.set_num_threads(min(args.threads, numba.config.NUMBA_NUM_THREADS))
+    src = Path(args.ply)
+    is_scene = src.is_dir()
+    what = "SCENE_DIR" if is_scene else "PLY"
+    if args.camera is not None:
+        if not is_scene:
+            return _fail("--camera: needs a SCENE_DIR (a PLY has no rig); pass --K and --cam-to-world instead")
+        if args.cam_to_world is not None or args.K is not None or args.equirect:
+            return _fail("--camera: give either --camera or --K/--cam-to-world/--equirect, not both")
+    else:
+        if args.cam_to_world is None:
+            return _fail("--cam-to-world: required (or --camera NAME with a SCENE_DIR)")
+        if args.width is None or args.height is None:
+            return _fail(f"--{'width' if args.width is None else 'height'}: required unless --camera")
+        if not args.equirect and args.K is None:
+            return _fail("--K: required for a pinhole camera (or pass --equirect)")
+    if is_scene and not (src / JSON_NAME).is_file():
+        return _fail(f"SCENE_DIR: {str(src)!r} has no {JSON_NAME} (not a scene folder)")
+    if not is_scene and not src.is_file():
         return _fail(f"PLY: no such file {args.ply!r}")
     max_points = DEFAULT_MAX_POINTS if args.max_points is None else args.max_points
+    scene = None
     try:
-        c2w = np.array(args.cam_to_world, dtype=np.float64).reshape(4, 4)
-        if args.equirect:
-            cam = EquirectCamera(c2w, args.width, args.height)
+        if is_scene:
+            scene = Scene.load(src, max_points=max_points)
+            g = scene.gaussians
         else:
-            fx, fy, cx, cy = args.K
-            cam = PinholeCamera(np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]]), c2w, args.width, args.height)
-    except CameraError as exc:
+            g = Gaussians.load_ply(src, max_points=max_points)
+    except (GaussianError, SceneError) as exc:
+        return _fail(f"{what}: {exc}")
+    try:
+        if args.camera is not None:
+            try:
+                rc = scene.rig.camera(args.camera)
+            except KeyError:
+                return _fail(f"--camera: no camera {args.camera!r} in the scene's rig (cameras: "
+                             f"{', '.join(scene.rig.names)})")
+            cam = rig_camera(rc, forward=args.forward, width=args.width, height=args.height)
+        else:
+            c2w = np.array(args.cam_to_world, dtype=np.float64).reshape(4, 4)
+            c2w[0, 3] += args.forward
+            if args.equirect:
+                cam = EquirectCamera(c2w, args.width, args.height)
+            else:
+                fx, fy, cx, cy = args.K
+                cam = PinholeCamera(np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]]), c2w, args.width, args.height)
+    except (CameraError, RigError) as exc:
         field = str(exc).split(":")[0]
         flag = {"cam_to_world": "--cam-to-world", "K": "--K"}.get(field, f"--{field}")
+        if isinstance(exc, RigError):
+            flag = "--camera" if args.camera is not None else "--width"
         return _fail(f"{flag}: {str(exc).split(': ', 1)[-1]}")
-    try:
-        g = Gaussians.load_ply(args.ply, max_points=max_points)
-    except GaussianError as exc:
-        return _fail(f"PLY: {exc}")
-    res = render(g, cam, background=args.background, antialiased=args.antialiased)
+    if args.background is not None:
+        bg = args.background
+    elif scene is not None and scene.background is not None:
+        bg = scene.background.render(cam)
+    else:
+        bg = None
+    res = render(g, cam, background=bg, antialiased=args.antialiased)
     try:
         if suffix == ".png":
-            import cv2
-
-            rgb8 = np.clip(np.rint(res.rgb * 255.0), 0, 255).astype(np.uint8)
-            if not cv2.imwrite(str(out), np.ascontiguousarray(rgb8[..., ::-1])):
-                raise OSError(f"cv2 could not write {out}")
+            write_png(out, res.rgb)
         else:
             write_exr(str(out), np.dstack([res.rgb, res.alpha, res.depth]), ("R", "G", "B", "A", "Z"))
     except OSError as exc:
         return _fail(f"--out: {exc}")
-    print(f"rendered {len(g)} Gaussians -> {out} ({args.width}x{args.height}, "
-          f"coverage {float((res.alpha > 0).mean()):.3f})")
+    print(f"rendered {len(g)} Gaussians -> {out} ({cam.width}x{cam.height}, "
+          f"coverage {float((res.alpha > 0).mean()):.3f}{', with background' if bg is not None else ''})")
     return 0
+
+
+def write_exr(path: str, channels: np.ndarray, names: tuple[str, ...]) -> None:
+    """Kept for callers of the earlier location: runtime.imageio.write_exr."""
+    from ..imageio import write_exr as _write
+
+    _write(path, channels, names)

@@ -1,0 +1,74 @@
+"""`xyzcyl reconstruct RIG_JSON --out SCENE_DIR`: one timestamp of a rig (rig.json + its images, optional depth
+maps) -> a scene folder (scene.ply, background.exr/png, scene.json) with the onnxruntime model (no torch).
+See docs/inference.md."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("rig", metavar="RIG_JSON", help="rig.json (cameras, calibrations, image files relative to it)")
+    parser.add_argument("--out", required=True, metavar="SCENE_DIR", help="scene folder to write (replaced if it "
+                        "exists and --force is given)")
+    parser.add_argument("--model", default=None, metavar="DIR",
+                        help="model folder (default: $XYZCYL_MODEL, else the shipped models/xyzcyl-cpu-v1)")
+    parser.add_argument("--threads", type=int, default=None,
+                        help="onnxruntime and renderer threads (default: all cores)")
+    parser.add_argument("--no-depth", action="store_true", help="ignore the rig's depth files (use the depth head)")
+    parser.add_argument("--force", action="store_true", help="replace an existing SCENE_DIR")
+    parser.add_argument("--quiet", action="store_true", help="no progress lines")
+
+
+def _fail(msg: str) -> int:
+    print(f"xyzcyl reconstruct: {msg}", file=sys.stderr)
+    return 2
+
+
+def run(args: argparse.Namespace) -> int:
+    from ..inference import InferenceError, ModelError, Reconstructor, default_model_dir
+    from ..rig import RigError, load_rig
+    from ..scene import SceneError
+
+    if args.threads is not None and args.threads < 1:
+        return _fail(f"--threads: must be >= 1, got {args.threads}")
+    out = Path(args.out)
+    if out.exists() and not args.force:
+        return _fail(f"--out: {str(out)!r} exists (pass --force to replace it)")
+    model_dir = Path(args.model) if args.model else default_model_dir()
+    if not model_dir.exists():
+        if args.model:
+            return _fail(f"--model: no model folder at {str(model_dir)!r}")
+        return _fail(f"no shipped model is present yet at {str(model_dir)!r} (the trained model has not been "
+                     "exported into models/ yet); pass --model DIR (a folder written by `xyzcyl export`)")
+    say = (lambda msg: None) if args.quiet else (lambda msg: print(f"  {msg}", file=sys.stderr, flush=True))
+    if args.threads is not None:
+        import numba
+
+        numba.set_num_threads(min(args.threads, numba.config.NUMBA_NUM_THREADS))
+    try:
+        t0 = time.perf_counter()
+        say(f"load model {model_dir}")
+        rec = Reconstructor.load(model_dir, threads=args.threads)
+        t_load = time.perf_counter() - t0
+        say(f"read rig {args.rig}")
+        rig = load_rig(args.rig)
+        depths = [None] * len(rig.cameras) if args.no_depth else None
+        scene = rec.reconstruct(rig, depths=depths, progress=say)
+        say(f"write {out}")
+        t1 = time.perf_counter()
+        scene.save(out, overwrite=True)
+        t_save = time.perf_counter() - t1
+    except (ModelError, RigError, InferenceError, SceneError) as exc:
+        return _fail(str(exc))
+    except OSError as exc:
+        return _fail(f"--out: {exc}")
+    c, t = scene.counts, scene.timings
+    print(f"{out}: {c['total']} Gaussians ({c['volume']} volume from {c['voxels']} voxels, {c['pixel']} pixel, "
+          f"{c['pruned']} invisible pruned), model {rec.info.name} {rec.info.version}")
+    stages = ", ".join(f"{k} {v * 1000:.0f} ms" for k, v in t.items() if k != "total")
+    print(f"reconstruct {t['total']:.2f} s ({stages}); model load {t_load:.2f} s, save {t_save:.2f} s")
+    return 0

@@ -1,0 +1,451 @@
+"""The torch-free inference path: a model folder (ONNX graphs exported by xyzcyl.model_export.export) run by
+onnxruntime turns a rig of images into a Scene (runtime.scene). docs/inference.md describes the whole path.
+
+    rec = Reconstructor.load("models/xyzcyl-cpu-v1", threads=2)   # checks every file's sha256
+    scene = rec.reconstruct(load_rig("rig.json"))                   # images (and depth files) from the rig
+    scene.save("/tmp/scene")
+
+Stages (timed in scene.timings): decode (image files), resize (cv2.INTER_AREA to the model's input; calibrations
+need no change since the lifting grids are normalised image coordinates), lifting (runtime.lifting, cached per
+rig calibration), encode (graph), select (numpy voxel selection), volume (graph), gaussians (assembly, pruning of
+invisible Gaussians), background (the background graph baked into a panorama on the cylinder).
+
+A Reconstructor is safe to use from several threads: onnxruntime sessions run concurrently and the lifting
+cache is locked.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import threading
+import time
+from collections import OrderedDict
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .lifting import LiftingParams, background_grid, build_lifting_inputs, spec_from_array
+from .render import Gaussians
+from .rig import Camera, Rig, RigError
+from .scene import Background, Scene, bake_grid
+
+MODEL_FORMAT = "xyzcyl-model"
+GAUSSIAN_KEYS = ("means", "quats", "log_scales", "opacity_logits", "sh")
+# a Gaussian whose opacity is below this never contributes (the renderer skips alpha < 1/255 and alpha <= o);
+# 0.99: margin for float rounding between numpy's and the kernel's sigmoid
+PRUNE_OPACITY = 0.99 / 255.0
+DEFAULT_BAKE_SCALE = 4
+
+
+class ModelError(ValueError):
+    """The model folder is missing, incomplete or altered; the message names the file."""
+
+
+class InferenceError(ValueError):
+    """An input cannot be reconstructed; the message names the camera or the field."""
+
+
+# ------------------------------------------------------------------------------------------- model folder
+
+
+def _sha256(data: bytes) -> str:
+    return hashlib.sha256(data).hexdigest()
+
+
+@dataclass(frozen=True)
+class ModelInfo:
+    """model.json of a model folder, parsed."""
+
+    path: Path
+    meta: dict[str, Any]
+
+    @property
+    def name(self) -> str:
+        return str(self.meta["name"])
+
+    @property
+    def version(self) -> str:
+        return str(self.meta["version"])
+
+    @property
+    def config(self) -> dict[str, Any]:
+        return self.meta["config"]
+
+    @property
+    def input_size(self) -> tuple[int, int]:
+        """(height, width) of the images the encode graph takes."""
+        return int(self.meta["input"]["height"]), int(self.meta["input"]["width"])
+
+    @property
+    def depth_size(self) -> tuple[int, int]:
+        d = self.meta["input"]["depth"]
+        return int(d["height"]), int(d["width"])
+
+    @property
+    def lifting(self) -> LiftingParams:
+        return LiftingParams.from_config_dict(self.config)
+
+    @property
+    def max_voxels(self) -> int:
+        return int(self.meta["selection"]["max_voxels"])
+
+    def graph_inputs(self, graph: str) -> list[str]:
+        return [i["name"] for i in self.meta["graphs"][graph]["inputs"]]
+
+
+def read_model_info(model_dir: str | os.PathLike) -> ModelInfo:
+    """Parse ``model_dir/model.json`` (ModelError naming the file when absent or invalid)."""
+    d = Path(model_dir)
+    if not d.is_dir():
+        raise ModelError(f"model: {str(d)!r} is not a folder")
+    p = d / "model.json"
+    if not p.is_file():
+        raise ModelError(f"model: {str(p)!r} is missing (not a model folder)")
+    try:
+        meta = json.loads(p.read_text())
+    except (OSError, json.JSONDecodeError) as e:
+        raise ModelError(f"model: {str(p)!r} is not valid JSON ({e})") from None
+    if not isinstance(meta, dict) or meta.get("format") != MODEL_FORMAT:
+        raise ModelError(f"model: {str(p)!r} is not an {MODEL_FORMAT} file")
+    for key in ("name", "version", "config", "input", "graphs", "files", "selection"):
+        if key not in meta:
+            raise ModelError(f"model: {str(p)!r} lacks {key!r}")
+    return ModelInfo(d, meta)
+
+
+def read_model_file(info: ModelInfo, name: str, verify: bool = True) -> bytes:
+    """The bytes of a file of the model folder, checked against model.json's sha256 (ModelError naming it)."""
+    entry = info.meta["files"].get(name)
+    if entry is None:
+        raise ModelError(f"model file {name!r}: not listed in {info.path / 'model.json'}")
+    p = info.path / name
+    if not p.is_file():
+        raise ModelError(f"model file {name!r} is missing from {str(info.path)!r}")
+    data = p.read_bytes()
+    if verify and _sha256(data) != entry["sha256"]:
+        raise ModelError(f"model file {name!r} in {str(info.path)!r} is altered: sha256 {_sha256(data)[:16]}… "
+                         f"differs from model.json's {str(entry['sha256'])[:16]}…")
+    return data
+
+
+def verify_model(model_dir: str | os.PathLike) -> ModelInfo:
+    """Check every file model.json lists (presence and sha256); returns the parsed model.json."""
+    info = read_model_info(model_dir)
+    for name in info.meta["files"]:
+        read_model_file(info, name)
+    return info
+
+
+# ------------------------------------------------------------------------------------------- inputs
+
+
+def calibration_key(rig: Rig) -> str:
+    """sha256 over each camera's model, size, K, cam_to_ego and distortion, in rig order (the lifting inputs
+    depend on nothing else)."""
+    h = hashlib.sha256()
+    for c in rig.cameras:
+        h.update(f"{c.model}|{c.width}|{c.height}|{c.distortion}|".encode())
+        h.update(np.ascontiguousarray(c.K if c.K is not None else np.zeros((3, 3)), np.float64).tobytes())
+        h.update(np.ascontiguousarray(c.cam_to_ego, np.float64).tobytes())
+    return h.hexdigest()
+
+
+def as_rgb(img: np.ndarray, cam: Camera) -> np.ndarray:
+    """An image array -> [H, W, 3] float32 in 0..1 (uint8/uint16 scaled, grey replicated, alpha dropped);
+    RigError naming the camera for a bad shape or non-finite values."""
+    a = np.asarray(img)
+    if a.ndim == 2:
+        a = a[..., None]
+    if a.ndim != 3 or a.shape[:2] != (cam.height, cam.width) or a.shape[2] not in (1, 3, 4):
+        raise RigError(f"camera {cam.name!r}: image has shape {list(np.shape(img))}, but the rig declares "
+                       f"{cam.width}x{cam.height} (width x height) RGB")
+    if a.shape[2] == 1:
+        a = np.repeat(a, 3, axis=2)
+    a = a[..., :3]
+    if np.issubdtype(a.dtype, np.integer):
+        out = a.astype(np.float32) / float(np.iinfo(a.dtype).max)
+    elif np.issubdtype(a.dtype, np.floating):
+        out = a.astype(np.float32)
+        if not np.all(np.isfinite(out)):
+            raise RigError(f"camera {cam.name!r}: image has non-finite values")
+        out = np.clip(out, 0.0, 1.0)
+    else:
+        raise RigError(f"camera {cam.name!r}: image dtype {a.dtype} is not a number type")
+    return np.ascontiguousarray(out)
+
+
+def resize_area(img: np.ndarray, height: int, width: int) -> np.ndarray:
+    """cv2.INTER_AREA resize of [H, W, C] float32 (identity at the same size)."""
+    if img.shape[:2] == (height, width):
+        return img
+    import cv2
+
+    return cv2.resize(img, (width, height), interpolation=cv2.INTER_AREA)
+
+
+def resize_nearest(a: np.ndarray, height: int, width: int) -> np.ndarray:
+    """[H, W] -> [height, width] with torch's F.interpolate(mode='nearest') rule: src = floor(dst * in / out)
+    (float32), clamped -- the rule XYZCylinder's depth head applies to a supplied depth map."""
+    H, W = a.shape
+    r = np.minimum(np.floor(np.arange(height, dtype=np.float32) * np.float32(H / height)).astype(np.int64), H - 1)
+    c = np.minimum(np.floor(np.arange(width, dtype=np.float32) * np.float32(W / width)).astype(np.int64), W - 1)
+    return a[r[:, None], c[None, :]]
+
+
+def check_depth(d: np.ndarray, cam: Camera) -> np.ndarray:
+    """A supplied depth map [H, W] (metres along the optical axis) -> float32; RigError naming the camera when
+    its size differs from the camera's, or it has NaN/inf or negative values."""
+    a = np.asarray(d)
+    if a.ndim == 3 and a.shape[2] == 1:
+        a = a[..., 0]
+    if a.ndim != 2 or a.shape != (cam.height, cam.width):
+        raise RigError(f"camera {cam.name!r}: depth has shape {list(np.shape(d))}, but the rig declares "
+                       f"{cam.width}x{cam.height} (width x height)")
+    a = a.astype(np.float32)
+    bad = int(np.count_nonzero(~np.isfinite(a)))
+    if bad:
+        raise RigError(f"camera {cam.name!r}: depth has {bad} non-finite (NaN/inf) values")
+    if (a < 0).any():
+        raise RigError(f"camera {cam.name!r}: depth has negative values")
+    return a
+
+
+def select_voxels(occ_logits: np.ndarray, max_voxels: int) -> np.ndarray:
+    """XYZCylinder.select_voxels (predicted) in numpy: flat indices [M] int64 of the voxels with
+    occ_logits[1] > occ_logits[0]; when more than ``max_voxels``, the ``max_voxels`` largest margins (descending,
+    ties in index order)."""
+    margin = (occ_logits[1] - occ_logits[0]).reshape(-1)
+    idx = np.flatnonzero(margin > 0)
+    if idx.size > max_voxels:
+        idx = idx[np.argsort(-margin[idx], kind="stable")[:max_voxels]]
+    return idx.astype(np.int64)
+
+
+# ------------------------------------------------------------------------------------------- reconstructor
+
+
+def _session(data: bytes, threads: int | None, name: str, spin: bool = False):
+    import onnxruntime as ort
+
+    so = ort.SessionOptions()
+    so.intra_op_num_threads = int(threads or 0)
+    so.inter_op_num_threads = 1
+    # no busy-waiting between operators: measured 0.54 s instead of 0.80 s per encode on two shared cores (a server
+    # runs renders and other sessions beside it); spinning may help on an otherwise idle machine (not measured)
+    so.add_session_config_entry("session.intra_op.allow_spinning", "1" if spin else "0")
+    so.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
+    so.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+    so.log_severity_level = 3
+    try:
+        return ort.InferenceSession(data, so, providers=["CPUExecutionProvider"])
+    except Exception as e:  # noqa: BLE001 -- onnxruntime raises its own exception types
+        raise ModelError(f"model file {name!r}: onnxruntime cannot load it ({e})") from None
+
+
+class Reconstructor:
+    """One model folder's onnxruntime sessions and a cache of lifting inputs per rig calibration."""
+
+    def __init__(self, info: ModelInfo, sessions: Mapping[str, Any], threads: int | None, cache_size: int = 8,
+                 bake_scale: int = DEFAULT_BAKE_SCALE):
+        self.info = info
+        self.sessions = dict(sessions)
+        self.threads = threads
+        self.cache_size = int(cache_size)
+        self.bake_scale = int(bake_scale)
+        self._cache: OrderedDict[str, dict[str, np.ndarray]] = OrderedDict()
+        self._lock = threading.Lock()
+        self._params = info.lifting
+
+    @classmethod
+    def load(cls, model_dir: str | os.PathLike, threads: int | None = None, cache_size: int = 8,
+             verify: bool = True, bake_scale: int = DEFAULT_BAKE_SCALE, spin: bool = False) -> Reconstructor:
+        """Read model.json, check the sha256 of every listed file (ModelError naming a missing or altered file),
+        create one onnxruntime session per graph with ``threads`` intra-op threads (None: onnxruntime's default,
+        all cores; ``spin``: let idle threads busy-wait, faster only on an otherwise idle machine)."""
+        if threads is not None and int(threads) < 1:
+            raise ValueError(f"threads: must be >= 1, got {threads}")
+        info = read_model_info(model_dir)
+        blobs = {name: read_model_file(info, name, verify) for name in info.meta["files"]}
+        sessions = {}
+        for g, entry in info.meta["graphs"].items():
+            if entry["file"] not in blobs:
+                raise ModelError(f"model file {entry['file']!r}: graph {g!r} is not listed in files")
+            sessions[g] = _session(blobs[entry["file"]], threads, entry["file"], spin)
+        if "encode" not in sessions:
+            raise ModelError(f"model: {info.path / 'model.json'} has no 'encode' graph")
+        return cls(info, sessions, threads, cache_size, bake_scale)
+
+    # -- lifting inputs ---------------------------------------------------------------------------------------
+    def lifting(self, rig: Rig) -> tuple[dict[str, np.ndarray], bool]:
+        """(lifting inputs of ``rig``, whether they came from the cache)."""
+        key = calibration_key(rig)
+        with self._lock:
+            hit = self._cache.get(key)
+            if hit is not None:
+                self._cache.move_to_end(key)
+                return hit, True
+        out = build_lifting_inputs(rig, self._params)
+        for v in out.values():
+            v.setflags(write=False)
+        with self._lock:
+            self._cache[key] = out
+            while len(self._cache) > self.cache_size:
+                self._cache.popitem(last=False)
+        return out, False
+
+    # -- stages -------------------------------------------------------------------------------------------------
+    def _run(self, graph: str, feed: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
+        s = self.sessions[graph]
+        names = [o.name for o in s.get_outputs()]
+        outs = s.run(names, {i.name: feed[i.name] for i in s.get_inputs()})
+        return dict(zip(names, outs))
+
+    def prepare(self, rig: Rig, images: Sequence[np.ndarray], depths: Sequence[np.ndarray | None] | None = None
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Validated, resized network inputs: images [N, 3, H, W], depth [N, 1, h, w], depth_mask [N]."""
+        if len(images) != len(rig.cameras):
+            raise RigError(f"rig: {len(rig.cameras)} cameras but {len(images)} images")
+        H, W = self.info.input_size
+        imgs = np.stack([resize_area(as_rgb(img, cam), H, W).transpose(2, 0, 1)
+                         for img, cam in zip(images, rig.cameras)])
+        h, w = self.info.depth_size
+        depth = np.zeros((len(rig.cameras), 1, h, w), np.float32)
+        mask = np.zeros(len(rig.cameras), np.float32)
+        if depths is not None:
+            if len(depths) != len(rig.cameras):
+                raise RigError(f"rig: {len(rig.cameras)} cameras but {len(depths)} depth maps")
+            for n, (d, cam) in enumerate(zip(depths, rig.cameras)):
+                if d is None:
+                    continue
+                if cam.model != "pinhole":
+                    raise RigError(f"camera {cam.name!r}: depth is supported for pinhole cameras only")
+                depth[n, 0] = resize_nearest(check_depth(d, cam), h, w)
+                mask[n] = 1.0
+        return np.ascontiguousarray(imgs, np.float32), depth, mask
+
+    def reconstruct(self, rig: Rig, images: Sequence[np.ndarray] | None = None,
+                    depths: Sequence[np.ndarray | None] | None = None,
+                    progress: Callable[[str], None] | None = None) -> Scene:
+        """Gaussians (ego frame), background and metadata of one timestamp of ``rig``.
+
+        images: one [H, W, 3] array per camera in rig order (uint8, uint16 or float 0..1), or None to read the
+        rig's image files; depths: per camera a [H, W] depth map in metres or None, or None for the rig's depth
+        files (if any). Errors name the camera (RigError) or the model file (ModelError)."""
+        say = progress or (lambda msg: None)
+        t: dict[str, float] = {}
+        t_all = time.perf_counter()
+        if len(rig.cameras) > 16:
+            raise RigError(f"rig: at most 16 cameras, got {len(rig.cameras)}")
+        t0 = time.perf_counter()
+        if images is None:
+            say("decode images")
+            images = rig.load_images()
+        if depths is None and any(c.depth is not None for c in rig.cameras):
+            depths = rig.load_depths()
+        t["decode"] = time.perf_counter() - t0
+
+        t0 = time.perf_counter()
+        imgs, depth, mask = self.prepare(rig, images, depths)
+        t["resize"] = time.perf_counter() - t0
+
+        t0 = time.perf_counter()
+        lift, cached = self.lifting(rig)
+        t["lifting"] = time.perf_counter() - t0
+
+        say("encode")
+        t0 = time.perf_counter()
+        feed = {"images": imgs, "depth": depth, "depth_mask": mask, **lift}
+        enc = self._run("encode", feed)
+        t["encode"] = time.perf_counter() - t0
+
+        parts: list[dict[str, np.ndarray]] = []
+        n_vox = 0
+        counts: dict[str, int] = {"volume": 0, "pixel": 0}
+        if "volume" in self.sessions:
+            t0 = time.perf_counter()
+            idx = select_voxels(enc["occ_logits"], self.info.max_voxels)
+            n_vox = int(idx.size)
+            t["select"] = time.perf_counter() - t0
+            say(f"volume ({n_vox} voxels)")
+            t0 = time.perf_counter()
+            vol = self._run("volume", {"geo_cpfg": enc["geo_cpfg"], "app_cpfg": enc["app_cpfg"], "voxel_idx": idx,
+                                       "vol_coords": lift["vol_coords"], "voxel_centres": lift["voxel_centres"]})
+            t["volume"] = time.perf_counter() - t0
+            parts.append({k: vol[f"volume_{k}"] for k in GAUSSIAN_KEYS})
+            counts["volume"] = int(vol["volume_means"].shape[0])
+        if "pixel_means" in enc:
+            parts.append({k: enc[f"pixel_{k}"] for k in GAUSSIAN_KEYS})
+            counts["pixel"] = int(enc["pixel_means"].shape[0])
+
+        t0 = time.perf_counter()
+        g = {k: np.concatenate([p[k] for p in parts], axis=0).astype(np.float32) for k in GAUSSIAN_KEYS}
+        keep = 1.0 / (1.0 + np.exp(-g["opacity_logits"].astype(np.float64))) >= PRUNE_OPACITY
+        counts["pruned"] = int(keep.size - keep.sum())
+        gauss = Gaussians(**{k: np.ascontiguousarray(v[keep]) for k, v in g.items()})
+        counts["total"] = len(gauss)
+        counts["voxels"] = n_vox
+        t["gaussians"] = time.perf_counter() - t0
+
+        background = None
+        app_plane = enc.get("app_plane")
+        if app_plane is not None and "background" in self.sessions:
+            say("background")
+            t0 = time.perf_counter()
+            background = self.bake_background(rig, app_plane)
+            t["background"] = time.perf_counter() - t0
+        t["total"] = time.perf_counter() - t_all
+        meta = {"name": self.info.name, "version": self.info.version,
+                "model_json_sha256": _sha256((self.info.path / "model.json").read_bytes())}
+        return Scene(gaussians=gauss, background=background, rig=rig, model=meta, counts=counts,
+                     timings={k: round(v, 6) for k, v in t.items()}, lifting_cached=cached, app_plane=app_plane)
+
+    # -- background ---------------------------------------------------------------------------------------------
+    def background_spec(self, rig: Rig):
+        """The cylinder ZNet_bg samples (the volume module's), at the model's H_u x W_u."""
+        lift, _ = self.lifting(rig)
+        return spec_from_array(lift["spec_vol"], self._params.height, self._params.width)
+
+    def synth_radius(self) -> int:
+        """View-space receptive radius of the background synthesis (one pixel per 3x3 modulated conv)."""
+        return len(self.info.config["background"]["synth_dims"]) - 1
+
+    def bake_background(self, rig: Rig, app_plane: np.ndarray, scale: int | None = None) -> Background:
+        """Run the background graph once with the cylinder itself as the view: a panorama of
+        (scale H_u + rows beyond the caps) x scale W_u pixels (docs/inference.md, "Background")."""
+        scale = int(scale or self.bake_scale)
+        spec = self.background_spec(rig)
+        r = self.synth_radius()
+        grid, v_range, crop = bake_grid(spec.height * scale, spec.width * scale, margin=2 * r + 2, radius=r)
+        img = self._run("background", {"app_plane": app_plane, "grids": grid[None]})["background"][0]
+        img = img.transpose(1, 2, 0)[crop]
+        return Background(image=np.ascontiguousarray(img, np.float32), cylinder=spec, v_range=v_range)
+
+    def background_network(self, scene: Scene, camera) -> np.ndarray:
+        """The background network run per view (the reference the baked panorama approximates): [H, W, 3] for a
+        runtime.render PinholeCamera, from the scene's in-memory appearance plane."""
+        if scene.app_plane is None or "background" not in self.sessions or scene.background is None:
+            raise InferenceError("background: this scene has no appearance plane (loaded from disk?) or the "
+                                 "model no background graph")
+        g = background_grid(scene.background.cylinder, camera.K, camera.cam_to_world, camera.width, camera.height)
+        out = self._run("background", {"app_plane": scene.app_plane, "grids": g[None]})["background"][0]
+        return np.ascontiguousarray(out.transpose(1, 2, 0))
+
+
+def default_model_dir() -> Path:
+    """$XYZCYL_MODEL, else models/xyzcyl-cpu-v1 in the working folder, else in the source checkout."""
+    env = os.environ.get("XYZCYL_MODEL")
+    if env:
+        return Path(env)
+    local = Path("models") / "xyzcyl-cpu-v1"
+    if local.is_dir():
+        return local
+    return Path(__file__).resolve().parents[1] / "models" / "xyzcyl-cpu-v1"
+
+
+__all__ = ["InferenceError", "ModelError", "ModelInfo", "Reconstructor", "calibration_key", "default_model_dir",
+           "read_model_info", "select_voxels", "verify_model"]

@@ -1,0 +1,345 @@
+"""A reconstructed scene: Gaussians in the ego frame, the background panorama, metadata; its folder on disk, and
+rendering a view of it. docs/inference.md states the folder format and the background decision.
+
+    scene = Scene.load("/tmp/scene")
+    rgb, depth, alpha = render_view(scene, PinholeCamera(K, cam_to_ego, 1600, 900))
+
+Folder (written atomically: a temporary sibling folder renamed into place):
+    scene.ply        standard 3DGS PLY (x y z nx ny nz f_dc_* [f_rest_*] opacity scale_* rot_*), ego frame
+    background.exr   the sky/background panorama on the volume cylinder, float32 RGB (linear 0..1)
+    background.png   the same as an 8-bit preview
+    scene.json       format, rig (calibration only), model, counts, timings, bbox, background cylinder spec
+
+Background panorama: column c covers the cylinder's normalised column u = 2s - 1 in [-1 + 2c/W, -1 + 2(c+1)/W]
+(theta wraps); row r covers the normalised row v = 2p - 1 in [v0 + r dv, v0 + (r+1) dv], dv = (v1 - v0)/H, with
+(v0, v1) = ``v_range`` reaching beyond the cylinder's top and bottom (v = -1, 1) by a few rows. A view ray is
+intersected with the infinite cylinder of radius R_u (runtime.cylinder.ray_cylinder_intersection, paper_v=False,
+the same rule as runtime.lifting.background_grid) and the panorama sampled bilinearly there, rows clamped
+(rays that leave through the caps read the outermost row, as ZNet_bg's border padding does).
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import json
+import math
+import os
+import shutil
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numba
+import numpy as np
+
+from .cylinder import CylinderSpec
+from .render import EquirectCamera, Gaussians, PinholeCamera, render
+from .rig import Camera, Rig
+
+SCENE_FORMAT = "xyzcyl-scene"
+SCENE_VERSION = 1
+PLY_NAME, EXR_NAME, PNG_NAME, JSON_NAME = "scene.ply", "background.exr", "background.png", "scene.json"
+
+
+class SceneError(ValueError):
+    """A scene folder is missing, incomplete or invalid; the message names the file."""
+
+
+# ------------------------------------------------------------------------------------------- background
+
+
+def bake_grid(height: int, width: int, margin: int, radius: int) -> tuple[np.ndarray, tuple[float, float], tuple]:
+    """Sampling grid [height + 2 margin, width + 2 margin, 2] of the cylinder itself as a "view" for ZNet_bg:
+    (u, v) = (2s - 1, 2p - 1) at height x width pixel centres, ``margin`` extra rows beyond the top and bottom
+    (v outside [-1, 1]: ZNet's border padding reads the cap row there) and ``margin`` extra columns on each side
+    with u wrapped (so the view-space 3x3 convolutions see theta's neighbours across the seam).
+
+    Returns (grid, v_range, crop): crop = (row slice, column slice) of the synthesised image that is kept:
+    all columns of the cylinder and the rows at least ``radius`` (the synthesis' receptive radius) away from the
+    grid's outer edge, so no kept row saw the convolutions' zero padding; v_range = the kept rows' outer edges."""
+    if margin <= radius:
+        raise ValueError(f"margin: must exceed the receptive radius {radius}, got {margin}")
+    r = np.arange(-margin, height + margin, dtype=np.float64)
+    c = np.arange(-margin, width + margin, dtype=np.float64)
+    v = -1.0 + (r + 0.5) * 2.0 / height
+    u = -1.0 + (c + 0.5) * 2.0 / width
+    u = np.mod(u + 1.0, 2.0) - 1.0
+    grid = np.stack(np.meshgrid(u, v, indexing="xy"), axis=-1).astype(np.float32)   # [rows, cols, 2]
+    keep = margin - radius
+    v_range = (-1.0 - keep * 2.0 / height, 1.0 + keep * 2.0 / height)
+    crop = (slice(radius, height + 2 * margin - radius), slice(margin, margin + width))
+    return grid, v_range, crop
+
+
+@dataclass(frozen=True, eq=False)
+class Background:
+    """The background (sky and far scene) baked into a panorama on the volume cylinder (see the module doc)."""
+
+    image: np.ndarray                 # [H, W, 3] float32 linear RGB, 0..1
+    cylinder: CylinderSpec            # centre, radius R_u and z range of the cylinder (ego frame)
+    v_range: tuple[float, float]      # normalised rows (2p - 1) of the panorama's top and bottom edges
+
+    def __post_init__(self) -> None:
+        img = np.ascontiguousarray(self.image, np.float32)
+        if img.ndim != 3 or img.shape[2] != 3 or min(img.shape[:2]) < 1:
+            raise SceneError(f"background: image must be [H, W, 3], got {list(img.shape)}")
+        if not np.all(np.isfinite(img)):
+            raise SceneError("background: image has non-finite values")
+        object.__setattr__(self, "image", img)
+        v0, v1 = (float(x) for x in self.v_range)
+        if not (math.isfinite(v0) and math.isfinite(v1) and v1 > v0):
+            raise SceneError(f"background: v_range must be increasing finite numbers, got {self.v_range}")
+        object.__setattr__(self, "v_range", (v0, v1))
+
+    def to_dict(self) -> dict[str, Any]:
+        c = self.cylinder
+        return {"file": EXR_NAME, "preview": PNG_NAME, "height": int(self.image.shape[0]),
+                "width": int(self.image.shape[1]), "v_range": list(self.v_range),
+                "cylinder": {"centre": c.centre.tolist(), "radius": c.radius, "z_min": c.z_min, "z_max": c.z_max,
+                             "height": c.height, "width": c.width},
+                "projection": "column c: u = 2s-1 in [-1 + 2c/W, -1 + 2(c+1)/W] (theta wraps); row r: v = 2p-1 in "
+                              "v_range split into H rows; a view ray is intersected with the infinite cylinder of "
+                              "radius R_u about the vertical axis through centre, u = -theta/pi, "
+                              "v = -2 (z - centre_z) / (z_max - z_min); rows clamped"}
+
+    def render(self, camera, step: int = 4) -> np.ndarray:
+        """[H, W, 3] float32: the panorama seen by a runtime.render PinholeCamera or EquirectCamera.
+
+        ``step`` > 1: the rays are traced at 1/step of the resolution (the camera resized with the pixel-centre
+        convention of Camera.resized) and the result resized back bilinearly (cv2.INTER_LINEAR, the same
+        convention): the panorama is smooth at view scale (a 4x4 texel of the cylinder spans several view pixels
+        at the usual sizes), and the trace costs ~1/step^2 (docs/inference.md gives the measured difference)."""
+        W, H = camera.width, camera.height
+        if step > 1 and min(W, H) >= 4 * step:
+            import cv2
+
+            w, h = math.ceil(W / step), math.ceil(H / step)
+            small = _scaled_camera(camera, w, h)
+            img = self._trace(small)
+            return cv2.resize(img, (W, H), interpolation=cv2.INTER_LINEAR)
+        return self._trace(camera)
+
+    def _trace(self, camera) -> np.ndarray:
+        out = np.empty((camera.height, camera.width, 3), np.float32)
+        c = self.cylinder
+        T = np.ascontiguousarray(camera.cam_to_world, np.float64)
+        args = (self.image, self.v_range[0], self.v_range[1], float(c.centre[0]), float(c.centre[1]),
+                float(c.centre[2]), float(c.radius), float(c.Z_u))
+        if isinstance(camera, PinholeCamera):
+            K = camera.K
+            _bg_pinhole(*args, float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]), T, out)
+        elif isinstance(camera, EquirectCamera):
+            d = np.ascontiguousarray(camera.pixel_rays() @ T[:3, :3].T, np.float64)
+            _bg_dirs(*args, T, d, out)
+        else:
+            raise TypeError(f"camera: expected PinholeCamera or EquirectCamera, got {type(camera).__name__}")
+        return out
+
+
+def _scaled_camera(camera, width: int, height: int):
+    """The same camera imaging at width x height (pixel u spans [u - 1/2, u + 1/2]: cx' = s (cx + 1/2) - 1/2)."""
+    if isinstance(camera, EquirectCamera):
+        return EquirectCamera(camera.cam_to_world, width, height)
+    sx, sy = width / camera.width, height / camera.height
+    K = np.array(camera.K, dtype=np.float64)
+    K[0, 0], K[0, 2] = sx * K[0, 0], sx * (K[0, 2] + 0.5) - 0.5
+    K[1, 1], K[1, 2] = sy * K[1, 1], sy * (K[1, 2] + 0.5) - 0.5
+    return PinholeCamera(K, camera.cam_to_world, width, height)
+
+
+@numba.njit(cache=True, inline="always")
+def _sample(pano, v0, v1, ox, oy, oz, dx, dy, dz, cx, cy, cz, R, Zu, out, y, x):
+    H, W = pano.shape[0], pano.shape[1]
+    px, py = ox - cx, oy - cy
+    a = dx * dx + dy * dy
+    b = px * dx + py * dy
+    c = px * px + py * py - R * R
+    disc = b * b - a * c
+    u, v = -1.0, -2.0          # a miss (a vertical ray): the top row, as ZNet's border padding reads it
+    if a > 0.0 and disc >= 0.0:
+        t = (-b + math.sqrt(disc)) / a
+        if t >= 0.0:
+            u = -math.atan2(py + t * dy, px + t * dx) / math.pi
+            v = -2.0 * (oz + t * dz - cz) / Zu
+    col = (u + 1.0) * 0.5 * W - 0.5
+    row = (v - v0) / (v1 - v0) * H - 0.5
+    row = min(max(row, 0.0), H - 1.0)
+    r0 = min(math.floor(row), H - 1)
+    r1 = min(r0 + 1, H - 1)
+    fr = row - r0
+    cf = math.floor(col)
+    fc = col - cf
+    c0 = int(cf) % W
+    c1 = (c0 + 1) % W
+    for k in range(3):
+        top = pano[r0, c0, k] * (1.0 - fc) + pano[r0, c1, k] * fc
+        bot = pano[r1, c0, k] * (1.0 - fc) + pano[r1, c1, k] * fc
+        out[y, x, k] = top * (1.0 - fr) + bot * fr
+
+
+@numba.njit(parallel=True, cache=True)
+def _bg_pinhole(pano, v0, v1, cx, cy, cz, R, Zu, fx, fy, ppx, ppy, T, out):
+    H, W = out.shape[0], out.shape[1]
+    for y in numba.prange(H):
+        for x in range(W):
+            a, b = (x - ppx) / fx, (y - ppy) / fy
+            dx = T[0, 0] * a + T[0, 1] * b + T[0, 2]
+            dy = T[1, 0] * a + T[1, 1] * b + T[1, 2]
+            dz = T[2, 0] * a + T[2, 1] * b + T[2, 2]
+            _sample(pano, v0, v1, T[0, 3], T[1, 3], T[2, 3], dx, dy, dz, cx, cy, cz, R, Zu, out, y, x)
+
+
+@numba.njit(parallel=True, cache=True)
+def _bg_dirs(pano, v0, v1, cx, cy, cz, R, Zu, T, d, out):
+    H, W = out.shape[0], out.shape[1]
+    for y in numba.prange(H):
+        for x in range(W):
+            _sample(pano, v0, v1, T[0, 3], T[1, 3], T[2, 3], d[y, x, 0], d[y, x, 1], d[y, x, 2], cx, cy, cz, R,
+                    Zu, out, y, x)
+
+
+# ------------------------------------------------------------------------------------------- scene
+
+
+def _calibration_rig(rig: Rig) -> Rig:
+    """The rig without its image/depth file names (a scene keeps the calibration, not the inputs)."""
+    return Rig(cameras=tuple(c.replace(image=None, depth=None) for c in rig.cameras), extra=rig.extra)
+
+
+@dataclass(eq=False)
+class Scene:
+    """Gaussians (ego frame), the background panorama (or None) and metadata of one reconstruction."""
+
+    gaussians: Gaussians
+    background: Background | None
+    rig: Rig
+    model: dict[str, Any] = field(default_factory=dict)      # name, version, model_json_sha256
+    counts: dict[str, int] = field(default_factory=dict)     # volume, pixel, pruned, total, voxels
+    timings: dict[str, float] = field(default_factory=dict)  # seconds per stage
+    lifting_cached: bool = False
+    app_plane: np.ndarray | None = field(default=None, repr=False)   # in memory only (not saved)
+    created: str = field(default_factory=lambda: _dt.datetime.now(_dt.UTC).replace(microsecond=0)
+                         .isoformat())
+
+    def bbox(self) -> dict[str, list[float]] | None:
+        """Axis-aligned box (ego metres) of the Gaussians' centres whose opacity is at least 1/255."""
+        g = self.gaussians
+        if len(g) == 0:
+            return None
+        vis = g.opacities >= 1.0 / 255.0
+        m = g.means[vis] if vis.any() else g.means
+        return {"min": [float(x) for x in m.min(axis=0)], "max": [float(x) for x in m.max(axis=0)]}
+
+    def to_json(self) -> dict[str, Any]:
+        g = self.gaussians
+        return {"format": SCENE_FORMAT, "format_version": SCENE_VERSION, "created": self.created,
+                "frame": "ego: x forward, y left, z up, metres",
+                "model": self.model, "rig": _calibration_rig(self.rig).to_dict(),
+                "counts": self.counts, "timings": self.timings, "lifting_cached": self.lifting_cached,
+                "bbox": self.bbox(),
+                "gaussians": {"file": PLY_NAME, "count": len(g), "sh_degree": g.sh_degree,
+                              "layout": "3DGS PLY: logit opacity, log scale, quaternion wxyz, f_rest channel-major"},
+                "background": None if self.background is None else self.background.to_dict()}
+
+    def save(self, folder: str | os.PathLike, overwrite: bool = True) -> Path:
+        """Write the scene folder atomically: into a temporary sibling folder, then renamed to ``folder`` (an
+        existing folder is replaced when ``overwrite``)."""
+        out = Path(folder)
+        if out.exists() and not overwrite:
+            raise SceneError(f"scene: {str(out)!r} exists")
+        out.parent.mkdir(parents=True, exist_ok=True)
+        tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))
+        os.chmod(tmp, 0o755)   # mkdtemp makes it private; a scene folder is an ordinary folder
+        try:
+            self.gaussians.save_ply(tmp / PLY_NAME)
+            if self.background is not None:
+                from .imageio import write_exr, write_png
+
+                write_exr(tmp / EXR_NAME, self.background.image, ("R", "G", "B"))
+                write_png(tmp / PNG_NAME, self.background.image)
+            (tmp / JSON_NAME).write_text(json.dumps(self.to_json(), indent=1, allow_nan=False) + "\n")
+            if out.exists():
+                old = Path(tempfile.mkdtemp(prefix=f".{out.name}.old.", dir=out.parent))
+                os.replace(out, old / "scene")
+                os.replace(tmp, out)
+                shutil.rmtree(old, ignore_errors=True)
+            else:
+                os.replace(tmp, out)
+        except BaseException:
+            shutil.rmtree(tmp, ignore_errors=True)
+            raise
+        return out
+
+    @classmethod
+    def load(cls, folder: str | os.PathLike, max_points: int | None = None) -> Scene:
+        """Read a scene folder (SceneError naming the file when something is missing or invalid)."""
+        from .render import GaussianError
+        from .render.gaussians import DEFAULT_MAX_POINTS
+        from .rig import RigError
+
+        d = Path(folder)
+        jp = d / JSON_NAME
+        if not jp.is_file():
+            raise SceneError(f"scene: {str(jp)!r} is missing (not a scene folder)")
+        try:
+            meta = json.loads(jp.read_text())
+        except (OSError, json.JSONDecodeError) as e:
+            raise SceneError(f"scene: {str(jp)!r} is not valid JSON ({e})") from None
+        if not isinstance(meta, dict) or meta.get("format") != SCENE_FORMAT:
+            raise SceneError(f"scene: {str(jp)!r} is not an {SCENE_FORMAT} file")
+        try:
+            rig = Rig.from_dict(meta["rig"])
+        except (RigError, KeyError) as e:
+            raise SceneError(f"scene: {str(jp)!r}: rig: {e}") from None
+        pp = d / PLY_NAME
+        if not pp.is_file():
+            raise SceneError(f"scene: {str(pp)!r} is missing")
+        try:
+            g = Gaussians.load_ply(pp, max_points=max_points or DEFAULT_MAX_POINTS)
+        except GaussianError as e:
+            raise SceneError(f"scene: {str(pp)!r}: {e}") from None
+        bg = None
+        b = meta.get("background")
+        if b:
+            from .imageio import read_exr
+
+            ep = d / b.get("file", EXR_NAME)
+            if not ep.is_file():
+                raise SceneError(f"scene: {str(ep)!r} is missing")
+            img = read_exr(ep)
+            c = b["cylinder"]
+            spec = CylinderSpec(centre=c["centre"], radius=c["radius"], z_min=c["z_min"], z_max=c["z_max"],
+                                height=c["height"], width=c["width"])
+            bg = Background(image=img[..., :3], cylinder=spec, v_range=tuple(b["v_range"]))
+        return cls(gaussians=g, background=bg, rig=rig, model=meta.get("model") or {},
+                   counts=meta.get("counts") or {}, timings=meta.get("timings") or {},
+                   lifting_cached=bool(meta.get("lifting_cached", False)), created=meta.get("created", ""))
+
+
+# ------------------------------------------------------------------------------------------- views
+
+
+def rig_camera(cam: Camera, forward: float = 0.0, width: int | None = None, height: int | None = None):
+    """A runtime.render camera for a rig camera (pinhole: K and size, distortion ignored; equirectangular),
+    moved ``forward`` metres along ego x, optionally at another size (K scaled with Camera.resized)."""
+    if width is not None or height is not None:
+        cam = cam.resized(width or cam.width, height or cam.height)
+    T = np.array(cam.cam_to_ego, dtype=np.float64)
+    T[0, 3] += float(forward)
+    if cam.model == "equirectangular":
+        return EquirectCamera(T, cam.width, cam.height)
+    return PinholeCamera(np.array(cam.K, dtype=np.float64), T, cam.width, cam.height)
+
+
+def render_view(scene: Scene, camera, **options) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(rgb [H, W, 3], depth [H, W], alpha [H, W]) float32 of ``scene`` seen by a runtime.render PinholeCamera /
+    EquirectCamera: the Gaussians composited over the background panorama (I = I_fg + (1 - A_fg) I_bg; black
+    without a background). Depth and alpha are the Gaussians' (depth 0 where alpha is 0). ``options``: the
+    renderer's (RenderOptions)."""
+    bg = scene.background.render(camera) if scene.background is not None else None
+    r = render(scene.gaussians, camera, background=bg, **options)
+    return r.rgb, r.depth, r.alpha
+
+
+__all__ = ["Background", "Scene", "SceneError", "bake_grid", "render_view", "rig_camera"]

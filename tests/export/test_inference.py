@@ -1,0 +1,161 @@
+"""runtime.inference.Reconstructor: model-folder checks, input checks, resizing, the lifting cache, threads."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import shutil
+from concurrent.futures import ThreadPoolExecutor
+
+import numpy as np
+import pytest
+from net_helpers import overlap_rig
+from xyzcyl.runtime.inference import (
+    ModelError,
+    Reconstructor,
+    calibration_key,
+    read_model_info,
+    resize_area,
+    resize_nearest,
+    verify_model,
+)
+from xyzcyl.runtime.lifting import LiftingParams
+from xyzcyl.runtime.rig import RigError
+
+pytestmark = pytest.mark.slow   # the session's ONNX export (tests/export/conftest.py)
+
+
+@pytest.fixture(scope="module")
+def rec(tiny_export):
+    return Reconstructor.load(tiny_export.dir, threads=1)
+
+
+def _images(rig, seed=0):
+    rng = np.random.default_rng(seed)
+    return [rng.random((c.height, c.width, 3), dtype=np.float32) for c in rig.cameras]
+
+
+def test_model_json_describes_the_folder(tiny_export):
+    info = verify_model(tiny_export.dir)
+    m = info.meta
+    assert m["opset"] == 20 and m["name"] == "tiny-test" and m["version"] == "0.0.1"
+    assert set(m["graphs"]) == {"encode", "volume", "background"}
+    assert set(m["files"]) == {"encode.onnx", "volume.onnx", "background.onnx", "MODEL_CARD.md"}
+    enc = {i["name"]: i["shape"] for i in m["graphs"]["encode"]["inputs"]}
+    assert enc["images"] == ["N", 3, 64, 128] and enc["grid_occ"][0] == "N" and enc["depth_mask"] == ["N"]
+    vol = {i["name"]: i["shape"] for i in m["graphs"]["volume"]["inputs"]}
+    assert vol["voxel_idx"] == ["M"]
+    lp = LiftingParams.from_config_dict(tiny_export.model.cfg.to_dict())
+    assert m["lifting"] == json.loads(json.dumps(dataclasses.asdict(lp))) and info.lifting == lp
+    assert m["config"] == tiny_export.model.cfg.to_dict()
+    assert m["checkpoint"]["step"] == 0 and m["checkpoint"]["train"]["stage"] == "render"
+    card = (tiny_export.dir / "MODEL_CARD.md").read_text()
+    assert "tiny-test 0.0.1" in card and "Apache-2.0" in card
+
+
+@pytest.mark.parametrize("damage", ["alter", "remove"])
+@pytest.mark.parametrize("name", ["volume.onnx", "MODEL_CARD.md"])
+def test_missing_or_altered_model_file_is_named(tiny_export, tmp_path, damage, name):
+    d = tmp_path / "m"
+    shutil.copytree(tiny_export.dir, d)
+    if damage == "alter":
+        data = bytearray((d / name).read_bytes())
+        data[len(data) // 2] ^= 0x01
+        (d / name).write_bytes(bytes(data))
+    else:
+        (d / name).unlink()
+    with pytest.raises(ModelError, match=name.replace(".", r"\.")) as e:
+        Reconstructor.load(d)
+    assert ("altered" if damage == "alter" else "missing") in str(e.value)
+
+
+def test_not_a_model_folder(tmp_path):
+    with pytest.raises(ModelError, match="model.json"):
+        read_model_info(tmp_path)
+    with pytest.raises(ModelError, match="not a folder"):
+        read_model_info(tmp_path / "nope")
+
+
+def test_lifting_cache_per_calibration(tiny_export):
+    rec = Reconstructor.load(tiny_export.dir, threads=1, cache_size=2)
+    rig5, rig6, rig8 = overlap_rig(5), overlap_rig(6), overlap_rig(8)
+    a = rec.reconstruct(rig6, _images(rig6))
+    b = rec.reconstruct(overlap_rig(6), _images(rig6))     # the same calibration in another Rig object
+    assert not a.lifting_cached and b.lifting_cached
+    np.testing.assert_array_equal(a.gaussians.means, b.gaussians.means)
+    assert not rec.reconstruct(rig5, _images(rig5)).lifting_cached
+    assert not rec.reconstruct(overlap_rig(6, ring_radius=0.6), _images(rig6)).lifting_cached   # moved cameras
+    rec.reconstruct(rig8, _images(rig8))
+    assert len(rec._cache) == 2 and calibration_key(rig6) not in rec._cache   # least recently used dropped
+
+
+def test_counts_and_metadata(rec):
+    rig = overlap_rig(6)
+    s = rec.reconstruct(rig, _images(rig))
+    c = s.counts
+    assert c["volume"] == 2 * c["voxels"] and c["pixel"] == 16 * 128   # G_v = 2; G_p = 1 on the k = 2 lattice of 8 x 64
+    assert c["total"] == len(s.gaussians) == c["volume"] + c["pixel"] - c["pruned"]
+    assert s.model["name"] == "tiny-test" and s.model["version"] == "0.0.1"
+    for k in ("decode", "resize", "lifting", "encode", "select", "volume", "gaussians", "background", "total"):
+        assert s.timings[k] >= 0
+    assert s.background is not None and s.background.image.shape[1] == 4 * 64
+
+
+def test_resizes_any_image_size_with_inter_area(rec):
+    """A rig at 2x the model's input: its images are area-resized, its calibration is used as is (the lifting grids
+    are normalised image coordinates, the same at any resolution)."""
+    big = overlap_rig(6, width=256, height=128)
+    imgs = _images(big, seed=3)
+    a = rec.reconstruct(big, imgs)
+    small = overlap_rig(6)
+    b = rec.reconstruct(small, [resize_area(i, 64, 128) for i in imgs])
+    np.testing.assert_allclose(a.gaussians.means, b.gaussians.means, atol=1e-4)
+    uint8 = rec.reconstruct(big, [np.round(i * 255).astype(np.uint8) for i in imgs])
+    assert len(uint8.gaussians) > 0
+
+
+def test_depth_resize_is_torchs_nearest():
+    import torch
+    import torch.nn.functional as F
+
+    d = np.random.default_rng(0).random((450, 800)).astype(np.float32)
+    for h, w in ((28, 50), (8, 16), (56, 100), (900, 1600)):
+        ref = F.interpolate(torch.from_numpy(d)[None, None], size=(h, w), mode="nearest")[0, 0].numpy()
+        np.testing.assert_array_equal(resize_nearest(d, h, w), ref)
+
+
+@pytest.mark.parametrize("case", ["size", "nan_image", "nan_depth", "neg_depth", "depth_size", "count"])
+def test_bad_input_names_the_camera(rec, case):
+    rig = overlap_rig(5)
+    imgs = _images(rig)
+    depths = None
+    if case == "size":
+        imgs[2] = imgs[2][:, :100]
+    elif case == "nan_image":
+        imgs[2][3, 4, 1] = np.nan
+    elif case == "count":
+        imgs = imgs[:4]
+    else:
+        depths = [None] * 5
+        depths[2] = np.full((64, 128), 5.0, np.float32)
+        if case == "nan_depth":
+            depths[2][10, 10] = np.nan
+        elif case == "neg_depth":
+            depths[2][10, 10] = -1.0
+        else:
+            depths[2] = depths[2][:32]
+    with pytest.raises(RigError) as e:
+        rec.reconstruct(rig, imgs, depths)
+    assert ("'cam2'" in str(e.value)) if case != "count" else "rig" in str(e.value)
+
+
+def test_concurrent_reconstructions_agree(rec):
+    """Several threads on one Reconstructor (shared sessions, locked cache) give the sequential results."""
+    rigs = [overlap_rig(5), overlap_rig(6), overlap_rig(8)]
+    imgs = [_images(r, seed=i) for i, r in enumerate(rigs)]
+    ref = [rec.reconstruct(r, i).gaussians.means for r, i in zip(rigs, imgs)]
+    with ThreadPoolExecutor(4) as pool:
+        futs = [pool.submit(rec.reconstruct, rigs[k % 3], imgs[k % 3]) for k in range(6)]
+        got = [f.result().gaussians.means for f in futs]
+    for k, g in enumerate(got):
+        np.testing.assert_array_equal(g, ref[k % 3])

@@ -1,0 +1,136 @@
+"""`xyzcyl reconstruct` and `xyzcyl render SCENE_DIR` on the shipped example rig (examples/synth_nuscenes) with the
+tiny test model; bad inputs exit 2 with one line naming the camera or the file."""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import numpy as np
+import pytest
+from conftest import EXAMPLE_RIG
+from xyzcyl.clients import cli
+
+pytestmark = pytest.mark.slow   # the session's ONNX export (tests/export/conftest.py)
+
+
+@pytest.fixture(scope="module")
+def scene_dir(tiny_export, tmp_path_factory):
+    out = tmp_path_factory.mktemp("cli") / "scene"
+    assert cli.main(["reconstruct", str(EXAMPLE_RIG), "--out", str(out), "--model", str(tiny_export.dir),
+                     "--threads", "1", "--quiet"]) == 0
+    return out
+
+
+@pytest.fixture
+def rig_copy(tmp_path):
+    d = tmp_path / "rig"
+    shutil.copytree(EXAMPLE_RIG.parent, d)
+    return d
+
+
+def _err(capsys) -> list[str]:
+    return capsys.readouterr().err.strip().splitlines()
+
+
+def test_reconstruct_writes_a_scene_folder(scene_dir):
+    meta = json.loads((scene_dir / "scene.json").read_text())
+    assert meta["model"]["name"] == "tiny-test" and len(meta["rig"]["cameras"]) == 6
+    assert meta["counts"]["total"] > 0 and (scene_dir / "background.png").is_file()
+
+
+def test_render_scene_from_an_input_camera(scene_dir, tmp_path):
+    import cv2
+    import OpenImageIO as oiio
+
+    png = tmp_path / "v.png"
+    assert cli.main(["render", str(scene_dir), "--camera", "CAM_FRONT", "--width", "160", "--height", "90",
+                     "--out", str(png), "--threads", "1"]) == 0
+    img = cv2.imread(str(png))
+    assert img.shape == (90, 160, 3) and img.std() > 0
+    exr = tmp_path / "v.exr"
+    assert cli.main(["render", str(scene_dir), "--camera", "CAM_FRONT", "--width", "160", "--height", "90",
+                     "--forward", "3", "--out", str(exr)]) == 0
+    inp = oiio.ImageInput.open(str(exr))
+    assert inp.spec().channelnames == ("R", "G", "B", "A", "Z")
+    moved = inp.read_image(oiio.FLOAT)
+    inp.close()
+    assert not np.allclose(moved[..., :3], cv2.imread(str(png))[..., ::-1] / 255.0, atol=0.02)
+    # the pose flags work on a scene folder too
+    eye = [str(v) for v in np.eye(4).ravel()]
+    assert cli.main(["render", str(scene_dir), "--width", "64", "--height", "32", "--equirect", "--cam-to-world",
+                     *eye, "--out", str(tmp_path / "p.png")]) == 0
+
+
+def test_reconstruct_without_a_shipped_model(monkeypatch, tmp_path, capsys):
+    monkeypatch.setenv("XYZCYL_MODEL", str(tmp_path / "absent"))
+    assert cli.main(["reconstruct", str(EXAMPLE_RIG), "--out", str(tmp_path / "s")]) == 2
+    err = _err(capsys)
+    assert len(err) == 1 and "no shipped model" in err[0] and "--model" in err[0]
+
+
+def test_altered_model_file(tiny_export, tmp_path, capsys):
+    m = tmp_path / "m"
+    shutil.copytree(tiny_export.dir, m)
+    with open(m / "encode.onnx", "r+b") as f:
+        f.seek(1000)
+        b = f.read(1)
+        f.seek(1000)
+        f.write(bytes([b[0] ^ 0xFF]))
+    assert cli.main(["reconstruct", str(EXAMPLE_RIG), "--out", str(tmp_path / "s"), "--model", str(m), "--quiet"]) == 2
+    err = _err(capsys)
+    assert len(err) == 1 and "encode.onnx" in err[0] and "altered" in err[0]
+
+
+@pytest.mark.parametrize("case", ["size", "corrupt", "nan_depth"])
+def test_bad_rig_input_names_the_camera(tiny_export, rig_copy, tmp_path, capsys, case):
+    import cv2
+
+    img = rig_copy / "images" / "CAM_BACK.png"
+    if case == "size":
+        cv2.imwrite(str(img), cv2.resize(cv2.imread(str(img)), (400, 225)))
+    elif case == "corrupt":
+        img.write_bytes(img.read_bytes()[:200] + b"\x00" * 300)
+    else:
+        from xyzcyl.runtime.imageio import write_exr
+
+        d = np.full((450, 800, 1), 10.0, np.float32)
+        d[5, 7] = np.nan
+        write_exr(rig_copy / "back_depth.exr", d, ("Z",))
+        rig = json.loads((rig_copy / "rig.json").read_text())
+        rig["cameras"][3]["depth"] = "back_depth.exr"
+        (rig_copy / "rig.json").write_text(json.dumps(rig))
+    rc = cli.main(["reconstruct", str(rig_copy / "rig.json"), "--out", str(tmp_path / "s"), "--model",
+                   str(tiny_export.dir), "--quiet"])
+    err = _err(capsys)
+    assert rc == 2 and len(err) == 1 and "CAM_BACK" in err[0], err
+    assert not (tmp_path / "s").exists()
+
+
+def test_render_errors(scene_dir, tmp_path, capsys):
+    out = str(tmp_path / "v.png")
+    assert cli.main(["render", str(scene_dir), "--camera", "NOPE", "--out", out]) == 2
+    assert "--camera" in _err(capsys)[0]
+    ply = scene_dir / "scene.ply"
+    assert cli.main(["render", str(ply), "--camera", "CAM_FRONT", "--out", out]) == 2
+    assert "SCENE_DIR" in _err(capsys)[0]
+    assert cli.main(["render", str(tmp_path), "--camera", "CAM_FRONT", "--out", out]) == 2
+    assert "scene.json" in _err(capsys)[0]
+
+
+def test_existing_out_needs_force(scene_dir, tiny_export, capsys):
+    assert cli.main(["reconstruct", str(EXAMPLE_RIG), "--out", str(scene_dir), "--model",
+                     str(tiny_export.dir)]) == 2
+    assert "--force" in _err(capsys)[0]
+
+
+def test_export_refuses_existing_folder_and_stage1(tiny_export, tmp_path, capsys):
+    import torch
+
+    assert cli.main(["export", "--checkpoint", str(tiny_export.checkpoint), "--out", str(tiny_export.dir)]) == 2
+    assert "exists" in _err(capsys)[0]
+    ck = torch.load(tiny_export.checkpoint, weights_only=False)
+    ck["train_cfg"]["stage"] = "occ"
+    torch.save(ck, tmp_path / "occ.pt")
+    assert cli.main(["export", "--checkpoint", str(tmp_path / "occ.pt"), "--out", str(tmp_path / "m")]) == 2
+    assert "stage" in _err(capsys)[0] and not (tmp_path / "m").exists()

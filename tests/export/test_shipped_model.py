@@ -1,0 +1,49 @@
+"""The shipped default model (models/xyzcyl-cpu-v1): its checksums, and a golden run on the example rig. Skipped
+while no model is shipped; the golden reference is written by tests/export/make_golden.py."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from conftest import EXAMPLE_RIG, REPO
+
+MODEL = REPO / "models" / "xyzcyl-cpu-v1"
+GOLDEN = REPO / "tests" / "export" / "golden"
+
+needs_model = pytest.mark.skipif(not (MODEL / "model.json").is_file(), reason="no shipped model in models/ yet")
+
+
+@needs_model
+def test_shipped_model_checksums():
+    from xyzcyl.runtime.inference import verify_model
+
+    info = verify_model(MODEL)   # every listed file present with its sha256
+    assert info.name == "xyzcyl-cpu-v1" and {"encode", "volume"} <= set(info.meta["graphs"])
+    assert sum(f["bytes"] for f in info.meta["files"].values()) <= 60e6   # the issue's budget for git
+
+
+@needs_model
+def test_golden_example_reconstruction():
+    """Gaussian count exactly (make_golden.py records how far the closest occupancy margin and opacity are from
+    their thresholds: float round-off of another CPU's kernels, ~1e-6 relative, cannot flip them when those are
+    well above it) and the CAM_FRONT render against the stored 8-bit PNG: 8-bit rounding alone leaves an RMS error
+    of 0.29 / 255 (PSNR 58.9 dB); the bound 45 dB leaves room for float differences between CPUs' kernels."""
+    from xyzcyl.runtime.inference import Reconstructor
+    from xyzcyl.runtime.rig import load_rig, read_image
+    from xyzcyl.runtime.scene import render_view, rig_camera
+
+    gp = GOLDEN / "xyzcyl-cpu-v1.json"
+    if not gp.is_file():
+        pytest.skip("no golden reference yet: run tests/export/make_golden.py after exporting the model")
+    gold = json.loads(gp.read_text())
+    rec = Reconstructor.load(MODEL, threads=2)
+    rig = load_rig(EXAMPLE_RIG)
+    scene = rec.reconstruct(rig)
+    assert len(scene.gaussians) == gold["count"]
+    v = gold["view"]
+    rgb, _, _ = render_view(scene, rig_camera(rig.camera(v["camera"]), width=v["width"], height=v["height"]))
+    ref = read_image(GOLDEN / v["png"], "golden")
+    mse = float(np.mean((np.clip(rgb, 0, 1).astype(np.float64) - ref) ** 2))
+    assert -10 * np.log10(mse + 1e-30) > 45
