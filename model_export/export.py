@@ -25,9 +25,6 @@ from __future__ import annotations
 import datetime as _dt
 import hashlib
 import json
-import os
-import shutil
-import tempfile
 from collections.abc import Mapping, Sequence
 from dataclasses import asdict
 from pathlib import Path
@@ -36,9 +33,9 @@ from typing import Any, ClassVar
 import numpy as np
 import torch
 from torch import nn
+from xyzcyl.runtime.files import atomic_folder
 
 from .config import ModelConfig
-from .lifting import cpfg, lift
 from .model import GAUSSIAN_KEYS, XYZCylinder
 
 OPSET = 20
@@ -73,26 +70,14 @@ class EncodeGraph(nn.Module):
 
     def forward(self, images, depth, depth_mask, *lifting):
         m = self.m
-        inp = dict(zip(self.input_names[3:], lifting))
-        feats, d, c = m.encode_images(images, depth, depth_mask)
-        occ, _ = m.occupancy(feats, inp)
-        outs = [occ]
-        pix = None
-        if m.use_pixel:
-            pix, pfeat, vmask, _ = m.pixel_branch(feats, d, c, inp, images)
-        if m.use_volume or m.use_background:
-            v = m.cfg.volume
-            fp, fm = lift(m.module_features(feats, "volume"), inp["grid_vol"], inp["sel_cw_vol"], inp["sel_ccw_vol"])
-            if m.use_projection:
-                pr = m.pixel_projection(pix["means"], pfeat, vmask, inp["spec_vol"])
-                fp, fm = fp + pr, fm + pr
-            geo, app = m.vol_net(fp, fm)
-            if m.use_volume:
-                outs += [cpfg(m.geo_proj(geo), v.k), cpfg(m.app_proj(app), v.k)]
-            if m.use_background:
-                outs.append(app)
-        if pix is not None:
-            outs += [pix[k] for k in GAUSSIAN_KEYS]
+        p = m.planes(images, dict(zip(self.input_names[3:], lifting)), depth, depth_mask)
+        outs = [p["occ_logits"]]
+        if m.use_volume:
+            outs += [p["geo_cpfg"], p["app_cpfg"]]
+        if m.use_background:
+            outs.append(p["app_plane"])
+        if p["pixel"] is not None:
+            outs += [p["pixel"][k] for k in GAUSSIAN_KEYS]
         return tuple(outs)
 
 
@@ -361,10 +346,7 @@ def write_model_folder(model: XYZCylinder, out: str | Path, name: str, version: 
     if not name or any(c in name for c in "/\\ "):
         raise ExportError(f"name: must be a non-empty folder-safe name, got {name!r}")
     evals = [eval_summary(p) for p in eval_reports]
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))
-    os.chmod(tmp, 0o755)
-    try:
+    with atomic_folder(out) as tmp:
         paths = export_graphs(model, tmp, n_cameras=n_cameras, progress=progress)
         cfg = model.cfg
         k = cfg.pixel.k_in * cfg.pixel.k_out
@@ -404,18 +386,6 @@ def write_model_folder(model: XYZCylinder, out: str | Path, name: str, version: 
         meta["files"] = {p.name: {"sha256": sha256_file(p), "bytes": p.stat().st_size}
                          for p in sorted(tmp.iterdir()) if p.is_file()}
         (tmp / "model.json").write_text(json.dumps(meta, indent=1, allow_nan=False) + "\n")
-        if out.exists():
-            old = out.with_name(f".{out.name}.old")
-            if old.exists():
-                shutil.rmtree(old)
-            os.replace(out, old)
-            os.replace(tmp, out)
-            shutil.rmtree(old)
-        else:
-            os.replace(tmp, out)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
     return out
 
 

@@ -356,6 +356,31 @@ class XYZCylinder(nn.Module):
         return g
 
     # -- full forward -------------------------------------------------------------------------------------------
+    def planes(self, images, inp, depth=None, depth_mask=None):
+        """Everything before the data-dependent voxel selection (also the export's ``encode`` graph).
+
+        Returns dict: depth, conf [N, 1, h, w]; occ_logits [2, L_z, L_y, L_x]; bev_logits [2, L_y, L_x];
+        pixel (Gaussians dict of the pixel branch, or None); geo_cpfg, app_cpfg [1, D, K, H_u, W_u] (volume
+        branch, or None); app_plane [1, C_app, H_u, W_u] (background input, or None)."""
+        feats, d, c = self.encode_images(images, depth, depth_mask)
+        occ, bev = self.occupancy(feats, inp)
+        out = {"depth": d, "conf": c, "occ_logits": occ, "bev_logits": bev, "pixel": None, "geo_cpfg": None,
+               "app_cpfg": None, "app_plane": None}
+        if self.use_pixel:
+            out["pixel"], pfeat, vmask, _ = self.pixel_branch(feats, d, c, inp, images)
+        if self.use_volume or self.use_background:
+            v = self.cfg.volume
+            fp, fm = lift(self.module_features(feats, "volume"), inp["grid_vol"], inp["sel_cw_vol"],
+                          inp["sel_ccw_vol"])
+            if self.use_projection:
+                pr = self.pixel_projection(out["pixel"]["means"], pfeat, vmask, inp["spec_vol"])
+                fp, fm = fp + pr, fm + pr
+            geo, app = self.vol_net(fp, fm)
+            out["app_plane"] = app
+            if self.use_volume:
+                out["geo_cpfg"], out["app_cpfg"] = cpfg(self.geo_proj(geo), v.k), cpfg(self.app_proj(app), v.k)
+        return out
+
     def forward(self, images, inp, depth=None, depth_mask=None, occ_gt=None, voxel_idx=None):
         """images [N, 3, H, W] RGB 0..1; inp: lifting inputs (tensors); depth [N, 1, h, w] metres + depth_mask [N]
         (1 = use the given depth, confidence 1); occ_gt [L_z, L_y, L_x] bool (training selection);
@@ -364,31 +389,19 @@ class XYZCylinder(nn.Module):
         Returns dict: depth, conf [N, 1, h, w]; occ_logits [2, L_z, L_y, L_x]; bev_logits [2, L_y, L_x];
         voxel_idx [M]; app_plane [1, C_app, H_u, W_u] (background input, or None); gaussians (dict of
         [G, ...] tensors: means, quats, log_scales, opacity_logits, sh); n_volume, n_pixel counts."""
-        feats, d, c = self.encode_images(images, depth, depth_mask)
-        occ, bev = self.occupancy(feats, inp)
-        out = {"depth": d, "conf": c, "occ_logits": occ, "bev_logits": bev, "app_plane": None}
+        p = self.planes(images, inp, depth, depth_mask)
+        out = {k: p[k] for k in ("depth", "conf", "occ_logits", "bev_logits", "app_plane")}
         parts = []
-        pix = None
-        if self.use_pixel:
-            pix, pfeat, vmask, _ = self.pixel_branch(feats, d, c, inp, images)
-        if self.use_volume or self.use_background:
-            v = self.cfg.volume
-            fp, fm = lift(self.module_features(feats, "volume"), inp["grid_vol"], inp["sel_cw_vol"], inp["sel_ccw_vol"])
-            if self.use_projection:
-                pr = self.pixel_projection(pix["means"], pfeat, vmask, inp["spec_vol"])
-                fp, fm = fp + pr, fm + pr
-            geo, app = self.vol_net(fp, fm)
-            out["app_plane"] = app
-            if self.use_volume:
-                idx = voxel_idx if voxel_idx is not None else self.select_voxels(occ, occ_gt)
-                out["voxel_idx"] = idx
-                parts.append(self.volume_gaussians(cpfg(self.geo_proj(geo), v.k), cpfg(self.app_proj(app), v.k),
-                                                   idx, inp))
+        if self.use_volume:
+            idx = voxel_idx if voxel_idx is not None else self.select_voxels(p["occ_logits"], occ_gt)
+            out["voxel_idx"] = idx
+            parts.append(self.volume_gaussians(p["geo_cpfg"], p["app_cpfg"], idx, inp))
         out["n_volume"] = parts[0]["means"].shape[0] if parts else 0
+        pix = p["pixel"]
         if pix is not None:
             parts.append(pix)
         out["n_pixel"] = pix["means"].shape[0] if pix is not None else 0
-        out["gaussians"] = {k: torch.cat([p[k] for p in parts], dim=0) for k in GAUSSIAN_KEYS}
+        out["gaussians"] = {k: torch.cat([q[k] for q in parts], dim=0) for k in GAUSSIAN_KEYS}
         return out
 
     def background(self, app_plane, grids):

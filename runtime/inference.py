@@ -17,7 +17,6 @@ cache is locked.
 from __future__ import annotations
 
 import hashlib
-import json
 import os
 import threading
 import time
@@ -29,6 +28,7 @@ from typing import Any
 
 import numpy as np
 
+from .files import read_json_doc
 from .lifting import LiftingParams, background_grid, build_lifting_inputs, spec_from_array
 from .render import Gaussians
 from .rig import Camera, Rig, RigError
@@ -104,14 +104,7 @@ def read_model_info(model_dir: str | os.PathLike) -> ModelInfo:
     if not d.is_dir():
         raise ModelError(f"model: {str(d)!r} is not a folder")
     p = d / "model.json"
-    if not p.is_file():
-        raise ModelError(f"model: {str(p)!r} is missing (not a model folder)")
-    try:
-        meta = json.loads(p.read_text())
-    except (OSError, json.JSONDecodeError) as e:
-        raise ModelError(f"model: {str(p)!r} is not valid JSON ({e})") from None
-    if not isinstance(meta, dict) or meta.get("format") != MODEL_FORMAT:
-        raise ModelError(f"model: {str(p)!r} is not an {MODEL_FORMAT} file")
+    meta = read_json_doc(p, MODEL_FORMAT, ModelError, "model")
     for key in ("name", "version", "config", "input", "graphs", "files", "selection"):
         if key not in meta:
             raise ModelError(f"model: {str(p)!r} lacks {key!r}")

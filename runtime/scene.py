@@ -24,8 +24,6 @@ import datetime as _dt
 import json
 import math
 import os
-import shutil
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -34,6 +32,7 @@ import numba
 import numpy as np
 
 from .cylinder import CylinderSpec
+from .files import atomic_folder, read_json_doc
 from .render import EquirectCamera, Gaussians, PinholeCamera, render
 from .rig import Camera, Rig
 
@@ -248,10 +247,7 @@ class Scene:
         out = Path(folder)
         if out.exists() and not overwrite:
             raise SceneError(f"scene: {str(out)!r} exists")
-        out.parent.mkdir(parents=True, exist_ok=True)
-        tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))
-        os.chmod(tmp, 0o755)   # mkdtemp makes it private; a scene folder is an ordinary folder
-        try:
+        with atomic_folder(out) as tmp:
             self.gaussians.save_ply(tmp / PLY_NAME)
             if self.background is not None:
                 from .imageio import write_exr, write_png
@@ -259,16 +255,6 @@ class Scene:
                 write_exr(tmp / EXR_NAME, self.background.image, ("R", "G", "B"))
                 write_png(tmp / PNG_NAME, self.background.image)
             (tmp / JSON_NAME).write_text(json.dumps(self.to_json(), indent=1, allow_nan=False) + "\n")
-            if out.exists():
-                old = Path(tempfile.mkdtemp(prefix=f".{out.name}.old.", dir=out.parent))
-                os.replace(out, old / "scene")
-                os.replace(tmp, out)
-                shutil.rmtree(old, ignore_errors=True)
-            else:
-                os.replace(tmp, out)
-        except BaseException:
-            shutil.rmtree(tmp, ignore_errors=True)
-            raise
         return out
 
     @classmethod
@@ -280,14 +266,7 @@ class Scene:
 
         d = Path(folder)
         jp = d / JSON_NAME
-        if not jp.is_file():
-            raise SceneError(f"scene: {str(jp)!r} is missing (not a scene folder)")
-        try:
-            meta = json.loads(jp.read_text())
-        except (OSError, json.JSONDecodeError) as e:
-            raise SceneError(f"scene: {str(jp)!r} is not valid JSON ({e})") from None
-        if not isinstance(meta, dict) or meta.get("format") != SCENE_FORMAT:
-            raise SceneError(f"scene: {str(jp)!r} is not an {SCENE_FORMAT} file")
+        meta = read_json_doc(jp, SCENE_FORMAT, SceneError, "scene")
         try:
             rig = Rig.from_dict(meta["rig"])
         except (RigError, KeyError) as e:
