@@ -145,6 +145,15 @@ def _target_views(rig, inp, cfg):
 OCC_MODULES = ("occ_net", "occ_proj", "occ_head", "bev_proj", "bev_head")
 
 
+def _assert_rgb_weights_have_grad(model, modules):
+    """modules: (name, input channels of its first conv); the input channels D..D+2 are the lifted RGB."""
+    D = model.cfg.backbone.feature_dim
+    for module, cin in modules:
+        first = next(m for m in getattr(model, module).modules()
+                     if isinstance(m, torch.nn.Conv2d) and m.in_channels == cin)
+        assert first.weight.grad is not None and first.weight.grad[:, D:D + 3].abs().sum() > 0, module
+
+
 def test_gradients_reach_every_trainable_module():
     """An image loss (render + background blend) reaches every trainable parameter except the occupancy
     module's, which the paper trains in stage 1 through its own losses (checked here with a CE loss)."""
@@ -169,11 +178,16 @@ def test_gradients_reach_every_trainable_module():
     missing = [n for n, p in model.named_parameters()
                if p.requires_grad and n not in occ_params and (p.grad is None or not p.grad.abs().sum() > 0)]
     assert not missing, missing
+    # the RGB path: the weights that read the 3 lifted RGB channels (first layer of XNet_vol, YNet_pix) get
+    # gradient from the image loss, those of YNet_occ from the occupancy loss
+    D = cfg.backbone.feature_dim
+    _assert_rgb_weights_have_grad(model, (("vol_net", D + 3), ("pix_net", D + 3 + 2)))
     model.zero_grad()
     occ_loss.backward()
     missing = [n for n, p in model.named_parameters()
                if n in occ_params and (p.grad is None or not p.grad.abs().sum() > 0)]
     assert not missing, missing
+    _assert_rgb_weights_have_grad(model, (("occ_net", D + 3),))
     frozen = [n for n, p in model.named_parameters() if not p.requires_grad]
     assert frozen and all(n.startswith("backbone.") for n in frozen)  # frozen EfficientNet trunk
 
@@ -368,27 +382,3 @@ def test_rgb_path_off_ignores_colour_and_on_uses_it():
         inp = rig_inputs(overlap_rig(6), on)
         feats, d, c = model.encode_images(images)
         model.pixel_branch(feats, d, c, inp)
-
-
-def test_gradients_reach_the_rgb_inputs_of_every_module():
-    """The weights that read the 3 lifted RGB channels (the first layer of YNet_occ, XNet_vol and YNet_pix)
-    receive gradient from their losses: the colour reaches each module."""
-    torch.manual_seed(0)
-    cfg = tiny_config(volume_selection="ground_truth")
-    model = XYZCylinder(cfg).train()
-    rig = overlap_rig(6)
-    inp = rig_inputs(rig, cfg)
-    gt = torch.zeros(cfg.grid.shape, dtype=torch.bool)
-    gt[1, 8:12, 8:12] = True
-    out = model(_images(6, cfg), inp, occ_gt=gt)
-    cams, grids = _target_views(rig, inp, cfg)
-    rgb, alpha, _ = render_views(out["gaussians"], cams)
-    loss = (blend(rgb, alpha, model.background(out["app_plane"], grids)) - 0.3).abs().mean()
-    loss = loss + torch.nn.functional.cross_entropy(out["occ_logits"].reshape(2, -1).t(), gt.reshape(-1).long())
-    loss.backward()
-    D = cfg.backbone.feature_dim
-    for module, cin in (("occ_net", D + 3), ("vol_net", D + 3), ("pix_net", D + 3 + 2)):
-        first = next(m for m in getattr(model, module).modules()
-                     if isinstance(m, torch.nn.Conv2d) and m.in_channels == cin)
-        g = first.weight.grad[:, D:D + 3]
-        assert g is not None and g.abs().sum() > 0, module
