@@ -12,7 +12,7 @@ def tiny_config(**changes) -> ModelConfig:
     """The cpu preset shrunk to test size: 64x128 input, 8x64 cylinder, 20x20x4 grid of 4 m voxels."""
     cfg = preset("cpu")
     cfg = cfg.replace(backbone=cfg.backbone.replace(input_height=64, input_width=128, pretrained=False),
-                      cylinder=cfg.cylinder.replace(height=8, width=64),
+                      cylinder=cfg.cylinder.replace(height=8, width=64), pixel=cfg.pixel.replace(k_out=2),
                       grid=GridConfig(voxel_size=4.0))
     return cfg.replace(**changes)
 

@@ -30,7 +30,7 @@ def test_cpu_preset_sizes():
     c = preset("cpu")
     assert (c.backbone.input_height, c.backbone.input_width, c.backbone.feature_stride) == (224, 400, 8)
     assert c.grid.shape == (20, 100, 100) and c.volume.g_v == 2
-    assert c.pixel.k_in * c.pixel.k_out == 2
+    assert c.pixel.k_in * c.pixel.k_out == 4
 
 
 def test_errors_name_the_field():
