@@ -1,10 +1,11 @@
 """Combined validation table of a run's `xyzcyl eval` reports (docs/results.md).
 
     .venv/bin/python docs/runs/table.py runs/cpu1/eval > docs/runs/cpu_2026-11-22/table.md
-    .venv/bin/python docs/runs/table.py runs/cpu2/eval/full runs/cpu2/eval/no-rgb ... > table.md
+    .venv/bin/python docs/runs/table.py runs/cpu2/eval/full "k_o 2=runs/cpu2/eval/k2" ... > table.md
 
 Reads every report JSON in the given folders, in the order given (within a folder: the model first, then its
-oracle and ablation rows in the order below, then anything else by name).
+oracle and ablation rows in the order below, then anything else by name). LABEL=FOLDER replaces the row label
+of that folder's reports (for variants the label does not tell apart, e.g. another pixel lattice).
 """
 
 import json
@@ -17,7 +18,10 @@ ORDER = ["model", "model-gt-occupancy", "model-no-volume-branch", "model-no-pixe
          "model-no-separate-background", "unproject", "unproject-gt-depth"]
 
 reports = []
-for folder in map(Path, sys.argv[1:]):
-    found = {p.name.split("_")[0]: json.loads(p.read_text()) for p in sorted(folder.glob("*.json"))}
+for arg in sys.argv[1:]:
+    label, _, folder = arg.rpartition("=")
+    found = {p.name.split("_")[0]: json.loads(p.read_text()) for p in sorted(Path(folder).glob("*.json"))}
+    for rep in found.values():
+        rep["label"] = label or rep["label"]
     reports += [found[k] for k in ORDER if k in found] + [v for k, v in found.items() if k not in ORDER]
 print(summary_markdown(reports), end="")

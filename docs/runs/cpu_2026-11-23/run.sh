@@ -77,10 +77,11 @@ $P $D/real.py --out $D/real --checkpoint full="$RUNS/render_full/render.pt" \
 $P $D/probe.py data/train data/val > $D/probe.json
 
 # tables and pictures (docs/results.md)
-$P docs/runs/table.py "$EVAL/full" "$EVAL/no-rgb" "$EVAL/k2" "$EVAL/no-volume" "$EVAL/unproject" \
-  "$EVAL/unproject-gt-depth" > $D/table.md
-$P docs/runs/table.py "$EVAL/full" "$EVAL/rig_waymo" "$EVAL/rig_argoverse" "$EVAL/rig_ring8" > $D/table_rigs.md
+$P docs/runs/table.py "$EVAL/full" "XYZCylinder (cpu, k_o 2: 56x512)=$EVAL/k2" "$EVAL/no-rgb" "$EVAL/no-volume" \
+  "$EVAL/unproject" "$EVAL/unproject-gt-depth" > $D/table.md
+$P docs/runs/table.py "XYZCylinder (cpu), 6 cameras=$EVAL/full" "5 cameras (waymo)=$EVAL/rig_waymo" \
+  "7 cameras (argoverse)=$EVAL/rig_argoverse" "8 cameras (ring8.json)=$EVAL/rig_ring8" > $D/table_rigs.md
 $P docs/runs/curves.py $D/render_curves.png "full=$RUNS/render_full" "no RGB=$RUNS/render_no-rgb" \
-  "k_o = 2=$RUNS/render_k2" "no volume=$RUNS/render_no-volume"
+  "k_o 2 (56x512)=$RUNS/render_k2" "no volume=$RUNS/render_no-volume"
 $P docs/runs/compare.py data/val $D/compare.jpg --model "full=$RUNS/render_full" --model "no RGB=$RUNS/render_no-rgb" \
-  --model "k_o = 2=$RUNS/render_k2" --model "no volume=$RUNS/render_no-volume"
+  --model "k_o 2 (56x512)=$RUNS/render_k2" --model "no volume=$RUNS/render_no-volume"
