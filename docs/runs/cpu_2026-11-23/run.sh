@@ -15,7 +15,7 @@ OCC_STEPS=${OCC_STEPS:-1000}
 REN_STEPS=${REN_STEPS:-500}
 TARGETS=${TARGETS:-4}
 VOXEL=${VOXEL:-1.6}
-STAGE2=${STAGE2:-"full no-rgb k2 no-volume"}
+STAGE2=${STAGE2:-"full no-rgb k2 no-volume no-pixel"}
 
 $X data synth --out data/train --scenes 200 --seed 0 --voxels 0.8,1.6 --quiet   # training set (seed 0)
 $X data synth --out data/val --scenes 50 --seed 1 --voxels 0.8,1.6 --quiet      # disjoint validation set (seed 1)
@@ -41,7 +41,8 @@ stage "$RUNS/occ" occ.pt 2 --preset cpu --voxel-size "$VOXEL" --occupancy-labels
 # real-camera effects at strength 0.5 (per-camera exposure, white balance, vignetting, blur, noise, JPEG):
 #   full      = RGB path, pixel lattice k_o = 4 (112x1024);  no-rgb = the same without the RGB path;
 #   k2        = RGB path at k_o = 2 (56x512, the first model's lattice); no-volume = full without the volume branch
-# (recorded run: the full model at nice -10, the others at nice -6, to finish it first; STAGE2 lists all four)
+# (recorded run: the first four side by side, the full model at nice -10, the others at nice -6, to finish it first;
+#  no-pixel afterwards, alone, with 2 threads; STAGE2 lists all five; no-background was not run)
 declare -A EXTRA=([full]="--pixel-upsample 4" [no-rgb]="--pixel-upsample 4 --ablation no-rgb"
                   [k2]="--pixel-upsample 2" [no-volume]="--pixel-upsample 4 --ablation no-volume"
                   [no-pixel]="--pixel-upsample 4 --ablation no-pixel"
@@ -77,7 +78,7 @@ $P $D/real.py --out $D/real --checkpoint full="$RUNS/render_full/render.pt" \
 $P $D/probe.py data/train data/val > $D/probe.json
 
 # tables and pictures (docs/results.md)
-$P docs/runs/table.py "$EVAL/full" "XYZCylinder (cpu, k_o 2: 56x512)=$EVAL/k2" "$EVAL/no-rgb" "$EVAL/no-volume" \
+$P docs/runs/table.py "$EVAL/full" "XYZCylinder (cpu, k_o 2: 56x512)=$EVAL/k2" "$EVAL/no-rgb" "$EVAL/no-volume" "$EVAL/no-pixel" \
   "$EVAL/unproject" "$EVAL/unproject-gt-depth" > $D/table.md
 $P docs/runs/table.py "XYZCylinder (cpu), 6 cameras=$EVAL/full" "5 cameras (waymo)=$EVAL/rig_waymo" \
   "7 cameras (argoverse)=$EVAL/rig_argoverse" "8 cameras (ring8.json)=$EVAL/rig_ring8" > $D/table_rigs.md
