@@ -139,10 +139,3 @@ def run(args: argparse.Namespace) -> int:
     print(f"rendered {len(g)} Gaussians -> {out} ({cam.width}x{cam.height}, "
           f"coverage {float((res.alpha > 0).mean()):.3f}{', with background' if bg is not None else ''})")
     return 0
-
-
-def write_exr(path: str, channels: np.ndarray, names: tuple[str, ...]) -> None:
-    """Kept for callers of the earlier location: runtime.imageio.write_exr."""
-    from ..imageio import write_exr as _write
-
-    _write(path, channels, names)
