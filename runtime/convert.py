@@ -2,6 +2,8 @@
 
 - nerfstudio / instant-ngp `transforms.json` (camera-to-world in OpenGL axes: x right, y up, z back; COLMAP
   pixel convention: pixel k's centre at k + 0.5)            -> rig_from_nerfstudio / rig_to_nerfstudio
+- nerfstudio `camera_path.json` (the viewer's exported render path, read by `ns-render camera-path`; same axes
+  and pixel convention, vertical FoV)                        -> cameras_from_nerfstudio_path / cameras_to_nerfstudio_path
 - CARLA camera sensors (Unreal, left-handed: x forward, y right, z up; pitch/yaw/roll in degrees; horizontal
   FoV; image_size_x/y)                                       -> camera_from_carla / camera_to_carla
 - nuScenes `calibrated_sensor` records (translation, rotation wxyz, camera_intrinsic; already OpenCV camera
@@ -19,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from .rig import Camera, Rig, RigError
+from .rig import MAX_SIZE, Camera, Rig, RigError
 from .rotations import quat_to_rotmat
 
 # OpenGL camera (x right, y up, z back) <-> OpenCV camera (x right, y down, z forward): flip y and z.
@@ -36,7 +38,12 @@ _CARLA_TOL_PX = 1e-3  # principal point must be within this of the image centre 
 
 
 class ConversionError(RigError):
-    """A foreign record that cannot be converted; the message names the record and field."""
+    """A foreign record that cannot be converted; the message names the record and field. ``field``: the JSON
+    path of the field at fault (e.g. "camera_path[2].fov") where the converter states it, else None."""
+
+    def __init__(self, message: str, field: str | None = None):
+        super().__init__(message)
+        self.field = field
 
 
 # -- small rotation helpers ----------------------------------------------------------------------------------
@@ -173,6 +180,134 @@ def rig_to_nerfstudio(rig: Rig) -> dict[str, Any]:
         fr.update(cam.extra)
         frames.append(fr)
     return {**dict(rig.extra), "frames": frames}
+
+
+# -- nerfstudio camera paths --------------------------------------------------------------------------------
+
+_NS_PATH = "camera_path.json"
+_NS_PATH_TYPES = ("perspective", "equirectangular")
+_CENTRE_TOL_PX = _CARLA_TOL_PX  # a camera path's principal point must be this close to the image centre
+
+
+def _path_error(field: str, detail: str) -> ConversionError:
+    return ConversionError(f"{_NS_PATH}: {field}: {detail}", field=field)
+
+
+def _path_size(doc: Mapping[str, Any], key: str) -> int:
+    v = doc.get(key)
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v != int(v) \
+            or not 0 < int(v) <= MAX_SIZE:
+        raise _path_error(key, f"must be an integer in 1..{MAX_SIZE} (got {v!r})")
+    return int(v)
+
+
+def _path_pose(v: Any, field: str) -> np.ndarray:
+    """16 numbers row-major (nerfstudio's form: torch.tensor(c2w).view(4, 4)) or a nested [4, 4] list."""
+    ok = isinstance(v, (list, tuple)) and (
+        (len(v) == 16 and all(_is_num(x) for x in v))
+        or (len(v) == 4 and all(isinstance(r, (list, tuple)) and len(r) == 4 and all(_is_num(x) for x in r)
+                                for r in v)))
+    if not ok:
+        raise _path_error(field, "must be 16 numbers (row-major [4, 4]) or a [4, 4] list")
+    m = np.array(v, dtype=np.float64).reshape(4, 4)
+    if not np.all(np.isfinite(m)):
+        raise _path_error(field, "entries must be finite")
+    return m
+
+
+def _is_num(x: Any) -> bool:
+    return not isinstance(x, bool) and isinstance(x, (int, float))
+
+
+def cameras_from_nerfstudio_path(doc: Mapping[str, Any]) -> list[Camera]:
+    """nerfstudio `camera_path.json` (dict) -> one Camera per frame, named frame_00000, frame_00001, ...; the
+    path's world frame is taken as the ego frame (as for transforms.json).
+
+    The fields read are those of nerfstudio's own reader (nerfstudio/cameras/camera_paths.py,
+    get_path_from_json, used by `ns-render camera-path`):
+    - render_width, render_height: the image size of every frame (pixels);
+    - camera_type: "perspective" (default when absent) or "equirectangular" (fisheye, omnidirectional-stereo and
+      VR180 are refused);
+    - camera_path: [{"camera_to_world": 16 numbers, row-major [4, 4] camera -> world with OpenGL camera axes
+      (x right, y up, z back), "fov": VERTICAL field of view in degrees (three.js PerspectiveCamera),
+      "aspect": ignored, as nerfstudio ignores it (the size is render_width x render_height)}, ...].
+    Perspective intrinsics as nerfstudio builds them: fx = fy = (H/2) / tan(fov/2), principal point (W/2, H/2)
+    with pixel k's centre at k + 0.5, i.e. OpenCV ((W-1)/2, (H-1)/2). cam_to_ego = camera_to_world @ GL_FROM_CV.
+    Equirectangular frames ignore fov (nerfstudio's EQUIRECTANGULAR has our angular layout, docs/conventions.md).
+    Other keys (seconds, fps, keyframes, crop, render_time, ...) are ignored. Errors: ConversionError with
+    ``field`` = the JSON path ("render_width", "camera_path[2].fov", ...).
+    """
+    if not isinstance(doc, Mapping):
+        raise _path_error("camera_path", "the document must be an object")
+    W, H = _path_size(doc, "render_width"), _path_size(doc, "render_height")
+    ctype = doc.get("camera_type", "perspective")
+    if ctype not in _NS_PATH_TYPES:
+        raise _path_error("camera_type", f"must be one of {', '.join(_NS_PATH_TYPES)} (got {ctype!r})")
+    frames = doc.get("camera_path")
+    if not isinstance(frames, list) or not frames:
+        raise _path_error("camera_path", "must be a non-empty list")
+    cams = []
+    for k, fr in enumerate(frames):
+        where = f"camera_path[{k}]"
+        if not isinstance(fr, Mapping):
+            raise _path_error(where, "must be an object")
+        if "camera_to_world" not in fr:
+            raise _path_error(f"{where}.camera_to_world", "is missing")
+        c2w = _path_pose(fr["camera_to_world"], f"{where}.camera_to_world")
+        K, model = None, "pinhole"
+        if ctype == "equirectangular":
+            model = "equirectangular"
+        else:
+            fov = fr.get("fov")
+            if not _is_num(fov) or not 0 < fov < 180:
+                raise _path_error(f"{where}.fov", f"must be a vertical field of view in (0, 180) degrees "
+                                                  f"(got {fov!r})")
+            f = (H / 2.0) / math.tan(math.radians(fov) / 2.0)
+            K = np.array([[f, 0.0, (W - 1) / 2.0], [0.0, f, (H - 1) / 2.0], [0.0, 0.0, 1.0]])
+        try:
+            cams.append(Camera(name=f"frame_{k:05d}", width=W, height=H, K=K, cam_to_ego=c2w @ GL_FROM_CV,
+                               model=model))
+        except RigError as exc:  # the pose checks (bottom row, orthonormal rotation, det +1)
+            detail = str(exc).split(": ", 1)[-1].removeprefix("cam_to_ego ")
+            raise _path_error(f"{where}.camera_to_world", detail) from None
+    return cams
+
+
+def cameras_to_nerfstudio_path(cameras: Sequence[Camera], fps: float = 24.0) -> dict[str, Any]:
+    """Cameras -> nerfstudio `camera_path.json` dict (inverse of cameras_from_nerfstudio_path).
+
+    All cameras share one size and one model (the file has one render_width x render_height and one
+    camera_type). Pinholes must be undistorted with fx = fy and the principal point at the image centre
+    ((W-1)/2, (H-1)/2 within 1e-3 px), what a three.js camera expresses. Writes per frame camera_to_world
+    (16 numbers, row-major, OpenGL axes), fov (vertical degrees; pinholes only) and aspect (W/H), and
+    seconds = len / fps and fps (ns-render reads "seconds" for the video length)."""
+    if not cameras:
+        raise ConversionError(f"{_NS_PATH}: cameras: need at least one camera", field="cameras")
+    first = cameras[0]
+    W, H, model = first.width, first.height, first.model
+    frames = []
+    for cam in cameras:
+        where = f"camera {cam.name!r}"
+        if (cam.width, cam.height, cam.model) != (W, H, model):
+            raise ConversionError(f"{where}: width/height/model: a camera path has one size and model "
+                                  f"({W}x{H} {model}; got {cam.width}x{cam.height} {cam.model})")
+        fr: dict[str, Any] = {"camera_to_world": (cam.cam_to_ego @ GL_FROM_CV).reshape(-1).tolist()}
+        if model == "pinhole":
+            K = cam.K
+            if cam.distortion is not None:
+                raise ConversionError(f"{where}: distortion: camera paths are undistorted pinholes")
+            if abs(K[0, 0] - K[1, 1]) > 1e-9 * K[0, 0]:
+                raise ConversionError(f"{where}: K: fx != fy, a camera path has square pixels")
+            if abs(K[0, 2] - (W - 1) / 2) > _CENTRE_TOL_PX or abs(K[1, 2] - (H - 1) / 2) > _CENTRE_TOL_PX:
+                raise ConversionError(f"{where}: K: principal point must be the image centre ((W-1)/2, (H-1)/2)")
+            fr["fov"] = math.degrees(cam.vertical_fov)
+        fr["aspect"] = W / H
+        frames.append(fr)
+    if not (math.isfinite(fps) and fps > 0):
+        raise ConversionError(f"{_NS_PATH}: fps: must be > 0 (got {fps})", field="fps")
+    return {"camera_type": "perspective" if model == "pinhole" else "equirectangular",
+            "render_width": W, "render_height": H, "fps": fps, "seconds": len(frames) / fps,
+            "camera_path": frames}
 
 
 # -- CARLA ---------------------------------------------------------------------------------------------------

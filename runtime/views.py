@@ -1,0 +1,512 @@
+"""Render requests: what "render this view of the scene" means, independent of the transport (the HTTP server in
+server/, a later gRPC front end). No HTTP concepts here: errors are ViewError naming the request field at fault.
+
+    request = ViewRequest(camera_from_opencv(cam_to_ego, 1600, 900, fov=70), output="rgb", format="png")
+    data = render_request(scene, request)          # bytes of a PNG, request.media_type "image/png"
+    etag = request.key()                           # sha256 of the request's canonical description
+
+A ViewRequest holds a runtime.render camera in the ego frame (x forward, y left, z up, metres; OpenCV camera axes
+x right, y down, z forward; docs/conventions.md), the output (rgb | depth | alpha) and its encoding
+(png | jpeg | exr). The camera constructors accept the project's OpenCV convention (camera_from_opencv), CARLA
+sensor poses (camera_from_carla_pose, through runtime.convert.camera_from_carla), an input camera of the scene's
+rig (camera_from_rig) and batches: a {"cameras": [...]} list mixing those, or a nerfstudio camera_path.json
+(cameras_from_batch, through runtime.convert.cameras_from_nerfstudio_path). encode_view turns the renderer's
+float32 arrays into file bytes; render_request = runtime.scene.render_view + encode_view. docs/inference.md
+("Render requests") states the conventions and encodings.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import tempfile
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from . import convert
+from .render import CameraError, EquirectCamera, PinholeCamera
+from .rig import MAX_SIZE, STRUCT_TOL, Rig
+from .scene import Scene, render_view, rig_camera
+
+OUTPUTS = ("rgb", "depth", "alpha")
+FORMATS = ("png", "jpeg", "exr")
+MEDIA_TYPES = {"png": "image/png", "jpeg": "image/jpeg", "exr": "image/x-exr"}
+EXTENSIONS = {"png": ".png", "jpeg": ".jpg", "exr": ".exr"}
+# PNG encoder settings: zlib level 1, Z_RLE strategy, SUB filter on every row (what OpenCV 5 does when given no
+# parameters, written out so an OpenCV upgrade cannot change it). Measured on a rendered 1600x900 view (2 loaded
+# cores): rgb 32 ms / 600 kB, against 65 ms / 697 kB for IMWRITE_PNG_COMPRESSION 1 alone (that switches to
+# libpng's adaptive filters and the default strategy), 75 ms / 619 kB at level 3 + SUB, 240 ms / 512 kB at
+# level 6; 16-bit depth 35 ms / 1.67 MB (level 1 alone: 71 ms / 1.49 MB); alpha 5 ms / 50 kB.
+PNG_COMPRESSION = 1
+DEPTH_PNG_SCALE = 1000.0  # depth PNG: 16-bit unsigned millimetres (metres x 1000), 0 = no surface
+DEPTH_PNG_MAX = 65535     # uint16 ceiling: depths beyond 65.535 m saturate there
+EXR_CHANNELS = {"rgb": ("R", "G", "B"), "depth": ("Z",), "alpha": ("A",)}
+KEY_DECIMALS = 9          # key(): K and cam_to_world entries rounded to 1e-9 (pixels, metres / unitless)
+KEY_VERSION = 1           # bump when the canonical description changes (invalidates caches and ETags)
+
+
+class ViewError(ValueError):
+    """A render request that cannot be honoured. ``field``: the request field at fault (e.g. "cam_to_ego",
+    "fov", "width", "format", "cameras[3].fov", "camera_path[2].camera_to_world"); str(e) = "<field>: <message>"."""
+
+    def __init__(self, field: str, message: str):
+        super().__init__(f"{field}: {message}")
+        self.field = field
+        self.message = message
+
+    def __reduce__(self):  # picklable with both arguments (worker processes)
+        return (type(self), (self.field, self.message))
+
+
+# ------------------------------------------------------------------------------------------- field parsing
+
+
+def _short(v: Any) -> str:
+    r = repr(v)
+    return r if len(r) <= 60 else r[:57] + "..."
+
+
+def _is_number(v: Any) -> bool:
+    return isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, (bool, np.bool_))
+
+
+def _number(v: Any, field: str) -> float:
+    if not _is_number(v) or not math.isfinite(float(v)):
+        raise ViewError(field, f"must be a finite number (got {_short(v)})")
+    return float(v)
+
+
+def _size(v: Any, field: str) -> int:
+    """An image dimension: an integer (2.0 accepted, 2.5 not) in 1..MAX_SIZE (the rig's limit, 16384 px)."""
+    if not _is_number(v) or not math.isfinite(float(v)) or float(v) != int(v) or not 1 <= int(v) <= MAX_SIZE:
+        raise ViewError(field, f"must be an integer in 1..{MAX_SIZE} (got {_short(v)})")
+    return int(v)
+
+
+def _matrix(v: Any, field: str, rows: int, cols: int) -> np.ndarray:
+    """[rows, cols] float64 from rows*cols numbers (row-major) or a nested [rows][cols] list / array."""
+    if isinstance(v, np.ndarray) and v.dtype.kind in "iuf" and v.size == rows * cols and v.ndim in (1, 2) \
+            and (v.ndim == 1 or v.shape == (rows, cols)):
+        m = v.astype(np.float64).reshape(rows, cols)
+    elif isinstance(v, (list, tuple)) and len(v) == rows * cols and all(_is_number(x) for x in v):
+        m = np.array(v, dtype=np.float64).reshape(rows, cols)
+    elif isinstance(v, (list, tuple)) and len(v) == rows and all(
+            isinstance(r, (list, tuple)) and len(r) == cols and all(_is_number(x) for x in r) for r in v):
+        m = np.array(v, dtype=np.float64)
+    else:
+        raise ViewError(field, f"must be {rows * cols} numbers (row-major) or a [{rows}, {cols}] array "
+                               f"(got {_short(v)})")
+    if not np.all(np.isfinite(m)):
+        raise ViewError(field, f"{int(np.count_nonzero(~np.isfinite(m)))} non-finite entries")
+    return m
+
+
+def _camera(build, fields: Mapping[str, str]):
+    """Run a runtime.render camera constructor; its CameraError ("cam_to_world: ...", "K: ...", "width: ...")
+    becomes a ViewError naming the request field that the error's prefix maps to in ``fields``."""
+    try:
+        return build()
+    except CameraError as e:
+        key, _, detail = str(e).partition(": ")
+        raise ViewError(fields.get(key, fields["*"]), detail or str(e)) from None
+
+
+def _from_conversion(e: convert.ConversionError, default: str) -> ViewError:
+    """runtime.convert's error as a ViewError: its ``field`` when it states one, the message without the
+    converter's "<record>: <field>: " prefix."""
+    field = e.field or default
+    msg = str(e)
+    head = f": {field}: "
+    return ViewError(field, msg.split(head, 1)[1] if head in msg else msg)
+
+
+# ------------------------------------------------------------------------------------------- cameras
+
+
+def _opencv(cam_to_ego, width, height, fx=None, fy=None, cx=None, cy=None, fov=None, *,
+            fields: Mapping[str, str]) -> PinholeCamera:
+    W, H = _size(width, fields["width"]), _size(height, fields["height"])
+    T = _matrix(cam_to_ego, fields["cam_to_ego"], 4, 4)
+    if (fx is None) == (fov is None):
+        raise ViewError(fields["fov"], "give exactly one of fx (focal length, pixels; with optional fy, cx, cy) "
+                                       "and fov (horizontal degrees)")
+    if fov is not None:
+        for key, v in (("fy", fy), ("cx", cx), ("cy", cy)):
+            if v is not None:
+                raise ViewError(fields[key], "cannot be combined with fov (square pixels, centred principal point)")
+        deg = _number(fov, fields["fov"])
+        if not 0.0 < deg < 180.0:
+            raise ViewError(fields["fov"], f"must be a horizontal field of view in (0, 180) degrees (got {deg})")
+        fx = fy = W / (2.0 * math.tan(math.radians(deg) / 2.0))
+    else:
+        fx = _number(fx, fields["fx"])
+        fy = fx if fy is None else _number(fy, fields["fy"])
+        for key, v in (("fx", fx), ("fy", fy)):
+            if v <= 0:
+                raise ViewError(fields[key], f"focal length must be > 0 pixels (got {v})")
+    # OpenCV pixel centres: column u's centre is at x = u, so the image centre is ((W-1)/2, (H-1)/2).
+    cx = (W - 1) / 2.0 if cx is None else _number(cx, fields["cx"])
+    cy = (H - 1) / 2.0 if cy is None else _number(cy, fields["cy"])
+    K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+    return _camera(lambda: PinholeCamera(K, T, W, H),
+                   {"cam_to_world": fields["cam_to_ego"], "K": fields["fx"], "width": fields["width"],
+                    "height": fields["height"], "*": fields["cam_to_ego"]})
+
+
+_OPENCV_FIELDS = {k: k for k in ("cam_to_ego", "width", "height", "fx", "fy", "cx", "cy", "fov")}
+
+
+def camera_from_opencv(cam_to_ego, width, height, fx=None, fy=None, cx=None, cy=None, fov=None) -> PinholeCamera:
+    """A pinhole camera in the project's convention.
+
+    cam_to_ego: 16 numbers row-major or [4, 4]: OpenCV camera (x right, y down, z forward) -> ego (x forward,
+    y left, z up), metres; validated (bottom row [0, 0, 0, 1], orthonormal rotation with det +1 to 1e-4) and
+    kept as given. width, height: pixels, integers in 1..16384.
+    Intrinsics, exactly one of:
+    - fx pixels (fy defaults to fx; cx, cy default to the image centre ((W-1)/2, (H-1)/2), OpenCV pixel centres:
+      pixel u's centre is at x = u);
+    - fov: HORIZONTAL field of view in degrees, in (0, 180): fx = fy = W / (2 tan(fov/2)), principal point at
+      the image centre (fy, cx, cy must then be absent).
+    Errors: ViewError naming the argument ("cam_to_ego", "width", "fov", "fx", ...)."""
+    return _opencv(cam_to_ego, width, height, fx, fy, cx, cy, fov, fields=_OPENCV_FIELDS)
+
+
+def _carla(loc, rot, fov, width, height, fields: Mapping[str, str]) -> PinholeCamera:
+    xyz = {k: _number(v, fields[k]) for k, v in zip(("x", "y", "z"), loc)}
+    pyr = {k: _number(v, fields[k]) for k, v in zip(("pitch", "yaw", "roll"), rot)}
+    deg = _number(fov, fields["fov"])
+    if not 0.0 < deg < 180.0:
+        raise ViewError(fields["fov"], f"must be a horizontal field of view in (0, 180) degrees (got {deg})")
+    W, H = _size(width, fields["width"]), _size(height, fields["height"])
+    sensor = {"transform": {"location": xyz, "rotation": pyr}, "fov": deg, "image_size_x": W, "image_size_y": H}
+    try:
+        cam = convert.camera_from_carla(sensor)
+    except convert.ConversionError as e:  # not expected: every number was checked above
+        raise _from_conversion(e, fields["fov"]) from None
+    return rig_camera(cam)
+
+
+def camera_from_carla_pose(x, y, z, pitch, yaw, roll, fov, width, height) -> PinholeCamera:
+    """A CARLA camera sensor's transform relative to its vehicle (CARLA's left-handed axes: x forward, y right,
+    z up, metres; pitch (up +), yaw (right +), roll degrees), fov = horizontal degrees, width x height pixels
+    (CARLA's image_size_x / image_size_y) -> pinhole camera in the ego frame. The conversion is
+    runtime.convert.camera_from_carla (the project's one CARLA converter; docs/conventions.md derives it): f =
+    W / (2 tan(fov/2)) for x and y, principal point ((W-1)/2, (H-1)/2). Errors: ViewError naming the argument."""
+    fields = {k: k for k in ("x", "y", "z", "pitch", "yaw", "roll", "fov", "width", "height")}
+    return _carla((x, y, z), (pitch, yaw, roll), fov, width, height, fields)
+
+
+def _rig(rig: Rig, name, width, height, fields: Mapping[str, str]):
+    if not isinstance(name, str) or name not in rig.names:
+        raise ViewError(fields["camera"], f"no camera {_short(name)} in the scene's rig "
+                                          f"(cameras: {', '.join(rig.names)})")
+    cam = rig.camera(name)
+    w = None if width is None else _size(width, fields["width"])
+    h = None if height is None else _size(height, fields["height"])
+    if w is not None and h is None:   # one side given: the other follows the camera's aspect ratio
+        h = _size(max(1, round(w * cam.height / cam.width)), fields["width"])
+    elif h is not None and w is None:
+        w = _size(max(1, round(h * cam.width / cam.height)), fields["height"])
+    return rig_camera(cam, width=w, height=h)
+
+
+def camera_from_rig(rig: Rig, name: str, width: int | None = None, height: int | None = None
+                    ) -> PinholeCamera | EquirectCamera:
+    """The scene rig's input camera ``name`` as a render camera (runtime.scene.rig_camera: pinhole K and pose,
+    distortion ignored; equirectangular cameras stay equirectangular), optionally at width x height pixels (K
+    scaled with the pixel-centre convention of rig.Camera.resized). Only one of width / height given: the other
+    follows the camera's aspect ratio (rounded). Unknown name -> ViewError("camera", "no camera 'x' in the
+    scene's rig (cameras: a, b)")."""
+    return _rig(rig, name, width, height, {"camera": "camera", "width": "width", "height": "height"})
+
+
+# ------------------------------------------------------------------------------------------- batches
+
+_ITEM_KINDS = ('{"K", "cam_to_ego", "width", "height"} (OpenCV), {"fov", "cam_to_ego", "width", "height"} '
+               '(OpenCV, horizontal degrees), {"transform", "fov", "image_size_x", "image_size_y"} (CARLA sensor) '
+               'or {"camera"[, "width", "height"]} (an input camera of the scene)')
+_OPENCV_K_KEYS = ("K", "cam_to_ego", "width", "height", "name")
+_OPENCV_FOV_KEYS = ("fov", "cam_to_ego", "width", "height", "name")
+_RIG_KEYS = ("camera", "width", "height", "name")
+
+
+def _get(item: Mapping[str, Any], key: str, where: str) -> Any:
+    if key not in item:
+        raise ViewError(f"{where}.{key}" if where else key, "is missing")
+    return item[key]
+
+
+def _only(item: Mapping[str, Any], allowed: tuple[str, ...], where: str, kind: str) -> None:
+    for key in item:
+        if key not in allowed:
+            raise ViewError(f"{where}.{key}", f"unknown field ({kind} takes {', '.join(allowed)})")
+
+
+def _batch_item(item: Any, where: str, rig: Rig | None):
+    if not isinstance(item, Mapping):
+        raise ViewError(where, f"must be an object: {_ITEM_KINDS}")
+    if "camera" in item:
+        _only(item, _RIG_KEYS, where, "an input camera")
+        if rig is None:
+            raise ViewError(f"{where}.camera", "input cameras need a scene's rig (none given)")
+        return _rig(rig, item["camera"], item.get("width"), item.get("height"),
+                    {k: f"{where}.{k}" for k in ("camera", "width", "height")})
+    if "transform" in item:   # a CARLA sensor; its other blueprint attributes (sensor_tick, ...) are ignored
+        tf = item["transform"]
+        if not isinstance(tf, Mapping):
+            raise ViewError(f"{where}.transform", 'must be {"location": {x, y, z}, "rotation": {pitch, yaw, roll}}')
+        loc = _get(tf, "location", f"{where}.transform")
+        rot = _get(tf, "rotation", f"{where}.transform")
+        for key, sub, names in (("location", loc, "x, y, z"), ("rotation", rot, "pitch, yaw, roll")):
+            if not isinstance(sub, Mapping):
+                raise ViewError(f"{where}.transform.{key}", f"must be an object {{{names}}}")
+        fields = {k: f"{where}.transform.location.{k}" for k in ("x", "y", "z")}
+        fields.update({k: f"{where}.transform.rotation.{k}" for k in ("pitch", "yaw", "roll")})
+        fields.update(fov=f"{where}.fov", width=f"{where}.image_size_x", height=f"{where}.image_size_y")
+        return _carla([_get(loc, k, f"{where}.transform.location") for k in ("x", "y", "z")],
+                      [_get(rot, k, f"{where}.transform.rotation") for k in ("pitch", "yaw", "roll")],
+                      _get(item, "fov", where), _get(item, "image_size_x", where),
+                      _get(item, "image_size_y", where), fields)
+    fields = {k: f"{where}.{k}" for k in ("cam_to_ego", "width", "height", "fov")}
+    if "K" in item:
+        _only(item, _OPENCV_K_KEYS, where, "an OpenCV camera with K")
+        K = _matrix(item["K"], f"{where}.K", 3, 3)
+        if abs(K[0, 1]) > STRUCT_TOL or abs(K[1, 0]) > STRUCT_TOL or np.any(np.abs(K[2] - [0, 0, 1]) > STRUCT_TOL):
+            raise ViewError(f"{where}.K", "must be [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] (no skew)")
+        fields.update({k: f"{where}.K" for k in ("fx", "fy", "cx", "cy")})
+        return _opencv(_get(item, "cam_to_ego", where), _get(item, "width", where), _get(item, "height", where),
+                       fx=K[0, 0], fy=K[1, 1], cx=K[0, 2], cy=K[1, 2], fields=fields)
+    if "fov" in item:
+        _only(item, _OPENCV_FOV_KEYS, where, "an OpenCV camera with fov")
+        fields.update({k: f"{where}.{k}" for k in ("fx", "fy", "cx", "cy")})
+        return _opencv(_get(item, "cam_to_ego", where), _get(item, "width", where), _get(item, "height", where),
+                       fov=item["fov"], fields=fields)
+    raise ViewError(where, f"expected one of {_ITEM_KINDS}")
+
+
+def _check_count(field: str, n: int, max_frames: int | None) -> None:
+    if max_frames is not None and n > max_frames:
+        raise ViewError(field, f"{n} cameras, more than the {max_frames} allowed in one request")
+
+
+def cameras_from_batch(doc: Mapping[str, Any], rig: Rig | None = None, max_frames: int | None = None
+                       ) -> list[PinholeCamera | EquirectCamera]:
+    """The cameras of a batch request (all in the ego frame), in order. ``doc`` is either
+
+    (a) {"cameras": [item, ...]}, each item one of
+        {"K": [[3x3]] or 9 numbers, "cam_to_ego": [[4x4]] or 16 numbers, "width", "height"}   OpenCV K (pixels)
+        {"fov": degrees, "cam_to_ego", "width", "height"}      OpenCV, HORIZONTAL fov, centred principal point
+        {"transform": {"location": {x, y, z}, "rotation": {pitch, yaw, roll}}, "fov", "image_size_x",
+         "image_size_y"}                                       a CARLA sensor (runtime.convert.camera_from_carla)
+        {"camera": "CAM_FRONT"[, "width", "height"]}           an input camera of ``rig`` (camera_from_rig)
+      (an optional "name" is allowed in the OpenCV and input-camera items; CARLA items may carry CARLA's other
+      sensor attributes; other keys are refused, so a misspelt field is not silently dropped); or
+    (b) a nerfstudio camera_path.json: {"render_width", "render_height", ["camera_type"], "camera_path":
+        [{"camera_to_world": 16 numbers row-major, OpenGL camera axes, world = ego; "fov": VERTICAL degrees;
+        "aspect" (ignored)}, ...]} (runtime.convert.cameras_from_nerfstudio_path states what nerfstudio's
+        reader does with each field).
+    Other top-level keys are left to the caller (e.g. output, format). An empty list, more than ``max_frames``
+    cameras, wrong types or missing keys -> ViewError whose field is the JSON path ("cameras",
+    "cameras[2].K", "camera_path[0].fov", "render_width")."""
+    if not isinstance(doc, Mapping):
+        raise ViewError("cameras", 'the request must be an object with "cameras" (a list) or a nerfstudio '
+                                   'camera path ("camera_path")')
+    if "cameras" in doc and "camera_path" in doc:
+        raise ViewError("cameras", 'give "cameras" or a nerfstudio "camera_path", not both')
+    if "camera_path" in doc:
+        frames = doc["camera_path"]
+        if isinstance(frames, list):
+            _check_count("camera_path", len(frames), max_frames)
+        try:
+            cams = convert.cameras_from_nerfstudio_path(doc)
+        except convert.ConversionError as e:
+            raise _from_conversion(e, "camera_path") from None
+        return [rig_camera(c) for c in cams]
+    items = _get(doc, "cameras", "")
+    if not isinstance(items, (list, tuple)) or not items:
+        raise ViewError("cameras", f"must be a non-empty list (got {_short(items)})")
+    _check_count("cameras", len(items), max_frames)
+    return [_batch_item(item, f"cameras[{i}]", rig) for i, item in enumerate(items)]
+
+
+# ------------------------------------------------------------------------------------------- requests
+
+
+@dataclass(frozen=True, eq=False)
+class ViewRequest:
+    """One view to render and how to encode it. Compare requests with key() (the camera holds arrays)."""
+
+    camera: PinholeCamera | EquirectCamera   # ego frame: cam_to_world = OpenCV camera -> ego, metres
+    output: str = "rgb"      # rgb | depth | alpha
+    format: str = "png"      # png | jpeg | exr (jpeg cannot hold depth)
+    quality: int = 90        # JPEG quality 1..100 (kept, and part of key(), for every format)
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.camera, (PinholeCamera, EquirectCamera)):
+            raise ViewError("camera", f"expected a PinholeCamera or EquirectCamera, got {type(self.camera).__name__}")
+        if not isinstance(self.output, str) or self.output not in OUTPUTS:
+            raise ViewError("output", f"must be one of {', '.join(OUTPUTS)} (got {_short(self.output)})")
+        if not isinstance(self.format, str) or self.format not in FORMATS:
+            raise ViewError("format", f"must be one of {', '.join(FORMATS)} (got {_short(self.format)})")
+        q = self.quality
+        if isinstance(q, (bool, np.bool_)) or not isinstance(q, (int, np.integer)) or not 1 <= int(q) <= 100:
+            raise ViewError("quality", f"must be an integer in 1..100 (got {_short(q)})")
+        object.__setattr__(self, "quality", int(q))
+        if self.format == "jpeg" and self.output == "depth":
+            raise ViewError("format", "jpeg cannot hold depth (8-bit, lossy): use png (16-bit millimetres) or exr "
+                                      "(float32 metres)")
+
+    @property
+    def media_type(self) -> str:
+        """image/png, image/jpeg or image/x-exr."""
+        return MEDIA_TYPES[self.format]
+
+    @property
+    def extension(self) -> str:
+        """.png, .jpg or .exr."""
+        return EXTENSIONS[self.format]
+
+    @property
+    def pixels(self) -> int:
+        return self.camera.width * self.camera.height
+
+    def description(self) -> dict[str, Any]:
+        """The canonical description key() hashes: camera type, K (None for equirectangular) and cam_to_world
+        (row-major, rounded to 1e-9, -0.0 written as 0.0), width, height, output, format, quality."""
+        c = self.camera
+
+        def rounded(a) -> list[float]:
+            return [float(x) + 0.0 for x in np.round(np.asarray(a, np.float64), KEY_DECIMALS).ravel()]
+
+        pinhole = isinstance(c, PinholeCamera)
+        return {"v": KEY_VERSION, "camera": "pinhole" if pinhole else "equirectangular",
+                "K": rounded(c.K) if pinhole else None, "cam_to_world": rounded(c.cam_to_world),
+                "width": c.width, "height": c.height, "output": self.output, "format": self.format,
+                "quality": self.quality}
+
+    def key(self) -> str:
+        """sha256 hex of description() as compact sorted JSON: equal requests give equal keys, any difference
+        (beyond the 1e-9 rounding) a different key. It describes the request only: a cache or ETag combines it
+        with the scene's identity."""
+        text = json.dumps(self.description(), sort_keys=True, separators=(",", ":"))
+        return hashlib.sha256(text.encode()).hexdigest()
+
+
+# ------------------------------------------------------------------------------------------- encoding
+
+
+def _plane(a: Any, what: str, shape: tuple[int, ...]) -> np.ndarray:
+    if a is None:
+        raise ValueError(f"{what}: needed for this request, got None")
+    a = np.asarray(a)
+    if a.shape != shape:
+        raise ValueError(f"{what}: expected shape {list(shape)} (the request's camera), got {list(a.shape)}")
+    return a
+
+
+def _u8(a: np.ndarray) -> np.ndarray:
+    """0..1 floats -> uint8: round(255 x) clipped to 0..255, NaN -> 0 (fmax / fmin drop NaN). Computed in float64
+    so the result is exactly round(255 x) (float32 arithmetic, as runtime.imageio.write_png uses, is off by one
+    level for ~6 in a million values near k + 1/2); in place on one temporary: ~20 ms for 1600x900x3."""
+    x = np.multiply(a, 255.0, dtype=np.float64)
+    np.rint(x, out=x)
+    np.fmax(x, 0.0, out=x)
+    np.fmin(x, 255.0, out=x)
+    return x.astype(np.uint8)
+
+
+def _png_params() -> list[int]:
+    import cv2
+
+    return [cv2.IMWRITE_PNG_COMPRESSION, PNG_COMPRESSION, cv2.IMWRITE_PNG_STRATEGY, cv2.IMWRITE_PNG_STRATEGY_RLE,
+            cv2.IMWRITE_PNG_FILTER, cv2.IMWRITE_PNG_FILTER_SUB]
+
+
+def depth_to_mm16(depth: np.ndarray) -> np.ndarray:
+    """[H, W] metres -> uint16 millimetres: round(1000 d) (float64, exact) clipped to 0..65535 (depths beyond
+    65.535 m saturate at 65535); 0 = no surface (depth 0, negative or non-finite); a surface closer than 0.5 mm
+    reads 1 mm, so it never looks like "no surface"."""
+    d = np.asarray(depth, np.float64)
+    d = np.where(np.isfinite(d), d, 0.0)
+    mm = np.rint(d * DEPTH_PNG_SCALE)
+    np.clip(mm, 0, DEPTH_PNG_MAX, out=mm)
+    mm[(d > 0) & (mm < 1)] = 1
+    return mm.astype(np.uint16)
+
+
+def _exr_bytes(channels: np.ndarray, names: tuple[str, ...]) -> bytes:
+    """OpenImageIO writes EXR to files only (its Python binding has no in-memory writer we rely on): write to a
+    temporary folder with runtime.imageio.write_exr and read the bytes back. Costs a small file write; the folder
+    is removed afterwards, also on errors."""
+    from .imageio import write_exr
+
+    with tempfile.TemporaryDirectory(prefix="xyzcyl-view-") as tmp:
+        path = Path(tmp) / "view.exr"
+        write_exr(path, channels, names)
+        return path.read_bytes()
+
+
+def encode_view(rgb, depth, alpha, request: ViewRequest) -> bytes:
+    """The bytes of the file ``request`` asks for (request.media_type); only the array of request.output is
+    needed (the others may be None).
+
+    rgb [H, W, 3] float32 0..1, depth [H, W] float32 metres along the optical axis (0 = nothing), alpha [H, W]
+    float32 0..1 (runtime.scene.render_view's outputs); H x W must be the request camera's size.
+    - rgb:   png 8-bit RGB (round(255 x), clipped; zlib level 1, RLE, SUB filter), jpeg 8-bit RGB (request.quality,
+             OpenCV's default 4:2:0 chroma subsampling), exr float32 channels R G B (as rendered, not clipped);
+    - depth: png 16-bit grey millimetres (depth_to_mm16: 0 = no surface, saturates at 65.535 m), exr float32
+             channel Z metres;
+    - alpha: png / jpeg 8-bit grey (round(255 a)), exr float32 channel A."""
+    import cv2
+
+    H, W = request.camera.height, request.camera.width
+    out, fmt = request.output, request.format
+    if out == "rgb":
+        a = _plane(rgb, "rgb", (H, W, 3))
+    else:
+        a = _plane(depth if out == "depth" else alpha, out, (H, W))
+    if fmt == "exr":
+        return _exr_bytes(a.reshape(H, W, -1), EXR_CHANNELS[out])
+    if out == "rgb":
+        img = cv2.cvtColor(_u8(a), cv2.COLOR_RGB2BGR)   # OpenCV encoders take BGR
+    elif out == "depth":
+        img = depth_to_mm16(a)           # png only (ViewRequest refuses jpeg depth)
+    else:
+        img = _u8(a)
+    if fmt == "png":
+        ok, buf = cv2.imencode(".png", img, _png_params())
+    else:
+        ok, buf = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, request.quality])
+    if not ok:
+        raise OSError(f"OpenCV could not encode a {W}x{H} {out} {fmt}")
+    return buf.tobytes()
+
+
+def render_request(scene: Scene, request: ViewRequest, **options) -> bytes:
+    """Render ``request.camera`` with runtime.scene.render_view (Gaussians over the background panorama;
+    ``options`` are the renderer's RenderOptions) and encode it with encode_view."""
+    rgb, depth, alpha = render_view(scene, request.camera, **options)
+    return encode_view(rgb, depth, alpha, request)
+
+
+__all__ = [
+    "DEPTH_PNG_MAX",
+    "DEPTH_PNG_SCALE",
+    "FORMATS",
+    "OUTPUTS",
+    "PNG_COMPRESSION",
+    "ViewError",
+    "ViewRequest",
+    "camera_from_carla_pose",
+    "camera_from_opencv",
+    "camera_from_rig",
+    "cameras_from_batch",
+    "depth_to_mm16",
+    "encode_view",
+    "render_request",
+]
