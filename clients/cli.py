@@ -35,6 +35,7 @@ COMMANDS: tuple[Command, ...] = (
     Command("train", "xyzcyl.model_export.commands.train", "train one stage (occ | render) of the network", "train"),
     Command("eval", "xyzcyl.model_export.commands.eval", "novel-view metrics of a model or a baseline", "train"),
     Command("export", "xyzcyl.model_export.commands.export", "export a checkpoint to an ONNX model folder", "train"),
+    Command("serve", "xyzcyl.server.commands.serve", "run the HTTP service (FastAPI + uvicorn)", "server"),
 )
 
 

@@ -65,7 +65,7 @@ class Camera:
     model: CameraModel = "pinhole"
     distortion: tuple[float, ...] | None = None  # OpenCV k1 k2 p1 p2 [k3 [k4 k5 k6]]; None = undistorted
     image: str | None = None  # file relative to Rig.root
-    depth: str | None = None  # optional depth map file: float32 metres along the optical axis (pinhole)
+    depth: str | None = None  # optional depth map file: float metres or 16-bit millimetres, optical axis (pinhole)
     extra: Mapping[str, Any] = field(default_factory=dict)  # unknown keys, kept for the round trip
 
     def __post_init__(self) -> None:
@@ -386,7 +386,7 @@ class Rig:
             if c.depth is None:
                 out.append(None)
                 continue
-            d = read_image(self.path(c.depth), f"camera {c.name!r}: depth", channels=1, scale=False)[..., 0]
+            d = read_depth(self.path(c.depth), f"camera {c.name!r}: depth")
             if d.shape != (c.height, c.width):
                 raise RigError(f"camera {c.name!r}: depth is {d.shape[1]}x{d.shape[0]}, but width x height "
                                f"is {c.width}x{c.height}")
@@ -472,6 +472,21 @@ def read_image(path: Path, what: str, channels: int = 3, scale: bool = True) -> 
     else:
         raise RigError(f"{what}: {str(path)!r} has {n} channels, expected {channels}")
     return np.ascontiguousarray(img)
+
+
+def read_depth(path: Path, what: str) -> np.ndarray:
+    """A depth map file -> [H, W] float32 metres along the optical axis. Float files (EXR, TIFF) hold metres;
+    integer files (16-bit PNG, the usual depth-camera export) hold millimetres (0 = no depth). RigError naming
+    `what` when the file is missing or unreadable."""
+    import OpenImageIO as oiio
+
+    inp = _open_image(path, what)
+    try:
+        integer = inp.spec().format.basetype in (oiio.UINT8, oiio.UINT16, oiio.UINT32, oiio.INT16, oiio.INT32)
+    finally:
+        inp.close()
+    d = read_image(path, what, channels=1, scale=False)[..., 0]
+    return d * np.float32(0.001) if integer else d
 
 
 # -- validation helpers ------------------------------------------------------------------------------------------

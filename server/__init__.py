@@ -1,1 +1,26 @@
-"""xyzcyl.server"""
+"""The HTTP service (FastAPI) over xyzcyl.runtime: ``create_app(Settings(...))``; ``xyzcyl serve`` runs it.
+This package imports xyzcyl.runtime only (tests/test_packaging.py checks it). docs/api.md describes the API."""
+
+from __future__ import annotations
+
+from importlib.metadata import PackageNotFoundError, version
+
+try:
+    __version__ = version("xyzcyl")
+except PackageNotFoundError:  # pragma: no cover - running from a source tree without an install
+    __version__ = "0.0.0"
+
+
+def __getattr__(name: str):
+    if name == "create_app":
+        from .app import create_app
+
+        return create_app
+    if name == "Settings":
+        from .settings import Settings
+
+        return Settings
+    raise AttributeError(name)
+
+
+__all__ = ["Settings", "__version__", "create_app"]

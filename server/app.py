@@ -1,0 +1,243 @@
+"""``create_app(settings)``: the FastAPI application of the service (docs/api.md).
+
+    from xyzcyl.server import Settings, create_app
+    app = create_app(Settings(store="/tmp/store"))        # uvicorn.run(app) or `xyzcyl serve`
+
+The lifespan opens the store (recovering from a crash), starts the render pool and then, in the background,
+the reconstruction workers (each loads the model); ``/v2/health/ready`` answers 503 until they have. Middleware:
+the body limit (413 from Content-Length before anything is read, or as soon as a streamed body passes it),
+metrics per route template, CORS when origins are configured. Endpoints live in routes/; API keys are checked
+by a dependency of the /v1 routes.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import logging
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from fastapi import FastAPI, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse
+from starlette.exceptions import HTTPException as StarletteHTTPException
+from xyzcyl.runtime.inference import ModelError, ModelInfo, verify_model
+
+from .cache import BytesCache, SceneCache
+from .errors import ApiError, TooLarge, error_body
+from .jobs import Reconstructions, Renders
+from .metrics import Metrics
+from .settings import Settings
+from .store import FolderStore, open_store
+
+log = logging.getLogger("xyzcyl.server")
+API_VERSION = "1"
+
+
+@dataclass
+class Service:
+    """Everything the endpoints use; one per app (``request.app.state.service``)."""
+
+    settings: Settings
+    info: ModelInfo
+    store: FolderStore
+    metrics: Metrics
+    renders: Renders
+    reconstructions: Reconstructions
+    scenes: SceneCache
+    views: BytesCache
+    ready: bool = False
+    draining: bool = False
+    startup_error: str | None = None
+    started: float = field(default_factory=time.time)
+    recovered: dict[str, int] = field(default_factory=dict)
+
+
+def _status_code_name(status: int) -> str:
+    return {400: "bad_request", 401: "unauthorized", 403: "forbidden", 404: "not_found",
+            405: "method_not_allowed", 406: "not_acceptable", 409: "not_ready", 413: "too_large",
+            415: "unsupported_media_type", 422: "invalid", 429: "busy", 503: "busy"}.get(status, "error")
+
+
+def _json_error(status: int, code: str, message: str, field: str | None = None,
+                headers: dict[str, str] | None = None) -> JSONResponse:
+    return JSONResponse(error_body(code, message, field), status_code=status, headers=headers)
+
+
+class _Guard:
+    """Pure ASGI middleware (outermost): the body limit and the per-route metrics."""
+
+    def __init__(self, app, settings: Settings, metrics: Metrics):
+        self.app = app
+        self.limit = settings.max_body_bytes
+        self.metrics = metrics
+
+    async def __call__(self, scope, receive, send):
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        t0 = time.perf_counter()
+        status = {"code": 500, "t": None}
+
+        async def send_wrapper(message):
+            if message["type"] == "http.response.start":
+                status["code"] = message["status"]
+                status["t"] = time.perf_counter()
+                headers = [(k, v) for k, v in message.get("headers", []) if k.lower() != b"server"]
+                message = {**message, "headers": headers}
+            await send(message)
+
+        try:
+            length = None
+            for k, v in scope.get("headers", []):
+                if k == b"content-length":
+                    try:
+                        length = int(v)
+                    except ValueError:
+                        length = -1
+            if length is not None and (length < 0 or length > self.limit):
+                resp = _json_error(413 if length > self.limit else 400,
+                                   "too_large" if length > self.limit else "bad_request",
+                                   f"the request body of {length} bytes is over the limit of {self.limit} bytes"
+                                   if length > self.limit else "Content-Length is not a number",
+                                   "body", {"Connection": "close"})
+                await resp(scope, receive, send_wrapper)
+                return
+            seen = {"n": 0}
+            limit = self.limit
+
+            async def receive_wrapper():
+                message = await receive()
+                if message["type"] == "http.request":
+                    seen["n"] += len(message.get("body", b""))
+                    if seen["n"] > limit:
+                        raise TooLarge(f"the request body is over the limit of {limit} bytes", "body")
+                return message
+
+            await self.app(scope, receive_wrapper, send_wrapper)
+        finally:
+            route = scope.get("route")
+            path = getattr(route, "path", None) or "unmatched"
+            method = scope.get("method", "")
+            self.metrics.requests.labels(path, method, str(status["code"])).inc()
+            self.metrics.latency.labels(path, method).observe((status["t"] or time.perf_counter()) - t0)
+
+
+def _install_handlers(app: FastAPI) -> None:
+    @app.exception_handler(ApiError)
+    async def _api_error(request: Request, exc: ApiError):
+        return JSONResponse(exc.body(), status_code=exc.status, headers=exc.headers)
+
+    @app.exception_handler(RequestValidationError)
+    async def _validation(request: Request, exc: RequestValidationError):
+        errs = exc.errors()
+        first = errs[0] if errs else {}
+        loc = [str(x) for x in first.get("loc", ()) if x not in ("query", "path", "body", "header")]
+        field_name = ".".join(loc) or None
+        msg = first.get("msg", "invalid request")
+        return _json_error(422, "invalid", f"{field_name}: {msg}" if field_name else msg, field_name)
+
+    @app.exception_handler(StarletteHTTPException)
+    async def _http(request: Request, exc: StarletteHTTPException):
+        detail = exc.detail if isinstance(exc.detail, str) else json.dumps(exc.detail)
+        if exc.status_code == 404 and detail == "Not Found":
+            detail = f"no route {request.url.path}"
+        return _json_error(exc.status_code, _status_code_name(exc.status_code), detail, None,
+                           dict(exc.headers or {}))
+
+    @app.exception_handler(Exception)
+    async def _unexpected(request: Request, exc: Exception):
+        log.exception("unexpected error on %s %s", request.method, request.url.path)
+        return _json_error(500, "internal", "an unexpected error occurred; it was logged")
+
+
+def create_app(settings: Settings | None = None) -> FastAPI:
+    """The application. Raises ModelError at once when the model folder is missing or altered."""
+    from . import __version__
+    from .routes import health, render, scenes
+
+    settings = settings or Settings()
+    info = verify_model(settings.model_dir())
+    metrics = Metrics()
+    store = open_store(settings)
+    service = Service(settings=settings, info=info, store=store, metrics=metrics,
+                      renders=Renders(settings, metrics),
+                      reconstructions=Reconstructions(settings, store, metrics, Path(info.path)),
+                      scenes=SceneCache(settings.scene_cache), views=BytesCache(settings.render_cache_bytes))
+    metrics.watch_store(store)
+
+    def forget(sid: str) -> None:
+        service.scenes.drop(sid)
+        service.views.drop_owner(sid)
+
+    store.on_delete.append(forget)
+
+    @contextlib.asynccontextmanager
+    async def lifespan(app: FastAPI):
+        service.recovered = await asyncio.to_thread(store.open)
+        if any(service.recovered[k] for k in ("interrupted", "files_missing", "orphans")):
+            log.warning("store recovered: %s", service.recovered)
+        start = asyncio.create_task(_start_workers(service), name="start-workers")
+        sweep = asyncio.create_task(_sweep(service), name="ttl-sweep")
+        try:
+            yield
+        finally:
+            service.draining = True
+            service.ready = False
+            for t in (start, sweep):
+                t.cancel()
+            await asyncio.gather(start, sweep, return_exceptions=True)
+            await service.reconstructions.stop()
+            service.renders.stop()
+
+    app = FastAPI(title="xyzcyl", version=__version__, lifespan=lifespan,
+                  summary="Feed-forward 3D Gaussian splatting of a surround-camera rig: post a rig, get Gaussians, "
+                          "render views at any pose.",
+                  description="docs/api.md in the repository: every endpoint with a curl example and the error "
+                              "table. Every error answers `{\"error\": {\"code\", \"message\", \"field\"}}`.")
+    app.state.service = service
+    _install_handlers(app)
+    app.include_router(health.router)
+    app.include_router(scenes.router)
+    app.include_router(render.router)
+    if settings.cors_origins:
+        from fastapi.middleware.cors import CORSMiddleware
+
+        app.add_middleware(CORSMiddleware, allow_origins=list(settings.cors_origins), allow_methods=["*"],
+                           allow_headers=["*"], expose_headers=["Location", "ETag", "Retry-After"])
+    app.add_middleware(_Guard, settings=settings, metrics=metrics)
+    return app
+
+
+async def _start_workers(service: Service) -> None:
+    try:
+        await service.reconstructions.start()
+        service.ready = True
+        log.info("model %s %s loaded; ready", service.info.name, service.info.version)
+    except asyncio.CancelledError:
+        raise
+    except Exception as e:
+        service.startup_error = f"{type(e).__name__}: {e}"
+        log.exception("the reconstruction workers did not start")
+
+
+async def _sweep(service: Service) -> None:
+    ttl = service.settings.scene_ttl_s
+    if ttl is None:
+        return
+    while True:
+        await asyncio.sleep(min(60.0, max(1.0, ttl / 4)))
+        removed = await asyncio.to_thread(service.store.sweep)
+        if removed:
+            log.info("TTL removed %d scenes", len(removed))
+
+
+def service_of(request: Request) -> Service:
+    return request.app.state.service
+
+
+__all__ = ["API_VERSION", "ModelError", "Service", "create_app", "service_of"]
+

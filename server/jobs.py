@@ -1,0 +1,258 @@
+"""The work behind the endpoints, off the event loop and bounded:
+
+- ``Reconstructions``: ``reconstruct_workers`` worker processes, each a one-process pool that loads the model
+  once (runtime.inference.Reconstructor) and turns an upload folder into a scene folder. Jobs wait in a queue of
+  ``reconstruct_queue``; beyond it ``submit`` refuses (the endpoint answers 503 + Retry-After at once). A worker
+  that dies (a crash, the out-of-memory killer) or runs past ``reconstruct_timeout_s`` fails its job only: its
+  process is replaced and the server goes on.
+- ``Renders``: a thread pool of ``render_threads`` (the numba kernels release the GIL) with at most
+  ``render_queue`` renders waiting; beyond it ``run`` raises Busy (503 + Retry-After).
+
+Each worker process runs ``_worker_init`` once and then ``_worker_reconstruct`` per job; they return plain tuples,
+never exceptions, so nothing depends on pickling error types.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import concurrent.futures as cf
+import logging
+import multiprocessing
+import os
+import shutil
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from .errors import Busy
+
+log = logging.getLogger("xyzcyl.server")
+
+# -------------------------------------------------------------------------------------- in the worker process
+
+_RECONSTRUCTOR = None
+
+
+def _worker_init(model_dir: str, threads: int | None) -> None:
+    global _RECONSTRUCTOR
+    from xyzcyl.runtime.inference import Reconstructor
+
+    _RECONSTRUCTOR = Reconstructor.load(model_dir, threads=threads)
+
+
+def _worker_ping() -> int:
+    return os.getpid()
+
+
+def _worker_reconstruct(rig_json: str, out_dir: str) -> tuple[str, Any]:
+    """("ok", scene metadata) | ("invalid", message) | ("storage_full", message) | ("error", message)."""
+    import errno
+
+    from xyzcyl.runtime.inference import InferenceError
+    from xyzcyl.runtime.rig import RigError, load_rig
+    from xyzcyl.runtime.scene import SceneError
+
+    try:
+        rig = load_rig(rig_json)
+        scene = _RECONSTRUCTOR.reconstruct(rig)
+        scene.save(out_dir)
+        meta = scene.to_json()
+        return "ok", {k: meta[k] for k in ("model", "counts", "timings", "bbox", "lifting_cached")} | {
+            "gaussians": meta["gaussians"]["count"], "background": meta["background"] is not None,
+            "pid": os.getpid()}
+    except (RigError, InferenceError, SceneError) as e:
+        return "invalid", str(e)
+    except OSError as e:
+        if e.errno in (errno.ENOSPC, errno.EDQUOT):
+            return "storage_full", f"the store's disk is full ({e.strerror})"
+        return "error", f"{type(e).__name__}: {e}"
+    except MemoryError:
+        return "error", "out of memory"
+    except Exception as e:      # noqa: BLE001 - reported as the job's failure, never raised into the server
+        return "error", f"{type(e).__name__}: {e}"
+
+
+# -------------------------------------------------------------------------------------- in the server process
+
+
+@dataclass
+class Job:
+    sid: str
+    work: Path                         # upload folder: rig.json + images (removed when the job ends)
+    submitted: float = field(default_factory=time.perf_counter)
+    done: asyncio.Event = field(default_factory=asyncio.Event)
+
+
+class _Worker:
+    """One worker process (a single-process pool, so a crash breaks only this worker's job)."""
+
+    def __init__(self, model_dir: str, threads: int | None):
+        self.args = (model_dir, threads)
+        self.pool = self._new()
+
+    def _new(self) -> cf.ProcessPoolExecutor:
+        return cf.ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"),
+                                      initializer=_worker_init, initargs=self.args)
+
+    def pids(self) -> list[int]:
+        return [p.pid for p in (self.pool._processes or {}).values()]
+
+    def replace(self) -> None:
+        """Kill the process (if alive) and start a fresh pool."""
+        for p in list((self.pool._processes or {}).values()):
+            try:
+                p.kill()
+            except (OSError, AttributeError):
+                pass
+        self.pool.shutdown(wait=False, cancel_futures=True)
+        self.pool = self._new()
+
+    def shutdown(self) -> None:
+        for p in list((self.pool._processes or {}).values()):
+            p.terminate()
+        self.pool.shutdown(wait=False, cancel_futures=True)
+
+
+class Reconstructions:
+    def __init__(self, settings, store, metrics, model_dir: Path):
+        self.settings = settings
+        self.store = store
+        self.metrics = metrics
+        self.model_dir = str(model_dir)
+        self.capacity = settings.reconstruct_workers + settings.reconstruct_queue
+        self.workers: list[_Worker] = []
+        self.queue: asyncio.Queue[Job] | None = None
+        self.running = 0
+        self.jobs: dict[str, Job] = {}
+        self._tasks: list[asyncio.Task] = []
+        self.on_done: list[Callable[[str], None]] = []
+
+    async def start(self) -> None:
+        """Start the worker processes and wait until each has loaded the model (readiness)."""
+        self.queue = asyncio.Queue()
+        loop = asyncio.get_running_loop()
+        self.workers = [_Worker(self.model_dir, self.settings.ort_threads)
+                        for _ in range(self.settings.reconstruct_workers)]
+        await asyncio.gather(*(loop.run_in_executor(w.pool, _worker_ping) for w in self.workers))
+        self._tasks = [asyncio.create_task(self._consume(w), name=f"reconstruct-{i}")
+                       for i, w in enumerate(self.workers)]
+
+    async def stop(self) -> None:
+        for t in self._tasks:
+            t.cancel()
+        await asyncio.gather(*self._tasks, return_exceptions=True)
+        for w in self.workers:
+            w.shutdown()
+
+    @property
+    def pending(self) -> int:
+        return (self.queue.qsize() if self.queue is not None else 0) + self.running
+
+    def full(self) -> bool:
+        return self.pending >= self.capacity
+
+    def submit(self, job: Job) -> None:
+        """Queue a job, or raise Busy when the queue is full (the caller answers 503 at once)."""
+        if self.queue is None or self.full():
+            raise Busy(f"{self.pending} reconstructions are running or queued (the limit is {self.capacity}); "
+                       "retry later", self.settings.retry_after_s)
+        self.jobs[job.sid] = job
+        self.queue.put_nowait(job)
+        self.metrics.queue_depth.labels("reconstruct").set(self.pending)
+
+    async def _consume(self, worker: _Worker) -> None:
+        loop = asyncio.get_running_loop()
+        while True:
+            job = await self.queue.get()
+            self.running += 1
+            self.metrics.queue_depth.labels("reconstruct").set(self.pending)
+            try:
+                await self._run(loop, worker, job)
+            except Exception:
+                log.exception("reconstruction %s", job.sid)
+                self.store.fail(job.sid, "internal", "the reconstruction failed unexpectedly")
+            finally:
+                self.running -= 1
+                self.metrics.queue_depth.labels("reconstruct").set(self.pending)
+                shutil.rmtree(job.work, ignore_errors=True)
+                self.jobs.pop(job.sid, None)
+                job.done.set()
+                for cb in self.on_done:
+                    cb(job.sid)
+
+    async def _run(self, loop, worker: _Worker, job: Job) -> None:
+        if self.store.update(job.sid, state="running") is None:
+            return                      # deleted while queued
+        out = job.work / "scene"
+        t0 = time.perf_counter()
+        fut = loop.run_in_executor(worker.pool, _worker_reconstruct, str(job.work / "rig.json"), str(out))
+        try:
+            status, value = await asyncio.wait_for(fut, self.settings.reconstruct_timeout_s)
+        except TimeoutError:
+            worker.replace()
+            self._failed(job, "timeout", f"the reconstruction ran longer than {self.settings.reconstruct_timeout_s}"
+                         " s and was stopped")
+            return
+        except cf.process.BrokenProcessPool:
+            worker.replace()
+            self._failed(job, "worker_crashed", "the reconstruction worker died (crash or out of memory); the "
+                         "job was not finished")
+            return
+        seconds = time.perf_counter() - t0
+        if status != "ok":
+            self._failed(job, {"invalid": "invalid_input"}.get(status, status), value)
+            return
+        from .store import StoreFull
+
+        try:
+            rec = self.store.commit(job.sid, out, model=value["model"], counts=value["counts"],
+                                    timings={**value["timings"], "queued": t0 - job.submitted,
+                                             "worker_total": seconds},
+                                    bbox=value["bbox"], gaussians=value["gaussians"], background=value["background"])
+        except StoreFull as e:
+            self._failed(job, "storage_full", str(e))
+            return
+        if rec is not None:
+            self.metrics.reconstructions.labels("ready").inc()
+            self.metrics.reconstruct_seconds.observe(seconds)
+
+    def _failed(self, job: Job, code: str, message: str) -> None:
+        self.metrics.reconstructions.labels(code).inc()
+        self.store.fail(job.sid, code, message)
+
+
+class Renders:
+    """A bounded thread pool for renders and other CPU work of the request path."""
+
+    def __init__(self, settings, metrics):
+        self.settings = settings
+        self.metrics = metrics
+        self.limit = settings.render_threads + settings.render_queue
+        self.inflight = 0
+        self.pool = cf.ThreadPoolExecutor(settings.render_threads, thread_name_prefix="render")
+
+    def busy(self) -> bool:
+        return self.inflight >= self.limit
+
+    async def run(self, fn: Callable[..., Any], *args: Any, force: bool = False) -> Any:
+        """fn(*args) in the pool; Busy (503) when the pool and its queue are full, unless ``force`` (the later
+        frames of a batch that was admitted)."""
+        if self.busy() and not force:
+            self.metrics.rejected.labels("render_queue").inc()
+            raise Busy(f"{self.inflight} renders are running or queued (the limit is {self.limit}); retry later",
+                       self.settings.retry_after_s)
+        self.inflight += 1
+        self.metrics.queue_depth.labels("render").set(self.inflight)
+        try:
+            return await asyncio.get_running_loop().run_in_executor(self.pool, fn, *args)
+        finally:
+            self.inflight -= 1
+            self.metrics.queue_depth.labels("render").set(self.inflight)
+
+    def stop(self) -> None:
+        self.pool.shutdown(wait=True, cancel_futures=True)
+
+
+__all__ = ["Job", "Reconstructions", "Renders"]

@@ -1,0 +1,1 @@
+"""Endpoints: they parse and answer; the work is in runtime/, jobs.py and store/."""

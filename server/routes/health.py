@@ -1,0 +1,80 @@
+"""Open Inference Protocol paths (health, server and model metadata) and Prometheus metrics. None of these need
+an API key, and none wait for a queue: they answer while the service is busy."""
+
+from __future__ import annotations
+
+from fastapi import APIRouter, Request
+from fastapi.responses import JSONResponse, Response
+
+from ..app import service_of
+from ..errors import NotFound
+
+router = APIRouter(tags=["health and metadata"])
+
+_DTYPES = {"float32": "FP32", "float16": "FP16", "int64": "INT64", "int32": "INT32", "uint8": "UINT8",
+           "bool": "BOOL"}
+
+
+@router.get("/v2/health/live", summary="the process answers")
+async def live() -> dict:
+    return {"live": True}
+
+
+@router.get("/v2/health/ready", summary="the model is loaded and scenes can be posted",
+            responses={503: {"description": "still loading, draining, or the workers failed to start"}})
+async def ready(request: Request):
+    s = service_of(request)
+    if s.ready and not s.draining:
+        return {"ready": True}
+    reason = "draining" if s.draining else (s.startup_error or "loading the model")
+    return JSONResponse({"ready": False, "reason": reason}, status_code=503, headers={"Retry-After": "1"})
+
+
+@router.get("/v2", summary="server metadata (Open Inference Protocol)")
+async def server_metadata(request: Request) -> dict:
+    from .. import __version__
+
+    return {"name": "xyzcyl", "version": __version__, "extensions": []}
+
+
+def _tensors(entries) -> list[dict]:
+    out = []
+    for e in entries:
+        shape = [d if isinstance(d, int) else -1 for d in e.get("shape", [])]
+        out.append({"name": e["name"], "datatype": _DTYPES.get(str(e.get("dtype")), str(e.get("dtype")).upper()),
+                    "shape": shape})
+    return out
+
+
+def _model_metadata(request: Request, name: str) -> dict:
+    s = service_of(request)
+    info = s.info
+    if name != info.name:
+        raise NotFound(f"no model {name!r}; this server serves {info.name!r}", "name")
+    graphs = info.meta.get("graphs", {})
+    enc = graphs.get("encode", {})
+    return {"name": info.name, "versions": [info.version], "platform": "onnxruntime_onnx",
+            "inputs": _tensors(enc.get("inputs", [])), "outputs": _tensors(enc.get("outputs", [])),
+            "parameters": {"graphs": sorted(graphs), "input": info.meta.get("input"),
+                           "counts": info.meta.get("counts")}}
+
+
+@router.get("/v2/models/{name}", summary="model metadata (Open Inference Protocol)",
+            responses={404: {"description": "no such model"}})
+async def model_metadata(request: Request, name: str) -> dict:
+    return _model_metadata(request, name)
+
+
+@router.get("/v2/models/{name}/ready", summary="model readiness (Open Inference Protocol)")
+async def model_ready(request: Request, name: str):
+    _model_metadata(request, name)
+    s = service_of(request)
+    ok = s.ready and not s.draining
+    return JSONResponse({"name": name, "ready": ok}, status_code=200 if ok else 503)
+
+
+@router.get("/metrics", summary="Prometheus metrics", response_class=Response)
+async def metrics(request: Request) -> Response:
+    from prometheus_client import CONTENT_TYPE_LATEST
+
+    return Response(service_of(request).metrics.exposition(), media_type=CONTENT_TYPE_LATEST)
