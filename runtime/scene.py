@@ -177,7 +177,7 @@ def _sample(pano, v0, v1, ox, oy, oz, dx, dy, dz, cx, cy, cz, R, Zu, out, y, x):
         out[y, x, k] = top * (1.0 - fr) + bot * fr
 
 
-@numba.njit(parallel=True, cache=True)
+@numba.njit(parallel=True, cache=True, nogil=True)
 def _bg_pinhole(pano, v0, v1, cx, cy, cz, R, Zu, fx, fy, ppx, ppy, T, out):
     H, W = out.shape[0], out.shape[1]
     for y in numba.prange(H):
@@ -189,7 +189,7 @@ def _bg_pinhole(pano, v0, v1, cx, cy, cz, R, Zu, fx, fy, ppx, ppy, T, out):
             _sample(pano, v0, v1, T[0, 3], T[1, 3], T[2, 3], dx, dy, dz, cx, cy, cz, R, Zu, out, y, x)
 
 
-@numba.njit(parallel=True, cache=True)
+@numba.njit(parallel=True, cache=True, nogil=True)
 def _bg_dirs(pano, v0, v1, cx, cy, cz, R, Zu, T, d, out):
     H, W = out.shape[0], out.shape[1]
     for y in numba.prange(H):

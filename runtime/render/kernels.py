@@ -74,7 +74,7 @@ def _alpha(dx, dy, A, B, C, op, pmax):
 
 
 # ------------------------------------------------------------------------------------------------ projection
-@njit(cache=True, parallel=True)
+@njit(cache=True, parallel=True, nogil=True)
 def project_kernel(means, quats, log_scales, opacity_logits, sh, campos, Rw, tw, model, fx, fy, cx, cy,
                    lxn, lxp, lyn, lyp, width, height, near, far, low_pass, antialiased, opacity_mode,
                    rows, trange, depth_out):
@@ -270,7 +270,7 @@ def _sh_colour(sh, i, c, vx, vy, vz):
 
 
 # --------------------------------------------------------------------------------------------------- binning
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def depth_order(visible, keys):
     """Stable LSD radix sort of `visible` (Gaussian ids, ascending) by keys [n] uint64 (the bit patterns of
     positive float64 depths, which order like the values): 4 passes of 16 bits, passes where all keys share
@@ -300,7 +300,7 @@ def depth_order(visible, keys):
     return src
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, parallel=True, nogil=True)
 def bin_kernel(order, trange, ntx, nty, nchunks):
     """List, per 16x16 tile, the ids of the Gaussians whose footprint's bounding box touches it (trange, see
     project_kernel), front to back (`order`: visible Gaussian ids in depth order). Returns
@@ -384,7 +384,7 @@ def gather_row(cg, k, x0, y0, width, wrap, out, j):
     out[j, 12] = min(TILE - 1.0, math.ceil(my + ry))
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True, parallel=True, nogil=True)
 def instance_features(start, ids, rows, ntx, width, wrap):
     """feat [n_inst, NFEAT] float32: every tile instance's features (gather_row), for the backward pass."""
     ntiles = start.shape[0] - 1
@@ -448,7 +448,7 @@ def _blend_one(fb, j, jj, px, py, T, c0, c1, c2, dd, lst, wrap, wf, inv_w):
             _blend_px(p, power, op, pm, cr, cg, cbl, z, jj, T, c0, c1, c2, dd, lst)
 
 
-@njit(cache=True, parallel=True, fastmath=RASTER_MATH)
+@njit(cache=True, parallel=True, nogil=True, fastmath=RASTER_MATH)
 def raster_forward(start, ids, rows, ntx, width, height, wrap, bg, rgb, alpha, depth, last, t_final):
     """Front-to-back blend per tile. bg [H, W, 3] f32. Outputs rgb [H, W, 3], alpha, depth [H, W] f32,
     last [H, W] int32 (index of the last blended instance, -1 if none), t_final [H, W] f32.
@@ -513,7 +513,7 @@ def raster_forward(start, ids, rows, ntx, width, height, wrap, bg, rgb, alpha, d
                 t_final[yy, xx] = tf
 
 
-@njit(cache=True, parallel=True, fastmath=RASTER_MATH)
+@njit(cache=True, parallel=True, nogil=True, fastmath=RASTER_MATH)
 def raster_backward(start, feat, ntx, width, height, wrap, bg, depth, last, t_final, d_rgb, d_alpha, d_depth,
                     g_inst, g_bg):
     """Reverse traversal per pixel. g_inst [n_inst, 10] f64 (d mx, d my, d conic a, b, c, d opacity,
@@ -594,7 +594,7 @@ def raster_backward(start, feat, ntx, width, height, wrap, bg, depth, last, t_fi
                     g_inst[j, 4] += g_pow * 0.5 * fdy * fdy
 
 
-@njit(cache=True)
+@njit(cache=True, nogil=True)
 def reduce_kernel(ids, g_inst, n):
     """Sum instance gradients per Gaussian -> [n, 10] float64."""
     out = np.zeros((n, g_inst.shape[1]), np.float64)
