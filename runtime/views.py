@@ -442,12 +442,13 @@ def depth_to_mm16(depth: np.ndarray) -> np.ndarray:
 def _exr_bytes(channels: np.ndarray, names: tuple[str, ...]) -> bytes:
     """OpenImageIO writes EXR to files only (its Python binding has no in-memory writer we rely on): write to a
     temporary folder with runtime.imageio.write_exr and read the bytes back. Costs a small file write; the folder
-    is removed afterwards, also on errors."""
+    is removed afterwards, also on errors. Uncompressed: OpenEXR's zip took 0.36 s for a 1600x900 RGB view (more
+    than the render) and saved ~5 % of the bytes (runtime.imageio.write_exr)."""
     from .imageio import write_exr
 
     with tempfile.TemporaryDirectory(prefix="xyzcyl-view-") as tmp:
         path = Path(tmp) / "view.exr"
-        write_exr(path, channels, names)
+        write_exr(path, channels, names, compression="none")
         return path.read_bytes()
 
 
