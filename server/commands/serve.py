@@ -57,6 +57,26 @@ def run(args: argparse.Namespace) -> int:
         print(f"xyzcyl serve: --store: {e}", file=sys.stderr)
         return 2
     # server_header=False: no "server: uvicorn" header (the stack's versions are not announced)
-    uvicorn.run(app, host=settings.host, port=settings.port, log_level=args.log_level, server_header=False,
-                timeout_graceful_shutdown=30)
+    config = uvicorn.Config(app, host=settings.host, port=settings.port, log_level=args.log_level,
+                            server_header=False, timeout_graceful_shutdown=30)
+    server = _server_class()(config)
+    server.service = app.state.service
+    server.run()
     return 0
+
+
+def _server_class():
+    import uvicorn
+
+    class DrainingServer(uvicorn.Server):
+        """On SIGTERM/SIGINT: /v2/health/ready turns 503 at once (load balancers stop sending), requests in
+        flight finish (up to 30 s), then the workers stop."""
+
+        service = None
+
+        def handle_exit(self, sig, frame):
+            if self.service is not None:
+                self.service.draining = True
+            super().handle_exit(sig, frame)
+
+    return DrainingServer
