@@ -174,7 +174,11 @@ class FolderStore:
                     raise StoreFull(f"the store holds its maximum of {self.max_scenes} scenes; delete some "
                                     "(DELETE /v1/scenes/{id})")
             self._records[sid] = rec
-            self._persist(sid)
+            try:
+                self._persist(sid)
+            except BaseException:       # not on disk (disk full, bad id): not in the store either
+                del self._records[sid]
+                raise
             return json.loads(json.dumps(rec))
 
     def update(self, sid: str, **fields: Any) -> dict[str, Any] | None:
