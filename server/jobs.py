@@ -183,7 +183,7 @@ class Reconstructions:
                     cb(job.sid)
 
     async def _run(self, loop, worker: _Worker, job: Job) -> None:
-        if self.store.update(job.sid, state="running") is None:
+        if await asyncio.to_thread(self.store.update, job.sid, state="running") is None:
             return                      # deleted while queued
         out = job.work / "scene"
         t0 = time.perf_counter()
@@ -207,10 +207,10 @@ class Reconstructions:
         from .store import StoreFull
 
         try:
-            rec = self.store.commit(job.sid, out, model=value["model"], counts=value["counts"],
-                                    timings={**value["timings"], "queued": t0 - job.submitted,
-                                             "worker_total": seconds},
-                                    bbox=value["bbox"], gaussians=value["gaussians"], background=value["background"])
+            rec = await asyncio.to_thread(
+                self.store.commit, job.sid, out, model=value["model"], counts=value["counts"],
+                timings={**value["timings"], "queued": t0 - job.submitted, "worker_total": seconds},
+                bbox=value["bbox"], gaussians=value["gaussians"], background=value["background"])
         except StoreFull as e:
             self._failed(job, "storage_full", str(e))
             return
