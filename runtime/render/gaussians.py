@@ -215,6 +215,45 @@ class Gaussians:
     def save_splat(self, path: str | os.PathLike) -> None:
         Path(path).write_bytes(self.splat_bytes())
 
+    @classmethod
+    def from_splat_bytes(cls, data: bytes, max_points: int = DEFAULT_MAX_POINTS) -> Gaussians:
+        """Parse antimatter15 `.splat` bytes (the layout of splat_bytes) into SH degree 0 Gaussians. The format is
+        lossy: colour and opacity are 8-bit (a stored 0 or 255 opacity is clamped to 0.5/255 from the ends so the
+        logit stays finite), the quaternion is 8 bits per component. GaussianError when the length is not a
+        multiple of 32, the count is over ``max_points``, a value is not finite, a scale is <= 0 or a quaternion
+        is zero."""
+        if len(data) % 32:
+            raise GaussianError(f"splat: {len(data)} bytes is not a multiple of 32 (one record per Gaussian)")
+        n = len(data) // 32
+        if n > max_points:
+            raise GaussianError(f"splat: {n} records, more than the maximum {max_points}")
+        rec = np.frombuffer(data, dtype=[("pos", "<f4", 3), ("scale", "<f4", 3), ("rgba", "u1", 4),
+                                         ("rot", "u1", 4)], count=n)
+        pos, scale = rec["pos"].astype(np.float32), rec["scale"].astype(np.float64)
+        for name, a in (("position", pos), ("scale", scale)):
+            bad = int(np.count_nonzero(~np.isfinite(a)))
+            if bad:
+                raise GaussianError(f"splat: {name}: {bad} non-finite values")
+        if (scale <= 0).any():
+            raise GaussianError(f"splat: scale: {int(np.count_nonzero(scale <= 0))} values <= 0")
+        rgba = rec["rgba"].astype(np.float64) / 255.0
+        q = (rec["rot"].astype(np.float64) - 128.0) / 128.0
+        if (np.linalg.norm(q, axis=1) == 0).any():
+            raise GaussianError("splat: rotation: zero quaternion")
+        a = np.clip(rgba[:, 3], 0.5 / 255.0, 1.0 - 0.5 / 255.0)
+        return cls(means=pos, quats=q.astype(np.float32), log_scales=np.log(scale).astype(np.float32),
+                   opacity_logits=np.log(a / (1.0 - a)).astype(np.float32),
+                   sh=((rgba[:, None, :3] - 0.5) / SH_C0).astype(np.float32))
+
+    @classmethod
+    def load_splat(cls, path: str | os.PathLike, max_points: int = DEFAULT_MAX_POINTS) -> Gaussians:
+        """Read a `.splat` file (from_splat_bytes); the size is checked before the file is read."""
+        path = Path(path)
+        size = path.stat().st_size
+        if size // 32 > max_points:
+            raise GaussianError(f"{path.name}: {size // 32} records, more than the maximum {max_points}")
+        return cls.from_splat_bytes(path.read_bytes(), max_points)
+
 
 def _read_ply_header(path: Path) -> tuple[int, list[tuple[str, str]], str, int]:
     """Parse only the PLY header: (vertex count, vertex properties [(name, type)], format, header bytes)."""
