@@ -38,7 +38,7 @@ def check_size(service: Service, camera, field: str = "width") -> None:
     w, h = camera.width, camera.height
     if max(w, h) > st.max_render_side:
         raise Invalid(f"{field}: a view of {w}x{h} has a side over the limit of {st.max_render_side} pixels",
-                      "width" if w >= h else "height")
+                      ("width" if w >= h else "height") if field == "width" else field)
     if w * h > st.max_render_pixels:
         raise Invalid(f"{field}: a view of {w}x{h} = {w * h} pixels is over the limit of {st.max_render_pixels}",
                       field)
@@ -101,7 +101,7 @@ async def render_one(
     if len(modes) != 1:
         raise Invalid("give exactly one pose: camera=NAME, cam_to_ego=16 numbers (+ fx/fy/cx/cy or fov), or "
                       f"CARLA x,y,z,pitch,yaw,roll (+ fov); got {' and '.join(modes) or 'none'}",
-                      modes[1] if len(modes) > 1 else "camera")
+                      {"carla": next(iter(carla), "x")}.get(modes[1], modes[1]) if len(modes) > 1 else "camera")
     try:
         if camera is not None:
             cam = camera_from_rig(await s.renders.run(_rig, s, scene_id), camera, width, height)
