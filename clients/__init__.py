@@ -1,1 +1,20 @@
-"""xyzcyl.clients"""
+"""xyzcyl.clients: the Python client of the HTTP service (``from xyzcyl.clients import Client``; docs/client.md)
+and the ``xyzcyl`` command dispatcher (clients/cli.py). The client is imported lazily, so ``xyzcyl --help`` does
+not import httpx or numpy."""
+
+from __future__ import annotations
+
+_CLIENT_NAMES = ("AuthError", "BusyError", "Client", "ConnectionFailed", "FrameBatch", "InvalidRequestError",
+                 "NotFoundError", "NotReadyError", "SceneInfo", "ServerError", "StorageFullError", "WaitTimeout",
+                 "XyzcylError", "decode_image", "encode_png", "error_for", "view_params")
+
+
+def __getattr__(name: str):
+    if name in _CLIENT_NAMES:
+        from . import client
+
+        return getattr(client, name)
+    raise AttributeError(f"module 'xyzcyl.clients' has no attribute {name!r}")
+
+
+__all__ = list(_CLIENT_NAMES)

@@ -36,6 +36,8 @@ COMMANDS: tuple[Command, ...] = (
     Command("eval", "xyzcyl.model_export.commands.eval", "novel-view metrics of a model or a baseline", "train"),
     Command("export", "xyzcyl.model_export.commands.export", "export a checkpoint to an ONNX model folder", "train"),
     Command("serve", "xyzcyl.server.commands.serve", "run the HTTP service (FastAPI + uvicorn)", "server"),
+    Command("client", "xyzcyl.clients.commands.client",
+            "talk to a running server: reconstruct, render, path, gaussians, scenes, delete", "client"),
 )
 
 

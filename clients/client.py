@@ -1,0 +1,956 @@
+"""A Python client for the xyzcyl HTTP service (docs/api.md; docs/client.md has examples).
+
+    from xyzcyl.clients import Client
+
+    with Client("http://127.0.0.1:8000") as c:
+        scene = c.reconstruct("examples/synth_nuscenes/rig.json")          # uploads, waits until ready
+        rgb = c.render(scene.id, "CAM_FRONT")                              # [H, W, 3] float32 0..1, RGB
+        depth = c.render(scene.id, {"x": 5, "y": 0, "z": 1.6, "pitch": 0, "yaw": 0, "roll": 0, "fov": 90,
+                                    "width": 800, "height": 600}, output="depth")   # [H, W] metres
+        c.gaussians(scene.id, "scene.ply")
+        for name, frame in c.render_path(scene.id, "camera_path.json"):
+            ...
+
+The client speaks HTTP only. It builds the request the API documents and never converts camera conventions: a
+CARLA transform goes to the server as CARLA fields, a nerfstudio camera path as the file's JSON.
+
+Retries. A 429 or 503 answer means nothing was done; every call retries it after the answer's Retry-After
+(capped at ``retry_after_cap`` seconds), at most ``retries`` times, then raises BusyError. Connection errors
+(refused, reset, timed out) are retried the same way only for idempotent calls: GET, DELETE and the batch render
+POST. A POST /v1/scenes whose connection failed is not repeated (it may have created a scene): ConnectionFailed.
+
+Errors. Every failed call raises an XyzcylError subclass that carries the HTTP status and the server's error
+``code``, ``message`` and ``field`` (docs/api.md, "Errors"). Input the client refuses itself (a missing image
+file, a camera it cannot express) raises InvalidRequestError with ``status`` None.
+"""
+
+from __future__ import annotations
+
+import email.utils
+import json
+import os
+import re
+import secrets
+import tempfile
+import time
+import zipfile
+from collections.abc import Callable, Iterable, Iterator, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import IO, Any, Self
+
+import httpx
+import numpy as np
+
+DEFAULT_SERVER = "http://127.0.0.1:8000"
+USER_AGENT = "xyzcyl-client/0.1"
+Progress = Callable[[int, "int | None"], None]   # (done, total): bytes sent / received, or frames received
+
+_CHUNK = 1 << 20
+_MAX_WAIT_QUERY = 3600          # the server refuses ?wait= above this (it also caps it at its wait_max_s)
+_BACKOFF_S, _BACKOFF_CAP_S = 0.25, 4.0
+_IDEMPOTENT = ("GET", "HEAD", "OPTIONS", "DELETE", "PUT")
+_CARLA = ("x", "y", "z", "pitch", "yaw", "roll")
+_MEDIA_BY_SUFFIX = {".png": "image/png", ".jpg": "image/jpeg", ".jpeg": "image/jpeg", ".exr": "image/x-exr",
+                    ".tif": "image/tiff", ".tiff": "image/tiff"}
+_MAGIC = ((b"\x89PNG\r\n\x1a\n", "image/png"), (b"\xff\xd8\xff", "image/jpeg"), (b"\x76\x2f\x31\x01", "image/x-exr"),
+          (b"II*\x00", "image/tiff"), (b"MM\x00*", "image/tiff"))
+
+# Module-level so tests can patch them (retry delays, wait deadlines).
+_sleep = time.sleep
+_monotonic = time.monotonic
+
+
+# ----------------------------------------------------------------------------------------------- errors
+
+class XyzcylError(Exception):
+    """A failed call. ``status``: the HTTP status (None when no answer came, or the client refused the input
+    itself); ``code``, ``message``, ``field``: the server's error body (docs/api.md); ``scene_id``: the scene it
+    concerns when known (a reconstruction that failed); ``retry_after``: seconds, from a 409/429/503 answer."""
+
+    def __init__(self, status: int | None, code: str, message: str, field: str | None = None, *,
+                 scene_id: str | None = None, retry_after: float | None = None):
+        super().__init__(message)
+        self.status = status
+        self.code = code
+        self.message = message
+        self.field = field
+        self.scene_id = scene_id
+        self.retry_after = retry_after
+
+    def __str__(self) -> str:
+        where = f"{self.field}: " if self.field and not self.message.startswith(f"{self.field}:") else ""
+        tag = f"{self.status} {self.code}" if self.status is not None else self.code
+        return f"{where}{self.message} [{tag}]"
+
+    def __repr__(self) -> str:
+        return (f"{type(self).__name__}(status={self.status!r}, code={self.code!r}, message={self.message!r}, "
+                f"field={self.field!r})")
+
+    def __reduce__(self):
+        return (_rebuild, (type(self), self.status, self.code, self.message, self.field, self.scene_id,
+                           self.retry_after))
+
+
+def _rebuild(cls, status, code, message, fld, scene_id, retry_after):
+    return cls(status, code, message, fld, scene_id=scene_id, retry_after=retry_after)
+
+
+class AuthError(XyzcylError):
+    """401: the server wants an API key (``api_key=`` / $XYZCYL_API_KEY) and got none or a wrong one."""
+
+
+class NotFoundError(XyzcylError):
+    """404: unknown (or deleted) scene, or a scene without a background."""
+
+
+class NotReadyError(XyzcylError):
+    """409: the scene is queued or running (code ``not_ready``), or it failed (code ``scene_failed``)."""
+
+
+class WaitTimeout(NotReadyError):
+    """reconstruct(wait=True) / wait(): the scene was not ready by the deadline (``scene_id`` names it; it keeps
+    running on the server)."""
+
+
+class InvalidRequestError(XyzcylError):
+    """400 / 413 / 415 / 422: the request was refused (``field`` names the part, parameter or JSON path), or the
+    client refused the input before sending it (``status`` None)."""
+
+
+class BusyError(XyzcylError):
+    """429 / 503: still busy after the client's retries."""
+
+
+class StorageFullError(XyzcylError):
+    """507: the server's store is full (quota with when_full=reject, or its disk)."""
+
+
+class ServerError(XyzcylError):
+    """5xx: the server failed (``worker_crashed``, ``timeout``, ``internal``, ...)."""
+
+
+class ConnectionFailed(XyzcylError):
+    """No answer: the connection was refused, reset or timed out (after the retries of an idempotent call)."""
+
+
+def error_for(status: int | None, code: str, message: str, field: str | None = None, **kw) -> XyzcylError:
+    """The XyzcylError subclass for an HTTP status."""
+    if status is None:
+        cls = ConnectionFailed
+    elif status == 401:
+        cls = AuthError
+    elif status == 404:
+        cls = NotFoundError
+    elif status == 409:
+        cls = NotReadyError
+    elif status in (400, 413, 415, 422):
+        cls = InvalidRequestError
+    elif status in (429, 503):
+        cls = BusyError
+    elif status == 507:
+        cls = StorageFullError
+    elif status >= 500:
+        cls = ServerError
+    else:
+        cls = XyzcylError
+    return cls(status, code, message, field, **kw)
+
+
+def _invalid(message: str, field: str | None) -> InvalidRequestError:
+    return InvalidRequestError(None, "invalid", message, field)
+
+
+def _retry_after(resp: httpx.Response) -> float | None:
+    value = resp.headers.get("retry-after")
+    if not value:
+        return None
+    try:
+        return max(0.0, float(value))
+    except ValueError:
+        pass
+    try:   # an HTTP date
+        when = email.utils.parsedate_to_datetime(value)
+        return max(0.0, when.timestamp() - time.time())
+    except (TypeError, ValueError, IndexError, OverflowError):
+        return None
+
+
+def _scene_id_from(resp: httpx.Response) -> str | None:
+    loc = resp.headers.get("location", "")
+    return loc.rstrip("/").rsplit("/", 1)[-1] or None if loc.startswith("/v1/scenes/") else None
+
+
+def _error_from(resp: httpx.Response) -> XyzcylError:
+    """The error a non-2xx answer stands for (the body must have been read)."""
+    status = resp.status_code
+    code, message, fld = f"http_{status}", resp.reason_phrase or f"HTTP {status}", None
+    try:
+        err = resp.json().get("error")
+        if isinstance(err, Mapping):
+            code = str(err.get("code") or code)
+            message = str(err.get("message") or message)
+            fld = err.get("field")
+    except (ValueError, AttributeError, UnicodeDecodeError):
+        text = resp.text.strip() if resp.content else ""
+        if text:
+            message = text[:300]
+    return error_for(status, code, message, fld, scene_id=_scene_id_from(resp), retry_after=_retry_after(resp))
+
+
+# ----------------------------------------------------------------------------------------------- scenes
+
+@dataclass(frozen=True)
+class SceneInfo:
+    """A scene as the server describes it (GET /v1/scenes/{id}; docs/api.md). ``raw`` is the whole JSON."""
+
+    id: str
+    state: str                                 # queued | running | ready | failed
+    created: str | None = None                 # ISO 8601, UTC
+    updated: str | None = None
+    error: dict[str, Any] | None = None        # {"code", "message"} of a failed scene
+    cameras: tuple[dict[str, Any], ...] = ()   # [{"name", "width", "height", "model"}]
+    model: dict[str, Any] | None = None        # {"name", "version", "model_json_sha256"}
+    counts: dict[str, int] | None = None       # Gaussians per source (volume, pixel, pruned, total, voxels)
+    gaussians: int | None = None
+    background: bool | None = None
+    bbox: dict[str, list[float]] | None = None  # {"min": [x, y, z], "max": [x, y, z]}, ego frame, metres
+    timings: dict[str, float] | None = None    # seconds per stage
+    bytes: int | None = None                   # the scene folder's size in the store
+    links: dict[str, str] = field(default_factory=dict)
+    raw: dict[str, Any] = field(default_factory=dict, repr=False, compare=False)
+
+    @classmethod
+    def from_json(cls, d: Mapping[str, Any]) -> SceneInfo:
+        known = {k: d.get(k) for k in ("created", "updated", "error", "model", "counts", "gaussians", "background",
+                                       "bbox", "timings", "bytes")}
+        return cls(id=str(d["id"]), state=str(d["state"]), cameras=tuple(d.get("cameras") or ()),
+                   links=dict(d.get("links") or {}), raw=dict(d), **known)
+
+    @property
+    def ready(self) -> bool:
+        return self.state == "ready"
+
+    @property
+    def failed(self) -> bool:
+        return self.state == "failed"
+
+    @property
+    def camera_names(self) -> list[str]:
+        return [c["name"] for c in self.cameras]
+
+
+def _failure(info: SceneInfo) -> XyzcylError:
+    """A failed scene as the error POST /v1/scenes?wait= would have answered (same status for the same code)."""
+    err = info.error or {}
+    code = str(err.get("code") or "failed")
+    status = {"invalid_input": 422, "storage_full": 507}.get(code, 500)
+    return error_for(status, code, f"scene {info.id}: {err.get('message', 'failed')}",
+                     "rig" if status == 422 else None, scene_id=info.id)
+
+
+# ----------------------------------------------------------------------------------------------- uploads
+
+def _quote(value: str) -> str:
+    """A multipart parameter value, HTML5 style (what browsers and httpx send)."""
+    out = value.replace("\\", "\\\\").replace('"', "%22")
+    return re.sub(r"[\x00-\x1f]", lambda m: f"%{ord(m.group(0)):02X}", out)
+
+
+@dataclass
+class _Part:
+    name: str
+    filename: str
+    content_type: str
+    data: bytes | None = None
+    path: Path | None = None
+
+    def size(self) -> int:
+        return len(self.data) if self.data is not None else self.path.stat().st_size
+
+    def chunks(self) -> Iterator[bytes]:
+        if self.data is not None:
+            for i in range(0, len(self.data), _CHUNK):
+                yield self.data[i:i + _CHUNK]
+            return
+        left = self.size()
+        with open(self.path, "rb") as f:
+            while left > 0 and (b := f.read(min(_CHUNK, left))):
+                left -= len(b)
+                yield b
+
+
+class _Multipart:
+    """multipart/form-data streamed from files (never all in memory), with a known Content-Length (the server
+    refuses an oversized body from it before reading) and an upload progress callback. stream() can be called
+    again for a retry."""
+
+    def __init__(self, parts: list[_Part]):
+        self.boundary = secrets.token_hex(16)
+        self.parts = parts
+        self.heads = [(f"--{self.boundary}\r\nContent-Disposition: form-data; name=\"{_quote(p.name)}\"; "
+                       f"filename=\"{_quote(p.filename)}\"\r\nContent-Type: {p.content_type}\r\n\r\n").encode()
+                      for p in parts]
+        self.tail = f"--{self.boundary}--\r\n".encode()
+        self.length = sum(len(h) + p.size() + 2 for h, p in zip(self.heads, parts)) + len(self.tail)
+
+    @property
+    def headers(self) -> dict[str, str]:
+        return {"Content-Type": f"multipart/form-data; boundary={self.boundary}", "Content-Length": str(self.length)}
+
+    def stream(self, progress: Progress | None = None) -> Iterator[bytes]:
+        sent = 0
+        for head, part in zip(self.heads, self.parts):
+            for b in (head, *part.chunks(), b"\r\n"):
+                yield b
+                sent += len(b)
+                if progress is not None:
+                    progress(sent, self.length)
+        yield self.tail
+        if progress is not None:
+            progress(self.length, self.length)
+
+
+def _sniff(data: bytes) -> str:
+    for magic, media in _MAGIC:
+        if data.startswith(magic):
+            return media
+    return "application/octet-stream"
+
+
+def encode_png(image: np.ndarray) -> bytes:
+    """An RGB(A) or grey array -> PNG bytes: uint8 / uint16 kept; float taken as 0..1 and written as 16-bit
+    (no precision lost to 8 bits); RGB order in, as the PNG stores it."""
+    import cv2
+
+    a = np.asarray(image)
+    if a.ndim == 3 and a.shape[2] == 1:
+        a = a[..., 0]
+    if a.ndim not in (2, 3) or (a.ndim == 3 and a.shape[2] not in (3, 4)) or a.size == 0:
+        raise _invalid(f"an image array must be [H, W], [H, W, 3] or [H, W, 4] (got shape {list(a.shape)})", None)
+    if a.dtype == np.bool_:
+        a = a.astype(np.uint8) * 255
+    elif a.dtype.kind == "f":
+        a = np.clip(np.rint(np.nan_to_num(a.astype(np.float64), nan=0.0) * 65535.0), 0, 65535).astype(np.uint16)
+    elif a.dtype not in (np.uint8, np.uint16):
+        raise _invalid(f"an image array must be uint8, uint16 or float (0..1), not {a.dtype}", None)
+    if a.ndim == 3:
+        a = a[..., [2, 1, 0, 3][: a.shape[2]]]      # RGB(A) -> OpenCV's BGR(A)
+    ok, buf = cv2.imencode(".png", np.ascontiguousarray(a), [cv2.IMWRITE_PNG_COMPRESSION, 1])
+    if not ok:  # pragma: no cover - OpenCV always encodes these types
+        raise _invalid("OpenCV could not encode the array as PNG", None)
+    return buf.tobytes()
+
+
+def _encode_depth(depth: np.ndarray) -> tuple[bytes, str, str]:
+    """A depth array -> (bytes, extension, media type): uint16 = millimetres as a 16-bit PNG; float = metres
+    along the optical axis as a float32 EXR (one channel Z)."""
+    d = np.asarray(depth)
+    if d.ndim == 3 and d.shape[2] == 1:
+        d = d[..., 0]
+    if d.ndim != 2:
+        raise _invalid(f"a depth array must be [H, W] (got shape {list(d.shape)})", None)
+    if d.dtype == np.uint16:
+        return encode_png(d), ".png", "image/png"
+    if d.dtype.kind != "f":
+        raise _invalid(f"a depth array must be uint16 (millimetres) or float (metres), not {d.dtype}", None)
+    from xyzcyl.runtime.imageio import write_exr
+
+    with tempfile.TemporaryDirectory(prefix="xyzcyl-depth-") as tmp:
+        path = Path(tmp) / "depth.exr"
+        write_exr(path, d.astype(np.float32)[..., None], ("Z",), compression="zip")
+        return path.read_bytes(), ".exr", "image/x-exr"
+
+
+def _part(name: str, src: Any, root: Path | None, depth: bool) -> _Part:
+    stem = name.replace("/", "_")
+    if isinstance(src, (str, os.PathLike)):
+        path = Path(src)
+        if root is not None and not path.is_absolute():
+            path = root / path
+        if not path.is_file():
+            raise InvalidRequestError(None, "file_missing", f"cannot read {str(path)!r}: no such file", name)
+        media = _MEDIA_BY_SUFFIX.get(path.suffix.lower())
+        if media is None:
+            with open(path, "rb") as f:
+                media = _sniff(f.read(16))
+        return _Part(name, path.name, media, path=path)
+    if isinstance(src, (bytes, bytearray, memoryview)):
+        data = bytes(src)
+        return _Part(name, stem, _sniff(data[:16]), data=data)
+    if isinstance(src, np.ndarray):
+        try:
+            if depth:
+                data, ext, media = _encode_depth(src)
+            else:
+                data, ext, media = encode_png(src), ".png", "image/png"
+        except InvalidRequestError as e:
+            raise InvalidRequestError(None, e.code, e.message, name) from None
+        return _Part(name, stem + ext, media, data=data)
+    raise TypeError(f"{name}: an image is a file path, bytes or a numpy array, not {type(src).__name__}")
+
+
+def _rig_document(rig: Any) -> tuple[dict[str, Any], Path | None]:
+    """(rig JSON as a dict, folder its file names are relative to) from a rig.json path, a runtime Rig, or the
+    rig's JSON as a dict. The server validates the calibration; the client only reads the camera names."""
+    if isinstance(rig, (str, os.PathLike)):
+        path = Path(rig)
+        try:
+            doc = json.loads(path.read_text())
+        except OSError as e:
+            raise InvalidRequestError(None, "file_missing", f"cannot read {str(path)!r}: {e.strerror or e}",
+                                      "rig") from None
+        except ValueError as e:
+            raise _invalid(f"{str(path)!r} is not valid JSON ({e})", "rig") from None
+        root = path.parent
+    elif hasattr(rig, "to_dict") and hasattr(rig, "cameras"):   # xyzcyl.runtime.rig.Rig
+        doc, root = rig.to_dict(), getattr(rig, "root", None)
+    elif isinstance(rig, Mapping):
+        doc, root = dict(rig), None
+    else:
+        raise TypeError(f"rig: a rig.json path, a Rig or the rig's JSON dict, not {type(rig).__name__}")
+    cams = doc.get("cameras") if isinstance(doc, Mapping) else None
+    if not isinstance(cams, list) or not cams or not all(isinstance(c, Mapping) and isinstance(c.get("name"), str)
+                                                         for c in cams):
+        raise _invalid("cameras must be a non-empty list of objects with a name", "rig.cameras")
+    return doc, (Path(root) if root is not None else None)
+
+
+def _by_camera(values: Any, names: list[str], what: str) -> dict[str, Any] | None:
+    if values is None:
+        return None
+    if isinstance(values, Mapping):
+        unknown = [k for k in values if k not in names]
+        if unknown:
+            raise _invalid(f"{what}: {unknown[0]!r} is not a camera of the rig (cameras: {', '.join(names)})",
+                           unknown[0])
+        return dict(values)
+    values = list(values)
+    if len(values) != len(names):
+        raise _invalid(f"{what}: {len(values)} given for {len(names)} cameras (give them in rig order, or a dict "
+                       "by camera name)", what)
+    return dict(zip(names, values))
+
+
+# ----------------------------------------------------------------------------------------------- views
+
+def _fields(camera: Any) -> dict[str, Any]:
+    if isinstance(camera, Mapping):
+        return dict(camera)
+    keys = ("K", "cam_to_ego", "cam_to_world", "width", "height", "fov", "camera", *_CARLA, "transform",
+            "image_size_x", "image_size_y")
+    return {k: getattr(camera, k) for k in keys if getattr(camera, k, None) is not None}
+
+
+def _num(v: Any, fld: str) -> str:
+    try:
+        x = float(v)
+    except (TypeError, ValueError):
+        raise _invalid(f"must be a number (got {v!r:.60})", fld) from None
+    return repr(x)
+
+
+def _flat(v: Any, n: int, fld: str) -> list[float]:
+    try:
+        a = np.asarray(v, dtype=np.float64).reshape(-1)
+    except (TypeError, ValueError):
+        raise _invalid(f"must be {n} numbers", fld) from None
+    if a.size != n:
+        raise _invalid(f"must be {n} numbers (got {a.size})", fld)
+    return a.tolist()
+
+
+def view_params(camera: Any, width: int | None = None, height: int | None = None) -> dict[str, str]:
+    """The query parameters of GET /v1/scenes/{id}/render for a camera (docs/api.md):
+
+    - a str: an input camera of the scene (``width``/``height`` resize it; the server scales K);
+    - OpenCV: a dict or object with ``cam_to_ego`` (or ``cam_to_world``; 4x4 or 16 numbers, row-major) and ``K``
+      (3x3 or 9 numbers, pixels, no skew) or ``fov`` (horizontal degrees), plus ``width``/``height`` (the
+      arguments win);
+    - CARLA: {x, y, z, pitch, yaw, roll, fov, width, height} (a sensor's transform relative to the vehicle), or
+      a CARLA sensor dict {"transform": {"location": {x, y, z}, "rotation": {pitch, yaw, roll}}, "fov",
+      "image_size_x", "image_size_y"};
+    - {"camera": NAME[, "width", "height"]}, as the batch endpoint takes it."""
+    if isinstance(camera, str):
+        p = {"camera": camera}
+    else:
+        c = _fields(camera)
+        if "transform" in c:
+            tf = c["transform"]
+            if not isinstance(tf, Mapping) or not isinstance(tf.get("location"), Mapping) \
+                    or not isinstance(tf.get("rotation"), Mapping):
+                raise _invalid('must be {"location": {x, y, z}, "rotation": {pitch, yaw, roll}}', "camera.transform")
+            c = {**tf["location"], **tf["rotation"], "fov": c.get("fov"),
+                 "width": c.get("image_size_x", c.get("width")), "height": c.get("image_size_y", c.get("height"))}
+        if any(k in c for k in _CARLA):
+            missing = [k for k in (*_CARLA, "fov") if c.get(k) is None]
+            if missing:
+                raise _invalid(f"a CARLA pose needs x, y, z, pitch, yaw, roll and fov; missing {', '.join(missing)}",
+                               f"camera.{missing[0]}")
+            p = {k: _num(c[k], f"camera.{k}") for k in (*_CARLA, "fov")}
+        elif "cam_to_ego" in c or "cam_to_world" in c:
+            pose = c.get("cam_to_ego", c.get("cam_to_world"))
+            p = {"cam_to_ego": ",".join(repr(x) for x in _flat(pose, 16, "camera.cam_to_ego"))}
+            if c.get("K") is not None:
+                K = _flat(c["K"], 9, "camera.K")
+                if K[1] != 0 or K[3] != 0 or K[6:] != [0.0, 0.0, 1.0]:
+                    raise _invalid("must be [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] (no skew)", "camera.K")
+                p.update(fx=repr(K[0]), fy=repr(K[4]), cx=repr(K[2]), cy=repr(K[5]))
+            elif c.get("fov") is not None:
+                p["fov"] = _num(c["fov"], "camera.fov")
+            else:
+                raise _invalid("an OpenCV camera needs K (pixels) or fov (horizontal degrees)", "camera.K")
+        elif "camera" in c:
+            p = {"camera": str(c["camera"])}
+        else:
+            raise _invalid("a camera is an input camera name, {K or fov, cam_to_ego, width, height} (OpenCV) or "
+                           "{x, y, z, pitch, yaw, roll, fov, width, height} (CARLA)", "camera")
+        width = c.get("width") if width is None else width
+        height = c.get("height") if height is None else height
+        if "camera" not in p and (width is None or height is None):
+            raise _invalid("width and height are required for a camera given by its pose",
+                           "width" if width is None else "height")
+    if width is not None:
+        p["width"] = str(int(width))
+    if height is not None:
+        p["height"] = str(int(height))
+    return p
+
+
+def _read_float_image(data: bytes) -> np.ndarray:
+    import OpenImageIO as oiio
+
+    with tempfile.TemporaryDirectory(prefix="xyzcyl-view-") as tmp:
+        path = Path(tmp) / "view.exr"
+        path.write_bytes(data)
+        inp = oiio.ImageInput.open(str(path))
+        if inp is None:
+            raise ServerError(None, "bad_image", f"the server's EXR cannot be read ({oiio.geterror()})")
+        try:
+            a = inp.read_image(oiio.FLOAT)
+        finally:
+            inp.close()
+    if a is None:
+        raise ServerError(None, "bad_image", f"the server's EXR cannot be decoded ({oiio.geterror()})")
+    return np.ascontiguousarray(np.asarray(a, dtype=np.float32))
+
+
+def decode_image(data: bytes, output: str = "rgb") -> np.ndarray:
+    """A view's bytes (PNG, JPEG or EXR, as the render endpoints answer) -> float32 array: rgb [H, W, 3] in
+    0..1, RGB order (EXR: linear floats as stored); depth [H, W] in metres (16-bit PNG millimetres x 0.001; 0 = no
+    surface); alpha [H, W] in 0..1."""
+    if data[:4] == b"\x76\x2f\x31\x01":
+        a = _read_float_image(data)
+    else:
+        import cv2
+
+        a = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+        if a is None:
+            raise ServerError(None, "bad_image", "the server's image cannot be decoded")
+        if a.ndim == 3:
+            a = a[..., [2, 1, 0, 3][: a.shape[2]]]   # BGR(A) -> RGB(A)
+        if output == "depth" and a.dtype == np.uint16:
+            a = a.astype(np.float32) * np.float32(0.001)
+        elif np.issubdtype(a.dtype, np.integer):
+            a = a.astype(np.float32) / np.float32(np.iinfo(a.dtype).max)
+        else:
+            a = a.astype(np.float32)
+    if a.ndim == 3 and a.shape[2] == 1:
+        a = a[..., 0]
+    if output in ("depth", "alpha") and a.ndim == 3:
+        a = a[..., 0]
+    return np.ascontiguousarray(a)
+
+
+class FrameBatch:
+    """The frames of a batch render (POST /v1/scenes/{id}/render), spooled to a temporary file: iterate for
+    (file name, frame) in order; ``index`` is the zip's index.json (each frame's size, K, cam_to_ego).
+    Frames are float32 arrays (decode_image) or the server's bytes (decode=False)."""
+
+    def __init__(self, spool: IO[bytes], decode: bool = True):
+        self._spool = spool
+        self._zip = zipfile.ZipFile(spool)
+        try:
+            self.index: dict[str, Any] = json.loads(self._zip.read("index.json"))
+        except (KeyError, ValueError) as e:
+            self.close()
+            raise ServerError(None, "bad_batch", f"the batch answer has no readable index.json ({e})") from None
+        self.output = str(self.index.get("output", "rgb"))
+        self.format = str(self.index.get("format", "png"))
+        self.names = [f["file"] for f in self.index.get("frames", [])]
+        self.decode = decode
+        self._next = 0
+
+    def __len__(self) -> int:
+        return len(self.names)
+
+    def __iter__(self) -> FrameBatch:
+        return self
+
+    def __next__(self) -> tuple[str, np.ndarray | bytes]:
+        if self._zip is None or self._next >= len(self.names):
+            self.close()
+            raise StopIteration
+        name = self.names[self._next]
+        self._next += 1
+        data = self._zip.read(name)
+        return name, (decode_image(data, self.output) if self.decode else data)
+
+    def close(self) -> None:
+        if self._zip is not None:
+            self._zip.close()
+            self._zip = None
+        self._spool.close()
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+class _FrameCounter:
+    """Counts the frames of a batch zip as its bytes stream in. The server writes each frame (local file header
+    PK\\x03\\x04 + name frame_NNNNN.ext + data) as soon as it is rendered; the header of the next expected name
+    counts one frame. Reported to progress(frames, total)."""
+
+    def __init__(self, total: int | None, progress: Progress | None):
+        self.total, self.progress = total, progress
+        self.reset()
+
+    def reset(self, *_: Any) -> None:
+        self.seen = 0
+        self.tail = b""
+
+    def feed(self, chunk: bytes) -> None:
+        if self.progress is None:
+            return
+        buf = self.tail + chunk
+        pos = 0
+        while (i := buf.find(b"frame_%05d." % self.seen, pos)) >= 0:
+            if i >= 30 and buf[i - 30:i - 26] == b"PK\x03\x04":
+                self.seen += 1
+                self.progress(self.seen, self.total)
+            pos = i + 1
+        self.tail = buf[max(pos, len(buf) - 64):]
+
+
+# ----------------------------------------------------------------------------------------------- client
+
+class Client:
+    """The xyzcyl HTTP service from Python (module docstring; docs/client.md).
+
+    base_url: the server (default $XYZCYL_SERVER, else http://127.0.0.1:8000); api_key: sent as
+    ``Authorization: Bearer`` (default $XYZCYL_API_KEY); timeout: seconds per request (connect, read, write; a
+    waiting POST adds its wait); retries: how many times a 429/503 (and a connection error of an idempotent call)
+    is retried; retry_after_cap: the longest Retry-After honoured, seconds; http_client: an httpx.Client to use
+    instead of one of our own (e.g. fastapi.testclient.TestClient(app)); base_url is then the client's."""
+
+    def __init__(self, base_url: str | None = None, api_key: str | None = None, timeout: float = 60.0,
+                 retries: int = 5, http_client: httpx.Client | None = None, retry_after_cap: float = 30.0):
+        self.base_url = (base_url or os.environ.get("XYZCYL_SERVER") or DEFAULT_SERVER).rstrip("/")
+        self.api_key = api_key if api_key is not None else (os.environ.get("XYZCYL_API_KEY") or None)
+        self.timeout = float(timeout)
+        self.retries = max(0, int(retries))
+        self.retry_after_cap = float(retry_after_cap)
+        self._owned = http_client is None
+        self.http = http_client if http_client is not None else httpx.Client(
+            base_url=self.base_url, timeout=self.timeout, follow_redirects=False)
+        self.headers = {"User-Agent": USER_AGENT}
+        if self.api_key:
+            self.headers["Authorization"] = f"Bearer {self.api_key}"
+
+    # -- plumbing ---------------------------------------------------------------------------------------------
+
+    def close(self) -> None:
+        if self._owned:
+            self.http.close()
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def __repr__(self) -> str:
+        return f"Client({self.base_url!r})"
+
+    def _delay(self, resp: httpx.Response | None, attempt: int) -> float:
+        after = _retry_after(resp) if resp is not None else None
+        if after is None:
+            after = min(_BACKOFF_CAP_S, _BACKOFF_S * 2 ** attempt)
+        return min(after, self.retry_after_cap)
+
+    def _send(self, method: str, path: str, *, params: Mapping[str, Any] | None = None, json_body: Any = None,
+              content: Callable[[], Iterable[bytes]] | None = None, headers: Mapping[str, str] | None = None,
+              stream: bool = False, idempotent: bool | None = None,
+              timeout: httpx.Timeout | float | None = None) -> httpx.Response:
+        """One call with the retries (module docstring). Returns a 2xx/3xx response (stream=True: open, the caller
+        closes it); raises the XyzcylError of anything else."""
+        idempotent = method.upper() in _IDEMPOTENT if idempotent is None else idempotent
+        hdrs = {**self.headers, **(headers or {})}
+        attempt = 0
+        while True:
+            try:
+                req = self.http.build_request(method, path, params=params, json=json_body,
+                                              content=content() if content is not None else None, headers=hdrs,
+                                              timeout=timeout if timeout is not None else self.timeout)
+                resp = self.http.send(req, stream=stream)
+            except httpx.TransportError as e:
+                if idempotent and attempt < self.retries:
+                    _sleep(self._delay(None, attempt))
+                    attempt += 1
+                    continue
+                raise self._connection_error(e, method, path) from e
+            if resp.status_code in (429, 503) and attempt < self.retries:
+                delay = self._delay(resp, attempt)
+                resp.close()
+                _sleep(delay)
+                attempt += 1
+                continue
+            if resp.status_code >= 400:
+                try:
+                    resp.read()
+                except httpx.TransportError:
+                    pass
+                finally:
+                    resp.close()
+                raise _error_from(resp)
+            return resp
+
+    def _connection_error(self, e: Exception, method: str, path: str) -> ConnectionFailed:
+        code = "timeout" if isinstance(e, httpx.TimeoutException) else "connection_failed"
+        what = "timed out" if code == "timeout" else "failed"
+        detail = str(e) or type(e).__name__
+        return ConnectionFailed(None, code, f"{method} {self.base_url}{path.split('?')[0]} {what}: {detail}",
+                                "server")
+
+    def _json(self, method: str, path: str, **kw) -> Any:
+        resp = self._send(method, path, **kw)
+        try:
+            return resp.json()
+        except ValueError:
+            raise ServerError(resp.status_code, "bad_answer", f"{method} {path}: the answer is not JSON") from None
+
+    def _download(self, method: str, path: str, sink: IO[bytes], *, on_chunk: Callable[[bytes], None] | None = None,
+                  on_start: Callable[[httpx.Response], None] | None = None, idempotent: bool | None = None,
+                  **kw) -> httpx.Response:
+        """Stream an answer into ``sink`` (rewound and truncated before each try). A connection lost mid-stream
+        starts the download again (idempotent calls, at most ``retries`` times)."""
+        attempt = 0
+        while True:
+            sink.seek(0)
+            sink.truncate()
+            resp = self._send(method, path, stream=True, idempotent=idempotent, **kw)
+            try:
+                if on_start is not None:
+                    on_start(resp)
+                for chunk in resp.iter_bytes(_CHUNK):
+                    sink.write(chunk)
+                    if on_chunk is not None:
+                        on_chunk(chunk)
+                return resp
+            except httpx.TransportError as e:
+                if attempt >= self.retries or idempotent is False:
+                    raise self._connection_error(e, method, path) from e
+                _sleep(self._delay(None, attempt))
+                attempt += 1
+            finally:
+                resp.close()
+
+    # -- health -----------------------------------------------------------------------------------------------
+
+    def ready(self) -> bool:
+        """GET /v2/health/ready (no retries): True when the server takes reconstructions."""
+        try:
+            req = self.http.build_request("GET", "/v2/health/ready", headers=self.headers,
+                                          timeout=min(self.timeout, 5.0))
+            resp = self.http.send(req)
+        except httpx.TransportError:
+            return False
+        return resp.status_code == 200
+
+    # -- scenes -----------------------------------------------------------------------------------------------
+
+    def reconstruct(self, rig: Any, images: Any = None, depths: Any = None, wait: bool = True,
+                    timeout: float = 600.0, progress: Progress | None = None) -> SceneInfo:
+        """POST /v1/scenes: upload a rig and its images; returns the scene.
+
+        rig: a rig.json path, an xyzcyl.runtime.rig.Rig, or the rig's JSON as a dict.
+        images: None = the files the rig names (``image``), relative to rig.json's folder (a Rig: its root);
+        else {camera name: file path | encoded bytes | numpy array} (or a list in rig order). Arrays are sent as
+        PNG (uint8 / uint16 as they are, floats 0..1 as 16-bit), RGB order.
+        depths: None = the depth files the rig names (``depth``), if any; else as images, per camera, optional:
+        a 16-bit PNG of millimetres or a float EXR of metres (uint16 arrays -> PNG mm, float arrays -> EXR m).
+        wait: hold the request with ?wait= then poll GET /v1/scenes/{id} until the scene is ready (returned) or
+        failed (raised: InvalidRequestError for invalid_input, StorageFullError, ServerError for worker_crashed /
+        timeout / interrupted), or ``timeout`` seconds pass (WaitTimeout). wait=False returns the queued scene.
+        progress(sent bytes, total bytes) follows the upload."""
+        doc, root = _rig_document(rig)
+        names = [c["name"] for c in doc["cameras"]]
+        imgs = _by_camera(images, names, "images")
+        dps = _by_camera(depths, names, "depths")
+        parts = [_Part("rig", "rig.json", "application/json", data=json.dumps(doc, allow_nan=False).encode())]
+        for cam in doc["cameras"]:
+            name = cam["name"]
+            if imgs is None:
+                src = cam.get("image")
+                if not src:
+                    raise _invalid(f"camera {name!r} names no image file; pass images={{...}}", name)
+                parts.append(_part(name, src, root, depth=False))
+            elif name in imgs:
+                parts.append(_part(name, imgs[name], root, depth=False))
+            else:
+                raise _invalid(f"no image for camera {name!r} (cameras: {', '.join(names)})", name)
+            dsrc = cam.get("depth") if dps is None else dps.get(name)
+            if dsrc is not None:
+                parts.append(_part(f"depth:{name}", dsrc, root, depth=True))
+        body = _Multipart(parts)
+        params = {"wait": f"{min(max(timeout, 0.0), _MAX_WAIT_QUERY):g}"} if wait else None
+        t0 = _monotonic()
+        held = float(params["wait"]) if params else 0.0
+        resp = self._send("POST", "/v1/scenes", params=params, content=lambda: body.stream(progress),
+                          headers=body.headers, idempotent=False,
+                          timeout=httpx.Timeout(self.timeout, read=self.timeout + held))
+        info = SceneInfo.from_json(resp.json())
+        if not wait or info.ready:
+            return info
+        if info.failed:
+            raise _failure(info)
+        return self.wait(info.id, timeout=max(0.0, timeout - (_monotonic() - t0)))
+
+    def wait(self, scene_id: str, timeout: float = 600.0, poll: float = 0.5) -> SceneInfo:
+        """Poll GET /v1/scenes/{id} until the scene is ready (returned) or failed (raised, as reconstruct says);
+        WaitTimeout after ``timeout`` seconds."""
+        deadline = _monotonic() + timeout
+        interval = poll
+        while True:
+            info = self.scene(scene_id)
+            if info.ready:
+                return info
+            if info.failed:
+                raise _failure(info)
+            left = deadline - _monotonic()
+            if left <= 0:
+                raise WaitTimeout(None, "wait_timeout", f"scene {scene_id} is still {info.state} after {timeout:g} s",
+                                  "id", scene_id=scene_id)
+            _sleep(min(interval, left))
+            interval = min(interval * 1.5, 2.0)
+
+    def scene(self, scene_id: str) -> SceneInfo:
+        """GET /v1/scenes/{id}."""
+        return SceneInfo.from_json(self._json("GET", f"/v1/scenes/{_seg(scene_id)}"))
+
+    def scenes(self, page_size: int = 100) -> Iterator[SceneInfo]:
+        """Every scene, newest first (GET /v1/scenes, page by page)."""
+        offset, seen = 0, set()
+        while True:
+            page = self._json("GET", "/v1/scenes", params={"offset": offset, "limit": page_size})
+            for d in page.get("scenes", []):
+                if d["id"] not in seen:      # a scene posted meanwhile shifts the pages by one
+                    seen.add(d["id"])
+                    yield SceneInfo.from_json(d)
+            offset += page_size
+            if not page.get("next") or offset >= int(page.get("total", 0)):
+                return
+
+    def delete(self, scene_id: str) -> None:
+        """DELETE /v1/scenes/{id} (NotFoundError when there is no such scene)."""
+        self._send("DELETE", f"/v1/scenes/{_seg(scene_id)}").close()
+
+    def gaussians(self, scene_id: str, path: str | os.PathLike, format: str | None = None,
+                  progress: Progress | None = None) -> Path:
+        """GET /v1/scenes/{id}/gaussians streamed into ``path`` (a temporary file beside it, renamed into place
+        when complete). format: "ply" (3DGS binary PLY) or "splat" (antimatter15); default from the suffix
+        (.splat, else ply). progress(received bytes, total or None). Returns the path."""
+        path = Path(path)
+        fmt = format or ("splat" if path.suffix.lower() == ".splat" else "ply")
+        if fmt not in ("ply", "splat"):
+            raise _invalid(f"must be ply or splat (got {fmt!r})", "format")
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".part", dir=path.parent)
+        try:
+            with os.fdopen(fd, "wb") as f:
+                self._stream_to(f, "GET", f"/v1/scenes/{_seg(scene_id)}/gaussians", {"format": fmt}, progress)
+            os.replace(tmp, path)
+        except BaseException:
+            Path(tmp).unlink(missing_ok=True)
+            raise
+        return path
+
+    def _stream_to(self, f: IO[bytes], method: str, path: str, params: Mapping[str, Any],
+                   progress: Progress | None) -> None:
+        state = {"n": 0, "total": None}
+
+        def start(resp: httpx.Response) -> None:
+            state["n"] = 0
+            cl = resp.headers.get("content-length")
+            state["total"] = int(cl) if cl and cl.isdigit() else None
+
+        def chunk(b: bytes) -> None:
+            state["n"] += len(b)
+            if progress is not None:
+                progress(state["n"], state["total"])
+
+        self._download(method, path, f, params=params, on_start=start, on_chunk=chunk)
+
+    # -- views ------------------------------------------------------------------------------------------------
+
+    def render_bytes(self, scene_id: str, camera: Any, output: str = "rgb", format: str = "png",
+                     width: int | None = None, height: int | None = None, quality: int | None = None) -> bytes:
+        """GET /v1/scenes/{id}/render: the encoded view as the server sends it (PNG, JPEG or EXR bytes). camera:
+        as view_params() describes (an input camera name, OpenCV K + cam_to_ego, or a CARLA pose + fov)."""
+        params = view_params(camera, width, height)
+        params.update(output=output, format=format)
+        if quality is not None:
+            params["quality"] = str(int(quality))
+        return self._send("GET", f"/v1/scenes/{_seg(scene_id)}/render", params=params).content
+
+    def render(self, scene_id: str, camera: Any, output: str = "rgb", format: str = "png",
+               width: int | None = None, height: int | None = None, quality: int | None = None) -> np.ndarray:
+        """One view as a float32 array (decode_image): rgb [H, W, 3] 0..1 RGB; depth [H, W] metres (0 = no
+        surface; png saturates at 65.535 m, use format="exr" for float depth); alpha [H, W] 0..1."""
+        return decode_image(self.render_bytes(scene_id, camera, output, format, width, height, quality), output)
+
+    def render_path(self, scene_id: str, camera_path: Any, output: str | None = None, format: str | None = None,
+                    quality: int | None = None, decode: bool = True, progress: Progress | None = None) -> FrameBatch:
+        """POST /v1/scenes/{id}/render: a batch of views. camera_path: a JSON file (a nerfstudio camera_path.json
+        or {"cameras": [...]}), its dict, or a list of camera items (docs/api.md: {"K", "cam_to_ego", "width",
+        "height"}, {"fov", ...}, CARLA sensors, {"camera": NAME}). The zip is spooled to a temporary file;
+        returns a FrameBatch: iterate it for (file name, frame). progress(frames received, frames requested)."""
+        if isinstance(camera_path, (str, os.PathLike)):
+            try:
+                doc = json.loads(Path(camera_path).read_text())
+            except OSError as e:
+                raise InvalidRequestError(None, "file_missing", f"cannot read {str(camera_path)!r}: "
+                                          f"{e.strerror or e}", "camera_path") from None
+            except ValueError as e:
+                raise _invalid(f"{str(camera_path)!r} is not valid JSON ({e})", "camera_path") from None
+        elif isinstance(camera_path, Mapping):
+            doc = dict(camera_path)
+        else:
+            doc = {"cameras": list(camera_path)}
+        frames = doc.get("cameras", doc.get("camera_path"))
+        total = len(frames) if isinstance(frames, list) else None
+        params = {k: v for k, v in (("output", output), ("format", format), ("quality", quality)) if v is not None}
+        counter = _FrameCounter(total, progress)
+        spool = tempfile.TemporaryFile(prefix="xyzcyl-frames-")  # noqa: SIM115 (the FrameBatch closes it)
+        try:
+            self._download("POST", f"/v1/scenes/{_seg(scene_id)}/render", spool, params=params, json_body=doc,
+                           idempotent=True, on_start=counter.reset, on_chunk=counter.feed)
+            spool.seek(0)
+            return FrameBatch(spool, decode=decode)
+        except BaseException:
+            spool.close()
+            raise
+
+
+def _seg(scene_id: str) -> str:
+    """A scene id as one path segment (ids are URL-safe; anything else is quoted and simply unknown)."""
+    from urllib.parse import quote
+
+    return quote(str(scene_id), safe="")
+
+
+__all__ = ["AuthError", "BusyError", "Client", "ConnectionFailed", "FrameBatch", "InvalidRequestError",
+           "NotFoundError", "NotReadyError", "SceneInfo", "ServerError", "StorageFullError", "WaitTimeout",
+           "XyzcylError", "decode_image", "encode_png", "error_for", "view_params"]

@@ -1,0 +1,357 @@
+"""`xyzcyl client ACTION ...`: drive a running `xyzcyl serve` over HTTP (clients/client.py; docs/client.md).
+
+    xyzcyl client reconstruct RIG_JSON [--wait [S]] [--json]
+    xyzcyl client render SCENE_ID (--camera NAME | --K FX FY CX CY --cam-to-world M*16 | --cam-to-world M*16 --fov F
+                         | --carla X Y Z PITCH YAW ROLL --fov F) [--width W --height H] --out FILE
+                         [--output rgb|depth|alpha] [--quality Q]
+    xyzcyl client path SCENE_ID CAMERA_PATH_JSON --out DIR [--video OUT.mp4] [--fps N] [--output ...] [--format ...]
+    xyzcyl client gaussians SCENE_ID --out scene.ply|scene.splat
+    xyzcyl client scene SCENE_ID [--wait [S]]
+    xyzcyl client scenes [--json]
+    xyzcyl client delete SCENE_ID
+
+Every action takes --server URL (default $XYZCYL_SERVER, else http://127.0.0.1:8000), --api-key KEY (default
+$XYZCYL_API_KEY), --timeout S and --quiet (no progress bars or summaries on stderr). Errors exit with status 2 and
+one line, ``xyzcyl client: <field>: <message> [<status> <code>]``, never a traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import tempfile
+from pathlib import Path
+
+_FORMATS = {".png": "png", ".jpg": "jpeg", ".jpeg": "jpeg", ".exr": "exr"}
+
+
+class _UsageError(Exception):
+    def __init__(self, field: str, message: str):
+        super().__init__(f"{field}: {message}")
+
+
+def _common() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(add_help=False)
+    g = p.add_argument_group("server")
+    g.add_argument("--server", default=None, metavar="URL",
+                   help="the service's base URL (default $XYZCYL_SERVER, else http://127.0.0.1:8000)")
+    g.add_argument("--api-key", default=None, metavar="KEY", help="API key (default $XYZCYL_API_KEY)")
+    g.add_argument("--timeout", type=float, default=60.0, metavar="S", help="seconds per request (default 60)")
+    g.add_argument("--quiet", "-q", action="store_true", help="no progress bars or summaries on stderr")
+    return p
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.description = ("Talk to a running `xyzcyl serve` (docs/client.md): reconstruct a rig, render views and "
+                          "camera paths, download Gaussians, list and delete scenes.")
+    common = _common()
+    sub = parser.add_subparsers(dest="action", metavar="ACTION", required=True)
+
+    p = sub.add_parser("reconstruct", parents=[common], help="upload a rig.json and its images; print the scene id",
+                       description="Upload RIG_JSON with the images (and depth files) it names, relative to its "
+                                   "folder. Prints the scene id on stdout (the scene JSON with --json).")
+    p.add_argument("rig", metavar="RIG_JSON")
+    p.add_argument("--wait", nargs="?", type=float, const=600.0, default=None, metavar="S",
+                   help="wait until the scene is ready or failed, up to S seconds (default 600)")
+    p.add_argument("--no-depth", action="store_true", help="do not upload the depth files the rig names")
+    p.add_argument("--json", action="store_true", help="print the scene JSON instead of its id")
+
+    p = sub.add_parser("render", parents=[common], help="render one view to a file (png, jpg or exr)",
+                       description="Render one view and write the server's bytes to --out as they are; the "
+                                   "extension picks the format (.png, .jpg/.jpeg, .exr). Poses are in the scene's "
+                                   "ego frame (x forward, y left, z up, metres; docs/api.md).")
+    p.add_argument("scene", metavar="SCENE_ID")
+    pose = p.add_argument_group("pose (exactly one of --camera, --cam-to-world, --carla)")
+    pose.add_argument("--camera", metavar="NAME", help="an input camera of the scene's rig")
+    pose.add_argument("--cam-to-world", type=float, nargs=16, metavar="M",
+                      help="4x4 camera-to-ego matrix, row-major, OpenCV camera axes (x right, y down, z forward); "
+                           "with --K or --fov")
+    pose.add_argument("--K", type=float, nargs=4, metavar=("FX", "FY", "CX", "CY"),
+                      help="pinhole intrinsics in pixels (OpenCV: pixel u is centred at x = u)")
+    pose.add_argument("--carla", type=float, nargs=6, metavar=("X", "Y", "Z", "PITCH", "YAW", "ROLL"),
+                      help="a CARLA camera sensor's transform relative to the vehicle (metres, degrees; CARLA's "
+                           "left-handed axes); with --fov")
+    pose.add_argument("--fov", type=float, metavar="DEG", help="horizontal field of view, degrees")
+    p.add_argument("--width", type=int, metavar="W", help="pixels (required unless --camera; with --camera: resize)")
+    p.add_argument("--height", type=int, metavar="H", help="pixels (as --width)")
+    p.add_argument("--output", choices=("rgb", "depth", "alpha"), default="rgb",
+                   help="rgb (default), depth (png: 16-bit millimetres; exr: float metres) or alpha")
+    p.add_argument("--quality", type=int, metavar="Q", help="JPEG quality 1..100 (default 90)")
+    p.add_argument("--out", required=True, metavar="FILE", help="output .png, .jpg or .exr")
+
+    p = sub.add_parser("path", parents=[common], help="render a camera path (nerfstudio camera_path.json or "
+                       "{\"cameras\": [...]}) to frames and a video",
+                       description="Render every camera of CAMERA_PATH_JSON in one batch request and write the frames "
+                                   "(frame_00000.png ...) and index.json into --out; --video also writes an mp4.")
+    p.add_argument("scene", metavar="SCENE_ID")
+    p.add_argument("camera_path", metavar="CAMERA_PATH_JSON")
+    p.add_argument("--out", required=True, metavar="DIR", help="folder for the frames (created)")
+    p.add_argument("--video", metavar="OUT.mp4", help="also write the frames as an mp4 video (OpenCV, mp4v)")
+    p.add_argument("--fps", type=float, default=None, help="video frame rate (default: the camera path's fps, else 24)")
+    p.add_argument("--output", choices=("rgb", "depth", "alpha"), default=None, help="default: the file's, else rgb")
+    p.add_argument("--format", choices=("png", "jpeg", "exr"), default=None, help="default: the file's, else png")
+    p.add_argument("--quality", type=int, metavar="Q", help="JPEG quality 1..100")
+
+    p = sub.add_parser("gaussians", parents=[common], help="download the Gaussians (.ply or .splat)")
+    p.add_argument("scene", metavar="SCENE_ID")
+    p.add_argument("--out", required=True, metavar="FILE",
+                   help="scene.ply (3DGS binary PLY) or scene.splat (antimatter15)")
+    p.add_argument("--format", choices=("ply", "splat"), default=None, help="default: from the extension")
+
+    p = sub.add_parser("scene", parents=[common], help="print a scene's JSON")
+    p.add_argument("scene", metavar="SCENE_ID")
+    p.add_argument("--wait", nargs="?", type=float, const=600.0, default=None, metavar="S",
+                   help="first wait until it is ready or failed, up to S seconds")
+
+    p = sub.add_parser("scenes", parents=[common], help="list the scenes, newest first")
+    p.add_argument("--json", action="store_true", help="one JSON object per line")
+
+    p = sub.add_parser("delete", parents=[common], help="delete a scene")
+    p.add_argument("scene", metavar="SCENE_ID")
+
+
+# ----------------------------------------------------------------------------------------------- helpers
+
+def _bar(args, total, unit: str, desc: str):
+    """A tqdm progress callback (done, total) -> None and its closer; nothing when --quiet."""
+    if args.quiet:
+        return None, lambda: None
+    from tqdm import tqdm
+
+    bar = tqdm(total=total, unit=unit, unit_scale=unit == "B", unit_divisor=1024 if unit == "B" else 1000,
+               desc=desc, file=sys.stderr, leave=False, dynamic_ncols=True)
+
+    def update(done: int, tot: int | None) -> None:
+        if tot is not None and bar.total != tot:
+            bar.total = tot
+        bar.update(done - bar.n)
+
+    return update, bar.close
+
+
+def _say(args, text: str) -> None:
+    if not args.quiet:
+        print(text, file=sys.stderr)
+
+
+def _write_atomic(path: Path, data: bytes) -> None:
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".part", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def _out_file(value: str, what: str = "--out") -> Path:
+    path = Path(value)
+    if not path.parent.is_dir():
+        raise _UsageError(what, f"folder {str(path.parent)!r} does not exist")
+    return path
+
+
+def _summary(info) -> str:
+    total = (info.timings or {}).get("total")
+    took = f" in {total:.1f} s" if total is not None else ""
+    return f"scene {info.id} {info.state}: {info.gaussians or 0} Gaussians, {len(info.cameras)} cameras{took}"
+
+
+# ----------------------------------------------------------------------------------------------- actions
+
+def _reconstruct(c, args) -> int:
+    depths = {} if args.no_depth else None
+    update, close = _bar(args, None, "B", "upload")
+    try:
+        wait = args.wait is not None
+        if wait and not args.quiet:
+            def progress(done, total):
+                update(done, total)
+                if done == total:
+                    close()
+                    print(f"uploaded {total / 1e6:.1f} MB; waiting for the reconstruction ...", file=sys.stderr)
+        else:
+            progress = update
+        info = c.reconstruct(args.rig, depths=depths, wait=wait, timeout=args.wait or 600.0, progress=progress)
+    finally:
+        close()
+    _say(args, _summary(info) if info.ready else f"scene {info.id} {info.state}; `xyzcyl client scene {info.id} "
+                                                  "--wait` waits for it")
+    print(json.dumps(info.raw, indent=1) if args.json else info.id)
+    return 0
+
+
+def _pose(args) -> object:
+    modes = [m for m, on in (("--camera", args.camera), ("--cam-to-world", args.cam_to_world),
+                             ("--carla", args.carla)) if on is not None]
+    if len(modes) != 1:
+        raise _UsageError(modes[1] if len(modes) > 1 else "--camera",
+                          "give exactly one pose: --camera NAME, --cam-to-world M*16 (with --K or --fov), or "
+                          "--carla X Y Z PITCH YAW ROLL (with --fov)")
+    if args.camera is not None:
+        for flag, v in (("--K", args.K), ("--fov", args.fov)):
+            if v is not None:
+                raise _UsageError(flag, "cannot be combined with --camera (the camera has its intrinsics)")
+        return args.camera
+    if args.width is None or args.height is None:
+        raise _UsageError("--width" if args.width is None else "--height", "required unless --camera")
+    if args.carla is not None:
+        if args.K is not None:
+            raise _UsageError("--K", "a CARLA camera takes --fov (square pixels, centred principal point)")
+        if args.fov is None:
+            raise _UsageError("--fov", "required with --carla")
+        return dict(zip(("x", "y", "z", "pitch", "yaw", "roll"), args.carla), fov=args.fov)
+    if (args.K is None) == (args.fov is None):
+        raise _UsageError("--K", "give exactly one of --K FX FY CX CY and --fov DEG with --cam-to-world")
+    if args.K is not None:
+        fx, fy, cx, cy = args.K
+        return {"K": [[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]], "cam_to_ego": args.cam_to_world}
+    return {"fov": args.fov, "cam_to_ego": args.cam_to_world}
+
+
+def _render(c, args) -> int:
+    out = _out_file(args.out)
+    fmt = _FORMATS.get(out.suffix.lower())
+    if fmt is None:
+        raise _UsageError("--out", f"extension must be .png, .jpg, .jpeg or .exr (got {out.suffix or 'none'!r})")
+    data = c.render_bytes(args.scene, _pose(args), output=args.output, format=fmt, width=args.width,
+                          height=args.height, quality=args.quality)
+    _write_atomic(out, data)
+    _say(args, f"wrote {out} ({len(data)} bytes, {args.output} {fmt})")
+    return 0
+
+
+def _video(frames_dir: Path, names: list[str], output: str, video: Path, fps: float) -> str | None:
+    """Frames -> mp4 (OpenCV VideoWriter, mp4v). Returns an error message, or None."""
+    import cv2
+    import numpy as np
+    from xyzcyl.clients.client import decode_image
+
+    writer = None
+    try:
+        for name in names:
+            img = decode_image((frames_dir / name).read_bytes(), output)
+            if img.ndim == 2:
+                img = np.repeat(img[..., None], 3, axis=-1)
+            bgr = np.ascontiguousarray(np.clip(np.rint(img[..., ::-1] * 255.0), 0, 255).astype(np.uint8))
+            h, w = bgr.shape[:2]
+            if writer is None:
+                size = (w, h)
+                writer = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"mp4v"), fps, size)
+                if not writer.isOpened():
+                    return (f"OpenCV cannot write {str(video)!r}: the mp4v (MPEG-4) codec is unavailable in this "
+                            f"OpenCV build; the frames are in {str(frames_dir)!r}")
+            if (w, h) != size:
+                return f"frame {name} is {w}x{h}, the video is {size[0]}x{size[1]}: a video needs one frame size"
+            writer.write(bgr)
+    finally:
+        if writer is not None:
+            writer.release()
+    return None
+
+
+def _path(c, args) -> int:
+    out = Path(args.out)
+    if args.video is not None:
+        video = _out_file(args.video, "--video")
+        if video.suffix.lower() != ".mp4":
+            raise _UsageError("--video", f"must be an .mp4 file (got {video.suffix or 'none'!r})")
+    try:
+        doc = json.loads(Path(args.camera_path).read_text())
+    except OSError as e:
+        raise _UsageError("camera_path", f"cannot read {args.camera_path!r}: {e.strerror or e}") from None
+    except ValueError as e:
+        raise _UsageError("camera_path", f"{args.camera_path!r} is not valid JSON ({e})") from None
+    if not isinstance(doc, dict):
+        raise _UsageError("camera_path", "must be a JSON object ({\"cameras\": [...]} or a nerfstudio camera path)")
+    output = args.output or doc.get("output") or "rgb"
+    if args.video is not None and output == "depth":
+        raise _UsageError("--video", "a video shows rgb or alpha frames, not depth")
+    out.mkdir(parents=True, exist_ok=True)
+    frames = doc.get("cameras", doc.get("camera_path"))
+    update, close = _bar(args, len(frames) if isinstance(frames, list) else None, "frame", "render")
+    try:
+        batch = c.render_path(args.scene, doc, output=args.output, format=args.format, quality=args.quality,
+                              decode=False, progress=update)
+    finally:
+        close()
+    names = []
+    with batch:
+        for name, data in batch:
+            _write_atomic(out / name, data)
+            names.append(name)
+        _write_atomic(out / "index.json", (json.dumps(batch.index, indent=1) + "\n").encode())
+    _say(args, f"wrote {len(names)} frames ({batch.output} {batch.format}) and index.json to {out}")
+    if args.video is not None:
+        fps = args.fps or doc.get("fps") or 24.0
+        if not (isinstance(fps, (int, float)) and fps > 0):
+            raise _UsageError("--fps", f"must be > 0 (got {fps!r})")
+        err = _video(out, names, batch.output, video, float(fps))
+        if err is not None:
+            raise _UsageError("--video", err)
+        _say(args, f"wrote {video} ({len(names)} frames at {float(fps):g} fps)")
+    return 0
+
+
+def _gaussians(c, args) -> int:
+    out = _out_file(args.out)
+    update, close = _bar(args, None, "B", "download")
+    try:
+        path = c.gaussians(args.scene, out, format=args.format, progress=update)
+    finally:
+        close()
+    _say(args, f"wrote {path} ({path.stat().st_size} bytes)")
+    return 0
+
+
+def _scene(c, args) -> int:
+    info = c.wait(args.scene, timeout=args.wait) if args.wait is not None else c.scene(args.scene)
+    print(json.dumps(info.raw, indent=1))
+    return 0
+
+
+def _scenes(c, args) -> int:
+    n = 0
+    for info in c.scenes():
+        n += 1
+        if args.json:
+            print(json.dumps(info.raw))
+        else:
+            print(f"{info.id}  {info.state:<7}  {info.created or '-':<25}  {info.gaussians or 0:>9} Gaussians  "
+                  f"{len(info.cameras)} cameras")
+    _say(args, f"{n} scenes")
+    return 0
+
+
+def _delete(c, args) -> int:
+    c.delete(args.scene)
+    _say(args, f"deleted {args.scene}")
+    return 0
+
+
+_ACTIONS = {"reconstruct": _reconstruct, "render": _render, "path": _path, "gaussians": _gaussians,
+            "scene": _scene, "scenes": _scenes, "delete": _delete}
+
+
+def run(args: argparse.Namespace) -> int:
+    try:
+        from xyzcyl.clients.client import Client, XyzcylError
+    except ModuleNotFoundError as e:
+        print(f"xyzcyl client: missing dependency {e.name!r} (pip install 'xyzcyl[client]')", file=sys.stderr)
+        return 2
+    try:
+        with Client(args.server, api_key=args.api_key, timeout=args.timeout) as c:
+            return _ACTIONS[args.action](c, args)
+    except (XyzcylError, _UsageError) as e:
+        print(f"xyzcyl client: {e}", file=sys.stderr)
+        return 2
+    except OSError as e:
+        where = f"{e.filename}: " if getattr(e, "filename", None) else ""
+        print(f"xyzcyl client: {where}{e.strerror or e}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("xyzcyl client: interrupted", file=sys.stderr)
+        return 130
