@@ -6,10 +6,27 @@ from __future__ import annotations
 from fastapi import APIRouter, Request
 from fastapi.responses import JSONResponse, Response
 
+from pydantic import BaseModel
+
 from ..app import service_of
 from ..errors import NotFound
+from .scenes import ErrorBody
 
 router = APIRouter(tags=["health and metadata"])
+
+
+
+class Readiness(BaseModel):
+    ready: bool
+    reason: str | None = None
+
+
+class ModelReadiness(BaseModel):
+    name: str
+    ready: bool
+
+
+_NOT_FOUND = {404: {"model": ErrorBody, "description": "no such model"}}
 
 _DTYPES = {"float32": "FP32", "float16": "FP16", "int64": "INT64", "int32": "INT32", "uint8": "UINT8",
            "bool": "BOOL"}
@@ -20,8 +37,9 @@ async def live() -> dict:
     return {"live": True}
 
 
-@router.get("/v2/health/ready", summary="the model is loaded and scenes can be posted",
-            responses={503: {"description": "still loading, draining, or the workers failed to start"}})
+@router.get("/v2/health/ready", summary="the model is loaded and scenes can be posted", response_model=Readiness,
+            responses={503: {"model": Readiness,
+                             "description": "still loading, draining, or the workers failed to start"}})
 async def ready(request: Request):
     s = service_of(request)
     if s.ready and not s.draining:
@@ -59,13 +77,13 @@ def _model_metadata(request: Request, name: str) -> dict:
                            "counts": info.meta.get("counts")}}
 
 
-@router.get("/v2/models/{name}", summary="model metadata (Open Inference Protocol)",
-            responses={404: {"description": "no such model"}})
+@router.get("/v2/models/{name}", summary="model metadata (Open Inference Protocol)", responses=_NOT_FOUND)
 async def model_metadata(request: Request, name: str) -> dict:
     return _model_metadata(request, name)
 
 
-@router.get("/v2/models/{name}/ready", summary="model readiness (Open Inference Protocol)")
+@router.get("/v2/models/{name}/ready", summary="model readiness (Open Inference Protocol)",
+            response_model=ModelReadiness, responses={**_NOT_FOUND, 503: {"model": ModelReadiness}})
 async def model_ready(request: Request, name: str):
     _model_metadata(request, name)
     s = service_of(request)
