@@ -48,12 +48,11 @@ def fuzz_app(tmp_path_factory):
 
 
 def test_every_operation_answers_by_its_schema_and_never_5xx(fuzz_app):
-    from hypothesis import given
-    from schemathesis.specs.openapi.checks import positive_data_acceptance
-
     import time
 
+    from hypothesis import given
     from schemathesis.python import asgi
+    from schemathesis.specs.openapi.checks import positive_data_acceptance
 
     schema = schemathesis.openapi.from_asgi("/openapi.json", fuzz_app)     # starts the app's lifespan
     with asgi.get_client(fuzz_app) as c:           # a 503 while the model loads is right; fuzz the loaded service
