@@ -26,6 +26,7 @@ file, a camera it cannot express) raises InvalidRequestError with ``status`` Non
 
 from __future__ import annotations
 
+import contextlib
 import email.utils
 import json
 import os
@@ -867,14 +868,8 @@ class Client:
         fmt = format or ("splat" if path.suffix.lower() == ".splat" else "ply")
         if fmt not in ("ply", "splat"):
             raise _invalid(f"must be ply or splat (got {fmt!r})", "format")
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".part", dir=path.parent)
-        try:
-            with os.fdopen(fd, "wb") as f:
-                self._stream_to(f, "GET", f"/v1/scenes/{_seg(scene_id)}/gaussians", {"format": fmt}, progress)
-            os.replace(tmp, path)
-        except BaseException:
-            Path(tmp).unlink(missing_ok=True)
-            raise
+        with atomic_file(path) as f:
+            self._stream_to(f, "GET", f"/v1/scenes/{_seg(scene_id)}/gaussians", {"format": fmt}, progress)
         return path
 
     def _stream_to(self, f: IO[bytes], method: str, path: str, params: Mapping[str, Any],
@@ -942,6 +937,21 @@ class Client:
         except BaseException:
             spool.close()
             raise
+
+
+@contextlib.contextmanager
+def atomic_file(path: str | os.PathLike) -> Iterator[IO[bytes]]:
+    """A binary file written beside ``path`` (.NAME.RANDOM.part, created with the umask's permissions) and renamed
+    onto it when the block completes; removed when it raises."""
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.{secrets.token_hex(4)}.part")
+    try:
+        with open(tmp, "xb") as f:
+            yield f
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
 
 
 def _seg(scene_id: str) -> str:

@@ -21,7 +21,6 @@ import argparse
 import json
 import os
 import sys
-import tempfile
 from pathlib import Path
 
 _FORMATS = {".png": "png", ".jpg": "jpeg", ".jpeg": "jpeg", ".exr": "exr"}
@@ -137,14 +136,10 @@ def _say(args, text: str) -> None:
 
 
 def _write_atomic(path: Path, data: bytes) -> None:
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".part", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    from xyzcyl.clients.client import atomic_file
+
+    with atomic_file(path) as f:
+        f.write(data)
 
 
 def _out_file(value: str, what: str = "--out") -> Path:
@@ -348,6 +343,10 @@ def run(args: argparse.Namespace) -> int:
     except (XyzcylError, _UsageError) as e:
         print(f"xyzcyl client: {e}", file=sys.stderr)
         return 2
+    except BrokenPipeError:      # stdout closed early (`... | head`): stop quietly
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        return 0
     except OSError as e:
         where = f"{e.filename}: " if getattr(e, "filename", None) else ""
         print(f"xyzcyl client: {where}{e.strerror or e}", file=sys.stderr)
