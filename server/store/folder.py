@@ -13,34 +13,38 @@ SCENE_ID before any path is built from them.
 
 Quota: at most ``max_scenes`` records (not counting failed ones) and ``max_bytes`` of ready scene folders. When a
 new scene would exceed them, ``when_full="evict"`` deletes the least recently used ready scenes (use = created,
-rendered or downloaded), ``"reject"`` raises StoreFull (507). ``ttl_s`` deletes scenes unused for that long.
+rendered or downloaded), ``"reject"`` raises StoreFull (507). ``ttl_s`` deletes scenes unused for that long. The
+decisions are base.BaseStore's, shared with the S3 store (s3.py).
 """
 
 from __future__ import annotations
 
 import json
 import os
-import re
 import secrets
 import shutil
 import threading
 import time
-from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-SCENE_ID = re.compile(r"^[A-Za-z0-9_-]{22}$")
-STATES = ("queued", "running", "ready", "failed")
-_TOUCH_PERSIST_S = 60.0     # last_used is written to the record at most this often per scene (renders are hot)
-
-
-class StoreFull(OSError):
-    """The store's quota (or the disk) cannot take the scene."""
-
-
-def new_scene_id() -> str:
-    """22 URL-safe characters, 128 random bits (unguessable, not enumerable)."""
-    return secrets.token_urlsafe(16)
+from .base import (
+    SCENE_ID,
+    STATES,
+    TOUCH_PERSIST_S,
+    BaseStore,
+    StoreFull,
+    check_id,
+    copy_record,
+    failed_fields,
+    interrupted_message,
+    is_record,
+    new_record,
+    new_scene_id,
+    newest_first,
+    ready_fields,
+    valid_id,
+)
 
 
 def _now() -> float:
@@ -63,19 +67,14 @@ def _write_json_atomic(path: Path, doc: dict[str, Any]) -> None:
         tmp.unlink(missing_ok=True)
 
 
-class FolderStore:
+class FolderStore(BaseStore):
     def __init__(self, root: str | os.PathLike, max_scenes: int = 100, max_bytes: int = 10 << 30,
                  when_full: str = "evict", ttl_s: float | None = None):
+        super().__init__(max_scenes=max_scenes, max_bytes=max_bytes, when_full=when_full, ttl_s=ttl_s)
         self.root = Path(root)
-        self.max_scenes = int(max_scenes)
-        self.max_bytes = int(max_bytes)
-        self.when_full = when_full
-        self.ttl_s = ttl_s
         self._records: dict[str, dict[str, Any]] = {}
         self._persisted_use: dict[str, float] = {}
         self._lock = threading.RLock()
-        self.on_delete: list[Callable[[str], None]] = []    # called with the id after a scene is removed
-        self.evicted = 0
 
     # -- opening and recovery ---------------------------------------------------------------------------------
     def open(self) -> dict[str, int]:
@@ -92,7 +91,7 @@ class FolderStore:
                 sid = p.stem
                 try:
                     rec = json.loads(p.read_text())
-                    if not SCENE_ID.match(sid) or rec.get("id") != sid or rec.get("state") not in STATES:
+                    if not is_record(sid, rec):
                         raise ValueError("not a record")
                 except (OSError, ValueError):
                     p.unlink(missing_ok=True)        # a stray or damaged file: never half-visible
@@ -102,8 +101,7 @@ class FolderStore:
             for sid, rec in list(self._records.items()):
                 folder = self._scene_path(sid)
                 if rec["state"] in ("queued", "running"):
-                    self._fail_locked(sid, "interrupted", "the server stopped while this reconstruction was "
-                                      f"{rec['state']}; post the rig again")
+                    self._fail_locked(sid, "interrupted", interrupted_message(rec["state"]))
                     report["interrupted"] += 1
                 elif rec["state"] == "ready":
                     if (folder / "scene.json").is_file():
@@ -121,14 +119,10 @@ class FolderStore:
 
     # -- paths --------------------------------------------------------------------------------------------------
     def _scene_path(self, sid: str) -> Path:
-        if not SCENE_ID.match(sid):
-            raise KeyError(sid)
-        return self.root / "scenes" / sid
+        return self.root / "scenes" / check_id(sid)
 
     def _record_path(self, sid: str) -> Path:
-        if not SCENE_ID.match(sid):
-            raise KeyError(sid)
-        return self.root / "records" / f"{sid}.json"
+        return self.root / "records" / f"{check_id(sid)}.json"
 
     def scene_dir(self, sid: str) -> Path:
         """The folder of a ready scene (KeyError when unknown or not ready)."""
@@ -145,41 +139,35 @@ class FolderStore:
 
     # -- records ------------------------------------------------------------------------------------------------
     def get(self, sid: str) -> dict[str, Any] | None:
-        if not isinstance(sid, str) or not SCENE_ID.match(sid):
+        if not valid_id(sid):
             return None
         with self._lock:
             rec = self._records.get(sid)
-            return None if rec is None else json.loads(json.dumps(rec))
+            return None if rec is None else copy_record(rec)
 
     def list(self, offset: int = 0, limit: int = 100) -> tuple[list[dict[str, Any]], int]:
         """Records, newest first, and the total count."""
         with self._lock:
-            recs = sorted(self._records.values(), key=lambda r: (r.get("created_ts", 0.0), r["id"]), reverse=True)
-            page = [json.loads(json.dumps(r)) for r in recs[offset:offset + limit]]
+            recs = newest_first(self._records.values())
+            page = [copy_record(r) for r in recs[offset:offset + limit]]
             return page, len(recs)
-
-    def _live(self) -> list[dict[str, Any]]:
-        return [r for r in self._records.values() if r["state"] != "failed"]
 
     def create(self, sid: str, record: dict[str, Any]) -> dict[str, Any]:
         """A new ``queued`` record; makes room under the scene-count quota first (StoreFull when it cannot)."""
-        now = _now()
-        rec = {**record, "id": sid, "state": "queued", "created_ts": now, "updated_ts": now, "error": None}
+        rec = new_record(sid, record, _now())
         with self._lock:
             if sid in self._records:
                 raise ValueError(f"scene id {sid} exists")
-            self._drop_failed_beyond_quota()
-            while len(self._live()) >= self.max_scenes:
-                if self.when_full != "evict" or not self._evict_one(exclude=sid):
-                    raise StoreFull(f"the store holds its maximum of {self.max_scenes} scenes; delete some "
-                                    "(DELETE /v1/scenes/{id})")
+            for old in self.failed_beyond_quota(list(self._records.values())):
+                self.delete(old)
+            self._evict(self.room_for_scene(list(self._records.values()), exclude=sid))
             self._records[sid] = rec
             try:
                 self._persist(sid)
             except BaseException:       # not on disk (disk full, bad id): not in the store either
                 del self._records[sid]
                 raise
-            return json.loads(json.dumps(rec))
+            return copy_record(rec)
 
     def update(self, sid: str, **fields: Any) -> dict[str, Any] | None:
         """Change fields of a record (None when it was deleted meanwhile)."""
@@ -189,18 +177,17 @@ class FolderStore:
                 return None
             rec.update(fields, updated_ts=_now())
             self._persist(sid)
-            return json.loads(json.dumps(rec))
+            return copy_record(rec)
 
     def fail(self, sid: str, code: str, message: str) -> dict[str, Any] | None:
         with self._lock:
             if sid not in self._records:
                 return None
             self._fail_locked(sid, code, message)
-            return json.loads(json.dumps(self._records[sid]))
+            return copy_record(self._records[sid])
 
     def _fail_locked(self, sid: str, code: str, message: str) -> None:
-        rec = self._records[sid]
-        rec.update(state="failed", error={"code": code, "message": message}, updated_ts=_now())
+        self._records[sid].update(failed_fields(code, message, _now()))
         self._persist(sid)
 
     def _persist(self, sid: str) -> None:
@@ -215,20 +202,19 @@ class FolderStore:
             if sid not in self._records:
                 self._remove_folder(folder)
                 return None
-            if size > self.max_bytes:
+            try:
+                victims = self.room_for_bytes(list(self._records.values()), sid, size)
+            except StoreFull:
                 self._remove_folder(folder)
-                raise StoreFull(f"the scene needs {size} bytes, more than the store's quota of {self.max_bytes}")
-            while self._ready_bytes() + size > self.max_bytes:
-                if self.when_full != "evict" or not self._evict_one(exclude=sid):
-                    self._remove_folder(folder)
-                    raise StoreFull(f"the store's quota of {self.max_bytes} bytes is used; delete some scenes")
+                raise
+            self._evict(victims)
             os.replace(folder, self._scene_path(sid))
             now = _now()
             rec = self._records[sid]
-            rec.update(fields, state="ready", bytes=size, last_used=now, updated_ts=now, error=None)
+            rec.update(fields, **ready_fields(size, now))
             self._persisted_use[sid] = now
             self._persist(sid)
-            return json.loads(json.dumps(rec))
+            return copy_record(rec)
 
     def touch(self, sid: str) -> None:
         """Mark a scene used now (for LRU eviction and the TTL)."""
@@ -238,7 +224,7 @@ class FolderStore:
             if rec is None:
                 return
             rec["last_used"] = now
-            if now - self._persisted_use.get(sid, 0.0) >= _TOUCH_PERSIST_S:
+            if now - self._persisted_use.get(sid, 0.0) >= TOUCH_PERSIST_S:
                 self._persisted_use[sid] = now
                 try:
                     self._persist(sid)
@@ -254,8 +240,7 @@ class FolderStore:
             self._persisted_use.pop(sid, None)
             self._record_path(sid).unlink(missing_ok=True)
             self._remove_folder(self._scene_path(sid))
-        for cb in self.on_delete:
-            cb(sid)
+        self._notify_deleted(sid)
         return True
 
     def _remove_folder(self, folder: Path) -> None:
@@ -269,24 +254,10 @@ class FolderStore:
         shutil.rmtree(trash, ignore_errors=True)
 
     # -- quota ----------------------------------------------------------------------------------------------------
-    def _ready_bytes(self) -> int:
-        return sum(int(r.get("bytes", 0)) for r in self._records.values() if r["state"] == "ready")
-
-    def _evict_one(self, exclude: str) -> bool:
-        ready = [r for r in self._records.values() if r["state"] == "ready" and r["id"] != exclude]
-        if not ready:
-            return False
-        victim = min(ready, key=lambda r: r.get("last_used", 0.0))["id"]
-        self.delete(victim)
-        self.evicted += 1
-        return True
-
-    def _drop_failed_beyond_quota(self) -> None:
-        """Failed records are kept for inspection, at most max_scenes of them (oldest dropped)."""
-        failed = sorted((r for r in self._records.values() if r["state"] == "failed"),
-                        key=lambda r: r.get("updated_ts", 0.0))
-        for r in failed[:max(0, len(failed) - self.max_scenes)]:
-            self.delete(r["id"])
+    def _evict(self, victims: list[str]) -> None:
+        for sid in victims:
+            self.delete(sid)
+            self.evicted += 1
 
     def sweep(self, now: float | None = None) -> list[str]:
         """Delete scenes unused for longer than ttl_s (ready and failed). Returns the removed ids."""
@@ -294,19 +265,14 @@ class FolderStore:
             return []
         now = _now() if now is None else now
         with self._lock:
-            old = [r["id"] for r in self._records.values() if r["state"] in ("ready", "failed")
-                   and now - r.get("last_used", r.get("updated_ts", 0.0)) > self.ttl_s]
+            old = self.expired(list(self._records.values()), now)
         for sid in old:
             self.delete(sid)
         return old
 
     def usage(self) -> dict[str, Any]:
         with self._lock:
-            states = {s: 0 for s in STATES}
-            for r in self._records.values():
-                states[r["state"]] += 1
-            return {"scenes": states, "bytes": self._ready_bytes(), "max_scenes": self.max_scenes,
-                    "max_bytes": self.max_bytes, "evicted": self.evicted}
+            return self.usage_of(list(self._records.values()))
 
 
 __all__ = ["SCENE_ID", "STATES", "FolderStore", "StoreFull", "folder_bytes", "new_scene_id"]
