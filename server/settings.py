@@ -31,7 +31,7 @@ class Settings(BaseSettings):
 
     # what is served and where scenes live
     model: Path | None = Field(None, description="model folder (default: the shipped models/xyzcyl-cpu-v1)")
-    store: str = Field("./xyzcyl-store", description="scene store: a folder (created if absent)")
+    store: str = Field("./xyzcyl-store", description="scene store: a folder (created if absent) or s3://bucket/prefix")
     host: str = Field("127.0.0.1", description="`xyzcyl serve`: address to listen on")
     port: int = Field(8000, ge=0, le=65535, description="`xyzcyl serve`: TCP port (0: a free one)")
 
@@ -65,6 +65,14 @@ class Settings(BaseSettings):
     # security
     api_keys: CommaList = Field((), description="accepted API keys (comma-separated); empty: no authentication")
     cors_origins: CommaList = Field((), description="CORS allowed origins (comma-separated); empty: CORS off")
+
+    # scale-out: the s3:// store (server/store/s3.py, docs/deploy.md)
+    s3_cache: Path | None = Field(None, description="s3:// store: local folder for downloaded scenes and work in "
+                                                    "progress (default: a temporary folder, removed at exit)")
+    s3_cache_bytes: int = Field(2 * 1024 * MiB, ge=0, description="s3:// store: most bytes of downloaded scenes "
+                                                                  "kept in s3_cache (least recently used dropped)")
+    replica_id: str | None = Field(None, min_length=1, description="s3:// store: this replica's name in the "
+                                                                   "records it owns (default: hostname:pid)")
 
     @field_validator("api_keys", "cors_origins", mode="before")
     @classmethod
