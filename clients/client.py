@@ -779,7 +779,8 @@ class Client:
 
         rig: a rig.json path, an xyzcyl.runtime.rig.Rig, or the rig's JSON as a dict.
         images: None = the files the rig names (``image``), relative to rig.json's folder (a Rig: its root);
-        else {camera name: file path | encoded bytes | numpy array} (or a list in rig order). Arrays are sent as
+        else {camera name: file path (relative to the working folder) | encoded bytes | numpy array} (or a list in
+        rig order). Arrays are sent as
         PNG (uint8 / uint16 as they are, floats 0..1 as 16-bit), RGB order.
         depths: None = the depth files the rig names (``depth``), if any; else as images, per camera, optional:
         a 16-bit PNG of millimetres or a float EXR of metres (uint16 arrays -> PNG mm, float arrays -> EXR m).
@@ -800,12 +801,12 @@ class Client:
                     raise _invalid(f"camera {name!r} names no image file; pass images={{...}}", name)
                 parts.append(_part(name, src, root, depth=False))
             elif name in imgs:
-                parts.append(_part(name, imgs[name], root, depth=False))
+                parts.append(_part(name, imgs[name], None, depth=False))      # given paths: relative to the cwd
             else:
                 raise _invalid(f"no image for camera {name!r} (cameras: {', '.join(names)})", name)
             dsrc = cam.get("depth") if dps is None else dps.get(name)
             if dsrc is not None:
-                parts.append(_part(f"depth:{name}", dsrc, root, depth=True))
+                parts.append(_part(f"depth:{name}", dsrc, root if dps is None else None, depth=True))
         body = _Multipart(parts)
         params = {"wait": f"{min(max(timeout, 0.0), _MAX_WAIT_QUERY):g}"} if wait else None
         t0 = _monotonic()
