@@ -140,11 +140,27 @@ class Reconstructions:
                        for i, w in enumerate(self.workers)]
 
     async def stop(self) -> None:
+        """Stop the consumers and the workers; the jobs this process still held (queued or running) are failed
+        with code ``interrupted`` at once (a shared store's other replicas need not wait for a timeout)."""
         for t in self._tasks:
             t.cancel()
         await asyncio.gather(*self._tasks, return_exceptions=True)
         for w in self.workers:
             w.shutdown()
+        left = list(self.jobs.values())
+        if self.queue is not None:
+            while not self.queue.empty():
+                job = self.queue.get_nowait()
+                if job not in left:
+                    left.append(job)
+        for job in left:
+            try:
+                await asyncio.to_thread(self.store.fail, job.sid, "interrupted", "the server stopped while this "
+                                        "reconstruction was queued or running; post the rig again")
+            except OSError:
+                log.warning("could not mark %s interrupted", job.sid)
+            shutil.rmtree(job.work, ignore_errors=True)
+            job.done.set()
 
     @property
     def pending(self) -> int:
@@ -172,7 +188,8 @@ class Reconstructions:
                 await self._run(loop, worker, job)
             except Exception:
                 log.exception("reconstruction %s", job.sid)
-                self.store.fail(job.sid, "internal", "the reconstruction failed unexpectedly")
+                await asyncio.to_thread(self.store.fail, job.sid, "internal",
+                                        "the reconstruction failed unexpectedly")
             finally:
                 self.running -= 1
                 self.metrics.queue_depth.labels("reconstruct").set(self.pending)
@@ -192,17 +209,17 @@ class Reconstructions:
             status, value = await asyncio.wait_for(fut, self.settings.reconstruct_timeout_s)
         except TimeoutError:
             worker.replace()
-            self._failed(job, "timeout", f"the reconstruction ran longer than {self.settings.reconstruct_timeout_s}"
+            await self._failed(job, "timeout", f"the reconstruction ran longer than {self.settings.reconstruct_timeout_s}"
                          " s and was stopped")
             return
         except cf.process.BrokenProcessPool:
             worker.replace()
-            self._failed(job, "worker_crashed", "the reconstruction worker died (crash or out of memory); the "
+            await self._failed(job, "worker_crashed", "the reconstruction worker died (crash or out of memory); the "
                          "job was not finished")
             return
         seconds = time.perf_counter() - t0
         if status != "ok":
-            self._failed(job, {"invalid": "invalid_input"}.get(status, status), value)
+            await self._failed(job, {"invalid": "invalid_input"}.get(status, status), value)
             return
         from .store import StoreFull
 
@@ -212,15 +229,15 @@ class Reconstructions:
                 timings={**value["timings"], "queued": t0 - job.submitted, "worker_total": seconds},
                 bbox=value["bbox"], gaussians=value["gaussians"], background=value["background"])
         except StoreFull as e:
-            self._failed(job, "storage_full", str(e))
+            await self._failed(job, "storage_full", str(e))
             return
         if rec is not None:
             self.metrics.reconstructions.labels("ready").inc()
             self.metrics.reconstruct_seconds.observe(seconds)
 
-    def _failed(self, job: Job, code: str, message: str) -> None:
+    async def _failed(self, job: Job, code: str, message: str) -> None:
         self.metrics.reconstructions.labels(code).inc()
-        self.store.fail(job.sid, code, message)
+        await asyncio.to_thread(self.store.fail, job.sid, code, message)
 
 
 class Renders:

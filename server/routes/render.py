@@ -4,6 +4,7 @@ reads it from HTTP."""
 
 from __future__ import annotations
 
+import asyncio
 import hashlib
 import json
 import time
@@ -94,7 +95,7 @@ async def render_one(
     quality: int = Query(90, ge=1, le=100, description="JPEG quality"),
 ):
     s = service_of(request)
-    ready_record(s, scene_id)
+    await ready_record(s, scene_id)
     carla = {k: v for k, v in zip(_CARLA, (x, y, z, pitch, yaw, roll)) if v is not None}
     modes = [m for m, on in (("camera", camera is not None), ("cam_to_ego", cam_to_ego is not None),
                              ("carla", bool(carla))) if on]
@@ -125,7 +126,7 @@ async def render_one(
     headers = {"ETag": key, "Cache-Control": "private, max-age=86400"}
     if key in [t.strip() for t in request.headers.get("if-none-match", "").split(",")]:
         return Response(status_code=304, headers=headers)
-    s.store.touch(scene_id)
+    await asyncio.to_thread(s.store.touch, scene_id)
     data = await s.renders.run(_render_bytes, s, scene_id, req, key)
     return Response(data, media_type=req.media_type, headers=headers)
 
@@ -167,7 +168,7 @@ async def render_batch(request: Request, scene_id: str,
                        format: Literal["png", "jpeg", "exr"] | None = None,
                        quality: int | None = Query(None, ge=1, le=100)):
     s = service_of(request)
-    ready_record(s, scene_id)
+    await ready_record(s, scene_id)
     ctype = request.headers.get("content-type", "")
     if not ctype.lower().startswith("application/json"):
         raise UnsupportedMedia(f"POST .../render takes application/json, not {ctype or 'no content type'!r}",
@@ -197,7 +198,7 @@ async def render_batch(request: Request, scene_id: str,
         raise Invalid(str(e), e.field) from None
     if s.renders.busy():
         await s.renders.run(lambda: None)     # raises Busy (503 + Retry-After) before anything is streamed
-    s.store.touch(scene_id)
+    await asyncio.to_thread(s.store.touch, scene_id)
 
     async def frames():
         sink = _Sink()

@@ -98,15 +98,16 @@ def scene_info(rec: dict[str, Any]) -> dict[str, Any]:
             "bytes": rec.get("bytes"), "links": links}
 
 
-def get_record(service: Service, sid: str) -> dict[str, Any]:
-    rec = service.store.get(sid)        # None for an unknown or malformed id (never a path)
+async def get_record(service: Service, sid: str) -> dict[str, Any]:
+    # None for an unknown or malformed id (never a path); off the loop: an S3 store reads over the network
+    rec = await asyncio.to_thread(service.store.get, sid)
     if rec is None:
         raise NotFound(f"no scene {sid!r}", "id")
     return rec
 
 
-def ready_record(service: Service, sid: str) -> dict[str, Any]:
-    rec = get_record(service, sid)
+async def ready_record(service: Service, sid: str) -> dict[str, Any]:
+    rec = await get_record(service, sid)
     if rec["state"] == "failed":
         e = rec.get("error") or {}
         raise Conflict(f"scene {sid} failed: {e.get('message', 'unknown error')}", "id", code="scene_failed")
@@ -285,7 +286,7 @@ async def create_scene(request: Request,
             await asyncio.wait_for(asyncio.shield(job.done.wait()), min(wait, s.settings.wait_max_s))
         except TimeoutError:
             pass
-    rec = s.store.get(sid) or {"id": sid, "state": "failed", "cameras": cameras,
+    rec = await asyncio.to_thread(s.store.get, sid) or {"id": sid, "state": "failed", "cameras": cameras,
                                 "error": {"code": "deleted", "message": "the scene was deleted"}}
     info = scene_info(rec)
     headers = {"Location": f"/v1/scenes/{sid}"}
@@ -306,7 +307,7 @@ async def create_scene(request: Request,
 async def list_scenes(request: Request, offset: int = Query(0, ge=0, le=10**9),
                       limit: int = Query(50, ge=1, le=1000)):
     s = service_of(request)
-    page, total = s.store.list(offset, limit)
+    page, total = await asyncio.to_thread(s.store.list, offset, limit)
     nxt = f"/v1/scenes?offset={offset + limit}&limit={limit}" if offset + limit < total else None
     return {"scenes": [scene_info(r) for r in page], "total": total, "offset": offset, "limit": limit, "next": nxt}
 
@@ -314,14 +315,14 @@ async def list_scenes(request: Request, offset: int = Query(0, ge=0, le=10**9),
 @router.get("/scenes/{scene_id}", response_model=SceneInfo, summary="a scene's state and metadata",
             responses=ERRORS)
 async def get_scene(request: Request, scene_id: str):
-    return scene_info(get_record(service_of(request), scene_id))
+    return scene_info(await get_record(service_of(request), scene_id))
 
 
 @router.delete("/scenes/{scene_id}", status_code=204, summary="delete a scene", responses=ERRORS,
                response_class=Response)
 async def delete_scene(request: Request, scene_id: str):
     s = service_of(request)
-    get_record(s, scene_id)
+    await get_record(s, scene_id)
     await asyncio.to_thread(s.store.delete, scene_id)
     return Response(status_code=204)
 
@@ -351,14 +352,14 @@ _IMMUTABLE = "private, max-age=86400"
 async def gaussians(request: Request, scene_id: str,
                     format: Literal["ply", "splat"] | None = Query(None, description="default: from Accept, else ply")):
     s = service_of(request)
-    ready_record(s, scene_id)
+    await ready_record(s, scene_id)
     fmt = format or ("splat" if "splat" in request.headers.get("accept", "") else "ply")
     etag = f'"{scene_id}-{fmt}"'
     headers = {"ETag": etag, "Cache-Control": _IMMUTABLE,
                "Content-Disposition": f'attachment; filename="{scene_id}.{fmt}"'}
     if request.headers.get("if-none-match") == etag:
         return Response(status_code=304, headers=headers)
-    s.store.touch(scene_id)
+    await asyncio.to_thread(s.store.touch, scene_id)
     if fmt == "ply":
         f = await asyncio.to_thread(_open_scene_file, s, scene_id, "scene.ply")
         headers["Content-Length"] = str(f.seek(0, 2))
@@ -375,12 +376,12 @@ async def background(request: Request, scene_id: str,
                      format: Literal["png", "exr"] = Query("png", description="png: 8-bit preview; exr: float32 "
                                                                               "linear RGB")):
     s = service_of(request)
-    rec = ready_record(s, scene_id)
+    rec = await ready_record(s, scene_id)
     if not rec.get("background"):
         raise NotFound(f"scene {scene_id} has no background (the model has no background graph)", "id",
                        code="no_background")
     name, media = ("background.png", "image/png") if format == "png" else ("background.exr", "image/x-exr")
-    s.store.touch(scene_id)
+    await asyncio.to_thread(s.store.touch, scene_id)
     f = await asyncio.to_thread(_open_scene_file, s, scene_id, name)
     headers = {"ETag": f'"{scene_id}-bg-{format}"', "Cache-Control": _IMMUTABLE}
     return StreamingResponse(_stream(f), media_type=media, headers=headers)
