@@ -188,8 +188,11 @@ class Reconstructions:
                 await self._run(loop, worker, job)
             except Exception:
                 log.exception("reconstruction %s", job.sid)
-                await asyncio.to_thread(self.store.fail, job.sid, "internal",
-                                        "the reconstruction failed unexpectedly")
+                try:        # the store may be unwritable too (a full disk): this consumer must go on regardless
+                    await asyncio.to_thread(self.store.fail, job.sid, "internal",
+                                            "the reconstruction failed unexpectedly")
+                except Exception:
+                    log.exception("could not mark %s failed", job.sid)
             finally:
                 self.running -= 1
                 self.metrics.queue_depth.labels("reconstruct").set(self.pending)
@@ -237,7 +240,10 @@ class Reconstructions:
 
     async def _failed(self, job: Job, code: str, message: str) -> None:
         self.metrics.reconstructions.labels(code).inc()
-        await asyncio.to_thread(self.store.fail, job.sid, code, message)
+        try:
+            await asyncio.to_thread(self.store.fail, job.sid, code, message)
+        except OSError as e:       # a full disk: the record stays failed in memory (interrupted after a restart)
+            log.warning("could not write the failure of %s (%s): %s", job.sid, code, e)
 
 
 class Renders:
