@@ -35,9 +35,24 @@ log = logging.getLogger("xyzcyl.server")
 _RECONSTRUCTOR = None
 
 
-def _worker_init(model_dir: str, threads: int | None) -> None:
+def _exit_with_parent(ppid: int, every_s: float = 1.0) -> None:
+    """Exit when the server process is gone (kill -9, out-of-memory killer): nothing else would stop this worker,
+    which would hold its memory forever. The parent's death re-parents the worker, so getppid() changes."""
+    while True:
+        time.sleep(every_s)
+        if os.getppid() != ppid:
+            os._exit(0)
+
+
+def _worker_init(model_dir: str, threads: int | None, server_pid: int | None = None) -> None:
     global _RECONSTRUCTOR
+    import threading
+
     from xyzcyl.runtime.inference import Reconstructor
+
+    # the server's pid as the server saw it: it may have died while this process was still starting
+    threading.Thread(target=_exit_with_parent, args=(server_pid or os.getppid(),), name="exit-with-parent",
+                     daemon=True).start()
 
     _RECONSTRUCTOR = Reconstructor.load(model_dir, threads=threads)
 
@@ -94,7 +109,7 @@ class _Worker:
 
     def _new(self) -> cf.ProcessPoolExecutor:
         return cf.ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"),
-                                      initializer=_worker_init, initargs=self.args)
+                                      initializer=_worker_init, initargs=(*self.args, os.getpid()))
 
     def pids(self) -> list[int]:
         return [p.pid for p in (self.pool._processes or {}).values()]
