@@ -22,8 +22,9 @@ from pathlib import Path
 
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
-from fastapi.responses import JSONResponse
+from fastapi.responses import JSONResponse, Response
 from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.requests import ClientDisconnect
 from xyzcyl.runtime.inference import ModelError, ModelInfo, verify_model
 
 from .cache import BytesCache, SceneCache
@@ -147,6 +148,13 @@ def _install_handlers(app: FastAPI) -> None:
             detail = f"no route {request.url.path}"
         return _json_error(exc.status_code, _status_code_name(exc.status_code), detail, None,
                            dict(exc.headers or {}))
+
+    @app.exception_handler(ClientDisconnect)
+    async def _gone(request: Request, exc: ClientDisconnect):
+        # the client closed the connection while sending its body: nothing can be answered, and it is not a server
+        # error (it was a 500 with a traceback, twice). 499 as nginx counts it ("client closed request").
+        log.info("%s %s: the client disconnected before its request body ended", request.method, request.url.path)
+        return Response(status_code=499)
 
     @app.exception_handler(Exception)
     async def _unexpected(request: Request, exc: Exception):

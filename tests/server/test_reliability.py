@@ -116,3 +116,51 @@ def test_worker_kill_and_server_kill9_then_restart(ctx):
     except BaseException:
         sys.stderr.write(show_log(ctx))
         raise
+
+
+# ----------------------------------------------------------------------------------------------- one guarded server
+
+KEY = "ci-reliability-key-0123456789"
+AUTH = {"Authorization": f"Bearer {KEY}"}
+LIMIT = 8 << 20                 # the noise rig of the disconnect test (~6.5 MB) fits under it
+
+
+@pytest.fixture(scope="module")
+def guarded(ctx):
+    """One `xyzcyl serve` with API keys and an 8 MiB body limit, and a ready scene."""
+    import types
+
+    store = ctx.store("guarded")
+    flags = ["--api-keys", KEY, "--max-body-bytes", str(LIMIT), "--ort-threads", "1", "--render-threads", "1"]
+    try:
+        with ctx.serve(store, flags) as (proc, url, _):
+            with R.client(url, 120, AUTH) as c:
+                sid = R.new_scene(c, ctx)["id"]
+            yield types.SimpleNamespace(url=url, pid=proc.pid, port=R.port_of(url), store=store, sid=sid)
+    except BaseException:
+        sys.stderr.write(show_log(ctx))
+        raise
+
+
+@pytest.mark.slow
+def test_client_disconnect_mid_upload_leaves_no_files(ctx, guarded):
+    """A client that sends part of a multipart upload and closes: the upload folder under the store's tmp/ and the
+    temporary files Starlette spooled the parts into (open, deleted, in /proc/PID/fd) are gone within 5 s; the
+    request counts as 499, not as a server error (regression: 500 and a logged traceback)."""
+    body, boundary = R.noise_rig(ctx)
+    assert len(body) < LIMIT
+    fd0 = len(R.fds(guarded.pid))
+    log0 = ctx.log.stat().st_size
+    for fraction in (0.3, 0.9):
+        run = R.disconnect_upload(guarded.port, guarded.pid, guarded.store, body, boundary, fraction, AUTH)
+        assert run["during"]["tmp"] >= 1 and run["during"]["deleted_fds"] >= 1, run     # the upload was under way
+        assert run["after"] == {"tmp": 0, "deleted_fds": 0}, run
+    assert len(R.fds(guarded.pid)) <= fd0 + 1
+    with R.client(guarded.url, 60, AUTH) as c:
+        m = c.get("/metrics").text
+    posts = {line.split("status=")[1].split('"')[1]: float(line.rsplit(" ", 1)[1]) for line in m.splitlines()
+             if line.startswith("xyzcyl_http_requests_total{") and 'method="POST"' in line and "/v1/scenes\"" in line}
+    assert posts.get("499") == 2 and "500" not in posts, posts
+    with open(ctx.log, "rb") as f:
+        f.seek(log0)
+        assert b"Traceback" not in f.read()
