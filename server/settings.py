@@ -34,6 +34,9 @@ class Settings(BaseSettings):
     store: str = Field("./xyzcyl-store", description="scene store: a folder (created if absent) or s3://bucket/prefix")
     host: str = Field("127.0.0.1", description="`xyzcyl serve`: address to listen on")
     port: int = Field(8000, ge=0, le=65535, description="`xyzcyl serve`: TCP port (0: a free one)")
+    header_timeout_s: float = Field(10.0, gt=0, description="`xyzcyl serve`: close a connection that has not sent a "
+                                                            "whole request head (line + headers) this long after "
+                                                            "connecting or after its previous answer (slow clients)")
 
     # request limits (422/413 beyond them)
     max_body_bytes: int = Field(256 * MiB, ge=1024, description="largest request body; 413 beyond, before it is read")

@@ -58,11 +58,57 @@ def run(args: argparse.Namespace) -> int:
         return 2
     # server_header=False: no "server: uvicorn" header (the stack's versions are not announced)
     config = uvicorn.Config(app, host=settings.host, port=settings.port, log_level=args.log_level,
-                            server_header=False, timeout_graceful_shutdown=30)
+                            server_header=False, timeout_graceful_shutdown=30,
+                            http=_protocol_class(settings.header_timeout_s))
     server = _server_class()(config)
     server.service = app.state.service
     server.run()
     return 0
+
+
+def _protocol_class(header_timeout_s: float):
+    """uvicorn's h11 protocol with a deadline on each request head: a connection that has not sent a whole request
+    line and headers within ``header_timeout_s`` of connecting, or of its previous answer, is closed. uvicorn has no
+    such timeout (its keep-alive timer starts only after an answer and restarts with every byte), so a slow client
+    (slowloris: a header byte every few seconds) could hold a connection, and a file descriptor, forever."""
+    import h11
+    from uvicorn.protocols.http.h11_impl import H11Protocol
+
+    class HeadTimeoutH11Protocol(H11Protocol):
+        _head_timer = None
+
+        def connection_made(self, transport):
+            super().connection_made(transport)
+            self._arm_head_timer()
+
+        def _arm_head_timer(self) -> None:
+            self._head_timer = self.loop.call_later(header_timeout_s, self._head_timed_out)
+
+        def _disarm_head_timer(self) -> None:
+            if self._head_timer is not None:
+                self._head_timer.cancel()
+                self._head_timer = None
+
+        def handle_events(self) -> None:
+            super().handle_events()
+            if self.conn.their_state is not h11.IDLE:        # the request head is in (or the connection is ending)
+                self._disarm_head_timer()
+
+        def on_response_complete(self) -> None:
+            super().on_response_complete()
+            if self._head_timer is None and not self.transport.is_closing() and self.conn.their_state is h11.IDLE:
+                self._arm_head_timer()                      # the next request on this connection
+
+        def connection_lost(self, exc) -> None:
+            self._disarm_head_timer()
+            super().connection_lost(exc)
+
+        def _head_timed_out(self) -> None:
+            self._head_timer = None
+            if self.conn.their_state is h11.IDLE and not self.transport.is_closing():
+                self.transport.close()
+
+    return HeadTimeoutH11Protocol
 
 
 def _server_class():

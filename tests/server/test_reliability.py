@@ -7,7 +7,6 @@ of every endpoint) is not repeated here."""
 from __future__ import annotations
 
 import errno
-import json
 import sys
 import time
 from pathlib import Path
@@ -18,7 +17,7 @@ httpx = pytest.importorskip("httpx")
 
 REPO = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(REPO / "benchmarks"))
-import reliability as R  # noqa: E402  (benchmarks/reliability.py: the same helpers as the long runs)
+import reliability as R
 
 
 @pytest.fixture(scope="module")
@@ -123,15 +122,17 @@ def test_worker_kill_and_server_kill9_then_restart(ctx):
 KEY = "ci-reliability-key-0123456789"
 AUTH = {"Authorization": f"Bearer {KEY}"}
 LIMIT = 8 << 20                 # the noise rig of the disconnect test (~6.5 MB) fits under it
+HEAD_TIMEOUT = 2.0
 
 
 @pytest.fixture(scope="module")
 def guarded(ctx):
-    """One `xyzcyl serve` with API keys and an 8 MiB body limit, and a ready scene."""
+    """One `xyzcyl serve` with API keys, an 8 MiB body limit and a 2 s header timeout, and a ready scene."""
     import types
 
     store = ctx.store("guarded")
-    flags = ["--api-keys", KEY, "--max-body-bytes", str(LIMIT), "--ort-threads", "1", "--render-threads", "1"]
+    flags = ["--api-keys", KEY, "--max-body-bytes", str(LIMIT), "--ort-threads", "1", "--render-threads", "1",
+             "--header-timeout-s", str(HEAD_TIMEOUT)]
     try:
         with ctx.serve(store, flags) as (proc, url, _):
             with R.client(url, 120, AUTH) as c:
@@ -164,3 +165,82 @@ def test_client_disconnect_mid_upload_leaves_no_files(ctx, guarded):
     with open(ctx.log, "rb") as f:
         f.seek(log0)
         assert b"Traceback" not in f.read()
+
+
+@pytest.mark.slow
+def test_body_over_the_limit_is_413_before_it_is_read(guarded):
+    """413 from Content-Length on the headers alone (no body byte sent), and while the body streams in (answered
+    long before the 8 MiB are sent); a chunked body without Content-Length is cut soon after the limit."""
+    alone = R.raw_over_limit(guarded.port, guarded.pid, LIMIT, False, headers=AUTH, headers_alone_s=5.0)
+    assert alone["status"] == 413 and alone["code"] == "too_large", alone
+    assert alone["answered_on_headers_alone"] and alone["answered_on_headers_alone"]["body_bytes_sent"] == 0, alone
+    streamed = R.raw_over_limit(guarded.port, guarded.pid, LIMIT, False, headers=AUTH)
+    assert streamed["status"] == 413, streamed
+    assert streamed["body_bytes_sent_before_answer"] < LIMIT // 2, streamed
+    chunked = R.raw_over_limit(guarded.port, guarded.pid, LIMIT, True, headers=AUTH)
+    assert chunked["status"] == 413 and chunked["code"] == "too_large", chunked
+    assert LIMIT < chunked["body_bytes_sent_before_answer"] < LIMIT + (2 << 20), chunked
+
+
+@pytest.mark.slow
+def test_slow_clients_do_not_block_others_and_are_closed(ctx, guarded):
+    """Slowloris, bounded: 10 connections send a request head one byte a second for 4 s while a client renders.
+    The renders all succeed, /v2/health/live stays fast, and the server closes every slow connection (and one that
+    sends nothing) after its header timeout (regression: uvicorn kept them open forever)."""
+    sl = R.slowloris(guarded.url, guarded.pid, guarded.sid, ctx, 10, 4.0, (320, 240, "jpeg"), AUTH)
+    assert sl["render_errors"] == {} and sl["during"]["n"] >= 1, sl
+    assert sl["during"]["max_s"] < 10.0, sl
+    assert sl["health_live"]["failures"] == {} and sl["health_live"]["max_s"] < 1.0, sl["health_live"]
+    assert sl["slow_sockets_closed_by_server"] == 10, sl
+    assert sl["last_closed_at_s"] <= HEAD_TIMEOUT + 1.5, sl
+    assert sl["idle_socket_closed"] is not None and sl["idle_socket_closed"][0] <= HEAD_TIMEOUT + 1.5, sl
+    with R.client(guarded.url, 60, AUTH) as c:         # a kept-alive client between requests is not cut short
+        assert c.get("/v2/health/live").status_code == 200
+        time.sleep(1.0)
+        assert c.get(f"/v1/scenes/{guarded.sid}").status_code == 200
+
+
+@pytest.mark.slow
+def test_api_keys_on_every_v1_route_ids_and_headers(guarded):
+    """With --api-keys, every /v1 operation of the live OpenAPI document is 401 without a key and with a wrong one
+    (Bearer or X-API-Key); health, model metadata and metrics answer without one. Unknown, near-miss and path-like
+    ids are 404, never 5xx. No response carries a server header or a version of the stack."""
+    import re
+
+    wrong = [{"Authorization": "Bearer wrong-key-0123456789"}, {"X-API-Key": "wrong-key-0123456789"}, {}]
+    fake = "A" * 22
+    with R.client(guarded.url, 60) as anon, R.client(guarded.url, 60, AUTH) as c:
+        spec = anon.get("/openapi.json").json()
+        ops = [(m.upper(), p) for p, item in spec["paths"].items() for m in item
+               if m in ("get", "post", "put", "patch", "delete")]
+        v1 = [(m, p) for m, p in ops if p.startswith("/v1")]
+        assert len(v1) >= 7, v1
+        for method, path in ops:
+            target = path.replace("{scene_id}", fake).replace("{name}", "xyzcyl-cpu-v1")
+            if path.startswith("/v1"):
+                for hdrs in wrong:
+                    r = anon.request(method, target, headers=hdrs)
+                    assert r.status_code == 401, (method, path, hdrs, r.status_code, r.text[:200])
+                    assert r.headers.get("www-authenticate") == "Bearer"
+                assert c.request(method, target).status_code != 401, (method, path)
+            else:
+                assert anon.request(method, target).status_code == 200, (method, path)
+        assert anon.get("/metrics").status_code == 200
+        sid = guarded.sid
+        for bad in (fake, sid[:-1] + ("B" if sid[-1] != "B" else "C"), sid[:21], sid + "A"):
+            assert c.get(f"/v1/scenes/{bad}").status_code == 404, bad
+        for target in ("/v1/scenes/..%2F..%2Frecords%2F" + sid, "/v1/scenes/%2e%2e", "/v1/scenes/%00",
+                       f"/v1/scenes/{sid}%2F..", f"/v1/scenes/{sid}/render?camera=" + "C" * (1 << 20)):
+            got = R._raw_get(guarded.port, target, KEY)
+            assert 400 <= (got.get("followed") or got["status"] or 0) < 500, got
+        seen = [anon.get("/v2/health/live"), anon.get("/v2"), anon.get("/metrics"), anon.get("/v1/scenes"),
+                anon.get("/nope"), c.get(f"/v1/scenes/{sid}"), c.get(f"/v1/scenes/{fake}"),
+                c.get(f"/v1/scenes/{sid}/render", params={"camera": "CAM_FRONT", "width": 64}),
+                c.get(f"/v1/scenes/{sid}/render", params={"camera": "NOPE"})]
+        version = seen[1].json()["version"]
+        for r in seen:
+            for k, v in r.headers.items():
+                assert k.lower() not in ("server", "x-powered-by", "via"), (r.url, k, v)
+                assert not re.search(r"uvicorn|starlette|fastapi|python|h11|pydantic", f"{k}: {v}", re.IGNORECASE), (k, v)
+                if k.lower() not in ("content-length", "date", "etag", "content-type", "retry-after"):
+                    assert not [m for m in re.findall(r"\b\d+\.\d+(?:\.\d+)?\b", v) if m != version], (k, v)
