@@ -15,7 +15,7 @@ OCC_STEPS=${OCC_STEPS:-1000}
 REN_STEPS=${REN_STEPS:-500}
 TARGETS=${TARGETS:-4}
 VOXEL=${VOXEL:-1.6}
-STAGE2=${STAGE2:-"full no-rgb k2 no-volume no-pixel"}
+STAGE2=${STAGE2:-"full no-rgb k2 no-volume no-pixel no-background"}
 
 $X data synth --out data/train --scenes 200 --seed 0 --voxels 0.8,1.6 --quiet   # training set (seed 0)
 $X data synth --out data/val --scenes 50 --seed 1 --voxels 0.8,1.6 --quiet      # disjoint validation set (seed 1)
@@ -42,7 +42,7 @@ stage "$RUNS/occ" occ.pt 2 --preset cpu --voxel-size "$VOXEL" --occupancy-labels
 #   full      = RGB path, pixel lattice k_o = 4 (112x1024);  no-rgb = the same without the RGB path;
 #   k2        = RGB path at k_o = 2 (56x512, the first model's lattice); no-volume = full without the volume branch
 # (recorded run: the first four side by side, the full model at nice -10, the others at nice -6, to finish it first;
-#  no-pixel afterwards, alone, with 2 threads; STAGE2 lists all five; no-background was not run)
+#  no-pixel afterwards, alone, with 2 threads; no-background in the next session, alone, 1 thread; STAGE2 lists all six)
 declare -A EXTRA=([full]="--pixel-upsample 4" [no-rgb]="--pixel-upsample 4 --ablation no-rgb"
                   [k2]="--pixel-upsample 2" [no-volume]="--pixel-upsample 4 --ablation no-volume"
                   [no-pixel]="--pixel-upsample 4 --ablation no-pixel"
@@ -78,7 +78,7 @@ $P $D/real.py --out $D/real --checkpoint full="$RUNS/render_full/render.pt" \
 $P $D/probe.py data/train data/val > $D/probe.json
 
 # tables and pictures (docs/results.md)
-$P docs/runs/table.py "$EVAL/full" "XYZCylinder (cpu, k_o 2: 56x512)=$EVAL/k2" "$EVAL/no-rgb" "$EVAL/no-volume" "$EVAL/no-pixel" \
+$P docs/runs/table.py "$EVAL/full" "XYZCylinder (cpu, k_o 2: 56x512)=$EVAL/k2" "$EVAL/no-rgb" "$EVAL/no-volume" "$EVAL/no-pixel" "$EVAL/no-background" \
   "$EVAL/unproject" "$EVAL/unproject-gt-depth" > $D/table.md
 $P docs/runs/table.py "XYZCylinder (cpu), 6 cameras=$EVAL/full" "5 cameras (waymo)=$EVAL/rig_waymo" \
   "7 cameras (argoverse)=$EVAL/rig_argoverse" "8 cameras (ring8.json)=$EVAL/rig_ring8" > $D/table_rigs.md
@@ -86,3 +86,6 @@ $P docs/runs/curves.py $D/render_curves.png "full=$RUNS/render_full" "no RGB=$RU
   "k_o 2 (56x512)=$RUNS/render_k2" "no volume=$RUNS/render_no-volume"
 $P docs/runs/compare.py data/val $D/compare.jpg --model "full=$RUNS/render_full" --model "no RGB=$RUNS/render_no-rgb" \
   --model "k_o 2 (56x512)=$RUNS/render_k2" --model "no volume=$RUNS/render_no-volume"
+
+# the 5-camera rig with the paper's mirrored completion (5 -> 8), through the shipped ONNX model (runtime path)
+$P $D/waymo_completion.py --model models/xyzcyl-cpu-v1 --out $D/waymo_completion
