@@ -227,13 +227,13 @@ class Reconstructions:
             status, value = await asyncio.wait_for(fut, self.settings.reconstruct_timeout_s)
         except TimeoutError:
             worker.replace()
-            await self._failed(job, "timeout", f"the reconstruction ran longer than {self.settings.reconstruct_timeout_s}"
-                         " s and was stopped")
+            await self._failed(job, "timeout", "the reconstruction ran longer than "
+                               f"{self.settings.reconstruct_timeout_s} s and was stopped")
             return
         except cf.process.BrokenProcessPool:
             worker.replace()
-            await self._failed(job, "worker_crashed", "the reconstruction worker died (crash or out of memory); the "
-                         "job was not finished")
+            await self._failed(job, "worker_crashed", "the reconstruction worker died (crash or out of memory); "
+                               "the job was not finished")
             return
         seconds = time.perf_counter() - t0
         if status != "ok":
