@@ -818,7 +818,32 @@ def check_store(url: str, store: Path, posted: list[str]) -> dict:
             "posted": {sid: (by_id.get(sid) or {}).get("state") for sid in posted}}
 
 
+MODES = ("random", "writing", "random", "written")
+
+
+def _wait_for_scene_files(tmp: Path, mode: str, timeout: float) -> str | None:
+    """Poll (every 2 ms, up to ``timeout`` s) the store's tmp/ for a reconstruction's scene folder: ``writing``: the
+    worker's temporary sibling ``.scene.*`` (files being written); ``written``: the finished ``scene/`` not yet
+    moved into scenes/. Returns what was seen (None on time-out)."""
+    deadline = now_s() + timeout
+    while now_s() < deadline:
+        with contextlib.suppress(OSError):
+            for work in tmp.iterdir():
+                for e in work.iterdir():
+                    if (mode == "writing" and e.name.startswith(".scene.")) or (mode == "written"
+                                                                                 and e.name == "scene"):
+                        with contextlib.suppress(OSError):
+                            files = {x.name: x.stat().st_size for x in e.iterdir()}
+                            if files:             # a file of the scene is being (or has been) written
+                                return f"{e.name}/ with {files}"
+        time.sleep(0.002)
+    return None
+
+
 def crash_kill_loop(ctx: Ctx, iterations: int, window: tuple[float, float], seed: int = 14) -> dict:
+    """``iterations`` rounds of: start the server on the same store, post two rigs (one runs, one waits), kill -9 the
+    server, and check the store after the next start. The kill comes at a random time, or (every other round) the
+    moment the worker is writing the scene folder, or has just written it (before it is moved into scenes/)."""
     rng = random.Random(seed)
     store = ctx.store("crash")
     flags = ["--reconstruct-workers", "1", "--reconstruct-queue", "4", "--ort-threads", "1",
@@ -838,12 +863,19 @@ def crash_kill_loop(ctx: Ctx, iterations: int, window: tuple[float, float], seed
                     r = c.post("/v1/scenes", files=ctx.files)
                     if r.status_code == 202:
                         posted.append(r.json()["id"])
-                delay = rng.uniform(*window)
-                time.sleep(delay)
+                mode = MODES[i % len(MODES)]
+                t_post = now_s()
+                if mode == "random":
+                    time.sleep(rng.uniform(*window))
+                else:                     # the moment the worker writes the scene / has written it (not yet moved)
+                    seen = _wait_for_scene_files(store / "tmp", mode, 60.0)
+                    time.sleep(rng.uniform(0.0, 0.02))
+                delay = now_s() - t_post
                 states = {}
-                with contextlib.suppress(Exception):
-                    for sid in posted:
-                        states[sid] = c.get(f"/v1/scenes/{sid}", timeout=2).json()["state"]
+                if mode == "random":          # (not when aiming at the write: the kill must come at once)
+                    with contextlib.suppress(Exception):
+                        for sid in posted:
+                            states[sid] = c.get(f"/v1/scenes/{sid}", timeout=2).json()["state"]
             kids = children(proc.pid)
             os.kill(proc.pid, signal.SIGKILL)
             proc.wait(10)
@@ -851,7 +883,8 @@ def crash_kill_loop(ctx: Ctx, iterations: int, window: tuple[float, float], seed
             left = [p for p in kids if alive(p)]
             orphans_total += left
             kill_all(left)
-            rnd |= {"posted": posted, "kill_after_s": round(delay, 3), "states_just_before_kill": states,
+            rnd |= {"posted": posted, "mode": mode, "saw": None if mode == "random" else seen,
+                    "kill_after_s": round(delay, 3), "states_just_before_kill": states,
                     "children_alive_2s_after_kill": len(left)}
             rounds.append(rnd)
     problems = [p for r in rounds if "check" in r for p in r["check"]["problems"]]
@@ -860,7 +893,11 @@ def crash_kill_loop(ctx: Ctx, iterations: int, window: tuple[float, float], seed
         if "check" in r:
             for st in r["check"]["posted"].values():
                 count(finals, st)
-    return {"iterations": iterations, "kill_window_s": list(window), "rounds": rounds,
+    modes: dict[str, int] = {}
+    for r in rounds:
+        if "mode" in r:
+            count(modes, f"{r['mode']}{'' if r['mode'] == 'random' or r['saw'] else ' (not seen)'}")
+    return {"iterations": iterations, "kill_window_s": list(window), "kill_modes": modes, "rounds": rounds,
             "posted_outcomes": finals, "problems": problems, "orphaned_children": len(orphans_total)}
 
 
@@ -887,7 +924,7 @@ def crash_worker(ctx: Ctx) -> dict:
 
 def crash_disk_full(ctx: Ctx, size_mb: int, posts: int) -> dict:
     mnt = ctx.work / "tmpfs"
-    mnt.mkdir()
+    mnt.mkdir(exist_ok=True)
     p = subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size_mb}m", "tmpfs", str(mnt)], capture_output=True,
                        text=True, check=False)
     if p.returncode != 0:
