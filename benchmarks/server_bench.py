@@ -15,6 +15,7 @@ one kept-alive httpx connection, p50/p95/p99 by linear interpolation over the n 
   ``server_render_mean_s`` is the server's render + encode time (Prometheus histogram) over the same requests.
 - ``concurrency``: throughput (requests/s) of 1 and of 4 client threads, each with its own connection and a fixed
   number of requests (--concurrent-requests each), distinct poses, for both sizes; ratio 4 / 1.
+  ``server_cpu_cores``: the server process's CPU time over the wall time (how many cores it kept busy).
 - ``cache``: the same pose again (a render cache hit) and If-None-Match with its ETag (304).
 - ``rss``: VmRSS of the server process (not its child processes: the reconstruction worker and multiprocessing's
   resource tracker, reported apart under server.children) after --warmup renders and
@@ -91,20 +92,47 @@ def machine() -> dict:
                     if k in os.environ}}
 
 
-def other_jobs() -> list[str]:
-    """Command lines of running `xyzcyl train` / `xyzcyl data` processes (work beside the benchmark)."""
-    out = []
+def _cpu_ticks() -> dict[int, int]:
+    ticks = {}
     for p in Path("/proc").iterdir():
-        if not p.name.isdigit():
-            continue
-        try:
-            argv = (p / "cmdline").read_bytes().split(b"\0")
-        except OSError:
-            continue
-        words = [a.decode(errors="replace") for a in argv if a]
-        if any(w.endswith("xyzcyl") for w in words) and ("train" in words or "data" in words):
-            out.append(" ".join(words)[:160])
-    return out
+        if p.name.isdigit():
+            try:
+                fields = (p / "stat").read_text().rsplit(")", 1)[1].split()
+                ticks[int(p.name)] = int(fields[11]) + int(fields[12])        # utime + stime
+            except (OSError, IndexError, ValueError):
+                pass
+    return ticks
+
+
+def other_jobs(seconds: float = 1.0) -> list[dict]:
+    """Processes other than this benchmark and its server that used >= 10 % of a core over ``seconds``: the
+    work sharing the machine while a figure was taken."""
+    mine = {os.getpid(), *children(os.getpid())}
+    mine |= {c for p in list(mine) for c in children(p)}
+    a = _cpu_ticks()
+    time.sleep(seconds)
+    b = _cpu_ticks()
+    hz = os.sysconf("SC_CLK_TCK")
+    out = []
+    for pid, t in b.items():
+        share = (t - a.get(pid, t)) / hz / seconds
+        if share >= 0.1 and pid not in mine:
+            cmd = cmdline(pid, 400)
+            out.append({"pid": pid, "cpu": round(share, 2), "cmd": cmd if len(cmd) <= 120 else
+                        cmd[:60] + " ... " + cmd[-55:]})
+    return sorted(out, key=lambda d: -d["cpu"])
+
+
+def git_state() -> dict:
+    """The commit measured and the files that differed from it (others may edit the working tree)."""
+    def git(*a):
+        return subprocess.run(["git", *a], capture_output=True, text=True, check=False, cwd=REPO).stdout.rstrip("\n")
+
+    try:
+        return {"commit": git("rev-parse", "HEAD"),
+                "modified": [ln[3:] for ln in git("status", "--porcelain", "--untracked-files=no").splitlines()]}
+    except OSError:
+        return {}
 
 
 def uptime() -> str:
@@ -124,12 +152,12 @@ def rss_mb(pid: int, key: str = "VmRSS") -> float | None:
     return None
 
 
-def cmdline(pid: int) -> str:
+def cmdline(pid: int, keep: int = 120) -> str:
     try:
         words = Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")
     except OSError:
         return ""
-    return " ".join(w.decode(errors="replace") for w in words if w)[-120:]
+    return " ".join(w.decode(errors="replace") for w in words if w)[-keep:]
 
 
 def children(pid: int) -> list[int]:
@@ -195,11 +223,11 @@ def resolved_settings(store: Path, extra: list[str]) -> dict:
     return json.loads(out)
 
 
-def metric(text: str, name: str) -> float:
-    """Sum of the samples of one Prometheus metric (all label sets)."""
+def metric(text: str, name: str, label: str = "") -> float:
+    """Sum of the samples of one Prometheus metric (all label sets, or those containing ``label``)."""
     total = 0.0
     for line in text.splitlines():
-        if line.startswith((name + " ", name + "{")):
+        if line.startswith((name + " ", name + "{")) and label in line:
             total += float(line.rsplit(" ", 1)[1])
     return total
 
@@ -342,8 +370,17 @@ def case_render(c, sid: str, poses: Poses, n: int, warmup: int, width: int, heig
             "load_after": load()}
 
 
+def cpu_seconds(pid: int) -> float | None:
+    """utime + stime of a process (all its threads), seconds."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    except (OSError, IndexError, ValueError):
+        return None
+
+
 def throughput(url: str, sid: str, poses: Poses, clients: int, per_client: int, width: int, height: int,
-               fmt: str) -> dict:
+               fmt: str, pid: int) -> dict:
     import httpx
 
     lat: list[float] = []
@@ -371,22 +408,24 @@ def throughput(url: str, sid: str, poses: Poses, clients: int, per_client: int, 
         t.start()
     before = load()
     start.wait()
-    t0 = time.perf_counter()
+    t0, cpu0 = time.perf_counter(), cpu_seconds(pid)
     for t in threads:
         t.join(600)
-    wall = time.perf_counter() - t0
+    wall, cpu1 = time.perf_counter() - t0, cpu_seconds(pid)
     if any(t.is_alive() for t in threads):
         errors["timeout"] = sum(t.is_alive() for t in threads)
     return {"clients": clients, "requests": clients * per_client, "ok": len(lat), "wall_s": round(wall, 3),
-            "requests_per_s": round(len(lat) / wall, 3), "latency": stats(lat), "errors": errors,
+            "requests_per_s": round(len(lat) / wall, 3),
+            "server_cpu_cores": round((cpu1 - cpu0) / wall, 2) if cpu0 is not None and cpu1 is not None else None,
+            "latency": stats(lat), "errors": errors,
             "load_before": before, "load_after": load()}
 
 
-def case_concurrency(url: str, sid: str, poses: Poses, per_client: int, sizes) -> dict:
+def case_concurrency(url: str, sid: str, poses: Poses, per_client: int, sizes, pid: int) -> dict:
     out = {}
     for width, height, fmt in sizes:
-        one = throughput(url, sid, poses, 1, per_client, width, height, fmt)
-        four = throughput(url, sid, poses, 4, per_client, width, height, fmt)
+        one = throughput(url, sid, poses, 1, per_client, width, height, fmt, pid)
+        four = throughput(url, sid, poses, 4, per_client, width, height, fmt, pid)
         out[f"{width}x{height}_{fmt}"] = {"one": one, "four": four,
                                           "four_over_one": round(four["requests_per_s"] / one["requests_per_s"], 3)
                                           if one["requests_per_s"] else None}
@@ -473,7 +512,7 @@ def main() -> int:
     import httpx
 
     doc = {"benchmark": "server_bench", "issue": 12, "quick": args.quick,
-           "started": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), "machine": machine(),
+           "started": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), "git": git_state(), "machine": machine(),
            "uptime_start": uptime(), "load_start": load(), "other_jobs_start": other_jobs(),
            "args": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()},
            "serve_flags": extra}
@@ -486,23 +525,30 @@ def main() -> int:
             doc["server"] = {"pid": proc.pid, "ready_s": round(t_ready, 2), "rss_ready_mb": rss_mb(proc.pid)}
             with httpx.Client(base_url=url, timeout=300.0) as c:
                 doc["server"]["version"] = c.get("/v2").json()
+                others = other_jobs()
                 doc["reconstruct"], sid = case_reconstruct(c, rig_json, args.recon_runs)
-                doc["reconstruct"]["load_after"] = load()
-                doc["render_1600x900_png"] = case_render(c, sid, poses, args.render_runs, args.warmup, 1600, 900,
-                                                         "png")
-                doc["render_800x600_jpeg"] = case_render(c, sid, poses, args.jpeg_runs, args.warmup, 800, 600,
-                                                         "jpeg")
-                doc["concurrency"] = case_concurrency(url, sid, poses, args.concurrent_requests,
-                                                      ((1600, 900, "png"), (800, 600, "jpeg")))
-                doc["cache"] = case_cache(c, sid, poses, args.cache_runs)
-                doc["rss"] = case_rss(c, sid, poses, proc.pid, args.warmup, args.renders,
-                                      int(settings.get("render_cache_bytes", 0)))
+                doc["reconstruct"] |= {"load_after": load(), "others_before": others}
+                cases = (
+                    ("render_1600x900_png",
+                     lambda: case_render(c, sid, poses, args.render_runs, args.warmup, 1600, 900, "png")),
+                    ("render_800x600_jpeg",
+                     lambda: case_render(c, sid, poses, args.jpeg_runs, args.warmup, 800, 600, "jpeg")),
+                    ("concurrency", lambda: case_concurrency(url, sid, poses, args.concurrent_requests,
+                                                             ((1600, 900, "png"), (800, 600, "jpeg")), proc.pid)),
+                    ("cache", lambda: case_cache(c, sid, poses, args.cache_runs)),
+                    ("rss", lambda: case_rss(c, sid, poses, proc.pid, args.warmup, args.renders,
+                                             int(settings.get("render_cache_bytes", 0)))),
+                )
+                for key, fn in cases:
+                    others = other_jobs()
+                    doc[key] = fn() | {"others_before": others}
                 doc["server"]["children"] = [{"pid": p, "rss_mb": rss_mb(p), "cmd": cmdline(p)}
                                              for p in children(proc.pid)]
                 doc["server"]["rss_end_mb"] = rss_mb(proc.pid)
                 r = c.get("/metrics")
                 doc["server"]["rejected"] = metric(r.text, "xyzcyl_rejected_total")
-                doc["server"]["render_cache_hits"] = metric(r.text, "xyzcyl_render_cache_total")
+                doc["server"]["render_cache"] = {k: metric(r.text, "xyzcyl_render_cache_total", f'result="{k}"')
+                                                 for k in ("hit", "miss")}
         doc["server"]["stop"] = proc.stop_info
     finally:
         doc["uptime_end"] = uptime()
