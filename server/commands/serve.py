@@ -121,8 +121,14 @@ def _server_class():
         service = None
 
         def handle_exit(self, sig, frame):
+            import signal
+
             if self.service is not None:
                 self.service.draining = True
             super().handle_exit(sig, frame)
+            if sig == signal.SIGTERM:
+                # a drained SIGTERM is a clean stop: exit 0. uvicorn re-raises the captured signal after draining,
+                # which the default handler turns into death by SIGTERM (status 143 in a container).
+                self._captured_signals = [s for s in self._captured_signals if s != signal.SIGTERM]
 
     return DrainingServer
