@@ -125,9 +125,11 @@ class _Worker:
         self.pool = self._new()
 
     def shutdown(self) -> None:
+        """Stop the worker process and wait for the pool to close its pipes and semaphores (without the wait, the
+        resource tracker reports them as leaked at exit)."""
         for p in list((self.pool._processes or {}).values()):
             p.terminate()
-        self.pool.shutdown(wait=False, cancel_futures=True)
+        self.pool.shutdown(wait=True, cancel_futures=True)
 
 
 class Reconstructions:
