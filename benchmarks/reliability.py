@@ -142,8 +142,9 @@ def check(ok: bool, what: str, value=None) -> dict:
 class Ctx:
     """The work folder, the rig and its multipart parts, distinct poses, and the server log."""
 
-    def __init__(self, work: Path, quick: bool):
+    def __init__(self, work: Path, quick: bool, extra: list[str] | None = None):
         self.work = work
+        self.extra = list(extra or [])          # --serve-args: added to every server's flags
         self.quick = quick
         self.rig_json = make_rig(work, 800, 450)
         self.files = multipart(self.rig_json)
@@ -157,7 +158,7 @@ class Ctx:
         return self.work / f"store-{self._n:02d}-{name}"
 
     def serve(self, store: Path, flags: list[str]):
-        return _serve(store, self.log, flags, ready_s=180.0)
+        return _serve(store, self.log, flags + self.extra, ready_s=180.0)
 
 
 def client(url: str, timeout: float = 120.0, headers: dict | None = None):
@@ -200,10 +201,12 @@ def all_records(c) -> list[dict]:
 
 
 def render_clients(url: str, sid: str, poses: Poses, clients: int, seconds: float, max_per_client: int,
-                   size=(800, 600, "jpeg"), backoff_s: float = 0.0, timeout: float = 60.0) -> dict:
+                   size=(800, 600, "jpeg"), backoff_s: float = 0.0, timeout: float = 60.0, nice: int = 0) -> dict:
     """``clients`` threads, each with its own kept-alive connection, GET .../render with distinct poses until
     ``seconds`` have passed or ``max_per_client`` requests. Latencies of 200s; every other answer counted by
-    status, with whether it carried Retry-After; transport errors (time-outs) counted apart."""
+    status, with whether it carried Retry-After; transport errors (time-outs) counted apart. ``nice``: the client
+    threads run that much nicer (on this 2-core machine the load generator shares the server's cores; in a
+    deployment it runs elsewhere)."""
     import httpx
 
     w, h, fmt = size
@@ -218,6 +221,9 @@ def render_clients(url: str, sid: str, poses: Poses, clients: int, seconds: floa
     stop_at = [0.0]
 
     def run():
+        if nice:
+            with contextlib.suppress(OSError):
+                os.setpriority(os.PRIO_PROCESS, threading.get_native_id(), nice)
         with httpx.Client(base_url=url, timeout=timeout) as c:
             c.get("/v2/health/live")
             start.wait()
@@ -267,54 +273,68 @@ def render_clients(url: str, sid: str, poses: Poses, clients: int, seconds: floa
 
 
 class HealthProbe:
-    """GET /v2/health/live every ``every`` s on a new connection (as a load balancer's probe), until stopped."""
+    """GET /v2/health/live every ``every`` s on a new connection (as a load balancer's probe), until stopped. The
+    probe runs in its own process (this script's ``_probe`` mode): in this one, the load's client threads would hold
+    the GIL and add their waits to the figures."""
 
     def __init__(self, url: str, every: float = 0.5, max_probes: int = 10_000):
         self.url, self.every, self.max = url, every, max_probes
         self.lat: list[float] = []
         self.failures: dict[str, int] = {}
-        self._stop = threading.Event()
-        self._t = threading.Thread(target=self._run, daemon=True)
-
-    def _run(self):
-        port = port_of(self.url)
-        for _ in range(self.max):
-            if self._stop.is_set():
-                break
-            t0 = now_s()
-            try:        # a raw socket: the time is the server's (connect + answer), not a client library's set-up
-                with socket.create_connection((HOST, port), timeout=5.0) as s:
-                    s.sendall(f"GET /v2/health/live HTTP/1.1\r\nHost: {HOST}\r\nConnection: close\r\n\r\n"
-                              .encode())
-                    data = b""
-                    while len(data) < 65536:
-                        more = s.recv(65536)
-                        if not more:
-                            break
-                        data += more
-                dt = now_s() - t0
-                status = data.split(b" ", 2)[1].decode() if data.startswith(b"HTTP/1.1 ") else "no answer"
-                if status == "200":
-                    self.lat.append(dt)
-                else:
-                    count(self.failures, status)
-            except OSError as e:
-                count(self.failures, type(e).__name__)
-            self._stop.wait(max(0.0, self.every - (now_s() - t0)))
 
     def __enter__(self):
-        self._t.start()
+        self._dir = tempfile.TemporaryDirectory(prefix="xyzcyl_probe_")
+        self._stop = Path(self._dir.name) / "stop"
+        self._p = subprocess.Popen([sys.executable, __file__, "_probe", str(port_of(self.url)), str(self.every),
+                                    str(self.max), str(self._stop)], stdout=subprocess.PIPE, text=True)
         return self
 
     def __exit__(self, *exc):
-        self._stop.set()
-        self._t.join(10)
+        self._stop.touch()
+        try:
+            out, _ = self._p.communicate(timeout=30)
+            doc = json.loads(out)
+            self.lat, self.failures = doc["lat"], doc["failures"]
+        except (subprocess.TimeoutExpired, ValueError) as e:
+            self._p.kill()
+            self.failures = {f"probe process: {type(e).__name__}": 1}
+        self._dir.cleanup()
+
 
     def report(self, limit_s: float = 0.1) -> dict:
         return {"probes": len(self.lat) + sum(self.failures.values()), "every_s": self.every,
                 "max_s": round(max(self.lat), 4) if self.lat else None, "p99_s": pct(self.lat, 99),
                 "p50_s": pct(self.lat, 50), "over_limit": sum(x >= limit_s for x in self.lat),
                 "failures": self.failures}
+
+def _probe_main(port: int, every: float, max_probes: int, stop: Path) -> None:
+    """The probe process: GET /v2/health/live over a raw socket (connect + answer) every ``every`` s until the
+    file ``stop`` exists (at most ``max_probes``); prints {"lat": [...], "failures": {...}}."""
+    lat: list[float] = []
+    failures: dict[str, int] = {}
+    for _ in range(max_probes):
+        if stop.exists():
+            break
+        t0 = now_s()
+        try:
+            with socket.create_connection((HOST, port), timeout=5.0) as s:
+                s.sendall(f"GET /v2/health/live HTTP/1.1\r\nHost: {HOST}\r\nConnection: close\r\n\r\n".encode())
+                data = b""
+                while len(data) < 65536:
+                    more = s.recv(65536)
+                    if not more:
+                        break
+                    data += more
+            dt = now_s() - t0
+            status = data.split(b" ", 2)[1].decode() if data.startswith(b"HTTP/1.1 ") else "no answer"
+            if status == "200":
+                lat.append(dt)
+            else:
+                count(failures, status)
+        except OSError as e:
+            count(failures, type(e).__name__)
+        time.sleep(max(0.0, every - (now_s() - t0)))
+    print(json.dumps({"lat": lat, "failures": failures}))
 
 
 def reconstruction_loop(url: str, ctx: Ctx, stop: threading.Event, out: list, max_posts: int = 100):
@@ -389,7 +409,8 @@ def cmd_overload(args, ctx: Ctx) -> dict:
     capacity = threads + queue
     flags = ["--render-threads", str(threads), "--render-queue", str(queue), "--reconstruct-workers",
              str(rworkers), "--reconstruct-queue", str(rqueue), "--ort-threads", "1", "--retry-after-s", "1"]
-    doc: dict = {"flags": flags, "capacity": capacity, "clients": 4 * capacity}
+    doc: dict = {"flags": flags, "capacity": capacity, "clients": 4 * capacity, "client_nice": args.client_nice,
+                 "client_backoff_s": 0.05}
     store = ctx.store("overload")
     with ctx.serve(store, flags) as (proc, url, ready_s):
         doc["server"] = {"pid": proc.pid, "ready_s": round(ready_s, 2)}
@@ -399,7 +420,7 @@ def cmd_overload(args, ctx: Ctx) -> dict:
         render_clients(url, sid, ctx.poses, 2, 2.0, 20, size)                                    # warm-up
         with HealthProbe(url) as probe:
             run = render_clients(url, sid, ctx.poses, 4 * capacity, seconds, 100_000, size, backoff_s=0.05,
-                                 timeout=30.0)
+                                 timeout=30.0, nice=args.client_nice)
         doc["renders"] = run
         doc["health_live"] = probe.report()
         st = run["statuses"]
@@ -1335,6 +1356,9 @@ COMMANDS = {"load": cmd_load, "overload": cmd_overload, "limits": cmd_limits, "c
 
 
 def main() -> int:
+    if len(sys.argv) == 6 and sys.argv[1] == "_probe":         # HealthProbe's own process
+        _probe_main(int(sys.argv[2]), float(sys.argv[3]), int(sys.argv[4]), Path(sys.argv[5]))
+        return 0
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("command", choices=sorted(COMMANDS))
     ap.add_argument("--quick", action="store_true", help="a short smoke run (figures not meaningful)")
@@ -1351,6 +1375,10 @@ def main() -> int:
     ap.add_argument("--kill-window", type=float, default=3.0, help="crash: kill 0..this many s after the posts")
     ap.add_argument("--tmpfs-mb", type=int, default=20, help="crash: size of the tmpfs store")
     ap.add_argument("--renders", type=int, default=10_000, help="soak: renders after the warm-up")
+    ap.add_argument("--client-nice", type=int, default=10, help="overload: the load generator's threads run this "
+                                                                "much nicer than the server (0: the same)")
+    ap.add_argument("--serve-args", default="", help="extra `xyzcyl serve` flags for every server, e.g. "
+                                                     "\"--compute-nice 0\"")
     ap.add_argument("--soak-max-s", type=float, default=1800.0, help="soak: stop the render loop after this long")
     args = ap.parse_args()
 
@@ -1365,7 +1393,9 @@ def main() -> int:
            "args": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()}}
     t0 = now_s()
     try:
-        ctx = Ctx(args.work, args.quick)
+        import shlex
+
+        ctx = Ctx(args.work, args.quick, shlex.split(args.serve_args))
         doc.update(COMMANDS[args.command](args, ctx))
         doc["pass"] = all(v["pass"] for v in doc.get("targets", {}).values())
     except Exception as e:  # noqa: BLE001 - reported in the document, then a non-zero exit

@@ -44,11 +44,27 @@ def _exit_with_parent(ppid: int, every_s: float = 1.0) -> None:
             os._exit(0)
 
 
-def _worker_init(model_dir: str, threads: int | None, server_pid: int | None = None) -> None:
+def lower_priority(nice: int) -> None:
+    """Make the calling thread (and the threads it starts later: onnxruntime's, numba's) ``nice`` steps nicer than
+    now. Linux nice values are per thread, so the server's event loop keeps its priority."""
+    if nice <= 0:
+        return
+    try:
+        import threading
+
+        tid = threading.get_native_id()
+        os.setpriority(os.PRIO_PROCESS, tid, min(19, os.getpriority(os.PRIO_PROCESS, tid) + nice))
+    except (OSError, AttributeError):      # not permitted, or not a POSIX system: run at the same priority
+        pass
+
+
+def _worker_init(model_dir: str, threads: int | None, server_pid: int | None = None, nice: int = 0) -> None:
     global _RECONSTRUCTOR
     import threading
 
     from xyzcyl.runtime.inference import Reconstructor
+
+    lower_priority(nice)                    # before the model loads: onnxruntime's threads inherit it
 
     # the server's pid as the server saw it: it may have died while this process was still starting
     threading.Thread(target=_exit_with_parent, args=(server_pid or os.getppid(),), name="exit-with-parent",
@@ -103,13 +119,14 @@ class Job:
 class _Worker:
     """One worker process (a single-process pool, so a crash breaks only this worker's job)."""
 
-    def __init__(self, model_dir: str, threads: int | None):
+    def __init__(self, model_dir: str, threads: int | None, nice: int = 0):
         self.args = (model_dir, threads)
+        self.nice = nice
         self.pool = self._new()
 
     def _new(self) -> cf.ProcessPoolExecutor:
         return cf.ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"),
-                                      initializer=_worker_init, initargs=(*self.args, os.getpid()))
+                                      initializer=_worker_init, initargs=(*self.args, os.getpid(), self.nice))
 
     def pids(self) -> list[int]:
         return [p.pid for p in (self.pool._processes or {}).values()]
@@ -150,7 +167,7 @@ class Reconstructions:
         """Start the worker processes and wait until each has loaded the model (readiness)."""
         self.queue = asyncio.Queue()
         loop = asyncio.get_running_loop()
-        self.workers = [_Worker(self.model_dir, self.settings.ort_threads)
+        self.workers = [_Worker(self.model_dir, self.settings.ort_threads, self.settings.compute_nice)
                         for _ in range(self.settings.reconstruct_workers)]
         await asyncio.gather(*(loop.run_in_executor(w.pool, _worker_ping) for w in self.workers))
         self._tasks = [asyncio.create_task(self._consume(w), name=f"reconstruct-{i}")
@@ -271,7 +288,9 @@ class Renders:
         self.metrics = metrics
         self.limit = settings.render_threads + settings.render_queue
         self.inflight = 0
-        self.pool = cf.ThreadPoolExecutor(settings.render_threads, thread_name_prefix="render")
+        # renders run nicer than the event loop (compute_nice): health and admission are answered at once under load
+        self.pool = cf.ThreadPoolExecutor(settings.render_threads, thread_name_prefix="render",
+                                          initializer=lower_priority, initargs=(settings.compute_nice,))
 
     def busy(self) -> bool:
         return self.inflight >= self.limit

@@ -54,6 +54,9 @@ class Settings(BaseSettings):
     render_threads: int = Field(default_factory=_cores, ge=1, le=256, description="renders at once (default: cores)")
     render_queue: int = Field(8, ge=0, description="renders waiting beyond the running ones")
     ort_threads: int | None = Field(None, ge=1, description="onnxruntime threads per worker (default: all cores)")
+    compute_nice: int = Field(5, ge=0, le=19, description="renders and reconstructions run this much nicer (lower CPU "
+                                                         "priority) than the request loop, so health checks and "
+                                                         "503s answer at once under load (0: the same priority)")
     retry_after_s: int = Field(1, ge=1, description="Retry-After of a 503 when busy")
     scene_cache: int = Field(4, ge=1, description="loaded scenes kept in memory for rendering")
     render_cache_bytes: int = Field(64 * MiB, ge=0, description="encoded views kept in memory (repeat poses)")
