@@ -285,6 +285,8 @@ def _read_ply_header(path: Path) -> tuple[int, list[tuple[str, str]], str, int]:
             elif not seen_vertex:
                 before += 1
         elif tok[0] == "property" and element == "vertex":
+            if len(tok) < 3:               # a bare "property" line (it was an IndexError)
+                raise GaussianError(f"{path.name}: vertex property line {line!r} not understood")
             if tok[1] == "list":
                 raise GaussianError(f"{path.name}: vertex property {tok[-1]!r}: list properties not supported")
             if len(tok) != 3 or tok[1] not in _INT_TYPES:

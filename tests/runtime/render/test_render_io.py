@@ -99,6 +99,11 @@ def test_ply_refusals(tmp_path):
     (tmp_path / "o.ply").write_bytes(head)
     with pytest.raises(GaussianError, match="f_rest"):
         Gaussians.load_ply(tmp_path / "o.ply")
+    # a property line cut short (found by the long property run: it was an IndexError)
+    for cut in (b"property\n", b"property float\n"):
+        (tmp_path / "p.ply").write_bytes(raw.replace(b"property float x\n", cut, 1))
+        with pytest.raises(GaussianError, match="not understood"):
+            Gaussians.load_ply(tmp_path / "p.ply")
 
 
 def test_gaussians_validation_names_the_field():
