@@ -52,7 +52,10 @@ from pathlib import Path
 import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
-EXAMPLE = REPO / "examples" / "synth_nuscenes" / "rig.json"
+
+sys.path.insert(0, str(Path(__file__).parent))
+from inference_bench import make_rig  # the example rig as 6 JPEGs at width x height
+
 XYZCYL = Path(sys.executable).parent / "xyzcyl"
 TARGETS = {"reconstruct_median_s": 1.5, "render_1600x900_png_median_s": 0.3, "render_800x600_jpeg_median_s": 0.1,
            "concurrency_4_over_1": 1.6, "rss_growth_mb": 50.0}
@@ -233,25 +236,6 @@ def metric(text: str, name: str, label: str = "") -> float:
 
 
 # ----------------------------------------------------------------------------------------------- input
-
-
-def make_rig(work: Path, width: int = 1600, height: int = 900) -> Path:
-    """The example rig at width x height, JPEG quality 90 (as benchmarks/inference_bench.py)."""
-    import cv2
-    from xyzcyl.runtime.rig import Rig, load_rig, save_rig
-
-    out = work / f"rig{width}"
-    out.mkdir(parents=True, exist_ok=True)
-    rig = load_rig(EXAMPLE)
-    cams = []
-    for c in rig.cameras:
-        img = cv2.imread(str(rig.path(c.image)), cv2.IMREAD_COLOR)
-        big = cv2.resize(img, (width, height), interpolation=cv2.INTER_LINEAR)
-        name = f"{c.name}.jpg"
-        cv2.imwrite(str(out / name), big, [cv2.IMWRITE_JPEG_QUALITY, 90])
-        cams.append(c.resized(width, height).replace(image=name))
-    save_rig(Rig(cameras=tuple(cams), extra=rig.extra), out / "rig.json")
-    return out / "rig.json"
 
 
 def multipart(rig_json: Path) -> list:
