@@ -563,6 +563,34 @@ def decode_image(data: bytes, output: str = "rgb") -> np.ndarray:
     return np.ascontiguousarray(a)
 
 
+def write_video(frames_dir: Path, names: list[str], output: str, video: Path, fps: float) -> str | None:
+    """The frame files ``names`` in ``frames_dir`` (as a batch render wrote them) -> an mp4 (OpenCV VideoWriter,
+    mp4v) at ``fps``; grey frames (alpha) are repeated to RGB. Returns an error message, or None."""
+    import cv2
+
+    writer = None
+    try:
+        for name in names:
+            img = decode_image((frames_dir / name).read_bytes(), output)
+            if img.ndim == 2:
+                img = np.repeat(img[..., None], 3, axis=-1)
+            bgr = np.ascontiguousarray(np.clip(np.rint(img[..., ::-1] * 255.0), 0, 255).astype(np.uint8))
+            h, w = bgr.shape[:2]
+            if writer is None:
+                size = (w, h)
+                writer = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"mp4v"), fps, size)
+                if not writer.isOpened():
+                    return (f"OpenCV cannot write {str(video)!r}: the mp4v (MPEG-4) codec is unavailable in this "
+                            f"OpenCV build; the frames are in {str(frames_dir)!r}")
+            if (w, h) != size:
+                return f"frame {name} is {w}x{h}, the video is {size[0]}x{size[1]}: a video needs one frame size"
+            writer.write(bgr)
+    finally:
+        if writer is not None:
+            writer.release()
+    return None
+
+
 class FrameBatch:
     """The frames of a batch render (POST /v1/scenes/{id}/render), spooled to a temporary file: iterate for
     (file name, frame) in order; ``index`` is the zip's index.json (each frame's size, K, cam_to_ego).

@@ -74,20 +74,6 @@ def dolly(distance: float, eye_height: float, frames: int, look_ahead: float = 1
             for x in np.linspace(0.0, distance, frames)]
 
 
-def write_video(frames: list[np.ndarray], path: Path, fps: float) -> bool:
-    """RGB float frames -> mp4 (mp4v). False when this OpenCV build cannot write mp4v."""
-    import cv2
-
-    h, w = frames[0].shape[:2]
-    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"mp4v"), fps, (w, h))
-    if not writer.isOpened():
-        return False
-    for f in frames:
-        writer.write(np.ascontiguousarray(np.clip(np.rint(f[..., ::-1] * 255), 0, 255).astype(np.uint8)))
-    writer.release()
-    return True
-
-
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                  epilog="See the module docstring (and docs/client.md) for how to run it.")
@@ -110,7 +96,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--no-video", action="store_true", help="frames only")
     args = ap.parse_args(argv)
 
-    from xyzcyl.clients import Client, XyzcylError, decode_image
+    from xyzcyl.clients import Client, XyzcylError
+    from xyzcyl.clients.client import write_video
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -125,26 +112,23 @@ def main(argv: list[str] | None = None) -> int:
             if scene_id is None:
                 print(f"reconstructing {args.rig} on {client.base_url} ...", file=sys.stderr)
                 scene_id = client.reconstruct(args.rig).id
-            frames = []
+            names = []
             with client.render_path(scene_id, path_file, decode=False,
                                     progress=lambda k, n: print(f"\rframe {k}/{n}", end="", file=sys.stderr)
                                     ) as batch:
                 print(file=sys.stderr)
                 for name, data in batch:
                     (out / name).write_bytes(data)
-                    frames.append(decode_image(data))
+                    names.append(name)
                 (out / "index.json").write_text(json.dumps(batch.index, indent=1) + "\n")
     except XyzcylError as e:
         print(f"nerfstudio_camera_path: {e}", file=sys.stderr)
         return 2
-    print(f"{path_file} and {len(frames)} frames in {out}/", file=sys.stderr)
+    print(f"{path_file} and {len(names)} frames in {out}/", file=sys.stderr)
     if not args.no_video:
         video = out / "path.mp4"
-        if write_video(frames, video, args.fps):
-            print(f"video: {video}", file=sys.stderr)
-        else:
-            print("video: this OpenCV build cannot write mp4 (codec mp4v unavailable); the frames are written",
-                  file=sys.stderr)
+        err = write_video(out, names, "rgb", video, args.fps)
+        print(f"video: {err or video}", file=sys.stderr)
     print(scene_id)
     return 0
 

@@ -219,35 +219,6 @@ def _render(c, args) -> int:
     return 0
 
 
-def _video(frames_dir: Path, names: list[str], output: str, video: Path, fps: float) -> str | None:
-    """Frames -> mp4 (OpenCV VideoWriter, mp4v). Returns an error message, or None."""
-    import cv2
-    import numpy as np
-    from xyzcyl.clients.client import decode_image
-
-    writer = None
-    try:
-        for name in names:
-            img = decode_image((frames_dir / name).read_bytes(), output)
-            if img.ndim == 2:
-                img = np.repeat(img[..., None], 3, axis=-1)
-            bgr = np.ascontiguousarray(np.clip(np.rint(img[..., ::-1] * 255.0), 0, 255).astype(np.uint8))
-            h, w = bgr.shape[:2]
-            if writer is None:
-                size = (w, h)
-                writer = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"mp4v"), fps, size)
-                if not writer.isOpened():
-                    return (f"OpenCV cannot write {str(video)!r}: the mp4v (MPEG-4) codec is unavailable in this "
-                            f"OpenCV build; the frames are in {str(frames_dir)!r}")
-            if (w, h) != size:
-                return f"frame {name} is {w}x{h}, the video is {size[0]}x{size[1]}: a video needs one frame size"
-            writer.write(bgr)
-    finally:
-        if writer is not None:
-            writer.release()
-    return None
-
-
 def _path(c, args) -> int:
     out = Path(args.out)
     if args.video is not None:
@@ -284,7 +255,9 @@ def _path(c, args) -> int:
         fps = args.fps or doc.get("fps") or 24.0
         if not (isinstance(fps, (int, float)) and fps > 0):
             raise _UsageError("--fps", f"must be > 0 (got {fps!r})")
-        err = _video(out, names, batch.output, video, float(fps))
+        from xyzcyl.clients.client import write_video
+
+        err = write_video(out, names, batch.output, video, float(fps))
         if err is not None:
             raise _UsageError("--video", err)
         _say(args, f"wrote {video} ({len(names)} frames at {float(fps):g} fps)")
