@@ -62,9 +62,11 @@ def _worker_init(model_dir: str, threads: int | None, server_pid: int | None = N
     global _RECONSTRUCTOR
     import threading
 
-    from xyzcyl.runtime.inference import Reconstructor
+    # first of all: every thread started later inherits it (numpy's OpenBLAS pool starts at the import below,
+    # onnxruntime's and numba's when the model loads)
+    lower_priority(nice)
 
-    lower_priority(nice)                    # before the model loads: onnxruntime's threads inherit it
+    from xyzcyl.runtime.inference import Reconstructor
 
     # the server's pid as the server saw it: it may have died while this process was still starting
     threading.Thread(target=_exit_with_parent, args=(server_pid or os.getppid(),), name="exit-with-parent",
