@@ -625,6 +625,23 @@ class FrameBatch:
         data = self._zip.read(name)
         return name, (decode_image(data, self.output) if self.decode else data)
 
+    def save(self, folder: str | os.PathLike) -> list[str]:
+        """Write the remaining frames as the server encoded them, and index.json, into ``folder`` (each file
+        atomically: temporary + rename). Returns the frame file names in order."""
+        out = Path(folder)
+        names = []
+        decode, self.decode = self.decode, False
+        try:
+            for name, data in self:
+                with atomic_file(out / name) as f:
+                    f.write(data)
+                names.append(name)
+        finally:
+            self.decode = decode
+        with atomic_file(out / "index.json") as f:
+            f.write((json.dumps(self.index, indent=1) + "\n").encode())
+        return names
+
     def close(self) -> None:
         if self._zip is not None:
             self._zip.close()

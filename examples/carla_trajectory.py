@@ -19,7 +19,6 @@ $XYZCYL_API_KEY.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
@@ -73,15 +72,11 @@ def main(argv: list[str] | None = None) -> int:
             xs = np.linspace(args.x_start, args.x_end, args.frames)
             sensors = [carla_sensor(float(x), args.y, args.z, args.pitch, args.yaw, 0.0, args.fov, args.width,
                                     args.height) for x in xs]
-            names = []
             with client.render_path(scene_id, {"cameras": sensors}, decode=False,
                                     progress=lambda k, n: print(f"\rframe {k}/{n}", end="", file=sys.stderr)
                                     ) as batch:
                 print(file=sys.stderr)
-                for name, data in batch:
-                    (out / name).write_bytes(data)
-                    names.append(name)
-                (out / "index.json").write_text(json.dumps(batch.index, indent=1) + "\n")
+                names = batch.save(out)
     except XyzcylError as e:
         print(f"carla_trajectory: {e}", file=sys.stderr)
         return 2

@@ -112,15 +112,11 @@ def main(argv: list[str] | None = None) -> int:
             if scene_id is None:
                 print(f"reconstructing {args.rig} on {client.base_url} ...", file=sys.stderr)
                 scene_id = client.reconstruct(args.rig).id
-            names = []
             with client.render_path(scene_id, path_file, decode=False,
                                     progress=lambda k, n: print(f"\rframe {k}/{n}", end="", file=sys.stderr)
                                     ) as batch:
                 print(file=sys.stderr)
-                for name, data in batch:
-                    (out / name).write_bytes(data)
-                    names.append(name)
-                (out / "index.json").write_text(json.dumps(batch.index, indent=1) + "\n")
+                names = batch.save(out)
     except XyzcylError as e:
         print(f"nerfstudio_camera_path: {e}", file=sys.stderr)
         return 2

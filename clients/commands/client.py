@@ -244,12 +244,8 @@ def _path(c, args) -> int:
                               decode=False, progress=update)
     finally:
         close()
-    names = []
     with batch:
-        for name, data in batch:
-            _write_atomic(out / name, data)
-            names.append(name)
-        _write_atomic(out / "index.json", (json.dumps(batch.index, indent=1) + "\n").encode())
+        names = batch.save(out)
     _say(args, f"wrote {len(names)} frames ({batch.output} {batch.format}) and index.json to {out}")
     if args.video is not None:
         fps = args.fps or doc.get("fps") or 24.0
