@@ -72,7 +72,8 @@ def _worker_init(model_dir: str, threads: int | None, server_pid: int | None = N
     threading.Thread(target=_exit_with_parent, args=(server_pid or os.getppid(),), name="exit-with-parent",
                      daemon=True).start()
 
-    _RECONSTRUCTOR = Reconstructor.load(model_dir, threads=threads)
+    # verify=False: create_app already checked every file's sha256 (hashing 27 MB again per worker start is waste)
+    _RECONSTRUCTOR = Reconstructor.load(model_dir, threads=threads, verify=False)
 
 
 def _worker_ping() -> int:
