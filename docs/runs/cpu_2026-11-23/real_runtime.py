@@ -1,10 +1,13 @@
 """The shipped ONNX model (models/xyzcyl-cpu-v1) through the service's runtime path on the real rigs of ../shared/data/real: input-view PSNR at 400 px wide, against the area-resized input (the rule of real.py, which runs the torch checkpoints).
     .venv/bin/python docs/runs/cpu_2026-11-23/real_runtime.py > docs/runs/cpu_2026-11-23/real_runtime.json"""
-import json, sys
-import numpy as np, cv2
+import json
+
+import cv2
+import numpy as np
 from xyzcyl.runtime.inference import Reconstructor
 from xyzcyl.runtime.rig import load_rig
 from xyzcyl.runtime.scene import render_view, rig_camera
+
 rec = Reconstructor.load("models/xyzcyl-cpu-v1", threads=2)
 out = {}
 for name in ("nuscenes_ca9a282c", "pandaset_002_00"):
