@@ -13,7 +13,9 @@ One item = one scene (the network is unbatched over scenes; use ``collate_scenes
     item["occupancy"]   [L_z, L_y, L_x] int64  0 empty / 1 occupied (grid of ``voxel_size``); with
                                                occupancy_labels "surface": 1 only for occupied voxels an input
                                                camera sees, 255 (OCC_UNKNOWN) for hidden occupied voxels —
-                                               select voxels with ``== 1``, never ``.bool()``
+                                               select voxels with ``== 1``, never ``.bool()``; "surface+ego":
+                                               as "surface", and the ego car's voxels are 1 (no input camera
+                                               sees the car the rig is on, but it is always there)
     item["bev"]         [L_y, L_x] int64       1 where the column holds an occupied voxel that is not ground
                                                (road / sidewalk / terrain): the obstacle map
     item["lifting"]     dict of float32 tensors (runtime.lifting.build_lifting_inputs) if a model config is given,
@@ -37,13 +39,13 @@ import torch
 from xyzcyl.runtime.rig import Camera, Rig, load_rig, read_image
 
 from .config import ConfigError, _Frozen
-from .data.classes import ROAD, SIDEWALK, TERRAIN
+from .data.classes import EGO, ROAD, SIDEWALK, TERRAIN
 
 GROUND_CLASSES = (ROAD, SIDEWALK, TERRAIN)   # BEV target: a column is "occupied" if it holds anything else
 
 SETTINGS = ("ego-forward", "ego-inward")
 MIXED = "both"   # DatasetConfig.setting: draw the T targets from the union of both settings' cameras
-OCCUPANCY_LABELS = ("solid", "surface")
+OCCUPANCY_LABELS = ("solid", "surface", "surface+ego")
 OCC_UNKNOWN = 255   # occupancy label ignored by every loss (losses.IGNORE_INDEX)
 # xyzcyl train --camera-aug S: DatasetConfig fields at S = 1 (each scaled by S)
 CAMERA_AUG_PRESET = {"camera_exposure": 0.3, "camera_white_balance": 0.1, "vignetting": 0.4, "blur": 0.3,
@@ -68,7 +70,8 @@ class DatasetConfig(_Frozen):
     flip_prob: float = 0.0              # mirror the scene across the ego x-z plane (y -> -y) with this probability
     max_depth: float = 80.0             # metres: deeper pixels (far ground near the horizon) are not depth-valid
     target_scale: float = 1.0           # targets resampled to this fraction of their size (cheaper rendering)
-    occupancy_labels: str = "solid"     # "surface": only occupied voxels the input cameras see, hidden ones 255
+    occupancy_labels: str = "solid"     # "surface": only occupied voxels the input cameras see, hidden ones 255;
+                                        # "surface+ego": also the ego car's voxels (class EGO) occupied
     surface_dilation: int = 0           # "surface": also occupied voxels within this many voxels (26-neighbours)
     camera_exposure: float = 0.0        # input cameras only, per camera: gain drawn from [1 - e, 1 + e]
     camera_white_balance: float = 0.0   # per camera and channel: gain drawn from [1 - w, 1 + w]
@@ -327,18 +330,22 @@ def surface_hits(shape: tuple[int, int, int], pc_range, voxel_size: float, camer
 
 
 def surface_labels(occupied: np.ndarray, pc_range, voxel_size: float, cameras: list[Camera], depth: np.ndarray,
-                   valid: np.ndarray, dilation: int = 0, stride: int = 1) -> np.ndarray:
+                   valid: np.ndarray, dilation: int = 0, stride: int = 1,
+                   keep: np.ndarray | None = None) -> np.ndarray:
     """Visibility-carved occupancy labels [L_z, L_y, L_x] uint8 from the solid grid occupied [L_z, L_y, L_x]:
     1 = occupied voxel holding a point an input camera sees (``surface_hits``; with ``dilation`` k also occupied
     voxels within k voxels of one, 26-neighbourhood), OCC_UNKNOWN = 255 = occupied voxel no camera sees (inside
     a building, behind a facade: the network cannot know it, so no loss), 0 = free (the generator's exact
-    geometry, wherever it is; the space in front of every hit is free). depth / valid [N, H, W] as in the item."""
+    geometry, wherever it is; the space in front of every hit is free). depth / valid [N, H, W] as in the item.
+    keep [L_z, L_y, L_x] bool: occupied voxels that are 1 whether a camera sees them or not (the ego car)."""
     hit = surface_hits(occupied.shape, pc_range, voxel_size, cameras, depth, valid, stride)
     if dilation:
         hit = _dilate(hit, dilation)
     out = np.zeros(occupied.shape, np.uint8)
     out[occupied] = OCC_UNKNOWN
     out[occupied & hit] = 1
+    if keep is not None:
+        out[occupied & keep] = 1
     return out
 
 
@@ -423,8 +430,9 @@ class SceneDataset(torch.utils.data.Dataset):
     def set_epoch(self, epoch: int) -> None:
         self.epoch = int(epoch)
 
-    def _occupancy(self, folder: Path) -> tuple[np.ndarray, np.ndarray, tuple[float, ...]]:
-        """(occupied [L_z, L_y, L_x] bool, bev [L_y, L_x] bool, range) from occupancy.npz."""
+    def _occupancy(self, folder: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, tuple[float, ...]]:
+        """(occupied [L_z, L_y, L_x] bool, ego [L_z, L_y, L_x] bool (the ego car's voxels), bev [L_y, L_x] bool,
+        range) from occupancy.npz."""
         z = np.load(folder / "occupancy.npz")
         key = f"semantic_{self.cfg.voxel_tag}"
         if key not in z:
@@ -436,8 +444,9 @@ class SceneDataset(torch.utils.data.Dataset):
             raise DataError(f"{folder / 'occupancy.npz'}: pc_range: file has {rng_m}, expected {tuple(want)}")
         sem = z[key]                                           # [X, Y, Z] uint8, index 0 at the range minimum
         occ = sem.transpose(2, 1, 0) > 0                       # -> [L_z, L_y, L_x]
+        ego = sem.transpose(2, 1, 0) == EGO
         bev = np.isin(sem, GROUND_CLASSES + (0,), invert=True).any(axis=2).T   # [L_y, L_x]
-        return np.ascontiguousarray(occ), np.ascontiguousarray(bev), rng_m
+        return np.ascontiguousarray(occ), np.ascontiguousarray(ego), np.ascontiguousarray(bev), rng_m
 
     def __getitem__(self, index: int) -> dict[str, Any]:
         return self.item(index, self.epoch)
@@ -469,10 +478,11 @@ class SceneDataset(torch.utils.data.Dataset):
             img, timg = both[:len(img)], both[len(img):]
         if cfg.camera_aug:      # inputs only, after the jitter; a child stream leaves rng's draws unchanged
             img = camera_augment(img, rng.spawn(1)[0], cfg)
-        occ, bev, rng_m = self._occupancy(folder)
-        if cfg.occupancy_labels == "surface":   # before the flip: unflipped cameras and depths, flipped below
+        occ, ego, bev, rng_m = self._occupancy(folder)
+        if cfg.occupancy_labels != "solid":   # before the flip: unflipped cameras and depths, flipped below
             seen = np.isfinite(depth) & (depth > 0) & (depth <= cfg.max_depth) & ~sky
-            occ = surface_labels(occ, rng_m, cfg.voxel_size, list(rig.cameras), depth, seen, cfg.surface_dilation)
+            occ = surface_labels(occ, rng_m, cfg.voxel_size, list(rig.cameras), depth, seen, cfg.surface_dilation,
+                                 keep=ego if cfg.occupancy_labels == "surface+ego" else None)
 
         in_cams, t_cams = list(rig.cameras), list(trig.cameras)
         flipped = bool(cfg.flip_prob > 0 and rng.random() < cfg.flip_prob and can_flip(in_cams + t_cams, rng_m))

@@ -52,9 +52,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="pixel-Gaussian anchor (docs/architecture.md; default: the preset's)")
     parser.add_argument("--max-voxels", type=int, default=None,
                         help="cap on occupied voxels per scene (default: the preset's)")
-    parser.add_argument("--occupancy-labels", default="solid", choices=("solid", "surface"),
+    parser.add_argument("--occupancy-labels", default="solid", choices=("solid", "surface", "surface+ego"),
                         help="stage-1 targets: every occupied voxel (solid) or only those an input camera sees "
-                             "(surface; hidden ones are ignored; docs/training.md)")
+                             "(surface; hidden ones are ignored), or surface plus the ego car's voxels, which no "
+                             "input camera sees but are always there (surface+ego; docs/training.md)")
     parser.add_argument("--flip-prob", type=float, default=0.5, help="scene mirror (y -> -y) probability")
     parser.add_argument("--jitter", type=float, default=0.1, help="colour jitter strength (brightness, contrast, "
                                                                   "saturation), 0 disables")

@@ -65,6 +65,12 @@ def test_surface_labels_keep_the_front_layer_of_a_wall():
     occ2, cam2, depth2, valid2 = _wall_scene(distortion=(1e-9, 0.0, 0.0, 0.0))
     assert cam2.distortion is not None
     assert np.array_equal(surface_labels(occ2, RANGE, 1.0, [cam2], depth2, valid2), lab)
+    # keep: hidden occupied voxels (the ego car) become 1; kept free voxels stay free
+    keep = np.zeros_like(occ)
+    keep[:, :, 7:9] = True
+    kept = surface_labels(occ, RANGE, 1.0, [cam], depth, valid, keep=keep)
+    assert (kept[:, :, 7] == 1).all() and (kept[:, :, 8] == 0).all() and (kept[:, :, 6] == OCC_UNKNOWN).all()
+    assert np.array_equal(kept[:, :, :7], lab[:, :, :7])
 
 
 @pytest.fixture
@@ -89,6 +95,19 @@ def test_surface_labels_in_items_and_flip(tiny_data):
                            list(flip["rig"].cameras), flip["depth"][:, 0].numpy(),
                            (flip["depth_valid"] & (flip["sky"] < 0.5))[:, 0].numpy())
     assert (again == flip["occupancy"].numpy()).mean() > 0.9999
+
+
+def test_surface_ego_labels_mark_the_hidden_ego_car(tiny_data):
+    from xyzcyl.model_export.data.classes import EGO
+    surf = SceneDataset(tiny_data, DatasetConfig(occupancy_labels="surface"))
+    ego = SceneDataset(tiny_data, DatasetConfig(occupancy_labels="surface+ego"))
+    sem = np.load(surf.scenes[0] / "occupancy.npz")["semantic_0p8"].transpose(2, 1, 0)   # [L_z, L_y, L_x]
+    car = sem == EGO
+    assert car.sum() >= 10                               # the generator's ego car spans many 0.8 m voxels
+    a, b = surf[0]["occupancy"].numpy(), ego[0]["occupancy"].numpy()
+    assert (a[car] != 1).mean() > 0.9                   # no input camera sees the ego car: (nearly) all hidden
+    assert (b[car] == 1).all()                           # surface+ego: every ego voxel occupied
+    assert np.array_equal(a[~car], b[~car])              # nothing else changes
 
 
 def test_surface_config_validation():
