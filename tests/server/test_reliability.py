@@ -265,10 +265,13 @@ def test_compute_runs_nicer_than_the_request_loop(guarded):
     with R.client(guarded.url, 60, AUTH) as c:           # a render: the pool's threads (and numba's) exist
         r = c.get(f"/v1/scenes/{guarded.sid}/render", params={"camera": "CAM_FRONT", "width": 96, "format": "jpeg"})
         assert r.status_code == 200
+    import os
+
+    base = os.nice(0)                                               # the server inherits the test's own nice
     server = _thread_nices(guarded.pid)
-    assert server[guarded.pid] == 0, server                         # the event loop
-    assert sum(n == 5 for n in server.values()) >= 1, server       # the render thread(s)
+    assert server[guarded.pid] == base, server                      # the event loop
+    assert sum(n == min(base + 5, 19) for n in server.values()) >= 1, server   # the render thread(s)
     workers = R.worker_pids(guarded.pid)
     assert workers
     for w in workers:
-        assert set(_thread_nices(w).values()) == {5}, (w, _thread_nices(w))
+        assert set(_thread_nices(w).values()) == {min(base + 5, 19)}, (w, _thread_nices(w))
