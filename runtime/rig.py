@@ -450,7 +450,9 @@ def read_image(path: Path, what: str, channels: int = 3, scale: bool = True) -> 
     inp = _open_image(path, what)
     try:
         spec = inp.spec()
-        native = inp.read_image(0, 0, 0, spec.nchannels)  # native type: integers stay exact
+        # the file's own type (integers stay exact): without it OpenImageIO's Python read_image converts to float
+        # and scales integers to 0..1, whatever `scale` says (a 16-bit depth PNG of 5000 mm read as 0.076)
+        native = inp.read_image(0, 0, 0, spec.nchannels, spec.format)
     finally:
         inp.close()
     if native is None:

@@ -9,7 +9,7 @@ import math
 import cv2
 import numpy as np
 import pytest
-from xyzcyl.runtime.rig import Rig, RigError, load_rig, ring_rig, save_rig
+from xyzcyl.runtime.rig import Rig, RigError, load_rig, read_depth, read_image, ring_rig, save_rig
 
 
 def _cam_dict(name="CAM_A", w=64, h=48, image=None):
@@ -203,6 +203,20 @@ def test_ring_rig_geometry():
     np.testing.assert_allclose(rig.cameras[1].position, [0, -0.5, 1.5], atol=1e-12)
     for cam in rig.cameras:
         np.testing.assert_allclose(cam.rotation[:, 1], [0, 0, -1], atol=1e-12)  # image down = ego down
+
+
+def test_integer_files_unscaled_and_16bit_depth_in_millimetres(tmp_path):
+    """Regression: read_image(scale=False) returned 8/16-bit values scaled to 0..1 (OpenImageIO's Python
+    read_image converts to float unless given the file's type), so a 16-bit depth PNG of 5000 mm read as 7.6e-5 m."""
+    import cv2
+
+    mm = np.array([[0, 1, 5000], [65535, 1234, 80000 // 2]], np.uint16)
+    cv2.imwrite(str(tmp_path / "d16.png"), mm)
+    np.testing.assert_allclose(read_depth(tmp_path / "d16.png", "depth"), mm.astype(np.float32) * 0.001, rtol=1e-6)
+    cls = np.array([[0, 10, 255]], np.uint8)
+    cv2.imwrite(str(tmp_path / "s8.png"), cls)
+    np.testing.assert_array_equal(read_image(tmp_path / "s8.png", "s", channels=1, scale=False)[..., 0], cls)
+    np.testing.assert_allclose(read_image(tmp_path / "s8.png", "s", channels=1)[..., 0], cls / 255.0, rtol=1e-6)
 
 
 def test_image_formats_and_depth(tmp_path):
