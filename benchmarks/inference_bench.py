@@ -207,6 +207,8 @@ def torch_vs_onnx(args, model_dir: Path, rig_json: Path, ck: Path | None) -> Non
 
     def onnx():
         enc = rec._run("encode", feed)
+        if "volume" not in rec.sessions:       # a model without the volume branch (e.g. the shipped 1.1.0)
+            return np.zeros(0, np.int64)
         idx = select_voxels(enc["occ_logits"], rec.info.max_voxels)
         rec._run("volume", {"geo_cpfg": enc["geo_cpfg"], "app_cpfg": enc["app_cpfg"], "voxel_idx": idx,
                             "vol_coords": lift["vol_coords"], "voxel_centres": lift["voxel_centres"]})
@@ -229,7 +231,8 @@ def torch_vs_onnx(args, model_dir: Path, rig_json: Path, ck: Path | None) -> Non
         eager()
         t_torch.append(time.perf_counter() - t0)
     mo, mt = statistics.median(t_onnx), statistics.median(t_torch)
-    emit({"case": "onnx_vs_torch", "threads": args.threads, "what": "encode + selection + volume vs forward",
+    emit({"case": "onnx_vs_torch", "threads": args.threads, "what": "encode + selection + volume vs forward" if idx.size or "volume" in rec.sessions
+          else "encode vs forward (no volume branch)",
           "onnxruntime_median_s": round(mo, 4), "torch_eager_median_s": round(mt, 4),
           "torch_over_onnx": round(mt / mo, 2), "voxels": int(idx.size), "load_avg": os.getloadavg()[0]})
 
