@@ -9,7 +9,7 @@ set -euo pipefail
 X=${X:-.venv/bin/xyzcyl}
 RUNS=${RUNS:-runs/cpu2}
 OUT=${OUT:-runs/cpu2b}
-CONT=${CONT:-"full no-volume no-background no-rgb"}
+CONT=${CONT-"full no-volume no-background"}   # CONT="" with POST=1: only the post block
 CONT_STEPS=${CONT_STEPS:-500}
 TARGETS=${TARGETS:-4}
 declare -A EXTRA=([full]="--pixel-upsample 4" [no-rgb]="--pixel-upsample 4 --ablation no-rgb"
@@ -53,13 +53,15 @@ if [ -n "${POST:-}" ]; then
     $X eval --checkpoint "$SHIP" --data "data/val_$r" --setting ego-forward,ego-inward --out "$OUT/eval/rig_$r" \
       --threads 1 --quiet
   done
+  $X eval --baseline unproject --checkpoint "$SHIP" --data data/val --setting ego-forward,ego-inward \
+    --out "$OUT/eval/unproject" --threads 1 --quiet     # the unprojection baseline with the shipped depth head
   $P docs/runs/table.py "XYZCylinder (cpu, no volume, 1000 steps), 6 cameras=$OUT/eval/no-volume" \
     "5 cameras (waymo)=$OUT/eval/rig_waymo" "7 cameras (argoverse)=$OUT/eval/rig_argoverse" \
     "8 cameras (ring8.json)=$OUT/eval/rig_ring8" > $D/table_rigs_1000.md
   $P docs/runs/table.py "full, 1000 steps=$OUT/eval/full" "no volume, 1000 steps (shipped v1.1.0)=$OUT/eval/no-volume" \
     "no background, 1000 steps=$OUT/eval/no-background" "full, 500 steps (v1.0.0)=$RUNS/eval/full" \
-    "no volume, 500 steps=$RUNS/eval/no-volume" > $D/table_1000.md
-  for pair in "full no-volume" "full no-background" "no-volume no-background"; do
+    "no volume, 500 steps=$RUNS/eval/no-volume" "$OUT/eval/unproject" > $D/table_1000.md
+  for pair in "full no-volume" "full no-background" "no-volume no-background" "no-volume unproject"; do
     set -- $pair
     $P docs/runs/paired.py "$OUT/eval/$1" "$OUT/eval/$2"
   done > $D/paired_1000.txt
@@ -78,4 +80,7 @@ if [ -n "${POST:-}" ]; then
     --occ "stage 1 + 300 steps surface+ego=$OUT/occ_ego/occ.pt" --scenes 10 --out $D/ego.json
   $P docs/runs/compare.py data/val $D/compare_1000.jpg --model "full 500 (v1.0.0)=$RUNS/render_full" \
     --model "full 1000=$OUT/render_full" --model "no volume 1000 (v1.1.0)=$OUT/render_no-volume"
+  # the 5-camera rig with and without the mirrored completion, through the shipped ONNX model (export it first:
+  # xyzcyl export --checkpoint $SHIP --out models/xyzcyl-cpu-v1 --version 1.1.0 ...; docs/results.md)
+  $P $D/waymo_completion.py --model models/xyzcyl-cpu-v1 --out $D/waymo_completion
 fi
