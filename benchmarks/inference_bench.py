@@ -231,8 +231,8 @@ def torch_vs_onnx(args, model_dir: Path, rig_json: Path, ck: Path | None) -> Non
         eager()
         t_torch.append(time.perf_counter() - t0)
     mo, mt = statistics.median(t_onnx), statistics.median(t_torch)
-    emit({"case": "onnx_vs_torch", "threads": args.threads, "what": "encode + selection + volume vs forward" if idx.size or "volume" in rec.sessions
-          else "encode vs forward (no volume branch)",
+    what = "encode + selection + volume" if "volume" in rec.sessions else "encode (no volume branch)"
+    emit({"case": "onnx_vs_torch", "threads": args.threads, "what": f"{what} vs forward",
           "onnxruntime_median_s": round(mo, 4), "torch_eager_median_s": round(mt, 4),
           "torch_over_onnx": round(mt / mo, 2), "voxels": int(idx.size), "load_avg": os.getloadavg()[0]})
 
