@@ -272,6 +272,7 @@ def model_card(meta: dict[str, Any], evals: Sequence[dict[str, Any]], notes: str
     b, cyl, grid = cfg["backbone"], cfg["cylinder"], cfg["grid"]
     ck = meta.get("checkpoint") or {}
     tr = ck.get("train") or {}
+    vol = meta["counts"]["volume_per_voxel"]
     lines = [f"# {meta['name']} {meta['version']}", "",
              (f"XYZCylinder ({cfg['name']} preset) exported to ONNX (opset {meta['opset']}) for the torch-free "
              "runtime of [xyzcyl](../../README.md): `xyzcyl reconstruct RIG.json --out SCENE --model "
@@ -283,9 +284,10 @@ def model_card(meta: dict[str, Any], evals: Sequence[dict[str, Any]], notes: str
              f"({'frozen' if not b['trainable'] else 'fine-tuned'}), features {b['feature_dim']}-d at 1/"
              f"{b['feature_stride']}; optional per-camera metric depth replaces the depth head."),
              (f"- Cylinder {cyl['height']}x{cyl['width']}, grid {grid['voxel_size']} m voxels over "
-             f"{grid['pc_range']} (ego metres); Gaussians: {cfg['volume']['g_v']} per occupied voxel (at most "
-             f"{cfg['volume']['max_voxels']} voxels) + {meta['counts']['pixel']} pixel Gaussians; SH degree "
-             f"{cfg['sh_degree']}."),
+             f"{grid['pc_range']} (ego metres); Gaussians: "
+             + (f"{vol} per occupied voxel (at most {meta['counts']['max_voxels']} voxels) + " if vol else
+                "no volume branch (trained and exported without it), ")
+             + f"{meta['counts']['pixel']} pixel Gaussians; SH degree {cfg['sh_degree']}."),
              (f"- Graphs: {', '.join(f'`{g}.onnx`' for g in meta['graphs'])} "
              f"({sum(f['bytes'] for k, f in meta['files'].items() if k.endswith('.onnx')) / 1e6:.1f} MB); "
              "checksums in `model.json`, verified at load."), "",
@@ -319,9 +321,11 @@ def model_card(meta: dict[str, Any], evals: Sequence[dict[str, Any]], notes: str
     lines += ["", "## Limits", "",
               ("- Trained on synthetic scenes only: real images are out of distribution (colour, texture, "
               "lighting); expect blur and wrong geometry far from the rig."),
-              ("- One timestamp, static scene; nothing outside the grid "
-              f"({grid['pc_range'][0]}..{grid['pc_range'][3]} m) gets volume Gaussians; the sky/background is "
-              "a panorama on the cylinder (no parallax)."),
+              ("- One timestamp, static scene; "
+               + (f"nothing outside the grid ({grid['pc_range'][0]}..{grid['pc_range'][3]} m) gets volume Gaussians"
+                  if vol else "no volume Gaussians: only what an input camera sees is reconstructed (pixel "
+                  "Gaussians), nothing behind it")
+               + "; the sky/background is a panorama on the cylinder (no parallax)."),
               "- Not for safety-relevant decisions: the reconstruction is for simulation and visualisation.", ""]
     if notes:
         lines += ["## Notes", "", notes.strip(), ""]
