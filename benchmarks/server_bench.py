@@ -95,30 +95,21 @@ def machine() -> dict:
                     if k in os.environ}}
 
 
-def _cpu_ticks() -> dict[int, int]:
-    ticks = {}
-    for p in Path("/proc").iterdir():
-        if p.name.isdigit():
-            try:
-                fields = (p / "stat").read_text().rsplit(")", 1)[1].split()
-                ticks[int(p.name)] = int(fields[11]) + int(fields[12])        # utime + stime
-            except (OSError, IndexError, ValueError):
-                pass
-    return ticks
-
-
 def other_jobs(seconds: float = 1.0) -> list[dict]:
     """Processes other than this benchmark and its server that used >= 10 % of a core over ``seconds``: the
     work sharing the machine while a figure was taken."""
     mine = {os.getpid(), *children(os.getpid())}
     mine |= {c for p in list(mine) for c in children(p)}
-    a = _cpu_ticks()
+    def cpu_all() -> dict[int, float]:
+        return {pid: t for pid in (int(p.name) for p in Path("/proc").iterdir() if p.name.isdigit())
+                if (t := cpu_seconds(pid)) is not None}
+
+    a = cpu_all()
     time.sleep(seconds)
-    b = _cpu_ticks()
-    hz = os.sysconf("SC_CLK_TCK")
+    b = cpu_all()
     out = []
     for pid, t in b.items():
-        share = (t - a.get(pid, t)) / hz / seconds
+        share = (t - a.get(pid, t)) / seconds
         if share >= 0.1 and pid not in mine:
             cmd = cmdline(pid, 400)
             out.append({"pid": pid, "cpu": round(share, 2), "cmd": cmd if len(cmd) <= 120 else

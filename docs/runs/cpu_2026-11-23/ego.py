@@ -16,7 +16,6 @@ import json
 import sys
 from pathlib import Path
 
-import cv2
 import numpy as np
 import torch
 from xyzcyl.model_export.config import ModelConfig
@@ -24,6 +23,7 @@ from xyzcyl.model_export.data.classes import EGO
 from xyzcyl.model_export.dataset import DatasetConfig, SceneDataset
 from xyzcyl.model_export.evaluate import ALL_TARGETS, load_eval_model, model_views
 from xyzcyl.model_export.train import _resize, build_model, load_checkpoint
+from xyzcyl.runtime.rig import read_image
 
 
 def ego_voxels(model, ds: SceneDataset, n: int) -> dict:
@@ -49,9 +49,9 @@ def ego_error(model, ds: SceneDataset, n: int) -> dict:
             gt = t["images"][k].permute(1, 2, 0).numpy()
             err = ((np.clip(rgb, 0, 1) - gt) ** 2).mean(-1)
             path = ds.scenes[i] / "targets" / "ego-inward" / f"{t['names'][k]}_sem.png"
-            sem = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)     # 8-bit class ids (read_image would scale them)
-            if sem is None or sem.shape != err.shape:
-                raise SystemExit(f"ego.py: {path}: unreadable or not {err.shape}")
+            sem = read_image(path, "semantics", channels=1, scale=False)[..., 0]    # 8-bit class ids, unscaled
+            if sem.shape != err.shape:
+                raise SystemExit(f"ego.py: {path}: {sem.shape}, not {err.shape}")
             ego = sem == EGO
             se_ego += float(err[ego].sum())
             se_all += float(err.sum())
