@@ -24,7 +24,8 @@ One item = one scene (the network is unbatched over scenes; use ``collate_scenes
 
 Randomness (target subset, colour jitter, flip) comes from numpy's default_rng((seed, epoch, index)), so an
 item is reproducible and ``set_epoch`` draws new subsets per epoch. The per-camera input augmentation draws from
-a child of that generator (``Generator.spawn``), so switching it on changes neither the targets nor the flip.
+a child of that generator (``Generator.spawn``), so switching it on changes neither the targets nor the flip;
+the camera drop (``camera_drop``) draws from the next child, likewise.
 """
 
 from __future__ import annotations
@@ -79,6 +80,10 @@ class DatasetConfig(_Frozen):
     blur: float = 0.0                   # per camera: probability of a Gaussian blur, sigma drawn from [0.3, 1.2] px
     jpeg: float = 0.0                   # per camera: probability of a JPEG re-encode, quality drawn from [40, 95]
     noise: float = 0.0                  # per camera: Gaussian noise, sigma drawn from [0, n]
+    camera_drop: float = 0.0            # probability that an item loses a sector of adjacent input cameras (a rig
+                                        # with a blind side, e.g. 5 front/side cameras); targets are kept
+    camera_drop_max: int = 2            # a dropped sector is 1..this many cameras adjacent in azimuth; at least
+                                        # CAMERA_DROP_MIN_KEEP cameras stay (smaller rigs never drop)
 
     def __post_init__(self):
         if self.setting not in SETTINGS + (MIXED,):
@@ -109,6 +114,12 @@ class DatasetConfig(_Frozen):
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not (0 <= v < 1 or (top == "1]" and v == 1)):
                 raise ConfigError(f"{n}: must be in [0, {top}, got {v!r}")
 
+        if not 0 <= self.camera_drop <= 1 or isinstance(self.camera_drop, bool):
+            raise ConfigError(f"camera_drop: must be in [0, 1], got {self.camera_drop!r}")
+        m = self.camera_drop_max
+        if isinstance(m, bool) or not isinstance(m, int) or m < 1:
+            raise ConfigError(f"camera_drop_max: must be an integer >= 1, got {m!r}")
+
     @property
     def camera_aug(self) -> bool:
         """Whether any per-camera input augmentation is on."""
@@ -116,7 +127,7 @@ class DatasetConfig(_Frozen):
 
     def without_augmentation(self) -> DatasetConfig:
         """The same data with every augmentation off (flip, colour jitter, camera effects): for validation."""
-        return self.replace(flip_prob=0.0, brightness=0.0, contrast=0.0, saturation=0.0,
+        return self.replace(flip_prob=0.0, brightness=0.0, contrast=0.0, saturation=0.0, camera_drop=0.0,
                             **{n: 0.0 for n in CAMERA_AUG_PRESET})
 
     @property
@@ -220,6 +231,31 @@ def camera_augment(images: np.ndarray, rng: np.random.Generator, cfg: DatasetCon
 
 _MIRROR_Y = np.diag([1.0, -1.0, 1.0, 1.0])   # ego (x, y, z) -> (x, -y, z)
 _FLIP_X_CAM = np.diag([-1.0, 1.0, 1.0, 1.0])  # camera-frame x flip (image columns reversed)
+
+
+CAMERA_DROP_MIN_KEEP = 3   # fewer than 3 cameras cannot surround the ego car at all: no rig we serve has fewer
+
+
+def camera_azimuth(camera: Camera) -> float:
+    """Azimuth of the camera's optical axis in the ego x-y plane, radians (0: ego +x, forward; +pi/2: +y, left)."""
+    z = camera.cam_to_ego[:3, 2]
+    return float(np.arctan2(z[1], z[0]))
+
+
+def draw_camera_drop(cameras: list[Camera], rng: np.random.Generator, prob: float, max_drop: int) -> list[int]:
+    """Indices (rig order) of the input cameras an item keeps. With probability ``prob`` a sector of k cameras
+    adjacent in azimuth (k uniform in 1..max_drop, at most len - CAMERA_DROP_MIN_KEEP, a uniform starting
+    camera on the ring) is dropped, so the rest of the rig has one blind side, like a rig without rear cameras.
+    All indices when nothing is dropped."""
+    n = len(cameras)
+    top = min(max_drop, n - CAMERA_DROP_MIN_KEEP)
+    if top < 1 or not rng.random() < prob:
+        return list(range(n))
+    k = int(rng.integers(1, top + 1))
+    ring = np.argsort([camera_azimuth(c) for c in cameras], kind="stable")
+    start = int(rng.integers(n))
+    drop = {int(ring[(start + j) % n]) for j in range(k)}
+    return [i for i in range(n) if i not in drop]
 
 
 def mirror_camera_y(camera: Camera) -> Camera:
@@ -398,12 +434,18 @@ def list_scenes(root: Path) -> list[Path]:
 
 
 class SceneDataset(torch.utils.data.Dataset):
-    """Synthetic scenes (``xyzcyl data synth`` output). ``model_cfg`` (a ModelConfig) adds lifting inputs."""
+    """Synthetic scenes (``xyzcyl data synth`` output). ``model_cfg`` (a ModelConfig) adds lifting inputs.
+    ``root``: one data set folder, or several (their scenes in the order given, e.g. rigs of different camera
+    counts mixed in one training run); each folder is checked like a single one."""
 
-    def __init__(self, root: str | Path, cfg: DatasetConfig = DatasetConfig(), model_cfg=None):
-        self.root = Path(root)
+    def __init__(self, root: str | Path | list[str | Path] | tuple[str | Path, ...],
+                 cfg: DatasetConfig = DatasetConfig(), model_cfg=None):
+        self.roots = [Path(r) for r in root] if isinstance(root, (list, tuple)) else [Path(root)]
+        if not self.roots:
+            raise DataError("data: no data set folder given")
         self.cfg = cfg
-        self.scenes = list_scenes(self.root)
+        per_root = [list_scenes(r) for r in self.roots]
+        self.scenes = [scene for scenes in per_root for scene in scenes]
         self.epoch = 0
         self.model_cfg = model_cfg
         self._lifting_params = None
@@ -414,14 +456,20 @@ class SceneDataset(torch.utils.data.Dataset):
             grid = model_cfg.grid
             if abs(grid.voxel_size - cfg.voxel_size) > 1e-9:
                 raise ConfigError(f"voxel_size: data {cfg.voxel_size} differs from the model grid {grid.voxel_size}")
-        first = json.loads((self.scenes[0] / "targets.json").read_text()).get("settings", {})
-        for name in cfg.settings:                                # fail early, not at the first validation
+        for scenes in per_root:                                 # fail early, not at the first validation
+            self._check_first(scenes[0])
+
+    def _check_first(self, scene: Path) -> None:
+        """The targets' settings and the voxel grid this config needs are in ``scene`` (a folder's first)."""
+        cfg = self.cfg
+        first = json.loads((scene / "targets.json").read_text()).get("settings", {})
+        for name in cfg.settings:
             if name not in first:
-                raise DataError(f"{self.scenes[0] / 'targets.json'}: setting: no {name!r} targets "
+                raise DataError(f"{scene / 'targets.json'}: setting: no {name!r} targets "
                                 f"(have {sorted(first)})")
-        with np.load(self.scenes[0] / "occupancy.npz") as z:   # fail early (reads the zip directory only)
+        with np.load(scene / "occupancy.npz") as z:             # reads the zip directory only
             if f"semantic_{cfg.voxel_tag}" not in z.files:
-                raise DataError(f"{self.scenes[0] / 'occupancy.npz'}: voxel_size: no {cfg.voxel_size:g} m grid "
+                raise DataError(f"{scene / 'occupancy.npz'}: voxel_size: no {cfg.voxel_size:g} m grid "
                                 f"(have {sorted(k[9:] for k in z.files if k.startswith('semantic_'))})")
 
     def __len__(self) -> int:
@@ -478,6 +526,11 @@ class SceneDataset(torch.utils.data.Dataset):
             img, timg = both[:len(img)], both[len(img):]
         if cfg.camera_aug:      # inputs only, after the jitter; a child stream leaves rng's draws unchanged
             img = camera_augment(img, rng.spawn(1)[0], cfg)
+        if cfg.camera_drop:     # after the camera effects' child (theirs stay the same), its own child stream
+            keep = draw_camera_drop(list(rig.cameras), rng.spawn(1)[0], cfg.camera_drop, cfg.camera_drop_max)
+            if len(keep) < len(rig.cameras):
+                img, depth, sky = img[keep], depth[keep], sky[keep]
+                rig = Rig(cameras=tuple(rig.cameras[i] for i in keep), root=rig.root, extra=rig.extra)
         occ, ego, bev, rng_m = self._occupancy(folder)
         if cfg.occupancy_labels != "solid":   # before the flip: unflipped cameras and depths, flipped below
             seen = np.isfinite(depth) & (depth > 0) & (depth <= cfg.max_depth) & ~sky

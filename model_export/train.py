@@ -385,7 +385,7 @@ class _Stop(Exception):
     pass
 
 
-def train(data_dir: str | Path, run_dir: str | Path, model_cfg: ModelConfig | None, tcfg: TrainConfig,
+def train(data_dir: str | Path | list[str | Path], run_dir: str | Path, model_cfg: ModelConfig | None, tcfg: TrainConfig,
           resume: bool = False, init: str | Path | None = None, val_dir: str | Path | None = None,
           progress: bool = True, max_steps_now: int | None = None,
           device: str | torch.device = "cpu") -> dict[str, Any]:
@@ -437,7 +437,7 @@ def train(data_dir: str | Path, run_dir: str | Path, model_cfg: ModelConfig | No
         start = int(ck["step"])
         torch.set_rng_state(ck["torch_rng"])
     (run_dir / "config.json").write_text(json.dumps({"model": model_cfg.to_dict(), "train": tcfg.to_dict(),
-                                                     "data": str(data_dir), "init": None if init is None else
+                                                     "data": [str(d) for d in data_dir] if isinstance(data_dir, (list, tuple)) else str(data_dir), "init": None if init is None else
                                                      str(init), "device": str(dev)}, indent=1) + "\n")
     lpips = load_lpips(tcfg.loss.render) if tcfg.stage == "render" else None
     if lpips is not None:

@@ -20,7 +20,9 @@ ABLATIONS = {"none": {}, "no-volume": {"volume_branch": False}, "no-pixel": {"pi
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--preset", default=None, help="model preset: cpu or paper (default: cpu, or the --init "
                                                        "checkpoint's config)")
-    parser.add_argument("--data", required=True, type=Path, help="training data set (xyzcyl data synth output)")
+    parser.add_argument("--data", required=True, type=Path, action="append",
+                        help="training data set (xyzcyl data synth output); repeat to mix data sets (e.g. rigs "
+                             "with different camera counts): their scenes are drawn as one set")
     parser.add_argument("--val", type=Path, default=None, help="validation data set (metrics + sheets)")
     parser.add_argument("--stage", required=True, choices=("occ", "render"))
     parser.add_argument("--out", required=True, type=Path, help="run folder (checkpoints, logs, curves)")
@@ -63,6 +65,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="real-camera effects on the input images only, S in [0, 1] scales the preset "
                              "(per camera: exposure 0.3S, white balance 0.1S, vignetting 0.4S, blur prob. 0.3S, "
                              "JPEG prob. 0.5S, noise sigma 0.02S; docs/training.md); 0 disables")
+    parser.add_argument("--camera-drop", type=float, default=0.0,
+                        help="probability that a training scene loses 1-2 input cameras adjacent in azimuth (a rig "
+                             "with a blind side; targets kept; docs/training.md); 0 disables")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--device", default="cpu",
                         help="cpu or cuda (cuda:N): where the network and its losses run; the splatting renderer "
@@ -80,8 +85,9 @@ def run(args: argparse.Namespace) -> int:
     try:
         set_threads(args.threads)
         device = resolve_device(args.device)
-        if not args.data.is_dir():
-            raise ValueError(f"data: {args.data} is not a folder")
+        for d in args.data:
+            if not d.is_dir():
+                raise ValueError(f"data: {d} is not a folder")
         if args.steps < 1:
             raise ValueError(f"steps: must be >= 1, got {args.steps}")
         if args.resume and not (args.out / "last.pt").is_file():
@@ -111,13 +117,13 @@ def run(args: argparse.Namespace) -> int:
             data=DatasetConfig(setting=args.setting, num_targets=args.targets, voxel_size=voxel, seed=args.seed,
                                brightness=j, contrast=j, saturation=j, flip_prob=args.flip_prob,
                                occupancy_labels=args.occupancy_labels,
-                               **camera_aug_fields(args.camera_aug),
+                               **camera_aug_fields(args.camera_aug), camera_drop=args.camera_drop,
                                target_scale=args.target_scale),
             loss=TrainLossConfig(
                 render=RenderLossConfig(lpips_net=args.lpips_net, lpips_backbone_path=args.lpips_backbone,
                                         lpips_lin_path=args.lpips_lin),
                 optim=OptimConfig(lr=args.lr, warmup_steps=warm, total_steps=args.steps)))
-        summary = train(args.data, args.out, model_cfg, tcfg, resume=args.resume, init=args.init,
+        summary = train(args.data if len(args.data) > 1 else args.data[0], args.out, model_cfg, tcfg, resume=args.resume, init=args.init,
                         val_dir=args.val, progress=not args.quiet, device=device)
     except (ValueError, ConfigError, DataError, RigError, LPIPSUnavailable, FileNotFoundError) as exc:
         print(f"xyzcyl train: {exc}", file=sys.stderr)

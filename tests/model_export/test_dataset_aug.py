@@ -218,3 +218,102 @@ def test_train_cli_camera_aug(tiny_data, tmp_path, capsys):
                               "--camera-aug", "1.5"])
     assert cmd.run(args) == 2 and "camera_aug" in capsys.readouterr().err
     assert parser.parse_args(["--data", "d", "--stage", "occ", "--out", "o"]).camera_aug == 0.0
+
+
+# ---------------------------------------------------------------------------------------------- camera drop
+
+
+def _ring(yaws_deg):
+    """Cameras at the origin looking along the given azimuths (deg, ego frame), in the given (rig) order."""
+    cams = []
+    for k, yaw in enumerate(yaws_deg):
+        c, s = np.cos(np.radians(yaw)), np.sin(np.radians(yaw))
+        pose = np.eye(4)
+        pose[:3, :3] = np.array([[s, 0.0, c], [-c, 0.0, s], [0.0, -1.0, 0.0]])   # columns: cam x, y, z in ego
+        cams.append(Camera(name=f"c{k}", width=8, height=6, K=np.array([[4.0, 0, 3.5], [0, 4.0, 2.5], [0, 0, 1]]),
+                           cam_to_ego=pose))
+    return cams
+
+
+def test_camera_azimuth_of_a_known_ring():
+    from xyzcyl.model_export.dataset import camera_azimuth
+
+    yaws = [0, 55, 110, 180, -110, -55]
+    assert [round(np.degrees(camera_azimuth(c))) for c in _ring(yaws)] == yaws
+    # the nuScenes-like rig of the generator: CAM_FRONT looks forward, CAM_FRONT_LEFT to the left (+y)
+    assert camera_azimuth(_ring([90])[0]) == pytest.approx(np.pi / 2)
+
+
+def test_draw_camera_drop_removes_an_adjacent_sector():
+    from xyzcyl.model_export.dataset import draw_camera_drop
+
+    yaws = [0, -55, -110, 180, 110, 55]              # rig order is not azimuth order (clockwise here)
+    cams = _ring(yaws)
+    assert draw_camera_drop(cams, np.random.default_rng(0), 0.0, 2) == list(range(6))
+    sizes = set()
+    for seed in range(200):
+        keep = draw_camera_drop(cams, np.random.default_rng(seed), 1.0, 2)
+        dropped = sorted(set(range(6)) - set(keep))
+        sizes.add(len(dropped))
+        assert keep == sorted(keep) and 1 <= len(dropped) <= 2
+        if len(dropped) == 2:                          # the two are neighbours on the ring (55 deg apart)
+            a, b = (yaws[i] for i in dropped)
+            assert abs((a - b + 180) % 360 - 180) in (55, 70)   # 70: the 180 / 110 (or -110) pair
+    assert sizes == {1, 2}
+    # at least 3 cameras stay: a 4-camera rig loses at most 1, a 3-camera rig none
+    assert all(len(draw_camera_drop(_ring([0, 90, 180, 270]), np.random.default_rng(s), 1.0, 3)) == 3
+               for s in range(20))
+    assert draw_camera_drop(_ring([0, 120, 240]), np.random.default_rng(0), 1.0, 2) == [0, 1, 2]
+
+
+def test_camera_drop_in_items_keeps_targets_and_pairs_images_with_cameras(tiny_data):
+    base = DatasetConfig(setting="both", num_targets=3, flip_prob=0.0)
+    off = SceneDataset(tiny_data, base)
+    on = SceneDataset(tiny_data, base.replace(camera_drop=1.0))
+    names = [c.name for c in off[0]["rig"].cameras]
+    for index in (0, 1):
+        a, b = off.item(index, 2), on.item(index, 2)
+        kept = [c.name for c in b["rig"].cameras]
+        assert 4 <= len(kept) <= 5 and len(b["images"]) == len(b["depth"]) == len(b["sky"]) == len(kept)
+        idx = [names.index(n) for n in kept]
+        for key in ("images", "depth", "depth_valid", "sky"):   # each kept camera keeps its own arrays
+            assert torch.equal(b[key], a[key][idx]), key
+        assert b["targets"]["names"] == a["targets"]["names"]
+        assert torch.equal(b["targets"]["images"], a["targets"]["images"])
+    # reproducible per (seed, epoch, index), and validation turns it off
+    assert [c.name for c in on.item(1, 2)["rig"].cameras] == [c.name for c in on.item(1, 2)["rig"].cameras]
+    assert base.replace(camera_drop=1.0).without_augmentation().camera_drop == 0.0
+    # with the flip, the dropped rig is mirrored like a whole one (images flipped, cameras mirrored)
+    both = SceneDataset(tiny_data, base.replace(camera_drop=1.0, flip_prob=1.0)).item(0, 2)
+    assert both["flipped"] and len(both["rig"].cameras) == len(both["images"]) < len(names)
+
+
+def test_camera_drop_config_validation():
+    for bad in (-0.1, 1.5, True):
+        with pytest.raises(ConfigError, match="camera_drop"):
+            DatasetConfig(camera_drop=bad)
+    for bad in (0, 1.5, True):
+        with pytest.raises(ConfigError, match="camera_drop_max"):
+            DatasetConfig(camera_drop_max=bad)
+
+
+def test_several_data_folders_are_one_set(tiny_data, tmp_path):
+    import shutil
+
+    from xyzcyl.model_export.dataset import DataError
+
+    one = SceneDataset(tiny_data, DatasetConfig())
+    two = SceneDataset([tiny_data, tiny_data], DatasetConfig())
+    assert len(two) == 2 * len(one) and two.scenes == one.scenes + one.scenes
+    # index 2 is the second folder's first scene: the same files (no augmentation here, so the same inputs)
+    assert two.item(2, 0)["scene"] == one.item(0, 0)["scene"]
+    assert torch.equal(two.item(2, 0)["images"], one.item(0, 0)["images"])
+    # a second folder without the needed grid fails at construction, naming its own file
+    bad = tmp_path / "bad"
+    shutil.copytree(tiny_data / "scene_000000", bad / "scene_000000")
+    z = dict(np.load(bad / "scene_000000" / "occupancy.npz"))
+    np.savez(bad / "scene_000000" / "occupancy.npz", **{k: v for k, v in z.items() if k != "semantic_1p6"})
+    with pytest.raises(DataError, match=r"bad/scene_000000/occupancy.npz: voxel_size"):
+        SceneDataset([tiny_data, bad], DatasetConfig(voxel_size=1.6))
+    with pytest.raises(DataError, match="no data set folder"):
+        SceneDataset([], DatasetConfig())

@@ -112,6 +112,12 @@ def test_cli_errors_exit_2(tmp_path, tiny_synth_data):
     r = subprocess.run(exe + ["--data", str(tiny_synth_data), "--stage", "occ", "--out", str(tmp_path / "r"),
                               "--targets", "0"], check=False, capture_output=True, text=True)
     assert r.returncode == 2 and "num_targets" in r.stderr
+    r = subprocess.run(exe + ["--data", str(tiny_synth_data), "--stage", "occ", "--out", str(tmp_path / "r"),
+                              "--camera-drop", "2"], check=False, capture_output=True, text=True)
+    assert r.returncode == 2 and "camera_drop" in r.stderr and "Traceback" not in r.stderr
+    r = subprocess.run(exe + ["--data", str(tiny_synth_data), "--data", str(tmp_path / "nope"), "--stage", "occ",
+                              "--out", str(tmp_path / "r")], check=False, capture_output=True, text=True)
+    assert r.returncode == 2 and "nope" in r.stderr
 
 
 def test_load_init_skips_ablated_modules_only():
@@ -184,6 +190,13 @@ def test_cli_config_overrides(tmp_path, tiny_synth_data):
     assert model["ablation"]["rgb_path"] is False and model["ablation"]["rgb_occupancy"] is True
     assert model["pixel"]["k_out"] == 4 and model["pixel"]["placement"] == "cylinder_ray"
     assert doc["train"]["data"]["occupancy_labels"] == "surface"
+    assert doc["data"] == str(tiny_synth_data)
+    # mixed data sets (--data repeated) and the camera drop
+    r = subprocess.run(exe + ["--out", str(tmp_path / "d"), "--data", str(tiny_synth_data), "--camera-drop", "0.5"],
+                       check=False, capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    doc = json.loads((tmp_path / "d" / "config.json").read_text())
+    assert doc["data"] == [str(tiny_synth_data)] * 2 and doc["train"]["data"]["camera_drop"] == 0.5
 
 
 def test_threads_option_sets_torch_and_numba():
