@@ -114,7 +114,8 @@ class DatasetConfig(_Frozen):
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not (0 <= v < 1 or (top == "1]" and v == 1)):
                 raise ConfigError(f"{n}: must be in [0, {top}, got {v!r}")
 
-        if not 0 <= self.camera_drop <= 1 or isinstance(self.camera_drop, bool):
+        v = self.camera_drop
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 <= v <= 1:
             raise ConfigError(f"camera_drop: must be in [0, 1], got {self.camera_drop!r}")
         m = self.camera_drop_max
         if isinstance(m, bool) or not isinstance(m, int) or m < 1:
@@ -126,7 +127,8 @@ class DatasetConfig(_Frozen):
         return any(getattr(self, n) for n in CAMERA_AUG_PRESET)
 
     def without_augmentation(self) -> DatasetConfig:
-        """The same data with every augmentation off (flip, colour jitter, camera effects): for validation."""
+        """The same data with every augmentation off (flip, colour jitter, camera effects, camera drop): for
+        validation."""
         return self.replace(flip_prob=0.0, brightness=0.0, contrast=0.0, saturation=0.0, camera_drop=0.0,
                             **{n: 0.0 for n in CAMERA_AUG_PRESET})
 

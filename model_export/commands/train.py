@@ -123,7 +123,8 @@ def run(args: argparse.Namespace) -> int:
                 render=RenderLossConfig(lpips_net=args.lpips_net, lpips_backbone_path=args.lpips_backbone,
                                         lpips_lin_path=args.lpips_lin),
                 optim=OptimConfig(lr=args.lr, warmup_steps=warm, total_steps=args.steps)))
-        summary = train(args.data if len(args.data) > 1 else args.data[0], args.out, model_cfg, tcfg, resume=args.resume, init=args.init,
+        data = args.data if len(args.data) > 1 else args.data[0]     # one folder: recorded as before
+        summary = train(data, args.out, model_cfg, tcfg, resume=args.resume, init=args.init,
                         val_dir=args.val, progress=not args.quiet, device=device)
     except (ValueError, ConfigError, DataError, RigError, LPIPSUnavailable, FileNotFoundError) as exc:
         print(f"xyzcyl train: {exc}", file=sys.stderr)

@@ -289,7 +289,7 @@ def test_camera_drop_in_items_keeps_targets_and_pairs_images_with_cameras(tiny_d
 
 
 def test_camera_drop_config_validation():
-    for bad in (-0.1, 1.5, True):
+    for bad in (-0.1, 1.5, True, "0.5"):
         with pytest.raises(ConfigError, match="camera_drop"):
             DatasetConfig(camera_drop=bad)
     for bad in (0, 1.5, True):
