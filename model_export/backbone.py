@@ -171,17 +171,27 @@ class DepthHead(nn.Module):
 
     ``depth_override``: [N, 1, h, w] metres and ``override_mask``: [N] (1 = this camera's depth is supplied,
     e.g. LiDAR or simulator) replace the head's output with the given depth and confidence 1.
+    ``focal_ref`` (``backbone.depth_focal_ref``): the head's depth is that of a camera with normalised focal
+    focal_ref, scaled by ``focal`` [N] / focal_ref (``focal`` = lifting input ``focal_n``, sqrt(fx/W * fy/H)): an
+    image can not tell a near object through a wide lens from a far one through a narrow lens, the calibration
+    can.
     """
 
-    def __init__(self, cin: int, hidden: int, max_depth: float):
+    def __init__(self, cin: int, hidden: int, max_depth: float, focal_ref: float | None = None):
         super().__init__()
         self.max_depth = max_depth
+        self.focal_ref = focal_ref
         self.body = nn.Sequential(nn.Conv2d(cin, hidden, 3, padding=1), nn.SiLU(),
                                   nn.Conv2d(hidden, hidden, 3, padding=1), nn.SiLU(), nn.Conv2d(hidden, 2, 1))
 
-    def forward(self, feats, depth_override=None, override_mask=None):
+    def forward(self, feats, depth_override=None, override_mask=None, focal=None):
         y = self.body(feats)
         depth = self.max_depth * torch.sigmoid(y[:, :1] - 2.0)   # init around 0.12 * max_depth
+        if self.focal_ref is not None:
+            if focal is None:
+                raise ValueError("focal: the focal-aware depth head (backbone.depth_focal_ref) needs the cameras' "
+                                 "normalised focal lengths (lifting input focal_n)")
+            depth = depth * (focal.to(depth.dtype) / self.focal_ref).view(-1, 1, 1, 1)
         conf = torch.sigmoid(y[:, 1:2])
         if depth_override is not None:
             if depth_override.shape[-2:] != depth.shape[-2:]:

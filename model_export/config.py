@@ -85,6 +85,28 @@ def _pos_ints(name: str, v: Any) -> None:
         _pos_int(f"{name}[{i}]", x)
 
 
+# sqrt(fx/W * fy/H) of the synthetic nuScenes front camera (65 deg across 16:9), the depth_focal_ref the
+# focal-aware depth is measured with (docs/results.md "Focal-aware depth")
+NUSCENES_FRONT_FOCAL = 1.0553
+
+
+def parse_focal_ref(text: str) -> float | None:
+    """``--depth-focal-ref``: 'off' -> None (focal-blind), 'nuscenes' -> NUSCENES_FRONT_FOCAL, or a positive
+    number; anything else raises ConfigError naming depth_focal_ref."""
+    t = str(text).strip().lower()
+    if t == "off":
+        return None
+    if t == "nuscenes":
+        return NUSCENES_FRONT_FOCAL
+    try:
+        v = float(t)
+    except ValueError:
+        raise ConfigError(f"depth_focal_ref: must be 'off', 'nuscenes' or a positive number, got {text!r}") from None
+    if not (v > 0 and v < float("inf")):
+        raise ConfigError(f"depth_focal_ref: must be a positive number, got {text!r}")
+    return v
+
+
 @dataclass(frozen=True)
 class BackboneConfig(_Frozen):
     kind: Literal["efficientnet_lite0", "external"] = "efficientnet_lite0"
@@ -98,6 +120,11 @@ class BackboneConfig(_Frozen):
     external_dim: int = 768          # channels the external backbone outputs
     depth_hidden: int = 32           # depth + confidence head width
     max_depth: float = 80.0          # metres; depth head output range (0, max_depth)
+    # focal-aware depth (docs/architecture.md): None = the head's output is the depth (focal-blind: a 50 deg
+    # camera's depth comes out ~30 % short when trained on 65 deg cameras). A number f_ref: the head predicts the
+    # depth a camera of normalised focal f_ref would see, scaled by f_n / f_ref, f_n = sqrt(fx/W * fy/H) of each
+    # input (lifting input focal_n). NUSCENES_FRONT_FOCAL = 1.0553 is the nuScenes front camera's.
+    depth_focal_ref: float | None = None
 
     def __post_init__(self):
         if self.kind not in ("efficientnet_lite0", "external"):
@@ -109,6 +136,8 @@ class BackboneConfig(_Frozen):
         if self.input_height % self.feature_stride or self.input_width % self.feature_stride:
             raise ConfigError("input_height: input size must be divisible by feature_stride")
         _pos("max_depth", self.max_depth)
+        if self.depth_focal_ref is not None:
+            _pos("depth_focal_ref", self.depth_focal_ref)
         if self.kind == "external" and not self.external_path:
             raise ConfigError("external_path: required when kind='external'")
 

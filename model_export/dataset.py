@@ -84,6 +84,9 @@ class DatasetConfig(_Frozen):
                                         # with a blind side, e.g. 5 front/side cameras); targets are kept
     camera_drop_max: int = 2            # a dropped sector is 1..this many cameras adjacent in azimuth; at least
                                         # CAMERA_DROP_MIN_KEEP cameras stay (smaller rigs never drop)
+    lens_zoom: float = 0.0              # per input camera: probability of a narrower lens (a crop of its image,
+                                        # depth and sky resampled to the full size, K to match); targets kept
+    lens_zoom_max: float = 1.4          # zoom factor drawn from [1, this] (1.4: a 65 deg camera becomes ~49 deg)
 
     def __post_init__(self):
         if self.setting not in SETTINGS + (MIXED,):
@@ -120,6 +123,12 @@ class DatasetConfig(_Frozen):
         m = self.camera_drop_max
         if isinstance(m, bool) or not isinstance(m, int) or m < 1:
             raise ConfigError(f"camera_drop_max: must be an integer >= 1, got {m!r}")
+        v = self.lens_zoom
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 <= v <= 1:
+            raise ConfigError(f"lens_zoom: must be in [0, 1], got {self.lens_zoom!r}")
+        v = self.lens_zoom_max
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not 1 <= v <= 4:
+            raise ConfigError(f"lens_zoom_max: must be in [1, 4], got {self.lens_zoom_max!r}")
 
     @property
     def camera_aug(self) -> bool:
@@ -127,10 +136,10 @@ class DatasetConfig(_Frozen):
         return any(getattr(self, n) for n in CAMERA_AUG_PRESET)
 
     def without_augmentation(self) -> DatasetConfig:
-        """The same data with every augmentation off (flip, colour jitter, camera effects, camera drop): for
-        validation."""
+        """The same data with every augmentation off (flip, colour jitter, camera effects, camera drop, lens
+        zoom): for validation."""
         return self.replace(flip_prob=0.0, brightness=0.0, contrast=0.0, saturation=0.0, camera_drop=0.0,
-                            **{n: 0.0 for n in CAMERA_AUG_PRESET})
+                            lens_zoom=0.0, **{n: 0.0 for n in CAMERA_AUG_PRESET})
 
     @property
     def settings(self) -> tuple[str, ...]:
@@ -233,6 +242,51 @@ def camera_augment(images: np.ndarray, rng: np.random.Generator, cfg: DatasetCon
 
 _MIRROR_Y = np.diag([1.0, -1.0, 1.0, 1.0])   # ego (x, y, z) -> (x, -y, z)
 _FLIP_X_CAM = np.diag([-1.0, 1.0, 1.0, 1.0])  # camera-frame x flip (image columns reversed)
+
+
+def zoom_camera(camera: Camera, zoom: float, x0: float, y0: float) -> tuple[Camera, np.ndarray]:
+    """A narrower lens on the same mount: the image window [x0, x0 + W/zoom) x [y0, y0 + H/zoom) (pixel-edge
+    coordinates of ``camera``'s image) seen at the full W x H. Returns (the new camera: fx' = zoom fx, cx' = zoom
+    (cx + 1/2 - x0) - 1/2, likewise fy, cy; pose unchanged; the [2, 3] affine map from the new pixel centres to
+    the old ones, for cv2.warpAffine with WARP_INVERSE_MAP)."""
+    import dataclasses
+
+    K = np.array(camera.K, np.float64)
+    K2 = K.copy()
+    K2[0, 0], K2[1, 1] = zoom * K[0, 0], zoom * K[1, 1]
+    K2[0, 2], K2[1, 2] = zoom * (K[0, 2] + 0.5 - x0) - 0.5, zoom * (K[1, 2] + 0.5 - y0) - 0.5
+    # new pixel centre u' -> old u = x0 + (u' + 1/2) / zoom - 1/2 (the inverse of cx' above)
+    inv = np.array([[1 / zoom, 0.0, x0 + 0.5 / zoom - 0.5], [0.0, 1 / zoom, y0 + 0.5 / zoom - 0.5]])
+    return dataclasses.replace(camera, K=K2), inv
+
+
+def lens_zoom_views(cameras: list[Camera], images: np.ndarray, depth: np.ndarray, sky: np.ndarray,
+                    rng: np.random.Generator, prob: float, zoom_max: float
+                    ) -> tuple[list[Camera], np.ndarray, np.ndarray, np.ndarray]:
+    """Per input camera, with probability ``prob``: a lens zoom (``zoom_camera``) by U(1, zoom_max) at a uniform
+    window position. images [N, H, W, 3] (bilinear), depth [N, H, W] metres and sky [N, H, W] (nearest: no
+    depth blended across an edge) resampled, the camera's K changed to match (pinhole cameras only; others are
+    kept); returns new arrays. Each camera
+    draws from its own child of ``rng`` (do, zoom, x, y, always all four), so one camera's draws do not depend on
+    the others'. Teaches the focal-aware depth head lenses the data set's rig does not have."""
+    import cv2
+
+    cams, imgs, deps, skies = list(cameras), images.copy(), depth.copy(), sky.copy()
+    for k, g in enumerate(rng.spawn(len(cams))):
+        do, z, fx, fy = g.random() < prob, g.uniform(1.0, zoom_max), g.random(), g.random()
+        if not do or z == 1.0 or cams[k].model != "pinhole":
+            continue
+        c = cams[k]
+        w, h = c.width, c.height
+        cams[k], inv = zoom_camera(c, z, fx * (w - w / z), fy * (h - h / z))
+        flags = cv2.WARP_INVERSE_MAP
+        imgs[k] = cv2.warpAffine(np.ascontiguousarray(images[k]), inv, (w, h), flags=cv2.INTER_LINEAR | flags,
+                                 borderMode=cv2.BORDER_REPLICATE)
+        deps[k] = cv2.warpAffine(np.ascontiguousarray(depth[k], np.float32), inv, (w, h),
+                                 flags=cv2.INTER_NEAREST | flags, borderMode=cv2.BORDER_REPLICATE)
+        skies[k] = cv2.warpAffine(np.ascontiguousarray(sky[k]).astype(np.uint8), inv, (w, h),
+                                  flags=cv2.INTER_NEAREST | flags, borderMode=cv2.BORDER_REPLICATE).astype(sky.dtype)
+    return cams, imgs, deps, skies
 
 
 CAMERA_DROP_MIN_KEEP = 3   # fewer than 3 cameras cannot surround the ego car at all: no rig we serve has fewer
@@ -533,6 +587,10 @@ class SceneDataset(torch.utils.data.Dataset):
             if len(keep) < len(rig.cameras):
                 img, depth, sky = img[keep], depth[keep], sky[keep]
                 rig = Rig(cameras=tuple(rig.cameras[i] for i in keep), root=rig.root, extra=rig.extra)
+        if cfg.lens_zoom:       # after the drop's child, its own child stream
+            zcams, img, depth, sky = lens_zoom_views(list(rig.cameras), img, depth, sky, rng.spawn(1)[0],
+                                                     cfg.lens_zoom, cfg.lens_zoom_max)
+            rig = Rig(cameras=tuple(zcams), root=rig.root, extra=rig.extra)
         occ, ego, bev, rng_m = self._occupancy(folder)
         if cfg.occupancy_labels != "solid":   # before the flip: unflipped cameras and depths, flipped below
             seen = np.isfinite(depth) & (depth > 0) & (depth <= cfg.max_depth) & ~sky

@@ -16,7 +16,9 @@ Methods:
   opacity 0.99; colour = the pixel's RGB as the SH DC term. Rendered over black: the baseline has no background model, so sky it does not cover is black.
 
 Metrics per target view (``metrics.py``): PSNR, SSIM (rendered image clipped to [0, 1]), ``psnr_fg`` (PSNR over
-the target's non-sky pixels, sky < 0.5), ``colour_err`` (mean colour error over all pixels: a grey blur of a
+the target's non-sky pixels, sky < 0.5), ``psnr_seen`` (PSNR over the non-sky pixels whose surface an input
+camera sees, ``metrics.seen_by_inputs`` with the ground-truth depths; ``seen_frac``: their share of the non-sky
+pixels), ``colour_err`` (mean colour error over all pixels: a grey blur of a
 coloured scene scores badly), depth PCC over the pixels whose ground-truth depth is in (0, ``pcc_max_depth``]
 and not sky (the training's depth-validity rule), LPIPS only with local weights (otherwise ``null`` and the
 reason). Aggregates are means over views per (setting, rig); views with an undefined value (PCC: fewer than 2
@@ -139,7 +141,7 @@ def _native_depth_head(model, item: dict[str, Any]) -> np.ndarray:
     from .train import _resize
 
     with torch.no_grad():
-        _, d, _ = model.encode_images(_resize(item["images"], model.cfg))
+        _, d, _ = model.encode_images(_resize(item["images"], model.cfg), focal=item["lifting"].get("focal_n"))
         d = F.interpolate(d, size=item["images"].shape[-2:], mode="bilinear", align_corners=False)
     return d[:, 0].numpy()
 
@@ -319,12 +321,16 @@ def evaluate(data_dirs: Sequence[str | Path], cfg: EvalConfig, checkpoint: str |
                 views = unproject_views(item, _native_depth_head(model, item), cfg)
             else:
                 views = unproject_views(item, item["depth"][:, 0].numpy(), cfg)
+            rig_cams = item["rig"].cameras
+            in_depth = item["depth"][:, 0].numpy()
+            in_K, in_T = np.stack([c.K for c in rig_cams]), np.stack([c.cam_to_ego for c in rig_cams])
             for k, (rgb, depth, n_g) in enumerate(views):
                 pred = np.clip(rgb, 0, 1)
                 gt = t["images"][k].permute(1, 2, 0).numpy()
                 gd = t["depth"][k].numpy()
                 fg = t["sky"][k].numpy() < 0.5
                 valid = (gd > 0) & (gd <= cfg.pcc_max_depth) & fg
+                seen = fg & M.seen_by_inputs(gd, t["K"][k], t["cam_to_ego"][k], in_depth, in_K, in_T)
                 lp = M.lpips(pred, gt, cfg.lpips_backbone_path, cfg.lpips_lin_path, cfg.lpips_net)
                 if lp.value is None and lp_reason is None:
                     lp_reason = lp.reason
@@ -337,6 +343,8 @@ def evaluate(data_dirs: Sequence[str | Path], cfg: EvalConfig, checkpoint: str |
                              "psnr_inf": bool(np.array_equal(pred, gt)),
                              "psnr_fg": _finite(M.psnr_masked(pred, gt, fg)),
                              "psnr_fg_inf": bool(fg.any() and np.array_equal(pred[fg], gt[fg])),
+                             "psnr_seen": _finite(M.psnr_masked(pred, gt, seen)),
+                             "seen_frac": float(seen.sum() / fg.sum()) if fg.any() else None,
                              "colour_err": _finite(M.mean_colour_error(pred, gt)),
                              "ssim": M.ssim(pred, gt) if min(gt.shape[:2]) >= 11 else None,
                              "pcc": _finite(M.depth_pcc(depth, gd, valid)), "pcc_pixels": int(valid.sum()),
@@ -356,9 +364,10 @@ def evaluate(data_dirs: Sequence[str | Path], cfg: EvalConfig, checkpoint: str |
 
 
 # per-view columns averaged by ``aggregate`` (each with a ``<key>_undefined`` count)
-AGGREGATED = ("psnr", "psnr_fg", "ssim", "lpips", "pcc", "colour_err")
+AGGREGATED = ("psnr", "psnr_fg", "psnr_seen", "seen_frac", "ssim", "lpips", "pcc", "colour_err")
 # Markdown names of the columns whose undefined views the report notes
-_NAMES = {"psnr": "PSNR", "psnr_fg": "PSNR fg", "ssim": "SSIM", "pcc": "PCC", "colour_err": "colour error"}
+_NAMES = {"psnr": "PSNR", "psnr_fg": "PSNR fg", "psnr_seen": "PSNR seen", "ssim": "SSIM", "pcc": "PCC",
+          "colour_err": "colour error"}
 
 
 def aggregate(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
@@ -390,15 +399,17 @@ def _fmt(v: float | None, digits: int) -> str:
     return "n/a" if v is None else f"{v:.{digits}f}"
 
 
-_TABLE_HEAD = (("| method | setting | rig | scenes | views | PSNR ↑ | PSNR fg ↑ | SSIM ↑ | LPIPS ↓ | PCC ↑ "
-                "| colour err ↓ |"),
-               "| --- | --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |")
+_TABLE_HEAD = (("| method | setting | rig | scenes | views | PSNR ↑ | PSNR fg ↑ | PSNR seen ↑ | seen | SSIM ↑ "
+                "| LPIPS ↓ | PCC ↑ | colour err ↓ |"),
+               "| --- | --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |")
 
 
 def _table_row(label: str, a: dict[str, Any]) -> str:
-    """One table row; reports written before PSNR fg and colour error existed show n/a for them."""
+    """One table row; reports written before PSNR fg, PSNR seen and colour error existed show n/a for them."""
+    seen = a.get("seen_frac")
     return (f"| {label} | {a['setting']} | {a['rig']} | {a['scenes']} | {a['views']} | {_fmt(a['psnr'], 2)} | "
-            f"{_fmt(a.get('psnr_fg'), 2)} | {_fmt(a['ssim'], 3)} | {_fmt(a['lpips'], 3)} | {_fmt(a['pcc'], 3)} | "
+            f"{_fmt(a.get('psnr_fg'), 2)} | {_fmt(a.get('psnr_seen'), 2)} | "
+            f"{'n/a' if seen is None else f'{100 * seen:.0f} %'} | {_fmt(a['ssim'], 3)} | {_fmt(a['lpips'], 3)} | {_fmt(a['pcc'], 3)} | "
             f"{_fmt(a.get('colour_err'), 4)} |")
 
 
@@ -419,7 +430,9 @@ def markdown(result: dict[str, Any]) -> str:
                 lines.append(f"{a['setting']} / {a['rig']}: {name} undefined for {a[f'{key}_undefined']} of "
                              f"{a['views']} views (left out of the mean).")
     lines.append(f"PCC over ground-truth depth in (0, {result['config']['pcc_max_depth']:g}] m, sky excluded.")
-    lines.append("PSNR fg: PSNR over the target's non-sky pixels. Colour err: mean over R, G, B of |mean colour of "
+    lines.append("PSNR fg: PSNR over the target's non-sky pixels. PSNR seen: over the non-sky pixels whose "
+                 "surface an input camera sees (its depth agrees; the rest is space no camera of the rig saw: a "
+                 "blind sector, the ego car); seen: their share of the non-sky pixels. Colour err: mean over R, G, B of |mean colour of "
                  "the render - mean colour of the target| over all pixels, in [0, 1] intensity.")
     return "\n".join(lines) + "\n"
 

@@ -44,7 +44,7 @@ FORMAT_VERSION = 1
 MAX_CAMERAS = 16
 # the lifting inputs with a camera axis first (dynamic N); the others are per rig (one cylinder / grid)
 PER_CAMERA = ("grid_occ", "sel_cw_occ", "sel_ccw_occ", "grid_vol", "sel_cw_vol", "sel_ccw_vol",
-              "grid_pix", "sel_cw_pix", "sel_ccw_pix", "pix_rays", "pix_offsets", "grid_pixc", "sel_pixc")
+              "grid_pix", "sel_cw_pix", "sel_ccw_pix", "pix_rays", "pix_offsets", "grid_pixc", "sel_pixc", "focal_n")
 ENCODE_GLOBAL = ("spec_vol", "spec_pix", "pix_dirs", "occ_coords")
 VOLUME_LIFTING = ("vol_coords", "voxel_centres")
 PIXEL_OUTPUTS = tuple(f"pixel_{k}" for k in GAUSSIAN_KEYS)

@@ -140,7 +140,8 @@ class XYZCylinder(nn.Module):
         ab = cfg.ablation
         D = cfg.backbone.feature_dim
         self.backbone = build_backbone(cfg.backbone)
-        self.depth_head = DepthHead(D, cfg.backbone.depth_hidden, cfg.backbone.max_depth)
+        self.depth_head = DepthHead(D, cfg.backbone.depth_hidden, cfg.backbone.max_depth,
+                                    cfg.backbone.depth_focal_ref)
         self.use_rgb = ab.rgb_path
         self.rgb_occ = ab.rgb_occupancy
         self.d_feat = D                    # backbone channels; the lifted features append 3 RGB channels
@@ -191,13 +192,14 @@ class XYZCylinder(nn.Module):
             self.bg_net = ZNet(v.app_out_dim, cfg.background)
 
     # -- stages -------------------------------------------------------------------------------------------------
-    def encode_images(self, images, depth=None, depth_mask=None):
+    def encode_images(self, images, depth=None, depth_mask=None, focal=None):
         """-> (lifted features [N, D_feat (+3), h, w], depth [N, 1, h, w] metres, confidence [N, 1, h, w]).
+        ``focal`` [N]: the lifting input ``focal_n`` (needed by a focal-aware depth head, ignored otherwise).
         With ``ablation.rgb_path`` the input RGB, area-pooled to the feature map's size and standardised, is
         concatenated to the backbone features (with ``rgb_occupancy`` alone, only the occupancy module reads them:
         ``module_features``)."""
         feats = self.backbone(images)
-        d, c = self.depth_head(feats, depth, depth_mask)
+        d, c = self.depth_head(feats, depth, depth_mask, focal)
         if self.use_rgb or self.rgb_occ:
             rgb = F.adaptive_avg_pool2d(images, feats.shape[-2:])
             feats = torch.cat([feats, (rgb - RGB_MEAN) / RGB_STD], dim=1)
@@ -362,7 +364,7 @@ class XYZCylinder(nn.Module):
         Returns dict: depth, conf [N, 1, h, w]; occ_logits [2, L_z, L_y, L_x]; bev_logits [2, L_y, L_x];
         pixel (Gaussians dict of the pixel branch, or None); geo_cpfg, app_cpfg [1, D, K, H_u, W_u] (volume
         branch, or None); app_plane [1, C_app, H_u, W_u] (background input, or None)."""
-        feats, d, c = self.encode_images(images, depth, depth_mask)
+        feats, d, c = self.encode_images(images, depth, depth_mask, inp.get("focal_n"))
         occ, bev = self.occupancy(feats, inp)
         out = {"depth": d, "conf": c, "occ_logits": occ, "bev_logits": bev, "pixel": None, "geo_cpfg": None,
                "app_cpfg": None, "app_plane": None}

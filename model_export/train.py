@@ -151,7 +151,7 @@ def step_loss(model, item: dict[str, Any], tcfg: TrainConfig, lpips=None) -> tup
     """The stage's total loss for one scene and its unweighted terms."""
     cfg = model.cfg
     if tcfg.stage == "occ":
-        feats, d, _ = model.encode_images(_resize(item["images"], cfg))
+        feats, d, _ = model.encode_images(_resize(item["images"], cfg), focal=item["lifting"].get("focal_n"))
         occ, bev = model.occupancy(feats, item["lifting"])
         loss, parts = occupancy_loss(occ, bev, item["occupancy"], tcfg.loss.occ, bev_target=item["bev"])
     else:
@@ -323,7 +323,7 @@ def validate(model, ds: SceneDataset, tcfg: TrainConfig, step: int, run_dir: Pat
             item = ds.item(i, 0)            # host tensors for the metrics; the model reads a copy on its device
             x = to_device(item, dev)
             if tcfg.stage == "occ":
-                feats, _, _ = model.encode_images(_resize(x["images"], model.cfg))
+                feats, _, _ = model.encode_images(_resize(x["images"], model.cfg), focal=x["lifting"].get("focal_n"))
                 occ, bev = (a.cpu() for a in model.occupancy(feats, x["lifting"]))
                 occ_t = item["occupancy"].numpy()
                 res.setdefault("occ_iou", []).append(M.occupancy_iou(occ.argmax(0).numpy(), occ_t == 1, occ_t == 255))

@@ -16,6 +16,7 @@ Pixel module only (depth geometry; see docs/architecture.md "pixel Gaussians"):
   camera centre, z_n(P) P's camera depth (optical-axis z; distance for equirect cameras). A camera depth D
   sampled at the cylinder pixel then back-projects to X = c_n + D * pix_rays[n] (ego frame, exact);
 - ``pix_offsets`` [N, 3]: c_n - centre_pix, so X - centre_pix = pix_offsets[n] + D * pix_rays[n];
+- ``focal_n`` [N]: sqrt(fx / W * fy / H) per camera (``backbone.depth_focal_ref``'s focal-aware depth);
 - ``pix_dirs`` [k H_u, k W_u, 3]: (P' - centre)/R_u for the upsampled (k = k_i k_o) pixel lattice, i.e. the
   horizontal-unit direction of the cylinder ray: a point at horizontal radius r along it is centre + r * dir.
 - ``grid_pixc`` [N, k H_u, k W_u, 2], ``sel_pixc`` [N, k H_u, k W_u]: ``grid_pix`` / ``sel_cw_pix`` of that
@@ -31,6 +32,7 @@ pixel's ray leaves the volume cylinder (ray_cylinder_intersection, paper_v=False
 from __future__ import annotations
 
 import dataclasses
+import math
 from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
@@ -135,6 +137,15 @@ def depth_rays(rig: Rig, spec: CylinderSpec) -> tuple[np.ndarray, np.ndarray]:
     return np.stack(rays).astype(np.float32), np.stack(offs).astype(np.float32)
 
 
+def focal_n(rig: Rig) -> np.ndarray:
+    """[N] float32: each camera's normalised focal length sqrt(fx / W * fy / H), pixels per radian over the image
+    size (unchanged by resizing the image; the focal-aware depth head scales its depth by it). An
+    equirectangular camera has W / (2 pi) and H / pi pixels per radian: 1 / (pi sqrt 2)."""
+    out = [1.0 / (math.pi * math.sqrt(2.0)) if c.model == "equirectangular"
+           else math.sqrt(c.K[0, 0] / c.width * c.K[1, 1] / c.height) for c in rig.cameras]
+    return np.array(out, np.float32)
+
+
 def pixel_directions(spec: CylinderSpec, k: int) -> np.ndarray:
     """[k H_u, k W_u, 3] float32: (P - centre)/R_u at the centres of the k-times upsampled cylinder lattice
     (pixel i' of the fine lattice is at coarse row (i' + 1/2)/k - 1/2, same for columns)."""
@@ -191,6 +202,7 @@ def build_lifting_inputs(rig: Rig, params: LiftingParams) -> dict[str, np.ndarra
         out[f"grid_{s}"], out[f"sel_cw_{s}"], out[f"sel_ccw_{s}"] = g, cw, ccw
         out[f"spec_{s}"] = np.array([*spec.centre, spec.radius, spec.z_min, spec.z_max], dtype=np.float32)
     out["pix_rays"], out["pix_offsets"] = depth_rays(rig, specs["pixel"])
+    out["focal_n"] = focal_n(rig)
     out["pix_dirs"] = pixel_directions(specs["pixel"], params.pixel_upsample)
     out["grid_pixc"], out["sel_pixc"] = fine_module_inputs(rig, specs["pixel"], params.pixel_upsample)
     centres = voxel_centres(params.pc_range, params.voxel_size)

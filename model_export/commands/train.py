@@ -52,6 +52,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "the cpu preset's 28x256; default: the preset's)")
     parser.add_argument("--placement", default=None, choices=("cylinder_ray", "camera_ray"),
                         help="pixel-Gaussian anchor (docs/architecture.md; default: the preset's)")
+    parser.add_argument("--depth-focal-ref", default=None, metavar="F|off",
+                        help="focal-aware depth: the depth head's output is scaled by each camera's normalised focal "
+                             "sqrt(fx/W * fy/H) over F ('nuscenes': 1.0553, the nuScenes front camera's); 'off': "
+                             "focal-blind (docs/architecture.md; default: the preset's, or the --init checkpoint's)")
     parser.add_argument("--max-voxels", type=int, default=None,
                         help="cap on occupied voxels per scene (default: the preset's)")
     parser.add_argument("--occupancy-labels", default="solid", choices=("solid", "surface", "surface+ego"),
@@ -68,6 +72,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--camera-drop", type=float, default=0.0,
                         help="probability that a training scene loses 1-2 input cameras adjacent in azimuth (a rig "
                              "with a blind side; targets kept; docs/training.md); 0 disables")
+    parser.add_argument("--lens-zoom", type=float, default=0.0,
+                        help="probability per input camera of a narrower lens (its image, depth and sky cropped by "
+                             "a zoom of U(1, 1.4) and resampled, K to match; targets kept; docs/training.md): "
+                             "lenses the rig does not have, for the focal-aware depth head; 0 disables")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--device", default="cpu",
                         help="cpu or cuda (cuda:N): where the network and its losses run; the splatting renderer "
@@ -76,7 +84,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from xyzcyl.model_export.config import ConfigError, ModelConfig, preset
+    from xyzcyl.model_export.config import ConfigError, ModelConfig, parse_focal_ref, preset
     from xyzcyl.model_export.dataset import DataError, DatasetConfig, camera_aug_fields
     from xyzcyl.model_export.losses import LPIPSUnavailable, OptimConfig, RenderLossConfig, TrainLossConfig
     from xyzcyl.model_export.train import TrainConfig, load_checkpoint, resolve_device, train
@@ -108,6 +116,9 @@ def run(args: argparse.Namespace) -> int:
             model_cfg = model_cfg.replace(pixel=model_cfg.pixel.replace(placement=args.placement))
         if args.max_voxels is not None:
             model_cfg = model_cfg.replace(volume=model_cfg.volume.replace(max_voxels=args.max_voxels))
+        if args.depth_focal_ref is not None:
+            model_cfg = model_cfg.replace(backbone=model_cfg.backbone.replace(
+                depth_focal_ref=parse_focal_ref(args.depth_focal_ref)))
         voxel = model_cfg.grid.voxel_size
         warm = args.warmup if args.warmup is not None else min(1000, max(1, args.steps // 10))
         j = args.jitter
@@ -118,6 +129,7 @@ def run(args: argparse.Namespace) -> int:
                                brightness=j, contrast=j, saturation=j, flip_prob=args.flip_prob,
                                occupancy_labels=args.occupancy_labels,
                                **camera_aug_fields(args.camera_aug), camera_drop=args.camera_drop,
+                               lens_zoom=args.lens_zoom,
                                target_scale=args.target_scale),
             loss=TrainLossConfig(
                 render=RenderLossConfig(lpips_net=args.lpips_net, lpips_backbone_path=args.lpips_backbone,

@@ -24,11 +24,13 @@ class TinyExport:
 
 def tiny_export_config():
     """tiny_config with at most 300 voxels (the 20x20x4 grid's random occupancy head selects ~half of its 1600
-    voxels, so the top-k branch of the selection runs)."""
+    voxels, so the top-k branch of the selection runs) and the focal-aware depth head (the graphs then take each
+    camera's focal_n: the 5-, 6- and 8-camera test rigs have three different focal lengths)."""
     from net_helpers import tiny_config
 
     cfg = tiny_config()
-    return cfg.replace(volume=cfg.volume.replace(max_voxels=300))
+    return cfg.replace(volume=cfg.volume.replace(max_voxels=300),
+                       backbone=cfg.backbone.replace(depth_focal_ref=0.9))
 
 
 @pytest.fixture(scope="session")

@@ -114,17 +114,22 @@ def test_eval_baseline_reports(tiny_synth_data, tmp_path, capsys):
         assert len(agg) == 1 and agg[0]["rig"] == "nuscenes"
         assert agg[0]["scenes"] == 2 and agg[0]["views"] == sum(want.values())
         assert agg[0]["psnr"] == pytest.approx(np.mean([r["psnr"] for r in rows]))
-        for key in ("psnr_fg", "colour_err"):      # the new columns, aggregated like PSNR
+        for key in ("psnr_fg", "psnr_seen", "seen_frac", "colour_err"):   # the later columns, aggregated like PSNR
             assert agg[0][key] == pytest.approx(np.mean([r[key] for r in rows])) and agg[0][f"{key}_undefined"] == 0
         assert agg[0]["lpips"] is None
         assert f"| unproject (GT depth, oracle) | {setting} | nuscenes | 2 | {agg[0]['views']} |" in md
-        assert (f"| {agg[0]['psnr']:.2f} | {agg[0]['psnr_fg']:.2f} | {agg[0]['ssim']:.3f} | n/a | "
+        assert (f"| {agg[0]['psnr']:.2f} | {agg[0]['psnr_fg']:.2f} | {agg[0]['psnr_seen']:.2f} | "
+                f"{100 * agg[0]['seen_frac']:.0f} % | {agg[0]['ssim']:.3f} | n/a | "
                 f"{agg[0]['pcc']:.3f} | {agg[0]['colour_err']:.4f} |") in md
         for r in rows:
             assert 0 < r["psnr"] < 60 and -1 <= r["ssim"] <= 1
             assert r["pcc"] is None or -1 <= r["pcc"] <= 1
             assert 0 < r["psnr_fg"] < 60 and r["psnr_fg_inf"] is False and 0 <= r["colour_err"] <= 1
-    assert "| PSNR ↑ | PSNR fg ↑ | SSIM ↑ | LPIPS ↓ | PCC ↑ | colour err ↓ |" in md
+            assert 0 < r["seen_frac"] <= 1 and 0 < r["psnr_seen"] < 60
+        if setting == "ego-forward":
+            # the oracle unprojects exactly what the inputs saw: what they saw renders better than the rest
+            assert np.mean([r["psnr_seen"] for r in rows]) > np.mean([r["psnr_fg"] for r in rows])
+    assert "| PSNR ↑ | PSNR fg ↑ | PSNR seen ↑ | seen | SSIM ↑ | LPIPS ↓ | PCC ↑ | colour err ↓ |" in md
     assert "wrote" in capsys.readouterr().out
     # the sheet (default 4 scenes; the fixture has 2): first view of each scene and setting, 4 rows
     import cv2
@@ -168,6 +173,17 @@ def test_eval_view_colour_error_and_non_sky_psnr(tiny_synth_data):
     assert row["psnr_fg"] == pytest.approx(10 * math.log10(1 / mse_fg), abs=1e-9)
     assert row["psnr_fg"] == M.psnr_masked(pred, gt, fg)
     assert row["psnr_fg"] > row["psnr"] and row["psnr_fg_inf"] is False
+    # psnr_seen: over the non-sky pixels the input cameras see, by the ground-truth depths (eval reads them
+    # without a depth cap)
+    item = SceneDataset(tiny_synth_data, DatasetConfig(setting="ego-inward", num_targets=1 << 30, voxel_size=1.6,
+                                                       max_depth=1e12)).item(0, 0)
+    cams, t = item["rig"].cameras, item["targets"]
+    seen = fg & M.seen_by_inputs(t["depth"][0].numpy(), t["K"][0], t["cam_to_ego"][0],
+                                 item["depth"][:, 0].numpy(), np.stack([c.K for c in cams]),
+                                 np.stack([c.cam_to_ego for c in cams]))
+    assert 0 < seen.sum() < fg.sum()                   # an inward view sees the ego car and hidden sides too
+    assert row["psnr_seen"] == pytest.approx(10 * math.log10(1 / np.mean((pred[seen] - gt[seen]) ** 2)), abs=1e-9)
+    assert row["seen_frac"] == pytest.approx(seen.sum() / fg.sum())
     assert res["aggregate"][0]["colour_err"] == pytest.approx(np.mean([r["colour_err"] for r in res["views"]]))
 
 

@@ -1,5 +1,5 @@
 import pytest
-from xyzcyl.model_export.config import ConfigError, ModelConfig, preset
+from xyzcyl.model_export.config import NUSCENES_FRONT_FOCAL, ConfigError, ModelConfig, parse_focal_ref, preset
 
 
 @pytest.mark.parametrize("name", ["cpu", "paper"])
@@ -42,3 +42,21 @@ def test_errors_name_the_field():
         ModelConfig.from_dict({"ablation": {"volume_branch": False, "pixel_branch": False}})
     with pytest.raises(ConfigError, match="preset"):
         preset("huge")
+
+
+def test_depth_focal_ref_field_and_parser():
+    assert preset("cpu").backbone.depth_focal_ref is None or preset("cpu").backbone.depth_focal_ref > 0
+    # configs written before the field existed load focal-blind (the v1.x checkpoints)
+    d = preset("cpu").to_dict()
+    del d["backbone"]["depth_focal_ref"]
+    assert ModelConfig.from_dict(d).backbone.depth_focal_ref is None
+    d["backbone"]["depth_focal_ref"] = 1.0553
+    assert ModelConfig.from_dict(d).backbone.depth_focal_ref == 1.0553
+    for bad in (0, -1.0, "x"):
+        with pytest.raises(ConfigError, match=r"backbone\.depth_focal_ref|depth_focal_ref"):
+            ModelConfig.from_dict(dict(d, backbone=dict(d["backbone"], depth_focal_ref=bad)))
+    assert parse_focal_ref("off") is None and parse_focal_ref("nuscenes") == NUSCENES_FRONT_FOCAL
+    assert parse_focal_ref(" 1.5 ") == 1.5
+    for bad in ("0", "-2", "inf", "nan", "wide"):
+        with pytest.raises(ConfigError, match="depth_focal_ref"):
+            parse_focal_ref(bad)

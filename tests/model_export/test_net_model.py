@@ -113,6 +113,40 @@ def test_supplied_depth_replaces_head():
     assert torch.equal(d[[1, 3, 4]], d0[[1, 3, 4]]) and torch.equal(c[[1, 3, 4]], c0[[1, 3, 4]])
 
 
+def test_focal_aware_depth_scales_with_the_lens():
+    """backbone.depth_focal_ref: the head's depth times focal_n / ref (a camera with twice the focal sees the
+    same image content twice as far away); supplied depth stays exact; with focal_n = ref it is the focal-blind
+    head with the same weights; no focal is an error naming it."""
+    torch.manual_seed(0)
+    blind = XYZCylinder(tiny_config()).eval()
+    cfg = tiny_config()
+    cfg = cfg.replace(backbone=cfg.backbone.replace(depth_focal_ref=1.25))
+    model = XYZCylinder(cfg).eval()
+    model.load_state_dict(blind.state_dict())       # the focal reference adds no weights
+    n = 5
+    x = _images(n, cfg)
+    focal = torch.tensor([1.25, 2.5, 0.625, 1.25, 1.0])
+    with torch.no_grad():
+        _, d0, c0 = blind.encode_images(x)
+        _, d, c = model.encode_images(x, focal=focal)
+        given = torch.full((n, 1, 8, 16), 7.5)
+        _, dg, _ = model.encode_images(x, given, torch.tensor([1.0, 1, 0, 0, 0]), focal=focal)
+    ratio = (d / d0).flatten(1)
+    # float32 product of a positive depth and an exact ratio: one rounding step
+    torch.testing.assert_close(ratio, (focal / 1.25)[:, None].expand_as(ratio), rtol=1e-6, atol=0)
+    assert torch.equal(c, c0)
+    assert torch.all(dg[:2] == 7.5) and torch.equal(dg[2:], d[2:])
+    with pytest.raises(ValueError, match="focal"):
+        model.encode_images(x)
+    # the whole forward reads it from the lifting inputs: two rigs that differ only in focal length
+    inp = rig_inputs(overlap_rig(n), cfg)
+    assert inp["focal_n"].shape == (n,)
+    with torch.no_grad():
+        a = model(x, inp)["depth"]
+        b = model(x, dict(inp, focal_n=2 * inp["focal_n"]))["depth"]
+    torch.testing.assert_close(b, 2 * a, rtol=1e-6, atol=0)   # doubling is exact in float32
+
+
 def test_cylinder_convs_wrap_theta():
     """Rolling the input along W (theta) by a multiple of the total stride rolls every output: the circular
     padding makes the networks equivariant to rotations of the rig about the cylinder axis."""

@@ -115,6 +115,12 @@ def test_cli_errors_exit_2(tmp_path, tiny_synth_data):
     r = subprocess.run(exe + ["--data", str(tiny_synth_data), "--stage", "occ", "--out", str(tmp_path / "r"),
                               "--camera-drop", "2"], check=False, capture_output=True, text=True)
     assert r.returncode == 2 and "camera_drop" in r.stderr and "Traceback" not in r.stderr
+    r = subprocess.run(exe + ["--data", str(tiny_synth_data), "--stage", "occ", "--out", str(tmp_path / "r"),
+                              "--depth-focal-ref", "wide"], check=False, capture_output=True, text=True)
+    assert r.returncode == 2 and "depth_focal_ref" in r.stderr and "Traceback" not in r.stderr
+    r = subprocess.run(exe + ["--data", str(tiny_synth_data), "--stage", "occ", "--out", str(tmp_path / "r"),
+                              "--lens-zoom", "-1"], check=False, capture_output=True, text=True)
+    assert r.returncode == 2 and "lens_zoom" in r.stderr and "Traceback" not in r.stderr
     r = subprocess.run(exe + ["--data", str(tiny_synth_data), "--data", str(tmp_path / "nope"), "--stage", "occ",
                               "--out", str(tmp_path / "r")], check=False, capture_output=True, text=True)
     assert r.returncode == 2 and "nope" in r.stderr
@@ -192,11 +198,21 @@ def test_cli_config_overrides(tmp_path, tiny_synth_data):
     assert doc["train"]["data"]["occupancy_labels"] == "surface"
     assert doc["data"] == str(tiny_synth_data)
     # mixed data sets (--data repeated) and the camera drop
-    r = subprocess.run(exe + ["--out", str(tmp_path / "d"), "--data", str(tiny_synth_data), "--camera-drop", "0.5"],
-                       check=False, capture_output=True, text=True)
+    r = subprocess.run(exe + ["--out", str(tmp_path / "d"), "--data", str(tiny_synth_data), "--camera-drop", "0.5",
+                              "--lens-zoom", "0.25"], check=False, capture_output=True, text=True)
     assert r.returncode == 0, r.stderr
     doc = json.loads((tmp_path / "d" / "config.json").read_text())
     assert doc["data"] == [str(tiny_synth_data)] * 2 and doc["train"]["data"]["camera_drop"] == 0.5
+    assert doc["train"]["data"]["lens_zoom"] == 0.25
+    # the focal-aware depth head: on (the occ stage's encoder reads the rigs' focal_n), then off again over --init
+    r = subprocess.run(exe + ["--out", str(tmp_path / "e"), "--depth-focal-ref", "nuscenes"],
+                       check=False, capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    assert json.loads((tmp_path / "e" / "config.json").read_text())["model"]["backbone"]["depth_focal_ref"] == 1.0553
+    r = subprocess.run(exe + ["--out", str(tmp_path / "f"), "--init", str(tmp_path / "e" / "occ.pt"),
+                              "--depth-focal-ref", "off"], check=False, capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    assert json.loads((tmp_path / "f" / "config.json").read_text())["model"]["backbone"]["depth_focal_ref"] is None
 
 
 def test_threads_option_sets_torch_and_numba():

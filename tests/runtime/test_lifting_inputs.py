@@ -86,3 +86,29 @@ def test_depth_rays_back_project_cylinder_pixels():
         _, z, front = cam.project(P)
         X = spec.centre + offs[n] + z[..., None] * rays[n]
         np.testing.assert_allclose(X[front], P[front], atol=1e-4)  # float32 storage of rays at ~25 m
+
+
+def test_focal_n_hand_values():
+    import math
+
+    from xyzcyl.runtime.lifting import focal_n
+    from xyzcyl.runtime.rig import Camera, Rig
+
+    rig = ring_rig(4, hfov_deg=90.0, width=64, height=32)       # square pixels: fx = fy = 32 / tan(45 deg) = 32
+    f = focal_n(rig)
+    assert f.shape == (4,) and f.dtype == np.float32
+    np.testing.assert_allclose(f, math.sqrt(32 / 64 * 32 / 32), rtol=1e-6)
+    # resizing an image (any aspect) leaves it unchanged: fx / W and fy / H are both kept
+    small = Rig([c.resized(40, 24) for c in rig.cameras])
+    np.testing.assert_allclose(focal_n(small), f, rtol=1e-6)
+    # a narrower lens has the longer focal: 50 deg against 90 deg across the same image, tan(45) / tan(25)
+    np.testing.assert_allclose(focal_n(ring_rig(4, hfov_deg=50.0, width=64, height=32)) / f,
+                               1 / math.tan(math.radians(25)), rtol=1e-6)
+    # equirectangular: W / (2 pi) and H / pi pixels per radian
+    pano = Rig([Camera("pano", 512, 256, None, np.eye(4), model="equirectangular")])
+    np.testing.assert_allclose(focal_n(pano), 1 / (math.pi * math.sqrt(2)), rtol=1e-6)
+    cfg = {"cylinder": {"height": 8, "width": 32, "z_range": [-3.0, 13.0], "rho_occ": 0.9, "rho_vol": 0.98,
+                        "rho_pix": 0.98, "dh_occ": 0.0, "dh_vol": 0.4, "dh_pix": 0.4},
+           "grid": {"pc_range": [-40, -40, -3, 40, 40, 13], "voxel_size": 8.0, "r_min": 0.5, "r_max": 57.0},
+           "pixel": {"k_in": 1, "k_out": 2}}
+    np.testing.assert_array_equal(build_lifting_inputs(rig, LiftingParams.from_config_dict(cfg))["focal_n"], f)
