@@ -137,11 +137,14 @@ def _native_depth_head(model, item: dict[str, Any]) -> np.ndarray:
     """The checkpoint's depth head at the input resolution: [N, H, W] metres (bilinear upsampling)."""
     import torch
     import torch.nn.functional as F
+    from xyzcyl.runtime.lifting import focal_n
 
     from .train import _resize
 
     with torch.no_grad():
-        _, d, _ = model.encode_images(_resize(item["images"], model.cfg), focal=item["lifting"].get("focal_n"))
+        # the rig's focal lengths (the focal-aware head needs them; the baseline's items carry no lifting inputs)
+        focal = torch.from_numpy(focal_n(item["rig"]))
+        _, d, _ = model.encode_images(_resize(item["images"], model.cfg), focal=focal)
         d = F.interpolate(d, size=item["images"].shape[-2:], mode="bilinear", align_corners=False)
     return d[:, 0].numpy()
 
