@@ -324,16 +324,14 @@ def evaluate(data_dirs: Sequence[str | Path], cfg: EvalConfig, checkpoint: str |
                 views = unproject_views(item, _native_depth_head(model, item), cfg)
             else:
                 views = unproject_views(item, item["depth"][:, 0].numpy(), cfg)
-            rig_cams = item["rig"].cameras
             in_depth = item["depth"][:, 0].numpy()
-            in_K, in_T = np.stack([c.K for c in rig_cams]), np.stack([c.cam_to_ego for c in rig_cams])
             for k, (rgb, depth, n_g) in enumerate(views):
                 pred = np.clip(rgb, 0, 1)
                 gt = t["images"][k].permute(1, 2, 0).numpy()
                 gd = t["depth"][k].numpy()
                 fg = t["sky"][k].numpy() < 0.5
                 valid = (gd > 0) & (gd <= cfg.pcc_max_depth) & fg
-                seen = fg & M.seen_by_inputs(gd, t["K"][k], t["cam_to_ego"][k], in_depth, in_K, in_T)
+                seen = fg & M.seen_by_inputs(gd, t["K"][k], t["cam_to_ego"][k], in_depth, item["rig"].cameras)
                 lp = M.lpips(pred, gt, cfg.lpips_backbone_path, cfg.lpips_lin_path, cfg.lpips_net)
                 if lp.value is None and lp_reason is None:
                     lp_reason = lp.reason

@@ -71,13 +71,13 @@ SEEN_ABS_TOL = 0.2   # metres
 
 
 def seen_by_inputs(depth: np.ndarray, K: np.ndarray, cam_to_ego: np.ndarray, input_depth: np.ndarray,
-                   input_K: np.ndarray, input_cam_to_ego: np.ndarray, rel_tol: float = SEEN_REL_TOL,
-                   abs_tol: float = SEEN_ABS_TOL) -> np.ndarray:
+                   input_cameras, rel_tol: float = SEEN_REL_TOL, abs_tol: float = SEEN_ABS_TOL) -> np.ndarray:
     """[H, W] bool: the target pixels whose surface some input camera sees.
 
     depth [H, W] metres along the target's optical axis (0 / non-finite: no surface, e.g. sky: never seen);
-    K [3, 3] pixels; cam_to_ego [4, 4] OpenCV camera -> ego, metres. input_depth [N, h, w] metres along each
-    input's optical axis (0 / non-finite: unknown); input_K [N, 3, 3]; input_cam_to_ego [N, 4, 4].
+    K [3, 3] pixels; cam_to_ego [4, 4] OpenCV camera -> ego, metres. input_depth [N, h, w] metres as each input
+    camera measures it (``Camera.project``'s z: optical axis, or distance for equirectangular; 0 / non-finite:
+    unknown); input_cameras: the N ``runtime.rig.Camera`` of the rig (their own projection, distortion included).
     Pixel (u, v) (integer pixel centres) with depth z is the ego point cam_to_ego @ [z inv(K) [u, v, 1], 1]. It
     is seen when, for some input camera, it lies in front of that camera, projects inside its image, and one of
     the 4 input pixels around the projection holds a depth within ``rel_tol * z_in + abs_tol`` of the point's
@@ -87,10 +87,9 @@ def seen_by_inputs(depth: np.ndarray, K: np.ndarray, cam_to_ego: np.ndarray, inp
     input_depth = np.asarray(input_depth, np.float64)
     if depth.ndim != 2:
         raise ValueError(f"depth: need [H, W], got shape {depth.shape}")
-    if input_depth.ndim != 3 or len(input_K) != len(input_depth) or len(input_cam_to_ego) != len(input_depth):
-        raise ValueError(f"input_depth: need [N, h, w] with N input_K and input_cam_to_ego, got shapes "
-                         f"{input_depth.shape}, {np.shape(input_K)}, {np.shape(input_cam_to_ego)}")
-    h, w = depth.shape
+    if input_depth.ndim != 3 or len(input_cameras) != len(input_depth):
+        raise ValueError(f"input_depth: need [N, h, w] for N input_cameras, got shape {input_depth.shape} for "
+                         f"{len(input_cameras)} cameras")
     has = np.isfinite(depth) & (depth > 0)
     v, u = np.nonzero(has)
     z = depth[has]
@@ -98,29 +97,20 @@ def seen_by_inputs(depth: np.ndarray, K: np.ndarray, cam_to_ego: np.ndarray, inp
     cam_to_ego = np.asarray(cam_to_ego, np.float64)
     pts = (rays * z[:, None]) @ cam_to_ego[:3, :3].T + cam_to_ego[:3, 3]            # [P, 3] ego
     seen = np.zeros(len(z), bool)
-    ih, iw = input_depth.shape[1:]
-    for d_in, k_in, t_in in zip(input_depth, np.asarray(input_K, np.float64),
-                                np.asarray(input_cam_to_ego, np.float64)):
-        rest = ~seen
-        ego_to_cam = np.linalg.inv(t_in)
-        pc = pts[rest] @ ego_to_cam[:3, :3].T + ego_to_cam[:3, 3]
-        zc = pc[:, 2]
-        front = zc > 1e-6
-        uv = np.full((len(pc), 2), -1e9)
-        uv[front] = (pc[front] @ k_in.T)[:, :2] / zc[front, None]
-        hit = np.zeros(len(pc), bool)
+    for d_in, cam in zip(input_depth, input_cameras):
+        rest = np.nonzero(~seen)[0]
+        uv, zc, front = cam.project(pts[rest])
+        ih, iw = d_in.shape
         tol = rel_tol * zc + abs_tol
-        for du in (np.floor, np.ceil):
-            for dv in (np.floor, np.ceil):
-                cu, cv = du(uv[:, 0]), dv(uv[:, 1])
+        hit = np.zeros(len(rest), bool)
+        for cu in (np.floor(uv[:, 0]), np.ceil(uv[:, 0])):
+            for cv in (np.floor(uv[:, 1]), np.ceil(uv[:, 1])):
                 inside = front & (cu >= 0) & (cu <= iw - 1) & (cv >= 0) & (cv <= ih - 1)
-                dz = np.zeros(len(pc))
+                dz = np.zeros(len(rest))
                 dz[inside] = d_in[cv[inside].astype(int), cu[inside].astype(int)]
-                ok = inside & np.isfinite(dz) & (dz > 0) & (np.abs(dz - zc) <= tol)
-                hit |= ok
-        idx = np.nonzero(rest)[0]
-        seen[idx[hit]] = True
-    out = np.zeros((h, w), bool)
+                hit |= inside & np.isfinite(dz) & (dz > 0) & (np.abs(dz - zc) <= tol)
+        seen[rest[hit]] = True
+    out = np.zeros(depth.shape, bool)
     out[v, u] = seen
     return out
 

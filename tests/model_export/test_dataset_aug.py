@@ -363,8 +363,7 @@ def test_lens_zoom_in_items_keeps_geometry_and_targets(tiny_data):
     # can pick the other side of a depth edge for pixels on it, so a few may miss.
     for k in range(len(ca)):
         d = b["depth"][k, 0].numpy()
-        seen = M.seen_by_inputs(d, cb[k].K, cb[k].cam_to_ego, a["depth"][k:k + 1, 0].numpy(), ca[k].K[None],
-                                ca[k].cam_to_ego[None])
+        seen = M.seen_by_inputs(d, cb[k].K, cb[k].cam_to_ego, a["depth"][k:k + 1, 0].numpy(), [ca[k]])
         has = d > 0
         assert has.sum() > 0.3 * d.size and seen[has].mean() > 0.97, (k, seen[has].mean())
         # the sky follows the pixels: where the zoomed view has sky it has no depth

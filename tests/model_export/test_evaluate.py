@@ -179,8 +179,7 @@ def test_eval_view_colour_error_and_non_sky_psnr(tiny_synth_data):
                                                        max_depth=1e12)).item(0, 0)
     cams, t = item["rig"].cameras, item["targets"]
     seen = fg & M.seen_by_inputs(t["depth"][0].numpy(), t["K"][0], t["cam_to_ego"][0],
-                                 item["depth"][:, 0].numpy(), np.stack([c.K for c in cams]),
-                                 np.stack([c.cam_to_ego for c in cams]))
+                                 item["depth"][:, 0].numpy(), cams)
     assert 0 < seen.sum() < fg.sum()                   # an inward view sees the ego car and hidden sides too
     assert row["psnr_seen"] == pytest.approx(10 * math.log10(1 / np.mean((pred[seen] - gt[seen]) ** 2)), abs=1e-9)
     assert row["seen_frac"] == pytest.approx(seen.sum() / fg.sum())

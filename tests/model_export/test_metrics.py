@@ -155,34 +155,41 @@ def _wall_camera(f=10.0, w=8, h=6, x=0.0):
     return K, T
 
 
+def _cam(K, T, w=8, h=6):
+    """[one input Camera] with intrinsics K and pose T, w x h pixels."""
+    from xyzcyl.runtime.rig import Camera
+
+    return [Camera("in", w, h, K, T)]
+
+
 def test_seen_by_inputs_hand_cases():
     w, h = 8, 6
     K, T = _wall_camera()
     wall = np.full((h, w), 10.0)                        # a fronto-parallel wall 10 m ahead
     # the target is the input camera: every pixel is seen
-    assert M.seen_by_inputs(wall, K, T, wall[None], K[None], T[None]).all()
+    assert M.seen_by_inputs(wall, K, T, wall[None], _cam(K, T)).all()
     # sky (0) and non-finite target depths are never seen
     sky = wall.copy()
     sky[0] = 0
     sky[1, 0] = np.nan
-    got = M.seen_by_inputs(sky, K, T, wall[None], K[None], T[None])
+    got = M.seen_by_inputs(sky, K, T, wall[None], _cam(K, T))
     assert not got[0].any() and not got[1, 0] and got[2:].all() and got[1, 1:].all()
     # moved 2 m right: pixel u looks at the input's pixel u + f * 2 / 10 = u + 2; the last 2 columns fall outside
     K2, T2 = _wall_camera(x=2.0)
-    got = M.seen_by_inputs(wall, K2, T2, wall[None], K[None], T[None])
+    got = M.seen_by_inputs(wall, K2, T2, wall[None], _cam(K, T))
     assert got[:, : w - 2].all() and not got[:, w - 2:].any()
     # occluded: the input saw a box at 5 m over its left half, so the wall behind it is not seen there
     box = wall.copy()
     box[:, : w // 2] = 5.0
-    got = M.seen_by_inputs(wall, K, T, box[None], K[None], T[None])
+    got = M.seen_by_inputs(wall, K, T, box[None], _cam(K, T))
     assert not got[:, : w // 2].any() and got[:, w // 2:].all()
     # a second input camera that sees the whole wall makes everything seen again; one looking away sees nothing
-    assert M.seen_by_inputs(wall, K, T, np.stack([box, wall]), np.stack([K, K]), np.stack([T, T])).all()
+    assert M.seen_by_inputs(wall, K, T, np.stack([box, wall]), _cam(K, T) * 2).all()
     back = T.copy()
     back[:3, :3] = np.diag([-1.0, 1.0, -1.0])          # turned 180 degrees about y: the wall is behind it
-    assert not M.seen_by_inputs(wall, K, T, wall[None], K[None], back[None]).any()
+    assert not M.seen_by_inputs(wall, K, T, wall[None], _cam(K, back)).any()
     # the tolerance: 5 % + 0.2 m of the depth (0.7 m at 10 m) -- 10.6 m counts as the same surface, 11 m not
-    assert M.seen_by_inputs(wall, K, T, np.full((1, h, w), 10.6), K[None], T[None]).all()
-    assert not M.seen_by_inputs(wall, K, T, np.full((1, h, w), 11.0), K[None], T[None]).any()
+    assert M.seen_by_inputs(wall, K, T, np.full((1, h, w), 10.6), _cam(K, T)).all()
+    assert not M.seen_by_inputs(wall, K, T, np.full((1, h, w), 11.0), _cam(K, T)).any()
     with pytest.raises(ValueError, match="input_depth"):
-        M.seen_by_inputs(wall, K, T, wall, K[None], T[None])
+        M.seen_by_inputs(wall, K, T, wall, _cam(K, T))
