@@ -372,7 +372,9 @@ class ModelConfig(_Frozen):
 
 
 def _cpu() -> ModelConfig:
-    return ModelConfig(name="cpu")
+    """The CPU model: the dataclass defaults, with the focal-aware depth head (measured better on every rig,
+    docs/results.md "Focal-aware depth"; the dataclass default stays None so older configs load focal-blind)."""
+    return ModelConfig(name="cpu", backbone=BackboneConfig(depth_focal_ref=NUSCENES_FRONT_FOCAL))
 
 
 def _paper() -> ModelConfig:

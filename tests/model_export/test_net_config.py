@@ -45,7 +45,9 @@ def test_errors_name_the_field():
 
 
 def test_depth_focal_ref_field_and_parser():
-    assert preset("cpu").backbone.depth_focal_ref is None or preset("cpu").backbone.depth_focal_ref > 0
+    # the cpu preset is focal-aware (the shipped 1.2.0 setting); the dataclass default stays focal-blind
+    assert preset("cpu").backbone.depth_focal_ref == NUSCENES_FRONT_FOCAL
+    assert ModelConfig().backbone.depth_focal_ref is None
     # configs written before the field existed load focal-blind (the v1.x checkpoints)
     d = preset("cpu").to_dict()
     del d["backbone"]["depth_focal_ref"]

@@ -107,8 +107,9 @@ def test_supplied_depth_replaces_head():
     given = torch.full((n, 1, h, w), 7.5)
     mask = torch.tensor([1.0, 0, 1, 0, 0])
     with torch.no_grad():
-        _, d0, c0 = model.encode_images(_images(n, cfg))
-        _, d, c = model.encode_images(_images(n, cfg), given, mask)
+        focal = torch.ones(n)       # the cpu preset's head is focal-aware: any lens will do here
+        _, d0, c0 = model.encode_images(_images(n, cfg), focal=focal)
+        _, d, c = model.encode_images(_images(n, cfg), given, mask, focal=focal)
     assert torch.all(d[[0, 2]] == 7.5) and torch.all(c[[0, 2]] == 1.0)
     assert torch.equal(d[[1, 3, 4]], d0[[1, 3, 4]]) and torch.equal(c[[1, 3, 4]], c0[[1, 3, 4]])
 
@@ -118,8 +119,8 @@ def test_focal_aware_depth_scales_with_the_lens():
     same image content twice as far away); supplied depth stays exact; with focal_n = ref it is the focal-blind
     head with the same weights; no focal is an error naming it."""
     torch.manual_seed(0)
-    blind = XYZCylinder(tiny_config()).eval()
     cfg = tiny_config()
+    blind = XYZCylinder(cfg.replace(backbone=cfg.backbone.replace(depth_focal_ref=None))).eval()
     cfg = cfg.replace(backbone=cfg.backbone.replace(depth_focal_ref=1.25))
     model = XYZCylinder(cfg).eval()
     model.load_state_dict(blind.state_dict())       # the focal reference adds no weights
@@ -270,7 +271,7 @@ def test_pixel_anchors_land_on_known_surface(placement):
     depth = torch.tensor(np.stack(depths)[:, None], dtype=torch.float32)
     with torch.no_grad():
         images = _images(6, cfg)
-        feats, d, c = model.encode_images(images, depth, torch.ones(6))
+        feats, d, c = model.encode_images(images, depth, torch.ones(6), focal=inp["focal_n"])
         _, _, vmask, anchor = model.pixel_branch(feats, d, c, inp, images)
     r = torch.linalg.norm(anchor[:, :2] - torch.from_numpy(centre[:2]).float(), dim=1)
     r = r[vmask]
@@ -407,12 +408,12 @@ def test_rgb_path_off_ignores_colour_and_on_uses_it():
                          (AblationConfig(rgb_path=False, rgb_occupancy=False), 0, 0)):
         model = XYZCylinder(on.replace(ablation=ab)).eval()
         with torch.no_grad():
-            feats, _, _ = model.encode_images(images)
+            feats, _, _ = model.encode_images(images, focal=torch.ones(6))
         assert model.module_features(feats, "occupancy").shape[1] == D + occ
         assert model.module_features(feats, "pixel").shape[1] == D + pix
         assert model.module_features(feats, "volume").shape[1] == D + pix
     with pytest.raises(ValueError, match="images"):
         model = XYZCylinder(on).eval()
         inp = rig_inputs(overlap_rig(6), on)
-        feats, d, c = model.encode_images(images)
+        feats, d, c = model.encode_images(images, focal=inp["focal_n"])
         model.pixel_branch(feats, d, c, inp)
