@@ -31,6 +31,8 @@ COMMANDS: tuple[Command, ...] = (
     Command("reconstruct", "xyzcyl.runtime.commands.reconstruct",
             "rig.json + images -> scene folder of Gaussians and background (onnxruntime, no torch)"),
     Command("render", "xyzcyl.runtime.commands.render", "render a Gaussian PLY or a scene folder from a camera pose"),
+    Command("lidar-eval", "xyzcyl.runtime.commands.lidar_eval",
+            "depth of a reconstruction against a LiDAR sweep of the same timestamp (no torch)"),
     Command("data", "xyzcyl.model_export.commands.data", "synthetic training data: synth, gallery", "train"),
     Command("train", "xyzcyl.model_export.commands.train", "train one stage (occ | render) of the network", "train"),
     Command("eval", "xyzcyl.model_export.commands.eval", "novel-view metrics of a model or a baseline", "train"),

@@ -391,6 +391,30 @@ def _part(name: str, src: Any, root: Path | None, depth: bool) -> _Part:
     raise TypeError(f"{name}: an image is a file path, bytes or a numpy array, not {type(src).__name__}")
 
 
+def _lidar_part(doc: dict[str, Any], root: Path | None, lidar: Any) -> _Part | None:
+    """The 'lidar' part: ``lidar`` (a path relative to the working folder, or bytes), or with None the file the
+    rig's lidar block names (relative to rig.json's folder); False or nothing named: None."""
+    if lidar is False:
+        return None
+    if lidar is None:
+        block = doc.get("lidar")
+        src = block.get("file") if isinstance(block, dict) else None
+        if not src:
+            return None
+        path = Path(src)
+        if root is not None and not path.is_absolute():
+            path = root / path
+    elif isinstance(lidar, (bytes, bytearray, memoryview)):
+        return _Part("lidar", "lidar.bin", "application/octet-stream", data=bytes(lidar))
+    elif isinstance(lidar, (str, os.PathLike)):
+        path = Path(lidar)
+    else:
+        raise TypeError(f"lidar: a file path, bytes, None or False, not {type(lidar).__name__}")
+    if not path.is_file():
+        raise InvalidRequestError(None, "file_missing", f"cannot read {str(path)!r}: no such file", "lidar")
+    return _Part("lidar", path.name, "application/octet-stream", path=path)
+
+
 def _rig_document(rig: Any) -> tuple[dict[str, Any], Path | None]:
     """(rig JSON as a dict, folder its file names are relative to) from a rig.json path, a runtime Rig, or the
     rig's JSON as a dict. The server validates the calibration; the client only reads the camera names."""
@@ -819,7 +843,7 @@ class Client:
     # -- scenes -----------------------------------------------------------------------------------------------
 
     def reconstruct(self, rig: Any, images: Any = None, depths: Any = None, wait: bool = True,
-                    timeout: float = 600.0, progress: Progress | None = None) -> SceneInfo:
+                    timeout: float = 600.0, progress: Progress | None = None, lidar: Any = None) -> SceneInfo:
         """POST /v1/scenes: upload a rig and its images; returns the scene.
 
         rig: a rig.json path, an xyzcyl.runtime.rig.Rig, or the rig's JSON as a dict.
@@ -829,6 +853,9 @@ class Client:
         PNG (uint8 / uint16 as they are, floats 0..1 as 16-bit), RGB order.
         depths: None = the depth files the rig names (``depth``), if any; else as images, per camera, optional:
         a 16-bit PNG of millimetres or a float EXR of metres (uint16 arrays -> PNG mm, float arrays -> EXR m).
+        lidar: None = the LiDAR file the rig's ``lidar`` block names, if any; False = none; else a file path or
+        its bytes (.npy [N, >=3], or raw float32 .bin with the block's ``columns``; points in the frame the block's
+        ``lidar_to_ego`` maps to ego, else ego). The server then makes each camera's depth from it.
         wait: hold the request with ?wait= then poll GET /v1/scenes/{id} until the scene is ready (returned) or
         failed (raised: InvalidRequestError for invalid_input, StorageFullError, ServerError for worker_crashed /
         timeout / interrupted), or ``timeout`` seconds pass (WaitTimeout). wait=False returns the queued scene.
@@ -852,6 +879,9 @@ class Client:
             dsrc = cam.get("depth") if dps is None else dps.get(name)
             if dsrc is not None:
                 parts.append(_part(f"depth:{name}", dsrc, root if dps is None else None, depth=True))
+        lidar_part = _lidar_part(doc, root, lidar)
+        if lidar_part is not None:
+            parts.append(lidar_part)
         body = _Multipart(parts)
         params = {"wait": f"{min(max(timeout, 0.0), _MAX_WAIT_QUERY):g}"} if wait else None
         t0 = _monotonic()

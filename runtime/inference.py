@@ -323,12 +323,15 @@ class Reconstructor:
 
     def reconstruct(self, rig: Rig, images: Sequence[np.ndarray] | None = None,
                     depths: Sequence[np.ndarray | None] | None = None,
-                    progress: Callable[[str], None] | None = None) -> Scene:
+                    progress: Callable[[str], None] | None = None,
+                    lidar: np.ndarray | None = None) -> Scene:
         """Gaussians (ego frame), background and metadata of one timestamp of ``rig``.
 
         images: one [H, W, 3] array per camera in rig order (uint8, uint16 or float 0..1), or None to read the
         rig's image files; depths: per camera a [H, W] depth map in metres or None, or None for the rig's depth
-        files (if any). Errors name the camera (RigError) or the model file (ModelError)."""
+        files (if any). lidar: [P, 3] metres, ego frame, a LiDAR sweep of the same timestamp: each pinhole camera
+        without a depth map then gets one made from it (``lidar_depths``: two encode passes). Errors name the
+        camera (RigError) or the model file (ModelError)."""
         say = progress or (lambda msg: None)
         t: dict[str, float] = {}
         t_all = time.perf_counter()
@@ -342,20 +345,43 @@ class Reconstructor:
             depths = rig.load_depths()
         t["decode"] = time.perf_counter() - t0
 
-        t0 = time.perf_counter()
-        imgs, depth, mask = self.prepare(rig, images, depths)
-        t["resize"] = time.perf_counter() - t0
+        def timed(key: str, fn: Callable, *args):
+            t0 = time.perf_counter()
+            out = fn(*args)
+            t[key] = time.perf_counter() - t0
+            return out
 
-        t0 = time.perf_counter()
-        lift, cached = self.lifting(rig)
-        t["lifting"] = time.perf_counter() - t0
-
+        imgs, depth, mask = timed("resize", self.prepare, rig, images, depths)
+        lift, cached = timed("lifting", self.lifting, rig)
         say("encode")
-        t0 = time.perf_counter()
-        feed = {"images": imgs, "depth": depth, "depth_mask": mask, **lift}
-        enc = self._run("encode", feed)
-        t["encode"] = time.perf_counter() - t0
+        enc = timed("encode", self._run, "encode", {"images": imgs, "depth": depth, "depth_mask": mask, **lift})
+        gauss, counts = self._gaussians(enc, lift, t, say)
+        if lidar is not None:
+            say("LiDAR depth")
+            depth, mask, scales = timed("lidar", self.lidar_depths, rig, gauss, lidar, depth, mask)
+            say("encode with LiDAR depth")
+            enc = timed("encode_lidar", self._run, "encode",
+                        {"images": imgs, "depth": depth, "depth_mask": mask, **lift})
+            gauss, counts = self._gaussians(enc, lift, t, say)
+            counts["lidar_cameras"] = int(sum(s is not None for s in scales))
 
+        background = None
+        app_plane = enc.get("app_plane")
+        if app_plane is not None and "background" in self.sessions:
+            say("background")
+            t0 = time.perf_counter()
+            background = self.bake_background(rig, app_plane)
+            t["background"] = time.perf_counter() - t0
+        t["total"] = time.perf_counter() - t_all
+        meta = {"name": self.info.name, "version": self.info.version,
+                "model_json_sha256": _sha256((self.info.path / "model.json").read_bytes())}
+        return Scene(gaussians=gauss, background=background, rig=rig, model=meta, counts=counts,
+                     timings={k: round(v, 6) for k, v in t.items()}, lifting_cached=cached, app_plane=app_plane)
+
+    def _gaussians(self, enc: Mapping[str, np.ndarray], lift: Mapping[str, np.ndarray], t: dict[str, float],
+                   say: Callable[[str], None]) -> tuple[Gaussians, dict[str, int]]:
+        """The encode outputs -> the scene's Gaussians (volume graph on the selected voxels + pixel Gaussians,
+        invisible ones pruned) and their counts; stage times go into ``t``."""
         parts: list[dict[str, np.ndarray]] = []
         n_vox = 0
         counts: dict[str, int] = {"volume": 0, "pixel": 0}
@@ -383,19 +409,37 @@ class Reconstructor:
         counts["total"] = len(gauss)
         counts["voxels"] = n_vox
         t["gaussians"] = time.perf_counter() - t0
+        return gauss, counts
 
-        background = None
-        app_plane = enc.get("app_plane")
-        if app_plane is not None and "background" in self.sessions:
-            say("background")
-            t0 = time.perf_counter()
-            background = self.bake_background(rig, app_plane)
-            t["background"] = time.perf_counter() - t0
-        t["total"] = time.perf_counter() - t_all
-        meta = {"name": self.info.name, "version": self.info.version,
-                "model_json_sha256": _sha256((self.info.path / "model.json").read_bytes())}
-        return Scene(gaussians=gauss, background=background, rig=rig, model=meta, counts=counts,
-                     timings={k: round(v, 6) for k, v in t.items()}, lifting_cached=cached, app_plane=app_plane)
+    def lidar_depths(self, rig: Rig, gauss: Gaussians, lidar: np.ndarray, depth: np.ndarray, mask: np.ndarray
+                     ) -> tuple[np.ndarray, np.ndarray, list[float | None]]:
+        """The encode graph's depth inputs with LiDAR: for each pinhole camera whose depth is not supplied
+        (mask 0), ``runtime.lidar.fuse_depth`` of the sweep's nearest point per depth cell (occlusion-filtered)
+        and the depth of ``gauss`` (the reconstruction without LiDAR) rendered at that camera. lidar: [P, 3]
+        metres, ego frame. Returns (depth [N, 1, h, w], depth_mask [N], the scale per camera or None where the
+        camera kept its input)."""
+        from .lidar import fuse_depth, lidar_depth_map, occlusion_filter
+        from .render import render
+        from .scene import rig_camera
+
+        pts = np.asarray(lidar, np.float64)
+        if pts.ndim != 2 or pts.shape[1] != 3 or not np.all(np.isfinite(pts)):
+            raise InferenceError(f"lidar: need finite points of shape [P, 3] (got {list(pts.shape)})")
+        h, w = self.info.depth_size
+        depth, mask = depth.copy(), mask.copy()
+        scales: list[float | None] = []
+        for n, cam in enumerate(rig.cameras):
+            if mask[n] > 0 or cam.model != "pinhole":
+                scales.append(None)
+                continue
+            small = cam.replace(distortion=None).resized(w, h)
+            lid = lidar_depth_map(pts, small)
+            lid = np.where(occlusion_filter(lid, radius=1), lid, 0).astype(np.float32)
+            r = render(gauss, rig_camera(small))
+            depth[n, 0], s = fuse_depth(lid, r.depth, r.alpha)
+            mask[n] = 1.0
+            scales.append(s)
+        return depth, mask, scales
 
     # -- background ---------------------------------------------------------------------------------------------
     def background_spec(self, rig: Rig):

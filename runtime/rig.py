@@ -522,20 +522,21 @@ def _check_K(K: Any, where: str) -> np.ndarray:
     return K
 
 
-def _check_pose(T: Any, where: str) -> np.ndarray:
-    T = _numbers(T, where, "cam_to_ego")
+def _check_pose(T: Any, where: str, key: str = "cam_to_ego") -> np.ndarray:
+    """A validated rigid 4x4 transform (``key`` names the field in errors: cam_to_ego, lidar_to_ego)."""
+    T = _numbers(T, where, key)
     if T.shape != (4, 4):
-        raise RigError(f"{where}: cam_to_ego must be 4x4 (got shape {T.shape})")
+        raise RigError(f"{where}: {key} must be 4x4 (got shape {T.shape})")
     if np.max(np.abs(T[3] - [0.0, 0.0, 0.0, 1.0])) > STRUCT_TOL:
-        raise RigError(f"{where}: cam_to_ego bottom row must be [0, 0, 0, 1] (got {T[3].tolist()})")
+        raise RigError(f"{where}: {key} bottom row must be [0, 0, 0, 1] (got {T[3].tolist()})")
     R = T[:3, :3]
     err = float(np.max(np.abs(R.T @ R - np.eye(3))))
     if err > ORTHO_TOL:
-        raise RigError(f"{where}: cam_to_ego rotation is not orthonormal (max |R^T R - I| = {err:.3g} > "
+        raise RigError(f"{where}: {key} rotation is not orthonormal (max |R^T R - I| = {err:.3g} > "
                        f"{ORTHO_TOL})")
     det = float(np.linalg.det(R))
     if det < 0:
-        raise RigError(f"{where}: cam_to_ego rotation has det {det:.4f}, must be +1 (a reflection)")
+        raise RigError(f"{where}: {key} rotation has det {det:.4f}, must be +1 (a reflection)")
     T = T.copy()
     T[3] = [0.0, 0.0, 0.0, 1.0]
     return T

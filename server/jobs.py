@@ -85,18 +85,20 @@ def _worker_reconstruct(rig_json: str, out_dir: str) -> tuple[str, Any]:
     import errno
 
     from xyzcyl.runtime.inference import InferenceError
+    from xyzcyl.runtime.lidar import LidarError, has_lidar, load_lidar
     from xyzcyl.runtime.rig import RigError, load_rig
     from xyzcyl.runtime.scene import SceneError
 
     try:
         rig = load_rig(rig_json)
-        scene = _RECONSTRUCTOR.reconstruct(rig)
+        lidar = load_lidar(rig).points if has_lidar(rig) else None
+        scene = _RECONSTRUCTOR.reconstruct(rig, lidar=lidar)
         scene.save(out_dir)
         meta = scene.to_json()
         return "ok", {k: meta[k] for k in ("model", "counts", "timings", "bbox", "lifting_cached")} | {
             "gaussians": meta["gaussians"]["count"], "background": meta["background"] is not None,
             "pid": os.getpid()}
-    except (RigError, InferenceError, SceneError) as e:
+    except (RigError, InferenceError, SceneError, LidarError) as e:
         return "invalid", str(e)
     except OSError as e:
         if e.errno in (errno.ENOSPC, errno.EDQUOT):

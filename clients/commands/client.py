@@ -55,6 +55,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     p.add_argument("--wait", nargs="?", type=float, const=600.0, default=None, metavar="S",
                    help="wait until the scene is ready or failed, up to S seconds (default 600)")
     p.add_argument("--no-depth", action="store_true", help="do not upload the depth files the rig names")
+    p.add_argument("--no-lidar", action="store_true", help="do not upload the LiDAR file the rig's lidar block names "
+                   "(the server then uses the depth head alone)")
     p.add_argument("--json", action="store_true", help="print the scene JSON instead of its id")
 
     p = sub.add_parser("render", parents=[common], help="render one view to a file (png, jpg or exr)",
@@ -170,7 +172,8 @@ def _reconstruct(c, args) -> int:
                     print(f"uploaded {total / 1e6:.1f} MB; waiting for the reconstruction ...", file=sys.stderr)
         else:
             progress = update
-        info = c.reconstruct(args.rig, depths=depths, wait=wait, timeout=args.wait or 600.0, progress=progress)
+        info = c.reconstruct(args.rig, depths=depths, wait=wait, timeout=args.wait or 600.0, progress=progress,
+                             lidar=False if args.no_lidar else None)
     finally:
         close()
     _say(args, _summary(info) if info.ready else f"scene {info.id} {info.state}; `xyzcyl client scene {info.id} "

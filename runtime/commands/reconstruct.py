@@ -19,6 +19,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--threads", type=int, default=None,
                         help="onnxruntime and renderer threads (default: all cores)")
     parser.add_argument("--no-depth", action="store_true", help="ignore the rig's depth files (use the depth head)")
+    parser.add_argument("--lidar-file", default=None, metavar="FILE",
+                        help="a LiDAR sweep of the same timestamp (.npy [N, >=3] or float32 .bin; ego frame unless "
+                             "the rig's lidar block has lidar_to_ego). Default: the rig's lidar.file, if any. Cameras "
+                             "without a depth file get a depth map made from it (two encode passes; "
+                             "docs/inference.md)")
+    parser.add_argument("--no-lidar", action="store_true", help="ignore the rig's LiDAR sweep (use the depth head)")
+    parser.add_argument("--lidar-columns", type=int, default=None, metavar="C",
+                        help="columns of a .bin LiDAR file (default: the rig's lidar.columns, else 5 for *.pcd.bin, "
+                             "4 otherwise)")
     parser.add_argument("--force", action="store_true", help="replace an existing SCENE_DIR")
     parser.add_argument("--quiet", action="store_true", help="no progress lines")
 
@@ -30,11 +39,14 @@ def _fail(msg: str) -> int:
 
 def run(args: argparse.Namespace) -> int:
     from ..inference import InferenceError, ModelError, Reconstructor, default_model_dir
+    from ..lidar import LidarError, has_lidar, load_lidar
     from ..rig import RigError, load_rig
     from ..scene import SceneError
 
     if args.threads is not None and args.threads < 1:
         return _fail(f"--threads: must be >= 1, got {args.threads}")
+    if args.no_lidar and (args.lidar_file is not None or args.lidar_columns is not None):
+        return _fail("--no-lidar: cannot be combined with --lidar-file / --lidar-columns")
     out = Path(args.out)
     if out.exists() and not args.force:
         return _fail(f"--out: {str(out)!r} exists (pass --force to replace it)")
@@ -57,12 +69,18 @@ def run(args: argparse.Namespace) -> int:
         say(f"read rig {args.rig}")
         rig = load_rig(args.rig)
         depths = [None] * len(rig.cameras) if args.no_depth else None
-        scene = rec.reconstruct(rig, depths=depths, progress=say)
+        lidar = None
+        if not args.no_lidar and (args.lidar_file is not None or has_lidar(rig)):
+            pts = load_lidar(rig, args.lidar_file, args.lidar_columns)
+            say(f"{len(pts.points)} LiDAR points from {pts.source}"
+                + (f" ({pts.nonfinite} with a non-finite coordinate left out)" if pts.nonfinite else ""))
+            lidar = pts.points
+        scene = rec.reconstruct(rig, depths=depths, progress=say, lidar=lidar)
         say(f"write {out}")
         t1 = time.perf_counter()
         scene.save(out, overwrite=True)
         t_save = time.perf_counter() - t1
-    except (ModelError, RigError, InferenceError, SceneError) as exc:
+    except (ModelError, RigError, InferenceError, SceneError, LidarError) as exc:
         return _fail(str(exc))
     except OSError as exc:
         return _fail(f"--out: {exc}")

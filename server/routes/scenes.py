@@ -155,6 +155,42 @@ def _check_image(path: Path, field: str, cam, max_pixels: int, what: str) -> Non
                       f"{cam.width}x{cam.height}", field)
 
 
+def _ingest_lidar(form, rig: Rig, work: Path) -> dict | None:
+    """The optional 'lidar' part (a sweep of the same timestamp: .npy [N, >=3] or raw float32 .bin, in the frame
+    of the rig's lidar block's lidar_to_ego, else ego) written to ``work`` and read once to validate it. Returns
+    the rig's lidar block for the saved file, or without a file when there is no part (the client's file name
+    means nothing here), or None when the rig has neither."""
+    from xyzcyl.runtime.lidar import LidarError, load_lidar
+
+    block = rig.extra.get("lidar")
+    if block is not None and not isinstance(block, dict):
+        raise Invalid(f"rig: lidar must be an object (got {type(block).__name__})", "rig.lidar")
+    block = {k: v for k, v in (block or {}).items() if k != "file"}
+    part = form.get("lidar")
+    if part is None:
+        return block or None
+    if not isinstance(part, UploadFile):
+        raise Invalid("part 'lidar' must be a file part (.npy or float32 .bin)", "lidar")
+    ctype = (part.content_type or "application/octet-stream").split(";")[0].strip().lower()
+    if ctype not in ("application/octet-stream", "application/x-npy"):
+        raise UnsupportedMedia(f"part 'lidar': media type {ctype!r} is not application/octet-stream or "
+                               "application/x-npy", "lidar")
+    part.file.seek(0)
+    head = part.file.read(6)
+    client_name = (part.filename or "").lower()
+    name = ("lidar.npy" if head == b"\x93NUMPY" else "lidar.pcd.bin" if client_name.endswith(".pcd.bin")
+            else "lidar.bin")
+    part.file.seek(0)
+    with open(work / name, "wb") as f:
+        shutil.copyfileobj(part.file, f, _CHUNK)
+    block["file"] = name
+    try:
+        load_lidar(Rig(cameras=rig.cameras, root=work, extra={"lidar": block}))
+    except LidarError as e:
+        raise Invalid(f"part 'lidar': {e}", "lidar") from None
+    return block
+
+
 def _ingest(form, service: Service, work: Path) -> Rig:
     """Validate the multipart form and write rig.json + the parts into ``work`` (file names are ours, never
     the request's). Returns the rig as written."""
@@ -190,9 +226,9 @@ def _ingest(form, service: Service, work: Path) -> Rig:
         if key in seen:
             raise Invalid(f"part {key!r} appears more than once", key)
         seen.add(key)
-        if key != "rig" and key not in names and not (key.startswith("depth:") and key[6:] in names):
+        if key not in ("rig", "lidar") and key not in names and not (key.startswith("depth:") and key[6:] in names):
             raise Invalid(f"part {key!r} names no camera of the rig (cameras: {', '.join(rig.names)}; depth parts "
-                          "are named 'depth:<camera>')", key)
+                          "are named 'depth:<camera>', a LiDAR sweep 'lidar')", key)
     cams = []
     for i, cam in enumerate(rig.cameras):
         part = form.get(cam.name)
@@ -218,7 +254,11 @@ def _ingest(form, service: Service, work: Path) -> Rig:
             _check_image(dpath, field, cam, st.max_image_pixels, "the depth map")
             depth = dpath.name
         cams.append(cam.replace(image=img.name, depth=depth))
-    out = Rig(cameras=tuple(cams), extra=rig.extra)
+    extra = {k: v for k, v in rig.extra.items() if k != "lidar"}
+    lidar = _ingest_lidar(form, rig, work)
+    if lidar is not None:
+        extra["lidar"] = lidar
+    out = Rig(cameras=tuple(cams), extra=extra)
     save_rig(out, work / "rig.json")
     return out
 
@@ -231,7 +271,8 @@ def _ingest(form, service: Service, work: Path) -> Rig:
                                         "description": "rig.json (cameras, calibrations)"}},
                  "additionalProperties": {"type": "string", "format": "binary",
                                           "description": "one image part per camera, named by the camera; "
-                                                         "optional 'depth:<camera>' parts"}}}}}})
+                                                         "optional 'depth:<camera>' parts and an optional 'lidar' "
+                                                         "part (a LiDAR sweep: .npy or float32 .bin)"}}}}}})
 async def create_scene(request: Request,
                        wait: float | None = Query(None, ge=0, le=3600,
                                                   description="hold up to this many seconds for the result")):

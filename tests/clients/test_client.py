@@ -220,6 +220,31 @@ def test_server_errors_map_to_typed_exceptions(client, scene):
     assert (e.value.status, e.value.field) == (422, "rig") and "fx" in e.value.message
 
 
+def test_reconstruct_sends_the_rigs_lidar_file(client, tmp_path):
+    """A rig whose lidar block names a file: the client uploads it as the 'lidar' part (the server then makes the
+    cameras' depth from it); lidar=False leaves it out; a missing file is refused before any upload."""
+    import shutil
+
+    d = tmp_path / "rig"
+    shutil.copytree(EXAMPLE, d)
+    az, z = np.meshgrid(np.linspace(-np.pi, np.pi, 720, endpoint=False), np.linspace(-1.0, 4.0, 30))
+    wall = np.stack([15 * np.cos(az).ravel(), 15 * np.sin(az).ravel(), z.ravel(), np.ones(az.size)], axis=1)
+    np.concatenate([wall, np.zeros((len(wall), 1))], axis=1).astype("<f4").tofile(d / "sweep.pcd.bin")  # nuScenes
+    doc = rig_doc()
+    doc["lidar"] = {"file": "sweep.pcd.bin", "lidar_to_ego": np.eye(4).tolist()}
+    (d / "rig.json").write_text(json.dumps(doc))
+    with_lidar = client.reconstruct(d / "rig.json")
+    assert with_lidar.counts["lidar_cameras"] == 6
+    without = client.reconstruct(d / "rig.json", lidar=False)
+    assert "lidar_cameras" not in without.counts
+    (d / "sweep.pcd.bin").unlink()
+    with pytest.raises(InvalidRequestError) as e:
+        client.reconstruct(d / "rig.json")
+    assert e.value.code == "file_missing" and e.value.field == "lidar"
+    for s in (with_lidar, without):
+        client.delete(s.id)
+
+
 def test_client_side_refusals_name_the_field(client, tmp_path):
     doc = rig_doc()
     (tmp_path / "rig.json").write_text(json.dumps(doc))      # its images are not beside this copy

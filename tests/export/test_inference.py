@@ -159,3 +159,38 @@ def test_concurrent_reconstructions_agree(rec):
         got = [f.result().gaussians.means for f in futs]
     for k, g in enumerate(got):
         np.testing.assert_array_equal(g, ref[k % 3])
+
+
+def test_lidar_becomes_the_depth_input(rec):
+    """reconstruct(lidar=...): every camera without a depth map gets one from the sweep at the depth size (each
+    cell with a point holds that point's camera z, the others the model's own depth rescaled), a camera with a
+    supplied map keeps it, and the scene is rebuilt from the second encode pass."""
+    from xyzcyl.runtime.inference import InferenceError
+    from xyzcyl.runtime.lidar import lidar_depth_map
+
+    rig = overlap_rig(6)
+    imgs = _images(rig, seed=3)
+    az, z = np.meshgrid(np.linspace(-np.pi, np.pi, 720, endpoint=False), np.linspace(-1.0, 4.0, 40))
+    wall = np.stack([15 * np.cos(az).ravel(), 15 * np.sin(az).ravel(), z.ravel()], axis=1)   # a 15 m round wall
+    scene0 = rec.reconstruct(rig, imgs, depths=[None] * 6)
+    given = np.full((rig.cameras[2].height, rig.cameras[2].width), 9.0, np.float32)
+    _, depth_g, mask_g = rec.prepare(rig, imgs, [None, None, given, None, None, None])
+    d, m, scales = rec.lidar_depths(rig, scene0.gaussians, wall, depth_g, mask_g)
+    assert m.tolist() == [1.0] * 6 and scales[2] is None and np.all(d[2] == 9.0)
+    h, w = rec.info.depth_size
+    for n in (0, 1, 3):
+        lid = lidar_depth_map(wall, rig.cameras[n].replace(distortion=None).resized(w, h))
+        has = lid > 0
+        assert has.mean() > 0.3                       # the wall fills the view's lower and middle rows
+        np.testing.assert_array_equal(d[n, 0][has], lid[has])
+        assert scales[n] > 0
+    scene = rec.reconstruct(rig, imgs, depths=[None] * 6, lidar=wall)
+    assert scene.counts["lidar_cameras"] == 6 and "encode_lidar" in scene.timings
+    assert not np.array_equal(scene.gaussians.means, scene0.gaussians.means)
+    assert not depth_g[0].any() and mask_g[0] == 0       # the caller's inputs were not changed in place
+    with pytest.raises(InferenceError, match=r"lidar: need finite points of shape \[P, 3\]"):
+        rec.reconstruct(rig, imgs, depths=[None] * 6, lidar=wall[:, :2])
+    bad = wall.copy()
+    bad[0, 0] = np.nan
+    with pytest.raises(InferenceError, match="lidar"):
+        rec.reconstruct(rig, imgs, depths=[None] * 6, lidar=bad)

@@ -134,3 +134,35 @@ def test_export_refuses_existing_folder_and_stage1(tiny_export, tmp_path, capsys
     torch.save(ck, tmp_path / "occ.pt")
     assert cli.main(["export", "--checkpoint", str(tmp_path / "occ.pt"), "--out", str(tmp_path / "m")]) == 2
     assert "stage" in _err(capsys)[0] and not (tmp_path / "m").exists()
+
+
+def test_reconstruct_uses_the_rigs_lidar_and_lidar_eval_holdout(tiny_export, rig_copy, tmp_path, capsys):
+    """A rig whose lidar block names a sweep: `reconstruct` makes the depth from it by default (counts.lidar_cameras),
+    not with --no-lidar; `lidar-eval --holdout` checks on the points it did not use; bad LiDAR input exits 2 naming
+    the file."""
+    az, z = np.meshgrid(np.linspace(-np.pi, np.pi, 720, endpoint=False), np.linspace(-1.0, 4.0, 30))
+    wall = np.stack([15 * np.cos(az).ravel(), 15 * np.sin(az).ravel(), z.ravel()], axis=1)
+    np.save(rig_copy / "sweep.npy", wall)
+    rig = json.loads((rig_copy / "rig.json").read_text())
+    rig["lidar"] = {"file": "sweep.npy"}
+    (rig_copy / "rig.json").write_text(json.dumps(rig))
+    args = ["reconstruct", str(rig_copy / "rig.json"), "--model", str(tiny_export.dir), "--quiet", "--no-depth"]
+    assert cli.main([*args, "--out", str(tmp_path / "a")]) == 0
+    assert json.loads((tmp_path / "a" / "scene.json").read_text())["counts"]["lidar_cameras"] == 6
+    assert cli.main([*args, "--out", str(tmp_path / "b"), "--no-lidar"]) == 0
+    assert "lidar_cameras" not in json.loads((tmp_path / "b" / "scene.json").read_text())["counts"]
+    capsys.readouterr()
+    assert cli.main([*args, "--out", str(tmp_path / "c"), "--no-lidar", "--lidar-file", "x.npy"]) == 2
+    assert "--no-lidar" in _err(capsys)[0]
+    assert cli.main([*args, "--out", str(tmp_path / "c"), "--lidar-file", str(tmp_path / "none.npy")]) == 2
+    err = _err(capsys)
+    assert len(err) == 1 and "none.npy" in err[0] and "does not exist" in err[0]
+    out = tmp_path / "h.json"
+    assert cli.main(["lidar-eval", str(rig_copy / "rig.json"), "--model", str(tiny_export.dir), "--holdout", "0.5",
+                     "--width", "80", "--json", str(out), "--quiet"]) == 0
+    r = json.loads(out.read_text())
+    n_check = sum(c["lidar_pixels"] for c in r["cameras"])
+    assert r["holdout"] == 0.5 and 0 < n_check == r["all"]["lidar_pixels"]
+    assert cli.main(["lidar-eval", str(rig_copy / "rig.json"), "--scene", str(tmp_path / "a"), "--holdout", "0.5",
+                     "--quiet"]) == 2
+    assert "--holdout" in _err(capsys)[-1]

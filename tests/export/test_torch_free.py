@@ -34,6 +34,12 @@ from xyzcyl.clients import cli
 assert cli.main(["reconstruct", rig_json, "--out", out + "_cli", "--model", model, "--quiet"]) == 0
 assert cli.main(["render", out + "_cli", "--camera", "CAM_FRONT", "--width", "80", "--height", "45",
                  "--out", out + ".png"]) == 0
+import numpy as np
+np.save(out + "_sweep.npy", np.array([[12.0, y, z] for y in range(-8, 9) for z in (0.0, 1.0, 2.0)]))
+assert cli.main(["reconstruct", rig_json, "--out", out + "_lidar", "--model", model, "--quiet", "--lidar-file",
+                 out + "_sweep.npy"]) == 0
+assert cli.main(["lidar-eval", rig_json, "--scene", out + "_lidar", "--lidar-file", out + "_sweep.npy",
+                 "--width", "80", "--quiet"]) == 0
 assert not any(m == "torch" or m.startswith("torch.") for m in sys.modules)
 print("OK", len(scene.gaussians), rgb.shape)
 """

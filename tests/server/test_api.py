@@ -77,6 +77,19 @@ def multipart_body(files: list) -> tuple[bytes, str]:
     return req.read(), req.headers["content-type"]
 
 
+def wall_npy() -> bytes:
+    """A LiDAR sweep as .npy bytes: a round wall 15 m from the ego origin, [N, 4] float32 (x, y, z, intensity)."""
+    az, z = np.meshgrid(np.linspace(-np.pi, np.pi, 720, endpoint=False), np.linspace(-1.0, 4.0, 30))
+    pts = np.stack([15 * np.cos(az).ravel(), 15 * np.sin(az).ravel(), z.ravel(), np.ones(az.size)], axis=1)
+    buf = io.BytesIO()
+    np.save(buf, pts.astype(np.float32))
+    return buf.getvalue()
+
+
+def _lidar_to_ego_2x2(rig):
+    rig["lidar"] = {"file": "sweep.npy", "lidar_to_ego": [[1, 0], [0, 1]]}
+
+
 def png_bytes(w: int, h: int, channels: int = 3, dtype=np.uint8) -> bytes:
     rng = np.random.default_rng(0)
     a = rng.integers(0, 200, (h, w, channels) if channels > 1 else (h, w)).astype(dtype)
@@ -371,6 +384,13 @@ UPLOAD_ERRORS = {
     "depth part as JPEG": (lambda: rig_files(extra=[("depth:CAM_FRONT", (
         "d.jpg", cv2.imencode(".jpg", np.zeros((450, 800), np.uint8))[1].tobytes(), "image/jpeg"))]), 415,
         "depth:CAM_FRONT", "unsupported_media_type"),
+    "lidar part not whole float32 rows": (lambda: rig_files(extra=[("lidar", (
+        "s.bin", b"\x00" * 10, "application/octet-stream"))]), 422, "lidar", "invalid"),
+    "lidar part with an image media type": (lambda: rig_files(extra=[("lidar", ("s.npy", wall_npy(), "image/png"))]),
+                                            415, "lidar", "unsupported_media_type"),
+    "lidar part as a text field": (lambda: rig_files(extra=[("lidar", (None, "1 2 3"))]), 422, "lidar", "invalid"),
+    "lidar_to_ego not 4x4": (lambda: rig_files(_rig_with(_lidar_to_ego_2x2), extra=[("lidar", (
+        "s.npy", wall_npy(), "application/octet-stream"))]), 422, "lidar", "invalid"),
 }
 
 
@@ -385,6 +405,24 @@ def test_post_bad_upload(client, env, case):
         assert "CAM_FRONT_RIGHT" in e["message"]
     assert env.service.store.list()[1] == records          # no scene was created
     assert tmp_left(env) == []                             # and the upload was removed
+
+
+def test_post_with_a_lidar_part(client, env):
+    """A 'lidar' part becomes the depth input of every camera (counts.lidar_cameras); without it a rig's lidar block
+    (a file name of the client's) is not used."""
+    r = client.post("/v1/scenes?wait=60", files=rig_files(extra=[("lidar", ("sweep.npy", wall_npy(),
+                                                                            "application/octet-stream"))]))
+    assert r.status_code == 201, r.text
+    info = r.json()
+    assert info["counts"]["lidar_cameras"] == 6 and info["timings"]["encode_lidar"] > 0
+    plain = env.created.json()
+    assert "lidar_cameras" not in plain["counts"]
+    r = client.post("/v1/scenes?wait=60", files=rig_files(_rig_with(
+        lambda rig: rig.update(lidar={"file": "sweep.npy"}))))
+    assert r.status_code == 201, r.text
+    assert "lidar_cameras" not in r.json()["counts"]
+    for sid in (info["id"], r.json()["id"]):
+        assert client.delete(f"/v1/scenes/{sid}").status_code == 204
 
 
 def test_post_store_full_is_507(client, env, monkeypatch):

@@ -1,0 +1,357 @@
+"""LiDAR points of a rig, and the depth check of a reconstruction against them (`xyzcyl lidar-eval`).
+
+Input-view PSNR cannot show whether a reconstruction put its surfaces at the right distance: a model that
+paints each input image onto a sphere scores well at the input cameras. A LiDAR sweep of the same timestamp can.
+
+The rig.json `lidar` block (the format of ../shared/data/real/README.md, kept in `Rig.extra`):
+
+    "lidar": {"file": "sweep.pcd.bin", "lidar_to_ego": 4x4, "columns": 5}
+
+- `file` (relative to the rig.json): `.npy` (float [N, C], C >= 3) or raw little-endian float32 `.bin`
+  ([N, C] row-major: nuScenes `.pcd.bin` has C = 5, a KITTI `.bin` has C = 4). The first three columns are
+  x, y, z in metres in the LiDAR frame.
+- `lidar_to_ego` (optional, default identity): maps LiDAR points to the ego frame.
+- `columns` (optional, `.bin` only): C. Without it, a name ending in `.pcd.bin` means 5, any other `.bin` 4.
+
+The check (`lidar_depth_check`), per input camera at a reduced evaluation width:
+1. The LiDAR points (ego frame) are projected with the camera's pinhole model at that size (distortion left out,
+   as the renderer leaves it out), and each pixel keeps its nearest point (`lidar_depth_map`): camera z, metres.
+2. Points the camera cannot see are dropped where a point within `OCCLUSION_RADIUS` pixels is nearer by more
+   than the δ threshold (`occlusion_filter`): the LiDAR sits higher and further back than the cameras and sees
+   surfaces behind what the camera sees.
+3. The reconstruction is rendered at the same camera (Gaussians only: expected camera z, `runtime.render`).
+   Pixels with alpha < `ALPHA_MIN` count as not covered.
+4. On the covered pixels: AbsRel, RMSE, δ < 1.25 and the median ratio rendered / LiDAR (Eigen et al. 2014),
+   for each camera, for all cameras together, and per range bin.
+"""
+
+from __future__ import annotations
+
+import itertools
+import math
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .rig import Camera, Rig, RigError, _check_pose
+
+MIN_DEPTH = 1.0   # m camera z: nearer returns are the ego vehicle's own body or sensor mounts, not the scene
+MAX_DEPTH = 80.0  # m camera z: the usual cap of driving depth benchmarks (KITTI, Eigen split)
+DELTA = 1.25      # the δ1 threshold of the depth literature, also the occlusion filter's depth ratio
+OCCLUSION_RADIUS = 2   # pixels at the evaluation size: the window (2r+1)^2 in which a nearer point hides another
+ALPHA_MIN = 0.5   # rendered alpha below this: the reconstruction has no surface at that pixel (not covered)
+RANGE_BINS = (0.0, 10.0, 20.0, 40.0, 80.0)  # m, LiDAR depth bins of the per-range table
+MAX_POINTS = 20_000_000  # refuse larger sweeps (a 128-beam sweep has ~0.3 M points; this guards memory)
+
+
+class LidarError(ValueError):
+    """Invalid or missing LiDAR input. The message names the field or file."""
+
+
+@dataclass(frozen=True)
+class LidarPoints:
+    points: np.ndarray   # [N, 3] float64 metres, ego frame (finite)
+    nonfinite: int       # points of the file with a non-finite x, y or z, left out (reported, never silent)
+    source: str          # the file they came from
+
+
+def read_points(path: str | os.PathLike, columns: int | None = None) -> tuple[np.ndarray, int]:
+    """[N, 3] float64 x, y, z (the file's frame) and the count of rows left out for a non-finite coordinate.
+
+    path: `.npy` (float [N, C], C >= 3) or raw float32 `.bin` (C columns: `columns`, else 5 for `*.pcd.bin`,
+    else 4)."""
+    p = Path(path)
+    if not p.is_file():
+        raise LidarError(f"lidar: file {str(p)!r} does not exist")
+    name = p.name.lower()
+    if name.endswith(".npy"):
+        if columns is not None:
+            raise LidarError("lidar: columns applies to .bin files only (a .npy file has its own shape)")
+        try:
+            a = np.load(p, allow_pickle=False, mmap_mode="r")
+        except (ValueError, OSError) as exc:
+            raise LidarError(f"lidar: {str(p)!r} is not a readable .npy array ({exc})") from None
+        if a.ndim != 2 or a.shape[1] < 3 or not np.issubdtype(a.dtype, np.number):
+            raise LidarError(f"lidar: {str(p)!r} must hold numbers of shape [N, C >= 3] (got {a.dtype} "
+                             f"{list(a.shape)})")
+    elif name.endswith(".bin"):
+        c = columns if columns is not None else (5 if name.endswith(".pcd.bin") else 4)
+        if not isinstance(c, int) or isinstance(c, bool) or c < 3:
+            raise LidarError(f"lidar: columns must be an integer >= 3 (got {c!r})")
+        size = p.stat().st_size
+        if size % (4 * c):
+            raise LidarError(f"lidar: {str(p)!r} has {size} bytes, not a whole number of {c}-column float32 "
+                             f"rows (set columns)")
+        a = np.fromfile(p, dtype="<f4").reshape(-1, c)
+    else:
+        raise LidarError(f"lidar: {str(p)!r}: unknown format (use .npy or a float32 .bin)")
+    if a.shape[0] > MAX_POINTS:
+        raise LidarError(f"lidar: {str(p)!r} has {a.shape[0]} points, more than {MAX_POINTS}")
+    xyz = np.asarray(a[:, :3], dtype=np.float64)
+    ok = np.all(np.isfinite(xyz), axis=1)
+    return np.ascontiguousarray(xyz[ok]), int((~ok).sum())
+
+
+def has_lidar(rig: Rig) -> bool:
+    """Whether the rig names a LiDAR file (a `lidar` block with a `file`)."""
+    block = rig.extra.get("lidar")
+    return isinstance(block, dict) and block.get("file") is not None
+
+
+def load_lidar(rig: Rig, file: str | os.PathLike | None = None, columns: int | None = None) -> LidarPoints:
+    """The LiDAR points of a rig in its ego frame, from the rig's `lidar` block, or from `file` (then in the ego
+    frame already unless the rig's block gives lidar_to_ego). `columns` overrides the block's."""
+    block = rig.extra.get("lidar")
+    if block is not None and not isinstance(block, dict):
+        raise LidarError(f"rig: lidar must be an object (got {type(block).__name__})")
+    block = block or {}
+    if file is None:
+        if "file" not in block:
+            raise LidarError("rig: has no lidar.file (pass the LiDAR file explicitly)")
+        if not isinstance(block["file"], str):
+            raise LidarError(f"rig: lidar.file must be a string (got {block['file']!r:.60})")
+        path = rig.path(block["file"])
+    else:
+        path = Path(file)
+    if columns is None and "columns" in block:
+        columns = block["columns"]
+    T = np.eye(4)
+    if "lidar_to_ego" in block:
+        try:
+            T = _check_pose(block["lidar_to_ego"], "rig: lidar", "lidar_to_ego")
+        except RigError as exc:
+            raise LidarError(str(exc)) from None
+    xyz, bad = read_points(path, columns)
+    ego = xyz @ T[:3, :3].T + T[:3, 3]
+    return LidarPoints(points=ego, nonfinite=bad, source=str(path))
+
+
+def eval_camera(cam: Camera, width: int) -> Camera:
+    """The camera the check projects and renders with: ``cam`` without distortion (the renderer has none), resized
+    to ``width`` pixels wide (height rounded to keep the aspect ratio)."""
+    if not isinstance(width, int) or width < 8:
+        raise LidarError(f"width must be an integer >= 8 (got {width!r})")
+    height = max(1, round(cam.height * width / cam.width))
+    return cam.replace(distortion=None).resized(width, height)
+
+
+def lidar_depth_map(points: np.ndarray, cam: Camera, min_depth: float = MIN_DEPTH,
+                    max_depth: float = MAX_DEPTH) -> np.ndarray:
+    """[H, W] float32 metres: the nearest LiDAR point per pixel (camera z for pinhole, distance for equirect), 0
+    where no point lands. points [N, 3] metres, ego frame; a point counts when min_depth <= z <= max_depth and its
+    projection rounds to a pixel of ``cam`` (pixel u's centre at u, docs/conventions.md)."""
+    uv, z, front = cam.project(points)
+    px = np.rint(uv).astype(np.int64)
+    ok = front & (z >= min_depth) & (z <= max_depth)
+    ok &= (px[:, 0] >= 0) & (px[:, 0] < cam.width) & (px[:, 1] >= 0) & (px[:, 1] < cam.height)
+    flat = px[ok, 1] * cam.width + px[ok, 0]
+    zk = z[ok]
+    out = np.zeros(cam.height * cam.width, np.float32)
+    if flat.size:
+        order = np.lexsort((zk, flat))            # by pixel, then nearest first
+        first = np.ones(order.size, bool)
+        first[1:] = flat[order][1:] != flat[order][:-1]
+        out[flat[order][first]] = zk[order][first]
+    return out.reshape(cam.height, cam.width)
+
+
+def lidar_depth_map_reference(points: np.ndarray, cam: Camera, min_depth: float = MIN_DEPTH,
+                              max_depth: float = MAX_DEPTH) -> np.ndarray:
+    """`lidar_depth_map` point by point (slow, obviously correct; for the tests)."""
+    out = np.zeros((cam.height, cam.width), np.float32)
+    for p in np.asarray(points, np.float64):
+        uv, z, front = cam.project(p[None])
+        u, v, z = int(np.rint(uv[0, 0])), int(np.rint(uv[0, 1])), float(z[0])
+        if not front[0] or not min_depth <= z <= max_depth or not (0 <= u < cam.width and 0 <= v < cam.height):
+            continue
+        if out[v, u] == 0 or np.float32(z) < out[v, u]:
+            out[v, u] = z
+    return out
+
+
+def occlusion_filter(depth: np.ndarray, radius: int = OCCLUSION_RADIUS, ratio: float = DELTA) -> np.ndarray:
+    """[H, W] bool: the LiDAR pixels (depth > 0) kept. A pixel is dropped when another LiDAR pixel within the
+    (2 radius + 1)^2 window is nearer than depth / ratio: that return lies behind a surface the camera sees."""
+    import cv2
+
+    d = np.where(depth > 0, depth, np.inf).astype(np.float32)
+    near = cv2.erode(d, np.ones((2 * radius + 1, 2 * radius + 1), np.uint8), borderType=cv2.BORDER_REPLICATE)
+    return (depth > 0) & ~(near * ratio < depth)
+
+
+def occlusion_filter_reference(depth: np.ndarray, radius: int = OCCLUSION_RADIUS, ratio: float = DELTA) -> np.ndarray:
+    """`occlusion_filter` pixel by pixel (slow, obviously correct; for the tests)."""
+    H, W = depth.shape
+    keep = np.zeros((H, W), bool)
+    for y in range(H):
+        for x in range(W):
+            if depth[y, x] <= 0:
+                continue
+            win = depth[max(0, y - radius):y + radius + 1, max(0, x - radius):x + radius + 1]
+            win = win[win > 0]
+            keep[y, x] = not np.any(win * np.float32(ratio) < depth[y, x])
+    return keep
+
+
+def depth_errors(pred: np.ndarray, gt: np.ndarray) -> dict[str, float]:
+    """Depth errors of pred [M] against gt [M] (metres, gt > 0): points M; abs_rel = mean |pred − gt| / gt;
+    rmse = sqrt(mean (pred − gt)^2) metres; delta1 = fraction with max(pred / gt, gt / pred) < 1.25;
+    median_ratio = median(pred / gt) (1 = no scale bias). NaN for M = 0."""
+    pred = np.asarray(pred, np.float64)
+    gt = np.asarray(gt, np.float64)
+    if pred.size == 0:
+        nan = float("nan")
+        return {"points": 0, "abs_rel": nan, "rmse": nan, "delta1": nan, "median_ratio": nan}
+    r = pred / gt
+    return {"points": int(pred.size),
+            "abs_rel": float(np.mean(np.abs(pred - gt) / gt)),
+            "rmse": float(math.sqrt(np.mean((pred - gt) ** 2))),
+            "delta1": float(np.mean(np.maximum(r, 1.0 / np.maximum(r, 1e-12)) < DELTA)),
+            "median_ratio": float(np.median(r))}
+
+
+@dataclass(frozen=True)
+class CameraDepth:
+    """One camera's evaluation arrays, all at the evaluation size."""
+
+    camera: Camera          # the evaluation camera (eval_camera)
+    lidar: np.ndarray       # [H, W] float32 metres, 0 = no point (after the occlusion filter)
+    depth: np.ndarray       # [H, W] float32 metres, rendered (0 where alpha is 0)
+    alpha: np.ndarray       # [H, W] float32 rendered alpha
+    occluded: int           # LiDAR pixels dropped by the occlusion filter
+
+
+def camera_depths(scene: Any, points: np.ndarray, width: int = 400, min_depth: float = MIN_DEPTH,
+                  max_depth: float = MAX_DEPTH, occlusion_radius: int = OCCLUSION_RADIUS) -> list[CameraDepth]:
+    """Render ``scene`` (runtime.scene.Scene) at each camera of its rig and project ``points`` ([N, 3] metres, ego
+    frame) there. With occlusion_radius 0 no point is dropped."""
+    from .scene import render_view, rig_camera
+
+    out = []
+    for cam in scene.rig.cameras:
+        ec = eval_camera(cam, width)
+        lid = lidar_depth_map(points, ec, min_depth, max_depth)
+        keep = occlusion_filter(lid, occlusion_radius) if occlusion_radius > 0 else lid > 0
+        occluded = int((lid > 0).sum() - keep.sum())
+        lid = np.where(keep, lid, 0).astype(np.float32)
+        _, depth, alpha = render_view(scene, rig_camera(ec))
+        out.append(CameraDepth(ec, lid, depth, alpha, occluded))
+    return out
+
+
+def summarise(views: list[CameraDepth], alpha_min: float = ALPHA_MIN, bins=RANGE_BINS) -> dict[str, Any]:
+    """{"cameras": [{name, lidar_pixels, occluded, covered, <depth_errors>}], "all": {...}, "ranges": [{from, to,
+    ...}]}. covered = the fraction of LiDAR pixels where the rendered alpha is at least alpha_min; the errors are
+    over those pixels."""
+    rows, preds, gts = [], [], []
+    for v in views:
+        has = v.lidar > 0
+        cov = has & (v.alpha >= alpha_min)
+        p, g = v.depth[cov], v.lidar[cov]
+        preds.append(p)
+        gts.append(g)
+        rows.append({"camera": v.camera.name, "lidar_pixels": int(has.sum()), "occluded": v.occluded,
+                     "covered": float(cov.sum() / has.sum()) if has.any() else float("nan"),
+                     **depth_errors(p, g)})
+    p, g = np.concatenate(preds), np.concatenate(gts)
+    n_all = sum(r["lidar_pixels"] for r in rows)
+    total = {"camera": "all", "lidar_pixels": n_all, "occluded": sum(r["occluded"] for r in rows),
+             "covered": float(p.size / n_all) if n_all else float("nan"), **depth_errors(p, g)}
+    ranges = []
+    for lo, hi in itertools.pairwise(bins):
+        m = (g >= lo) & (g < hi)
+        ranges.append({"from": lo, "to": hi, **depth_errors(p[m], g[m])})
+    return {"cameras": rows, "all": total, "ranges": ranges}
+
+
+def _depth_colours(d: np.ndarray, max_depth: float) -> np.ndarray:
+    """[..., 3] uint8 RGB turbo colours of depths d (metres) on a log scale from MIN_DEPTH to max_depth."""
+    import cv2
+
+    t = np.log(np.clip(d, MIN_DEPTH, max_depth) / MIN_DEPTH) / math.log(max_depth / MIN_DEPTH)
+    lut = cv2.applyColorMap(np.arange(256, dtype=np.uint8)[:, None], cv2.COLORMAP_TURBO)[:, 0, ::-1]
+    return lut[np.clip(np.rint(255 * (1 - t)), 0, 255).astype(np.uint8)]   # near = red, far = blue
+
+
+def depth_sheet(views: list[CameraDepth], images: list[np.ndarray], alpha_min: float = ALPHA_MIN,
+                max_depth: float = MAX_DEPTH) -> np.ndarray:
+    """[H, W, 3] uint8 RGB contact sheet, one row per camera: the input image with the LiDAR points coloured by
+    depth; the rendered depth in the same colours (black where alpha < alpha_min); each covered point coloured by
+    its relative error |rendered − LiDAR| / LiDAR (green 0, yellow 0.25, red >= 0.5). images: [H, W, 3] float
+    RGB in [0, 1] per camera, any size (area-resized)."""
+    import cv2
+
+    rows = []
+    for v, img in zip(views, images):
+        h, w = v.lidar.shape
+        base = cv2.resize(np.clip(img, 0, 1).astype(np.float32), (w, h), interpolation=cv2.INTER_AREA)
+        base = np.rint(base * 255).astype(np.uint8)
+        ys, xs = np.nonzero(v.lidar > 0)
+        pts = base.copy()
+        for y, x, c in zip(ys, xs, _depth_colours(v.lidar[ys, xs], max_depth)):
+            cv2.circle(pts, (int(x), int(y)), 1, tuple(int(k) for k in c), -1)
+        rend = _depth_colours(v.depth, max_depth)
+        rend[v.alpha < alpha_min] = 0
+        err = (base * 0.35).astype(np.uint8)
+        cov = (v.lidar > 0) & (v.alpha >= alpha_min)
+        ys, xs = np.nonzero(cov)
+        e = np.clip(np.abs(v.depth[ys, xs] - v.lidar[ys, xs]) / v.lidar[ys, xs] / 0.5, 0, 1)
+        for y, x, t in zip(ys, xs, e):
+            colour = (int(255 * min(1.0, 2 * t)), int(255 * min(1.0, 2 * (1 - t))), 0)
+            cv2.circle(err, (int(x), int(y)), 1, colour, -1)
+        row = np.concatenate([pts, rend, err], axis=1)
+        cv2.putText(row, v.camera.name, (4, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (255, 255, 255), 1, cv2.LINE_AA)
+        rows.append(row)
+    width = max(r.shape[1] for r in rows)
+    rows = [np.pad(r, ((0, 0), (0, width - r.shape[1]), (0, 0))) for r in rows]
+    head = np.zeros((20, width, 3), np.uint8)
+    w3 = width // 3
+    for i, text in enumerate(("input + LiDAR (depth: red near, blue far)", "rendered depth (same colours)",
+                              "rel. error: green 0, red >= 0.5")):
+        cv2.putText(head, text, (4 + i * w3, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (255, 255, 255), 1, cv2.LINE_AA)
+    return np.concatenate([head, *rows], axis=0)
+
+
+# -- LiDAR as the depth input ------------------------------------------------------------------------------------
+
+def fuse_depth(lidar: np.ndarray, head: np.ndarray, head_alpha: np.ndarray, alpha_min: float = ALPHA_MIN,
+               min_cells: int = 20) -> tuple[np.ndarray, float]:
+    """One camera's depth input [h, w] float32 metres (0 = sky / no surface) from a LiDAR map and the model's own
+    depth, both at the network's depth size: LiDAR where a cell has a point (lidar > 0); elsewhere the model's
+    rendered depth (head, where head_alpha >= alpha_min) times s = the median of lidar / head over the cells that
+    have both, so the unscanned parts (above the top beam, beyond the range) keep the model's shape at the LiDAR's
+    scale; 0 where neither has a surface. s = 1 when fewer than ``min_cells`` cells have both. Returns (map, s)."""
+    both = (lidar > 0) & (head > 0) & (head_alpha >= alpha_min)
+    s = float(np.median(lidar[both] / head[both])) if both.sum() >= min_cells else 1.0
+    out = np.where(head_alpha >= alpha_min, head * np.float32(s), 0).astype(np.float32)
+    out[lidar > 0] = lidar[lidar > 0]
+    return out, s
+
+
+__all__ = [
+    "ALPHA_MIN",
+    "DELTA",
+    "MAX_DEPTH",
+    "MIN_DEPTH",
+    "OCCLUSION_RADIUS",
+    "RANGE_BINS",
+    "CameraDepth",
+    "LidarError",
+    "LidarPoints",
+    "camera_depths",
+    "depth_errors",
+    "depth_sheet",
+    "eval_camera",
+    "fuse_depth",
+    "has_lidar",
+    "lidar_depth_map",
+    "lidar_depth_map_reference",
+    "load_lidar",
+    "occlusion_filter",
+    "occlusion_filter_reference",
+    "read_points",
+    "summarise",
+]
