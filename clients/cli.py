@@ -37,6 +37,8 @@ COMMANDS: tuple[Command, ...] = (
     Command("train", "xyzcyl.model_export.commands.train", "train one stage (occ | render) of the network", "train"),
     Command("eval", "xyzcyl.model_export.commands.eval", "novel-view metrics of a model or a baseline", "train"),
     Command("export", "xyzcyl.model_export.commands.export", "export a checkpoint to an ONNX model folder", "train"),
+    Command("import-model", "xyzcyl.model_export.commands.import_model",
+            "a model folder back to a training checkpoint (exact weights)", "train"),
     Command("serve", "xyzcyl.server.commands.serve", "run the HTTP service (FastAPI + uvicorn)", "server"),
     Command("client", "xyzcyl.clients.commands.client",
             "talk to a running server: reconstruct, render, path, gaussians, scenes, delete", "client"),
