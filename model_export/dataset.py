@@ -87,6 +87,8 @@ class DatasetConfig(_Frozen):
     lens_zoom: float = 0.0              # per input camera: probability of a narrower lens (a crop of its image,
                                         # depth and sky resampled to the full size, K to match); targets kept
     lens_zoom_max: float = 1.4          # zoom factor drawn from [1, this] (1.4: a 65 deg camera becomes ~49 deg)
+    lidar_input: float = 0.0            # probability that an item's inputs carry a simulated LiDAR sweep, turned
+                                        # into the depth input as the runtime does (simulate_lidar; training.md)
 
     def __post_init__(self):
         if self.setting not in SETTINGS + (MIXED,):
@@ -129,6 +131,9 @@ class DatasetConfig(_Frozen):
         v = self.lens_zoom_max
         if isinstance(v, bool) or not isinstance(v, (int, float)) or not 1 <= v <= 4:
             raise ConfigError(f"lens_zoom_max: must be in [1, 4], got {self.lens_zoom_max!r}")
+        v = self.lidar_input
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 <= v <= 1:
+            raise ConfigError(f"lidar_input: must be in [0, 1], got {self.lidar_input!r}")
 
     @property
     def camera_aug(self) -> bool:
@@ -139,7 +144,7 @@ class DatasetConfig(_Frozen):
         """The same data with every augmentation off (flip, colour jitter, camera effects, camera drop, lens
         zoom): for validation."""
         return self.replace(flip_prob=0.0, brightness=0.0, contrast=0.0, saturation=0.0, camera_drop=0.0,
-                            lens_zoom=0.0, **{n: 0.0 for n in CAMERA_AUG_PRESET})
+                            lens_zoom=0.0, lidar_input=0.0, **{n: 0.0 for n in CAMERA_AUG_PRESET})
 
     @property
     def settings(self) -> tuple[str, ...]:
@@ -512,6 +517,8 @@ class SceneDataset(torch.utils.data.Dataset):
             grid = model_cfg.grid
             if abs(grid.voxel_size - cfg.voxel_size) > 1e-9:
                 raise ConfigError(f"voxel_size: data {cfg.voxel_size} differs from the model grid {grid.voxel_size}")
+        elif cfg.lidar_input:
+            raise ConfigError("lidar_input: needs the model config (the depth input's size is the model's)")
         for scenes in per_root:                                 # fail early, not at the first validation
             self._check_first(scenes[0])
 
@@ -634,9 +641,49 @@ class SceneDataset(torch.utils.data.Dataset):
             "occupancy": occ_t,
             "bev": torch.from_numpy(np.ascontiguousarray(bev).astype(np.int64)),
         }
+        if cfg.lidar_input:     # after the flip (the sweep follows the final cameras), its own child stream
+            b = self.model_cfg.backbone
+            lid = simulate_lidar(np.where(dvalid, depth, 0), sky, (b.input_height // b.feature_stride,
+                                 b.input_width // b.feature_stride), rng.spawn(1)[0], cfg.lidar_input)
+            if lid is not None:
+                item["lidar_depth"], item["lidar_surface"] = (torch.from_numpy(np.ascontiguousarray(a)) for a in lid)
         if self._lifting_params is not None:
             add_lifting(item, self._lifting_params)
         return item
+
+
+LIDAR_TOP_ROWS = (0.25, 0.5)   # the top beam's row, as a fraction of the height: rows above get no point
+LIDAR_KEEP = (0.5, 1.0)        # fraction of the cells below it that hold a point (sparse rings, dark surfaces)
+
+
+def simulate_lidar(depth: np.ndarray, sky: np.ndarray, size: tuple[int, int], rng: np.random.Generator,
+                   prob: float) -> tuple[np.ndarray, np.ndarray] | None:
+    """A simulated LiDAR sweep at the network's depth size, for training the depth input (``lidar_input``).
+
+    depth [N, H, W] metres (0 = invalid), sky [N, H, W] bool of the input cameras; size (h, w). With probability
+    ``prob`` (else None): (lidar [N, h, w] float32 metres, 0 = no point; surface [N, h, w] bool = not sky). Per
+    camera: the nearest-sampled true depth (runtime.inference.resize_nearest, the depth input's rule) at cells
+    with 1 m <= depth <= 80 m (runtime.lidar's range), below a top-beam row drawn from LIDAR_TOP_ROWS (a
+    real sweep covers the road and the lower part of buildings, not their tops), each kept with a probability
+    drawn from LIDAR_KEEP."""
+    from xyzcyl.runtime.inference import resize_nearest
+    from xyzcyl.runtime.lidar import MAX_DEPTH, MIN_DEPTH
+
+    if not rng.random() < prob:
+        return None
+    h, w = size
+    n = depth.shape[0]
+    lidar = np.zeros((n, h, w), np.float32)
+    surface = np.zeros((n, h, w), bool)
+    rows = np.arange(h)[:, None]
+    for k, g in enumerate(rng.spawn(n)):
+        d = resize_nearest(depth[k].astype(np.float32), h, w)
+        surface[k] = ~resize_nearest(sky[k], h, w).astype(bool)
+        top = g.uniform(*LIDAR_TOP_ROWS) * h
+        keep = g.random((h, w)) < g.uniform(*LIDAR_KEEP)
+        ok = surface[k] & (d >= MIN_DEPTH) & (d <= MAX_DEPTH) & (rows >= top) & keep
+        lidar[k][ok] = d[ok]
+    return lidar, surface
 
 
 def add_lifting(item: dict[str, Any], params) -> None:

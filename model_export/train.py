@@ -128,6 +128,27 @@ def target_cameras(targets: dict[str, Any]) -> list:
             for K, T in zip(targets["K"], targets["cam_to_ego"])]
 
 
+def lidar_depth_input(model, images: torch.Tensor, item: dict[str, Any]
+                      ) -> tuple[torch.Tensor | None, torch.Tensor | None]:
+    """The depth input of an item with a simulated sweep (dataset ``lidar_input``: item["lidar_depth"]
+    [N, h, w] metres, item["lidar_surface"] [N, h, w] bool), made as the runtime makes it from a real sweep
+    (runtime.lidar.fuse_depth, with the depth head's own output, no gradient, in place of the first pass's
+    rendered depth and the surface mask in place of its alpha): (depth [N, 1, h, w], mask [N] of ones), or
+    (None, None) for an item without one."""
+    lid = item.get("lidar_depth")
+    if lid is None:
+        return None, None
+    from xyzcyl.runtime.lidar import fuse_depth
+
+    with torch.no_grad():
+        _, head, _ = model.encode_images(images, focal=item["lifting"].get("focal_n"))
+    head = head[:, 0].float().cpu().numpy()
+    surf = item["lidar_surface"].cpu().numpy().astype(np.float32)
+    fused = np.stack([fuse_depth(lid[n].cpu().numpy(), head[n], surf[n])[0] for n in range(head.shape[0])])
+    depth = torch.from_numpy(fused)[:, None].to(images.device)
+    return depth, torch.ones(depth.shape[0], dtype=depth.dtype, device=images.device)
+
+
 def forward_render(model, item: dict[str, Any]) -> dict[str, torch.Tensor]:
     """Full forward + splat render + background blend for an item's targets.
     Returns rgb [T, 3, H, W] (composited), alpha [T, 1, H, W] (foreground), depth [T, 1, H, W] (foreground),
@@ -137,7 +158,9 @@ def forward_render(model, item: dict[str, Any]) -> dict[str, torch.Tensor]:
 
     cfg = model.cfg
     inp = item["lifting"]
-    out = model(_resize(item["images"], cfg), inp, occ_gt=item["occupancy"] == 1)   # 255 = unknown
+    images = _resize(item["images"], cfg)
+    depth_in, mask_in = lidar_depth_input(model, images, item)
+    out = model(images, inp, depth_in, mask_in, occ_gt=item["occupancy"] == 1)   # 255 = unknown
     rgb, alpha, depth = render_views(out["gaussians"], target_cameras(item["targets"]))  # host CPU, any device
     bg = model.background(out["app_plane"], item["targets"]["background_grid"]) if out["app_plane"] is not None \
         else None
@@ -161,7 +184,7 @@ def step_loss(model, item: dict[str, Any], tcfg: TrainConfig, lpips=None) -> tup
                                   t["depth_valid"], tcfg.loss.render, lpips)
         d = r["depth_head"]
         parts["n_gaussians"] = float(r["n_gaussians"])
-    if tcfg.depth_head_weight > 0:
+    if tcfg.depth_head_weight > 0 and "lidar_depth" not in item:   # with a depth input the head is not used
         dl = depth_head_loss(d, item["depth"], item["depth_valid"], item["sky"])
         loss = loss + tcfg.depth_head_weight * dl
         parts["depth_head"] = float(dl.detach())

@@ -76,6 +76,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="probability per input camera of a narrower lens (its image, depth and sky cropped by "
                              "a zoom of U(1, 1.4) and resampled, K to match; targets kept; docs/training.md): "
                              "lenses the rig does not have, for the focal-aware depth head; 0 disables")
+    parser.add_argument("--lidar-input", type=float, default=0.0,
+                        help="probability that a training scene's inputs carry a simulated LiDAR sweep, made into "
+                             "the depth input as the runtime makes a real one (stage render; docs/training.md): the "
+                             "model learns to use LiDAR depth; 0 disables")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--device", default="cpu",
                         help="cpu or cuda (cuda:N): where the network and its losses run; the splatting renderer "
@@ -129,7 +133,7 @@ def run(args: argparse.Namespace) -> int:
                                brightness=j, contrast=j, saturation=j, flip_prob=args.flip_prob,
                                occupancy_labels=args.occupancy_labels,
                                **camera_aug_fields(args.camera_aug), camera_drop=args.camera_drop,
-                               lens_zoom=args.lens_zoom,
+                               lens_zoom=args.lens_zoom, lidar_input=args.lidar_input,
                                target_scale=args.target_scale),
             loss=TrainLossConfig(
                 render=RenderLossConfig(lpips_net=args.lpips_net, lpips_backbone_path=args.lpips_backbone,

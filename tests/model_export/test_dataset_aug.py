@@ -12,6 +12,7 @@ from xyzcyl.model_export.dataset import (
     SceneDataset,
     apply_camera_aug,
     camera_aug_fields,
+    simulate_lidar,
     surface_labels,
 )
 from xyzcyl.runtime.rig import Camera
@@ -381,3 +382,49 @@ def test_lens_zoom_config_validation():
     for bad in (0.9, 5, True):
         with pytest.raises(ConfigError, match="lens_zoom_max"):
             DatasetConfig(lens_zoom_max=bad)
+
+
+# ------------------------------------------------------------------------------------------ simulated LiDAR input
+
+def test_simulate_lidar_by_hand():
+    """Points only at valid, non-sky cells of 1-80 m below the top-beam row, each the nearest-sampled true depth;
+    probability 0 gives none; a seed gives the same sweep."""
+    from xyzcyl.runtime.inference import resize_nearest
+
+    rng = np.random.default_rng(0)
+    depth = rng.uniform(0.5, 100.0, (3, 64, 128)).astype(np.float32)
+    depth[:, :5] = 0
+    sky = np.zeros((3, 64, 128), bool)
+    sky[:, :20] = True
+    lid, surf = simulate_lidar(depth, sky, (8, 16), np.random.default_rng(1), 1.0)
+    assert lid.shape == surf.shape == (3, 8, 16) and lid.dtype == np.float32
+    for k in range(3):
+        d = resize_nearest(depth[k], 8, 16)
+        has = lid[k] > 0
+        np.testing.assert_array_equal(lid[k][has], d[has])
+        assert has.any() and not has[:2].any()            # the top beam sits at >= 0.25 h: rows 0-1 stay empty
+        assert np.all((lid[k][has] >= 1) & (lid[k][has] <= 80)) and surf[k][has].all()
+        assert not surf[k][:2].any() and surf[k][3:].all()   # sky rows 0..19 of 64 -> rows 0..2 of 8
+    again = simulate_lidar(depth, sky, (8, 16), np.random.default_rng(1), 1.0)
+    assert np.array_equal(again[0], lid)
+    assert simulate_lidar(depth, sky, (8, 16), np.random.default_rng(1), 0.0) is None
+
+
+def test_lidar_input_in_items(tiny_data):
+    from net_helpers import synth_test_config
+
+    cfg = synth_test_config()
+    h, w = cfg.backbone.input_height // cfg.backbone.feature_stride, cfg.backbone.input_width // cfg.backbone.feature_stride
+    base = DatasetConfig(setting="both", num_targets=2, voxel_size=1.6, flip_prob=0.0)
+    on = SceneDataset(tiny_data, base.replace(lidar_input=1.0), model_cfg=cfg).item(0, 1)
+    off = SceneDataset(tiny_data, base, model_cfg=cfg).item(0, 1)
+    n = on["images"].shape[0]
+    assert on["lidar_depth"].shape == on["lidar_surface"].shape == (n, h, w) and (on["lidar_depth"] > 0).any()
+    assert "lidar_depth" not in off and torch.equal(on["images"], off["images"])      # its own child stream
+    assert torch.equal(on["targets"]["images"], off["targets"]["images"])
+    assert base.replace(lidar_input=1.0).without_augmentation().lidar_input == 0.0
+    with pytest.raises(ConfigError, match="lidar_input"):
+        SceneDataset(tiny_data, base.replace(lidar_input=0.5))          # no model config: no depth size
+    for bad in (-0.1, 1.5, True, "0.5"):
+        with pytest.raises(ConfigError, match="lidar_input"):
+            DatasetConfig(lidar_input=bad)

@@ -32,6 +32,35 @@ def _rows(path):
         return list(csv.DictReader(f))
 
 
+def test_simulated_lidar_becomes_the_depth_input_and_trains_the_rest(tiny_synth_data):
+    """An item with a simulated sweep (dataset lidar_input): the model gets the runtime's fused depth (LiDAR cells
+    exact), the render loss reaches the pixel branch, and the depth head (replaced) gets no gradient."""
+    import numpy as np
+    from xyzcyl.model_export.dataset import SceneDataset
+    from xyzcyl.model_export.train import _resize, lidar_depth_input, step_loss
+
+    torch.manual_seed(0)
+    cfg = synth_test_config()
+    model = build_model(cfg)
+    data = SceneDataset(tiny_synth_data, DatasetConfig(setting="both", num_targets=2, voxel_size=1.6,
+                                                       lidar_input=1.0), model_cfg=cfg)
+    item = data.item(0, 0)
+    depth, mask = lidar_depth_input(model, _resize(item["images"], cfg), item)
+    lid = item["lidar_depth"].numpy()
+    assert depth.shape == (lid.shape[0], 1, *lid.shape[1:]) and torch.all(mask == 1)
+    has = lid > 0
+    np.testing.assert_array_equal(depth[:, 0].numpy()[has], lid[has])
+    assert (depth[:, 0].numpy()[~has & item["lidar_surface"].numpy()] > 0).all()    # the head's depth, rescaled
+    tcfg = _tcfg("render", 1)
+    loss, parts = step_loss(model, item, tcfg)
+    loss.backward()
+    assert "depth_head" not in parts
+    head = [p.grad for p in model.depth_head.parameters()]
+    assert all(g is None or not g.any() for g in head)
+    pix = [p.grad for n, p in model.named_parameters() if n.startswith(("pix_net", "pix_mlp", "pix_out"))]
+    assert pix and any(g is not None and g.abs().sum() > 0 for g in pix)
+
+
 def test_depth_head_loss_by_hand():
     pred = torch.tensor([[[[2.0, 4.0]]]])                       # head output [1, 1, 1, 2]
     gt = torch.tensor([[[[1.0, 9.0, 4.0, 9.0], [9.0, 9.0, 9.0, 9.0]]]])  # nearest 2x4 -> 1x2 takes (0,0), (0,2)
@@ -121,6 +150,9 @@ def test_cli_errors_exit_2(tmp_path, tiny_synth_data):
     r = subprocess.run(exe + ["--data", str(tiny_synth_data), "--stage", "occ", "--out", str(tmp_path / "r"),
                               "--lens-zoom", "-1"], check=False, capture_output=True, text=True)
     assert r.returncode == 2 and "lens_zoom" in r.stderr and "Traceback" not in r.stderr
+    r = subprocess.run(exe + ["--data", str(tiny_synth_data), "--stage", "occ", "--out", str(tmp_path / "r"),
+                              "--lidar-input", "1.5"], check=False, capture_output=True, text=True)
+    assert r.returncode == 2 and "lidar_input" in r.stderr and "Traceback" not in r.stderr
     r = subprocess.run(exe + ["--data", str(tiny_synth_data), "--data", str(tmp_path / "nope"), "--stage", "occ",
                               "--out", str(tmp_path / "r")], check=False, capture_output=True, text=True)
     assert r.returncode == 2 and "nope" in r.stderr
