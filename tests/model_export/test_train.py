@@ -267,8 +267,10 @@ def test_threads_option_sets_torch_and_numba():
 @pytest.mark.slow
 def test_overfit_one_scene_halves_the_render_loss(tiny_synth_data, tmp_path):
     """The issue's overfit check: stage render on one scene, all 12 ego-forward targets every step (so the loss
-    of each step measures the same views), from random weights. Settings measured on this scene (80 steps):
-    mean of the first / last 3 steps 0.298 -> 0.127 (ratio 0.43). The floor is the image L1: the 32x56
+    of each step measures the same views), from random weights. Mean of the first / last 3 steps, measured on
+    this scene: 0.298 -> 0.127 (ratio 0.43) at 80 steps when written; on 2026-11-25's packages 80 steps gave
+    ratios of 0.48-0.54 from run to run and test order, too close to the bound, so 120 steps (ratio printed by
+    the assertion; 0.2674 -> 0.1247, ratio 0.466, measured alone). The floor is the image L1: the 32x56
     inputs reach the network through 4x7 feature maps, so per-pixel texture cannot be reproduced."""
     import shutil
 
@@ -276,7 +278,7 @@ def test_overfit_one_scene_halves_the_render_loss(tiny_synth_data, tmp_path):
     shutil.copytree(tiny_synth_data / "scene_000000", data / "scene_000000")
     cfg = synth_test_config()
     cfg = cfg.replace(volume=cfg.volume.replace(max_voxels=20000))    # all ~13k occupied 1.6 m voxels
-    steps = 80
+    steps = 120
     tcfg = TrainConfig(stage="render", steps=steps, ckpt_every=steps, seed=1, depth_head_weight=0.0,
                        data=DatasetConfig(num_targets=12, voxel_size=1.6, target_scale=0.5),
                        loss=TrainLossConfig(optim=OptimConfig(lr=1e-2, warmup_steps=5, total_steps=steps,
@@ -287,4 +289,5 @@ def test_overfit_one_scene_halves_the_render_loss(tiny_synth_data, tmp_path):
     assert {r["scene"] for r in rows} == {"scene_000000"}
     loss = [float(r["loss"]) for r in rows]                # depth_head_weight 0: the render loss alone
     first, last = sum(loss[:3]) / 3, sum(loss[-3:]) / 3
+    print(f"overfit: {first:.4f} -> {last:.4f} (ratio {last / first:.3f})")
     assert last <= 0.5 * first, (first, last)
