@@ -47,9 +47,9 @@ def run(args: argparse.Namespace) -> int:
     except (RecoverError, ConfigError, ValueError) as exc:
         return _fail(str(exc))
     meta = r["meta"]
-    skipped = r["not_in_graphs"]
-    print(f"{args.out}: {meta.get('name')} {meta.get('version')}, {len(r['state'])} tensors"
-          f"{' (verified: the same graphs)' if not args.no_verify else ''}; {len(skipped)} not in any graph keep "
-          f"their initialisation{(' (' + ', '.join(sorted({'.'.join(k.split('.')[:2]) for k in skipped})[:4]) + ' ...)') if skipped else ''}"
-          f" in {time.perf_counter() - t0:.0f} s")
+    modules = sorted({".".join(k.split(".")[:2]) for k in r["not_in_graphs"]})
+    verified = "" if args.no_verify else " (verified: the same graphs)"
+    print(f"{args.out}: {meta.get('name')} {meta.get('version')}, {len(r['state'])} tensors{verified}; "
+          f"{len(r['not_in_graphs'])} found in no graph keep their initialisation ({', '.join(modules) or 'none'}); "
+          f"{time.perf_counter() - t0:.0f} s")
     return 0
