@@ -2,7 +2,7 @@
 
     xyzcyl data synth --out DIR --scenes N --rig nuscenes --height H --width W \
         --targets ego-forward,ego-inward --seed S [--inward-views V] [--supersample 2] [--voxels 0.4,0.8] \
-        [--workers N]
+        [--near-cars P] [--workers N]
     xyzcyl data gallery DIR --out sheet.png [--scenes 8]
 """
 
@@ -29,6 +29,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     s.add_argument("--no-shadows", action="store_true", help="no sun shadows (faster)")
     s.add_argument("--voxels", default="0.4,0.8", help="comma list of occupancy voxel sizes, metres")
     s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--near-cars", type=float, default=0.0, metavar="P",
+                   help="probability of a scene with traffic beside the ego: cars in the neighbouring lanes and "
+                        "parking lane 1-3 m from the ego, as real rigs see them (default 0: none within 8 m)")
     s.add_argument("--workers", type=int, default=1,
                    help="scenes rendered at once, each in its own process with cores/N numba threads (default 1: "
                         "one process, all cores per scene); the files are identical for any N")
@@ -57,7 +60,8 @@ def run(args: argparse.Namespace) -> int:
             cfg = SynthConfig(rig=args.rig, height=args.height, width=args.width,
                               targets=tuple(t.strip() for t in args.targets.split(",") if t.strip()),
                               inward_views=args.inward_views, supersample=args.supersample,
-                              shadows=not args.no_shadows, voxels=_floats(args.voxels, "voxels"), seed=args.seed)
+                              shadows=not args.no_shadows, voxels=_floats(args.voxels, "voxels"), seed=args.seed,
+                              near_cars=args.near_cars)
             n = synth(args.out, args.scenes, cfg, progress=not args.quiet, workers=args.workers)
             print(f"{n} scenes rendered into {args.out}")
             return 0

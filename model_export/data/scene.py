@@ -86,6 +86,19 @@ class SceneConfig:
     max_psi_deg: float = 3.0  # ego heading vs lane, degrees
     intersection_prob: float = 0.45
     with_ego: bool = True  # add the ego car (needed for ego-inward views)
+    # probability that a scene has traffic beside the ego (real rigs do: a parked car 2-3 m from a side camera).
+    # Such a scene keeps only the ego lane clear (not the 6 m discs around the ego that keep every other car
+    # at >= 8 m), and each neighbouring driving lane and a neighbouring parking lane gets a car beside the ego
+    # with probability BESIDE_P. 0 = the generator of docs/data.md, byte for byte (the draw is a side stream).
+    near_cars: float = 0.0
+
+    def __post_init__(self):
+        if not (0.0 <= self.near_cars <= 1.0):
+            raise ValueError(f"near_cars: must be in [0, 1], got {self.near_cars}")
+
+
+BESIDE_P = 0.7  # per neighbouring lane of a near_cars scene: a car beside the ego
+BESIDE_U = (-4.0, 6.0)  # metres along the road, its centre (the ego's body centre is at u = 1.3)
 
 
 class _Builder:
@@ -319,7 +332,22 @@ def sample_scene(seed: int, index: int, config: SceneConfig = SceneConfig()) -> 
     def free(u, v, r, taken):
         return all((u - a) ** 2 + (v - bb) ** 2 > (r + rr) ** 2 for a, bb, rr in taken)
 
-    taken: list[tuple[float, float, float]] = [(0.0, 0.0, 6.0), (-2.0, 0.0, 6.0), (3.0, 0.0, 6.0)]
+    # a side stream, so that near_cars = 0 leaves the main stream (and every other scene) as it was
+    side = np.random.default_rng([int(seed), int(index), 0xBE51DE])
+    near = config.near_cars > 0 and side.random() < config.near_cars
+    taken: list[tuple[float, float, float]] = [] if near else [(0.0, 0.0, 6.0), (-2.0, 0.0, 6.0), (3.0, 0.0, 6.0)]
+    if near:  # the ego lane stays clear (the lane rule below); its neighbours get a car beside the ego
+        slots = [(vd0 + (lane + 0.5) * lane_w, 0.0 if lane < n_fwd else math.pi, None)
+                 for lane in (ego_lane - 1, ego_lane + 1) if 0 <= lane < n_lanes]
+        if park_r and ego_lane == 0:
+            slots.append((vr + park_w / 2, 0.0, "parked"))
+        for v_slot, yaw, parked in slots:
+            u = side.uniform(*BESIDE_U)
+            if side.random() < BESIDE_P and free(u, v_slot, 3.0, taken):
+                kind = side.choice(["sedan", "hatch", "suv", "van"], p=[0.35, 0.3, 0.25, 0.1]) if parked else None
+                length = _car(b, side, u, v_slot + side.uniform(-0.15, 0.15), yaw + side.uniform(-0.04, 0.04),
+                              kind=kind)
+                taken.append((u, v_slot, length / 2 + 0.5))
     for park, vpark, flip in ((park_r, vr + park_w / 2, 0.0), (park_l, vl - park_w / 2, math.pi)):
         if not park:
             continue

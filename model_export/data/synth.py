@@ -39,6 +39,7 @@ class SynthConfig:
     jitter_pos_m: float = 0.02
     jitter_deg: float = 0.5
     seed: int = 0
+    near_cars: float = 0.0  # probability of traffic beside the ego (SceneConfig.near_cars); 0 = generator v1 as is
 
     def validate(self) -> None:
         """Raise ValueError naming the field."""
@@ -55,6 +56,8 @@ class SynthConfig:
             raise ValueError(f"supersample: must be in 1..8, got {self.supersample}")
         if not (0 < self.inward_radius[0] <= self.inward_radius[1]):
             raise ValueError(f"inward_radius: need 0 < min <= max, got {self.inward_radius}")
+        if not (0.0 <= self.near_cars <= 1.0):
+            raise ValueError(f"near_cars: must be in [0, 1], got {self.near_cars}")
         for v in self.voxels:
             OccupancyGrid(tuple(self.occ_range), float(v))  # raises naming 'voxel'
         base_rig(self.rig, self.width, self.height)  # raises naming 'rig'
@@ -108,7 +111,8 @@ def inward_cameras(scene: Scene, grid: Grid, cfg: SynthConfig, rng: np.random.Ge
 
 def render_scene(cfg: SynthConfig, index: int) -> SceneData:
     """Sample and render scene `index` of the data set (deterministic in (cfg.seed, index))."""
-    scene = sample_scene(cfg.seed, index, SceneConfig(with_ego="ego-inward" in cfg.targets))
+    scene = sample_scene(cfg.seed, index, SceneConfig(with_ego="ego-inward" in cfg.targets,
+                                                           near_cars=cfg.near_cars))
     grid = build_grid(scene)
     rng = np.random.default_rng([int(cfg.seed), int(index), 0xCA3])
     cams = jitter(base_rig(cfg.rig, cfg.width, cfg.height), rng, cfg.jitter_pos_m, cfg.jitter_deg)
@@ -275,9 +279,11 @@ def synth(out: Path, n: int, cfg: SynthConfig, progress: bool = True, workers: i
     idx_path = out / "index.json"
     if idx_path.exists():
         old = json.loads(idx_path.read_text())
+        defaults = SynthConfig().to_json()  # a field added later is absent from older index.json: its default
         for k, v in cfg.to_json().items():
-            if old.get("config", {}).get(k) != v:
-                raise ValueError(f"{k}: {out} was made with {k}={old.get('config', {}).get(k)!r}, not {v!r}")
+            was = old.get("config", {}).get(k, defaults[k])
+            if was != v:
+                raise ValueError(f"{k}: {out} was made with {k}={was!r}, not {v!r}")
         n_total = max(n, int(old.get("scenes", 0)))
     else:
         n_total = n
