@@ -1,0 +1,58 @@
+#!/usr/bin/env bash
+# The A/B of near_train.sh measured (docs/results.md "Cars beside the ego"), for the shipped 1.2.0 ("base") and the
+# two runs: depth against LiDAR on the real rigs (`xyzcyl lidar-eval`, no LiDAR input), the same check on 5+5
+# synthetic scenes of seed 1 with pseudo-LiDAR (synth_lidar.py) without and with cars beside the ego, input-view
+# PSNR on the real rigs (real_lidar_models.py), and `xyzcyl eval` on the 50 validation scenes (both settings).
+#   bash docs/runs/cpu_2026-11-25_near/near_eval.sh   (then near_table.py)
+set -euo pipefail
+X=${X:-.venv/bin/xyzcyl}
+P=${P:-.venv/bin/python}
+OUT=${OUT:-runs/cpu6}
+REAL=${REAL:-../shared/data/real}
+D=docs/runs/cpu_2026-11-25_near
+L=docs/runs/cpu_2026-11-25
+mkdir -p "$OUT/lidar" "$OUT/eval"
+for set in lidar_val5_near lidar_val5_near_pandaset; do
+  if [ ! -d "data/$set" ]; then
+    rig=nuscenes; [ "$set" = lidar_val5_near_pandaset ] && rig=pandaset
+    $X data synth --out "data/$set" --rig $rig --scenes 5 --seed 1 --targets "" --near-cars 1 --quiet
+    $P $L/synth_lidar.py "data/$set"
+  fi
+done
+for set in lidar_val5 lidar_val5_pandaset; do   # lidar_runs.sh's sets
+  if [ ! -d "data/$set" ]; then
+    rig=nuscenes; [ "$set" = lidar_val5_pandaset ] && rig=pandaset
+    $X data synth --out "data/$set" --rig $rig --scenes 5 --seed 1 --targets "" --quiet
+    $P $L/synth_lidar.py "data/$set"
+  fi
+done
+for run in near ctrl; do
+  if [ ! -f "$OUT/m_$run/model.json" ]; then
+    $X export --checkpoint "$OUT/render_$run/render.pt" --out "$OUT/m_$run" --version "0.0.0-$run" --force --quiet
+  fi
+done
+declare -A DIR=([base]=models/xyzcyl-cpu-v1 [near]=$OUT/m_near [ctrl]=$OUT/m_ctrl)
+for model in base near ctrl; do
+  for rig in nuscenes_ca9a282c pandaset_002_00; do
+    $X lidar-eval "$REAL/$rig/rig.json" --model "${DIR[$model]}" --json "$OUT/lidar/${model}_$rig.json" \
+      --picture "$OUT/lidar/${model}_$rig.jpg" --quiet > /dev/null
+  done
+  for set in lidar_val5 lidar_val5_pandaset lidar_val5_near lidar_val5_near_pandaset; do
+    for s in data/$set/scene_*; do
+      $X lidar-eval "$s/rig_lidar.json" --model "${DIR[$model]}" --json "$OUT/lidar/${model}_${set}_$(basename "$s").json" \
+        --quiet > /dev/null
+    done
+  done
+done
+$P $L/real_lidar_models.py models/xyzcyl-cpu-v1 "$OUT/m_near" "$OUT/m_ctrl" > $D/real_lidar_models.json
+pids=""
+declare -A CK=([base]=runs/cpu5/base_1.2.0.pt [near]=$OUT/render_near/render.pt [ctrl]=$OUT/render_ctrl/render.pt)
+for model in base near ctrl; do
+  if ! ls "$OUT/eval/$model"/*.json > /dev/null 2>&1; then
+    $X eval --checkpoint "${CK[$model]}" --data data/val --setting ego-forward,ego-inward --out "$OUT/eval/$model" \
+      --threads 1 --quiet > "$OUT/eval_$model.log" 2>&1 &
+    pids="$pids $!"
+  fi
+done
+for p in $pids; do wait "$p"; done
+echo done
