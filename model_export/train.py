@@ -36,7 +36,7 @@ from .config import ConfigError, ModelConfig, _Frozen
 from .dataset import DatasetConfig, SceneDataset
 from .losses import TrainLossConfig, build_optimizer, clip_gradients, load_lpips, occupancy_loss, render_loss
 
-STAGES = ("occ", "render")
+STAGES = ("occ", "render", "depth")
 OCC_MODULES = ("backbone", "occ_net", "occ_proj", "occ_head", "bev_proj", "bev_head")
 
 
@@ -81,7 +81,7 @@ def set_stage(model: torch.nn.Module, stage: str, base_flags: dict[str, bool]) -
     for name, p in model.named_parameters():
         top = name.split(".", 1)[0]
         in_occ = top in OCC_MODULES or top == "depth_head"
-        on = in_occ if stage == "occ" else (top not in OCC_MODULES)
+        on = in_occ if stage == "occ" else top == "depth_head" if stage == "depth" else top not in OCC_MODULES
         p.requires_grad_(bool(on and base_flags[name]))
         if p.requires_grad:
             out.append(p)
@@ -89,7 +89,12 @@ def set_stage(model: torch.nn.Module, stage: str, base_flags: dict[str, bool]) -
 
 
 def train_mode(model: torch.nn.Module, stage: str) -> None:
-    """model.train(), with the frozen occupancy modules in eval mode during stage 2."""
+    """model.train(), with the frozen occupancy modules in eval mode during stage 2 and everything but the depth
+    head in eval mode during stage depth."""
+    if stage == "depth":
+        model.eval()
+        model.depth_head.train()
+        return
     model.train()
     if stage == "render":
         for name in OCC_MODULES:
@@ -107,18 +112,32 @@ def _resize(images: torch.Tensor, cfg: ModelConfig) -> torch.Tensor:
     return F.interpolate(images, size=(h, w), mode="bilinear", align_corners=False, antialias=True)
 
 
+def _head_truth(pred: torch.Tensor, depth: torch.Tensor, valid: torch.Tensor, sky: torch.Tensor):
+    """Ground truth [N, 1, H, W] at the depth head's resolution [N, 1, h, w] by nearest sampling, and the mask
+    of valid non-sky pixels with depth > 0 there (float 0/1)."""
+    size = pred.shape[-2:]
+    d = F.interpolate(depth, size=size, mode="nearest")
+    m = F.interpolate((valid & (sky < 0.5)).float(), size=size, mode="nearest") * (d > 0)
+    return d, m
+
+
 def depth_head_loss(pred: torch.Tensor, depth: torch.Tensor, valid: torch.Tensor, sky: torch.Tensor) -> torch.Tensor:
     """Mean |log D_head - log D| of the depth head [N, 1, h, w] against ground truth [N, 1, H, W] taken at the
     head's resolution by nearest sampling, over valid non-sky pixels. Log (relative) error: a metre L1 would be
     dominated by distant pixels and outweigh the render loss under the global gradient clip."""
-    size = pred.shape[-2:]
-    d = F.interpolate(depth, size=size, mode="nearest")
-    m = F.interpolate((valid & (sky < 0.5)).float(), size=size, mode="nearest") * (d > 0)
+    d, m = _head_truth(pred, depth, valid, sky)
     n = m.sum()
     if not bool(n > 0):
         return pred.sum() * 0.0
     err = (torch.log(pred.clamp_min(1e-3)) - torch.log(d.clamp_min(1e-3))).abs()
     return (err * m).sum() / n
+
+
+def depth_head_abs_rel(pred: torch.Tensor, depth: torch.Tensor, valid: torch.Tensor, sky: torch.Tensor) -> float:
+    """Mean |D_head - D| / D over the pixels depth_head_loss uses (NaN when there are none)."""
+    d, m = _head_truth(pred, depth, valid, sky)
+    n = float(m.sum())
+    return float(((pred - d).abs() / d.clamp_min(1e-3) * m).sum()) / n if n > 0 else float("nan")
 
 
 def target_cameras(targets: dict[str, Any]) -> list:
@@ -173,6 +192,10 @@ def forward_render(model, item: dict[str, Any]) -> dict[str, torch.Tensor]:
 def step_loss(model, item: dict[str, Any], tcfg: TrainConfig, lpips=None) -> tuple[torch.Tensor, dict[str, float]]:
     """The stage's total loss for one scene and its unweighted terms."""
     cfg = model.cfg
+    if tcfg.stage == "depth":   # the depth head alone: no lifting, no rendering; its term at weight 1
+        _, d, _ = model.encode_images(_resize(item["images"], cfg), focal=item["lifting"].get("focal_n"))
+        dl = depth_head_loss(d, item["depth"], item["depth_valid"], item["sky"])
+        return dl, {"depth_head": float(dl.detach())}
     if tcfg.stage == "occ":
         feats, d, _ = model.encode_images(_resize(item["images"], cfg), focal=item["lifting"].get("focal_n"))
         occ, bev = model.occupancy(feats, item["lifting"])
@@ -334,7 +357,8 @@ def plot_losses(rows: list[dict[str, Any]], path: Path, title: str = "") -> None
 
 def validate(model, ds: SceneDataset, tcfg: TrainConfig, step: int, run_dir: Path) -> dict[str, float]:
     """Stage "occ": mean occupancy IoU and BEV IoU. Stage "render": mean PSNR / SSIM / PCC over the targets of
-    the first ``val_scenes`` scenes; a sheet val_<step>.png (inputs, targets, renders, depths) of the first."""
+    the first ``val_scenes`` scenes; a sheet val_<step>.png (inputs, targets, renders, depths) of the first.
+    Stage "depth": the depth head's log-L1 and AbsRel on the input cameras of those scenes."""
     from . import metrics as M
 
     model.eval()
@@ -345,6 +369,14 @@ def validate(model, ds: SceneDataset, tcfg: TrainConfig, step: int, run_dir: Pat
         for i in range(min(tcfg.val_scenes, len(ds))):
             item = ds.item(i, 0)            # host tensors for the metrics; the model reads a copy on its device
             x = to_device(item, dev)
+            if tcfg.stage == "depth":
+                _, d, _ = model.encode_images(_resize(x["images"], model.cfg), focal=x["lifting"].get("focal_n"))
+                d = d.cpu()
+                res.setdefault("depth_head", []).append(float(depth_head_loss(d, item["depth"], item["depth_valid"],
+                                                                              item["sky"])))
+                res.setdefault("abs_rel", []).append(depth_head_abs_rel(d, item["depth"], item["depth_valid"],
+                                                                        item["sky"]))
+                continue
             if tcfg.stage == "occ":
                 feats, _, _ = model.encode_images(_resize(x["images"], model.cfg), focal=x["lifting"].get("focal_n"))
                 occ, bev = (a.cpu() for a in model.occupancy(feats, x["lifting"]))
@@ -440,6 +472,8 @@ def train(data_dir: str | Path | list[str | Path], run_dir: str | Path, model_cf
             model_cfg = ModelConfig.from_dict(init_ck["model_cfg"])
     if model_cfg is None:
         raise ValueError("preset: no model config (give --preset or --init)")
+    if tcfg.stage == "depth" and ck is None and init_ck is None:
+        raise ValueError("init: stage depth trains the depth head of a trained model; give --init render.pt")
     run_dir.mkdir(parents=True, exist_ok=True)
 
     torch.manual_seed(tcfg.seed)
@@ -447,6 +481,9 @@ def train(data_dir: str | Path | list[str | Path], run_dir: str | Path, model_cf
     base_flags = {n: p.requires_grad for n, p in model.named_parameters()}
     if init_ck is not None:
         untrained = ()
+        if tcfg.stage == "depth" and (init_ck.get("train_cfg") or {}).get("stage") not in ("render", "depth"):
+            raise ValueError(f"init: stage depth trains the depth head alone on a trained model; {init} is a stage "
+                             f"{(init_ck.get('train_cfg') or {}).get('stage')!r} checkpoint, give a stage-2 render.pt")
         if (init_ck.get("train_cfg") or {}).get("stage") == "occ":
             untrained = tuple({n.split(".", 1)[0] for n in model.state_dict()} - set(OCC_MODULES) - {"depth_head"})
         load_init(model, init_ck["model"], str(init), untrained)

@@ -2,6 +2,7 @@
 
     xyzcyl train --preset cpu --data DIR --stage occ --out RUN_OCC --steps 2000
     xyzcyl train --data DIR --stage render --init RUN_OCC/occ.pt --out RUN_RENDER --steps 4000
+    xyzcyl train --data DIR --stage depth --init RUN_RENDER/render.pt --out RUN_DEPTH --steps 800 --lr 1e-3
     xyzcyl train ... --resume          # continue RUN_DIR from last.pt
 """
 
@@ -24,11 +25,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="training data set (xyzcyl data synth output); repeat to mix data sets (e.g. rigs "
                              "with different camera counts): their scenes are drawn as one set")
     parser.add_argument("--val", type=Path, default=None, help="validation data set (metrics + sheets)")
-    parser.add_argument("--stage", required=True, choices=("occ", "render"))
+    parser.add_argument("--stage", required=True, choices=("occ", "render", "depth"),
+                        help="occ: stage 1; render: stage 2; depth: the depth head alone on its log-L1, from a "
+                             "stage-2 --init (no rendering; about 0.5 s a step)")
     parser.add_argument("--out", required=True, type=Path, help="run folder (checkpoints, logs, curves)")
     parser.add_argument("--resume", action="store_true", help="continue the run in --out from last.pt")
     parser.add_argument("--init", type=Path, default=None, help="start from this checkpoint's weights "
-                                                                 "(stage render: the stage-1 occ.pt)")
+                                                                 "(stage render: the stage-1 occ.pt; stage depth: a "
+                                                                 "render.pt)")
     parser.add_argument("--steps", type=int, default=2000, help="optimiser steps of this stage (one scene each)")
     parser.add_argument("--setting", default="ego-forward", choices=("ego-forward", "ego-inward", "both"),
                         help="target views that supervise stage render (both: drawn from either setting)")

@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
-# The A/B of near_train.sh measured (docs/results.md "Cars beside the ego"), for the shipped 1.2.0 ("base") and the
-# two runs: depth against LiDAR on the real rigs (`xyzcyl lidar-eval`, no LiDAR input), the same check on 5+5
+# The A/B of near_train.sh and depth_only.sh measured (docs/results.md "Cars beside the ego"), for the shipped 1.2.0
+# ("base"), the two runs (near, ctrl) and the two depth-head-only runs (dnear, dctrl): depth against LiDAR on the real rigs (`xyzcyl lidar-eval`, no LiDAR input), the same check on 5+5
 # synthetic scenes of seed 1 with pseudo-LiDAR (synth_lidar.py) without and with cars beside the ego, input-view
 # PSNR on the real rigs (real_lidar_models.py), and `xyzcyl eval` on the 50 validation scenes (both settings).
 #   bash docs/runs/cpu_2026-11-25_near/near_eval.sh   (then near_table.py)
@@ -26,13 +26,18 @@ for set in lidar_val5 lidar_val5_pandaset; do   # lidar_runs.sh's sets
     $P $L/synth_lidar.py "data/$set"
   fi
 done
-for run in near ctrl; do
-  if [ ! -f "$OUT/m_$run/model.json" ]; then
-    $X export --checkpoint "$OUT/render_$run/render.pt" --out "$OUT/m_$run" --version "0.0.0-$run" --force --quiet
+MODELS=${MODELS:-"base near ctrl dnear dctrl"}
+declare -A CK=([base]=runs/cpu5/base_1.2.0.pt [near]=$OUT/render_near/render.pt [ctrl]=$OUT/render_ctrl/render.pt
+               [dnear]=$OUT/depth_near.pt [dctrl]=$OUT/depth_ctrl.pt)
+declare -A DIR=([base]=models/xyzcyl-cpu-v1)
+for model in $MODELS; do
+  [ "$model" = base ] && continue
+  DIR[$model]=$OUT/m_$model
+  if [ ! -f "$OUT/m_$model/model.json" ]; then
+    $X export --checkpoint "${CK[$model]}" --out "$OUT/m_$model" --version "0.0.0-$model" --force --quiet
   fi
 done
-declare -A DIR=([base]=models/xyzcyl-cpu-v1 [near]=$OUT/m_near [ctrl]=$OUT/m_ctrl)
-for model in base near ctrl; do
+for model in $MODELS; do
   for rig in nuscenes_ca9a282c pandaset_002_00; do
     $X lidar-eval "$REAL/$rig/rig.json" --model "${DIR[$model]}" --json "$OUT/lidar/${model}_$rig.json" \
       --picture "$OUT/lidar/${model}_$rig.jpg" --quiet > /dev/null
@@ -44,15 +49,16 @@ for model in base near ctrl; do
     done
   done
 done
-$P $L/real_lidar_models.py models/xyzcyl-cpu-v1 "$OUT/m_near" "$OUT/m_ctrl" > $D/real_lidar_models.json
+# shellcheck disable=SC2046
+$P $L/real_lidar_models.py $(for m in $MODELS; do echo "${DIR[$m]}"; done) > $D/real_lidar_models.json
 pids=""
-declare -A CK=([base]=runs/cpu5/base_1.2.0.pt [near]=$OUT/render_near/render.pt [ctrl]=$OUT/render_ctrl/render.pt)
-for model in base near ctrl; do
+for model in $MODELS; do
   if ! ls "$OUT/eval/$model"/*.json > /dev/null 2>&1; then
     $X eval --checkpoint "${CK[$model]}" --data data/val --setting ego-forward,ego-inward --out "$OUT/eval/$model" \
       --threads 1 --quiet > "$OUT/eval_$model.log" 2>&1 &
     pids="$pids $!"
   fi
+  if [ "$(echo $pids | wc -w)" -ge 2 ]; then for p in $pids; do wait "$p"; done; pids=""; fi   # two at a time
 done
 for p in $pids; do wait "$p"; done
 echo done
