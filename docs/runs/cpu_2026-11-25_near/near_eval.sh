@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # The A/B of near_train.sh and depth_only.sh measured (docs/results.md "Cars beside the ego"), for the shipped 1.2.0
-# ("base"), the two runs (near, ctrl) and the two depth-head-only runs (dnear, dctrl): depth against LiDAR on the real rigs (`xyzcyl lidar-eval`, no LiDAR input), the same check on 5+5
+# ("base"), the two runs (near, ctrl), the two depth-head-only runs (dnear, dctrl) and readapt.sh's run
+# (MODELS=readapt): depth against LiDAR on the real rigs (`xyzcyl lidar-eval`, no LiDAR input), the same check on 5+5
 # synthetic scenes of seed 1 with pseudo-LiDAR (synth_lidar.py) without and with cars beside the ego, input-view
 # PSNR on the real rigs (real_lidar_models.py), and `xyzcyl eval` on the 50 validation scenes (both settings).
 #   bash docs/runs/cpu_2026-11-25_near/near_eval.sh   (then near_table.py)
@@ -28,7 +29,7 @@ for set in lidar_val5 lidar_val5_pandaset; do   # lidar_runs.sh's sets
 done
 MODELS=${MODELS:-"base near ctrl dnear dctrl"}
 declare -A CK=([base]=runs/cpu5/base_1.2.0.pt [near]=$OUT/render_near/render.pt [ctrl]=$OUT/render_ctrl/render.pt
-               [dnear]=$OUT/depth_near.pt [dctrl]=$OUT/depth_ctrl.pt)
+               [dnear]=$OUT/depth_near.pt [dctrl]=$OUT/depth_ctrl.pt [readapt]=$OUT/render_readapt/render.pt)
 declare -A DIR=([base]=models/xyzcyl-cpu-v1)
 for model in $MODELS; do
   [ "$model" = base ] && continue
@@ -50,7 +51,10 @@ for model in $MODELS; do
   done
 done
 # shellcheck disable=SC2046
-$P $L/real_lidar_models.py $(for m in $MODELS; do echo "${DIR[$m]}"; done) > $D/real_lidar_models.json
+$P $L/real_lidar_models.py $(for m in $MODELS; do echo "${DIR[$m]}"; done) > "$OUT/real_lidar_models.json"
+# merged into the record (a run of some MODELS keeps the others' entries)
+$P -c "import json, pathlib; p = pathlib.Path('$D/real_lidar_models.json'); d = json.loads(p.read_text()) if p.is_file() else {}
+d.update(json.load(open('$OUT/real_lidar_models.json'))); p.write_text(json.dumps(d, indent=1) + '\n')"
 pids=""
 for model in $MODELS; do
   if ! ls "$OUT/eval/$model"/*.json > /dev/null 2>&1; then

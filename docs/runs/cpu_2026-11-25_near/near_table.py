@@ -9,13 +9,14 @@ from pathlib import Path
 import numpy as np
 
 runs = Path(sys.argv[1] if len(sys.argv) > 1 else "runs/cpu6/lidar")
-real = json.loads(Path(sys.argv[2] if len(sys.argv) > 2 else
-                       "docs/runs/cpu_2026-11-25_near/real_lidar_models.json").read_text())
+real_path = Path(sys.argv[2] if len(sys.argv) > 2 else "docs/runs/cpu_2026-11-25_near/real_lidar_models.json")
+real = json.loads(real_path.read_text()) if real_path.is_file() and real_path.stat().st_size else {}
 MODELS = {"base": ("1.2.0 (shipped)", "models/xyzcyl-cpu-v1"),
           "ctrl": ("ctrl: +1200 steps, v1 data", "runs/cpu6/m_ctrl"),
           "near": ("near: +1200 steps, new scenes with cars beside", "runs/cpu6/m_near"),
           "dctrl": ("dctrl: 1.2.0 + depth head alone 800 steps, v1 data", "runs/cpu6/m_dctrl"),
-          "dnear": ("dnear: 1.2.0 + depth head alone 800 steps, cars beside", "runs/cpu6/m_dnear")}
+          "dnear": ("dnear: 1.2.0 + depth head alone 800 steps, cars beside", "runs/cpu6/m_dnear"),
+          "readapt": ("readapt: 1.2.0 + stage depth 1500 + stage render 300", "runs/cpu6/m_readapt")}
 DATA = (("nuscenes_ca9a282c", "real nuScenes"), ("pandaset_002_00", "real PandaSet"),
         ("lidar_val5_scene", "synthetic nuScenes-like, v1"), ("lidar_val5_pandaset", "synthetic PandaSet-like, v1"),
         ("lidar_val5_near_scene", "synthetic nuScenes-like, cars beside"),
