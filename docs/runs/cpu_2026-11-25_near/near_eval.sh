@@ -1,9 +1,11 @@
 #!/usr/bin/env bash
-# The A/B of near_train.sh and depth_only.sh measured (docs/results.md "Cars beside the ego"), for the shipped 1.2.0
-# ("base"), the two runs (near, ctrl), the two depth-head-only runs (dnear, dctrl) and readapt.sh's run
-# (MODELS=readapt): depth against LiDAR on the real rigs (`xyzcyl lidar-eval`, no LiDAR input), the same check on 5+5
-# synthetic scenes of seed 1 with pseudo-LiDAR (synth_lidar.py) without and with cars beside the ego, input-view
-# PSNR on the real rigs (real_lidar_models.py), and `xyzcyl eval` on the 50 validation scenes (both settings).
+# The A/B of near_train.sh and depth_only.sh measured (docs/results.md "Cars beside the ego"), for the shipped
+# 1.2.0 ("base"), the two runs (near, ctrl), the two depth-head-only runs (dnear, dctrl), readapt.sh's run
+# (readapt) and readapt2 (300 more such steps: readapt.sh with INIT=runs/cpu6/render_readapt/render.pt
+# OUT=runs/cpu6/render_readapt2). Measured: depth against LiDAR on the real rigs (`xyzcyl lidar-eval`, no LiDAR
+# input), the same check on 5+5 synthetic scenes of seed 1 with pseudo-LiDAR (synth_lidar.py) without and with
+# cars beside the ego, input-view PSNR on the real rigs (real_lidar_models.py), and `xyzcyl eval` on the 50
+# validation scenes (both settings). MODELS="..." picks some.
 #   bash docs/runs/cpu_2026-11-25_near/near_eval.sh   (then near_table.py)
 set -euo pipefail
 X=${X:-.venv/bin/xyzcyl}
@@ -29,7 +31,8 @@ for set in lidar_val5 lidar_val5_pandaset; do   # lidar_runs.sh's sets
 done
 MODELS=${MODELS:-"base near ctrl dnear dctrl"}
 declare -A CK=([base]=runs/cpu5/base_1.2.0.pt [near]=$OUT/render_near/render.pt [ctrl]=$OUT/render_ctrl/render.pt
-               [dnear]=$OUT/depth_near.pt [dctrl]=$OUT/depth_ctrl.pt [readapt]=$OUT/render_readapt/render.pt)
+               [dnear]=$OUT/depth_near.pt [dctrl]=$OUT/depth_ctrl.pt [readapt]=$OUT/render_readapt/render.pt
+               [readapt2]=$OUT/render_readapt2/render.pt)
 declare -A DIR=([base]=models/xyzcyl-cpu-v1)
 for model in $MODELS; do
   [ "$model" = base ] && continue

@@ -16,7 +16,8 @@ MODELS = {"base": ("1.2.0 (shipped)", "models/xyzcyl-cpu-v1"),
           "near": ("near: +1200 steps, new scenes with cars beside", "runs/cpu6/m_near"),
           "dctrl": ("dctrl: 1.2.0 + depth head alone 800 steps, v1 data", "runs/cpu6/m_dctrl"),
           "dnear": ("dnear: 1.2.0 + depth head alone 800 steps, cars beside", "runs/cpu6/m_dnear"),
-          "readapt": ("readapt: 1.2.0 + stage depth 1500 + stage render 300", "runs/cpu6/m_readapt")}
+          "readapt": ("readapt: 1.2.0 + stage depth 1500 + stage render 300", "runs/cpu6/m_readapt"),
+          "readapt2": ("readapt2: readapt + stage render 300", "runs/cpu6/m_readapt2")}
 DATA = (("nuscenes_ca9a282c", "real nuScenes"), ("pandaset_002_00", "real PandaSet"),
         ("lidar_val5_scene", "synthetic nuScenes-like, v1"), ("lidar_val5_pandaset", "synthetic PandaSet-like, v1"),
         ("lidar_val5_near_scene", "synthetic nuScenes-like, cars beside"),
