@@ -468,6 +468,9 @@ def train(data_dir: str | Path | list[str | Path], run_dir: str | Path, model_cf
     init_ck = None
     if init is not None and ck is None:
         init_ck = load_checkpoint(init)
+        if tcfg.stage == "depth" and (init_ck.get("train_cfg") or {}).get("stage") not in ("render", "depth"):
+            raise ValueError(f"init: stage depth trains the depth head alone on a trained model; {init} is a stage "
+                             f"{(init_ck.get('train_cfg') or {}).get('stage')!r} checkpoint, give a stage-2 render.pt")
         if model_cfg is None:
             model_cfg = ModelConfig.from_dict(init_ck["model_cfg"])
     if model_cfg is None:
@@ -481,9 +484,6 @@ def train(data_dir: str | Path | list[str | Path], run_dir: str | Path, model_cf
     base_flags = {n: p.requires_grad for n, p in model.named_parameters()}
     if init_ck is not None:
         untrained = ()
-        if tcfg.stage == "depth" and (init_ck.get("train_cfg") or {}).get("stage") not in ("render", "depth"):
-            raise ValueError(f"init: stage depth trains the depth head alone on a trained model; {init} is a stage "
-                             f"{(init_ck.get('train_cfg') or {}).get('stage')!r} checkpoint, give a stage-2 render.pt")
         if (init_ck.get("train_cfg") or {}).get("stage") == "occ":
             untrained = tuple({n.split(".", 1)[0] for n in model.state_dict()} - set(OCC_MODULES) - {"depth_head"})
         load_init(model, init_ck["model"], str(init), untrained)

@@ -92,6 +92,7 @@ def test_depth_stage_needs_a_trained_init(tiny_synth_data, tmp_path):
     occ = _checkpoint(tmp_path / "occ.pt", "occ")
     with pytest.raises(ValueError, match="^init"):
         train(tiny_synth_data, tmp_path / "b", None, _tcfg("depth", 1), init=occ, progress=False)
+    assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()   # refused before any file is written
 
 
 def test_export_takes_a_depth_checkpoint_and_refuses_occ(tmp_path, monkeypatch):
