@@ -112,6 +112,12 @@ def _resize(images: torch.Tensor, cfg: ModelConfig) -> torch.Tensor:
     return F.interpolate(images, size=(h, w), mode="bilinear", align_corners=False, antialias=True)
 
 
+def encode_item(model, item: dict[str, Any]):
+    """The model's encoder on an item's input images (resized to the backbone's input) with their focal lengths:
+    (lifted features, depth-head depth [N, 1, h, w] metres, confidence)."""
+    return model.encode_images(_resize(item["images"], model.cfg), focal=item["lifting"].get("focal_n"))
+
+
 def _head_truth(pred: torch.Tensor, depth: torch.Tensor, valid: torch.Tensor, sky: torch.Tensor):
     """Ground truth [N, 1, H, W] at the depth head's resolution [N, 1, h, w] by nearest sampling, and the mask
     of valid non-sky pixels with depth > 0 there (float 0/1)."""
@@ -191,13 +197,12 @@ def forward_render(model, item: dict[str, Any]) -> dict[str, torch.Tensor]:
 
 def step_loss(model, item: dict[str, Any], tcfg: TrainConfig, lpips=None) -> tuple[torch.Tensor, dict[str, float]]:
     """The stage's total loss for one scene and its unweighted terms."""
-    cfg = model.cfg
     if tcfg.stage == "depth":   # the depth head alone: no lifting, no rendering; its term at weight 1
-        _, d, _ = model.encode_images(_resize(item["images"], cfg), focal=item["lifting"].get("focal_n"))
+        _, d, _ = encode_item(model, item)
         dl = depth_head_loss(d, item["depth"], item["depth_valid"], item["sky"])
         return dl, {"depth_head": float(dl.detach())}
     if tcfg.stage == "occ":
-        feats, d, _ = model.encode_images(_resize(item["images"], cfg), focal=item["lifting"].get("focal_n"))
+        feats, d, _ = encode_item(model, item)
         occ, bev = model.occupancy(feats, item["lifting"])
         loss, parts = occupancy_loss(occ, bev, item["occupancy"], tcfg.loss.occ, bev_target=item["bev"])
     else:
@@ -370,15 +375,14 @@ def validate(model, ds: SceneDataset, tcfg: TrainConfig, step: int, run_dir: Pat
             item = ds.item(i, 0)            # host tensors for the metrics; the model reads a copy on its device
             x = to_device(item, dev)
             if tcfg.stage == "depth":
-                _, d, _ = model.encode_images(_resize(x["images"], model.cfg), focal=x["lifting"].get("focal_n"))
-                d = d.cpu()
+                d = encode_item(model, x)[1].cpu()
                 res.setdefault("depth_head", []).append(float(depth_head_loss(d, item["depth"], item["depth_valid"],
                                                                               item["sky"])))
                 res.setdefault("abs_rel", []).append(depth_head_abs_rel(d, item["depth"], item["depth_valid"],
                                                                         item["sky"]))
                 continue
             if tcfg.stage == "occ":
-                feats, _, _ = model.encode_images(_resize(x["images"], model.cfg), focal=x["lifting"].get("focal_n"))
+                feats, _, _ = encode_item(model, x)
                 occ, bev = (a.cpu() for a in model.occupancy(feats, x["lifting"]))
                 occ_t = item["occupancy"].numpy()
                 res.setdefault("occ_iou", []).append(M.occupancy_iou(occ.argmax(0).numpy(), occ_t == 1, occ_t == 255))

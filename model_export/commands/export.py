@@ -14,7 +14,8 @@ from pathlib import Path
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--checkpoint", required=True, type=Path, help="stage-2 training checkpoint (render.pt, or a stage-depth depth.pt)")
+    parser.add_argument("--checkpoint", required=True, type=Path,
+                        help="stage-2 training checkpoint (render.pt, or a stage-depth depth.pt)")
     parser.add_argument("--out", required=True, type=Path, metavar="DIR", help="model folder to write (models/NAME)")
     parser.add_argument("--name", default=None, help="model name (default: the --out folder's name)")
     parser.add_argument("--version", default="0.1.0", help="model version recorded in model.json (default 0.1.0)")

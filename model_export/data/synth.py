@@ -56,8 +56,7 @@ class SynthConfig:
             raise ValueError(f"supersample: must be in 1..8, got {self.supersample}")
         if not (0 < self.inward_radius[0] <= self.inward_radius[1]):
             raise ValueError(f"inward_radius: need 0 < min <= max, got {self.inward_radius}")
-        if not (0.0 <= self.near_cars <= 1.0):
-            raise ValueError(f"near_cars: must be in [0, 1], got {self.near_cars}")
+        SceneConfig(near_cars=self.near_cars)  # raises naming 'near_cars'
         for v in self.voxels:
             OccupancyGrid(tuple(self.occ_range), float(v))  # raises naming 'voxel'
         base_rig(self.rig, self.width, self.height)  # raises naming 'rig'
