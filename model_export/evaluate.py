@@ -208,16 +208,16 @@ def unproject_views(item: dict[str, Any], depth: np.ndarray, cfg: EvalConfig
 
 def load_eval_model(checkpoint: str | Path, need_render_stage: bool):
     """(model in eval mode, checkpoint dict) from a training checkpoint; ``need_render_stage``: refuse a
-    stage-1 (occ) checkpoint, whose render modules are untrained."""
+    stage-1 (occ) checkpoint, whose render modules are untrained (a stage-2 or stage-depth one is taken)."""
     from .config import ModelConfig
-    from .train import build_model, load_checkpoint
+    from .train import RENDER_STAGES, build_model, load_checkpoint
 
     try:
         ck = load_checkpoint(checkpoint)
     except (FileNotFoundError, ValueError) as e:
         raise EvalError(str(e)) from None
     stage = (ck.get("train_cfg") or {}).get("stage")
-    if need_render_stage and stage != "render":
+    if need_render_stage and stage not in RENDER_STAGES:
         raise EvalError(f"checkpoint: {checkpoint} is a stage {stage!r} checkpoint; the model needs a stage-2 "
                         "(render) checkpoint such as RUN/render.pt")
     model = build_model(ModelConfig.from_dict(ck["model_cfg"]))

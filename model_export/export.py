@@ -399,14 +399,14 @@ def export_checkpoint(checkpoint: str | Path, out: str | Path, name: str, versio
     """Load a training checkpoint (train.py) and export it with ``write_model_folder``. A stage-1 (occ)
     checkpoint is refused unless ``require_render_stage`` is False: its render modules are untrained. A stage
     "depth" checkpoint is a stage-2 model whose depth head trained on (train.py refuses any other --init)."""
-    from .train import build_model, load_checkpoint
+    from .train import RENDER_STAGES, build_model, load_checkpoint
 
     try:
         ck = load_checkpoint(checkpoint)
     except (FileNotFoundError, ValueError) as e:
         raise ExportError(str(e)) from None
     tr = ck.get("train_cfg") or {}
-    if require_render_stage and tr.get("stage") not in ("render", "depth"):
+    if require_render_stage and tr.get("stage") not in RENDER_STAGES:
         raise ExportError(f"checkpoint: {checkpoint} is a stage {tr.get('stage')!r} checkpoint; export a stage-2 "
                           "(render) checkpoint such as RUN/render.pt")
     cfg = ModelConfig.from_dict(ck["model_cfg"])

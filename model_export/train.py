@@ -37,6 +37,9 @@ from .dataset import DatasetConfig, SceneDataset
 from .losses import TrainLossConfig, build_optimizer, clip_gradients, load_lpips, occupancy_loss, render_loss
 
 STAGES = ("occ", "render", "depth")
+# stages whose checkpoints hold a whole trained model (render modules trained): eval and export take these; a
+# "depth" run starts from a render checkpoint (its --init is refused otherwise) and trains only the depth head
+RENDER_STAGES = ("render", "depth")
 OCC_MODULES = ("backbone", "occ_net", "occ_proj", "occ_head", "bev_proj", "bev_head")
 
 

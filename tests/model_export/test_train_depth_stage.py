@@ -102,3 +102,12 @@ def test_export_takes_a_depth_checkpoint_and_refuses_occ(tmp_path, monkeypatch):
     assert len(seen) == 1
     with pytest.raises(export_mod.ExportError, match="checkpoint"):
         export_mod.export_checkpoint(_checkpoint(tmp_path / "occ.pt", "occ"), tmp_path / "m", "m", "0.1.0")
+
+
+def test_eval_takes_a_depth_checkpoint_and_refuses_occ(tmp_path):
+    from xyzcyl.model_export.evaluate import EvalError, load_eval_model
+
+    model, ck = load_eval_model(_checkpoint(tmp_path / "depth.pt", "depth"), need_render_stage=True)
+    assert ck["train_cfg"]["stage"] == "depth" and not model.training
+    with pytest.raises(EvalError, match="checkpoint"):
+        load_eval_model(_checkpoint(tmp_path / "occ.pt", "occ"), need_render_stage=True)
