@@ -17,8 +17,8 @@ from xyzcyl.model_export.commands.common import add_runtime_arguments, set_threa
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--checkpoint", type=Path, default=None,
-                        help="training checkpoint: stage-2 render.pt / last.pt for the model; any checkpoint "
-                             "(its depth head) for --baseline unproject")
+                        help="training checkpoint: stage-2 render.pt / last.pt or stage-depth depth.pt for the "
+                             "model; any checkpoint (its depth head) for --baseline unproject")
     parser.add_argument("--data", required=True, type=Path, action="append",
                         help="data set folder (xyzcyl data synth output); repeat for several rigs")
     parser.add_argument("--setting", required=True,
