@@ -25,6 +25,9 @@ from __future__ import annotations
 import datetime as _dt
 import hashlib
 import json
+import logging
+import re
+import warnings
 from collections.abc import Mapping, Sequence
 from dataclasses import asdict
 from pathlib import Path
@@ -161,12 +164,31 @@ def encode_inputs(cfg: ModelConfig, lifting: Mapping[str, np.ndarray], images: n
 # --------------------------------------------------------------------------------------------- export
 
 
+# Messages of torch's exporter that say nothing about our graphs, silenced by exact text so anything else shows:
+# torchvision ops it cannot register (the network uses none), a deprecation inside torch's own pytree code, and
+# the note that the per-camera inputs share the dimension N (they do, by design).
+_EXPORTER_NOISE = ("torchvision is not installed", "isinstance(treespec, LeafSpec)", "The axis name: N will not be used")
+
+
+class _DropNoise(logging.Filter):
+    def filter(self, record: logging.LogRecord) -> bool:
+        return not any(m in record.getMessage() for m in _EXPORTER_NOISE)
+
+
 def _export(module: nn.Module, args: tuple, path: Path, input_names: list[str], output_names: list[str],
             dynamic_shapes: tuple) -> None:
-    with torch.no_grad():
-        prog = torch.onnx.export(module, args, dynamo=True, opset_version=OPSET, input_names=input_names,
-                                 output_names=output_names, dynamic_shapes=dynamic_shapes, optimize=True,
-                                 verbose=False, report=False)
+    registration = logging.getLogger("torch.onnx._internal.exporter._registration")
+    drop = _DropNoise()
+    registration.addFilter(drop)
+    try:
+        with torch.no_grad(), warnings.catch_warnings():
+            for m in _EXPORTER_NOISE[1:]:
+                warnings.filterwarnings("ignore", message=".*" + re.escape(m))
+            prog = torch.onnx.export(module, args, dynamo=True, opset_version=OPSET, input_names=input_names,
+                                     output_names=output_names, dynamic_shapes=dynamic_shapes, optimize=True,
+                                     verbose=False, report=False)
+    finally:
+        registration.removeFilter(drop)
     prog.save(str(path), external_data=False)
 
 
