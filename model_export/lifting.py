@@ -14,7 +14,13 @@ from xyzcyl.runtime.rig import Rig
 
 
 def to_torch(inputs: dict[str, np.ndarray], device=None, dtype=torch.float32) -> dict[str, torch.Tensor]:
-    return {k: torch.as_tensor(np.ascontiguousarray(v), device=device, dtype=dtype) for k, v in inputs.items()}
+    """Tensors of ``inputs``. A read-only array (the runtime's lifting cache hands those out) is copied: torch would
+    share its memory, and an in-place op on the tensor would write into the cache."""
+    def tensor(v: np.ndarray) -> torch.Tensor:
+        v = np.ascontiguousarray(v)
+        return torch.as_tensor(v if v.flags.writeable else v.copy(), device=device, dtype=dtype)
+
+    return {k: tensor(v) for k, v in inputs.items()}
 
 
 def rig_inputs(rig: Rig, cfg, device=None) -> dict[str, torch.Tensor]:

@@ -1,4 +1,5 @@
 import math
+import warnings
 
 import numpy as np
 import pytest
@@ -10,6 +11,7 @@ from xyzcyl.model_export.lifting import (
     rig_inputs,
     sample_cpfg,
     sample_plane_wrapped,
+    to_torch,
 )
 from xyzcyl.runtime.cylinder import CylinderSpec, frustum_annulus_coords, overlay, project_rig
 from xyzcyl.runtime.rig import ring_rig
@@ -85,3 +87,16 @@ def test_sample_cpfg_planes_and_wrap():
     assert sample_plane_wrapped(plane, grid).item() == pytest.approx((W - 1) / 2, abs=1e-9)
 
 __all__ = ["one_thread"]  # autouse fixture, imported for pytest
+
+
+def test_to_torch_copies_read_only_arrays_and_shares_writable_ones():
+    ro = np.arange(6, dtype=np.float32).reshape(2, 3)
+    ro.flags.writeable = False   # as the runtime's lifting cache hands them out
+    rw = np.zeros((2, 3), np.float32)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")   # torch warns when it would share a read-only buffer
+        out = to_torch({"ro": ro, "rw": rw})
+    out["ro"] += 1
+    out["rw"] += 1
+    assert ro[0, 0] == 0 and out["ro"][0, 0] == 1   # the cache is untouched
+    assert rw[0, 0] == 1                            # a writable float32 array is not copied
