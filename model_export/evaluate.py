@@ -227,8 +227,8 @@ def load_eval_model(checkpoint: str | Path, need_render_stage: bool):
 
 
 def data_rig(root: Path) -> str | None:
-    """The rig a synthetic data set was generated with (index.json config.rig; a rig-file path gives its
-    parent folder's name), or None without index.json."""
+    """The rig a synthetic data set was generated with (index.json config.rig; a rig-file path gives the file's
+    name without .json, or its folder's name for a file named rig.json), or None without index.json."""
     p = Path(root) / "index.json"
     if not p.is_file():
         return None
@@ -238,8 +238,9 @@ def data_rig(root: Path) -> str | None:
         raise EvalError(f"data: {p} is not valid JSON ({e})") from None
     if not isinstance(rig, str):
         return None
-    if rig.endswith(".json"):
-        return Path(rig).parent.name or rig
+    if rig.endswith(".json"):   # a rig file: its name (ring8.json -> ring8); a generic rig.json: its folder's
+        path = Path(rig)
+        return (path.parent.name if path.stem == "rig" else path.stem) or rig
     return rig
 
 

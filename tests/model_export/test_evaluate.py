@@ -252,3 +252,13 @@ def test_cli_missing_data_exit_2(tmp_path, capsys):
     rc = main(["eval", "--data", str(tmp_path / "none"), "--setting", "ego-forward", "--baseline",
                "unproject-gt-depth", "--quiet"])
     assert rc == 2 and "data" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("rig, label", [("waymo", "waymo"), ("docs/runs/x/ring8.json", "ring8"),
+                                        ("../shared/data/real/pandaset_002_00/rig.json", "pandaset_002_00")])
+def test_data_rig_labels(tmp_path, rig, label):
+    from xyzcyl.model_export.evaluate import data_rig
+
+    (tmp_path / "index.json").write_text(json.dumps({"config": {"rig": rig}}))
+    assert data_rig(tmp_path) == label
+    assert data_rig(tmp_path / "missing") is None
