@@ -52,7 +52,7 @@ def _bin_flips(model, means_a, means_b, spec_vol) -> int:
     cfg = model.cfg
     out = []
     for m in (means_a, means_b):
-        c = frustum_coords_torch(torch.as_tensor(m), torch.as_tensor(spec_vol), cfg.grid.r_min, cfg.grid.r_max)
+        c = frustum_coords_torch(torch.tensor(m), torch.tensor(spec_vol), cfg.grid.r_min, cfg.grid.r_max)
         t, s, p = (c[:, 0] + 1) / 2, (c[:, 1] + 1) / 2, (c[:, 2] + 1) / 2
         out.append(torch.stack([torch.floor(t * cfg.volume.k), torch.floor(s * cfg.cylinder.width),
                                 torch.floor(p * cfg.cylinder.height)], 1))
