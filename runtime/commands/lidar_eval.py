@@ -170,7 +170,9 @@ def run(args: argparse.Namespace) -> int:
             import cv2
 
             sheet = depth_sheet(views, images, args.alpha_min, args.max_depth)
-            if not cv2.imwrite(str(args.picture), sheet[..., ::-1].copy(), [cv2.IMWRITE_JPEG_QUALITY, 88]):
+            jpeg = Path(args.picture).suffix.lower() in (".jpg", ".jpeg")  # a PNG takes no quality (cv2 warns)
+            params = [cv2.IMWRITE_JPEG_QUALITY, 88] if jpeg else []
+            if not cv2.imwrite(str(args.picture), sheet[..., ::-1].copy(), params):
                 return _fail(f"--picture: could not write {args.picture!r}")
             say(f"wrote {args.picture}")
     except OSError as exc:
