@@ -32,6 +32,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     s.add_argument("--near-cars", type=float, default=0.0, metavar="P",
                    help="probability of a scene with traffic beside the ego: cars in the neighbouring lanes and "
                         "parking lane 1-3 m from the ego, as real rigs see them (default 0: none within 8 m)")
+    s.add_argument("--photo-textures", type=float, default=0.0, metavar="P",
+                   help="probability of a scene whose facades, road and sidewalks show real photo tiles (CC0 street "
+                        "panoramas; docs/data.md) instead of procedural textures (default 0: none)")
     s.add_argument("--workers", type=int, default=1,
                    help="scenes rendered at once, each in its own process with cores/N numba threads (default 1: "
                         "one process, all cores per scene); the files are identical for any N")
@@ -61,7 +64,7 @@ def run(args: argparse.Namespace) -> int:
                               targets=tuple(t.strip() for t in args.targets.split(",") if t.strip()),
                               inward_views=args.inward_views, supersample=args.supersample,
                               shadows=not args.no_shadows, voxels=_floats(args.voxels, "voxels"), seed=args.seed,
-                              near_cars=args.near_cars)
+                              near_cars=args.near_cars, photo_textures=args.photo_textures)
             n = synth(args.out, args.scenes, cfg, progress=not args.quiet, workers=args.workers)
             print(f"{n} scenes rendered into {args.out}")
             return 0

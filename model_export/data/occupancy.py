@@ -25,7 +25,7 @@ from numba import njit
 
 from . import classes as C
 from .scene import BOX, CYL, GROUND_THICKNESS, Scene
-from .trace import ground_albedo
+from .trace import ground_class
 
 PAPER_RANGE = (-40.0, -40.0, -3.0, 40.0, 40.0, 13.0)
 
@@ -144,7 +144,7 @@ def _voxelize(kind, geo, cls, G, rng, v, thick, prio, sem):
         x = rng[0] + (i + 0.5) * v
         for j in range(Y):
             y = rng[1] + (j + 0.5) * v
-            gc = ground_albedo(x, y, G)[3]
+            gc = ground_class(x, y, G)
             for k in range(k0, Z):
                 z0 = rng[2] + k * v
                 if z0 >= 0.0:
@@ -224,6 +224,6 @@ def inside_any(scene: Scene, points: np.ndarray) -> np.ndarray:
     out = np.where(inside.any(1), scene.cls[best], 0)
     pts = np.asarray(points)
     ground = (pts[:, 2] < 0) & (pts[:, 2] > -GROUND_THICKNESS)
-    gcls = np.array([ground_albedo(x, y, scene.ground)[3] for x, y in pts[:, :2]]) if len(pts) else np.zeros(0)
+    gcls = np.array([ground_class(x, y, scene.ground) for x, y in pts[:, :2]]) if len(pts) else np.zeros(0)
     out = np.where((out == 0) & ground, gcls, out)
     return out.astype(np.uint8)

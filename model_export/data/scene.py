@@ -19,12 +19,16 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import classes as C
+from .photos import LUMA, photo_indices
 
 GENERATOR_VERSION = "1"
 
 BOX, CYL, ELL = 0, 1, 2  # primitive kinds
 # texture ids
-T_PLAIN, T_FACADE, T_SIDEWALK, T_FOLIAGE, T_GLASS, T_CARBODY, T_TLIGHT, T_SIGN, T_FENCE, T_BARK = range(10)
+T_PLAIN, T_FACADE, T_SIDEWALK, T_FOLIAGE, T_GLASS, T_CARBODY, T_TLIGHT, T_SIGN, T_FENCE, T_BARK, T_PHOTO = range(11)
+# T_PHOTO (a facade of a photo tile, photos.py): par = (tile index, metres per tile across, metres per tile up,
+# luminance, 0, seed). T_SIDEWALK with par[1] > 0: its top shows tile par[1] - 1, par[2] metres per tile,
+# luminance par[3].
 
 GROUND_THICKNESS = 0.5  # metres: the ground is the solid slab -0.5 <= z <= 0 for occupancy
 HALF_LENGTH = 110.0  # metres: the street runs over u in [-HALF_LENGTH, HALF_LENGTH]
@@ -34,6 +38,7 @@ S_ZENITH, S_HORIZON, S_SUNDIR, S_SUNCOL, S_CLOUD, S_CSCALE, S_COFF, S_AMB, S_FOG
 # ground parameter vector layout (float64 [32])
 G_COS, G_SIN, G_VR, G_VL, G_LANEW, G_NLANES, G_VD0, G_NFWD, G_HASX, G_UX, G_WX, G_CSTYLE = range(12)
 G_ASPH, G_TERR, G_XWALK, G_SEED, G_DASH, G_MARKCOL = 12, 15, 18, 19, 20, 21
+G_PHOTO, G_PHOTO_TILE, G_PHOTO_L = 24, 25, 26  # road surface photo: tile index + 1 (0: none), metres, luminance
 
 
 @dataclass(frozen=True, eq=False)
@@ -91,12 +96,22 @@ class SceneConfig:
     # at >= 8 m), and each neighbouring driving lane and a neighbouring parking lane gets a car beside the ego
     # with probability BESIDE_P. 0 = the generator of docs/data.md, byte for byte (the draw is a side stream).
     near_cars: float = 0.0
+    # probability that a scene's surfaces show real photo tiles (photos.py: facades, road, sidewalks) instead of
+    # the procedural textures; real rigs see real facades. 0 = the generator of docs/data.md, byte for byte
+    # (the draws are a side stream).
+    photo_textures: float = 0.0
 
     def __post_init__(self):
-        if not (0.0 <= self.near_cars <= 1.0):
-            raise ValueError(f"near_cars: must be in [0, 1], got {self.near_cars}")
+        for name in ("near_cars", "photo_textures"):
+            v = getattr(self, name)
+            if not (0.0 <= v <= 1.0):
+                raise ValueError(f"{name}: must be in [0, 1], got {v}")
 
 
+PHOTO_FACADE_P = 0.8  # per building of a photo_textures scene: a photo facade
+PHOTO_ROAD_P = 0.6  # per photo_textures scene: a photo road surface (lane markings stay on top); sidewalks alike
+PHOTO_FACADE_TILE = ((6.0, 16.0), (8.0, 24.0))  # metres per tile across and up (the tiles are squeezed crops)
+PHOTO_GROUND_TILE = (3.0, 10.0)  # metres per ground tile
 BESIDE_P = 0.7  # per neighbouring lane of a near_cars scene: a car beside the ego
 BESIDE_U = (-4.0, 6.0)  # metres along the road, its centre (the ego's body centre is at u = 1.3)
 
@@ -444,9 +459,37 @@ def sample_scene(seed: int, index: int, config: SceneConfig = SceneConfig()) -> 
     sky[S_AMB:S_AMB + 3] = amb
     sky[S_FOG] = rng.uniform(250.0, 900.0)
 
+    # a side stream, so that photo_textures = 0 leaves every scene as it was
+    photo = np.random.default_rng([int(seed), int(index), 0x9407])
+    if config.photo_textures > 0 and photo.random() < config.photo_textures:
+        _photo_textures(photo, tex, col, par, ground)
+
     lane_dir = np.array([cp, sp, 0.0])
     ego_centre = np.array([1.3, 0.0, 0.8])
     return Scene(kind, geo, cls, tex, col, col2, par, ego, ground, sky, lane_dir, ego_centre, int(seed), int(index))
+
+
+def _luma(rgb) -> float:
+    return float(np.dot(LUMA, rgb))
+
+
+def _photo_textures(rng, tex: np.ndarray, col: np.ndarray, par: np.ndarray, ground: np.ndarray) -> None:
+    """Give a scene's surfaces photo tiles, in place: each building (T_FACADE -> T_PHOTO) with probability
+    PHOTO_FACADE_P, the road and the sidewalks (one ground tile each) with PHOTO_ROAD_P. Each keeps its luminance."""
+    facades, grounds = photo_indices()
+    for i in np.flatnonzero(tex == T_FACADE):
+        if rng.random() < PHOTO_FACADE_P:
+            (a0, a1), (u0, u1) = PHOTO_FACADE_TILE
+            par[i, :5] = (rng.choice(facades), rng.uniform(a0, a1), rng.uniform(u0, u1), _luma(col[i]), 0.0)
+            tex[i] = T_PHOTO
+    if rng.random() < PHOTO_ROAD_P:
+        ground[G_PHOTO] = 1 + rng.choice(grounds)
+        ground[G_PHOTO_TILE] = rng.uniform(*PHOTO_GROUND_TILE)
+        ground[G_PHOTO_L] = _luma(ground[G_ASPH:G_ASPH + 3])
+    if rng.random() < PHOTO_ROAD_P:
+        k, tile = 1 + rng.choice(grounds), rng.uniform(*PHOTO_GROUND_TILE)
+        for i in np.flatnonzero(tex == T_SIDEWALK):
+            par[i, 1:4] = (k, tile, _luma(col[i]))
 
 
 def _tree(b: _Builder, rng, u, v):

@@ -40,6 +40,7 @@ class SynthConfig:
     jitter_deg: float = 0.5
     seed: int = 0
     near_cars: float = 0.0  # probability of traffic beside the ego (SceneConfig.near_cars); 0 = generator v1 as is
+    photo_textures: float = 0.0  # probability of a scene with real photo surfaces (SceneConfig.photo_textures); 0 = v1
 
     def validate(self) -> None:
         """Raise ValueError naming the field."""
@@ -56,10 +57,15 @@ class SynthConfig:
             raise ValueError(f"supersample: must be in 1..8, got {self.supersample}")
         if not (0 < self.inward_radius[0] <= self.inward_radius[1]):
             raise ValueError(f"inward_radius: need 0 < min <= max, got {self.inward_radius}")
-        SceneConfig(near_cars=self.near_cars)  # raises naming 'near_cars'
+        self.scene_config()  # raises naming 'near_cars' or 'photo_textures'
         for v in self.voxels:
             OccupancyGrid(tuple(self.occ_range), float(v))  # raises naming 'voxel'
         base_rig(self.rig, self.width, self.height)  # raises naming 'rig'
+
+    def scene_config(self) -> SceneConfig:
+        """The scene sampler's knobs for this data set."""
+        return SceneConfig(with_ego="ego-inward" in self.targets, near_cars=self.near_cars,
+                           photo_textures=self.photo_textures)
 
     def to_json(self) -> dict:
         d = asdict(self)
@@ -110,8 +116,7 @@ def inward_cameras(scene: Scene, grid: Grid, cfg: SynthConfig, rng: np.random.Ge
 
 def render_scene(cfg: SynthConfig, index: int) -> SceneData:
     """Sample and render scene `index` of the data set (deterministic in (cfg.seed, index))."""
-    scene = sample_scene(cfg.seed, index, SceneConfig(with_ego="ego-inward" in cfg.targets,
-                                                           near_cars=cfg.near_cars))
+    scene = sample_scene(cfg.seed, index, cfg.scene_config())
     grid = build_grid(scene)
     rng = np.random.default_rng([int(cfg.seed), int(index), 0xCA3])
     cams = jitter(base_rig(cfg.rig, cfg.width, cfg.height), rng, cfg.jitter_pos_m, cfg.jitter_deg)

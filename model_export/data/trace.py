@@ -22,11 +22,12 @@ import numpy as np
 from numba import njit, prange
 
 from . import classes as C
+from .photos import NO_PHOTOS, photo_bank
 from .scene import (BOX, CYL, ELL, G_ASPH, G_COS, G_CSTYLE, G_DASH, G_HASX, G_LANEW, G_MARKCOL, G_NFWD,
-                    G_NLANES, G_SEED, G_SIN, G_TERR, G_UX, G_VD0, G_VL, G_VR, G_WX, G_XWALK, S_AMB, S_CLOUD,
-                    S_COFF, S_CSCALE, S_FOG, S_HORIZON, S_SUNCOL, S_SUNDIR, S_ZENITH, T_BARK, T_CARBODY,
-                    T_FACADE, T_FENCE, T_FOLIAGE, T_GLASS, T_SIDEWALK, T_SIGN, T_TLIGHT, Scene,
-                    primitive_bounds)
+                    G_NLANES, G_PHOTO, G_PHOTO_L, G_PHOTO_TILE, G_SEED, G_SIN, G_TERR, G_UX, G_VD0, G_VL, G_VR,
+                    G_WX, G_XWALK, S_AMB, S_CLOUD, S_COFF, S_CSCALE, S_FOG, S_HORIZON, S_SUNCOL, S_SUNDIR,
+                    S_ZENITH, T_BARK, T_CARBODY, T_FACADE, T_FENCE, T_FOLIAGE, T_GLASS, T_PHOTO, T_SIDEWALK,
+                    T_SIGN, T_TLIGHT, Scene, primitive_bounds)
 
 BIG = 1e30
 NO_HIT = -1
@@ -310,17 +311,62 @@ def _noise3(x, y, z, seed):
 
 
 @njit(cache=True, error_model="numpy", fastmath=True)
-def ground_albedo(x, y, G):
-    """Albedo (r, g, b) and class of the ground at ego point (x, y); road layout in G."""
+def photo_texel(photo, i, s, t, mirror_t):
+    """Bilinear RGB of photo tile i (photo [N, H, W, 3]) at tile coordinates s (across) and t (up; t = 0 is
+    the tile's bottom row): mirrored repeat across, plain repeat up unless mirror_t (ground tiles)."""
+    s = abs(s) % 2.0
+    if s > 1.0:
+        s = 2.0 - s
+    if mirror_t:
+        t = abs(t) % 2.0
+        if t > 1.0:
+            t = 2.0 - t
+    else:
+        t = t - math.floor(t)
+    H, W = photo.shape[1], photo.shape[2]
+    x = s * (W - 1)
+    y = (1.0 - t) * (H - 1)
+    x0 = min(int(x), W - 2)
+    y0 = min(int(y), H - 2)
+    fx, fy = x - x0, y - y0
+    out = np.empty(3)
+    for c in range(3):
+        top = photo[i, y0, x0, c] + (photo[i, y0, x0 + 1, c] - photo[i, y0, x0, c]) * fx
+        bot = photo[i, y0 + 1, x0, c] + (photo[i, y0 + 1, x0 + 1, c] - photo[i, y0 + 1, x0, c]) * fx
+        out[c] = top + (bot - top) * fy
+    return out[0], out[1], out[2]
+
+
+@njit(cache=True, inline="always", error_model="numpy", fastmath=True)
+def _road(x, y, G):
+    """(u, v) road-frame coordinates of ego point (x, y), on the main road, on the crossing road."""
     c, s = G[G_COS], G[G_SIN]
     u = c * x + s * y
     v = -s * x + c * y
+    return u, v, G[G_VR] <= v <= G[G_VL], G[G_HASX] > 0.5 and abs(u - G[G_UX]) <= G[G_WX]
+
+
+@njit(cache=True, error_model="numpy", fastmath=True)
+def ground_class(x, y, G):
+    """Class of the ground at ego point (x, y): ROAD or TERRAIN (ground_albedo's class, without its colour)."""
+    _u, _v, on_main, on_cross = _road(x, y, G)
+    return C.ROAD if on_main or on_cross else C.TERRAIN
+
+
+@njit(cache=True, error_model="numpy", fastmath=True)
+def ground_albedo(x, y, G, photo):
+    """Albedo (r, g, b) and class of the ground at ego point (x, y); road layout in G; photo: the photo bank
+    (photo_bank(), used when G names a road tile: G_PHOTO > 0)."""
+    u, v, on_main, on_cross = _road(x, y, G)
     seed = int(G[G_SEED])
-    on_main = G[G_VR] <= v <= G[G_VL]
-    on_cross = G[G_HASX] > 0.5 and abs(u - G[G_UX]) <= G[G_WX]
     if on_main or on_cross:
-        n = 0.86 + 0.18 * _noise2(u * 0.7, v * 0.7, seed) + 0.08 * _noise2(u * 5.0, v * 5.0, seed + 1)
-        r, g, b = G[G_ASPH] * n, G[G_ASPH + 1] * n, G[G_ASPH + 2] * n
+        if G[G_PHOTO] > 0.5:
+            L = G[G_PHOTO_L]
+            r, g, b = photo_texel(photo, int(G[G_PHOTO]) - 1, u / G[G_PHOTO_TILE], v / G[G_PHOTO_TILE], True)
+            r, g, b = r * L, g * L, b * L
+        else:
+            n = 0.86 + 0.18 * _noise2(u * 0.7, v * 0.7, seed) + 0.08 * _noise2(u * 5.0, v * 5.0, seed + 1)
+            r, g, b = G[G_ASPH] * n, G[G_ASPH + 1] * n, G[G_ASPH + 2] * n
         mark = 0  # 0 none, 1 white, 2 yellow
         if on_main and not on_cross:
             lw = G[G_LANEW]
@@ -398,8 +444,9 @@ def _sky(dx, dy, dz, S):
 
 
 @njit(cache=True, error_model="numpy", fastmath=True)
-def _material(p, face, px, py, pz, kind, geo, tex, col, col2, par):
-    """(albedo rgb, emission rgb, normal xyz) of primitive p at ego point (px, py, pz)."""
+def _material(p, face, px, py, pz, kind, geo, tex, col, col2, par, photo):
+    """(albedo rgb, emission rgb, normal xyz) of primitive p at ego point (px, py, pz); photo: the photo bank
+    (T_PHOTO, photo sidewalks)."""
     cx, cy, cz = geo[p, 0], geo[p, 1], geo[p, 2]
     hx, hy, hz = geo[p, 3], geo[p, 4], geo[p, 5]
     c, s = geo[p, 6], geo[p, 7]
@@ -434,7 +481,12 @@ def _material(p, face, px, py, pz, kind, geo, tex, col, col2, par):
     r, g, b = col[p, 0], col[p, 1], col[p, 2]
     er, eg, eb = 0.0, 0.0, 0.0
     t = tex[p]
-    if t == T_FACADE:
+    if t == T_PHOTO and face < 4:
+        along = ly + hy if face < 2 else lx + hx
+        L = par[p, 3]
+        r, g, b = photo_texel(photo, int(par[p, 0]), along / par[p, 1], (pz - (cz - hz)) / par[p, 2], False)
+        r, g, b = r * L, g * L, b * L
+    elif t == T_FACADE or t == T_PHOTO:
         if face < 4:
             along = ly + hy if face < 2 else lx + hx
             width = 2.0 * (hy if face < 2 else hx)
@@ -469,7 +521,11 @@ def _material(p, face, px, py, pz, kind, geo, tex, col, col2, par):
             m = 0.45 + 0.1 * _noise2(lx * 0.5, ly * 0.5, 5)
             r, g, b = m, m * 0.98, m * 0.95
     elif t == T_SIDEWALK:
-        if face == 5:
+        if face == 5 and par[p, 1] > 0.5:
+            L = par[p, 3]
+            r, g, b = photo_texel(photo, int(par[p, 1]) - 1, lx / par[p, 2], ly / par[p, 2], True)
+            r, g, b = r * L, g * L, b * L
+        elif face == 5:
             tl = par[p, 0]
             fu = (px * 0.0 + lx) / tl
             fv = ly / tl
@@ -541,18 +597,18 @@ def _material(p, face, px, py, pz, kind, geo, tex, col, col2, par):
 
 @njit(cache=True, inline="always", error_model="numpy", fastmath=True)
 def _shade(ox, oy, oz, dx, dy, dz, t, p, face, skip_ego, shadows, vis_given, kind, geo, cls, tex, col, col2, par, ego,
-           meta, start, items, zmax, G, S):
+           meta, start, items, zmax, G, S, photo):
     if p == NO_HIT:
         r, g, b = _sky(dx, dy, dz, S)
         return r, g, b, 1.0
     px, py, pz = ox + t * dx, oy + t * dy, oz + t * dz
     if p == GROUND:
-        r, g, b, _c = ground_albedo(px, py, G)
+        r, g, b, _c = ground_albedo(px, py, G, photo)
         er, eg, eb = 0.0, 0.0, 0.0
         nx, ny, nz = 0.0, 0.0, 1.0
         pz = 0.0
     else:
-        r, g, b, er, eg, eb, nx, ny, nz = _material(p, face, px, py, pz, kind, geo, tex, col, col2, par)
+        r, g, b, er, eg, eb, nx, ny, nz = _material(p, face, px, py, pz, kind, geo, tex, col, col2, par, photo)
     lx, ly, lz = S[S_SUNDIR], S[S_SUNDIR + 1], S[S_SUNDIR + 2]
     ndl = nx * lx + ny * ly + nz * lz
     vis = 0.0
@@ -585,14 +641,15 @@ def _semantic(p, cls, G, px, py):
     if p == NO_HIT:
         return C.SKY
     if p == GROUND:
-        return ground_albedo(px, py, G)[3]
+        return ground_class(px, py, G)
     return cls[p]
 
 
 @njit(parallel=True, cache=True, nogil=True, error_model="numpy", fastmath=True)
 def render_kernel(fx, fy, cx, cy, Rm, T, H, W, ss, skip_ego, shadows, kind, geo, cls, tex, col, col2, par, ego,
-                  meta, start, items, zmax, G, S, rgb, depth, sem):
-    """Render one pinhole view into rgb [H,W,3] uint8, depth [H,W] float32, sem [H,W] uint8."""
+                  meta, start, items, zmax, G, S, photo, rgb, depth, sem):
+    """Render one pinhole view into rgb [H,W,3] uint8, depth [H,W] float32, sem [H,W] uint8; photo: the photo
+    bank [N, H_t, W_t, 3] (NO_PHOTOS when the scene uses none)."""
     ox, oy, oz = T[0], T[1], T[2]
     inv = 1.0 / (ss * ss)
     half = (H + 1) // 2
@@ -628,7 +685,7 @@ def render_kernel(fx, fy, cx, cy, Rm, T, H, W, ss, skip_ego, shadows, kind, geo,
                         continue
                 given = vis_c if (p == p_c and f == f_c) else -1.0
                 r, g, b, vis = _shade(ox, oy, oz, dx, dy, dz, t, p, f, skip_ego, shadows, given, kind,
-                                      geo, cls, tex, col, col2, par, ego, meta, start, items, zmax, G, S)
+                                      geo, cls, tex, col, col2, par, ego, meta, start, items, zmax, G, S, photo)
                 if p_c == -3:
                     p_c, f_c, vis_c = p, f, vis
                 ar += r
@@ -664,8 +721,15 @@ def render_view(scene: Scene, grid: Grid, K: np.ndarray, cam_to_ego: np.ndarray,
     render_kernel(float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]), Rm, T, int(height), int(width),
                   int(ss), bool(skip_ego), bool(shadows), scene.kind, scene.geo, scene.cls, scene.tex, scene.col,
                   scene.col2, scene.par, scene.ego, grid.meta, grid.start, grid.items, grid.zmax, scene.ground,
-                  scene.sky, rgb, depth, sem)
+                  scene.sky, scene_photos(scene), rgb, depth, sem)
     return View(rgb, depth, sem)
+
+
+def scene_photos(scene: Scene) -> np.ndarray:
+    """The photo bank [N, H_t, W_t, 3] if the scene shows a photo tile (photo_textures), else NO_PHOTOS."""
+    uses = (np.any(scene.tex == T_PHOTO) or scene.ground[G_PHOTO] > 0.5
+            or np.any((scene.tex == T_SIDEWALK) & (scene.par[:, 1] > 0.5)))
+    return photo_bank()[0] if uses else NO_PHOTOS
 
 
 @njit(cache=True, error_model="numpy", fastmath=True)
