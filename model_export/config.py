@@ -88,6 +88,11 @@ def _pos_ints(name: str, v: Any) -> None:
 # sqrt(fx/W * fy/H) of the synthetic nuScenes front camera (65 deg across 16:9), the depth_focal_ref the
 # focal-aware depth is measured with (docs/results.md "Focal-aware depth")
 NUSCENES_FRONT_FOCAL = 1.0553
+# BackboneConfig.input_norm = "standardize": the per-channel (R, G, B) mean over input images of each image's mean
+# and of each image's standard deviation (0..1 RGB), measured on the 720 input images of `xyzcyl data synth
+# --seed 8 --near-cars 0.5` scenes 0-119 (224x400, nuScenes-like rig): a typical synthetic image is moved little.
+INPUT_REF_MEAN = (0.3355, 0.3497, 0.3581)
+INPUT_REF_STD = (0.1569, 0.1479, 0.1625)
 
 
 def parse_focal_ref(text: str) -> float | None:
@@ -125,8 +130,15 @@ class BackboneConfig(_Frozen):
     # depth a camera of normalised focal f_ref would see, scaled by f_n / f_ref, f_n = sqrt(fx/W * fy/H) of each
     # input (lifting input focal_n). NUSCENES_FRONT_FOCAL = 1.0553 is the nuScenes front camera's.
     depth_focal_ref: float | None = None
+    # what the backbone sees (docs/architecture.md, "Input standardisation"): "none" = the images as posted;
+    # "standardize" = each image's per-channel mean and standard deviation moved to those of the synthetic training
+    # inputs (INPUT_REF_MEAN / INPUT_REF_STD), so a camera's exposure, gain and white balance do not reach the
+    # features (real-rig depth followed the exposure). The colour paths (rgb_path, input_colour) keep the images.
+    input_norm: Literal["none", "standardize"] = "none"
 
     def __post_init__(self):
+        if self.input_norm not in ("none", "standardize"):
+            raise ConfigError(f"input_norm: must be 'none' or 'standardize', got {self.input_norm!r}")
         if self.kind not in ("efficientnet_lite0", "external"):
             raise ConfigError(f"kind: must be 'efficientnet_lite0' or 'external', got {self.kind!r}")
         for n in ("input_height", "input_width", "feature_dim", "external_dim", "depth_hidden"):

@@ -304,7 +304,10 @@ def model_card(meta: dict[str, Any], evals: Sequence[dict[str, Any]], notes: str
              (f"- Input: {b['input_width']}x{b['input_height']} RGB per camera (images of any size are resized with "
              f"area interpolation; calibrations need no change); backbone {b['kind']} "
              f"({'frozen' if not b['trainable'] else 'fine-tuned'}), features {b['feature_dim']}-d at 1/"
-             f"{b['feature_stride']}; optional per-camera metric depth replaces the depth head."),
+             f"{b['feature_stride']}; optional per-camera metric depth replaces the depth head."
+             + (" The backbone sees each image standardised to the synthetic inputs' per-channel mean and spread "
+                "(`input_norm`): a camera's exposure, gain and white balance do not move the depth."
+                if b.get("input_norm", "none") == "standardize" else "")),
              (f"- Cylinder {cyl['height']}x{cyl['width']}, grid {grid['voxel_size']} m voxels over "
              f"{grid['pc_range']} (ego metres); Gaussians: "
              + (f"{vol} per occupied voxel (at most {meta['counts']['max_voxels']} voxels) + " if vol else
@@ -387,8 +390,12 @@ def write_model_folder(model: XYZCylinder, out: str | Path, name: str, version: 
             "input": {"height": cfg.backbone.input_height, "width": cfg.backbone.input_width,
                       "channels": "RGB", "dtype": "float32", "range": [0.0, 1.0],
                       "resize": "cv2.INTER_AREA (calibrations unchanged: the lifting grids are normalised)",
-                      "normalisation": "inside the graph: ImageNet mean/std for the backbone; lifted RGB "
-                                       "standardised (x - 0.45) / 0.25",
+                      "normalisation": ("inside the graph: "
+                                        + ("each image's per-channel mean / std moved to the synthetic inputs' "
+                                           "(backbone.input_norm = standardize), then "
+                                           if cfg.backbone.input_norm == "standardize" else "")
+                                        + "ImageNet mean/std for the backbone; lifted RGB standardised "
+                                          "(x - 0.45) / 0.25"),
                       "depth": {"height": feature_size(cfg)[0], "width": feature_size(cfg)[1],
                                 "unit": "metres along the optical axis",
                                 "resize": "nearest (torch F.interpolate 'nearest': src = floor(dst * in / out))"},

@@ -19,7 +19,7 @@ from torch import nn
 
 from .backbone import DepthHead, build_backbone
 from .blocks import CylConv, ResBlock, XNet, YNet, flip_w, groups_for, init_last_linear, mlp
-from .config import ModelConfig
+from .config import INPUT_REF_MEAN, INPUT_REF_STD, ModelConfig
 from .lifting import (
     cpfg,
     frustum_coords_torch,
@@ -198,7 +198,8 @@ class XYZCylinder(nn.Module):
         With ``ablation.rgb_path`` the input RGB, area-pooled to the feature map's size and standardised, is
         concatenated to the backbone features (with ``rgb_occupancy`` alone, only the occupancy module reads them:
         ``module_features``)."""
-        feats = self.backbone(images)
+        feats = self.backbone(standardize_images(images) if self.cfg.backbone.input_norm == "standardize"
+                              else images)
         d, c = self.depth_head(feats, depth, depth_mask, focal)
         if self.use_rgb or self.rgb_occ:
             rgb = F.adaptive_avg_pool2d(images, feats.shape[-2:])
@@ -412,6 +413,18 @@ class XYZCylinder(nn.Module):
         if not self.use_background:
             return None
         return self.bg_net(app_plane, grids)
+
+
+def standardize_images(images: torch.Tensor) -> torch.Tensor:
+    """images [N, 3, H, W] RGB 0..1 -> same, each image's per-channel mean and standard deviation moved to
+    INPUT_REF_MEAN / INPUT_REF_STD (config.py), clipped to 0..1 (BackboneConfig.input_norm = "standardize").
+    Invariant to a per-channel gain and offset of an image (exposure, white balance) where nothing clips."""
+    mu = images.mean(dim=(2, 3), keepdim=True)
+    sd = images.std(dim=(2, 3), keepdim=True, unbiased=False)
+    ref_mu = images.new_tensor(INPUT_REF_MEAN).view(1, 3, 1, 1)
+    ref_sd = images.new_tensor(INPUT_REF_STD).view(1, 3, 1, 1)
+    # 1e-3: a flat image (sd 0, e.g. a black frame) stays flat at the reference mean instead of dividing by 0
+    return ((images - mu) / (sd + 1e-3) * ref_sd + ref_mu).clamp(0.0, 1.0)
 
 
 def blend(fg_rgb, fg_alpha, bg_rgb):

@@ -60,6 +60,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="focal-aware depth: the depth head's output is scaled by each camera's normalised focal "
                              "sqrt(fx/W * fy/H) over F ('nuscenes': 1.0553, the nuScenes front camera's); 'off': "
                              "focal-blind (docs/architecture.md; default: the preset's, or the --init checkpoint's)")
+    parser.add_argument("--input-norm", default=None, choices=("none", "standardize"),
+                        help="what the backbone sees: the images as posted (none) or each image moved to the "
+                             "synthetic inputs' per-channel mean and spread (standardize: exposure and white "
+                             "balance do not reach the features; docs/architecture.md; default: the preset's, or "
+                             "the --init checkpoint's)")
     parser.add_argument("--max-voxels", type=int, default=None,
                         help="cap on occupied voxels per scene (default: the preset's)")
     parser.add_argument("--occupancy-labels", default="solid", choices=("solid", "surface", "surface+ego"),
@@ -127,6 +132,8 @@ def run(args: argparse.Namespace) -> int:
         if args.depth_focal_ref is not None:
             model_cfg = model_cfg.replace(backbone=model_cfg.backbone.replace(
                 depth_focal_ref=parse_focal_ref(args.depth_focal_ref)))
+        if args.input_norm is not None:
+            model_cfg = model_cfg.replace(backbone=model_cfg.backbone.replace(input_norm=args.input_norm))
         voxel = model_cfg.grid.voxel_size
         warm = args.warmup if args.warmup is not None else min(1000, max(1, args.steps // 10))
         j = args.jitter

@@ -24,13 +24,14 @@ class TinyExport:
 
 def tiny_export_config():
     """tiny_config with at most 300 voxels (the 20x20x4 grid's random occupancy head selects ~half of its 1600
-    voxels, so the top-k branch of the selection runs) and the focal-aware depth head (the graphs then take each
-    camera's focal_n: the 5-, 6- and 8-camera test rigs have three different focal lengths)."""
+    voxels, so the top-k branch of the selection runs), the focal-aware depth head (the graphs then take each
+    camera's focal_n: the 5-, 6- and 8-camera test rigs have three different focal lengths) and the standardised
+    backbone input (input_norm: its per-image reductions are in the encode graph)."""
     from net_helpers import tiny_config
 
     cfg = tiny_config()
     return cfg.replace(volume=cfg.volume.replace(max_voxels=300),
-                       backbone=cfg.backbone.replace(depth_focal_ref=0.9))
+                       backbone=cfg.backbone.replace(depth_focal_ref=0.9, input_norm="standardize"))
 
 
 @pytest.fixture(scope="session")

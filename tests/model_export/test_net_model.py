@@ -417,3 +417,54 @@ def test_rgb_path_off_ignores_colour_and_on_uses_it():
         inp = rig_inputs(overlap_rig(6), on)
         feats, d, c = model.encode_images(images, focal=inp["focal_n"])
         model.pixel_branch(feats, d, c, inp)
+
+
+def test_standardize_images_removes_gain_offset_and_white_balance():
+    """backbone.input_norm = "standardize": each image's per-channel mean / spread become the reference's; a
+    per-channel gain and offset (exposure, white balance) give the same image; a flat image stays finite."""
+    from xyzcyl.model_export.config import INPUT_REF_MEAN, INPUT_REF_STD
+    from xyzcyl.model_export.model import standardize_images
+
+    g = torch.Generator().manual_seed(0)
+    x = 0.15 + 0.3 * torch.rand(3, 3, 32, 48, generator=g)      # no pixel clips after the change below
+    y = standardize_images(x)
+    assert y.shape == x.shape and float(y.min()) >= 0 and float(y.max()) <= 1
+    torch.testing.assert_close(y.mean(dim=(2, 3)), torch.tensor(INPUT_REF_MEAN).expand(3, 3), atol=2e-3, rtol=0)
+    # spread: ref * sd / (sd + 1e-3) with sd ~ 0.087 (uniform over 0.3): 1.2 % short by design, then float32
+    torch.testing.assert_close(y.std(dim=(2, 3), unbiased=False), torch.tensor(INPUT_REF_STD).expand(3, 3),
+                               rtol=0.015, atol=0)
+    gain = torch.tensor([1.4, 0.8, 1.1]).view(1, 3, 1, 1)
+    z = standardize_images(x * gain + 0.05)
+    # the 1e-3 guard against a zero spread makes the map exact only up to 1e-3 / sd of the spread (~1 %)
+    torch.testing.assert_close(z, y, atol=4e-3, rtol=0)
+    flat = standardize_images(torch.full((1, 3, 8, 8), 0.7))
+    torch.testing.assert_close(flat, torch.tensor(INPUT_REF_MEAN).view(1, 3, 1, 1).expand(1, 3, 8, 8))
+
+
+def test_input_norm_reaches_the_backbone_only():
+    """With input_norm = "standardize" the depth head and backbone features do not move with a camera's gain,
+    while the lifted RGB channels (rgb_path) still carry the posted colours; "none" moves the features; same
+    weights."""
+    torch.manual_seed(0)
+    cfg = tiny_config()
+    plain = XYZCylinder(cfg).eval()
+    norm = XYZCylinder(cfg.replace(backbone=cfg.backbone.replace(input_norm="standardize"))).eval()
+    norm.load_state_dict(plain.state_dict())          # the standardisation adds no weights
+    x = 0.15 + 0.3 * _images(2, cfg)
+    brighter = x * 1.5
+    D = cfg.backbone.feature_dim
+    f = torch.ones(2)
+    with torch.no_grad():
+        fa, da, _ = norm.encode_images(x, focal=f)
+        fb, db, _ = norm.encode_images(brighter, focal=f)
+        pa, pda, _ = plain.encode_images(x, focal=f)
+        pb, pdb, _ = plain.encode_images(brighter, focal=f)
+    # the standardised images agree to ~1e-3 (the spread guard, see above); the frozen trunk keeps that small
+    torch.testing.assert_close(db, da, rtol=1e-2, atol=0)
+    torch.testing.assert_close(fb[:, :D], fa[:, :D], atol=2e-2, rtol=0)
+    assert not torch.allclose(fb[:, D:], fa[:, D:], atol=0.1)    # the RGB channels follow the posted colours
+    # without it the features move with the gain (the tiny untrained head's depth barely varies at all)
+    assert float((pb[:, :D] - pa[:, :D]).abs().max()) > 10 * float((fb[:, :D] - fa[:, :D]).abs().max())
+    torch.testing.assert_close(pa[:, D:], fa[:, D:])               # same RGB channels either way
+    with pytest.raises(Exception, match="input_norm"):
+        cfg.backbone.replace(input_norm="auto")

@@ -245,6 +245,15 @@ def test_cli_config_overrides(tmp_path, tiny_synth_data):
                               "--depth-focal-ref", "off"], check=False, capture_output=True, text=True)
     assert r.returncode == 0, r.stderr
     assert json.loads((tmp_path / "f" / "config.json").read_text())["model"]["backbone"]["depth_focal_ref"] is None
+    # standardised backbone input over --init (no weights added: the occ checkpoint loads), inherited by a later run
+    r = subprocess.run(exe + ["--out", str(tmp_path / "g"), "--init", str(tmp_path / "e" / "occ.pt"),
+                              "--input-norm", "standardize"], check=False, capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    assert json.loads((tmp_path / "g" / "config.json").read_text())["model"]["backbone"]["input_norm"] == "standardize"
+    r = subprocess.run(exe + ["--out", str(tmp_path / "h"), "--init", str(tmp_path / "g" / "occ.pt")],
+                       check=False, capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    assert json.loads((tmp_path / "h" / "config.json").read_text())["model"]["backbone"]["input_norm"] == "standardize"
 
 
 def test_threads_option_sets_torch_and_numba():
