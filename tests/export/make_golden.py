@@ -21,6 +21,18 @@ REPO = Path(__file__).resolve().parents[2]
 VIEW = {"camera": "CAM_FRONT", "width": 400, "height": 225}
 
 
+# a Gaussian whose opacity is within this fraction of the pruning threshold may be kept on one CPU and pruned on
+# another: float32 kernels differ by ~1e-6 relative; 1e-4 leaves a factor 100
+BORDER_REL = 1e-4
+
+
+def borderline(enc: dict, threshold: float) -> int:
+    """How many of the encode graph's pixel Gaussians have an opacity within BORDER_REL of the threshold (the
+    count test allows that many flips)."""
+    op = 1 / (1 + np.exp(-enc["pixel_opacity_logits"].astype(np.float64)))
+    return int(np.sum(np.abs(op - threshold) <= BORDER_REL * threshold))
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--model", type=Path, default=REPO / "models" / "xyzcyl-cpu-v1")
@@ -48,7 +60,8 @@ def main() -> int:
             "model_json_sha256": hashlib.sha256((args.model / "model.json").read_bytes()).hexdigest(),
             "count": len(scene.gaussians), "counts": scene.counts, "view": {**VIEW, "png": png},
             "min_abs_occupancy_margin": float(margin.min()),
-            "min_opacity_over_threshold": float((op - PRUNE_OPACITY).min()) if op.size else None}
+            "min_opacity_over_threshold": float((op - PRUNE_OPACITY).min()) if op.size else None,
+            "borderline": borderline(enc, PRUNE_OPACITY)}
     (out / f"{rec.info.name}.json").write_text(json.dumps(meta, indent=1) + "\n")
     print(json.dumps(meta))
     return 0

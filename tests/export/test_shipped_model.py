@@ -30,7 +30,7 @@ def test_shipped_model_checksums():
 def test_golden_example_reconstruction():
     """Gaussian count exactly (make_golden.py records how far the closest occupancy margin and opacity are from
     their thresholds: float round-off of another CPU's kernels, ~1e-6 relative, cannot flip them when those are
-    well above it) and the CAM_FRONT render against the stored 8-bit PNG: 8-bit rounding alone leaves an RMS error
+    well above it; the few pixel Gaussians within 1e-4 of the pruning threshold, its "borderline", may flip) and the CAM_FRONT render against the stored 8-bit PNG: 8-bit rounding alone leaves an RMS error
     of 0.29 / 255 (PSNR 58.9 dB); the bound 45 dB leaves room for float differences between CPUs' kernels."""
     from xyzcyl.runtime.inference import Reconstructor
     from xyzcyl.runtime.rig import load_rig, read_image
@@ -43,7 +43,8 @@ def test_golden_example_reconstruction():
     rec = Reconstructor.load(MODEL, threads=2)
     rig = load_rig(EXAMPLE_RIG)
     scene = rec.reconstruct(rig)
-    assert len(scene.gaussians) == gold["count"]
+    # exact, but for the Gaussians make_golden.py found within 1e-4 of the pruning threshold (absent: exact)
+    assert abs(len(scene.gaussians) - gold["count"]) <= gold.get("borderline", 0)
     v = gold["view"]
     rgb, _, _ = render_view(scene, rig_camera(rig.camera(v["camera"]), width=v["width"], height=v["height"]))
     ref = read_image(GOLDEN / v["png"], "golden")
