@@ -4,17 +4,17 @@ and never overlapping it."""
 
 from __future__ import annotations
 
-import json
 from dataclasses import replace
 
 import numpy as np
 import pytest
 
+from synth_helpers import check_index_field
 from xyzcyl.clients.cli import main
 from xyzcyl.model_export.data import classes as C
 from xyzcyl.model_export.data.occupancy import inside_any
 from xyzcyl.model_export.data.scene import BOX, SceneConfig, sample_scene
-from xyzcyl.model_export.data.synth import SynthConfig, synth
+from xyzcyl.model_export.data.synth import SynthConfig
 
 
 def _cars(scene):
@@ -70,15 +70,4 @@ def test_config_validation_and_cli(tmp_path, capsys):
 
 
 def test_index_records_it_and_older_folders_resume(tmp_path):
-    cfg = SynthConfig(height=24, width=40, targets=(), voxels=(0.8,), seed=2, near_cars=0.5)
-    assert synth(tmp_path / "a", 1, cfg, progress=False) == 1
-    assert json.loads((tmp_path / "a" / "index.json").read_text())["config"]["near_cars"] == 0.5
-    with pytest.raises(ValueError, match="^near_cars"):
-        synth(tmp_path / "a", 1, replace(cfg, near_cars=0.0), progress=False)
-    # a folder made before the field existed (no near_cars in index.json) resumes as near_cars = 0
-    old = replace(cfg, near_cars=0.0)
-    assert synth(tmp_path / "b", 1, old, progress=False) == 1
-    idx = json.loads((tmp_path / "b" / "index.json").read_text())
-    del idx["config"]["near_cars"]
-    (tmp_path / "b" / "index.json").write_text(json.dumps(idx))
-    assert synth(tmp_path / "b", 2, old, progress=False) == 1
+    check_index_field(tmp_path, "near_cars", 0.5)

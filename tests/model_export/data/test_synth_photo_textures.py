@@ -3,19 +3,19 @@ then the generator is unchanged; on, only colours change (geometry, depth and cl
 
 from __future__ import annotations
 
-import json
 from dataclasses import replace
 
 import cv2
 import numpy as np
 import pytest
 
+from synth_helpers import check_index_field
 from xyzcyl.clients.cli import main
 from xyzcyl.model_export.data import classes as C
 from xyzcyl.model_export.data.photos import LUMA, photo_bank, photo_indices
 from xyzcyl.model_export.data.scene import (G_PHOTO, G_PHOTO_L, G_PHOTO_TILE, T_FACADE, T_PHOTO, T_SIDEWALK,
                                             SceneConfig, sample_scene)
-from xyzcyl.model_export.data.synth import SynthConfig, render_scene, synth
+from xyzcyl.model_export.data.synth import SynthConfig, render_scene
 from xyzcyl.model_export.data.trace import photo_texel
 
 PHOTO = SceneConfig(photo_textures=1.0)
@@ -123,15 +123,4 @@ def test_config_validation_cli_and_index(tmp_path, capsys):
         SynthConfig(photo_textures=-0.1).validate()
     assert main(["data", "synth", "--out", str(tmp_path / "x"), "--scenes", "1", "--photo-textures", "2"]) == 2
     assert "photo_textures" in capsys.readouterr().err
-    cfg = SynthConfig(height=24, width=40, targets=(), voxels=(0.8,), seed=2, photo_textures=0.5)
-    assert synth(tmp_path / "a", 1, cfg, progress=False) == 1
-    assert json.loads((tmp_path / "a" / "index.json").read_text())["config"]["photo_textures"] == 0.5
-    with pytest.raises(ValueError, match="^photo_textures"):
-        synth(tmp_path / "a", 1, replace(cfg, photo_textures=0.0), progress=False)
-    # a folder made before the field existed (no photo_textures in index.json) resumes as photo_textures = 0
-    old = replace(cfg, photo_textures=0.0)
-    assert synth(tmp_path / "b", 1, old, progress=False) == 1
-    doc = json.loads((tmp_path / "b" / "index.json").read_text())
-    del doc["config"]["photo_textures"]
-    (tmp_path / "b" / "index.json").write_text(json.dumps(doc))
-    assert synth(tmp_path / "b", 2, old, progress=False) == 1
+    check_index_field(tmp_path, "photo_textures", 0.5)
