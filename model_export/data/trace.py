@@ -329,12 +329,16 @@ def photo_texel(photo, i, s, t, mirror_t):
     x0 = min(int(x), W - 2)
     y0 = min(int(y), H - 2)
     fx, fy = x - x0, y - y0
-    out = np.empty(3)
-    for c in range(3):
-        top = photo[i, y0, x0, c] + (photo[i, y0, x0 + 1, c] - photo[i, y0, x0, c]) * fx
-        bot = photo[i, y0 + 1, x0, c] + (photo[i, y0 + 1, x0 + 1, c] - photo[i, y0 + 1, x0, c]) * fx
-        out[c] = top + (bot - top) * fy
-    return out[0], out[1], out[2]
+    return (_lerp2(photo, i, y0, x0, 0, fx, fy), _lerp2(photo, i, y0, x0, 1, fx, fy),
+            _lerp2(photo, i, y0, x0, 2, fx, fy))
+
+
+@njit(cache=True, inline="always", error_model="numpy", fastmath=True)
+def _lerp2(photo, i, y0, x0, c, fx, fy):
+    """Bilinear blend of channel c of the 2 x 2 texels at (y0, x0) of tile i (no allocation in the pixel loop)."""
+    top = photo[i, y0, x0, c] + (photo[i, y0, x0 + 1, c] - photo[i, y0, x0, c]) * fx
+    bot = photo[i, y0 + 1, x0, c] + (photo[i, y0 + 1, x0 + 1, c] - photo[i, y0 + 1, x0, c]) * fx
+    return top + (bot - top) * fy
 
 
 @njit(cache=True, inline="always", error_model="numpy", fastmath=True)
