@@ -130,7 +130,7 @@ class BackboneConfig(_Frozen):
     # depth a camera of normalised focal f_ref would see, scaled by f_n / f_ref, f_n = sqrt(fx/W * fy/H) of each
     # input (lifting input focal_n). NUSCENES_FRONT_FOCAL = 1.0553 is the nuScenes front camera's.
     depth_focal_ref: float | None = None
-    # what the backbone sees (docs/architecture.md, "Input standardisation"): "none" = the images as posted;
+    # what the backbone sees (docs/architecture.md, row "Backbone input"): "none" = the images as posted;
     # "standardize" = each image's per-channel mean and standard deviation moved to those of the synthetic training
     # inputs (INPUT_REF_MEAN / INPUT_REF_STD), so a camera's exposure, gain and white balance do not reach the
     # features (real-rig depth followed the exposure). The colour paths (rgb_path, input_colour) keep the images.
