@@ -5,6 +5,23 @@ from __future__ import annotations
 import pytest
 
 
+def check_probability_field(tmp_path, capsys, field: str) -> None:
+    """A probability field of SceneConfig and SynthConfig (near_cars, photo_textures): out of [0, 1] it is refused
+    naming it, by both configs and by `xyzcyl data synth --field-name` (exit 2); then check_index_field."""
+    from xyzcyl.clients.cli import main
+    from xyzcyl.model_export.data.scene import SceneConfig
+    from xyzcyl.model_export.data.synth import SynthConfig
+
+    with pytest.raises(ValueError, match=f"^{field}"):
+        SceneConfig(**{field: 1.5})
+    with pytest.raises(ValueError, match=f"^{field}"):
+        SynthConfig(**{field: -0.1}).validate()
+    flag = "--" + field.replace("_", "-")
+    assert main(["data", "synth", "--out", str(tmp_path / "x"), "--scenes", "1", flag, "2"]) == 2
+    assert field in capsys.readouterr().err
+    check_index_field(tmp_path, field, 0.5)
+
+
 def check_index_field(tmp_path, field: str, value) -> None:
     """A SynthConfig field added after generator v1 (near_cars, photo_textures): index.json records it, a rerun
     with another value is refused naming it, and a folder made before it existed (absent from index.json)

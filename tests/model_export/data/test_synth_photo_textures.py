@@ -7,10 +7,8 @@ from dataclasses import replace
 
 import cv2
 import numpy as np
-import pytest
 
-from synth_helpers import check_index_field
-from xyzcyl.clients.cli import main
+from synth_helpers import check_probability_field
 from xyzcyl.model_export.data import classes as C
 from xyzcyl.model_export.data.photos import LUMA, photo_bank, photo_indices
 from xyzcyl.model_export.data.scene import (G_PHOTO, G_PHOTO_L, G_PHOTO_TILE, T_FACADE, T_PHOTO, T_SIDEWALK,
@@ -117,10 +115,4 @@ def test_rendered_photo_scene_has_the_same_depth_and_classes_and_new_building_co
 
 
 def test_config_validation_cli_and_index(tmp_path, capsys):
-    with pytest.raises(ValueError, match="^photo_textures"):
-        SceneConfig(photo_textures=1.5)
-    with pytest.raises(ValueError, match="^photo_textures"):
-        SynthConfig(photo_textures=-0.1).validate()
-    assert main(["data", "synth", "--out", str(tmp_path / "x"), "--scenes", "1", "--photo-textures", "2"]) == 2
-    assert "photo_textures" in capsys.readouterr().err
-    check_index_field(tmp_path, "photo_textures", 0.5)
+    check_probability_field(tmp_path, capsys, "photo_textures")
