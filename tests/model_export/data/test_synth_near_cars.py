@@ -60,4 +60,3 @@ def test_probability_draws_per_scene():
 def test_config_validation_cli_and_index(tmp_path, capsys):
     # out-of-range values refused naming the field; index.json records it; an older folder resumes as 0
     check_probability_field(tmp_path, capsys, "near_cars")
-
