@@ -28,6 +28,7 @@ from typing import Any
 
 import numpy as np
 
+from .detail import DetailOptions
 from .files import read_json_doc
 from .lifting import LiftingParams, background_grid, build_lifting_inputs, spec_from_array
 from .render import Gaussians
@@ -40,6 +41,7 @@ GAUSSIAN_KEYS = ("means", "quats", "log_scales", "opacity_logits", "sh")
 # 0.99: margin for float rounding between numpy's and the kernel's sigmoid
 PRUNE_OPACITY = 0.99 / 255.0
 DEFAULT_BAKE_SCALE = 4
+DEFAULT_DETAIL = DetailOptions()   # the detail layer is on by default (docs/inference.md, "Detail Gaussians")
 
 
 class ModelError(ValueError):
@@ -324,14 +326,15 @@ class Reconstructor:
     def reconstruct(self, rig: Rig, images: Sequence[np.ndarray] | None = None,
                     depths: Sequence[np.ndarray | None] | None = None,
                     progress: Callable[[str], None] | None = None,
-                    lidar: np.ndarray | None = None) -> Scene:
+                    lidar: np.ndarray | None = None, detail: DetailOptions | None = DEFAULT_DETAIL) -> Scene:
         """Gaussians (ego frame), background and metadata of one timestamp of ``rig``.
 
         images: one [H, W, 3] array per camera in rig order (uint8, uint16 or float 0..1), or None to read the
         rig's image files; depths: per camera a [H, W] depth map in metres or None, or None for the rig's depth
         files (if any). lidar: [P, 3] metres, ego frame, a LiDAR sweep of the same timestamp: each pinhole camera
-        without a depth map then gets one made from it (``lidar_depths``: two encode passes). Errors name the
-        camera (RigError) or the model file (ModelError)."""
+        without a depth map then gets one made from it (``lidar_depths``: two encode passes). detail: the detail
+        layer's settings (runtime.detail; None = the model's Gaussians only). Errors name the camera (RigError)
+        or the model file (ModelError)."""
         say = progress or (lambda msg: None)
         t: dict[str, float] = {}
         t_all = time.perf_counter()
@@ -364,6 +367,9 @@ class Reconstructor:
                         {"images": imgs, "depth": depth, "depth_mask": mask, **lift})
             gauss, counts = self._gaussians(enc, lift, t, say)
             counts["lidar_cameras"] = int(sum(s is not None for s in scales))
+        if detail is not None:
+            say(f"detail Gaussians (stride {detail.stride})")
+            gauss = timed("detail", self.add_detail, rig, images, gauss, lidar, detail, counts)
 
         background = None
         app_plane = enc.get("app_plane")
@@ -410,6 +416,46 @@ class Reconstructor:
         counts["voxels"] = n_vox
         t["gaussians"] = time.perf_counter() - t0
         return gauss, counts
+
+    def add_detail(self, rig: Rig, images: Sequence[np.ndarray], coarse: Gaussians, lidar: np.ndarray | None,
+                   opts: DetailOptions, counts: dict[str, int]) -> Gaussians:
+        """The scene's Gaussians with the detail layer (runtime.detail): the coarse model Gaussians that a detail cell
+        covers culled, then each pinhole camera's detail Gaussians. images: the full-resolution inputs in rig order;
+        lidar [P, 3] metres, ego frame, or None. Adds to ``counts``: detail (Gaussians), detail_lidar /
+        detail_ground / detail_model / detail_far (cells placed by LiDAR, the LiDAR's ground plane, the model's
+        depth, at the far depth), detail_edge (cells dropped at depth edges),
+        coarse (model Gaussians kept), culled (model Gaussians culled); total becomes the scene's count."""
+        from .detail import (
+            camera_detail,
+            carve_details,
+            concat_gaussians,
+            cull_covered,
+            fit_ground,
+            read_ego_mask,
+        )
+
+        parts, details = [], []
+        c = {f"detail_{k}": 0 for k in ("lidar", "ground", "model", "far", "edge")}
+        plane = fit_ground(lidar) if lidar is not None and opts.ground else None
+        for img, cam in zip(images, rig.cameras):
+            if cam.model != "pinhole":
+                continue
+            mask_file = cam.extra.get("ego_mask")
+            mask = None if mask_file is None else read_ego_mask(rig.path(mask_file), cam)
+            g, d, n = camera_detail(cam, as_rgb(img, cam), coarse, opts, lidar, mask, plane)
+            parts.append(g)
+            details.append(d)
+            for k, v in n.items():
+                c[f"detail_{k}"] += v
+        if not parts:
+            return coarse
+        keep = cull_covered(coarse, details, opts.cull_tolerance)
+        carved = carve_details(details, opts.cull_tolerance, opts.dedupe)
+        counts.update(c, detail=int(sum(k.sum() for k in carved)), coarse=int(keep.sum()),
+                      culled=int(keep.size - keep.sum()), carved=int(sum(k.size - k.sum() for k in carved)))
+        out = concat_gaussians([coarse, *parts], [keep, *carved])
+        counts["total"] = len(out)
+        return out
 
     def lidar_depths(self, rig: Rig, gauss: Gaussians, lidar: np.ndarray, depth: np.ndarray, mask: np.ndarray
                      ) -> tuple[np.ndarray, np.ndarray, list[float | None]]:

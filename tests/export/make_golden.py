@@ -4,12 +4,14 @@
 
 Stores tests/export/golden/<model name>.json (the model.json sha256, the exact Gaussian count, the smallest
 |occupancy margin| and opacity distance to the pruning threshold -- how robust the count is to float round-off on
-another CPU) and <model name>_CAM_FRONT.png (a 400x225 render with the background), which
-tests/export/test_shipped_model.py compares against."""
+another CPU) and <model name>_CAM_FRONT.png (a 400x225 render with the background) of the model's Gaussians alone
+(detail=None), and under "detail" the same of the default reconstruction (with the detail layer, runtime.detail):
+its counts and <model name>_CAM_FRONT_detail.png. tests/export/test_shipped_model.py compares against them."""
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import hashlib
 import json
 import sys
@@ -38,13 +40,13 @@ def main() -> int:
     ap.add_argument("--model", type=Path, default=REPO / "models" / "xyzcyl-cpu-v1")
     args = ap.parse_args()
     from xyzcyl.runtime.imageio import write_png
-    from xyzcyl.runtime.inference import PRUNE_OPACITY, Reconstructor
+    from xyzcyl.runtime.inference import DEFAULT_DETAIL, PRUNE_OPACITY, Reconstructor
     from xyzcyl.runtime.rig import load_rig
     from xyzcyl.runtime.scene import render_view, rig_camera
 
     rec = Reconstructor.load(args.model, threads=2)
     rig = load_rig(REPO / "examples" / "synth_nuscenes" / "rig.json")
-    scene = rec.reconstruct(rig)
+    scene = rec.reconstruct(rig, detail=None)
     imgs, depth, mask = rec.prepare(rig, rig.load_images())
     lift, _ = rec.lifting(rig)
     enc = rec._run("encode", {"images": imgs, "depth": depth, "depth_mask": mask, **lift})
@@ -62,6 +64,12 @@ def main() -> int:
             "min_abs_occupancy_margin": float(margin.min()),
             "min_opacity_over_threshold": float((op - PRUNE_OPACITY).min()) if op.size else None,
             "borderline": borderline(enc, PRUNE_OPACITY)}
+    full = rec.reconstruct(rig)                      # the default: with the detail layer
+    rgb, _, _ = render_view(full, cam)
+    dpng = f"{rec.info.name}_{VIEW['camera']}_detail.png"
+    write_png(out / dpng, rgb)
+    meta["detail"] = {"options": dataclasses.asdict(DEFAULT_DETAIL), "count": len(full.gaussians),
+                      "counts": full.counts, "png": dpng}
     (out / f"{rec.info.name}.json").write_text(json.dumps(meta, indent=1) + "\n")
     print(json.dumps(meta))
     return 0

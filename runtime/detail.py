@@ -1,0 +1,775 @@
+"""Detail Gaussians: pixel-aligned Gaussians at (a stride of) each input camera's native resolution.
+
+The model's pixel Gaussians live on the cylinder lattice (112 x 1024 for the shipped model: ~2.8 columns per
+degree), while a 1920x1080 camera with a 50 degree lens has ~37 pixels per degree. The detail layer gives every
+input camera its own Gaussians at its own resolution (docs/inference.md, "Detail Gaussians"):
+
+1. A grid camera per input camera: the camera resized by 1/stride (``grid_camera``: its pixel centres are the
+   centres of the stride x stride blocks of the input image); the colour of a cell is the area mean of its block.
+2. A dense depth per cell (camera z, metres):
+   - with LiDAR: the sweep projected into the grid camera, nearest point per cell, points hidden behind a nearer
+     one dropped (``lidar_grid_depth``: the occlusion window is a fixed angle, so its size does not depend on the
+     stride), then densified edge-aware, guided by the image (``densify``: normalised fast global smoothing,
+     OpenCV ximgproc) -- a cell is trusted when a LiDAR return lies within ``support_deg`` of it;
+   - elsewhere (and without LiDAR): the model's own depth (the coarse Gaussians rendered at that camera, scaled
+     by the median LiDAR / model ratio when a sweep is given), upsampled the same edge-aware way; cells where the
+     model sees no surface (alpha < 0.5: sky) get no Gaussian.
+3. At depth discontinuities no Gaussian spans the gap: a cell farther than (1 + edge_ratio) x the nearest cell of
+   its 3x3 neighbourhood is dropped (``edge_keep``): the near side of an edge keeps its cells, the far side and the
+   mixed "flying" cells between go; the model fills the 1-2 cell seam.
+4. Each kept cell becomes one Gaussian (``cell_gaussians``): centre on the cell's ray at its depth; a disc parallel
+   to the image plane with standard deviation ``footprint`` x (depth / focal) (the cell's footprint) and
+   ``thickness`` times that along the optical axis; colour = the block's mean (SH degree 0); opacity
+   ``opacity`` where LiDAR supports the depth, ``model_opacity`` where the model's depth alone places it.
+5. Fusion (``cull_covered``): a coarse model Gaussian is dropped when some input camera sees it on a detail cell
+   and it lies in front of, or within ``cull_tolerance`` of, that cell's depth: it would veil or blur a surface
+   the camera saw sharply. Coarse Gaussians behind every detail surface (disocclusions) and where no camera has
+   detail (sky, out of every view) stay.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, fields
+
+import numba
+import numpy as np
+
+from .render import Gaussians
+from .render.gaussians import SH_C0
+from .rig import Camera
+
+
+class DetailError(ValueError):
+    """An invalid detail setting; the message names the field."""
+
+
+@dataclass(frozen=True)
+class DetailOptions:
+    """The detail layer's settings (docs/inference.md, "Detail Gaussians", gives the measurements behind each
+    default)."""
+
+    stride: int = 2                 # input pixels per detail cell along each axis (1 = every pixel)
+    footprint: float = 0.5          # disc standard deviation, in cell footprints (depth x stride / focal)
+    thickness: float = 0.1          # standard deviation along the optical axis, as a fraction of the disc's
+    surface_stretch: float = 0.0    # > 0: discs lie in the surface's tangent plane (from the neighbouring cells) where
+    #                                 its tangents are at most this x the image-plane footprint; 0: facing the camera
+    sharpen: float = 0.5            # unsharp mask of the cell colours (amount; its blur = the disc's footprint):
+    #                                 pre-compensates the blur of overlapping discs
+    opacity: float = 0.95           # opacity of a cell whose depth LiDAR supports
+    model_opacity: float = 0.95     # opacity of a cell placed by the model's depth alone
+    model_depth: bool = True        # give cells without LiDAR support the model's (scaled) depth; False: no cell
+    edge_ratio: float = 0.1         # drop a cell farther than (1 + edge_ratio) x the nearest of its 3x3 neighbours
+    support_deg: float = 1.5        # a cell is LiDAR-supported when a LiDAR return lies within this angle
+    occlusion_deg: float = 0.4      # LiDAR occlusion window half-size (a return behind a nearer one within it goes)
+    smooth_lambda: float = 200.0    # fast global smoother: strength of the smoothing (OpenCV's lambda)
+    smooth_sigma: float = 6.0       # fast global smoother: colour distance (0..255) that stops it (edge-aware)
+    cull_tolerance: float = 0.15    # fusion: a coarse Gaussian within this fraction behind a detail cell is culled
+    dedupe: float = 0.7             # fusion: a cell another camera resolves at most this x its footprint, on the same
+    #                                 surface, is dropped (0: no cell is dropped for that reason)
+    min_depth: float = 1.0          # metres camera z: nearer cells are the ego's own body
+    max_depth: float = 150.0        # metres camera z: farther depths are not trusted (the cell goes to far_depth)
+    ground: bool = True             # with LiDAR: cells it does not reach that look at the ground get the LiDAR's
+    #                                 ground plane's depth (the LiDAR sees no ground within a few metres of the car)
+    ground_max: float = 40.0        # metres camera z: the ground plane is used up to this depth
+    far_depth: float = 300.0        # metres from the ego origin: cells with no depth (sky, beyond max_depth) sit
+    #                                 on this sphere (one surface for every camera); 0 = no cell there (the model's
+    #                                 background panorama shows)
+
+    def __post_init__(self) -> None:
+        def bad(name: str, why: str) -> DetailError:
+            return DetailError(f"detail.{name}: {why} (got {getattr(self, name)!r})")
+
+        if isinstance(self.stride, bool) or not isinstance(self.stride, int) or not 1 <= self.stride <= 16:
+            raise bad("stride", "must be an integer in 1..16")
+        for name in ("model_depth", "ground"):
+            if not isinstance(getattr(self, name), bool):
+                raise bad(name, "must be true or false")
+        for f in fields(self):
+            if f.name in ("stride", "model_depth", "ground"):
+                continue
+            v = getattr(self, f.name)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+                raise bad(f.name, "must be a finite number")
+        for name in ("footprint", "thickness", "smooth_lambda", "smooth_sigma", "support_deg", "occlusion_deg",
+                     "min_depth"):
+            if getattr(self, name) <= 0:
+                raise bad(name, "must be > 0")
+        for name in ("opacity", "model_opacity"):
+            if not 0 < getattr(self, name) < 1:
+                raise bad(name, "must be in (0, 1)")
+        for name in ("edge_ratio", "cull_tolerance", "far_depth", "ground_max", "sharpen", "dedupe",
+                     "surface_stretch"):
+            if getattr(self, name) < 0:
+                raise bad(name, "must be >= 0")
+        if self.max_depth <= self.min_depth:
+            raise bad("max_depth", "must exceed min_depth")
+        if 0 < self.far_depth <= self.max_depth:
+            raise bad("far_depth", "must be 0 or exceed max_depth")
+
+
+# ------------------------------------------------------------------------------------------- grid and colour
+
+
+def grid_camera(cam: Camera, stride: int) -> Camera:
+    """The camera whose pixels are ``cam``'s stride x stride blocks: ``cam.resized(round(W / s), round(H / s))``
+    (pixel-centre convention of Camera.resized), distortion dropped (the renderer has none)."""
+    w, h = max(1, round(cam.width / stride)), max(1, round(cam.height / stride))
+    return cam.replace(distortion=None).resized(w, h)
+
+
+def grid_colours(image: np.ndarray, grid: Camera, sharpen: float = 0.0, footprint: float = 0.5) -> np.ndarray:
+    """[h, w, 3] float32 0..1: the area mean of each cell's block of ``image`` ([H, W, 3] float32 0..1), with an
+    unsharp mask of amount ``sharpen`` (c + sharpen (c - G * c), G a Gaussian of ``footprint`` cells) when > 0."""
+    import cv2
+
+    if image.shape[:2] == (grid.height, grid.width):
+        c = np.ascontiguousarray(image, np.float32)
+    else:
+        c = cv2.resize(image, (grid.width, grid.height), interpolation=cv2.INTER_AREA)
+    if sharpen > 0:
+        blur = cv2.GaussianBlur(c, (0, 0), footprint, borderType=cv2.BORDER_REFLECT)
+        c = np.clip(c + np.float32(sharpen) * (c - blur), 0.0, 1.0)
+    return c
+
+
+def _angle_pixels(grid: Camera, degrees: float) -> float:
+    """Pixels of ``grid`` that ``degrees`` of view angle span at the image centre."""
+    f = 0.5 * (grid.K[0, 0] + grid.K[1, 1])
+    return f * math.tan(math.radians(degrees))
+
+
+# ------------------------------------------------------------------------------------------- LiDAR depth
+
+
+def lidar_grid_depth(points: np.ndarray, grid: Camera, occlusion_deg: float, min_depth: float = 1.0,
+                     max_depth: float = 150.0) -> np.ndarray:
+    """[h, w] float32 camera z (metres) of the nearest LiDAR return per cell of ``grid``, 0 = none, after the
+    occlusion filter: a return is dropped when another return within ``occlusion_deg`` (a square window of
+    2r + 1 cells, r = that angle in cells, at least 1) is nearer by more than runtime.lidar.DELTA (it lies behind
+    a surface the camera sees: the LiDAR sits above and behind the cameras). points [P, 3] metres, ego frame."""
+    from .lidar import lidar_depth_map, occlusion_filter
+
+    d = lidar_depth_map(points, grid, min_depth, max_depth)
+    r = max(1, round(_angle_pixels(grid, occlusion_deg)))
+    return np.where(occlusion_filter(d, radius=r), d, 0).astype(np.float32)
+
+
+def _guide(image: np.ndarray) -> np.ndarray:
+    return np.clip(np.rint(np.asarray(image, np.float32) * 255), 0, 255).astype(np.uint8)
+
+
+def densify(sparse: np.ndarray, image: np.ndarray, smooth_lambda: float, smooth_sigma: float) -> np.ndarray:
+    """[h, w] float32: ``sparse`` (0 = no value) spread edge-aware over the image ([h, w, 3] float 0..1) by
+    normalised fast global smoothing: FGS(values) / FGS(mask). The smoothing stops at colour edges, so a depth is
+    carried along a surface and not across an image edge. Log depth is smoothed (a near and a far value mix in
+    ratio, not metres). Cells the smoothing does not reach get 0."""
+    import cv2
+
+    m = (sparse > 0).astype(np.float32)
+    if not m.any():
+        return np.zeros_like(sparse, np.float32)
+    g = _guide(image)
+    v = np.where(m > 0, np.log(np.maximum(sparse, 1e-6)), 0).astype(np.float32)
+    num = cv2.ximgproc.fastGlobalSmootherFilter(g, v, smooth_lambda, smooth_sigma)
+    den = cv2.ximgproc.fastGlobalSmootherFilter(g, m, smooth_lambda, smooth_sigma)
+    # den below 1e-4: the smoothing carried (almost) no sample here; the quotient is noise
+    ok = den > 1e-4
+    out = np.zeros_like(sparse, np.float32)
+    out[ok] = np.exp(num[ok] / den[ok])
+    keep = m > 0
+    out[keep] = sparse[keep]                 # the measured cells keep their measured depth
+    return out
+
+
+def support_mask(sparse: np.ndarray, radius_px: float) -> np.ndarray:
+    """[h, w] bool: cells with a sample (sparse > 0) within ``radius_px`` cells (Euclidean)."""
+    import cv2
+
+    if not (sparse > 0).any():
+        return np.zeros(sparse.shape, bool)
+    dist = cv2.distanceTransform((sparse <= 0).astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+    return dist <= radius_px
+
+
+def edge_keep(depth: np.ndarray, edge_ratio: float) -> np.ndarray:
+    """[h, w] bool: cells with a depth (> 0) that are not on the far side of a depth edge: depth <= (1 + edge_ratio)
+    x the smallest positive depth of their 3x3 neighbourhood."""
+    import cv2
+
+    d = np.where(depth > 0, depth, np.inf).astype(np.float32)
+    near = cv2.erode(d, np.ones((3, 3), np.uint8), borderType=cv2.BORDER_REPLICATE)
+    return (depth > 0) & (depth <= near * np.float32(1.0 + edge_ratio))
+
+
+def edge_keep_reference(depth: np.ndarray, edge_ratio: float) -> np.ndarray:
+    """`edge_keep` cell by cell (slow, obviously correct; for the tests)."""
+    H, W = depth.shape
+    out = np.zeros((H, W), bool)
+    for y in range(H):
+        for x in range(W):
+            if depth[y, x] <= 0:
+                continue
+            win = depth[max(0, y - 1):y + 2, max(0, x - 1):x + 2]
+            out[y, x] = depth[y, x] <= win[win > 0].min() * np.float32(1.0 + edge_ratio)
+    return out
+
+
+GROUND_BAND = 0.15        # metres: LiDAR returns within this of the ground plane are ground (road roughness, noise)
+GROUND_SHARE = 0.08      # the plane must carry this share of the 3-25 m returns (measured on the real sweeps:
+#                          0.63 nuScenes, 0.19-0.21 PandaSet; a shallow plane across a steep slope carries a strip)
+GROUND_RANGE = (3.0, 25.0)  # metres horizontal from the ego origin: the returns the plane is fitted to
+
+
+def fit_ground(points: np.ndarray, min_points: int = 200, seed: int = 0) -> np.ndarray | None:
+    """The ground plane of a LiDAR sweep: [4] (n, d) with n . x + d = 0, n a unit normal pointing up (ego z), or
+    None when too few returns look like ground. points [P, 3] metres, ego frame (x forward, y left, z up).
+
+    The returns 3-25 m away horizontally; RANSAC (seeded, deterministic): 256 planes through three of the lowest
+    half of the returns, each scored by the returns within GROUND_BAND of it, planes steeper than 10 degrees
+    refused (that is not a road under the car); then twice least squares on the best plane's returns within
+    GROUND_BAND. A plane that carries less than GROUND_SHARE of the returns is refused too."""
+    p = np.asarray(points, np.float64)
+    r = np.hypot(p[:, 0], p[:, 1])
+    p = p[(r >= GROUND_RANGE[0]) & (r <= GROUND_RANGE[1])]
+    if len(p) < min_points:
+        return None
+    rng = np.random.default_rng(seed)
+    low = p[p[:, 2] <= np.median(p[:, 2])]                   # the ground is among the lower returns
+    sample = p[rng.choice(len(p), min(len(p), 20_000), replace=False)]
+    tri = low[rng.integers(0, len(low), (256, 3))]           # [256, 3 points, 3]
+    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    norm = np.linalg.norm(n, axis=1)
+    ok = norm > 1e-9
+    n = n[ok] / norm[ok, None]
+    n *= np.sign(n[:, 2:3] + 1e-12)                          # pointing up
+    d = -np.einsum("ij,ij->i", n, tri[ok, 0])
+    ok = n[:, 2] >= math.cos(math.radians(10.0))
+    if not ok.any():
+        return None
+    n, d = n[ok], d[ok]
+    score = (np.abs(sample @ n.T + d) <= GROUND_BAND).sum(axis=0)
+    best = int(np.argmax(score))
+    if score[best] < GROUND_SHARE * len(sample):
+        return None                                          # no plane carries the sweep: not a road
+    plane = np.array([*n[best], d[best]])
+    for _ in range(2):
+        near = p[np.abs(p @ plane[:3] + plane[3]) <= GROUND_BAND]
+        if len(near) < min_points:
+            return None
+        # z = a x + b y + c by least squares
+        A = np.column_stack([near[:, 0], near[:, 1], np.ones(len(near))])
+        (a, b, c), *_ = np.linalg.lstsq(A, near[:, 2], rcond=None)
+        nv = np.array([-a, -b, 1.0])
+        k = np.linalg.norm(nv)
+        plane = np.array([*(nv / k), -c / k])
+    if plane[2] < math.cos(math.radians(10.0)):
+        return None
+    return plane
+
+
+def grid_rays(grid: Camera) -> tuple[np.ndarray, np.ndarray]:
+    """(unit directions [h, w, 3] float64, ego frame, of the cells' rays; cos [h, w]: their cosine with the optical
+    axis, which turns a distance along the ray into camera z)."""
+    K = grid.K
+    x = (np.arange(grid.width) - K[0, 2]) / K[0, 0]
+    y = (np.arange(grid.height) - K[1, 2]) / K[1, 1]
+    q = np.empty((grid.height, grid.width, 3))
+    q[..., 0], q[..., 1], q[..., 2] = x[None, :], y[:, None], 1.0
+    n = np.sqrt(x[None, :] ** 2 + y[:, None] ** 2 + 1.0)
+    return (q / n[..., None]) @ grid.rotation.T, 1.0 / n
+
+
+def sphere_depth(grid: Camera, radius: float, rays: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+    """[h, w] float32 camera z (metres) where each cell's ray leaves the sphere of ``radius`` about the ego origin
+    (the camera must be inside it). rays: grid_rays(grid), if already at hand."""
+    d, cos = rays or grid_rays(grid)
+    c = grid.position
+    b = d @ c
+    t = -b + np.sqrt(np.maximum(b * b - (c @ c - radius * radius), 0.0))
+    return (t * cos).astype(np.float32)
+
+
+def ground_depth(grid: Camera, plane: np.ndarray, rays: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+    """[h, w] float32 camera z (metres) where each cell's ray meets the plane ([4], n . x + d = 0, ego frame), 0
+    where it does not (the ray parallel to it or pointing away). rays: grid_rays(grid), if already at hand."""
+    d, cos = rays or grid_rays(grid)
+    n, off = plane[:3], plane[3]
+    denom = d @ n
+    t = -(grid.position @ n + off) / np.where(np.abs(denom) > 1e-9, denom, np.nan)
+    z = t * cos                                               # distance along the ray -> camera z
+    return np.where(np.isfinite(z) & (t > 0), z, 0).astype(np.float32)
+
+
+# ------------------------------------------------------------------------------------------- Gaussians
+
+
+def rotmat_to_quat(R: np.ndarray) -> np.ndarray:
+    """[3, 3] rotation -> [4] unit quaternion wxyz (Shepperd's method; the inverse of rotations.quat_to_rotmat)."""
+    R = np.asarray(R, np.float64)
+    tr = np.trace(R)
+    if tr > 0:
+        s = 2.0 * math.sqrt(1.0 + tr)
+        q = [0.25 * s, (R[2, 1] - R[1, 2]) / s, (R[0, 2] - R[2, 0]) / s, (R[1, 0] - R[0, 1]) / s]
+    elif R[0, 0] > R[1, 1] and R[0, 0] > R[2, 2]:
+        s = 2.0 * math.sqrt(1.0 + R[0, 0] - R[1, 1] - R[2, 2])
+        q = [(R[2, 1] - R[1, 2]) / s, 0.25 * s, (R[0, 1] + R[1, 0]) / s, (R[0, 2] + R[2, 0]) / s]
+    elif R[1, 1] > R[2, 2]:
+        s = 2.0 * math.sqrt(1.0 + R[1, 1] - R[0, 0] - R[2, 2])
+        q = [(R[0, 2] - R[2, 0]) / s, (R[0, 1] + R[1, 0]) / s, 0.25 * s, (R[1, 2] + R[2, 1]) / s]
+    else:
+        s = 2.0 * math.sqrt(1.0 + R[2, 2] - R[0, 0] - R[1, 1])
+        q = [(R[1, 0] - R[0, 1]) / s, (R[0, 2] + R[2, 0]) / s, (R[1, 2] + R[2, 1]) / s, 0.25 * s]
+    q = np.asarray(q, np.float64)
+    return q / np.linalg.norm(q)
+
+
+def rotmats_to_quats(R: np.ndarray) -> np.ndarray:
+    """[N, 3, 3] rotations -> [N, 4] unit quaternions wxyz (rotmat_to_quat for many: each row takes the branch of
+    its largest diagonal term / trace, so no division by a small number)."""
+    R = np.asarray(R, np.float64)
+    m00, m11, m22 = R[:, 0, 0], R[:, 1, 1], R[:, 2, 2]
+    tr = m00 + m11 + m22
+    q = np.empty((len(R), 4))
+    cases = np.stack([tr, m00, m11, m22], axis=1).argmax(axis=1)
+    for c in range(4):
+        i = np.flatnonzero(cases == c)
+        if not i.size:
+            continue
+        r = R[i]
+        if c == 0:
+            s4 = 2.0 * np.sqrt(1.0 + tr[i])
+            q[i] = np.stack([0.25 * s4, (r[:, 2, 1] - r[:, 1, 2]) / s4, (r[:, 0, 2] - r[:, 2, 0]) / s4,
+                             (r[:, 1, 0] - r[:, 0, 1]) / s4], axis=1)
+        elif c == 1:
+            s4 = 2.0 * np.sqrt(np.maximum(1.0 + m00[i] - m11[i] - m22[i], 1e-12))
+            q[i] = np.stack([(r[:, 2, 1] - r[:, 1, 2]) / s4, 0.25 * s4, (r[:, 0, 1] + r[:, 1, 0]) / s4,
+                             (r[:, 0, 2] + r[:, 2, 0]) / s4], axis=1)
+        elif c == 2:
+            s4 = 2.0 * np.sqrt(np.maximum(1.0 + m11[i] - m00[i] - m22[i], 1e-12))
+            q[i] = np.stack([(r[:, 0, 2] - r[:, 2, 0]) / s4, (r[:, 0, 1] + r[:, 1, 0]) / s4, 0.25 * s4,
+                             (r[:, 1, 2] + r[:, 2, 1]) / s4], axis=1)
+        else:
+            s4 = 2.0 * np.sqrt(np.maximum(1.0 + m22[i] - m00[i] - m11[i], 1e-12))
+            q[i] = np.stack([(r[:, 1, 0] - r[:, 0, 1]) / s4, (r[:, 0, 2] + r[:, 2, 0]) / s4,
+                             (r[:, 1, 2] + r[:, 2, 1]) / s4, 0.25 * s4], axis=1)
+    return q / np.linalg.norm(q, axis=1, keepdims=True)
+
+
+def surface_discs(points: np.ndarray, keep: np.ndarray, f: float, max_stretch: float
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Discs in the surface's tangent plane that cover each kept cell's footprint on it.
+
+    points [h, w, 3] camera-frame points of the cells (metres); keep [h, w] bool; f: the grid's focal (pixels).
+    The tangents t_u, t_v are the point steps to the neighbouring cells (central differences where both neighbours
+    are kept, one-sided where one is); the disc's covariance is t_u t_u^T + t_v t_v^T (the cell's footprint on the
+    plane: it projects back onto the cell as a circle), its normal t_u x t_v. A cell gets no disc (ok False: it
+    stays parallel to the image plane) when it has no neighbour along u or v, or a tangent is longer than
+    ``max_stretch`` x its image-plane footprint z / f (a grazing surface or a depth step).
+    Returns, for the kept cells in np.nonzero order: rotation [M, 3, 3] (columns: the two disc axes, the normal
+    towards the camera; camera frame), the disc's standard deviations along its axes per unit footprint [M, 2]
+    (metres), ok [M] bool."""
+    h, w = keep.shape
+    ys, xs = np.nonzero(keep)
+    P = points
+
+    def step(dy: int, dx: int) -> tuple[np.ndarray, np.ndarray]:
+        yp, xp = np.clip(ys + dy, 0, h - 1), np.clip(xs + dx, 0, w - 1)
+        ym, xm = np.clip(ys - dy, 0, h - 1), np.clip(xs - dx, 0, w - 1)
+        kp = keep[yp, xp] & ((yp != ys) | (xp != xs))
+        km = keep[ym, xm] & ((ym != ys) | (xm != xs))
+        c = P[ys, xs]
+        t = np.where((kp & km)[:, None], 0.5 * (P[yp, xp] - P[ym, xm]),
+                     np.where(kp[:, None], P[yp, xp] - c, c - P[ym, xm]))
+        return t, kp | km
+
+    tu, oku = step(0, 1)
+    tv, okv = step(1, 0)
+    z = P[ys, xs, 2]
+    L0 = z / f
+    n = np.cross(tu, tv)
+    nn = np.linalg.norm(n, axis=1)
+    lu, lv = np.linalg.norm(tu, axis=1), np.linalg.norm(tv, axis=1)
+    ok = oku & okv & (nn > 1e-12) & (lu <= max_stretch * L0) & (lv <= max_stretch * L0) & (lu > 0)
+    n = n / np.maximum(nn, 1e-12)[:, None]
+    n = np.where((np.einsum("ij,ij->i", n, P[ys, xs]) > 0)[:, None], -n, n)     # towards the camera
+    e1 = tu / np.maximum(lu, 1e-12)[:, None]
+    e2 = np.cross(n, e1)
+    a, b, c = lu, np.einsum("ij,ij->i", tv, e1), np.einsum("ij,ij->i", tv, e2)
+    m00, m11, m01 = a * a + b * b, c * c, b * c
+    phi = 0.5 * np.arctan2(2 * m01, m00 - m11)
+    mid, rad = 0.5 * (m00 + m11), np.sqrt((0.5 * (m00 - m11)) ** 2 + m01 * m01)
+    sd = np.sqrt(np.maximum(np.stack([mid + rad, mid - rad], axis=1), 1e-24))
+    cp, sp = np.cos(phi)[:, None], np.sin(phi)[:, None]
+    ax1, ax2 = cp * e1 + sp * e2, -sp * e1 + cp * e2
+    return np.stack([ax1, ax2, n], axis=2), sd, ok
+
+
+def _logit(p: np.ndarray) -> np.ndarray:
+    return np.log(p / (1.0 - p))
+
+
+def cell_gaussians(grid: Camera, colours: np.ndarray, depth: np.ndarray, opacity: np.ndarray, keep: np.ndarray,
+                   footprint: float, thickness: float, sh_degree: int = 0, surface_stretch: float = 0.0
+                   ) -> Gaussians:
+    """One Gaussian per kept cell of ``grid`` (ego frame).
+
+    colours [h, w, 3] 0..1; depth [h, w] camera z metres; opacity [h, w] in (0, 1); keep [h, w] bool. Centre: the
+    cell's ray at its depth (OpenCV camera point (x z, y z, z) with x = (u - cx) / fx, y = (v - cy) / fy, moved to
+    ego by cam_to_ego); a disc parallel to the image plane with standard deviation footprint x z / f (f = the mean
+    focal of ``grid``, pixels) and thickness x that along the optical axis; SH of degree ``sh_degree`` with only
+    the DC term set (colour = SH_C0 dc + 0.5). surface_stretch > 0: a cell whose neighbours give it a tangent plane
+    (surface_discs, tangents at most surface_stretch x the image-plane footprint) lies in that plane instead, as the
+    footprint of the cell on the surface (footprint x its extents; thickness along the normal): it looks the same
+    from its own camera and keeps its shape on the surface from elsewhere."""
+    ys, xs = np.nonzero(keep)
+    z = depth[ys, xs].astype(np.float64)
+    K = grid.K
+    x = (np.arange(grid.width) - K[0, 2]) / K[0, 0]
+    y = (np.arange(grid.height) - K[1, 2]) / K[1, 1]
+    q = np.stack([x[xs] * z, y[ys] * z, z], axis=-1)
+    means = q @ grid.rotation.T + grid.position
+    f = 0.5 * (K[0, 0] + K[1, 1])
+    s = footprint * z / f
+    log_s = np.log(np.stack([s, s, thickness * s], axis=-1))
+    quat = np.broadcast_to(rotmat_to_quat(grid.rotation), (len(z), 4))
+    if surface_stretch > 0 and len(z):
+        d = depth.astype(np.float64)
+        P = np.stack([x[None, :] * d, y[:, None] * d, d], axis=-1)
+        R, sd, ok = surface_discs(P, keep, f, surface_stretch)
+        if ok.any():
+            log_s = log_s.copy()
+            log_s[ok] = np.log(np.concatenate([footprint * sd[ok], thickness * s[ok, None]], axis=1))
+            quat = quat.copy()
+            quat[ok] = rotmats_to_quats(np.einsum("ij,njk->nik", grid.rotation, R[ok]))
+    sh = np.zeros((len(z), (sh_degree + 1) ** 2, 3), np.float32)
+    sh[:, 0, :] = (colours[ys, xs] - 0.5) / SH_C0
+    return Gaussians(means=means.astype(np.float32), quats=np.ascontiguousarray(quat, np.float32),
+                     log_scales=log_s.astype(np.float32), opacity_logits=_logit(opacity[ys, xs]).astype(np.float32),
+                     sh=sh)
+
+
+def concat_gaussians(parts: list[Gaussians], masks: list[np.ndarray | None] | None = None) -> Gaussians:
+    """The Gaussians of ``parts`` in order, each restricted to its boolean mask ([N_i] or None = all): one copy of
+    each field (the highest SH degree; lower-degree parts padded with zeros)."""
+    masks = masks if masks is not None else [None] * len(parts)
+    deg = max(p.sh_degree for p in parts)
+    n_sh = (deg + 1) ** 2
+
+    def take(a: np.ndarray, m: np.ndarray | None) -> np.ndarray:
+        return a if m is None else a[m]
+
+    sh = []
+    for p, m in zip(parts, masks):
+        part = take(p.sh, m)
+        if part.shape[1] < n_sh:
+            part = np.concatenate([part, np.zeros((len(part), n_sh - part.shape[1], 3), part.dtype)], axis=1)
+        sh.append(part.astype(np.float32, copy=False))
+    fields_ = {name: np.concatenate([take(getattr(p, name), m).astype(np.float32, copy=False)
+                                     for p, m in zip(parts, masks)])
+               for name in ("means", "quats", "log_scales", "opacity_logits")}
+    return Gaussians(**fields_, sh=np.concatenate(sh))
+
+
+# ------------------------------------------------------------------------------------------- fusion
+
+
+CONF_MODEL, CONF_MEASURED = 1, 2   # cell confidence: the model's depth or the far layer / LiDAR or ground plane
+PYRAMID_LEVELS = 7                  # window radii 1, 2, 4, ..., 64 cells for the coarse layer's footprints
+
+
+@dataclass(frozen=True, eq=False)
+class CameraDetail:
+    """One input camera's detail layer: the cell maps at the grid camera's size and its Gaussians' per-cell data in
+    the order of ``np.nonzero(keep)`` (the order cell_gaussians emits)."""
+
+    grid: Camera              # the grid camera (ego frame)
+    depth: np.ndarray         # [h, w] float32 camera z metres of the kept cells, 0 elsewhere
+    keep: np.ndarray          # [h, w] bool: cells that became Gaussians
+    conf: np.ndarray          # [h, w] int8: CONF_MEASURED / CONF_MODEL for kept cells, 0 elsewhere
+    means: np.ndarray         # [M, 3] float64 metres, ego frame: the kept cells' centres
+    rank: np.ndarray          # [M] float64 metres: the cells' footprint (cell_footprint)
+
+    @classmethod
+    def build(cls, grid: Camera, depth: np.ndarray, keep: np.ndarray, measured: np.ndarray, means: np.ndarray
+              ) -> CameraDetail:
+        d = np.where(keep, depth, 0).astype(np.float32)
+        conf = np.where(keep, np.where(measured, CONF_MEASURED, CONF_MODEL), 0).astype(np.int8)
+        ys, xs = np.nonzero(keep)
+        return cls(grid, d, keep, conf, np.asarray(means, np.float64), cell_footprint(grid, xs, ys, d[ys, xs]))
+
+    def cell_conf(self) -> np.ndarray:
+        """[M] int8: the kept cells' confidence, in Gaussian order."""
+        return self.conf[self.keep]
+
+    def max_pyramid(self) -> list[np.ndarray]:
+        """[PYRAMID_LEVELS] of [h, w] float32: level L holds the largest kept-cell depth within 2^L cells (square
+        window; 0 where the window holds no kept cell)."""
+        import cv2
+
+        return [cv2.dilate(self.depth, np.ones((2 * 2 ** L + 1, 2 * 2 ** L + 1), np.uint8),
+                           borderType=cv2.BORDER_CONSTANT, borderValue=0) for L in range(PYRAMID_LEVELS)]
+
+
+def cell_footprint(grid: Camera, u: np.ndarray, v: np.ndarray, z: np.ndarray) -> np.ndarray:
+    """[N] metres: the size of cell (u, v) of ``grid`` at camera z ``z`` across its ray, z sqrt(1 + x^2 + y^2) / f
+    (x, y normalised coordinates): how finely that camera resolves the point (smaller = sharper)."""
+    K = grid.K
+    x, y = (u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1]
+    return np.asarray(z, np.float64) * np.sqrt(1.0 + x * x + y * y) / (0.5 * (K[0, 0] + K[1, 1]))
+
+
+def _grid_pixels(grid: Camera, means: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(indices of the points that land on a cell, their cell column, row, camera z) for means [N, 3] ego."""
+    uv, z, front = grid.project(means)
+    px = np.rint(uv).astype(np.int64)
+    ok = front & (px[:, 0] >= 0) & (px[:, 0] < grid.width) & (px[:, 1] >= 0) & (px[:, 1] < grid.height)
+    idx = np.flatnonzero(ok)
+    return idx, px[idx, 0], px[idx, 1], z[idx]
+
+
+def coarse_radius_cells(log_scales: np.ndarray, grid: Camera, z: np.ndarray) -> np.ndarray:
+    """[N] the 3-sigma radius (largest axis) of Gaussians with ``log_scales`` [N, 3] at camera z ``z`` [N] (metres),
+    in cells of ``grid``."""
+    f = 0.5 * (grid.K[0, 0] + grid.K[1, 1])
+    return 3.0 * np.exp(log_scales.astype(np.float64).max(axis=1)) * f / np.maximum(z, 1e-6)
+
+
+def cull_covered(coarse: Gaussians, details: list[CameraDetail], tolerance: float) -> np.ndarray:
+    """[N] bool: the coarse Gaussians to keep. A Gaussian is culled when, in some input camera, its centre projects
+    onto the image and a kept detail cell within its footprint (3 sigma, as a window of 2^L cells, at most 64) lies
+    behind it or within ``tolerance`` of it (its camera z < (1 + tolerance) x that cell's depth): composited in
+    front of that cell, it would veil or blur a surface the camera saw sharply. What is left lies behind every
+    detail surface its footprint touches (disocclusions) or where no camera has detail."""
+    keep = np.ones(len(coarse), bool)
+    for d in details:
+        idx, u, v, z = _grid_pixels(d.grid, coarse.means)
+        level = np.clip(np.ceil(np.log2(np.maximum(coarse_radius_cells(coarse.log_scales[idx], d.grid, z), 1.0))), 0,
+                        PYRAMID_LEVELS - 1).astype(np.int64)
+        pyr = np.stack(d.max_pyramid())
+        dmax = pyr[level, v, u]
+        keep[idx[(dmax > 0) & (z < dmax * (1.0 + tolerance))]] = False
+    return keep
+
+
+def cull_covered_reference(coarse: Gaussians, details: list[CameraDetail], tolerance: float) -> np.ndarray:
+    """`cull_covered` Gaussian by Gaussian, the window searched cell by cell (slow, obviously correct; tests)."""
+    keep = np.ones(len(coarse), bool)
+    for i, m in enumerate(np.asarray(coarse.means, np.float64)):
+        sigma = math.exp(float(np.max(coarse.log_scales[i])))
+        for d in details:
+            q = d.grid.rotation.T @ (m - d.grid.position)
+            if q[2] <= 1e-6:
+                continue
+            u = int(np.rint(d.grid.K[0, 0] * q[0] / q[2] + d.grid.K[0, 2]))
+            v = int(np.rint(d.grid.K[1, 1] * q[1] / q[2] + d.grid.K[1, 2]))
+            if not (0 <= u < d.grid.width and 0 <= v < d.grid.height):
+                continue
+            r_cells = 3.0 * sigma * 0.5 * (d.grid.K[0, 0] + d.grid.K[1, 1]) / q[2]
+            L = min(max(math.ceil(math.log2(max(r_cells, 1.0))), 0), PYRAMID_LEVELS - 1)
+            r = 2 ** L
+            win = d.depth[max(0, v - r):v + r + 1, max(0, u - r):u + r + 1][d.keep[max(0, v - r):v + r + 1,
+                                                                              max(0, u - r):u + r + 1]]
+            if win.size and q[2] < win.max() * (1.0 + tolerance):
+                keep[i] = False
+    return keep
+
+
+@numba.njit(cache=True, parallel=True, nogil=True)
+def _carve_kernel(means, conf, rank, R, t, fx, fy, cx, cy, depth, cell_conf, tolerance, dedupe, keep):
+    """Clear keep[k] for the cells ``means`` [M, 3] (ego; confidence conf [M], footprint rank [M]) that camera i
+    (world-to-camera rotation R = rotation^T [3, 3], centre t [3], pinhole fx fy cx cy; its cell maps depth [h, w]
+    and cell_conf [h, w], 0 = no cell) contradicts: see carve_details."""
+    h, w = depth.shape
+    for k in numba.prange(means.shape[0]):
+        if not keep[k]:
+            continue
+        px, py, pz = means[k, 0] - t[0], means[k, 1] - t[1], means[k, 2] - t[2]
+        z = R[2, 0] * px + R[2, 1] * py + R[2, 2] * pz
+        if z <= 1e-6:
+            continue
+        x = (R[0, 0] * px + R[0, 1] * py + R[0, 2] * pz) / z
+        y = (R[1, 0] * px + R[1, 1] * py + R[1, 2] * pz) / z
+        u = int(np.rint(fx * x + cx))
+        v = int(np.rint(fy * y + cy))
+        if u < 0 or u >= w or v < 0 or v >= h or cell_conf[v, u] == 0 or cell_conf[v, u] < conf[k]:
+            continue
+        dc = depth[v, u]
+        if z < dc * (1.0 - tolerance):
+            keep[k] = False
+        elif abs(z - dc) <= tolerance * dc:
+            xi, yi = (u - cx) / fx, (v - cy) / fy
+            rank_i = dc * math.sqrt(1.0 + xi * xi + yi * yi) / (0.5 * (fx + fy))
+            if rank_i < dedupe * rank[k]:
+                keep[k] = False
+
+
+def carve_details(details: list[CameraDetail], tolerance: float, dedupe: float = 1.0) -> list[np.ndarray]:
+    """Per camera j, [M_j] bool: its detail cells to keep. Camera j's cell is dropped when another camera i sees its
+    centre on one of i's kept cells of at least the same confidence and
+    - it lies in front of that cell (camera-i z < (1 - tolerance) x the cell's depth): i looked through the point
+      and saw a surface behind it (free space), so j's depth there is wrong; or
+    - it lies on the same surface (within tolerance) and i resolves it more finely: i's cell_footprint there is
+      below ``dedupe`` x j's (dedupe 1: the finer copy is kept, not two interleaved ones of different exposure;
+      < 1: only a clearly finer camera takes over a cell, 0: never).
+    A cell dropped by one camera is not tested against the next (the order does not matter: the tests are
+    independent of each other)."""
+    out = []
+    for j, dj in enumerate(details):
+        keep = np.ones(len(dj.means), bool)
+        conf_j = np.ascontiguousarray(dj.cell_conf())
+        for i, di in enumerate(details):
+            if i == j or not len(dj.means):
+                continue
+            K = di.grid.K
+            _carve_kernel(dj.means, conf_j, dj.rank, np.ascontiguousarray(di.grid.rotation.T),
+                          np.ascontiguousarray(di.grid.position), float(K[0, 0]), float(K[1, 1]), float(K[0, 2]),
+                          float(K[1, 2]), di.depth, di.conf, float(tolerance), float(dedupe), keep)
+        out.append(keep)
+    return out
+
+
+def carve_details_reference(details: list[CameraDetail], tolerance: float, dedupe: float = 1.0
+                            ) -> list[np.ndarray]:
+    """`carve_details` cell by cell (slow, obviously correct; for the tests)."""
+    out = []
+    for j, dj in enumerate(details):
+        keep = np.ones(len(dj.means), bool)
+        conf_j = dj.cell_conf()
+        for k, m in enumerate(dj.means):
+            for i, di in enumerate(details):
+                if i == j:
+                    continue
+                q = di.grid.rotation.T @ (m - di.grid.position)
+                if q[2] <= 1e-6:
+                    continue
+                K = di.grid.K
+                u = int(np.rint(K[0, 0] * q[0] / q[2] + K[0, 2]))
+                v = int(np.rint(K[1, 1] * q[1] / q[2] + K[1, 2]))
+                if not (0 <= u < di.grid.width and 0 <= v < di.grid.height) or not di.keep[v, u]:
+                    continue
+                if di.conf[v, u] < conf_j[k]:
+                    continue
+                dc = float(di.depth[v, u])
+                x, y = (u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1]
+                rank_i = dc * math.sqrt(1 + x * x + y * y) / (0.5 * (K[0, 0] + K[1, 1]))
+                if q[2] < dc * (1.0 - tolerance) or (abs(q[2] - dc) <= tolerance * dc and rank_i < dedupe * dj.rank[k]):
+                    keep[k] = False
+        out.append(keep)
+    return out
+
+
+# ------------------------------------------------------------------------------------------- one camera
+
+
+def model_grid_depth(coarse: Gaussians, grid: Camera, max_width: int = 480) -> tuple[np.ndarray, np.ndarray]:
+    """(depth [h, w], alpha [h, w]) float32 of the coarse Gaussians rendered at ``grid`` (at most ``max_width``
+    pixels wide, then resized to the grid: the coarse layer holds no finer detail than that), camera z metres."""
+    import cv2
+
+    from .render import render
+    from .scene import rig_camera
+
+    if grid.width > max_width:
+        w = max_width
+        h = max(1, round(grid.height * w / grid.width))
+        r = render(coarse, rig_camera(grid.resized(w, h)))
+        depth = cv2.resize(r.depth, (grid.width, grid.height), interpolation=cv2.INTER_NEAREST)
+        alpha = cv2.resize(r.alpha, (grid.width, grid.height), interpolation=cv2.INTER_LINEAR)
+        return depth, alpha
+    r = render(coarse, rig_camera(grid))
+    return r.depth, r.alpha
+
+
+def camera_detail(cam: Camera, image: np.ndarray, coarse: Gaussians, opts: DetailOptions,
+                  lidar: np.ndarray | None = None, ego_mask: np.ndarray | None = None,
+                  ground: np.ndarray | None = None) -> tuple[Gaussians, CameraDetail, dict[str, int]]:
+    """The detail Gaussians of one input camera.
+
+    image [H, W, 3] float32 0..1 (the camera's full-resolution input); coarse: the model's Gaussians (ego frame);
+    lidar [P, 3] metres, ego frame, or None; ego_mask [H, W] bool, True = the ego's own body (no cell there);
+    ground: the LiDAR's ground plane (fit_ground) or None.
+    Returns (Gaussians, the camera's CameraDetail, counts {"lidar": cells placed by LiDAR, "ground": by the ground
+    plane, "model": by the model's depth, "far": at far_depth, "edge": dropped at depth edges})."""
+    import cv2
+
+    grid = grid_camera(cam, opts.stride)
+    colours = grid_colours(image, grid, opts.sharpen, opts.footprint)
+    m_depth, m_alpha = model_grid_depth(coarse, grid)
+    has_model = (m_alpha >= 0.5) & (m_depth > 0)
+    depth = np.zeros((grid.height, grid.width), np.float32)
+    supported = np.zeros(depth.shape, bool)
+    dense = np.zeros_like(depth)   # the LiDAR spread over the whole image (beyond the supported cells too)
+    scale = 1.0
+    if lidar is not None and len(lidar):
+        sparse = lidar_grid_depth(lidar, grid, opts.occlusion_deg, opts.min_depth, opts.max_depth)
+        supported = support_mask(sparse, _angle_pixels(grid, opts.support_deg))
+        dense = densify(sparse, colours, opts.smooth_lambda, opts.smooth_sigma)
+        supported &= dense > 0
+        depth[supported] = dense[supported]
+        both = (sparse > 0) & has_model
+        if both.sum() >= 20:   # the fuse_depth rule: fewer common cells give no trustworthy scale
+            scale = float(np.median(sparse[both] / m_depth[both]))
+    md = np.zeros_like(depth)
+    if opts.model_depth and (~supported & has_model).any():
+        # the model's depth (blocky at the grid size) spread edge-aware like LiDAR samples would be
+        md = densify(np.where(has_model, m_depth * np.float32(scale), 0).astype(np.float32), colours,
+                     opts.smooth_lambda, opts.smooth_sigma)
+        md[~has_model] = 0
+    on_ground = np.zeros(depth.shape, bool)
+    rays = None
+    if ground is not None and opts.ground:
+        rays = grid_rays(grid)
+        gd = ground_depth(grid, ground, rays)
+        # a cell LiDAR does not reach looks at the ground when the plane is near enough and neither the model nor
+        # the LiDAR spread from the nearest returns puts a surface clearly in front of it (a car's flank below the
+        # lowest beam). 0.8: the model's real-camera depth error is ~0.5 AbsRel, so only a clear margin counts
+        nearer = ((md > 0) & (md < 0.8 * gd)) | ((dense > 0) & (dense < 0.8 * gd))
+        on_ground = ~supported & (gd >= opts.min_depth) & (gd <= opts.ground_max) & ~nearer
+        depth[on_ground] = gd[on_ground]
+    from_model = ~supported & ~on_ground & (md > 0)
+    depth[from_model] = md[from_model]
+    beyond = depth > opts.max_depth                             # not trusted: far layer (or no cell)
+    supported &= ~beyond
+    on_ground &= ~beyond
+    from_model &= ~beyond
+    depth[(depth < opts.min_depth) & (depth > 0)] = -1          # the ego's own body: no cell, never far
+    far = np.zeros(depth.shape, bool)
+    if opts.far_depth > 0:
+        far = (depth == 0) | (depth > opts.max_depth)
+        depth[far] = sphere_depth(grid, opts.far_depth, rays)[far]
+    else:
+        depth[depth > opts.max_depth] = 0
+    depth[depth < 0] = 0
+    if ego_mask is not None:
+        small = cv2.resize(ego_mask.astype(np.uint8), (grid.width, grid.height), interpolation=cv2.INTER_NEAREST)
+        depth[small > 0] = 0
+    keep = edge_keep(depth, opts.edge_ratio)
+    opacity = np.where(supported | on_ground, opts.opacity, opts.model_opacity).astype(np.float64)
+    g = cell_gaussians(grid, colours, depth, opacity, keep, opts.footprint, opts.thickness,
+                       surface_stretch=opts.surface_stretch)
+    counts = {"lidar": int((keep & supported).sum()), "ground": int((keep & on_ground).sum()),
+              "model": int((keep & from_model).sum()), "far": int((keep & far).sum()),
+              "edge": int(((depth > 0) & ~keep).sum())}
+    return g, CameraDetail.build(grid, depth, keep, supported | on_ground, g.means), counts
+
+
+def read_ego_mask(path, cam: Camera) -> np.ndarray:
+    """[H, W] bool ego mask of ``cam`` from an image file (non-zero = the ego's own body); RigError naming the
+    camera when the size differs."""
+    from .rig import RigError, read_image
+
+    a = read_image(path, f"camera {cam.name!r}: ego_mask", channels=1, scale=False)
+    a = np.asarray(a)
+    if a.ndim == 3:
+        a = a[..., 0]
+    if a.shape != (cam.height, cam.width):
+        raise RigError(f"camera {cam.name!r}: ego_mask has shape {list(a.shape)}, but the rig declares "
+                       f"{cam.width}x{cam.height} (width x height)")
+    return a > 0
+
+
+__all__ = ["CameraDetail", "DetailError", "DetailOptions", "camera_detail", "cell_gaussians", "concat_gaussians",
+           "cull_covered", "cull_covered_reference", "densify", "edge_keep", "edge_keep_reference", "grid_camera",
+           "grid_colours", "lidar_grid_depth", "model_grid_depth", "read_ego_mask", "rotmat_to_quat",
+           "support_mask"]
