@@ -33,6 +33,7 @@ COMMANDS: tuple[Command, ...] = (
     Command("render", "xyzcyl.runtime.commands.render", "render a Gaussian PLY or a scene folder from a camera pose"),
     Command("lidar-eval", "xyzcyl.runtime.commands.lidar_eval",
             "depth of a reconstruction against a LiDAR sweep of the same timestamp (no torch)"),
+    Command("eval-real", "xyzcyl.runtime.commands.eval_real", "input / novel views of real rigs (no torch)"),
     Command("data", "xyzcyl.model_export.commands.data", "synthetic training data: synth, gallery", "train"),
     Command("train", "xyzcyl.model_export.commands.train", "train one stage (occ | render) of the network", "train"),
     Command("eval", "xyzcyl.model_export.commands.eval", "novel-view metrics of a model or a baseline", "train"),

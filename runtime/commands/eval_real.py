@@ -1,0 +1,353 @@
+"""`xyzcyl eval-real PATH --out DIR`: how a reconstruction of real camera images looks at full resolution
+(runtime/realeval.py has the metrics and the pair geometry).
+
+- PATH a folder of frames of one drive (sub-folders each with a rig.json carrying ``ego_to_world``): novel views.
+  Each pair (A, B): frame A reconstructed, rendered at the cameras of frame B, compared with B's images next to
+  "not moving" (A's own image of that camera). Pairs: ``--pairs A:B,...`` or every ordered pair whose ego origins
+  are --min-distance..--max-distance metres apart; ``--max-pairs K`` keeps K of them, evenly spread.
+- PATH a rig.json: input views (each camera rendered at its own pose against its image).
+
+Each frame A is reconstructed once per LiDAR mode (``--lidar off``: the depth head; ``on``: the rig's LiDAR sweep
+as the depth input) with all of its cameras; ``--cameras`` only picks the cameras that are rendered and compared.
+Writes report.json and a picture per pair and mode into --out, and prints one line per mode."""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import math
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+MODES = {"off": ("off",), "on": ("on",), "both": ("off", "on")}
+PICTURE_WIDTH = 480
+REPORT_FORMAT = "xyzcyl-eval-real"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("path", metavar="PATH",
+                        help="a folder of frames of one drive (sub-folders with a rig.json carrying ego_to_world): "
+                             "novel views; or one rig.json: input views")
+    parser.add_argument("--out", required=True, metavar="DIR",
+                        help="folder for report.json and the pictures (created; files in it are replaced)")
+    parser.add_argument("--pairs", default=None, metavar="A:B,...",
+                        help="frame pairs to evaluate (frame folder names: reconstruct A, render at B's cameras), "
+                             "e.g. frame_20:frame_34 (default: every ordered pair --min-distance..--max-distance "
+                             "apart)")
+    parser.add_argument("--min-distance", type=float, default=None, metavar="M",
+                        help="default pairs: ego origins at least M metres apart (default 0.8)")
+    parser.add_argument("--max-distance", type=float, default=None, metavar="M",
+                        help="default pairs: ego origins at most M metres apart (default 2.1)")
+    parser.add_argument("--max-pairs", type=int, default=None, metavar="K",
+                        help="keep K of the pairs, evenly spread over their sorted list (a quick run)")
+    parser.add_argument("--lidar", choices=tuple(MODES), default="both",
+                        help="reconstruct without LiDAR (off), with the rig's LiDAR sweep as the depth input (on), "
+                             "or both, side by side (default both)")
+    parser.add_argument("--cameras", default=None, metavar="A,B",
+                        help="evaluate these cameras only (names; default: all). Reconstruction uses every camera")
+    parser.add_argument("--model", default=None, metavar="DIR",
+                        help="model folder (default: $XYZCYL_MODEL, else the shipped models/xyzcyl-cpu-v1)")
+    detail = parser.add_mutually_exclusive_group()
+    detail.add_argument("--detail-stride", type=int, default=None, metavar="N",
+                        help="detail Gaussians every N input pixels (default: the runtime's default, 2)")
+    detail.add_argument("--no-detail", action="store_true", help="the model's Gaussians only (no detail layer)")
+    parser.add_argument("--threads", type=int, default=None,
+                        help="onnxruntime and renderer threads (default: all cores)")
+    parser.add_argument("--quiet", action="store_true", help="no progress lines")
+
+
+def _fail(msg: str) -> int:
+    print(f"xyzcyl eval-real: {msg}", file=sys.stderr)
+    return 2
+
+
+class _Usage(Exception):
+    """A user error found while planning; the message names the flag."""
+
+
+def _finite(x: Any) -> Any:
+    """JSON-safe: non-finite floats -> None (inf PSNR of identical images, NaN of a flat ground truth)."""
+    if isinstance(x, float) and not math.isfinite(x):
+        return None
+    if isinstance(x, dict):
+        return {k: _finite(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_finite(v) for v in x]
+    return x
+
+
+def spread(items: list, k: int | None) -> list:
+    """``k`` items evenly spread over ``items`` (the centre of each of k equal runs; all when k is None or >=
+    len)."""
+    n = len(items)
+    if k is None or k >= n:
+        return list(items)
+    return [items[(2 * i + 1) * n // (2 * k)] for i in range(k)]
+
+
+def parse_pairs(text: str, names: list[str]) -> list[tuple[str, str]]:
+    """``A:B,C:D`` -> [(A, B), (C, D)]; _Usage naming --pairs for a malformed item or an unknown frame."""
+    out, unknown = [], []
+    for item in text.split(","):
+        item = item.strip()
+        if not item:
+            continue
+        a, sep, b = item.partition(":")
+        a, b = a.strip(), b.strip()
+        if not sep or not a or not b:
+            raise _Usage(f"--pairs: {item!r} is not A:B (two frame folder names)")
+        if a == b:
+            raise _Usage(f"--pairs: {item!r} pairs a frame with itself")
+        unknown += [n for n in (a, b) if n not in names and n not in unknown]
+        out.append((a, b))
+    if unknown:
+        raise _Usage(f"--pairs: unknown frame(s) {', '.join(map(repr, unknown))} (frames: {', '.join(names)})")
+    if not out:
+        raise _Usage("--pairs: no pair given")
+    return list(dict.fromkeys(out))
+
+
+def _camera_names(text: str | None, known: list[str]) -> list[str] | None:
+    if text is None:
+        return None
+    names = list(dict.fromkeys(n.strip() for n in text.split(",") if n.strip()))
+    if not names:
+        raise _Usage("--cameras: no camera name given")
+    unknown = [n for n in names if n not in known]
+    if unknown:
+        raise _Usage(f"--cameras: unknown camera(s) {', '.join(map(repr, unknown))} (cameras: {', '.join(known)})")
+    return names
+
+
+def _subset(rig, names: list[str] | None):
+    """The rig with only the cameras ``names`` (all when None), in rig order."""
+    if names is None:
+        return rig
+    return dataclasses.replace(rig, cameras=tuple(c for c in rig.cameras if c.name in names))
+
+
+def _fmt(v: Any, digits: int) -> str:
+    if v is None or (isinstance(v, float) and math.isnan(v)):
+        return "-"
+    return "inf" if isinstance(v, float) and math.isinf(v) else f"{v:.{digits}f}"
+
+
+def format_table(summaries: dict[str, dict[str, Any]]) -> str:
+    """One line per LiDAR mode: views, PSNR render / not moving, SSIM both, sharpness both, PSNR gain."""
+    head = (f"{'lidar':<6} {'views':>5} {'PSNR render':>11} {'still':>6} {'SSIM render':>11} {'still':>6} "
+            f"{'sharp render':>12} {'still':>6} {'gain dB':>7}")
+    lines = [head, "-" * len(head)]
+    for mode, s in summaries.items():
+        lines.append(f"{mode:<6} {s['views']:>5} {_fmt(s.get('render_psnr'), 2):>11} {_fmt(s.get('still_psnr'), 2):>6} "
+                     f"{_fmt(s.get('render_ssim'), 3):>11} {_fmt(s.get('still_ssim'), 3):>6} "
+                     f"{_fmt(s.get('render_sharpness'), 3):>12} {_fmt(s.get('still_sharpness'), 3):>6} "
+                     f"{_fmt(s.get('gain_psnr'), 2):>7}")
+    return "\n".join(lines)
+
+
+def _write_jpeg(path: Path, rgb) -> None:
+    import cv2
+
+    if not cv2.imwrite(str(path), rgb[..., ::-1].copy(), [cv2.IMWRITE_JPEG_QUALITY, 90]):
+        raise OSError(f"could not write {str(path)!r}")
+
+
+def run(args: argparse.Namespace) -> int:
+    try:
+        return _run(args)
+    except _Usage as exc:
+        return _fail(str(exc))
+
+
+def _run(args: argparse.Namespace) -> int:
+    from .. import realeval
+    from ..detail import DetailError, DetailOptions
+    from ..inference import InferenceError, ModelError, Reconstructor, as_rgb, default_model_dir
+    from ..lidar import LidarError, has_lidar, load_lidar
+    from ..rig import RigError, load_rig
+    from ..scene import SceneError
+
+    t_start = time.perf_counter()
+    # ------------------------------------------------------------------ flags
+    if args.threads is not None and args.threads < 1:
+        raise _Usage(f"--threads: must be >= 1, got {args.threads}")
+    if args.max_pairs is not None and args.max_pairs < 1:
+        raise _Usage(f"--max-pairs: must be >= 1, got {args.max_pairs}")
+    lo = 0.8 if args.min_distance is None else args.min_distance
+    hi = 2.1 if args.max_distance is None else args.max_distance
+    if not (math.isfinite(lo) and lo >= 0):
+        raise _Usage(f"--min-distance: must be a finite number >= 0, got {lo}")
+    if not math.isfinite(hi):
+        raise _Usage(f"--max-distance: must be finite, got {hi}")
+    if hi < lo:
+        raise _Usage(f"--max-distance: {hi:g} is less than --min-distance {lo:g}")
+    if args.pairs is not None and (args.min_distance is not None or args.max_distance is not None):
+        raise _Usage("--pairs: names the pairs, so it takes no --min-distance / --max-distance")
+    if args.no_detail:
+        detail = None
+    else:
+        try:
+            detail = DetailOptions() if args.detail_stride is None else DetailOptions(stride=args.detail_stride)
+        except DetailError as exc:
+            raise _Usage(f"--detail-stride: must be an integer in 1..16, got {args.detail_stride}") from exc
+    modes = MODES[args.lidar]
+    out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        raise _Usage(f"--out: {str(out)!r} exists and is not a folder")
+    model_dir = Path(args.model) if args.model else default_model_dir()
+    if not model_dir.exists():
+        raise _Usage(f"--model: no model folder at {str(model_dir)!r}")
+    say = (lambda msg: None) if args.quiet else (lambda msg: print(f"  {msg}", file=sys.stderr, flush=True))
+
+    # ------------------------------------------------------------------ what to evaluate
+    path = Path(args.path)
+    if not path.exists():
+        raise _Usage(f"PATH: {str(path)!r} does not exist")
+    novel = path.is_dir()
+    try:
+        if novel:
+            if not any((p / "rig.json").is_file() for p in path.iterdir() if p.is_dir()) \
+                    and (path / "rig.json").is_file():
+                raise _Usage(f"PATH: {str(path)!r} holds one rig, not frame sub-folders; pass its rig.json for "
+                             "the input views")
+            try:
+                frames = realeval.load_frames(path)
+            except RigError as exc:
+                raise _Usage(f"PATH: {exc}") from None
+            by_name = {f.name: f for f in frames}
+            if args.pairs is not None:
+                pairs = [(by_name[a], by_name[b]) for a, b in parse_pairs(args.pairs, list(by_name))]
+            else:
+                pairs = realeval.pairs_within(frames, lo, hi)
+                if not pairs:
+                    d = [realeval.frame_distance(a, b) for a in frames for b in frames if a is not b]
+                    raise _Usage(f"--min-distance / --max-distance: no pair of frames is {lo:g}..{hi:g} m apart "
+                                 f"(the frames are {min(d):.2f}..{max(d):.2f} m apart)")
+            pairs = spread(pairs, args.max_pairs)
+            recon = list(dict.fromkeys(a.name for a, _ in pairs))           # frames to reconstruct, in order
+            known = list(dict.fromkeys(n for a, b in pairs for n in b.rig.names if n in a.rig.names))
+        else:
+            if args.pairs is not None or args.min_distance is not None or args.max_distance is not None \
+                    or args.max_pairs is not None:
+                raise _Usage("--pairs / --min-distance / --max-distance / --max-pairs: for a folder of frames "
+                             "(novel views); PATH is one rig")
+            rig = load_rig(path)
+            frames, pairs, recon = [], [], [path.parent.name or "rig"]
+            known = rig.names
+        cameras = _camera_names(args.cameras, known)
+        rigs = {f.name: f.rig for f in frames} if novel else {recon[0]: rig}
+        if "on" in modes:
+            missing = [n for n in recon if not has_lidar(rigs[n])]
+            if missing:
+                raise _Usage(f"--lidar {args.lidar}: rig of {', '.join(map(repr, missing))} has no LiDAR sweep "
+                             "(a lidar block with a file); use --lidar off")
+    except RigError as exc:
+        raise _Usage(f"PATH: {exc}") from None
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise _Usage(f"--out: {exc}") from None
+
+    if args.threads is not None:
+        import numba
+
+        numba.set_num_threads(min(args.threads, numba.config.NUMBA_NUM_THREADS))
+
+    # ------------------------------------------------------------------ reconstruct and evaluate
+    rows: list[dict[str, Any]] = []
+    pair_summaries: list[dict[str, Any]] = []
+    scenes: list[dict[str, Any]] = []
+    pictures: list[str] = []
+    try:
+        say(f"load model {model_dir}")
+        rec = Reconstructor.load(model_dir, threads=args.threads)
+
+        def rgb_images(r) -> list:
+            return [as_rgb(img, cam) for img, cam in zip(r.load_images(), r.cameras)]
+
+        for k, name in enumerate(recon, 1):
+            r = rigs[name]
+            say(f"[{k}/{len(recon)}] {name}: read {len(r)} images")
+            images = rgb_images(r)
+            mine = [(a, b) for a, b in pairs if a.name == name]
+            targets: dict[str, list] = {}    # frame B -> its images of the evaluated cameras (read once per A)
+            for mode in modes:
+                lidar, n_points = None, 0
+                if mode == "on":
+                    pts = load_lidar(r)
+                    lidar, n_points = pts.points, len(pts.points)
+                    say(f"{name}: {n_points} LiDAR points from {pts.source}")
+                say(f"{name}: reconstruct (lidar {mode})")
+                scene = rec.reconstruct(r, images=images, lidar=lidar, detail=detail, progress=say)
+                t0 = time.perf_counter()
+                if novel:
+                    for a, b in mine:
+                        sub = _subset(b.rig, cameras)
+                        if b.name not in targets:
+                            targets[b.name] = rgb_images(sub)
+                        bb = realeval.Frame(b.name, sub, b.pose)
+                        t1 = time.perf_counter()
+                        got, pics = realeval.evaluate_pair(scene, a, bb, images, targets[b.name], say=say)
+                        dist = realeval.frame_distance(a, b)
+                        rows += [{"lidar": mode, "a": a.name, "b": b.name, **g} for g in got]
+                        pair_summaries.append({"a": a.name, "b": b.name, "lidar": mode, "distance_m": dist,
+                                               "seconds": time.perf_counter() - t1, **realeval.summary(got)})
+                        if pics:
+                            pic = out / f"{a.name}_{b.name}_{mode}.jpg"
+                            _write_jpeg(pic, realeval.sheet(pics, ("ground truth", "render", "not moving"),
+                                                            PICTURE_WIDTH))
+                            pictures.append(pic.name)
+                            say(f"wrote {pic}")
+                else:
+                    idx = [i for i, c in enumerate(r.cameras) if cameras is None or c.name in cameras]
+                    view = dataclasses.replace(scene, rig=_subset(r, cameras))
+                    got, pics = realeval.evaluate_inputs(view, [images[i] for i in idx], say=say)
+                    rows += [{"lidar": mode, "frame": name, **g} for g in got]
+                    pic = out / f"inputs_{mode}.jpg"
+                    _write_jpeg(pic, realeval.sheet(pics, ("ground truth", "render"), PICTURE_WIDTH))
+                    pictures.append(pic.name)
+                    say(f"wrote {pic}")
+                scenes.append({"frame": name, "lidar": mode, "lidar_points": n_points, "counts": dict(scene.counts),
+                               "timings": dict(scene.timings), "evaluate_s": round(time.perf_counter() - t0, 3)})
+                del scene
+    except (ModelError, RigError, InferenceError, SceneError, LidarError) as exc:
+        return _fail(str(exc))
+    except OSError as exc:
+        return _fail(f"--out: {exc}")
+
+    summaries = {mode: realeval.summary([x for x in rows if x["lidar"] == mode]) for mode in modes}
+    report = {
+        "format": REPORT_FORMAT, "format_version": 1,
+        "kind": "novel_views" if novel else "input_views",
+        "path": str(path),
+        "settings": {
+            "model": {"name": rec.info.name, "version": rec.info.version, "dir": str(model_dir)},
+            "detail": None if detail is None else dataclasses.asdict(detail),
+            "lidar": args.lidar, "modes": list(modes), "cameras": cameras,
+            "min_distance": lo if novel and args.pairs is None else None,
+            "max_distance": hi if novel and args.pairs is None else None,
+            "max_pairs": args.max_pairs, "threads": args.threads,
+        },
+        "pairs": [{"a": a.name, "b": b.name, "distance_m": round(realeval.frame_distance(a, b), 4)}
+                  for a, b in pairs],
+        "summary": summaries,
+        "pair_summaries": pair_summaries,
+        "rows": rows,
+        "scenes": scenes,
+        "pictures": pictures,
+        "elapsed_s": round(time.perf_counter() - t_start, 3),
+    }
+    try:
+        (out / "report.json").write_text(json.dumps(_finite(report), indent=1, allow_nan=False) + "\n")
+    except OSError as exc:
+        return _fail(f"--out: {exc}")
+    say(f"wrote {out / 'report.json'}")
+    print(format_table(summaries))
+    rec_s = sum(s["timings"].get("total", 0.0) for s in scenes)
+    print(f"{len(scenes)} reconstruction(s) {rec_s:.1f} s, evaluation {sum(s['evaluate_s'] for s in scenes):.1f} s, "
+          f"total {report['elapsed_s']:.1f} s; model {rec.info.name} {rec.info.version}, "
+          f"detail {'off' if detail is None else f'stride {detail.stride}'}")
+    return 0
