@@ -4,9 +4,9 @@ not import httpx or numpy."""
 
 from __future__ import annotations
 
-_CLIENT_NAMES = ("AuthError", "BusyError", "Client", "ConnectionFailed", "FrameBatch", "InvalidRequestError",
-                 "NotFoundError", "NotReadyError", "SceneInfo", "ServerError", "StorageFullError", "WaitTimeout",
-                 "XyzcylError", "decode_image", "encode_png", "error_for", "view_params")
+_CLIENT_NAMES = ("AuthError", "BusyError", "Client", "ConnectionFailed", "FrameBatch", "InvalidArgumentError",
+                 "InvalidRequestError", "NotFoundError", "NotReadyError", "SceneInfo", "ServerError",
+                 "StorageFullError", "WaitTimeout", "XyzcylError", "decode_image", "encode_png", "error_for", "view_params")
 
 
 def __getattr__(name: str):

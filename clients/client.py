@@ -29,6 +29,7 @@ from __future__ import annotations
 import contextlib
 import email.utils
 import json
+import numbers
 import os
 import re
 import secrets
@@ -119,6 +120,11 @@ class InvalidRequestError(XyzcylError):
     client refused the input before sending it (``status`` None)."""
 
 
+class InvalidArgumentError(InvalidRequestError, ValueError):
+    """An argument value the client refuses before sending anything (``status`` None, ``field`` the argument): an
+    InvalidRequestError that is also a ValueError."""
+
+
 class BusyError(XyzcylError):
     """429 / 503: still busy after the client's retries."""
 
@@ -160,6 +166,22 @@ def error_for(status: int | None, code: str, message: str, field: str | None = N
 
 def _invalid(message: str, field: str | None) -> InvalidRequestError:
     return InvalidRequestError(None, "invalid", message, field)
+
+
+def _detail_params(detail_stride: int | None, detail: bool) -> dict[str, str]:
+    """The query parameters of POST /v1/scenes for the detail layer (none for the server's default)."""
+    if not isinstance(detail, bool):
+        raise InvalidArgumentError(None, "invalid", f"detail: must be True or False (got {detail!r:.60})", "detail")
+    if detail_stride is None:
+        return {} if detail else {"detail": "false"}
+    if not detail:
+        raise InvalidArgumentError(None, "invalid", "detail_stride: cannot be combined with detail=False (the detail "
+                                   "layer is off)", "detail_stride")
+    if (isinstance(detail_stride, bool) or not isinstance(detail_stride, numbers.Integral)
+            or not 1 <= detail_stride <= 16):
+        raise InvalidArgumentError(None, "invalid", f"detail_stride: must be an integer in 1..16 (got "
+                                   f"{detail_stride!r:.60})", "detail_stride")
+    return {"detail_stride": str(int(detail_stride))}
 
 
 def _retry_after(resp: httpx.Response) -> float | None:
@@ -218,13 +240,14 @@ class SceneInfo:
     bbox: dict[str, list[float]] | None = None  # {"min": [x, y, z], "max": [x, y, z]}, ego frame, metres
     timings: dict[str, float] | None = None    # seconds per stage
     bytes: int | None = None                   # the scene folder's size in the store
+    detail: dict[str, Any] | None = None       # {"enabled", "stride"}: the detail layer asked for (None: older server)
     links: dict[str, str] = field(default_factory=dict)
     raw: dict[str, Any] = field(default_factory=dict, repr=False, compare=False)
 
     @classmethod
     def from_json(cls, d: Mapping[str, Any]) -> SceneInfo:
         known = {k: d.get(k) for k in ("created", "updated", "error", "model", "counts", "gaussians", "background",
-                                       "bbox", "timings", "bytes")}
+                                       "bbox", "timings", "bytes", "detail")}
         return cls(id=str(d["id"]), state=str(d["state"]), cameras=tuple(d.get("cameras") or ()),
                    links=dict(d.get("links") or {}), raw=dict(d), **known)
 
@@ -843,7 +866,8 @@ class Client:
     # -- scenes -----------------------------------------------------------------------------------------------
 
     def reconstruct(self, rig: Any, images: Any = None, depths: Any = None, wait: bool = True,
-                    timeout: float = 600.0, progress: Progress | None = None, lidar: Any = None) -> SceneInfo:
+                    timeout: float = 600.0, progress: Progress | None = None, lidar: Any = None,
+                    detail_stride: int | None = None, detail: bool = True) -> SceneInfo:
         """POST /v1/scenes: upload a rig and its images; returns the scene.
 
         rig: a rig.json path, an xyzcyl.runtime.rig.Rig, or the rig's JSON as a dict.
@@ -859,7 +883,11 @@ class Client:
         wait: hold the request with ?wait= then poll GET /v1/scenes/{id} until the scene is ready (returned) or
         failed (raised: InvalidRequestError for invalid_input, StorageFullError, ServerError for worker_crashed /
         timeout / interrupted), or ``timeout`` seconds pass (WaitTimeout). wait=False returns the queued scene.
-        progress(sent bytes, total bytes) follows the upload."""
+        progress(sent bytes, total bytes) follows the upload.
+        detail_stride: the detail layer's stride, 1..16 input pixels per detail Gaussian along each axis (None = the
+        server's default, 2); detail=False: no detail layer (the model's Gaussians only; no detail_stride then).
+        Bad values raise InvalidArgumentError (a ValueError) naming the argument, before anything is sent."""
+        query = _detail_params(detail_stride, detail)
         doc, root = _rig_document(rig)
         names = [c["name"] for c in doc["cameras"]]
         imgs = _by_camera(images, names, "images")
@@ -883,10 +911,11 @@ class Client:
         if lidar_part is not None:
             parts.append(lidar_part)
         body = _Multipart(parts)
-        params = {"wait": f"{min(max(timeout, 0.0), _MAX_WAIT_QUERY):g}"} if wait else None
+        params = {"wait": f"{min(max(timeout, 0.0), _MAX_WAIT_QUERY):g}"} if wait else {}
         t0 = _monotonic()
-        held = float(params["wait"]) if params else 0.0
-        resp = self._send("POST", "/v1/scenes", params=params, content=lambda: body.stream(progress),
+        held = float(params["wait"]) if wait else 0.0
+        params |= query
+        resp = self._send("POST", "/v1/scenes", params=params or None, content=lambda: body.stream(progress),
                           headers=body.headers, idempotent=False,
                           timeout=httpx.Timeout(self.timeout, read=self.timeout + held))
         info = SceneInfo.from_json(resp.json())
@@ -1037,6 +1066,6 @@ def _seg(scene_id: str) -> str:
     return quote(str(scene_id), safe="")
 
 
-__all__ = ["AuthError", "BusyError", "Client", "ConnectionFailed", "FrameBatch", "InvalidRequestError",
-           "NotFoundError", "NotReadyError", "SceneInfo", "ServerError", "StorageFullError", "WaitTimeout",
-           "XyzcylError", "decode_image", "encode_png", "error_for", "view_params"]
+__all__ = ["AuthError", "BusyError", "Client", "ConnectionFailed", "FrameBatch", "InvalidArgumentError",
+           "InvalidRequestError", "NotFoundError", "NotReadyError", "SceneInfo", "ServerError", "StorageFullError",
+           "WaitTimeout", "XyzcylError", "decode_image", "encode_png", "error_for", "view_params"]

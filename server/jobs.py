@@ -80,25 +80,30 @@ def _worker_ping() -> int:
     return os.getpid()
 
 
-def _worker_reconstruct(rig_json: str, out_dir: str) -> tuple[str, Any]:
-    """("ok", scene metadata) | ("invalid", message) | ("storage_full", message) | ("error", message)."""
+def _worker_reconstruct(rig_json: str, out_dir: str, detail_stride: int | None) -> tuple[str, Any]:
+    """("ok", scene metadata) | ("invalid", message) | ("storage_full", message) | ("error", message).
+    detail_stride: the detail layer's stride (the runtime's other detail settings stay at their defaults), None for
+    no detail layer."""
     import errno
+    from dataclasses import replace
 
-    from xyzcyl.runtime.inference import InferenceError
+    from xyzcyl.runtime.detail import DetailError
+    from xyzcyl.runtime.inference import DEFAULT_DETAIL, InferenceError
     from xyzcyl.runtime.lidar import LidarError, has_lidar, load_lidar
     from xyzcyl.runtime.rig import RigError, load_rig
     from xyzcyl.runtime.scene import SceneError
 
     try:
+        detail = None if detail_stride is None else replace(DEFAULT_DETAIL, stride=detail_stride)
         rig = load_rig(rig_json)
         lidar = load_lidar(rig).points if has_lidar(rig) else None
-        scene = _RECONSTRUCTOR.reconstruct(rig, lidar=lidar)
+        scene = _RECONSTRUCTOR.reconstruct(rig, lidar=lidar, detail=detail)
         scene.save(out_dir)
         meta = scene.to_json()
         return "ok", {k: meta[k] for k in ("model", "counts", "timings", "bbox", "lifting_cached")} | {
             "gaussians": meta["gaussians"]["count"], "background": meta["background"] is not None,
             "pid": os.getpid()}
-    except (RigError, InferenceError, SceneError, LidarError) as e:
+    except (RigError, InferenceError, SceneError, LidarError, DetailError) as e:
         return "invalid", str(e)
     except OSError as e:
         if e.errno in (errno.ENOSPC, errno.EDQUOT):
@@ -117,6 +122,7 @@ def _worker_reconstruct(rig_json: str, out_dir: str) -> tuple[str, Any]:
 class Job:
     sid: str
     work: Path                         # upload folder: rig.json + images (removed when the job ends)
+    detail_stride: int | None          # the detail layer's stride (POST ?detail_stride=), None: no detail layer
     submitted: float = field(default_factory=time.perf_counter)
     done: asyncio.Event = field(default_factory=asyncio.Event)
 
@@ -246,7 +252,8 @@ class Reconstructions:
             return                      # deleted while queued
         out = job.work / "scene"
         t0 = time.perf_counter()
-        fut = loop.run_in_executor(worker.pool, _worker_reconstruct, str(job.work / "rig.json"), str(out))
+        fut = loop.run_in_executor(worker.pool, _worker_reconstruct, str(job.work / "rig.json"), str(out),
+                                   job.detail_stride)
         try:
             status, value = await asyncio.wait_for(fut, self.settings.reconstruct_timeout_s)
         except TimeoutError:

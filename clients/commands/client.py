@@ -1,6 +1,6 @@
 """`xyzcyl client ACTION ...`: drive a running `xyzcyl serve` over HTTP (clients/client.py; docs/client.md).
 
-    xyzcyl client reconstruct RIG_JSON [--wait [S]] [--json]
+    xyzcyl client reconstruct RIG_JSON [--wait [S]] [--detail-stride N | --no-detail] [--json]
     xyzcyl client render SCENE_ID (--camera NAME | --K FX FY CX CY --cam-to-world M*16 | --cam-to-world M*16 --fov F
                          | --carla X Y Z PITCH YAW ROLL --fov F) [--width W --height H] --out FILE
                          [--output rgb|depth|alpha] [--quality Q]
@@ -57,6 +57,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     p.add_argument("--no-depth", action="store_true", help="do not upload the depth files the rig names")
     p.add_argument("--no-lidar", action="store_true", help="do not upload the LiDAR file the rig's lidar block names "
                    "(the server then uses the depth head alone)")
+    p.add_argument("--detail-stride", type=int, default=None, metavar="N",
+                   help="detail layer: one Gaussian per N x N block of each input camera's pixels, 1..16 (default: "
+                        "the server's, 2)")
+    p.add_argument("--no-detail", action="store_true", help="no detail layer (the model's Gaussians only)")
     p.add_argument("--json", action="store_true", help="print the scene JSON instead of its id")
 
     p = sub.add_parser("render", parents=[common], help="render one view to a file (png, jpg or exr)",
@@ -154,12 +158,19 @@ def _out_file(value: str, what: str = "--out") -> Path:
 def _summary(info) -> str:
     total = (info.timings or {}).get("total")
     took = f" in {total:.1f} s" if total is not None else ""
-    return f"scene {info.id} {info.state}: {info.gaussians or 0} Gaussians, {len(info.cameras)} cameras{took}"
+    n_detail = (info.counts or {}).get("detail")
+    stride = (info.detail or {}).get("stride")
+    detail = "" if n_detail is None else f" ({n_detail} detail" + (f", stride {stride})" if stride else ")")
+    return f"scene {info.id} {info.state}: {info.gaussians or 0} Gaussians{detail}, {len(info.cameras)} cameras{took}"
 
 
 # ----------------------------------------------------------------------------------------------- actions
 
 def _reconstruct(c, args) -> int:
+    if args.no_detail and args.detail_stride is not None:
+        raise _UsageError("--no-detail", "cannot be combined with --detail-stride")
+    if args.detail_stride is not None and not 1 <= args.detail_stride <= 16:
+        raise _UsageError("--detail-stride", f"must be an integer in 1..16, got {args.detail_stride}")
     depths = {} if args.no_depth else None
     update, close = _bar(args, None, "B", "upload")
     try:
@@ -173,7 +184,8 @@ def _reconstruct(c, args) -> int:
         else:
             progress = update
         info = c.reconstruct(args.rig, depths=depths, wait=wait, timeout=args.wait or 600.0, progress=progress,
-                             lidar=False if args.no_lidar else None)
+                             lidar=False if args.no_lidar else None, detail_stride=args.detail_stride,
+                             detail=not args.no_detail)
     finally:
         close()
     _say(args, _summary(info) if info.ready else f"scene {info.id} {info.state}; `xyzcyl client scene {info.id} "

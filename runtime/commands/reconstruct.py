@@ -28,6 +28,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--lidar-columns", type=int, default=None, metavar="C",
                         help="columns of a .bin LiDAR file (default: the rig's lidar.columns, else 5 for *.pcd.bin, "
                              "4 otherwise)")
+    parser.add_argument("--detail-stride", type=int, default=None, metavar="N",
+                        help="detail layer: one pixel-aligned Gaussian per N x N block of each input camera's "
+                             "pixels, 1..16 (default: the runtime's default, 2; docs/inference.md, \"Detail "
+                             "Gaussians\"). Smaller = sharper renders, more Gaussians, slower")
+    parser.add_argument("--no-detail", action="store_true",
+                        help="no detail layer: the model's Gaussians only (the cylinder's resolution)")
     parser.add_argument("--force", action="store_true", help="replace an existing SCENE_DIR")
     parser.add_argument("--quiet", action="store_true", help="no progress lines")
 
@@ -35,6 +41,25 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def _fail(msg: str) -> int:
     print(f"xyzcyl reconstruct: {msg}", file=sys.stderr)
     return 2
+
+
+def _detail_options(args: argparse.Namespace):
+    """The DetailOptions the flags ask for (None: --no-detail), or the usage error (a str naming the flag)."""
+    from dataclasses import replace
+
+    from ..detail import DetailError
+    from ..inference import DEFAULT_DETAIL
+
+    if args.no_detail:
+        if args.detail_stride is not None:
+            return "--no-detail: cannot be combined with --detail-stride"
+        return None
+    if args.detail_stride is None:
+        return DEFAULT_DETAIL
+    try:
+        return replace(DEFAULT_DETAIL, stride=args.detail_stride)
+    except DetailError:
+        return f"--detail-stride: must be an integer in 1..16, got {args.detail_stride}"
 
 
 def run(args: argparse.Namespace) -> int:
@@ -47,6 +72,9 @@ def run(args: argparse.Namespace) -> int:
         return _fail(f"--threads: must be >= 1, got {args.threads}")
     if args.no_lidar and (args.lidar_file is not None or args.lidar_columns is not None):
         return _fail("--no-lidar: cannot be combined with --lidar-file / --lidar-columns")
+    detail = _detail_options(args)
+    if isinstance(detail, str):
+        return _fail(detail)
     out = Path(args.out)
     if out.exists() and not args.force:
         return _fail(f"--out: {str(out)!r} exists (pass --force to replace it)")
@@ -75,7 +103,7 @@ def run(args: argparse.Namespace) -> int:
             say(f"{len(pts.points)} LiDAR points from {pts.source}"
                 + (f" ({pts.nonfinite} with a non-finite coordinate left out)" if pts.nonfinite else ""))
             lidar = pts.points
-        scene = rec.reconstruct(rig, depths=depths, progress=say, lidar=lidar)
+        scene = rec.reconstruct(rig, depths=depths, progress=say, lidar=lidar, detail=detail)
         say(f"write {out}")
         t1 = time.perf_counter()
         scene.save(out, overwrite=True)
@@ -85,8 +113,11 @@ def run(args: argparse.Namespace) -> int:
     except OSError as exc:
         return _fail(f"--out: {exc}")
     c, t = scene.counts, scene.timings
-    print(f"{out}: {c['total']} Gaussians ({c['volume']} volume from {c['voxels']} voxels, {c['pixel']} pixel, "
-          f"{c['pruned']} invisible pruned), model {rec.info.name} {rec.info.version}")
+    layers = f"{c['volume']} volume from {c['voxels']} voxels, {c['pixel']} pixel, {c['pruned']} invisible pruned"
+    if detail is not None and "detail" in c:
+        layers += (f", {c['detail']} detail (stride {detail.stride}), {c.get('culled', 0)} model Gaussians culled "
+                   "under detail")
+    print(f"{out}: {c['total']} Gaussians ({layers}), model {rec.info.name} {rec.info.version}")
     stages = ", ".join(f"{k} {v * 1000:.0f} ms" for k, v in t.items() if k != "total")
     print(f"reconstruct {t['total']:.2f} s ({stages}); model load {t_load:.2f} s, save {t_save:.2f} s")
     return 0

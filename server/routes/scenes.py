@@ -14,6 +14,7 @@ from fastapi.responses import JSONResponse, Response, StreamingResponse
 from pydantic import BaseModel, Field
 from starlette.datastructures import UploadFile
 from starlette.exceptions import HTTPException as StarletteHTTPException
+from xyzcyl.runtime.inference import DEFAULT_DETAIL
 from xyzcyl.runtime.rig import Rig, RigError, image_size, save_rig
 
 from ..app import Service, service_of
@@ -50,6 +51,11 @@ class CameraInfo(BaseModel):
     model: str
 
 
+class DetailInfo(BaseModel):
+    enabled: bool = Field(description="whether the detail layer was asked for (POST ?detail=)")
+    stride: int | None = Field(None, description="input pixels per detail Gaussian along each axis (null when off)")
+
+
 class SceneInfo(BaseModel):
     id: str = Field(examples=["q3R1x9Z2bC7dE5fG8hJ0kA"])
     state: Literal["queued", "running", "ready", "failed"]
@@ -57,6 +63,7 @@ class SceneInfo(BaseModel):
     updated: str
     error: ErrorDetail | None = None
     cameras: list[CameraInfo]
+    detail: DetailInfo | None = None
     model: dict[str, Any] | None = None
     counts: dict[str, int] | None = None
     gaussians: int | None = None
@@ -93,9 +100,9 @@ def scene_info(rec: dict[str, Any]) -> dict[str, Any]:
     err = rec.get("error")
     return {"id": sid, "state": rec["state"], "created": _iso(rec.get("created_ts")),
             "updated": _iso(rec.get("updated_ts")), "error": err, "cameras": rec.get("cameras", []),
-            "model": rec.get("model"), "counts": rec.get("counts"), "gaussians": rec.get("gaussians"),
-            "background": rec.get("background"), "bbox": rec.get("bbox"), "timings": rec.get("timings"),
-            "bytes": rec.get("bytes"), "links": links}
+            "detail": rec.get("detail"), "model": rec.get("model"), "counts": rec.get("counts"),
+            "gaussians": rec.get("gaussians"), "background": rec.get("background"), "bbox": rec.get("bbox"),
+            "timings": rec.get("timings"), "bytes": rec.get("bytes"), "links": links}
 
 
 async def get_record(service: Service, sid: str) -> dict[str, Any]:
@@ -263,6 +270,20 @@ def _ingest(form, service: Service, work: Path) -> Rig:
     return out
 
 
+def _detail_stride(request: Request, detail: bool, detail_stride: int | None) -> int | None:
+    """The detail layer's stride for the job (None: off), from POST /v1/scenes' query (types and range checked by
+    FastAPI)."""
+    for name in ("detail", "detail_stride"):
+        if len(request.query_params.getlist(name)) > 1:
+            raise Invalid(f"{name}: given more than once", name)
+    if not detail:
+        if detail_stride is not None:
+            raise Invalid("detail_stride: cannot be combined with detail=false (the detail layer is off)",
+                          "detail_stride")
+        return None
+    return DEFAULT_DETAIL.stride if detail_stride is None else detail_stride
+
+
 @router.post("/scenes", status_code=202, response_model=SceneInfo, summary="reconstruct a rig",
              responses={201: {"model": SceneInfo, "description": "ready (with ?wait)"}, **ERRORS},
              openapi_extra={"requestBody": {"required": True, "content": {"multipart/form-data": {"schema": {
@@ -275,8 +296,15 @@ def _ingest(form, service: Service, work: Path) -> Rig:
                                                          "part (a LiDAR sweep: .npy or float32 .bin)"}}}}}})
 async def create_scene(request: Request,
                        wait: float | None = Query(None, ge=0, le=3600,
-                                                  description="hold up to this many seconds for the result")):
+                                                  description="hold up to this many seconds for the result"),
+                       detail_stride: int | None = Query(None, ge=1, le=16,
+                                                         description="detail layer: input pixels per detail "
+                                                                     "Gaussian along each axis (default "
+                                                                     f"{DEFAULT_DETAIL.stride})"),
+                       detail: bool = Query(True, description="false: no detail layer (the model's Gaussians "
+                                                              "only)")):
     s = service_of(request)
+    stride = _detail_stride(request, detail, detail_stride)
     ctype = request.headers.get("content-type", "")
     if not ctype.lower().startswith("multipart/form-data"):
         raise UnsupportedMedia(f"POST /v1/scenes takes multipart/form-data, not {ctype or 'no content type'!r}",
@@ -300,10 +328,11 @@ async def create_scene(request: Request,
         sid = new_scene_id()
         cameras = [{"name": c.name, "width": c.width, "height": c.height, "model": c.model} for c in rig.cameras]
         try:
-            await asyncio.to_thread(s.store.create, sid, {"cameras": cameras})
+            await asyncio.to_thread(s.store.create, sid, {"cameras": cameras, "detail": {
+                "enabled": stride is not None, "stride": stride}})
         except StoreFull as e:
             raise StorageFull(str(e)) from None
-        job = Job(sid=sid, work=work)
+        job = Job(sid=sid, work=work, detail_stride=stride)
         try:
             s.reconstructions.submit(job)
         except Busy:

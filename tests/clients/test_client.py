@@ -20,6 +20,7 @@ from xyzcyl.clients import (
     BusyError,
     Client,
     ConnectionFailed,
+    InvalidArgumentError,
     InvalidRequestError,
     NotFoundError,
     NotReadyError,
@@ -262,6 +263,15 @@ def test_client_side_refusals_name_the_field(client, tmp_path):
     assert e.value.field == "camera.fov"
 
 
+def test_reconstruct_without_the_detail_layer(client, scene):
+    """detail=False reaches the server: no detail Gaussians, and the scene says so (the default scene has them)."""
+    assert scene.detail == {"enabled": True, "stride": 2} and scene.counts["detail"] > 0
+    off = client.reconstruct(RIG, detail=False)
+    assert off.ready and off.detail == {"enabled": False, "stride": None} and "detail" not in off.counts
+    assert off.gaussians < scene.gaussians
+    client.delete(off.id)
+
+
 # ----------------------------------------------------------------------------------------------- mocked transport
 
 def _mock(handler, **kw) -> Client:
@@ -282,6 +292,38 @@ def sleeps(monkeypatch):
     slept: list[float] = []
     monkeypatch.setattr(cmod, "_sleep", slept.append)
     return slept
+
+
+def test_reconstruct_sends_the_detail_query(sleeps):
+    seen = []
+
+    def handler(request):
+        seen.append(dict(request.url.params))
+        return httpx.Response(202, json={**SCENE_JSON, "state": "queued", "detail": {"enabled": True, "stride": 4}})
+
+    c = _mock(handler)
+    assert c.reconstruct(RIG, wait=False).state == "queued"
+    assert c.reconstruct(RIG, wait=False, detail_stride=4).detail == {"enabled": True, "stride": 4}
+    c.reconstruct(RIG, wait=False, detail=False)
+    c.reconstruct(RIG, wait=False, detail_stride=np.int64(16), detail=True)
+    assert seen == [{}, {"detail_stride": "4"}, {"detail": "false"}, {"detail_stride": "16"}]
+
+
+@pytest.mark.parametrize("kw,field_name", [
+    ({"detail_stride": 0}, "detail_stride"), ({"detail_stride": 17}, "detail_stride"),
+    ({"detail_stride": 2.0}, "detail_stride"), ({"detail_stride": "4"}, "detail_stride"),
+    ({"detail_stride": True}, "detail_stride"), ({"detail": "no"}, "detail"),
+    ({"detail_stride": 4, "detail": False}, "detail_stride")])
+def test_bad_detail_arguments_are_refused_before_sending(kw, field_name):
+    def handler(request):
+        raise AssertionError("nothing may be sent")
+
+    with pytest.raises(ValueError) as e:
+        _mock(handler).reconstruct(RIG, **kw)
+    assert isinstance(e.value, InvalidArgumentError) and isinstance(e.value, InvalidRequestError)
+    assert e.value.status is None and e.value.field == field_name and str(e.value).startswith(f"{field_name}: ")
+    if len(kw) == 2:
+        assert "detail=False" in str(e.value)
 
 
 def test_retries_429_and_503_honouring_retry_after(sleeps):

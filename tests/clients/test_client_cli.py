@@ -133,6 +133,37 @@ def test_cli_reconstruct_render_gaussians_path(server, tmp_path, capsys, monkeyp
     assert rc == 2 and "[404 not_found]" in err
 
 
+@pytest.mark.parametrize("flags,named", [(["--detail-stride", "0"], ["--detail-stride", "1..16"]),
+                                         (["--detail-stride", "17"], ["--detail-stride", "1..16"]),
+                                         (["--no-detail", "--detail-stride", "4"], ["--no-detail", "--detail-stride"])])
+def test_client_reconstruct_detail_flags_refused_before_connecting(flags, named, capsys):
+    """Port 9 (discard) is not listening: a request would answer with a connection error, not with the flag."""
+    rc, out, err = xyzcyl("client", "reconstruct", str(EXAMPLE / "rig.json"), "--server", "http://127.0.0.1:9",
+                          *flags, capsys=capsys)
+    assert rc == 2 and out == "" and len(err.strip().splitlines()) == 1, err
+    assert err.startswith("xyzcyl client: ") and all(n in err for n in named) and "connection" not in err, err
+
+
+def test_client_reconstruct_passes_the_detail_flags(monkeypatch, capsys):
+    from xyzcyl.clients.client import Client, SceneInfo
+
+    calls = []
+
+    def fake(self, rig, **kw):
+        calls.append(kw)
+        stride = kw["detail_stride"] if kw["detail"] else None
+        return SceneInfo.from_json({"id": "s" * 22, "state": "ready", "gaussians": 10, "counts": {"detail": 7},
+                                    "detail": {"enabled": kw["detail"], "stride": stride}, "timings": {"total": 1.0}})
+
+    monkeypatch.setattr(Client, "reconstruct", fake)
+    rig = str(EXAMPLE / "rig.json")
+    rc, out, err = xyzcyl("client", "reconstruct", rig, "--detail-stride", "4", "--wait", capsys=capsys)
+    assert rc == 0 and out.strip() == "s" * 22 and "10 Gaussians (7 detail, stride 4)" in err, err
+    assert xyzcyl("client", "reconstruct", rig, "--no-detail", capsys=capsys)[0] == 0
+    assert xyzcyl("client", "reconstruct", rig, capsys=capsys)[0] == 0
+    assert [(k["detail_stride"], k["detail"]) for k in calls] == [(4, True), (None, False), (None, True)]
+
+
 def _example(name: str):
     import importlib.util
 

@@ -8,7 +8,7 @@ import shutil
 
 import numpy as np
 import pytest
-from conftest import EXAMPLE_RIG
+from conftest import EXAMPLE_RIG, REPO
 from xyzcyl.clients import cli
 
 pytestmark = pytest.mark.slow   # the session's ONNX export (tests/export/conftest.py)
@@ -166,3 +166,38 @@ def test_reconstruct_uses_the_rigs_lidar_and_lidar_eval_holdout(tiny_export, rig
     assert cli.main(["lidar-eval", str(rig_copy / "rig.json"), "--scene", str(tmp_path / "a"), "--holdout", "0.5",
                      "--quiet"]) == 2
     assert "--holdout" in _err(capsys)[-1]
+
+
+SHIPPED_MODEL = REPO / "models" / "xyzcyl-cpu-v1"
+
+
+@pytest.mark.parametrize("flags,named", [
+    (["--detail-stride", "0"], ["--detail-stride", "1..16"]),
+    (["--detail-stride", "17"], ["--detail-stride", "1..16"]),
+    (["--no-detail", "--detail-stride", "4"], ["--no-detail", "--detail-stride"]),
+])
+def test_detail_flags_are_checked_before_the_model_loads(tmp_path, capsys, flags, named):
+    """A bad detail flag exits 2 naming it, before anything else is looked at (here the --model folder is absent:
+    its error would come next)."""
+    rc = cli.main(["reconstruct", str(EXAMPLE_RIG), "--out", str(tmp_path / "s"), "--model", str(tmp_path / "none"),
+                   *flags])
+    err = _err(capsys)
+    assert rc == 2 and len(err) == 1 and all(n in err[0] for n in named) and "--model" not in err[0], err
+    assert not (tmp_path / "s").exists()
+
+
+@pytest.mark.skipif(not (SHIPPED_MODEL / "model.json").is_file(), reason="no shipped model in models/ yet")
+def test_detail_stride_and_no_detail_reach_the_reconstruction(tmp_path, capsys):
+    """--detail-stride N: the detail layer at that stride (at most one Gaussian per N x N block of each 800x450
+    camera), named in the summary line and in scene.json's counts; --no-detail: the model's Gaussians only."""
+    base = ["reconstruct", str(EXAMPLE_RIG), "--model", str(SHIPPED_MODEL), "--threads", "1", "--quiet"]
+    capsys.readouterr()
+    assert cli.main([*base, "--out", str(tmp_path / "d8"), "--detail-stride", "8"]) == 0
+    line = capsys.readouterr().out.splitlines()[0].split(": ", 1)[1]     # after the folder's name
+    c = json.loads((tmp_path / "d8" / "scene.json").read_text())["counts"]
+    assert 0 < c["detail"] <= 6 * 100 * 57 and c["total"] == c["coarse"] + c["detail"], c
+    assert f"{c['detail']} detail (stride 8)" in line and f"{c['culled']} model Gaussians culled" in line, line
+    assert cli.main([*base, "--out", str(tmp_path / "off"), "--no-detail"]) == 0
+    line = capsys.readouterr().out.splitlines()[0].split(": ", 1)[1]
+    c = json.loads((tmp_path / "off" / "scene.json").read_text())["counts"]
+    assert not {"detail", "culled", "coarse"} & set(c) and "detail" not in line, (c, line)

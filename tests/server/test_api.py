@@ -425,6 +425,51 @@ def test_post_with_a_lidar_part(client, env):
         assert client.delete(f"/v1/scenes/{sid}").status_code == 204
 
 
+DETAIL_QUERY_ERRORS = {
+    "stride 0": ("detail_stride=0", "detail_stride"),
+    "stride 17": ("detail_stride=17", "detail_stride"),
+    "stride not an integer": ("detail_stride=2.5", "detail_stride"),
+    "stride empty": ("detail_stride=", "detail_stride"),
+    "stride twice": ("detail_stride=4&detail_stride=8", "detail_stride"),
+    "detail not a boolean": ("detail=maybe", "detail"),
+    "detail=false with a stride": ("detail=false&detail_stride=4", "detail_stride"),
+}
+
+
+@pytest.mark.parametrize("case", list(DETAIL_QUERY_ERRORS))
+def test_post_bad_detail_query_is_422(client, env, case):
+    query, field_name = DETAIL_QUERY_ERRORS[case]
+    before = records(env)
+    e = err(client.post(f"/v1/scenes?wait=5&{query}", files=rig_files()), 422, field_name, "invalid")
+    assert e["message"].startswith(f"{field_name}: ")
+    if case == "detail=false with a stride":
+        assert "detail=false" in e["message"]
+    assert records(env) == before and tmp_left(env) == []
+
+
+def test_post_detail_stride_and_detail_false(client, env):
+    """?detail_stride=8: at most one detail Gaussian per 8x8 block of each 800x450 camera; ?detail=false: the
+    model's Gaussians only; the default is the runtime's stride (2). The choice is in the scene's metadata."""
+    from xyzcyl.runtime.inference import DEFAULT_DETAIL
+
+    plain = env.created.json()
+    assert plain["detail"] == {"enabled": True, "stride": DEFAULT_DETAIL.stride}
+    assert plain["counts"]["detail"] > 0 and plain["timings"]["detail"] > 0
+    r = client.post("/v1/scenes?wait=60&detail_stride=8", files=rig_files())
+    assert r.status_code == 201, r.text
+    s8 = r.json()
+    c = s8["counts"]
+    assert s8["detail"] == {"enabled": True, "stride": 8} and client.get(f"/v1/scenes/{s8['id']}").json() == s8
+    assert 0 < c["detail"] <= 6 * 100 * 57 < plain["counts"]["detail"] and c["total"] == c["coarse"] + c["detail"]
+    r = client.post("/v1/scenes?wait=60&detail=false", files=rig_files())
+    assert r.status_code == 201, r.text
+    off = r.json()
+    assert off["detail"] == {"enabled": False, "stride": None}
+    assert not {"detail", "coarse", "culled"} & set(off["counts"]) and "detail" not in off["timings"]
+    for sid in (s8["id"], off["id"]):
+        assert client.delete(f"/v1/scenes/{sid}").status_code == 204
+
+
 def test_post_store_full_is_507(client, env, monkeypatch):
     store = env.service.store
     monkeypatch.setattr(store, "when_full", "reject")
