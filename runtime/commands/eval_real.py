@@ -22,6 +22,8 @@ import time
 from pathlib import Path
 from typing import Any
 
+from .detail_flags import add_detail_arguments, detail_options
+
 MODES = {"off": ("off",), "on": ("on",), "both": ("off", "on")}
 PICTURE_WIDTH = 480
 REPORT_FORMAT = "xyzcyl-eval-real"
@@ -50,10 +52,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="evaluate these cameras only (names; default: all). Reconstruction uses every camera")
     parser.add_argument("--model", default=None, metavar="DIR",
                         help="model folder (default: $XYZCYL_MODEL, else the shipped models/xyzcyl-cpu-v1)")
-    detail = parser.add_mutually_exclusive_group()
-    detail.add_argument("--detail-stride", type=int, default=None, metavar="N",
-                        help="detail Gaussians every N input pixels (default: the runtime's default, 2)")
-    detail.add_argument("--no-detail", action="store_true", help="the model's Gaussians only (no detail layer)")
+    add_detail_arguments(parser)
     parser.add_argument("--threads", type=int, default=None,
                         help="onnxruntime and renderer threads (default: all cores)")
     parser.add_argument("--quiet", action="store_true", help="no progress lines")
@@ -164,7 +163,6 @@ def run(args: argparse.Namespace) -> int:
 
 def _run(args: argparse.Namespace) -> int:
     from .. import realeval
-    from ..detail import DetailError, DetailOptions
     from ..inference import InferenceError, ModelError, Reconstructor, as_rgb, default_model_dir
     from ..lidar import LidarError, has_lidar, load_lidar
     from ..rig import RigError, load_rig
@@ -186,13 +184,9 @@ def _run(args: argparse.Namespace) -> int:
         raise _Usage(f"--max-distance: {hi:g} is less than --min-distance {lo:g}")
     if args.pairs is not None and (args.min_distance is not None or args.max_distance is not None):
         raise _Usage("--pairs: names the pairs, so it takes no --min-distance / --max-distance")
-    if args.no_detail:
-        detail = None
-    else:
-        try:
-            detail = DetailOptions() if args.detail_stride is None else DetailOptions(stride=args.detail_stride)
-        except DetailError as exc:
-            raise _Usage(f"--detail-stride: must be an integer in 1..16, got {args.detail_stride}") from exc
+    detail = detail_options(args)
+    if isinstance(detail, str):
+        raise _Usage(detail)
     modes = MODES[args.lidar]
     out = Path(args.out)
     if out.exists() and not out.is_dir():

@@ -13,6 +13,8 @@ from pathlib import Path
 
 import numpy as np
 
+from .detail_flags import add_detail_arguments, detail_options
+
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     from ..lidar import ALPHA_MIN, MAX_DEPTH, MIN_DEPTH, OCCLUSION_RADIUS
@@ -49,6 +51,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--json", default=None, metavar="PATH", help="also write the figures as JSON")
     parser.add_argument("--picture", default=None, metavar="PATH",
                         help="write a contact sheet (.png or .jpg): input + LiDAR, rendered depth, error per point")
+    add_detail_arguments(parser)
     parser.add_argument("--threads", type=int, default=None, help="onnxruntime and renderer threads (default: all)")
     parser.add_argument("--quiet", action="store_true", help="no progress lines")
 
@@ -95,6 +98,11 @@ def run(args: argparse.Namespace) -> int:
 
     if args.threads is not None and args.threads < 1:
         return _fail(f"--threads: must be >= 1, got {args.threads}")
+    detail = detail_options(args)
+    if isinstance(detail, str):
+        return _fail(detail)
+    if args.scene is not None and (args.no_detail or args.detail_stride is not None):
+        return _fail("--detail-stride / --no-detail: apply to a reconstruction, not to --scene")
     if args.width < 8 or args.width > 4096:
         return _fail(f"--width: must be in 8..4096, got {args.width}")
     if not (math.isfinite(args.min_depth) and math.isfinite(args.max_depth) and 0 < args.min_depth < args.max_depth):
@@ -148,7 +156,7 @@ def run(args: argparse.Namespace) -> int:
                 pick = np.random.default_rng(0).random(len(pts.points)) < args.holdout
                 lidar_in, check = pts.points[pick], pts.points[~pick]
                 say(f"{len(lidar_in)} points are the depth input, {len(check)} are checked")
-            scene = rec.reconstruct(rig, depths=depths, progress=say, lidar=lidar_in)
+            scene = rec.reconstruct(rig, depths=depths, progress=say, lidar=lidar_in, detail=detail)
             model = {"name": rec.info.name, "version": rec.info.version}
         say(f"render {len(rig)} cameras at {args.width} px wide")
         views = camera_depths(scene, pts.points if args.scene is not None else check, args.width, args.min_depth, args.max_depth, args.occlusion_radius)

@@ -9,6 +9,8 @@ import sys
 import time
 from pathlib import Path
 
+from .detail_flags import add_detail_arguments, detail_options
+
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("rig", metavar="RIG_JSON", help="rig.json (cameras, calibrations, image files relative to it)")
@@ -28,12 +30,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--lidar-columns", type=int, default=None, metavar="C",
                         help="columns of a .bin LiDAR file (default: the rig's lidar.columns, else 5 for *.pcd.bin, "
                              "4 otherwise)")
-    parser.add_argument("--detail-stride", type=int, default=None, metavar="N",
-                        help="detail layer: one pixel-aligned Gaussian per N x N block of each input camera's "
-                             "pixels, 1..16 (default: the runtime's default, 2; docs/inference.md, \"Detail "
-                             "Gaussians\"). Smaller = sharper renders, more Gaussians, slower")
-    parser.add_argument("--no-detail", action="store_true",
-                        help="no detail layer: the model's Gaussians only (the cylinder's resolution)")
+    add_detail_arguments(parser)
     parser.add_argument("--force", action="store_true", help="replace an existing SCENE_DIR")
     parser.add_argument("--quiet", action="store_true", help="no progress lines")
 
@@ -41,25 +38,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def _fail(msg: str) -> int:
     print(f"xyzcyl reconstruct: {msg}", file=sys.stderr)
     return 2
-
-
-def _detail_options(args: argparse.Namespace):
-    """The DetailOptions the flags ask for (None: --no-detail), or the usage error (a str naming the flag)."""
-    from dataclasses import replace
-
-    from ..detail import DetailError
-    from ..inference import DEFAULT_DETAIL
-
-    if args.no_detail:
-        if args.detail_stride is not None:
-            return "--no-detail: cannot be combined with --detail-stride"
-        return None
-    if args.detail_stride is None:
-        return DEFAULT_DETAIL
-    try:
-        return replace(DEFAULT_DETAIL, stride=args.detail_stride)
-    except DetailError:
-        return f"--detail-stride: must be an integer in 1..16, got {args.detail_stride}"
 
 
 def run(args: argparse.Namespace) -> int:
@@ -72,7 +50,7 @@ def run(args: argparse.Namespace) -> int:
         return _fail(f"--threads: must be >= 1, got {args.threads}")
     if args.no_lidar and (args.lidar_file is not None or args.lidar_columns is not None):
         return _fail("--no-lidar: cannot be combined with --lidar-file / --lidar-columns")
-    detail = _detail_options(args)
+    detail = detail_options(args)
     if isinstance(detail, str):
         return _fail(detail)
     out = Path(args.out)

@@ -174,7 +174,6 @@ SHIPPED_MODEL = REPO / "models" / "xyzcyl-cpu-v1"
 @pytest.mark.parametrize("flags,named", [
     (["--detail-stride", "0"], ["--detail-stride", "1..16"]),
     (["--detail-stride", "17"], ["--detail-stride", "1..16"]),
-    (["--no-detail", "--detail-stride", "4"], ["--no-detail", "--detail-stride"]),
 ])
 def test_detail_flags_are_checked_before_the_model_loads(tmp_path, capsys, flags, named):
     """A bad detail flag exits 2 naming it, before anything else is looked at (here the --model folder is absent:
@@ -183,6 +182,17 @@ def test_detail_flags_are_checked_before_the_model_loads(tmp_path, capsys, flags
                    *flags])
     err = _err(capsys)
     assert rc == 2 and len(err) == 1 and all(n in err[0] for n in named) and "--model" not in err[0], err
+    assert not (tmp_path / "s").exists()
+
+
+def test_no_detail_with_detail_stride_is_a_usage_error(tmp_path, capsys):
+    """The two flags are one mutually exclusive group (runtime/commands/detail_flags.py): argparse exits 2 with a
+    line naming both, before the model or the rig is looked at."""
+    with pytest.raises(SystemExit) as exc:
+        cli.main(["reconstruct", str(EXAMPLE_RIG), "--out", str(tmp_path / "s"), "--model", str(tmp_path / "none"),
+                  "--no-detail", "--detail-stride", "4"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert exc.value.code == 2 and "--no-detail" in err[-1] and "--detail-stride" in err[-1], err
     assert not (tmp_path / "s").exists()
 
 
