@@ -52,8 +52,10 @@ class DetailOptions:
     stride: int = 2                 # input pixels per detail cell along each axis (1 = every pixel)
     footprint: float = 0.5          # disc standard deviation, in cell footprints (depth x stride / focal)
     thickness: float = 0.1          # standard deviation along the optical axis, as a fraction of the disc's
-    surface_stretch: float = 0.0    # > 0: discs lie in the surface's tangent plane (from the neighbouring cells) where
-    #                                 its tangents are at most this x the image-plane footprint; 0: facing the camera
+    surface_stretch: float = 30.0   # > 0: discs lie in the surface's tangent plane (from the neighbouring cells) where
+    #                                 its tangents are at most this x the image-plane footprint (a road 20 m ahead of
+    #                                 a camera 1.5 m up: ~13x); 0: all discs face their camera (seen from above, the
+    #                                 road's discs are then slivers with gaps: contour-line moire)
     sharpen: float = 0.5            # unsharp mask of the cell colours (amount; its blur = the disc's footprint):
     #                                 pre-compensates the blur of overlapping discs
     opacity: float = 0.95           # opacity of a cell whose depth LiDAR supports
@@ -409,9 +411,164 @@ def _logit(p: np.ndarray) -> np.ndarray:
     return np.log(p / (1.0 - p))
 
 
+@numba.njit(cache=True, inline="always")
+def _cell_point(depth, fx, fy, cx, cy, y, x, out):
+    z = depth[y, x]
+    out[0], out[1], out[2] = (x - cx) / fx * z, (y - cy) / fy * z, z
+
+
+@numba.njit(cache=True, inline="always")
+def _tangent(depth, keep, fx, fy, cx, cy, y, x, dy, dx, c, t, tmp_p, tmp_m):
+    """t = the step to the neighbours along (dy, dx) as surface_discs takes it; returns whether there is one."""
+    h, w = keep.shape
+    yp, xp, ym, xm = y + dy, x + dx, y - dy, x - dx
+    kp = 0 <= yp < h and 0 <= xp < w and keep[yp, xp]
+    km = 0 <= ym < h and 0 <= xm < w and keep[ym, xm]
+    if kp:
+        _cell_point(depth, fx, fy, cx, cy, yp, xp, tmp_p)
+    if km:
+        _cell_point(depth, fx, fy, cx, cy, ym, xm, tmp_m)
+    for k in range(3):
+        if kp and km:
+            t[k] = 0.5 * (tmp_p[k] - tmp_m[k])
+        elif kp:
+            t[k] = tmp_p[k] - c[k]
+        elif km:
+            t[k] = c[k] - tmp_m[k]
+    return kp or km
+
+
+@numba.njit(cache=True, inline="always")
+def _quat(R, q):
+    """rotmats_to_quats for one matrix (the same branch choice)."""
+    tr = R[0, 0] + R[1, 1] + R[2, 2]
+    best, c = tr, 0
+    if R[0, 0] > best:
+        best, c = R[0, 0], 1
+    if R[1, 1] > best:
+        best, c = R[1, 1], 2
+    if R[2, 2] > best:
+        c = 3
+    if c == 0:
+        s4 = 2.0 * math.sqrt(1.0 + tr)
+        q[0], q[1], q[2], q[3] = 0.25 * s4, (R[2, 1] - R[1, 2]) / s4, (R[0, 2] - R[2, 0]) / s4, (R[1, 0] - R[0, 1]) / s4
+    elif c == 1:
+        s4 = 2.0 * math.sqrt(max(1.0 + R[0, 0] - R[1, 1] - R[2, 2], 1e-12))
+        q[0], q[1], q[2], q[3] = (R[2, 1] - R[1, 2]) / s4, 0.25 * s4, (R[0, 1] + R[1, 0]) / s4, (R[0, 2] + R[2, 0]) / s4
+    elif c == 2:
+        s4 = 2.0 * math.sqrt(max(1.0 + R[1, 1] - R[0, 0] - R[2, 2], 1e-12))
+        q[0], q[1], q[2], q[3] = (R[0, 2] - R[2, 0]) / s4, (R[0, 1] + R[1, 0]) / s4, 0.25 * s4, (R[1, 2] + R[2, 1]) / s4
+    else:
+        s4 = 2.0 * math.sqrt(max(1.0 + R[2, 2] - R[0, 0] - R[1, 1], 1e-12))
+        q[0], q[1], q[2], q[3] = (R[1, 0] - R[0, 1]) / s4, (R[0, 2] + R[2, 0]) / s4, (R[1, 2] + R[2, 1]) / s4, 0.25 * s4
+    n = math.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3])
+    for k in range(4):
+        q[k] /= n
+
+
+@numba.njit(cache=True, parallel=True, nogil=True)
+def _cells_kernel(depth, keep, row_start, fx, fy, cx, cy, Rce, tce, qcam, footprint, thickness, stretch,
+                  means, quats, log_scales):
+    """cell_gaussians_reference's geometry for the kept cells, one image row per task; row_start[y] = the index of
+    row y's first kept cell (np.nonzero order)."""
+    h, w = keep.shape
+    f = 0.5 * (fx + fy)
+    for y in numba.prange(h):
+        i = row_start[y]
+        c = np.empty(3)
+        tu = np.empty(3)
+        tv = np.empty(3)
+        tp = np.empty(3)
+        tm = np.empty(3)
+        Rl = np.empty((3, 3))
+        Re = np.empty((3, 3))
+        q = np.empty(4)
+        for x in range(w):
+            if not keep[y, x]:
+                continue
+            _cell_point(depth, fx, fy, cx, cy, y, x, c)
+            z = c[2]
+            for r in range(3):
+                means[i, r] = Rce[r, 0] * c[0] + Rce[r, 1] * c[1] + Rce[r, 2] * c[2] + tce[r]
+            s = footprint * z / f
+            ok = False
+            if stretch > 0:
+                oku = _tangent(depth, keep, fx, fy, cx, cy, y, x, 0, 1, c, tu, tp, tm)
+                okv = _tangent(depth, keep, fx, fy, cx, cy, y, x, 1, 0, c, tv, tp, tm)
+                if oku and okv:
+                    nx = tu[1] * tv[2] - tu[2] * tv[1]
+                    ny = tu[2] * tv[0] - tu[0] * tv[2]
+                    nz = tu[0] * tv[1] - tu[1] * tv[0]
+                    nn = math.sqrt(nx * nx + ny * ny + nz * nz)
+                    lu = math.sqrt(tu[0] * tu[0] + tu[1] * tu[1] + tu[2] * tu[2])
+                    lv = math.sqrt(tv[0] * tv[0] + tv[1] * tv[1] + tv[2] * tv[2])
+                    L0 = z / f
+                    ok = nn > 1e-12 and lu <= stretch * L0 and lv <= stretch * L0 and lu > 0
+            if ok:
+                nx, ny, nz = nx / nn, ny / nn, nz / nn
+                if nx * c[0] + ny * c[1] + nz * c[2] > 0:
+                    nx, ny, nz = -nx, -ny, -nz
+                e1x, e1y, e1z = tu[0] / lu, tu[1] / lu, tu[2] / lu
+                e2x, e2y, e2z = ny * e1z - nz * e1y, nz * e1x - nx * e1z, nx * e1y - ny * e1x
+                a = lu
+                b = tv[0] * e1x + tv[1] * e1y + tv[2] * e1z
+                cc = tv[0] * e2x + tv[1] * e2y + tv[2] * e2z
+                m00, m11, m01 = a * a + b * b, cc * cc, b * cc
+                phi = 0.5 * math.atan2(2 * m01, m00 - m11)
+                mid = 0.5 * (m00 + m11)
+                rad = math.sqrt((0.5 * (m00 - m11)) ** 2 + m01 * m01)
+                sd1 = math.sqrt(max(mid + rad, 1e-24))
+                sd2 = math.sqrt(max(mid - rad, 1e-24))
+                cp, sp = math.cos(phi), math.sin(phi)
+                Rl[0, 0], Rl[1, 0], Rl[2, 0] = cp * e1x + sp * e2x, cp * e1y + sp * e2y, cp * e1z + sp * e2z
+                Rl[0, 1], Rl[1, 1], Rl[2, 1] = -sp * e1x + cp * e2x, -sp * e1y + cp * e2y, -sp * e1z + cp * e2z
+                Rl[0, 2], Rl[1, 2], Rl[2, 2] = nx, ny, nz
+                for r in range(3):
+                    for k in range(3):
+                        Re[r, k] = Rce[r, 0] * Rl[0, k] + Rce[r, 1] * Rl[1, k] + Rce[r, 2] * Rl[2, k]
+                _quat(Re, q)
+                for k in range(4):
+                    quats[i, k] = q[k]
+                log_scales[i, 0] = math.log(footprint * sd1)
+                log_scales[i, 1] = math.log(footprint * sd2)
+            else:
+                for k in range(4):
+                    quats[i, k] = qcam[k]
+                log_scales[i, 0] = math.log(s)
+                log_scales[i, 1] = math.log(s)
+            log_scales[i, 2] = math.log(thickness * s)
+            i += 1
+
+
 def cell_gaussians(grid: Camera, colours: np.ndarray, depth: np.ndarray, opacity: np.ndarray, keep: np.ndarray,
                    footprint: float, thickness: float, sh_degree: int = 0, surface_stretch: float = 0.0
                    ) -> Gaussians:
+    """cell_gaussians_reference, its geometry in one numba pass over the cells (the same Gaussians, in the same
+    order; tested against it)."""
+    keep = np.ascontiguousarray(keep, bool)
+    ys, xs = np.nonzero(keep)
+    n = len(ys)
+    counts = keep.sum(axis=1)
+    row_start = np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int64)
+    means = np.empty((n, 3))
+    quats = np.empty((n, 4))
+    log_s = np.empty((n, 3))
+    K = grid.K
+    if n:
+        _cells_kernel(np.ascontiguousarray(depth, np.float64), keep, row_start, float(K[0, 0]), float(K[1, 1]),
+                      float(K[0, 2]), float(K[1, 2]), np.ascontiguousarray(grid.rotation, np.float64),
+                      np.ascontiguousarray(grid.position, np.float64), rotmat_to_quat(grid.rotation),
+                      float(footprint), float(thickness), float(surface_stretch), means, quats, log_s)
+    sh = np.zeros((n, (sh_degree + 1) ** 2, 3), np.float32)
+    sh[:, 0, :] = (colours[ys, xs] - 0.5) / SH_C0
+    return Gaussians(means=means.astype(np.float32), quats=quats.astype(np.float32),
+                     log_scales=log_s.astype(np.float32), opacity_logits=_logit(opacity[ys, xs]).astype(np.float32),
+                     sh=sh)
+
+
+def cell_gaussians_reference(grid: Camera, colours: np.ndarray, depth: np.ndarray, opacity: np.ndarray,
+                             keep: np.ndarray, footprint: float, thickness: float, sh_degree: int = 0,
+                             surface_stretch: float = 0.0) -> Gaussians:
     """One Gaussian per kept cell of ``grid`` (ego frame).
 
     colours [h, w, 3] 0..1; depth [h, w] camera z metres; opacity [h, w] in (0, 1); keep [h, w] bool. Centre: the
@@ -674,8 +831,15 @@ def model_grid_depth(coarse: Gaussians, grid: Camera, max_width: int = 480) -> t
         w = max_width
         h = max(1, round(grid.height * w / grid.width))
         r = render(coarse, rig_camera(grid.resized(w, h)))
-        depth = cv2.resize(r.depth, (grid.width, grid.height), interpolation=cv2.INTER_NEAREST)
-        alpha = cv2.resize(r.alpha, (grid.width, grid.height), interpolation=cv2.INTER_LINEAR)
+        size = (grid.width, grid.height)
+        # bilinear: a nearest-neighbour upsampling leaves a staircase of 2x2 (or larger) flat blocks, which from
+        # other viewpoints (above the car) shows as contour lines; at a depth edge, where the bilinear value mixes
+        # the two sides (it differs from the nearest one by more than 10 %), the nearest one is kept
+        near = cv2.resize(r.depth, size, interpolation=cv2.INTER_NEAREST)
+        depth = cv2.resize(r.depth, size, interpolation=cv2.INTER_LINEAR)
+        mixed = np.abs(depth - near) > 0.1 * near
+        depth[mixed] = near[mixed]
+        alpha = cv2.resize(r.alpha, size, interpolation=cv2.INTER_LINEAR)
         return depth, alpha
     r = render(coarse, rig_camera(grid))
     return r.depth, r.alpha
@@ -770,6 +934,6 @@ def read_ego_mask(path, cam: Camera) -> np.ndarray:
 
 
 __all__ = ["CameraDetail", "DetailError", "DetailOptions", "camera_detail", "cell_gaussians", "concat_gaussians",
-           "cull_covered", "cull_covered_reference", "densify", "edge_keep", "edge_keep_reference", "grid_camera",
+           "cell_gaussians_reference", "cull_covered", "cull_covered_reference", "densify", "edge_keep", "edge_keep_reference", "grid_camera",
            "grid_colours", "lidar_grid_depth", "model_grid_depth", "read_ego_mask", "rotmat_to_quat",
            "support_mask"]
