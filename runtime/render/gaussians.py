@@ -78,7 +78,7 @@ class Gaussians:
             bad = int(np.count_nonzero(~np.isfinite(arr)))
             if bad:
                 raise GaussianError(f"{name}: {bad} non-finite values")
-        qn = np.einsum("ij,ij->i", fields["quats"].astype(np.float64), fields["quats"].astype(np.float64))
+        qn = np.einsum("ij,ij->i", fields["quats"], fields["quats"], dtype=np.float64)   # squared norms, float64
         zero = int(np.count_nonzero(qn < 1e-20))
         if zero:
             raise GaussianError(f"quats: {zero} quaternions with zero norm")

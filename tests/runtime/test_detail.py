@@ -22,6 +22,7 @@ from xyzcyl.runtime.detail import (
     carve_details,
     carve_details_reference,
     cell_gaussians,
+    cell_gaussians_reference,
     concat_gaussians,
     cull_covered,
     cull_covered_reference,
@@ -471,6 +472,35 @@ def _wall_cells(tex: np.ndarray, footprint: float = 0.6):
     keep = np.ones((h, w), bool)
     g = cell_gaussians(grid, grid_colours(tex, grid), depth, np.full((h, w), 0.95), keep, footprint, 0.1)
     return cam, grid, g
+
+
+@pytest.mark.parametrize("stretch", [0.0, 4.0, 30.0])
+def test_cell_gaussians_matches_reference(stretch):
+    """The numba pass against the numpy reference on a road-like depth (rows nearer towards the bottom, noise,
+    holes): the same Gaussians in the same order. Both compute in float64 in the same order of operations and
+    store float32, so 1e-6 relative bounds a last-bit difference of a libm function (atan2, sqrt) that can move
+    a float32 by one ulp; a wrong branch moves a disc's axes or scales by O(1)."""
+    rng = np.random.default_rng(3)
+    cam = _camera(width=120, height=80, f=70.0, pitch=-10.0)
+    h, w = cam.height, cam.width
+    rows = np.arange(h, dtype=np.float64)[:, None] * np.ones((1, w))
+    depth = (3.0 + 60.0 / (1.0 + np.maximum(rows - h / 3, 0.5)) + 0.05 * rng.random((h, w))).astype(np.float32)
+    depth[20:30, 50:60] = 4.0                                     # a near box: a depth step around it
+    keep = rng.random((h, w)) > 0.15
+    colours = rng.random((h, w, 3)).astype(np.float32)
+    opacity = np.full((h, w), 0.95)
+    a = cell_gaussians(cam, colours, depth, opacity, keep, 0.5, 0.1, surface_stretch=stretch)
+    b = cell_gaussians_reference(cam, colours, depth, opacity, keep, 0.5, 0.1, surface_stretch=stretch)
+    assert len(a) == len(b) == keep.sum()
+    np.testing.assert_allclose(a.means, b.means, rtol=1e-6, atol=1e-6)
+    np.testing.assert_allclose(a.log_scales, b.log_scales, rtol=1e-6, atol=1e-6)
+    # q and -q are one rotation: compare the matrices
+    np.testing.assert_allclose(quat_to_rotmat(a.quats), quat_to_rotmat(b.quats), atol=1e-6)
+    np.testing.assert_array_equal(a.sh, b.sh)
+    np.testing.assert_array_equal(a.opacity_logits, b.opacity_logits)
+    if stretch > 0:                                               # the surface branch was taken for many cells
+        cam_q = np.broadcast_to(rotmat_to_quat(cam.rotation).astype(np.float32), a.quats.shape)
+        assert (np.abs(a.quats - cam_q).max(axis=1) > 1e-3).mean() > 0.3
 
 
 def test_cell_gaussians_sit_on_their_pixel_rays_at_the_depth():
