@@ -867,7 +867,7 @@ class Client:
 
     def reconstruct(self, rig: Any, images: Any = None, depths: Any = None, wait: bool = True,
                     timeout: float = 600.0, progress: Progress | None = None, lidar: Any = None,
-                    detail_stride: int | None = None, detail: bool = True) -> SceneInfo:
+                    detail_stride: int | None = None, detail: bool = True, ego_masks: Any = None) -> SceneInfo:
         """POST /v1/scenes: upload a rig and its images; returns the scene.
 
         rig: a rig.json path, an xyzcyl.runtime.rig.Rig, or the rig's JSON as a dict.
@@ -877,6 +877,10 @@ class Client:
         PNG (uint8 / uint16 as they are, floats 0..1 as 16-bit), RGB order.
         depths: None = the depth files the rig names (``depth``), if any; else as images, per camera, optional:
         a 16-bit PNG of millimetres or a float EXR of metres (uint16 arrays -> PNG mm, float arrays -> EXR m).
+        ego_masks: None = the ego mask files the rig names (a camera's ``ego_mask``), if any; else as images, per
+        camera, optional: a PNG or JPEG of the camera's size whose non-zero pixels are the ego's own body (hood,
+        mirrors; no detail Gaussians there); arrays (bool or uint8/uint16) are sent as PNG. Sent as
+        ``ego_mask:<camera>`` parts.
         lidar: None = the LiDAR file the rig's ``lidar`` block names, if any; False = none; else a file path or
         its bytes (.npy [N, >=3], or raw float32 .bin with the block's ``columns``; points in the frame the block's
         ``lidar_to_ego`` maps to ego, else ego). The server then makes each camera's depth from it.
@@ -892,6 +896,7 @@ class Client:
         names = [c["name"] for c in doc["cameras"]]
         imgs = _by_camera(images, names, "images")
         dps = _by_camera(depths, names, "depths")
+        masks = _by_camera(ego_masks, names, "ego_masks")
         parts = [_Part("rig", "rig.json", "application/json", data=json.dumps(doc, allow_nan=False).encode())]
         for cam in doc["cameras"]:
             name = cam["name"]
@@ -907,6 +912,12 @@ class Client:
             dsrc = cam.get("depth") if dps is None else dps.get(name)
             if dsrc is not None:
                 parts.append(_part(f"depth:{name}", dsrc, root if dps is None else None, depth=True))
+            msrc = cam.get("ego_mask") if masks is None else masks.get(name)
+            if msrc is not None:
+                try:
+                    parts.append(_part(f"ego_mask:{name}", msrc, root if masks is None else None, depth=False))
+                except InvalidRequestError as e:
+                    raise type(e)(None, e.code, f"camera {name!r}: ego_mask: {e.message}", e.field) from None
         lidar_part = _lidar_part(doc, root, lidar)
         if lidar_part is not None:
             parts.append(lidar_part)

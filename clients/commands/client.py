@@ -49,8 +49,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     sub = parser.add_subparsers(dest="action", metavar="ACTION", required=True)
 
     p = sub.add_parser("reconstruct", parents=[common], help="upload a rig.json and its images; print the scene id",
-                       description="Upload RIG_JSON with the images (and depth files) it names, relative to its "
-                                   "folder. Prints the scene id on stdout (the scene JSON with --json).")
+                       description="Upload RIG_JSON with the images (and depth and ego mask files) it names, "
+                                   "relative to its folder. Prints the scene id on stdout (the scene JSON with "
+                                   "--json).")
     p.add_argument("rig", metavar="RIG_JSON")
     p.add_argument("--wait", nargs="?", type=float, const=600.0, default=None, metavar="S",
                    help="wait until the scene is ready or failed, up to S seconds (default 600)")

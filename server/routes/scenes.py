@@ -162,6 +162,33 @@ def _check_image(path: Path, field: str, cam, max_pixels: int, what: str) -> Non
                       f"{cam.width}x{cam.height}", field)
 
 
+def _ingest_ego_mask(part, cam, dest_stem: Path, max_pixels: int) -> str:
+    """An 'ego_mask:<camera>' part (PNG 8/16-bit, any channels, or JPEG; non-zero = the ego's own body) saved as
+    ``dest_stem`` + its type's suffix and decoded once in full (runtime.detail.read_ego_mask, as the worker reads
+    it). Returns the saved file's name for the rig's camera ``ego_mask``."""
+    from xyzcyl.runtime.detail import read_ego_mask
+
+    field = f"ego_mask:{cam.name}"
+    if not isinstance(part, UploadFile):
+        raise Invalid(f"part {field!r} must be a file part (a PNG or JPEG mask)", field)
+    path = _save_part(part, field, dest_stem)
+    if path.suffix not in (".png", ".jpg"):
+        raise UnsupportedMedia(f"part {field!r}: an ego mask must be a PNG or JPEG, not {path.suffix[1:].upper()}",
+                               field)
+    _check_image(path, field, cam, max_pixels, "the ego mask")
+    if path.suffix == ".jpg":                   # a cut JPEG decodes without an error (the rest grey): its end marker
+        with open(path, "rb") as f:
+            f.seek(max(0, f.seek(0, 2) - 2))
+            if f.read(2) != b"\xff\xd9":
+                raise Invalid(f"part {field!r}: the JPEG is cut short (no end-of-image marker)", field)
+    try:
+        read_ego_mask(path, cam)
+    except RigError as e:
+        why = str(e).replace(repr(str(path)), "the part").replace(" ()", "")   # not the server's folder
+        raise Invalid(f"part {field!r}: the ego mask does not decode ({why})", field) from None
+    return path.name
+
+
 def _ingest_lidar(form, rig: Rig, work: Path) -> dict | None:
     """The optional 'lidar' part (a sweep of the same timestamp: .npy [N, >=3] or raw float32 .bin, in the frame
     of the rig's lidar block's lidar_to_ego, else ego) written to ``work`` and read once to validate it. Returns
@@ -233,9 +260,11 @@ def _ingest(form, service: Service, work: Path) -> Rig:
         if key in seen:
             raise Invalid(f"part {key!r} appears more than once", key)
         seen.add(key)
-        if key not in ("rig", "lidar") and key not in names and not (key.startswith("depth:") and key[6:] in names):
+        prefix, _, cam_name = key.partition(":")
+        if key not in ("rig", "lidar") and key not in names and not (prefix in ("depth", "ego_mask")
+                                                                     and cam_name in names):
             raise Invalid(f"part {key!r} names no camera of the rig (cameras: {', '.join(rig.names)}; depth parts "
-                          "are named 'depth:<camera>', a LiDAR sweep 'lidar')", key)
+                          "are named 'depth:<camera>', ego masks 'ego_mask:<camera>', a LiDAR sweep 'lidar')", key)
     cams = []
     for i, cam in enumerate(rig.cameras):
         part = form.get(cam.name)
@@ -260,7 +289,12 @@ def _ingest(form, service: Service, work: Path) -> Rig:
                                        "(metres), not JPEG", field)
             _check_image(dpath, field, cam, st.max_image_pixels, "the depth map")
             depth = dpath.name
-        cams.append(cam.replace(image=img.name, depth=depth))
+        # like depth, a rig's own ego_mask file name is not used (the file is not here): only an uploaded part
+        extra = {k: v for k, v in cam.extra.items() if k != "ego_mask"}
+        mpart = form.get(f"ego_mask:{cam.name}")
+        if mpart is not None:
+            extra["ego_mask"] = _ingest_ego_mask(mpart, cam, work / f"ego_mask_{i:02d}", st.max_image_pixels)
+        cams.append(cam.replace(image=img.name, depth=depth, extra=extra))
     extra = {k: v for k, v in rig.extra.items() if k != "lidar"}
     lidar = _ingest_lidar(form, rig, work)
     if lidar is not None:
@@ -292,8 +326,9 @@ def _detail_stride(request: Request, detail: bool, detail_stride: int | None) ->
                                         "description": "rig.json (cameras, calibrations)"}},
                  "additionalProperties": {"type": "string", "format": "binary",
                                           "description": "one image part per camera, named by the camera; "
-                                                         "optional 'depth:<camera>' parts and an optional 'lidar' "
-                                                         "part (a LiDAR sweep: .npy or float32 .bin)"}}}}}})
+                                                         "optional 'depth:<camera>' and 'ego_mask:<camera>' parts "
+                                                         "and an optional 'lidar' part (a LiDAR sweep: .npy or "
+                                                         "float32 .bin)"}}}}}})
 async def create_scene(request: Request,
                        wait: float | None = Query(None, ge=0, le=3600,
                                                   description="hold up to this many seconds for the result"),
@@ -321,7 +356,7 @@ async def create_scene(request: Request,
     job = None
     try:
         try:
-            form = await request.form(max_files=2 * n + 8, max_fields=2 * n + 8, max_part_size=RIG_PART_BYTES)
+            form = await request.form(max_files=3 * n + 8, max_fields=3 * n + 8, max_part_size=RIG_PART_BYTES)
         except StarletteHTTPException as e:
             raise Invalid(f"the multipart body cannot be parsed: {e.detail}", "body") from None
         rig = await asyncio.to_thread(_ingest, form, s, work)

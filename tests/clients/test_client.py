@@ -309,6 +309,60 @@ def test_reconstruct_sends_the_detail_query(sleeps):
     assert seen == [{}, {"detail_stride": "4"}, {"detail": "false"}, {"detail_stride": "16"}]
 
 
+def _parts(request: httpx.Request) -> dict[str, tuple[str, bytes]]:
+    """{part name: (content type, bytes)} of a multipart request."""
+    from email.parser import BytesParser
+    from email.policy import HTTP
+
+    head = f"Content-Type: {request.headers['content-type']}\r\n\r\n".encode()
+    msg = BytesParser(policy=HTTP).parsebytes(head + request.read())
+    return {m.get_param("name", header="content-disposition"): (m.get_content_type(), m.get_payload(decode=True))
+            for m in msg.iter_parts()}
+
+
+def test_reconstruct_sends_the_rigs_ego_masks(sleeps, tmp_path):
+    """A camera's ego_mask (relative to rig.json) goes up as the 'ego_mask:<camera>' part, like depth files;
+    ego_masks={} sends none, ego_masks={camera: array} sends a PNG; a missing file is refused before any request,
+    naming the camera and the field."""
+    import cv2
+
+    doc = rig_doc()
+    for cam in doc["cameras"]:
+        cam["image"] = str(EXAMPLE / cam["image"])                      # absolute: kept as they are
+    doc["cameras"][0]["ego_mask"] = "masks/front.png"
+    front = doc["cameras"][0]["name"]
+    mask = np.zeros((doc["cameras"][0]["height"], doc["cameras"][0]["width"]), np.uint8)
+    mask[300:] = 255
+    (tmp_path / "masks").mkdir()
+    png = cv2.imencode(".png", mask)[1].tobytes()
+    (tmp_path / "masks" / "front.png").write_bytes(png)
+    (tmp_path / "rig.json").write_text(json.dumps(doc))
+    sent = []
+
+    def handler(request):
+        sent.append(_parts(request))
+        return httpx.Response(202, json={**SCENE_JSON, "state": "queued"})
+
+    c = _mock(handler)
+    c.reconstruct(tmp_path / "rig.json", wait=False)
+    c.reconstruct(tmp_path / "rig.json", wait=False, ego_masks={})
+    back = doc["cameras"][-1]["name"]
+    c.reconstruct(tmp_path / "rig.json", wait=False, ego_masks={back: mask.astype(bool)})
+    masks = [{k: v for k, v in p.items() if k.startswith("ego_mask:")} for p in sent]
+    assert masks[0] == {f"ego_mask:{front}": ("image/png", png)}
+    assert json.loads(sent[0]["rig"][1])["cameras"][0]["ego_mask"] == "masks/front.png"
+    assert masks[1] == {}
+    assert list(masks[2]) == [f"ego_mask:{back}"] and masks[2][f"ego_mask:{back}"][0] == "image/png"
+    got = cv2.imdecode(np.frombuffer(masks[2][f"ego_mask:{back}"][1], np.uint8), cv2.IMREAD_UNCHANGED)
+    np.testing.assert_array_equal(got > 0, mask > 0)
+    (tmp_path / "masks" / "front.png").unlink()
+    with pytest.raises(InvalidRequestError) as e:
+        c.reconstruct(tmp_path / "rig.json", wait=False)
+    assert e.value.status is None and e.value.code == "file_missing" and e.value.field == f"ego_mask:{front}"
+    assert f"camera {front!r}: ego_mask: " in e.value.message and "front.png" in e.value.message
+    assert len(sent) == 3                                               # nothing was sent for the missing file
+
+
 @pytest.mark.parametrize("kw,field_name", [
     ({"detail_stride": 0}, "detail_stride"), ({"detail_stride": 17}, "detail_stride"),
     ({"detail_stride": 2.0}, "detail_stride"), ({"detail_stride": "4"}, "detail_stride"),

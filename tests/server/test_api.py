@@ -98,6 +98,19 @@ def png_bytes(w: int, h: int, channels: int = 3, dtype=np.uint8) -> bytes:
     return buf.tobytes()
 
 
+def mask_array(w: int = 800, h: int = 450, dtype=np.uint8, channels: int = 1) -> np.ndarray:
+    """An ego mask of the example's camera size: the bottom third non-zero (the ego's own body)."""
+    a = np.zeros((h, w, channels) if channels > 1 else (h, w), dtype)
+    a[h - h // 3:] = np.iinfo(dtype).max
+    return a
+
+
+def mask_png(**kw) -> bytes:
+    ok, buf = cv2.imencode(".png", mask_array(**kw))
+    assert ok
+    return buf.tobytes()
+
+
 def png_header_only(w: int, h: int) -> bytes:
     """A tiny PNG whose header claims w x h (a decompression bomb's shape: the server must refuse it from the
     header, before decoding)."""
@@ -391,6 +404,22 @@ UPLOAD_ERRORS = {
     "lidar part as a text field": (lambda: rig_files(extra=[("lidar", (None, "1 2 3"))]), 422, "lidar", "invalid"),
     "lidar_to_ego not 4x4": (lambda: rig_files(_rig_with(_lidar_to_ego_2x2), extra=[("lidar", (
         "s.npy", wall_npy(), "application/octet-stream"))]), 422, "lidar", "invalid"),
+    "ego mask part of the wrong size": (lambda: rig_files(extra=[("ego_mask:CAM_FRONT", (
+        "m.png", png_bytes(80, 45, 1), "image/png"))]), 422, "ego_mask:CAM_FRONT", "invalid"),
+    "ego mask part cut short": (lambda: rig_files(extra=[("ego_mask:CAM_FRONT", (
+        "m.png", mask_png()[:-200], "image/png"))]), 422, "ego_mask:CAM_FRONT", "invalid"),
+    "ego mask JPEG cut short": (lambda: rig_files(extra=[("ego_mask:CAM_FRONT", (
+        "m.jpg", cv2.imencode(".jpg", mask_array())[1].tobytes()[:-300], "image/jpeg"))]), 422,
+        "ego_mask:CAM_FRONT", "invalid"),
+    "ego mask part as TIFF": (lambda: rig_files(extra=[("ego_mask:CAM_FRONT", (
+        "m.tif", b"II*\x00" + b"\x00" * 64, "image/tiff"))]), 415, "ego_mask:CAM_FRONT", "unsupported_media_type"),
+    "ego mask part with a text media type": (lambda: rig_files(extra=[("ego_mask:CAM_FRONT", (
+        "m.txt", mask_png(), "text/plain"))]), 415, "ego_mask:CAM_FRONT", "unsupported_media_type"),
+    "ego mask part as a text field": (lambda: rig_files(extra=[("ego_mask:CAM_FRONT", (None, "1"))]), 422,
+                                      "ego_mask:CAM_FRONT", "invalid"),
+    "ego mask part of no camera": (lambda: rig_files(extra=[("ego_mask:CAM_TOP", ("m.png", mask_png(),
+                                                                                  "image/png"))]), 422,
+                                   "ego_mask:CAM_TOP", "invalid"),
 }
 
 
@@ -423,6 +452,23 @@ def test_post_with_a_lidar_part(client, env):
     assert "lidar_cameras" not in r.json()["counts"]
     for sid in (info["id"], r.json()["id"]):
         assert client.delete(f"/v1/scenes/{sid}").status_code == 204
+
+
+def test_post_with_ego_mask_parts(client, env):
+    """An 'ego_mask:<camera>' part (non-zero = the ego's own body) keeps detail Gaussians off those pixels: a mask
+    over the bottom third of CAM_FRONT lowers counts.detail. 16-bit RGB masks are read too (CAM_BACK's, all zero,
+    changes nothing), and like depth, an ego_mask that the rig names without a part is not used (the file is the
+    client's): CAM_FRONT_LEFT's name does not fail the scene."""
+    rig = _rig_with(lambda rig: rig["cameras"][5].update(ego_mask="masks/front_left.png"))
+    assert rig["cameras"][5]["name"] == "CAM_FRONT_LEFT"
+    r = client.post("/v1/scenes?wait=60", files=rig_files(rig, extra=[
+        ("ego_mask:CAM_FRONT", ("front.png", mask_png(), "image/png")),
+        ("ego_mask:CAM_BACK", ("back.png", cv2.imencode(".png", np.zeros((450, 800, 3), np.uint16))[1].tobytes(),
+                                "application/octet-stream"))]))
+    assert r.status_code == 201, r.text
+    masked, plain = r.json()["counts"], env.created.json()["counts"]
+    assert 0 < masked["detail"] < plain["detail"], (masked, plain)
+    assert client.delete(f"/v1/scenes/{r.json()['id']}").status_code == 204
 
 
 DETAIL_QUERY_ERRORS = {
