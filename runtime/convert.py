@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 
 from .rig import MAX_SIZE, Camera, Rig, RigError
-from .rotations import quat_to_rotmat
+from .rotations import quat_to_rotmat, rotmat_to_quat
 
 # OpenGL camera (x right, y up, z back) <-> OpenCV camera (x right, y down, z forward): flip y and z.
 GL_FROM_CV = np.diag([1.0, -1.0, -1.0, 1.0])
@@ -54,24 +54,8 @@ def quat_wxyz_to_matrix(q: Sequence[float]) -> np.ndarray:
 
 
 def matrix_to_quat_wxyz(R: np.ndarray) -> np.ndarray:
-    """[3, 3] rotation -> unit quaternion (w, x, y, z) with w >= 0 (Shepperd's method)."""
-    R = np.asarray(R, dtype=np.float64)
-    t = np.trace(R)
-    if t > 0:
-        s = 2.0 * math.sqrt(t + 1.0)
-        q = [0.25 * s, (R[2, 1] - R[1, 2]) / s, (R[0, 2] - R[2, 0]) / s, (R[1, 0] - R[0, 1]) / s]
-    elif R[0, 0] > R[1, 1] and R[0, 0] > R[2, 2]:
-        s = 2.0 * math.sqrt(1.0 + R[0, 0] - R[1, 1] - R[2, 2])
-        q = [(R[2, 1] - R[1, 2]) / s, 0.25 * s, (R[0, 1] + R[1, 0]) / s, (R[0, 2] + R[2, 0]) / s]
-    elif R[1, 1] > R[2, 2]:
-        s = 2.0 * math.sqrt(1.0 + R[1, 1] - R[0, 0] - R[2, 2])
-        q = [(R[0, 2] - R[2, 0]) / s, (R[0, 1] + R[1, 0]) / s, 0.25 * s, (R[1, 2] + R[2, 1]) / s]
-    else:
-        s = 2.0 * math.sqrt(1.0 + R[2, 2] - R[0, 0] - R[1, 1])
-        q = [(R[1, 0] - R[0, 1]) / s, (R[0, 2] + R[2, 0]) / s, (R[1, 2] + R[2, 1]) / s, 0.25 * s]
-    q = np.array(q)
-    q /= np.linalg.norm(q)
-    return -q if q[0] < 0 else q
+    """[3, 3] rotation -> unit quaternion (w, x, y, z) with w >= 0 (runtime.rotations.rotmat_to_quat)."""
+    return rotmat_to_quat(R)
 
 
 def _pose(R: np.ndarray, t: Sequence[float]) -> np.ndarray:

@@ -38,6 +38,7 @@ import numpy as np
 from .render import Gaussians
 from .render.gaussians import SH_C0
 from .rig import Camera
+from .rotations import rotmat_to_quat, rotmats_to_quats
 
 
 class DetailError(ValueError):
@@ -304,58 +305,6 @@ def ground_depth(grid: Camera, plane: np.ndarray, rays: tuple[np.ndarray, np.nda
 
 
 # ------------------------------------------------------------------------------------------- Gaussians
-
-
-def rotmat_to_quat(R: np.ndarray) -> np.ndarray:
-    """[3, 3] rotation -> [4] unit quaternion wxyz (Shepperd's method; the inverse of rotations.quat_to_rotmat)."""
-    R = np.asarray(R, np.float64)
-    tr = np.trace(R)
-    if tr > 0:
-        s = 2.0 * math.sqrt(1.0 + tr)
-        q = [0.25 * s, (R[2, 1] - R[1, 2]) / s, (R[0, 2] - R[2, 0]) / s, (R[1, 0] - R[0, 1]) / s]
-    elif R[0, 0] > R[1, 1] and R[0, 0] > R[2, 2]:
-        s = 2.0 * math.sqrt(1.0 + R[0, 0] - R[1, 1] - R[2, 2])
-        q = [(R[2, 1] - R[1, 2]) / s, 0.25 * s, (R[0, 1] + R[1, 0]) / s, (R[0, 2] + R[2, 0]) / s]
-    elif R[1, 1] > R[2, 2]:
-        s = 2.0 * math.sqrt(1.0 + R[1, 1] - R[0, 0] - R[2, 2])
-        q = [(R[0, 2] - R[2, 0]) / s, (R[0, 1] + R[1, 0]) / s, 0.25 * s, (R[1, 2] + R[2, 1]) / s]
-    else:
-        s = 2.0 * math.sqrt(1.0 + R[2, 2] - R[0, 0] - R[1, 1])
-        q = [(R[1, 0] - R[0, 1]) / s, (R[0, 2] + R[2, 0]) / s, (R[1, 2] + R[2, 1]) / s, 0.25 * s]
-    q = np.asarray(q, np.float64)
-    return q / np.linalg.norm(q)
-
-
-def rotmats_to_quats(R: np.ndarray) -> np.ndarray:
-    """[N, 3, 3] rotations -> [N, 4] unit quaternions wxyz (rotmat_to_quat for many: each row takes the branch of
-    its largest diagonal term / trace, so no division by a small number)."""
-    R = np.asarray(R, np.float64)
-    m00, m11, m22 = R[:, 0, 0], R[:, 1, 1], R[:, 2, 2]
-    tr = m00 + m11 + m22
-    q = np.empty((len(R), 4))
-    cases = np.stack([tr, m00, m11, m22], axis=1).argmax(axis=1)
-    for c in range(4):
-        i = np.flatnonzero(cases == c)
-        if not i.size:
-            continue
-        r = R[i]
-        if c == 0:
-            s4 = 2.0 * np.sqrt(1.0 + tr[i])
-            q[i] = np.stack([0.25 * s4, (r[:, 2, 1] - r[:, 1, 2]) / s4, (r[:, 0, 2] - r[:, 2, 0]) / s4,
-                             (r[:, 1, 0] - r[:, 0, 1]) / s4], axis=1)
-        elif c == 1:
-            s4 = 2.0 * np.sqrt(np.maximum(1.0 + m00[i] - m11[i] - m22[i], 1e-12))
-            q[i] = np.stack([(r[:, 2, 1] - r[:, 1, 2]) / s4, 0.25 * s4, (r[:, 0, 1] + r[:, 1, 0]) / s4,
-                             (r[:, 0, 2] + r[:, 2, 0]) / s4], axis=1)
-        elif c == 2:
-            s4 = 2.0 * np.sqrt(np.maximum(1.0 + m11[i] - m00[i] - m22[i], 1e-12))
-            q[i] = np.stack([(r[:, 0, 2] - r[:, 2, 0]) / s4, (r[:, 0, 1] + r[:, 1, 0]) / s4, 0.25 * s4,
-                             (r[:, 1, 2] + r[:, 2, 1]) / s4], axis=1)
-        else:
-            s4 = 2.0 * np.sqrt(np.maximum(1.0 + m22[i] - m00[i] - m11[i], 1e-12))
-            q[i] = np.stack([(r[:, 1, 0] - r[:, 0, 1]) / s4, (r[:, 0, 2] + r[:, 2, 0]) / s4,
-                             (r[:, 1, 2] + r[:, 2, 1]) / s4, 0.25 * s4], axis=1)
-    return q / np.linalg.norm(q, axis=1, keepdims=True)
 
 
 def surface_discs(points: np.ndarray, keep: np.ndarray, f: float, max_stretch: float
@@ -933,7 +882,24 @@ def read_ego_mask(path, cam: Camera) -> np.ndarray:
     return a > 0
 
 
-__all__ = ["CameraDetail", "DetailError", "DetailOptions", "camera_detail", "cell_gaussians", "concat_gaussians",
-           "cell_gaussians_reference", "cull_covered", "cull_covered_reference", "densify", "edge_keep", "edge_keep_reference", "grid_camera",
-           "grid_colours", "lidar_grid_depth", "model_grid_depth", "read_ego_mask", "rotmat_to_quat",
-           "support_mask"]
+__all__ = [
+    "CameraDetail",
+    "DetailError",
+    "DetailOptions",
+    "camera_detail",
+    "cell_gaussians",
+    "cell_gaussians_reference",
+    "concat_gaussians",
+    "cull_covered",
+    "cull_covered_reference",
+    "densify",
+    "edge_keep",
+    "edge_keep_reference",
+    "grid_camera",
+    "grid_colours",
+    "lidar_grid_depth",
+    "model_grid_depth",
+    "read_ego_mask",
+    "rotmat_to_quat",
+    "support_mask",
+]

@@ -1,4 +1,4 @@
-"""Quaternion (wxyz) -> rotation matrix, the one numpy implementation used across the runtime."""
+"""Quaternions (wxyz) <-> rotation matrices: the one numpy implementation used across the runtime."""
 
 from __future__ import annotations
 
@@ -14,3 +14,41 @@ def quat_to_rotmat(q: np.ndarray) -> np.ndarray:
         np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
         np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
         np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1)], -2)
+
+
+def rotmats_to_quats(R: np.ndarray) -> np.ndarray:
+    """[N, 3, 3] rotations -> [N, 4] unit quaternions wxyz (rotmat_to_quat for many: each row takes the branch of
+    its largest diagonal term / trace, so no division by a small number)."""
+    R = np.asarray(R, np.float64)
+    m00, m11, m22 = R[:, 0, 0], R[:, 1, 1], R[:, 2, 2]
+    tr = m00 + m11 + m22
+    q = np.empty((len(R), 4))
+    cases = np.stack([tr, m00, m11, m22], axis=1).argmax(axis=1)
+    for c in range(4):
+        i = np.flatnonzero(cases == c)
+        if not i.size:
+            continue
+        r = R[i]
+        if c == 0:
+            s4 = 2.0 * np.sqrt(1.0 + tr[i])
+            q[i] = np.stack([0.25 * s4, (r[:, 2, 1] - r[:, 1, 2]) / s4, (r[:, 0, 2] - r[:, 2, 0]) / s4,
+                             (r[:, 1, 0] - r[:, 0, 1]) / s4], axis=1)
+        elif c == 1:
+            s4 = 2.0 * np.sqrt(np.maximum(1.0 + m00[i] - m11[i] - m22[i], 1e-12))
+            q[i] = np.stack([(r[:, 2, 1] - r[:, 1, 2]) / s4, 0.25 * s4, (r[:, 0, 1] + r[:, 1, 0]) / s4,
+                             (r[:, 0, 2] + r[:, 2, 0]) / s4], axis=1)
+        elif c == 2:
+            s4 = 2.0 * np.sqrt(np.maximum(1.0 + m11[i] - m00[i] - m22[i], 1e-12))
+            q[i] = np.stack([(r[:, 0, 2] - r[:, 2, 0]) / s4, (r[:, 0, 1] + r[:, 1, 0]) / s4, 0.25 * s4,
+                             (r[:, 1, 2] + r[:, 2, 1]) / s4], axis=1)
+        else:
+            s4 = 2.0 * np.sqrt(np.maximum(1.0 + m22[i] - m00[i] - m11[i], 1e-12))
+            q[i] = np.stack([(r[:, 1, 0] - r[:, 0, 1]) / s4, (r[:, 0, 2] + r[:, 2, 0]) / s4,
+                             (r[:, 1, 2] + r[:, 2, 1]) / s4, 0.25 * s4], axis=1)
+    return q / np.linalg.norm(q, axis=1, keepdims=True)
+
+
+def rotmat_to_quat(R: np.ndarray) -> np.ndarray:
+    """[3, 3] rotation -> [4] unit quaternion wxyz with w >= 0 (rotmats_to_quats of one matrix)."""
+    q = rotmats_to_quats(np.asarray(R, np.float64)[None])[0]
+    return -q if q[0] < 0 else q
