@@ -79,19 +79,19 @@ def test_not_a_model_folder(tmp_path):
 def test_lifting_cache_per_calibration(tiny_export):
     rec = Reconstructor.load(tiny_export.dir, threads=1, cache_size=2)
     rig5, rig6, rig8 = overlap_rig(5), overlap_rig(6), overlap_rig(8)
-    a = rec.reconstruct(rig6, _images(rig6))
-    b = rec.reconstruct(overlap_rig(6), _images(rig6))     # the same calibration in another Rig object
+    a = rec.reconstruct(rig6, _images(rig6), detail=None)
+    b = rec.reconstruct(overlap_rig(6), _images(rig6), detail=None)     # the same calibration in another Rig object
     assert not a.lifting_cached and b.lifting_cached
     np.testing.assert_array_equal(a.gaussians.means, b.gaussians.means)
-    assert not rec.reconstruct(rig5, _images(rig5)).lifting_cached
-    assert not rec.reconstruct(overlap_rig(6, ring_radius=0.6), _images(rig6)).lifting_cached   # moved cameras
-    rec.reconstruct(rig8, _images(rig8))
+    assert not rec.reconstruct(rig5, _images(rig5), detail=None).lifting_cached
+    assert not rec.reconstruct(overlap_rig(6, ring_radius=0.6), _images(rig6), detail=None).lifting_cached   # moved cameras
+    rec.reconstruct(rig8, _images(rig8), detail=None)
     assert len(rec._cache) == 2 and calibration_key(rig6) not in rec._cache   # least recently used dropped
 
 
 def test_counts_and_metadata(rec):
     rig = overlap_rig(6)
-    s = rec.reconstruct(rig, _images(rig))
+    s = rec.reconstruct(rig, _images(rig), detail=None)
     c = s.counts
     assert c["volume"] == 2 * c["voxels"] and c["pixel"] == 16 * 128   # G_v = 2; G_p = 1 on the k = 2 lattice of 8 x 64
     assert c["total"] == len(s.gaussians) == c["volume"] + c["pixel"] - c["pruned"]
@@ -99,6 +99,10 @@ def test_counts_and_metadata(rec):
     for k in ("decode", "resize", "lifting", "encode", "select", "volume", "gaussians", "background", "total"):
         assert s.timings[k] >= 0
     assert s.background is not None and s.background.image.shape[1] == 4 * 64
+    # the default adds the detail layer (runtime.detail): its counts partition the scene's Gaussians
+    d = rec.reconstruct(rig, _images(rig)).counts
+    assert d["total"] == d["coarse"] + d["detail"] and d["coarse"] + d["culled"] == c["total"]
+    assert d["detail"] + d["carved"] == sum(d[f"detail_{k}"] for k in ("lidar", "ground", "model", "far")) > 0
 
 
 def test_resizes_any_image_size_with_inter_area(rec):
@@ -106,11 +110,11 @@ def test_resizes_any_image_size_with_inter_area(rec):
     are normalised image coordinates, the same at any resolution)."""
     big = overlap_rig(6, width=256, height=128)
     imgs = _images(big, seed=3)
-    a = rec.reconstruct(big, imgs)
+    a = rec.reconstruct(big, imgs, detail=None)
     small = overlap_rig(6)
-    b = rec.reconstruct(small, [resize_area(i, 64, 128) for i in imgs])
+    b = rec.reconstruct(small, [resize_area(i, 64, 128) for i in imgs], detail=None)
     np.testing.assert_allclose(a.gaussians.means, b.gaussians.means, atol=1e-4)
-    uint8 = rec.reconstruct(big, [np.round(i * 255).astype(np.uint8) for i in imgs])
+    uint8 = rec.reconstruct(big, [np.round(i * 255).astype(np.uint8) for i in imgs], detail=None)
     assert len(uint8.gaussians) > 0
 
 
@@ -145,12 +149,13 @@ def test_bad_input_names_the_camera(rec, case):
         else:
             depths[2] = depths[2][:32]
     with pytest.raises(RigError) as e:
-        rec.reconstruct(rig, imgs, depths)
+        rec.reconstruct(rig, imgs, depths, detail=None)
     assert ("'cam2'" in str(e.value)) if case != "count" else "rig" in str(e.value)
 
 
 def test_concurrent_reconstructions_agree(rec):
-    """Several threads on one Reconstructor (shared sessions, locked cache) give the sequential results."""
+    """Several threads on one Reconstructor (shared sessions, locked cache, the detail layer's numba kernels) give the
+    sequential results."""
     rigs = [overlap_rig(5), overlap_rig(6), overlap_rig(8)]
     imgs = [_images(r, seed=i) for i, r in enumerate(rigs)]
     ref = [rec.reconstruct(r, i).gaussians.means for r, i in zip(rigs, imgs)]
@@ -172,7 +177,7 @@ def test_lidar_becomes_the_depth_input(rec):
     imgs = _images(rig, seed=3)
     az, z = np.meshgrid(np.linspace(-np.pi, np.pi, 720, endpoint=False), np.linspace(-1.0, 4.0, 40))
     wall = np.stack([15 * np.cos(az).ravel(), 15 * np.sin(az).ravel(), z.ravel()], axis=1)   # a 15 m round wall
-    scene0 = rec.reconstruct(rig, imgs, depths=[None] * 6)
+    scene0 = rec.reconstruct(rig, imgs, depths=[None] * 6, detail=None)
     given = np.full((rig.cameras[2].height, rig.cameras[2].width), 9.0, np.float32)
     _, depth_g, mask_g = rec.prepare(rig, imgs, [None, None, given, None, None, None])
     d, m, scales = rec.lidar_depths(rig, scene0.gaussians, wall, depth_g, mask_g)
@@ -184,13 +189,13 @@ def test_lidar_becomes_the_depth_input(rec):
         assert has.mean() > 0.3                       # the wall fills the view's lower and middle rows
         np.testing.assert_array_equal(d[n, 0][has], lid[has])
         assert scales[n] > 0
-    scene = rec.reconstruct(rig, imgs, depths=[None] * 6, lidar=wall)
+    scene = rec.reconstruct(rig, imgs, depths=[None] * 6, lidar=wall, detail=None)
     assert scene.counts["lidar_cameras"] == 6 and "encode_lidar" in scene.timings
     assert not np.array_equal(scene.gaussians.means, scene0.gaussians.means)
     assert not depth_g[0].any() and mask_g[0] == 0       # the caller's inputs were not changed in place
     with pytest.raises(InferenceError, match=r"lidar: need finite points of shape \[P, 3\]"):
-        rec.reconstruct(rig, imgs, depths=[None] * 6, lidar=wall[:, :2])
+        rec.reconstruct(rig, imgs, depths=[None] * 6, lidar=wall[:, :2], detail=None)
     bad = wall.copy()
     bad[0, 0] = np.nan
     with pytest.raises(InferenceError, match="lidar"):
-        rec.reconstruct(rig, imgs, depths=[None] * 6, lidar=bad)
+        rec.reconstruct(rig, imgs, depths=[None] * 6, lidar=bad, detail=None)

@@ -68,7 +68,7 @@ def test_reconstruct_matches_torch(tiny_export, rec, n):
         depths = [None] * n
         depths[1] = np.full((64, 128), 7.5, np.float32)
         depths[4] = np.linspace(2.0, 30.0, 64 * 128, dtype=np.float32).reshape(64, 128)
-    scene = rec.reconstruct(rig, images, depths)
+    scene = rec.reconstruct(rig, images, depths, detail=None)
     imgs, depth, mask = rec.prepare(rig, images, depths)
     lift, _ = rec.lifting(rig)
     idx = select_voxels(rec._run("encode", {"images": imgs, "depth": depth, "depth_mask": mask, **lift})["occ_logits"],
@@ -137,9 +137,9 @@ def test_same_result_for_any_thread_count(tiny_export, rec):
     loses updates with several threads): 1 and 2 threads give bit-identical planes and Gaussians, run to run."""
     rig, images = _inputs(6, seed=11)
     one = Reconstructor.load(tiny_export.dir, threads=1)
-    a = one.reconstruct(rig, images)
+    a = one.reconstruct(rig, images, detail=None)
     for _ in range(2):
-        b = rec.reconstruct(rig, images)
+        b = rec.reconstruct(rig, images, detail=None)
         np.testing.assert_array_equal(a.app_plane, b.app_plane)
         for k in GAUSSIAN_KEYS:
             np.testing.assert_array_equal(getattr(a.gaussians, k), getattr(b.gaussians, k))
