@@ -196,25 +196,32 @@ def support_mask(sparse: np.ndarray, radius_px: float) -> np.ndarray:
 
 
 def edge_keep(depth: np.ndarray, edge_ratio: float) -> np.ndarray:
-    """[h, w] bool: cells with a depth (> 0) that are not on the far side of a depth edge: depth <= (1 + edge_ratio)
-    x the smallest positive depth of their 3x3 neighbourhood."""
+    """[h, w] bool: cells with a depth (> 0) that are not "flying" across a depth edge: a cell is dropped when it is
+    both farther than (1 + edge_ratio) x the nearest and nearer than 1 / (1 + edge_ratio) x the farthest positive
+    depth of its 3x3 neighbourhood (a depth between the two sides of a jump: the mixed cells a smoothing or an
+    upsampling leaves there). The near side and the far side of an edge keep their cells."""
     import cv2
 
-    d = np.where(depth > 0, depth, np.inf).astype(np.float32)
-    near = cv2.erode(d, np.ones((3, 3), np.uint8), borderType=cv2.BORDER_REPLICATE)
-    return (depth > 0) & (depth <= near * np.float32(1.0 + edge_ratio))
+    k = np.ones((3, 3), np.uint8)
+    r = np.float32(1.0 + edge_ratio)
+    near = cv2.erode(np.where(depth > 0, depth, np.inf).astype(np.float32), k, borderType=cv2.BORDER_REPLICATE)
+    far = cv2.dilate(np.where(depth > 0, depth, 0).astype(np.float32), k, borderType=cv2.BORDER_REPLICATE)
+    return (depth > 0) & ~((depth > near * r) & (depth * r < far))
 
 
 def edge_keep_reference(depth: np.ndarray, edge_ratio: float) -> np.ndarray:
     """`edge_keep` cell by cell (slow, obviously correct; for the tests)."""
     H, W = depth.shape
     out = np.zeros((H, W), bool)
+    r = np.float32(1.0 + edge_ratio)
     for y in range(H):
         for x in range(W):
             if depth[y, x] <= 0:
                 continue
             win = depth[max(0, y - 1):y + 2, max(0, x - 1):x + 2]
-            out[y, x] = depth[y, x] <= win[win > 0].min() * np.float32(1.0 + edge_ratio)
+            win = win[win > 0]
+            flying = depth[y, x] > win.min() * r and depth[y, x] * r < win.max()
+            out[y, x] = not flying
     return out
 
 

@@ -178,9 +178,13 @@ def test_edge_keep_matches_reference_and_by_hand():
         d[rng.random(d.shape) < 0.3] = 0
         d[0, :5] = 0                       # an all-empty corner window
         np.testing.assert_array_equal(edge_keep(d, ratio), edge_keep_reference(d, ratio))
-    d = np.array([[5.0, 20.0, 0.0], [5.4, 5.6, 0.0]], np.float32)
-    # 20 and 5.6 exceed 1.1 x 5 (their nearest neighbour); 5.4 does not; empty cells never kept
-    assert edge_keep(d, 0.1).tolist() == [[True, False, False], [True, False, False]]
+    d = np.array([[5.0, 20.0, 0.0], [5.4, 10.0, 0.0]], np.float32)
+    # 10 lies between the sides of the 5 | 20 jump (> 1.1 x 5 and < 20 / 1.1): a flying cell, dropped; 20 is the
+    # far side (nothing in its window is farther), 5 and 5.4 the near side: kept; empty cells never kept
+    assert edge_keep(d, 0.1).tolist() == [[True, True, False], [True, False, False]]
+    ramp = np.array([[5.0, 8.75, 12.5, 16.25, 20.0, 20.0]], np.float32)
+    # a smoothed jump: every cell between the two sides goes, both ends stay
+    assert edge_keep(ramp, 0.1).tolist() == [[True, False, False, False, True, True]]
 
 
 def _random_details(seed: int, n_cams: int = 4, size=(48, 27)) -> list[CameraDetail]:
