@@ -8,7 +8,7 @@ Cases, for each --strides value (an integer stride, or "off" for the model's Gau
 - ``reconstruct``: rig.json + JPEGs + LiDAR -> Scene (`Reconstructor.reconstruct` with the images decoded from the
   files, so decode is timed), median and min of --repeats runs after one warm-up (numba compiles and the lifting
   cache fills there), the stage breakdown of the median run, the Gaussian counts per layer, the PLY's bytes, and the
-  child's peak RSS (VmHWM) after the runs.
+  child's peak RSS (VmHWM) after the runs and after the save too.
 - ``render``: the scene seen from --camera at 1920x1080, 1600x900 and 800x450 (runtime.scene.render_view: Gaussians
   over the baked background), median of --repeats, with the renderer's own stage times of the median run.
 - ``input_view``: PSNR / SSIM / sharpness ratio of the render at --camera's own pose against its image (full size).
@@ -57,6 +57,7 @@ def child(args: argparse.Namespace) -> None:
     runs = []
     scene = None
     for i in range(args.repeats + 1):
+        scene = None                            # the previous scene is not held while the next one is built
         t0 = time.perf_counter()
         scene = rec.reconstruct(rig, lidar=lidar, detail=detail)
         wall = time.perf_counter() - t0
@@ -64,13 +65,15 @@ def child(args: argparse.Namespace) -> None:
             runs.append((wall, scene.timings))
     walls = [w for w, _ in runs]
     med = sorted(runs, key=lambda r: r[0])[len(runs) // 2]
+    rss_reconstruct = peak_rss_mb()                 # before the save (its PLY buffer) and the renders
     with tempfile.TemporaryDirectory() as tmp:
         scene.save(Path(tmp) / "s")
         ply = (Path(tmp) / "s" / "scene.ply").stat().st_size
     case = {"stride": args.child, "rig": str(args.rig), "threads": args.threads}
     print(json.dumps({"case": "reconstruct", **case, "median_s": statistics.median(walls), "min_s": min(walls),
                       "runs": len(walls), "stages_s": med[1], "counts": scene.counts, "ply_bytes": ply,
-                      "peak_rss_mb": round(peak_rss_mb(), 1)}), flush=True)
+                      "peak_rss_mb": round(rss_reconstruct, 1), "peak_rss_with_save_mb": round(peak_rss_mb(), 1)}),
+          flush=True)
     cam = rig.camera(args.camera)
     for w, h in SIZES:
         c = rig_camera(cam, width=w, height=h)
