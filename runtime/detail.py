@@ -2,29 +2,28 @@
 
 The model's pixel Gaussians live on the cylinder lattice (112 x 1024 for the shipped model: ~2.8 columns per
 degree), while a 1920x1080 camera with a 50 degree lens has ~37 pixels per degree. The detail layer gives every
-input camera its own Gaussians at its own resolution (docs/inference.md, "Detail Gaussians"):
+input camera its own Gaussians at its own resolution (docs/inference.md, "Detail Gaussians", has the table of
+steps and settings; docs/results.md "Detail Gaussians" the measurements behind the defaults):
 
-1. A grid camera per input camera: the camera resized by 1/stride (``grid_camera``: its pixel centres are the
-   centres of the stride x stride blocks of the input image); the colour of a cell is the area mean of its block.
-2. A dense depth per cell (camera z, metres):
-   - with LiDAR: the sweep projected into the grid camera, nearest point per cell, points hidden behind a nearer
-     one dropped (``lidar_grid_depth``: the occlusion window is a fixed angle, so its size does not depend on the
-     stride), then densified edge-aware, guided by the image (``densify``: normalised fast global smoothing,
-     OpenCV ximgproc) -- a cell is trusted when a LiDAR return lies within ``support_deg`` of it;
-   - elsewhere (and without LiDAR): the model's own depth (the coarse Gaussians rendered at that camera, scaled
-     by the median LiDAR / model ratio when a sweep is given), upsampled the same edge-aware way; cells where the
-     model sees no surface (alpha < 0.5: sky) get no Gaussian.
-3. At depth discontinuities no Gaussian spans the gap: a cell farther than (1 + edge_ratio) x the nearest cell of
-   its 3x3 neighbourhood is dropped (``edge_keep``): the near side of an edge keeps its cells, the far side and the
-   mixed "flying" cells between go; the model fills the 1-2 cell seam.
-4. Each kept cell becomes one Gaussian (``cell_gaussians``): centre on the cell's ray at its depth; a disc parallel
-   to the image plane with standard deviation ``footprint`` x (depth / focal) (the cell's footprint) and
-   ``thickness`` times that along the optical axis; colour = the block's mean (SH degree 0); opacity
-   ``opacity`` where LiDAR supports the depth, ``model_opacity`` where the model's depth alone places it.
-5. Fusion (``cull_covered``): a coarse model Gaussian is dropped when some input camera sees it on a detail cell
-   and it lies in front of, or within ``cull_tolerance`` of, that cell's depth: it would veil or blur a surface
-   the camera saw sharply. Coarse Gaussians behind every detail surface (disocclusions) and where no camera has
-   detail (sky, out of every view) stay.
+1. A grid camera per input camera (``grid_camera``: the camera resized by 1/stride; a cell's centre is its
+   stride x stride block's centre); a cell's colour is the block's area mean, unsharp-masked (``grid_colours``).
+2. A depth per cell (camera z, metres), in ``camera_detail``:
+   - LiDAR: the sweep projected into the grid, nearest return per cell, returns hidden behind a nearer one within a
+     fixed angle dropped (``lidar_grid_depth``), spread edge-aware over the image (``densify``: normalised fast
+     global smoothing, OpenCV ximgproc); a cell within ``support_deg`` of a return is LiDAR-supported;
+   - ground: cells the LiDAR does not reach whose ray meets the sweep's ground plane (``fit_ground``,
+     ``ground_depth``) take its depth unless something is clearly in front;
+   - model: other cells with a model surface take the model's depth (its Gaussians rendered at the grid,
+     ``model_grid_depth``; scaled by the median LiDAR / model ratio when a sweep is given);
+   - far: cells with no depth (sky) or beyond ``max_depth`` sit on one sphere about the ego origin
+     (``sphere_depth``).
+3. No Gaussian spans a depth edge: the cells between the two sides of a jump are dropped (``edge_keep``).
+4. One Gaussian per kept cell (``cell_gaussians``, one numba pass; ``cell_gaussians_reference`` is its numpy
+   definition): on the cell's ray at its depth, a disc covering the cell's footprint, in the surface's tangent plane
+   where the neighbouring cells give one (``surface_discs``), else parallel to the image plane; the cell's colour.
+5. Fusion (called by ``Reconstructor.add_detail``): ``cull_covered`` drops the model's Gaussians that would veil a
+   detail surface; ``carve_details`` drops the cells that another camera contradicts (it saw through them) or
+   resolves more finely on the same surface. Each has a slow reference the tests compare it with.
 """
 
 from __future__ import annotations
