@@ -366,13 +366,13 @@ def _logit(p: np.ndarray) -> np.ndarray:
     return np.log(p / (1.0 - p))
 
 
-@numba.njit(cache=True, inline="always")
+@numba.njit(cache=True)
 def _cell_point(depth, fx, fy, cx, cy, y, x, out):
     z = depth[y, x]
     out[0], out[1], out[2] = (x - cx) / fx * z, (y - cy) / fy * z, z
 
 
-@numba.njit(cache=True, inline="always")
+@numba.njit(cache=True)
 def _tangent(depth, keep, fx, fy, cx, cy, y, x, dy, dx, c, t, tmp_p, tmp_m):
     """t = the step to the neighbours along (dy, dx) as surface_discs takes it; returns whether there is one."""
     h, w = keep.shape
@@ -393,7 +393,7 @@ def _tangent(depth, keep, fx, fy, cx, cy, y, x, dy, dx, c, t, tmp_p, tmp_m):
     return kp or km
 
 
-@numba.njit(cache=True, inline="always")
+@numba.njit(cache=True)
 def _quat(R, q):
     """rotmats_to_quats for one matrix (the same branch choice)."""
     tr = R[0, 0] + R[1, 1] + R[2, 2]
@@ -425,74 +425,82 @@ def _quat(R, q):
 def _cells_kernel(depth, keep, row_start, fx, fy, cx, cy, Rce, tce, qcam, footprint, thickness, stretch,
                   means, quats, log_scales):
     """cell_gaussians_reference's geometry for the kept cells, one image row per task; row_start[y] = the index of
-    row y's first kept cell (np.nonzero order)."""
-    h, w = keep.shape
+    row y's first kept cell (np.nonzero order). The row's work is a plain (serial) function: inlined into the
+    prange body, the same code gave wrong tangents (the surface branch's variables, measured: discs flat)."""
+    for y in numba.prange(keep.shape[0]):
+        _cells_row(depth, keep, y, row_start[y], fx, fy, cx, cy, Rce, tce, qcam, footprint, thickness, stretch,
+                   means, quats, log_scales)
+
+
+@numba.njit(cache=True, nogil=True)
+def _cells_row(depth, keep, y, i, fx, fy, cx, cy, Rce, tce, qcam, footprint, thickness, stretch, means, quats,
+               log_scales):
+    """One image row of _cells_kernel, its first kept cell at index i."""
+    w = keep.shape[1]
     f = 0.5 * (fx + fy)
-    for y in numba.prange(h):
-        i = row_start[y]
-        c = np.empty(3)
-        tu = np.empty(3)
-        tv = np.empty(3)
-        tp = np.empty(3)
-        tm = np.empty(3)
-        Rl = np.empty((3, 3))
-        Re = np.empty((3, 3))
-        q = np.empty(4)
-        for x in range(w):
-            if not keep[y, x]:
-                continue
-            _cell_point(depth, fx, fy, cx, cy, y, x, c)
-            z = c[2]
+    c = np.empty(3)
+    tu = np.empty(3)
+    tv = np.empty(3)
+    tp = np.empty(3)
+    tm = np.empty(3)
+    Rl = np.empty((3, 3))
+    Re = np.empty((3, 3))
+    q = np.empty(4)
+    for x in range(w):
+        if not keep[y, x]:
+            continue
+        _cell_point(depth, fx, fy, cx, cy, y, x, c)
+        z = c[2]
+        for r in range(3):
+            means[i, r] = Rce[r, 0] * c[0] + Rce[r, 1] * c[1] + Rce[r, 2] * c[2] + tce[r]
+        s = footprint * z / f
+        ok = False
+        if stretch > 0:
+            oku = _tangent(depth, keep, fx, fy, cx, cy, y, x, 0, 1, c, tu, tp, tm)
+            okv = _tangent(depth, keep, fx, fy, cx, cy, y, x, 1, 0, c, tv, tp, tm)
+            if oku and okv:
+                nx = tu[1] * tv[2] - tu[2] * tv[1]
+                ny = tu[2] * tv[0] - tu[0] * tv[2]
+                nz = tu[0] * tv[1] - tu[1] * tv[0]
+                nn = math.sqrt(nx * nx + ny * ny + nz * nz)
+                lu = math.sqrt(tu[0] * tu[0] + tu[1] * tu[1] + tu[2] * tu[2])
+                lv = math.sqrt(tv[0] * tv[0] + tv[1] * tv[1] + tv[2] * tv[2])
+                L0 = z / f
+                ok = nn > 1e-12 and lu <= stretch * L0 and lv <= stretch * L0 and lu > 0
+        if ok:
+            nx, ny, nz = nx / nn, ny / nn, nz / nn
+            if nx * c[0] + ny * c[1] + nz * c[2] > 0:
+                nx, ny, nz = -nx, -ny, -nz
+            e1x, e1y, e1z = tu[0] / lu, tu[1] / lu, tu[2] / lu
+            e2x, e2y, e2z = ny * e1z - nz * e1y, nz * e1x - nx * e1z, nx * e1y - ny * e1x
+            a = lu
+            b = tv[0] * e1x + tv[1] * e1y + tv[2] * e1z
+            cc = tv[0] * e2x + tv[1] * e2y + tv[2] * e2z
+            m00, m11, m01 = a * a + b * b, cc * cc, b * cc
+            phi = 0.5 * math.atan2(2 * m01, m00 - m11)
+            mid = 0.5 * (m00 + m11)
+            rad = math.sqrt((0.5 * (m00 - m11)) ** 2 + m01 * m01)
+            sd1 = math.sqrt(max(mid + rad, 1e-24))
+            sd2 = math.sqrt(max(mid - rad, 1e-24))
+            cp, sp = math.cos(phi), math.sin(phi)
+            Rl[0, 0], Rl[1, 0], Rl[2, 0] = cp * e1x + sp * e2x, cp * e1y + sp * e2y, cp * e1z + sp * e2z
+            Rl[0, 1], Rl[1, 1], Rl[2, 1] = -sp * e1x + cp * e2x, -sp * e1y + cp * e2y, -sp * e1z + cp * e2z
+            Rl[0, 2], Rl[1, 2], Rl[2, 2] = nx, ny, nz
             for r in range(3):
-                means[i, r] = Rce[r, 0] * c[0] + Rce[r, 1] * c[1] + Rce[r, 2] * c[2] + tce[r]
-            s = footprint * z / f
-            ok = False
-            if stretch > 0:
-                oku = _tangent(depth, keep, fx, fy, cx, cy, y, x, 0, 1, c, tu, tp, tm)
-                okv = _tangent(depth, keep, fx, fy, cx, cy, y, x, 1, 0, c, tv, tp, tm)
-                if oku and okv:
-                    nx = tu[1] * tv[2] - tu[2] * tv[1]
-                    ny = tu[2] * tv[0] - tu[0] * tv[2]
-                    nz = tu[0] * tv[1] - tu[1] * tv[0]
-                    nn = math.sqrt(nx * nx + ny * ny + nz * nz)
-                    lu = math.sqrt(tu[0] * tu[0] + tu[1] * tu[1] + tu[2] * tu[2])
-                    lv = math.sqrt(tv[0] * tv[0] + tv[1] * tv[1] + tv[2] * tv[2])
-                    L0 = z / f
-                    ok = nn > 1e-12 and lu <= stretch * L0 and lv <= stretch * L0 and lu > 0
-            if ok:
-                nx, ny, nz = nx / nn, ny / nn, nz / nn
-                if nx * c[0] + ny * c[1] + nz * c[2] > 0:
-                    nx, ny, nz = -nx, -ny, -nz
-                e1x, e1y, e1z = tu[0] / lu, tu[1] / lu, tu[2] / lu
-                e2x, e2y, e2z = ny * e1z - nz * e1y, nz * e1x - nx * e1z, nx * e1y - ny * e1x
-                a = lu
-                b = tv[0] * e1x + tv[1] * e1y + tv[2] * e1z
-                cc = tv[0] * e2x + tv[1] * e2y + tv[2] * e2z
-                m00, m11, m01 = a * a + b * b, cc * cc, b * cc
-                phi = 0.5 * math.atan2(2 * m01, m00 - m11)
-                mid = 0.5 * (m00 + m11)
-                rad = math.sqrt((0.5 * (m00 - m11)) ** 2 + m01 * m01)
-                sd1 = math.sqrt(max(mid + rad, 1e-24))
-                sd2 = math.sqrt(max(mid - rad, 1e-24))
-                cp, sp = math.cos(phi), math.sin(phi)
-                Rl[0, 0], Rl[1, 0], Rl[2, 0] = cp * e1x + sp * e2x, cp * e1y + sp * e2y, cp * e1z + sp * e2z
-                Rl[0, 1], Rl[1, 1], Rl[2, 1] = -sp * e1x + cp * e2x, -sp * e1y + cp * e2y, -sp * e1z + cp * e2z
-                Rl[0, 2], Rl[1, 2], Rl[2, 2] = nx, ny, nz
-                for r in range(3):
-                    for k in range(3):
-                        Re[r, k] = Rce[r, 0] * Rl[0, k] + Rce[r, 1] * Rl[1, k] + Rce[r, 2] * Rl[2, k]
-                _quat(Re, q)
-                for k in range(4):
-                    quats[i, k] = q[k]
-                log_scales[i, 0] = math.log(footprint * sd1)
-                log_scales[i, 1] = math.log(footprint * sd2)
-            else:
-                for k in range(4):
-                    quats[i, k] = qcam[k]
-                log_scales[i, 0] = math.log(s)
-                log_scales[i, 1] = math.log(s)
-            log_scales[i, 2] = math.log(thickness * s)
-            i += 1
+                for k in range(3):
+                    Re[r, k] = Rce[r, 0] * Rl[0, k] + Rce[r, 1] * Rl[1, k] + Rce[r, 2] * Rl[2, k]
+            _quat(Re, q)
+            for k in range(4):
+                quats[i, k] = q[k]
+            log_scales[i, 0] = math.log(footprint * sd1)
+            log_scales[i, 1] = math.log(footprint * sd2)
+        else:
+            for k in range(4):
+                quats[i, k] = qcam[k]
+            log_scales[i, 0] = math.log(s)
+            log_scales[i, 1] = math.log(s)
+        log_scales[i, 2] = math.log(thickness * s)
+        i += 1
 
 
 def cell_gaussians(grid: Camera, colours: np.ndarray, depth: np.ndarray, opacity: np.ndarray, keep: np.ndarray,
