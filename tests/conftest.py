@@ -10,6 +10,25 @@ import pytest
 REPO = Path(__file__).resolve().parents[1]
 
 
+@pytest.fixture(scope="session")
+def _default_numba_threads() -> int:
+    """numba's thread count as the test session found it."""
+    import numba
+
+    return numba.get_num_threads()
+
+
+@pytest.fixture(autouse=True)
+def _restore_numba_threads(_default_numba_threads):
+    """Commands run in-process (`cli.main([... "--threads", "1"])`, also from module fixtures) set numba's
+    process-wide thread count; after each test it goes back to the session's default, so a later test does not run
+    with another test's setting (the training overfit check's loss ratio moved from 0.46 to 0.52 that way)."""
+    yield
+    import numba
+
+    numba.set_num_threads(_default_numba_threads)
+
+
 def real_data_dir() -> Path | None:
     """The shared real rigs (nuScenes, PandaSet, panoramas), or None when absent (tests then skip)."""
     env = os.environ.get("XYZCYL_REAL_DATA")
