@@ -423,8 +423,9 @@ class Reconstructor:
         covers culled, then each pinhole camera's detail Gaussians. images: the full-resolution inputs in rig order;
         lidar [P, 3] metres, ego frame, or None. Adds to ``counts``: detail (Gaussians), detail_lidar /
         detail_ground / detail_model / detail_far (cells placed by LiDAR, the LiDAR's ground plane, the model's
-        depth, at the far depth), detail_edge (cells dropped at depth edges),
-        coarse (model Gaussians kept), culled (model Gaussians culled); total becomes the scene's count."""
+        depth, at the far depth), detail_edge (cells dropped at depth edges), carved (cells another camera
+        contradicts or resolves more finely: runtime.detail.carve_details), coarse (model Gaussians kept), culled
+        (model Gaussians culled); total becomes the scene's count."""
         from .detail import (
             camera_detail,
             carve_details,
