@@ -19,6 +19,11 @@ NCG = 16    # per-Gaussian float32 row (64 bytes): mean x, y (px) as float32 hi 
 #             bounding half-height ry, A, B, C (half conic), opacity, pmax, r, g, b, depth, pad, pad
 ROW_PAD = 1e-3  # px added to ry when choosing the tile rows a Gaussian is evaluated on (float32 ry rounding)
 STOP_CHECK = 16  # the raster tests for a fully stopped tile every this many instances (a power of 2)
+PROJ_CHUNK = 1024  # Gaussians per projection chunk: the unit of the frustum test on bounding boxes, of the
+#                   parallel schedule and of the output's compaction (chunk c writes from its offset on)
+SPREAD = 16  # parallel loops visit their items in a G-strided order (_spread): numba splits a prange into one
+#             contiguous block per thread (numba.parallel_chunksize did not balance here), and the work is clustered
+#             (dense tiles in parts of the image, the visible Gaussians in stretches of the array)
 GATHER = 128  # instances gathered per batch into the raster's per-tile buffer (8 KB: stays in L1)
 NFEAT = 16  # per-instance features (one 64-byte row): mx, my (tile-local px), A = a/2, B = b, C = c/2 (conic),
 #             opacity, pmax, r, g, b, depth, first row, last row (tile-local rows the footprint can touch),
@@ -45,6 +50,16 @@ def _fit_exp_coefficients():
 
 E5, E4, E3, E2, E1, E0 = _fit_exp_coefficients()
 RASTER_MATH = {"contract"}  # allow FMA contraction in the raster kernels (forward and backward alike)
+
+
+@njit(inline="always")
+def _spread(k, n):
+    """Item of iteration k (0 <= k < SPREAD * ceil(n / SPREAD)) of a loop over n items, or -1: iterations
+    k = j * m + i (m = ceil(n / SPREAD)) visit item i * SPREAD + j, so every contiguous block of iterations
+    (a thread's share) covers the whole range evenly."""
+    m = (n + SPREAD - 1) // SPREAD
+    t = (k % m) * SPREAD + k // m
+    return t if t < n else -1
 
 
 @njit(inline="always", fastmath=RASTER_MATH)
@@ -74,40 +89,115 @@ def _alpha(dx, dy, A, B, C, op, pmax):
 
 
 # ------------------------------------------------------------------------------------------------ projection
+@njit(inline="always")
+def _precull(means, log_scales, i, Rw, tw, model, fx, fy, cx, cy, lxn, lxp, lyn, lyp, width, height, near, far,
+             low_pass):
+    """(keep, x, y, z): Gaussian i's camera-frame mean (float64) and whether it survives the cheap conservative
+    culls: depth (camera z, equirect: distance) within [near, far]; pinhole: its box of 3.34 x (the largest
+    scale through the clamped Jacobian's row norms, plus the low-pass) reaches the image. Every Gaussian the
+    full projection keeps is kept here (the full test bounds the footprint by <= 3.33 sigma of a covariance
+    no larger than this)."""
+    mxw, myw, mzw = np.float64(means[i, 0]), np.float64(means[i, 1]), np.float64(means[i, 2])
+    x = Rw[0, 0] * mxw + Rw[0, 1] * myw + Rw[0, 2] * mzw + tw[0]
+    y = Rw[1, 0] * mxw + Rw[1, 1] * myw + Rw[1, 2] * mzw + tw[1]
+    z = Rw[2, 0] * mxw + Rw[2, 1] * myw + Rw[2, 2] * mzw + tw[2]
+    if model == 0:
+        if not (z >= near and z <= far):
+            return False, x, y, z
+        sx = x / z
+        sy = y / z
+        u = fx * sx + cx
+        v = fy * sy + cy
+        if u >= 0.0 and u <= width - 1 and v >= 0.0 and v <= height - 1:
+            return True, x, y, z            # the mean is on the image: its box reaches it (no exp, no sqrt)
+        sxc = min(max(sx, -lxn), lxp)
+        syc = min(max(sy, -lyn), lyp)
+        smax = math.exp(max(np.float64(log_scales[i, 0]), np.float64(log_scales[i, 1]),
+                            np.float64(log_scales[i, 2])))
+        ru = 3.34 * math.sqrt((fx / z) ** 2 * (1.0 + sxc * sxc) * smax * smax + low_pass)
+        rv = 3.34 * math.sqrt((fy / z) ** 2 * (1.0 + syc * syc) * smax * smax + low_pass)
+        return not (u - ru > width - 1 or u + ru < 0.0 or v - rv > height - 1 or v + rv < 0.0), x, y, z
+    r = math.sqrt(x * x + y * y + z * z)
+    return r >= near and r <= far, x, y, z
+
+
+@njit(cache=True, parallel=True, nogil=True)
+def precull_counts(means, log_scales, Rw, tw, model, fx, fy, cx, cy, lxn, lxp, lyn, lyp, width, height, near, far,
+                   low_pass, planes, counts):
+    """counts[c] = how many Gaussians of chunk c (PROJ_CHUNK Gaussians each) survive _precull; 0 for a chunk
+    whose bounding box lies wholly outside one of `planes` (chunk_planes), without looking at its Gaussians.
+    An upper bound of what project_kernel keeps, so its outputs can be allocated to fit."""
+    nch = (means.shape[0] + PROJ_CHUNK - 1) // PROJ_CHUNK
+    for k in prange(SPREAD * ((nch + SPREAD - 1) // SPREAD)):
+        ch = _spread(k, nch)
+        if ch < 0:
+            continue
+        counts[ch] = _precull_chunk(means, log_scales, Rw, tw, model, fx, fy, cx, cy, lxn, lxp, lyn, lyp, width,
+                                    height, near, far, low_pass, planes, ch)
+
+
+@njit(cache=True, nogil=True)
+def _precull_chunk(means, log_scales, Rw, tw, model, fx, fy, cx, cy, lxn, lxp, lyn, lyp, width, height, near, far,
+                   low_pass, planes, ch):
+    i0 = ch * PROJ_CHUNK
+    i1 = min(means.shape[0], i0 + PROJ_CHUNK)
+    if planes.shape[0] and _chunk_outside(means, log_scales, planes, i0, i1):
+        return 0
+    c = 0
+    for i in range(i0, i1):
+        keep, _, _, _ = _precull(means, log_scales, i, Rw, tw, model, fx, fy, cx, cy, lxn, lxp, lyn, lyp, width,
+                                 height, near, far, low_pass)
+        c += keep
+    return c
+
+
 @njit(cache=True, parallel=True, nogil=True)
 def project_kernel(means, quats, log_scales, opacity_logits, sh, campos, Rw, tw, model, fx, fy, cx, cy,
                    lxn, lxp, lyn, lyp, width, height, near, far, low_pass, antialiased, opacity_mode,
-                   rows, trange, depth_out):
-    """Per Gaussian i (computed in float64): rows[i] = its 64-byte float32 row (layout: NCG), trange[i] [n, 2]
-    int32 = (tx0 | tx1 << 16, ty0 | ty1 << 16) the tiles its bounding box touches (tx1 < tx0: the range wraps
-    around the azimuth seam, equirect), depth_out[i] [n] float64 = depth, or -1 when culled (rows[i] and
-    trange[i] are then left unwritten). model 0 = pinhole, 1 = equirect."""
-    n = means.shape[0]
+                   pre, base, rows, trange, depth_out, gid, counts):
+    """Project the Gaussians (float64), parallel over chunks of PROJ_CHUNK Gaussians. Chunk c (pre[c] > 0: its
+    precull_counts) writes its visible Gaussians, in index order, to slots base[c], base[c] + 1, ... (base: the
+    exclusive prefix sum of pre) and their number (<= pre[c]) to counts[c]; per slot s: rows[s] = the 64-byte
+    float32 row (layout: NCG), trange[s] [., 2] int32 = (tx0 | tx1 << 16, ty0 | ty1 << 16) the tiles its
+    bounding box touches (tx1 < tx0: the range wraps around the azimuth seam, equirect), depth_out[s] float64 =
+    depth, gid[s] int32 = the Gaussian's index. Slots past counts[c] are left unwritten (never read). Slots
+    increase with the Gaussian index, so sorting slots is sorting indices. model 0 = pinhole, 1 = equirect."""
+    nch = (means.shape[0] + PROJ_CHUNK - 1) // PROJ_CHUNK
     ntx = (width + TILE - 1) // TILE
-    nty = (height + TILE - 1) // TILE
-    for i in prange(n):
-        depth_out[i] = -1.0
+    for k in prange(SPREAD * ((nch + SPREAD - 1) // SPREAD)):
+        ch = _spread(k, nch)
+        if ch < 0:
+            continue
+        counts[ch] = 0
+        if pre[ch] > 0:
+            counts[ch] = _project_chunk(means, quats, log_scales, opacity_logits, sh, campos, Rw, tw, model, fx,
+                                        fy, cx, cy, lxn, lxp, lyn, lyp, width, height, near, far, low_pass,
+                                        antialiased, opacity_mode, rows, trange, depth_out, gid, ch, base[ch], ntx)
+
+
+@njit(cache=True, nogil=True)
+def _project_chunk(means, quats, log_scales, opacity_logits, sh, campos, Rw, tw, model, fx, fy, cx, cy,
+                   lxn, lxp, lyn, lyp, width, height, near, far, low_pass, antialiased, opacity_mode,
+                   rows, trange, depth_out, gid, ch, slot0, ntx):
+    """One chunk of project_kernel (a plain function called per chunk from the prange loop), writing from slot
+    slot0 on; returns the number of visible Gaussians written."""
+    i0 = ch * PROJ_CHUNK
+    i1 = min(means.shape[0], i0 + PROJ_CHUNK)
+    s = slot0
+    for i in range(i0, i1):
+        keep, x, y, z = _precull(means, log_scales, i, Rw, tw, model, fx, fy, cx, cy, lxn, lxp, lyn, lyp, width,
+                                 height, near, far, low_pass)
+        if not keep:
+            continue
         mxw, myw, mzw = np.float64(means[i, 0]), np.float64(means[i, 1]), np.float64(means[i, 2])
-        x = Rw[0, 0] * mxw + Rw[0, 1] * myw + Rw[0, 2] * mzw + tw[0]
-        y = Rw[1, 0] * mxw + Rw[1, 1] * myw + Rw[1, 2] * mzw + tw[1]
-        z = Rw[2, 0] * mxw + Rw[2, 1] * myw + Rw[2, 2] * mzw + tw[2]
         if model == 0:
             depth = z
-            if not (z >= near and z <= far):
-                continue
             sx = x / z
             sy = y / z
             u = fx * sx + cx
             v = fy * sy + cy
             sxc = min(max(sx, -lxn), lxp)
             syc = min(max(sy, -lyn), lyp)
-            # cheap conservative cull before the covariance: sigma_u <= |J row 0| * max scale, etc.
-            smax = math.exp(max(np.float64(log_scales[i, 0]), np.float64(log_scales[i, 1]),
-                                np.float64(log_scales[i, 2])))
-            ru = 3.34 * math.sqrt((fx / z) ** 2 * (1.0 + sxc * sxc) * smax * smax + low_pass)
-            rv = 3.34 * math.sqrt((fy / z) ** 2 * (1.0 + syc * syc) * smax * smax + low_pass)
-            if u - ru > width - 1 or u + ru < 0.0 or v - rv > height - 1 or v + rv < 0.0:
-                continue
             j00 = fx / z
             j01 = 0.0
             j02 = -fx * sxc / z
@@ -117,8 +207,6 @@ def project_kernel(means, quats, log_scales, opacity_logits, sh, campos, Rw, tw,
         else:
             r = math.sqrt(x * x + y * y + z * z)
             depth = r
-            if not (r >= near and r <= far):
-                continue
             rho = math.sqrt(x * x + z * z)
             rho_j = max(rho, r * math.sin(math.pi / (2.0 * height)))
             u = width * (math.atan2(x, z) + math.pi) / (2.0 * math.pi) - 0.5
@@ -198,7 +286,6 @@ def project_kernel(means, quats, log_scales, opacity_logits, sh, campos, Rw, tw,
                 continue
             tx0 = u_lo // TILE
             tx1 = u_hi // TILE
-            nx = tx1 - tx0 + 1
         else:
             if u_hi_f < u_lo_f:
                 continue
@@ -211,32 +298,63 @@ def project_kernel(means, quats, log_scales, opacity_logits, sh, campos, Rw, tw,
                 if int(u_lo_f) % width > int(u_hi_f) % width and tx1 >= tx0:
                     tx0 = 0
                     tx1 = ntx - 1
-            nx = tx1 - tx0 + 1 if tx1 >= tx0 else ntx - tx0 + tx1 + 1
         ty0 = v_lo // TILE
         ty1 = v_hi // TILE
         hi = np.float32(u)
-        rows[i, 0] = hi
-        rows[i, 1] = np.float32(u - np.float64(hi))
+        rows[s, 0] = hi
+        rows[s, 1] = np.float32(u - np.float64(hi))
         hi = np.float32(v)
-        rows[i, 2] = hi
-        rows[i, 3] = np.float32(v - np.float64(hi))
-        rows[i, 4] = ry
-        rows[i, 5] = 0.5 * c11 / det
-        rows[i, 6] = -c01 / det
-        rows[i, 7] = 0.5 * c00 / det
-        rows[i, 8] = opa
-        rows[i, 9] = pmax
+        rows[s, 2] = hi
+        rows[s, 3] = np.float32(v - np.float64(hi))
+        rows[s, 4] = ry
+        rows[s, 5] = 0.5 * c11 / det
+        rows[s, 6] = -c01 / det
+        rows[s, 7] = 0.5 * c00 / det
+        rows[s, 8] = opa
+        rows[s, 9] = pmax
         vx, vy, vz = mxw - campos[0], myw - campos[1], mzw - campos[2]
         for c in range(3):
-            rows[i, 10 + c] = _sh_colour(sh, i, c, vx, vy, vz)
-        rows[i, 13] = depth
-        rows[i, 14] = 0.0
-        rows[i, 15] = 0.0
-        trange[i, 0] = tx0 | (tx1 << 16)
-        trange[i, 1] = ty0 | (ty1 << 16)
-        depth_out[i] = depth
-    _ = nty
-    _ = nx
+            rows[s, 10 + c] = _sh_colour(sh, i, c, vx, vy, vz)
+        rows[s, 13] = depth
+        rows[s, 14] = 0.0
+        rows[s, 15] = 0.0
+        trange[s, 0] = tx0 | (tx1 << 16)
+        trange[s, 1] = ty0 | (ty1 << 16)
+        depth_out[s] = depth
+        gid[s] = i
+        s += 1
+    return s - slot0
+
+
+@njit(cache=True, nogil=True)
+def _chunk_outside(means, log_scales, planes, i0, i1):
+    """True when the axis-aligned box of means[i0:i1] (world frame, float64) lies wholly on the outer side of
+    one of planes [k, 5] float64 (a0, a1, a2, offset, kscale; see chunk_planes): max over the box of a.x + offset
+    < -kscale * exp(max log scale of the chunk)."""
+    lo0 = hi0 = np.float64(means[i0, 0])
+    lo1 = hi1 = np.float64(means[i0, 1])
+    lo2 = hi2 = np.float64(means[i0, 2])
+    ls = np.float64(log_scales[i0, 0])
+    for i in range(i0, i1):
+        m0 = np.float64(means[i, 0])
+        m1 = np.float64(means[i, 1])
+        m2 = np.float64(means[i, 2])
+        lo0 = min(lo0, m0)
+        hi0 = max(hi0, m0)
+        lo1 = min(lo1, m1)
+        hi1 = max(hi1, m1)
+        lo2 = min(lo2, m2)
+        hi2 = max(hi2, m2)
+        ls = max(ls, np.float64(log_scales[i, 0]), np.float64(log_scales[i, 1]), np.float64(log_scales[i, 2]))
+    smax = math.exp(ls)
+    c0, c1, c2 = 0.5 * (lo0 + hi0), 0.5 * (lo1 + hi1), 0.5 * (lo2 + hi2)
+    h0, h1, h2 = 0.5 * (hi0 - lo0), 0.5 * (hi1 - lo1), 0.5 * (hi2 - lo2)
+    for k in range(planes.shape[0]):
+        a0, a1, a2 = planes[k, 0], planes[k, 1], planes[k, 2]
+        top = a0 * c0 + a1 * c1 + a2 * c2 + abs(a0) * h0 + abs(a1) * h1 + abs(a2) * h2 + planes[k, 3]
+        if top < -planes[k, 4] * smax:
+            return True
+    return False
 
 
 @njit(inline="always")
@@ -271,28 +389,47 @@ def _sh_colour(sh, i, c, vx, vy, vz):
 
 # --------------------------------------------------------------------------------------------------- binning
 @njit(cache=True, nogil=True)
+def visible_slots(counts, base):
+    """The written slots of project_kernel, ascending: [sum(counts)] int32 (chunk c's are base[c] ..
+    base[c] + counts[c] - 1)."""
+    out = np.empty(counts.sum(), np.int32)
+    k = 0
+    for ch in range(counts.shape[0]):
+        for j in range(counts[ch]):
+            out[k] = base[ch] + j
+            k += 1
+    return out
+
+
+@njit(cache=True, nogil=True)
 def depth_order(visible, keys):
-    """Stable LSD radix sort of `visible` (Gaussian ids, ascending) by keys [n] uint64 (the bit patterns of
-    positive float64 depths, which order like the values): 4 passes of 16 bits, passes where all keys share
-    the digit skipped. Ties keep id order, as the reference's lexsort."""
+    """Stable LSD radix sort of `visible` (slot ids, ascending) by keys [n] uint32 (the bit patterns of
+    positive float32 depths, which order like the values): three passes of 11, 11 and 10 bits (2048-bin
+    histograms, all counted in one read of the keys; the scatter's 2048 write streams stay cached where
+    65536 did not: 35 -> 30 ms for 2 M keys), a pass where all keys share the digit skipped. Ties keep slot
+    (= Gaussian index) order, as the reference's lexsort."""
     n = visible.shape[0]
+    hist = np.zeros((3, 2049), np.int64)
+    for k in range(n):
+        key = keys[k]
+        hist[0, (key & np.uint32(0x7FF)) + 1] += 1
+        hist[1, ((key >> np.uint32(11)) & np.uint32(0x7FF)) + 1] += 1
+        hist[2, (key >> np.uint32(22)) + 1] += 1
     src = visible.astype(np.int32)
     srck = keys
     dst = np.empty(n, np.int32)
-    dstk = np.empty(n, np.uint64)
-    for shift in range(0, 64, 16):
-        hist = np.zeros(65537, np.int64)
-        sh_ = np.uint64(shift)
-        for k in range(n):
-            hist[((srck[k] >> sh_) & np.uint64(0xFFFF)) + 1] += 1
-        if n == 0 or hist.max() == n:
+    dstk = np.empty(n, np.uint32)
+    for d in range(3):
+        h = hist[d]
+        if n == 0 or h.max() == n:
             continue
-        for b in range(65536):
-            hist[b + 1] += hist[b]
+        for b in range(2048):
+            h[b + 1] += h[b]
+        sh_ = np.uint32(11 * d)
         for k in range(n):
-            b = (srck[k] >> sh_) & np.uint64(0xFFFF)
-            pos = hist[b]
-            hist[b] = pos + 1
+            b = (srck[k] >> sh_) & np.uint32(0x7FF)
+            pos = h[b]
+            h[b] = pos + 1
             dst[pos] = src[k]
             dstk[pos] = srck[k]
         src, dst = dst, src
@@ -368,7 +505,8 @@ def bin_kernel(order, trange, ntx, nty, nchunks):
 def gather_row(cg, k, x0, y0, width, wrap, out, j):
     """Per-instance features of compact Gaussian k seen from the tile at (x0, y0) -> out[j, :NFEAT] float32:
     tile-local mean (the copy nearest the tile for equirect), half conic A B C, opacity, pmax, r g b, depth,
-    first and last tile-local rows the bounding box touches. Forward and backward use this same code."""
+    first and last tile-local rows the footprint can touch (first > last: it misses the tile). Forward and
+    backward use this same code."""
     mx = (np.float64(cg[k, 0]) + np.float64(cg[k, 1])) - x0
     if wrap:
         mx -= width * np.floor((mx - 7.5) / width + 0.5)
@@ -380,8 +518,37 @@ def gather_row(cg, k, x0, y0, width, wrap, out, j):
     out[j, 1] = my
     for c in range(9):
         out[j, 2 + c] = cg[k, 5 + c]
-    out[j, 11] = max(0.0, math.floor(my - ry))
-    out[j, 12] = min(TILE - 1.0, math.ceil(my + ry))
+    r0 = max(0.0, math.ceil(my - ry))         # the pixel rows y with |y - my| <= ry
+    r1 = min(TILE - 1.0, math.floor(my + ry))
+    if not wrap:
+        r0, r1 = _ellipse_rows(np.float64(cg[k, 5]), np.float64(cg[k, 6]), np.float64(cg[k, 7]),
+                               np.float64(cg[k, 9]), mx, my, r0, r1)
+    out[j, 11] = r0
+    out[j, 12] = r1
+
+
+@njit(inline="always")
+def _ellipse_rows(A, B, C, pm, mx, my, r0, r1):
+    """Narrow the tile-local rows [r0, r1] to those where the footprint ellipse A dx^2 + B dx dy + C dy^2 <= pm
+    (dx = x - mx, dy = y - my, float64) meets the tile's pixel columns x in [0, TILE - 1]: a Gaussian binned
+    to the tile by its bounding box but whose ellipse only passes the tile's corner region costs fewer rows,
+    or none (returns r0 > r1). The extremes of the ellipse's upper (concave) and lower (convex) arcs over the
+    column interval lie at the clamped unconstrained extremes. Widened by ROW_PAD px in x and y, far above the
+    float32 rounding of the per-pixel power (~1e-6 relative), so no pixel the power test accepts is dropped."""
+    D = 4.0 * A * C - B * B
+    if not (A > 0.0 and C > 0.0 and D > 0.0):
+        return r0, r1
+    rx = math.sqrt(4.0 * C * pm / D)          # the ellipse's half-extents
+    ry = math.sqrt(4.0 * A * pm / D)
+    xa = max(-mx - ROW_PAD, -rx)              # the columns' dx range, within the ellipse's
+    xb = min(TILE - 1.0 - mx + ROW_PAD, rx)
+    if xa > xb:
+        return 1.0, 0.0
+    xt = min(max(-B * ry / (2.0 * A), xa), xb)   # where the upper arc peaks (clamped)
+    xl = min(max(B * ry / (2.0 * A), xa), xb)    # where the lower arc bottoms out (clamped)
+    top = (-B * xt + math.sqrt(max(0.0, 4.0 * C * pm - D * xt * xt))) / (2.0 * C)
+    bot = (-B * xl - math.sqrt(max(0.0, 4.0 * C * pm - D * xl * xl))) / (2.0 * C)
+    return max(r0, math.ceil(my + bot - ROW_PAD)), min(r1, math.floor(my + top + ROW_PAD))
 
 
 @njit(cache=True, parallel=True, nogil=True)
@@ -449,68 +616,92 @@ def _blend_one(fb, j, jj, px, py, T, c0, c1, c2, dd, lst, wrap, wf, inv_w):
 
 
 @njit(cache=True, parallel=True, nogil=True, fastmath=RASTER_MATH)
-def raster_forward(start, ids, rows, ntx, width, height, wrap, bg, rgb, alpha, depth, last, t_final):
+def raster_forward(start, ids, rows, ntx, width, height, wrap, bg, rgb, alpha, depth, last, t_final, row_evals):
     """Front-to-back blend per tile. bg [H, W, 3] f32. Outputs rgb [H, W, 3], alpha, depth [H, W] f32,
-    last [H, W] int32 (index of the last blended instance, -1 if none), t_final [H, W] f32.
+    last [H, W] int32 (index of the last blended instance, -1 if none), t_final [H, W] f32, row_evals [ntiles]
+    int64 (16-pixel tile rows evaluated: the work done, for benchmarks).
     wrap (equirect): dx is taken to the nearest copy of the Gaussian across the azimuth seam, per pixel.
     Each Gaussian is evaluated on the tile rows its bounding box touches, in one branch-free SIMD loop.
     A pixel that stopped (or lies outside the image) keeps -T in T: negative T means inactive."""
     ntiles = start.shape[0] - 1
     wf = np.float32(width)
     inv_w = np.float32(1.0 / width)
-    for t in prange(ntiles):
-        x0 = (t % ntx) * TILE
-        y0 = (t // ntx) * TILE
+    for k in prange(SPREAD * ((ntiles + SPREAD - 1) // SPREAD)):
+        t = _spread(k, ntiles)
+        if t < 0:
+            continue
         px = np.empty(TILE_PIX, np.float32)
         py = np.empty(TILE_PIX, np.float32)
         T = np.empty(TILE_PIX, np.float32)
-        c0 = np.zeros(TILE_PIX, np.float32)
-        c1 = np.zeros(TILE_PIX, np.float32)
-        c2 = np.zeros(TILE_PIX, np.float32)
-        dd = np.zeros(TILE_PIX, np.float32)
-        lst = np.full(TILE_PIX, -1, np.int32)
-        nact = 0
+        c0 = np.empty(TILE_PIX, np.float32)
+        c1 = np.empty(TILE_PIX, np.float32)
+        c2 = np.empty(TILE_PIX, np.float32)
+        dd = np.empty(TILE_PIX, np.float32)
+        lst = np.empty(TILE_PIX, np.int32)
+        fb = np.empty((GATHER, NFEAT), np.float32)
         for p in range(TILE_PIX):
             px[p] = p % TILE
             py[p] = p // TILE
-            if x0 + p % TILE < width and y0 + p // TILE < height:
-                T[p] = F1
-                nact += 1
+        _raster_tile(t, start, ids, rows, ntx, width, height, wrap, bg, rgb, alpha, depth, last, t_final,
+                     row_evals, px, py, T, c0, c1, c2, dd, lst, fb, wf, inv_w)
+
+
+@njit(inline="always", fastmath=RASTER_MATH)
+def _raster_tile(t, start, ids, rows, ntx, width, height, wrap, bg, rgb, alpha, depth, last, t_final, row_evals,
+                 px, py, T, c0, c1, c2, dd, lst, fb, wf, inv_w):
+    """Tile t of raster_forward: blend its instance list into the scratch arrays (pixel state), then write its
+    pixels out."""
+    x0 = (t % ntx) * TILE
+    y0 = (t // ntx) * TILE
+    nq = min(TILE, width - x0)          # the tile's columns and rows inside the image
+    nr = min(TILE, height - y0)
+    for p in range(TILE_PIX):
+        c0[p] = F0
+        c1[p] = F0
+        c2[p] = F0
+        dd[p] = F0
+        lst[p] = -1
+        T[p] = -F1
+    for r in range(nr):
+        for q in range(nq):
+            T[r * TILE + q] = F1
+    nact = nq * nr
+    nrow = 0
+    for b0 in range(start[t], start[t + 1], GATHER):
+        if nact == 0:
+            break
+        nb = min(GATHER, start[t + 1] - b0)
+        for jb in range(nb):  # gather this batch's features into a small contiguous buffer
+            gather_row(rows, ids[b0 + jb], x0, y0, width, wrap, fb, jb)
+        for jb in range(nb):
+            nrow += np.int64(fb[jb, 12] - fb[jb, 11]) + 1
+            if wrap:
+                _blend_one(fb, jb, np.int32(b0 + jb), px, py, T, c0, c1, c2, dd, lst, True, wf, inv_w)
             else:
-                T[p] = -F1
-        fb = np.empty((GATHER, NFEAT), np.float32)
-        for b0 in range(start[t], start[t + 1], GATHER):
-            if nact == 0:
-                break
-            nb = min(GATHER, start[t + 1] - b0)
-            for jb in range(nb):  # gather this batch's features into a small contiguous buffer
-                gather_row(rows, ids[b0 + jb], x0, y0, width, wrap, fb, jb)
-            for jb in range(nb):
-                if wrap:
-                    _blend_one(fb, jb, np.int32(b0 + jb), px, py, T, c0, c1, c2, dd, lst, True, wf, inv_w)
-                else:
-                    _blend_one(fb, jb, np.int32(b0 + jb), px, py, T, c0, c1, c2, dd, lst, False, wf, inv_w)
-                if (jb & (STOP_CHECK - 1)) == STOP_CHECK - 1 or jb == nb - 1:
-                    # every STOP_CHECK instances: does any pixel still blend? (stopped pixels hold T < 0)
-                    tmax = -F1
-                    for p in range(TILE_PIX):
-                        tmax = max(tmax, T[p])
-                    if tmax <= F0:
-                        nact = 0
-                        break
-        for p in range(TILE_PIX):
-            xx = x0 + p % TILE
-            yy = y0 + p // TILE
-            if xx < width and yy < height:
-                tf = abs(T[p])
-                rgb[yy, xx, 0] = c0[p] + tf * bg[yy, xx, 0]
-                rgb[yy, xx, 1] = c1[p] + tf * bg[yy, xx, 1]
-                rgb[yy, xx, 2] = c2[p] + tf * bg[yy, xx, 2]
-                al = F1 - tf
-                alpha[yy, xx] = al
-                depth[yy, xx] = dd[p] / al if al > F0 else F0
-                last[yy, xx] = lst[p]
-                t_final[yy, xx] = tf
+                _blend_one(fb, jb, np.int32(b0 + jb), px, py, T, c0, c1, c2, dd, lst, False, wf, inv_w)
+            if (jb & (STOP_CHECK - 1)) == STOP_CHECK - 1 or jb == nb - 1:
+                # every STOP_CHECK instances: does any pixel still blend? (stopped pixels hold T < 0)
+                tmax = -F1
+                for p in range(TILE_PIX):
+                    tmax = max(tmax, T[p])
+                if tmax <= F0:
+                    nact = 0
+                    break
+    row_evals[t] = nrow
+    for r in range(nr):
+        yy = y0 + r
+        for q in range(nq):
+            p = r * TILE + q
+            xx = x0 + q
+            tf = abs(T[p])
+            rgb[yy, xx, 0] = c0[p] + tf * bg[yy, xx, 0]
+            rgb[yy, xx, 1] = c1[p] + tf * bg[yy, xx, 1]
+            rgb[yy, xx, 2] = c2[p] + tf * bg[yy, xx, 2]
+            al = F1 - tf
+            alpha[yy, xx] = al
+            depth[yy, xx] = dd[p] / al if al > F0 else F0
+            last[yy, xx] = lst[p]
+            t_final[yy, xx] = tf
 
 
 @njit(cache=True, parallel=True, nogil=True, fastmath=RASTER_MATH)
@@ -595,11 +786,12 @@ def raster_backward(start, feat, ntx, width, height, wrap, bg, depth, last, t_fi
 
 
 @njit(cache=True, nogil=True)
-def reduce_kernel(ids, g_inst, n):
-    """Sum instance gradients per Gaussian -> [n, 10] float64."""
+def reduce_kernel(ids, gid, g_inst, n):
+    """Sum instance gradients per Gaussian -> [n, 10] float64 (ids: the instances' slots, gid: slot ->
+    Gaussian index, see project_kernel)."""
     out = np.zeros((n, g_inst.shape[1]), np.float64)
     for j in range(ids.shape[0]):
-        i = ids[j]
+        i = gid[ids[j]]
         for k in range(g_inst.shape[1]):
             out[i, k] += g_inst[j, k]
     return out

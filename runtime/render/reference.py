@@ -21,7 +21,8 @@ def render_reference(gaussians: Gaussians, camera, background=None, **options) -
     bg = background_image(background, H, W).astype(np.float64)
     pr = project_reference(gaussians, camera, opts)
     idx = np.flatnonzero(pr["valid"])
-    idx = idx[np.lexsort((idx, pr["depth"][idx]))]          # front to back, ties by index
+    idx = idx[np.lexsort((idx, pr["depth"][idx].astype(np.float32)))]  # front to back (float32 depth, as the
+    #                                                                   fast renderer's keys), ties by index
     mx, my = pr["mean2d"][idx, 0], pr["mean2d"][idx, 1]
     ca, cb, cc = pr["conic"][idx, 0], pr["conic"][idx, 1], pr["conic"][idx, 2]
     op, pmax, z, col = pr["opacity"][idx], pr["pmax"][idx], pr["depth"][idx], pr["colour"][idx]
