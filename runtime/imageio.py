@@ -1,4 +1,5 @@
-"""Image files the runtime writes: EXR (float32 channels, OpenImageIO) and 8-bit PNG (OpenCV)."""
+"""Image files the runtime writes: EXR (float32 channels, OpenImageIO) and 8-bit PNG (runtime.views.encode_png,
+the service's encoder)."""
 
 from __future__ import annotations
 
@@ -44,9 +45,16 @@ def read_exr(path: str | os.PathLike) -> np.ndarray:
 
 
 def write_png(path: str | os.PathLike, rgb: np.ndarray) -> None:
-    """[H, W, 3] float RGB in 0..1 -> 8-bit PNG (clipped, rounded); OSError when OpenCV cannot write it."""
-    import cv2
+    """[H, W, 3] float RGB in 0..1 -> 8-bit RGB PNG: round(255 x) clipped, NaN 0 (exact, float64), encoded by
+    runtime.views.encode_png as the service encodes an rgb view (PNG_FILTERS["rgb"], ISA-L deflate). OSError
+    when the file cannot be written."""
+    from .views import PNG_FILTERS, _u8, encode_png
 
-    rgb8 = np.clip(np.rint(np.asarray(rgb, np.float32) * 255.0), 0, 255).astype(np.uint8)
-    if not cv2.imwrite(str(path), np.ascontiguousarray(rgb8[..., ::-1])):
-        raise OSError(f"cv2 could not write {path}")
+    a = np.asarray(rgb)
+    if a.ndim != 3 or a.shape[2] != 3:
+        raise ValueError(f"write_png: expected [H, W, 3] RGB, got {list(a.shape)}")
+    data = encode_png(_u8(a), PNG_FILTERS["rgb"])
+    try:
+        Path(path).write_bytes(data)
+    except OSError as e:
+        raise OSError(f"cannot write {path}: {e.strerror or e}") from None

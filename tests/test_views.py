@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import copy
+import io
 import math
 
 import cv2
@@ -15,10 +16,13 @@ from xyzcyl.runtime.scene import Scene, render_view, rig_camera
 from xyzcyl.runtime.views import (
     ViewError,
     ViewRequest,
+    _u8,
     camera_from_carla_pose,
     camera_from_opencv,
     camera_from_rig,
     cameras_from_batch,
+    depth_to_mm16,
+    encode_png,
     encode_view,
     render_request,
 )
@@ -468,6 +472,116 @@ def test_encode_checks_the_planes(planes):
         encode_view(rgb[:, :-1], depth, alpha, ViewRequest(cam))
     with pytest.raises(ValueError, match="depth: needed"):
         encode_view(rgb, None, alpha, ViewRequest(cam, "depth"))
+
+
+def _u8_reference(a) -> np.ndarray:
+    x = np.rint(np.asarray(a, np.float64) * 255.0)
+    return np.nan_to_num(np.clip(x, 0, 255), nan=0.0).astype(np.uint8)
+
+
+def _halves(dtype) -> np.ndarray:
+    """(k + 1/2) / 255 for every level k, as ``dtype``, with their neighbours one ulp either side: the values
+    where round half to even, float32 vs float64 arithmetic and an off-by-one would show."""
+    h = ((np.arange(-2, 258) + 0.5) / 255.0).astype(dtype)
+    return np.concatenate([h, np.nextafter(h, dtype(-np.inf)), np.nextafter(h, dtype(np.inf)),
+                           (np.arange(-2, 258) / 255.0).astype(dtype)])
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_u8_equals_the_numpy_reference_exactly(dtype):
+    rng = np.random.default_rng(3)
+    x = np.concatenate([rng.uniform(-0.5, 1.5, 200_000).astype(dtype), _halves(dtype),
+                        np.array([np.nan, -np.nan, np.inf, -np.inf, 0.0, -0.0, 1.0, 2.0, -1e30, 1e30,
+                                  np.finfo(dtype).tiny, -np.finfo(dtype).tiny, 0.5 / 255, 254.5 / 255], dtype)])
+    rng.shuffle(x)
+    got = _u8(x)
+    assert got.dtype == np.uint8 and got.shape == x.shape
+    np.testing.assert_array_equal(got, _u8_reference(x))
+    img = x[: 30 * 40 * 3].reshape(30, 40, 3)
+    np.testing.assert_array_equal(_u8(img), _u8_reference(img))                 # [H, W, 3]
+    np.testing.assert_array_equal(_u8(img, bgr=True), _u8_reference(img)[..., ::-1])   # OpenCV's order
+    np.testing.assert_array_equal(_u8(img[:, ::-2, 1]), _u8_reference(img[:, ::-2, 1]))   # strided view
+
+
+def test_depth_to_mm16_equals_the_numpy_reference_exactly():
+    rng = np.random.default_rng(4)
+    h = (np.arange(0, 70_000, 7) + 0.5) / 1000.0
+    d = np.concatenate([rng.uniform(-1.0, 80.0, 100_000), h, np.nextafter(h, 0), np.nextafter(h, 1e9),
+                        [np.nan, np.inf, -np.inf, 0.0, -0.0, 1e-9, 0.0004999, 0.0005, 0.0015, 65.535, 65.5355,
+                         65.5354, 1e300, -1e-300]])
+    with np.errstate(over="ignore"):
+        d32 = d.astype(np.float32)                                     # 1e300 -> inf
+    for arr in (d, d32):
+        x = arr.astype(np.float64)
+        ref = np.clip(np.rint(np.where(np.isfinite(x), x, 0.0) * 1000.0), 0, 65535)
+        ref[np.isfinite(x) & (x > 0) & (ref < 1)] = 1
+        got = depth_to_mm16(arr)
+        assert got.dtype == np.uint16
+        np.testing.assert_array_equal(got, ref.astype(np.uint16))
+
+
+def _decode_pil(data: bytes) -> np.ndarray:
+    from PIL import Image
+
+    with Image.open(io.BytesIO(data)) as im:
+        return np.array(im)
+
+
+@pytest.mark.parametrize("row_filter", ["paeth", "sub", "up", "none"])
+def test_encode_png_round_trips_exactly(row_filter):
+    rng = np.random.default_rng(5)
+    yy, xx = np.mgrid[0:45, 0:61]
+    smooth = (xx * 3 + yy * 5) % 256                                   # long runs for the filters to find
+    cases = [rng.integers(0, 256, (45, 61, 3), dtype=np.uint8),
+             np.dstack([smooth, 255 - smooth, rng.integers(0, 256, (45, 61))]).astype(np.uint8),
+             rng.integers(0, 256, (45, 61), dtype=np.uint8),
+             rng.integers(0, 256, (45, 61, 1), dtype=np.uint8),
+             rng.integers(0, 256, (45, 61, 2), dtype=np.uint8),
+             rng.integers(0, 256, (45, 61, 4), dtype=np.uint8),
+             rng.integers(0, 65536, (45, 61), dtype=np.uint16),
+             (smooth * 257 + rng.integers(0, 3, (45, 61))).astype(np.uint16),
+             rng.integers(0, 65536, (45, 61, 3), dtype=np.uint16),
+             rng.integers(0, 256, (1, 1, 3), dtype=np.uint8), rng.integers(0, 65536, (1, 7), dtype=np.uint16),
+             rng.integers(0, 256, (9, 1, 3), dtype=np.uint8)]
+    for img in cases:
+        data = encode_png(img, row_filter)
+        assert data[:8] == b"\x89PNG\r\n\x1a\n"
+        flat = img[..., 0] if img.ndim == 3 and img.shape[2] == 1 else img
+        got = _decode(data)
+        if got.ndim == 3:                                              # OpenCV decodes to BGR(A)
+            got = cv2.cvtColor(got, cv2.COLOR_BGR2RGB if got.shape[2] == 3 else cv2.COLOR_BGRA2RGBA)
+        if img.ndim == 3 and img.shape[2] == 2:                         # OpenCV: grey + alpha -> BGRA
+            got = got[..., [0, 3]]
+        assert got.dtype == img.dtype, (img.shape, img.dtype)
+        np.testing.assert_array_equal(got, flat, err_msg=f"{img.dtype} {img.shape}")
+        if img.dtype == np.uint8 or img.ndim == 2:                      # Pillow: 8-bit and 16-bit grey
+            np.testing.assert_array_equal(_decode_pil(data).astype(img.dtype), flat)
+
+
+def test_encode_png_refuses_what_png_cannot_hold():
+    with pytest.raises(ValueError, match="uint8 or uint16"):
+        encode_png(np.zeros((4, 4), np.float32))
+    with pytest.raises(ValueError, match="uint8 or uint16"):
+        encode_png(np.zeros((4, 4, 5), np.uint8))
+    with pytest.raises(ValueError, match="empty"):
+        encode_png(np.zeros((0, 4), np.uint8))
+    with pytest.raises(ValueError, match="row_filter"):
+        encode_png(np.zeros((4, 4), np.uint8), "average")
+    with pytest.raises(ValueError, match="level"):
+        encode_png(np.zeros((4, 4), np.uint8), level=9)
+
+
+def test_write_png_is_the_exact_encoder(tmp_path):
+    from xyzcyl.runtime.imageio import write_png
+
+    rgb = np.random.default_rng(8).uniform(-0.2, 1.2, (17, 23, 3)).astype(np.float32)
+    rgb[0, :4, 0] = [np.nan, 0.5 / 255, 1.5 / 255, 2.5 / 255]
+    write_png(tmp_path / "a.png", rgb)
+    got = cv2.imread(str(tmp_path / "a.png"), cv2.IMREAD_UNCHANGED)
+    np.testing.assert_array_equal(got[..., ::-1], _u8_reference(rgb))
+    assert (tmp_path / "a.png").read_bytes() == encode_png(_u8(rgb))
+    with pytest.raises(OSError, match="cannot write"):
+        write_png(tmp_path / "missing" / "a.png", rgb)
 
 
 # ------------------------------------------------------------------------------------------- rendering
