@@ -47,15 +47,14 @@ ENV PATH=/opt/venv/bin:$PATH \
 VOLUME /data
 WORKDIR /data
 USER 10001:10001
-# Compile the renderer's numba kernels (cache=True) into NUMBA_CACHE_DIR now: without it the first render after
-# every start compiles them (32 s on 2 busy cores). numba keys its cache by CPU model: on another CPU the first
-# render compiles once more (per container; mount a volume on /tmp/numba-cache to keep it across restarts).
-# The cache is left writable to every uid: numba refuses to import the kernels when NUMBA_CACHE_DIR is not
-# writable, and a platform may run the image as another uid (OpenShift, `docker run --user`).
-COPY --chown=10001:10001 examples/synth_nuscenes /tmp/warm/rig
-RUN xyzcyl reconstruct /tmp/warm/rig/rig.json --out /tmp/warm/scene --quiet \
- && xyzcyl render /tmp/warm/scene --camera CAM_FRONT --out /tmp/warm/front.png \
- && rm -rf /tmp/warm \
+# Compile every numba kernel (cache=True) into NUMBA_CACHE_DIR now, through the same warm-up `xyzcyl serve` runs
+# before it reports ready (runtime/warmup.py: pinhole and equirect renders, the encoders, a reconstruction with
+# LiDAR and the detail layer): without it every start compiles them (~30 s on 2 busy cores). numba keys its cache
+# by CPU model: on another CPU the serve warm-up compiles once more (per container; mount a volume on
+# /tmp/numba-cache to keep it across restarts). The cache is left writable to every uid: numba refuses to import
+# the kernels when NUMBA_CACHE_DIR is not writable, and a platform may run the image as another uid (OpenShift,
+# `docker run --user`).
+RUN python -m xyzcyl.runtime.warmup \
  && chmod -R a+rwX /tmp/numba-cache
 EXPOSE 8000
 # podman keeps HEALTHCHECK only with --format docker (the OCI image format has no such field)

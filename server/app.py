@@ -3,8 +3,10 @@
     from xyzcyl.server import Settings, create_app
     app = create_app(Settings(store="/tmp/store"))        # uvicorn.run(app) or `xyzcyl serve`
 
-The lifespan opens the store (recovering from a crash), starts the render pool and then, in the background,
-the reconstruction workers (each loads the model); ``/v2/health/ready`` answers 503 until they have. Middleware:
+The lifespan opens the store (recovering from a crash), starts the render pool and then, in the background, warms
+up (``warm_up``: a tiny render in the render pool, runtime.warmup) and starts the reconstruction workers (each loads
+the model and, with ``warm_up``, runs a tiny reconstruction); ``/v2/health/ready`` answers 503 until all of that
+has finished, so the first real request compiles no numba kernel. Middleware:
 the body limit (413 from Content-Length before anything is read, or as soon as a streamed body passes it),
 metrics per route template, CORS when origins are configured. Endpoints live in routes/; API keys are checked
 by a dependency of the /v1 routes.
@@ -220,9 +222,41 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     return app
 
 
+def _warm_renders() -> float:
+    """runtime.warmup.warm_render in a temporary folder: the render path's kernels and encoders, in this process."""
+    import tempfile
+
+    from xyzcyl.runtime.warmup import warm_render
+
+    with tempfile.TemporaryDirectory(prefix="xyzcyl-warmup-") as tmp:
+        return warm_render(tmp)
+
+
+async def _warm_up_renders(service: Service) -> float | None:
+    """The render warm-up in the render pool (its threads run ``compute_nice`` nicer, and numba's worker threads,
+    started by the first parallel kernel, inherit that); the seconds, or None when it failed (logged: renders
+    then compile or load the kernels on the first request)."""
+    try:
+        return await asyncio.get_running_loop().run_in_executor(service.renders.pool, _warm_renders)
+    except asyncio.CancelledError:
+        raise
+    except Exception:
+        log.exception("the render warm-up failed; the first render compiles or loads the kernels instead")
+        return None
+
+
 async def _start_workers(service: Service) -> None:
     try:
-        await service.reconstructions.start()
+        t0 = time.perf_counter()
+        renders = None
+        if service.settings.warm_up:
+            # before the workers start: on a cold numba cache this compiles the render kernels once, and the
+            # workers then load them from the cache (compiling in both at once would take both cores twice as long)
+            renders = await _warm_up_renders(service)
+        workers = await service.reconstructions.start()
+        if service.settings.warm_up:
+            log.info("warm-up took %.1f s (renders %s, reconstruction workers %.1f s)", time.perf_counter() - t0,
+                     "failed" if renders is None else f"{renders:.1f} s", workers)
         service.ready = True
         log.info("model %s %s loaded; ready", service.info.name, service.info.version)
     except asyncio.CancelledError:

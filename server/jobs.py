@@ -9,7 +9,10 @@
   ``render_queue`` renders waiting; beyond it ``run`` raises Busy (503 + Retry-After).
 
 Each worker process runs ``_worker_init`` once and then ``_worker_reconstruct`` per job; they return plain tuples,
-never exceptions, so nothing depends on pickling error types.
+never exceptions, so nothing depends on pickling error types. With ``warm_up`` (the setting), ``_worker_init`` also
+runs one tiny reconstruction (runtime.warmup's rig: two small pinhole cameras and a LiDAR sweep, through
+``_worker_reconstruct``: the LiDAR path, the detail layer, the scene's files) after loading the model, so the
+worker's numba kernels are compiled or loaded from numba's cache before the server reports ready.
 """
 
 from __future__ import annotations
@@ -33,6 +36,7 @@ log = logging.getLogger("xyzcyl.server")
 # -------------------------------------------------------------------------------------- in the worker process
 
 _RECONSTRUCTOR = None
+_WARMED: tuple[float | None, str | None] = (None, None)   # (warm-up seconds, error) of this worker process
 
 
 def _exit_with_parent(ppid: int, every_s: float = 1.0) -> None:
@@ -58,8 +62,9 @@ def lower_priority(nice: int) -> None:
         pass
 
 
-def _worker_init(model_dir: str, threads: int | None, server_pid: int | None = None, nice: int = 0) -> None:
-    global _RECONSTRUCTOR
+def _worker_init(model_dir: str, threads: int | None, server_pid: int | None = None, nice: int = 0,
+                 warm_up: bool = False) -> None:
+    global _RECONSTRUCTOR, _WARMED
     import threading
 
     # first of all: every thread started later inherits it (numpy's OpenBLAS pool starts at the import below,
@@ -74,10 +79,35 @@ def _worker_init(model_dir: str, threads: int | None, server_pid: int | None = N
 
     # verify=False: create_app already checked every file's sha256 (hashing 27 MB again per worker start is waste)
     _RECONSTRUCTOR = Reconstructor.load(model_dir, threads=threads, verify=False)
+    if warm_up:
+        _WARMED = _worker_warm_up()
 
 
-def _worker_ping() -> int:
-    return os.getpid()
+def _worker_warm_up() -> tuple[float | None, str | None]:
+    """One tiny reconstruction through ``_worker_reconstruct`` (runtime.warmup's rig, in a temporary folder):
+    (seconds, None), or (None, the error) when it failed (the worker still serves; its first job then pays for the
+    kernels)."""
+    import tempfile
+
+    from xyzcyl.runtime.inference import DEFAULT_DETAIL
+    from xyzcyl.runtime.warmup import write_rig
+
+    t0 = time.perf_counter()
+    try:
+        with tempfile.TemporaryDirectory(prefix="xyzcyl-warmup-") as tmp:
+            rig = write_rig(Path(tmp) / "rig")
+            status, value = _worker_reconstruct(str(rig / "rig.json"), str(Path(tmp) / "scene"),
+                                                DEFAULT_DETAIL.stride)
+    except Exception as e:      # noqa: BLE001 - reported to the server, never fatal to the worker
+        return None, f"{type(e).__name__}: {e}"
+    if status != "ok":
+        return None, f"{status}: {value}"
+    return time.perf_counter() - t0, None
+
+
+def _worker_ping() -> tuple[int, float | None, str | None]:
+    """(pid, warm-up seconds or None, warm-up error or None); answered once _worker_init has finished."""
+    return os.getpid(), *_WARMED
 
 
 def _worker_reconstruct(rig_json: str, out_dir: str, detail_stride: int | None) -> tuple[str, Any]:
@@ -130,14 +160,17 @@ class Job:
 class _Worker:
     """One worker process (a single-process pool, so a crash breaks only this worker's job)."""
 
-    def __init__(self, model_dir: str, threads: int | None, nice: int = 0):
+    def __init__(self, model_dir: str, threads: int | None, nice: int = 0, warm_up: bool = False):
         self.args = (model_dir, threads)
         self.nice = nice
-        self.pool = self._new()
+        self.pool = self._new(warm_up)
 
-    def _new(self) -> cf.ProcessPoolExecutor:
-        return cf.ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"),
-                                      initializer=_worker_init, initargs=(*self.args, os.getpid(), self.nice))
+    def _new(self, warm_up: bool = False) -> cf.ProcessPoolExecutor:
+        """A one-process pool; ``warm_up``: its process runs the warm-up reconstruction after loading the model
+        (at server start only: a replacement starts when the next job is submitted, and that job would wait for it;
+        the kernels are in numba's cache by then)."""
+        return cf.ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn"), initializer=_worker_init,
+                                      initargs=(*self.args, os.getpid(), self.nice, warm_up))
 
     def pids(self) -> list[int]:
         return [p.pid for p in (self.pool._processes or {}).values()]
@@ -174,15 +207,35 @@ class Reconstructions:
         self._tasks: list[asyncio.Task] = []
         self.on_done: list[Callable[[str], None]] = []
 
-    async def start(self) -> None:
-        """Start the worker processes and wait until each has loaded the model (readiness)."""
+    async def start(self) -> float:
+        """Start the worker processes and wait until each has loaded the model and, with ``warm_up``, run its
+        warm-up reconstruction (readiness). With ``warm_up`` the first worker starts alone and the others after it:
+        on a cold numba cache it compiles the kernels and the others load them. Returns the seconds it took."""
+        t0 = time.perf_counter()
         self.queue = asyncio.Queue()
         loop = asyncio.get_running_loop()
-        self.workers = [_Worker(self.model_dir, self.settings.ort_threads, self.settings.compute_nice)
-                        for _ in range(self.settings.reconstruct_workers)]
-        await asyncio.gather(*(loop.run_in_executor(w.pool, _worker_ping) for w in self.workers))
+        warm = self.settings.warm_up
+        self.workers = []
+        for i in range(self.settings.reconstruct_workers):
+            w = _Worker(self.model_dir, self.settings.ort_threads, self.settings.compute_nice, warm)
+            self.workers.append(w)
+            if warm and i == 0:
+                self._started(await loop.run_in_executor(w.pool, _worker_ping))
+        rest = self.workers[1:] if warm else self.workers
+        for answer in await asyncio.gather(*(loop.run_in_executor(w.pool, _worker_ping) for w in rest)):
+            self._started(answer)
         self._tasks = [asyncio.create_task(self._consume(w), name=f"reconstruct-{i}")
                        for i, w in enumerate(self.workers)]
+        return time.perf_counter() - t0
+
+    @staticmethod
+    def _started(answer: tuple[int, float | None, str | None]) -> None:
+        pid, seconds, error = answer
+        if error is not None:
+            log.error("reconstruction worker %d: the warm-up reconstruction failed (%s); its first job compiles "
+                      "or loads the kernels instead", pid, error)
+        elif seconds is not None:
+            log.info("reconstruction worker %d: warm-up reconstruction took %.1f s", pid, seconds)
 
     async def stop(self) -> None:
         """Stop the consumers and the workers; the jobs this process still held (queued or running) are failed

@@ -58,6 +58,10 @@ class Settings(BaseSettings):
                                                          "priority) than the request loop, so health checks and "
                                                          "503s answer at once under load (0: the same priority)")
     retry_after_s: int = Field(1, ge=1, description="Retry-After of a 503 when busy")
+    warm_up: bool = Field(True, description="before /v2/health/ready answers 200, render a tiny scene in the server "
+                                            "and reconstruct a tiny rig (LiDAR, detail layer) in each worker, so "
+                                            "every numba kernel is compiled or loaded from its cache (false: the "
+                                            "first requests pay for that)")
     scene_cache: int = Field(4, ge=1, description="loaded scenes kept in memory for rendering")
     render_cache_bytes: int = Field(64 * MiB, ge=0, description="encoded views kept in memory (repeat poses)")
 

@@ -5,12 +5,15 @@
 
 See docs/renderer.md for conventions, options and the algorithm."""
 
+from ..compile_notice import install as _install_compile_notice
 from .cameras import CameraError, EquirectCamera, PinholeCamera
 from .core import render, render_backward
 from .gaussians import DEFAULT_MAX_POINTS, GaussianError, Gaussians
 from .projection import RenderOptions
 from .reference import render_reference
 from .result import GaussianGrads, RenderResult
+
+_install_compile_notice()      # one stderr line when a kernel compiles (not when it loads from the cache)
 
 __all__ = [
            "DEFAULT_MAX_POINTS",

@@ -44,9 +44,14 @@ def run(args: argparse.Namespace) -> int:
         print(json.dumps(shown, indent=1))
         return 0
     import uvicorn
+    from xyzcyl.runtime import compile_notice
     from xyzcyl.runtime.inference import ModelError
 
     from ..app import create_app
+
+    log = _configure_logging(args.log_level)
+    # numba's one-line compile notice through the service's log (the worker processes print it to stderr)
+    compile_notice.install(log.info)
 
     try:
         app = create_app(settings)
@@ -64,6 +69,27 @@ def run(args: argparse.Namespace) -> int:
     server.service = app.state.service
     server.run()
     return 0
+
+
+def _configure_logging(level: str):
+    """The service's own lines (loggers under "xyzcyl": ready, warm-up, recovered store, errors) on stderr at
+    ``--log-level``, formatted as uvicorn's ("INFO:     ..."); without this only warnings and errors showed, bare.
+    Returns the server's logger."""
+    import logging
+
+    root = logging.getLogger("xyzcyl")
+    if not root.handlers:
+        handler = logging.StreamHandler()
+        try:
+            from uvicorn.logging import DefaultFormatter
+
+            handler.setFormatter(DefaultFormatter("%(levelprefix)s %(message)s", use_colors=False))
+        except ImportError:  # pragma: no cover - uvicorn is a dependency of serve
+            handler.setFormatter(logging.Formatter("%(levelname)s: %(message)s"))
+        root.addHandler(handler)
+        root.propagate = False
+    root.setLevel(level.upper())
+    return logging.getLogger("xyzcyl.server")
 
 
 def _protocol_class(header_timeout_s: float):

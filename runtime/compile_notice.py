@@ -1,0 +1,118 @@
+"""One line on stderr when numba compiles an xyzcyl kernel, so a cold start is never silent.
+
+The numba kernels (runtime/render/kernels.py, runtime/scene.py, runtime/detail.py) use ``cache=True``: the first
+process after an install (or after a kernel's source changed, or on another CPU model) compiles them, which takes
+about a minute on 2 busy cores; later processes load them from the cache in well under a second. ``install()``
+registers a listener for numba's ``numba:compile`` event (numba.core.event), which numba fires only when it
+really compiles (numba/core/dispatcher.py: a signature loaded from the cache returns before the event), and on
+the first compile of an xyzcyl function in this process says so once::
+
+    xyzcyl: compiling numba kernels once (up to a minute; cached in <folder> for later runs)
+
+runtime/render/__init__.py installs it, so every kernel user (the renderer, runtime.scene, runtime.detail) has it
+without torch or a server. The server passes a logging function instead (``install(log.info)``): the line then goes
+through its log. docs/renderer.md, "numba compile cache".
+"""
+
+from __future__ import annotations
+
+import sys
+import threading
+from collections.abc import Callable
+
+PREFIX = "xyzcyl."             # the functions announced: those defined in the xyzcyl package's modules
+_lock = threading.Lock()
+_listener = None               # the registered numba Listener (None: not installed)
+_sink: Callable[[str], None] | None = None
+_said = False
+
+
+def _stderr(message: str) -> None:
+    try:
+        print(message, file=sys.stderr, flush=True)
+    except (OSError, ValueError):      # a closed or broken stderr must never fail a render
+        pass
+
+
+def cache_dir(dispatcher=None) -> str:
+    """Where the compiled kernels are written: NUMBA_CACHE_DIR when set; else the __pycache__ folders next to the
+    sources (one per package folder: "the __pycache__ folders under <runtime>"), or the dispatcher's own cache
+    folder when numba chose another one (its user-wide folder, where the sources' folders are not writable)."""
+    from pathlib import Path
+
+    from numba.core import config
+
+    if config.CACHE_DIR:
+        return str(config.CACHE_DIR)
+    package = Path(__file__).resolve().parent
+    path = getattr(getattr(dispatcher, "_cache", None), "_cache_path", None)
+    if path is None:
+        return f"the __pycache__ folders under {package} (or numba's user-wide cache)"
+    p = Path(path).resolve()
+    if p.name == "__pycache__" and (p.parent == package or package in p.parents):
+        return f"the __pycache__ folders under {package}"
+    return str(path)
+
+
+def message(dispatcher=None) -> str:
+    return (f"xyzcyl: compiling numba kernels once (up to a minute; cached in {cache_dir(dispatcher)} for later "
+            "runs)")
+
+
+def _is_ours(dispatcher) -> bool:
+    module = getattr(getattr(dispatcher, "py_func", None), "__module__", None) or ""
+    return module.startswith(PREFIX)
+
+
+def _on_compile(dispatcher) -> None:
+    global _said
+    if _said or not _is_ours(dispatcher):
+        return
+    with _lock:
+        if _said:
+            return
+        _said = True
+        sink = _sink
+    text = message(dispatcher)
+    if sink is None:
+        _stderr(text)
+    else:
+        try:
+            sink(text)
+        except Exception:       # noqa: BLE001 - a failing log handler must not fail the compile
+            _stderr(text)
+
+
+def install(sink: Callable[[str], None] | None = None) -> None:
+    """Register the listener (idempotent: once per process, later calls only change the sink). ``sink``: called
+    with the line instead of printing it to stderr (e.g. a logger's ``info``); None keeps the current one."""
+    global _listener, _sink
+    from numba.core import event
+
+    with _lock:
+        if sink is not None:
+            _sink = sink
+        if _listener is not None:
+            return
+
+        class _CompileListener(event.Listener):
+            def on_start(self, ev):
+                try:
+                    data = ev.data if isinstance(ev.data, dict) else {}
+                    _on_compile(data.get("dispatcher"))
+                except Exception:       # noqa: BLE001, S110 - never fail numba's compile over a notice
+                    pass
+
+            def on_end(self, ev):
+                pass
+
+        _listener = _CompileListener()
+        event.register("numba:compile", _listener)
+
+
+def said() -> bool:
+    """Whether this process announced a compile (tests; the server's warm-up log)."""
+    return _said
+
+
+__all__ = ["cache_dir", "install", "message", "said"]
