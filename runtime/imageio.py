@@ -22,6 +22,8 @@ def write_exr(path: str | os.PathLike, channels: np.ndarray, names: tuple[str, .
     h, w, c = data.shape
     spec = oiio.ImageSpec(w, h, c, oiio.FLOAT)
     spec.channelnames = names
+    spec.attribute("DateTime", "")   # no capture-date header (OpenImageIO stamps the wall clock): the bytes depend on
+    #                                  the data only (the synthetic dataset's files are compared across runs)
     if compression is not None:
         spec.attribute("compression", compression)
     out = oiio.ImageOutput.create(path)

@@ -10,6 +10,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
+from xyzcyl.runtime.imageio import write_exr
 from xyzcyl.runtime.rig import read_image
 
 from . import classes as C
@@ -143,26 +144,8 @@ def render_scene(cfg: SynthConfig, index: int) -> SceneData:
 # files
 
 
-def write_exr(path: Path, depth: np.ndarray) -> None:
-    """float32 single-channel EXR (ZIP compression, lossless)."""
-    import OpenImageIO as oiio
-
-    spec = oiio.ImageSpec(depth.shape[1], depth.shape[0], 1, "float")
-    spec.attribute("compression", "zip")
-    spec.attribute("DateTime", "")  # no capDate header (OIIO stamps the wall clock): files depend on the data only
-    spec.channelnames = ("Z",)
-    out = oiio.ImageOutput.create(str(path))
-    if out is None or not out.open(str(path), spec):
-        raise OSError(f"cannot write {path}: {oiio.geterror()}")
-    try:
-        if not out.write_image(np.ascontiguousarray(depth, np.float32)[..., None]):
-            raise OSError(f"cannot write {path}: {out.geterror()}")
-    finally:
-        out.close()
-
-
 def read_exr(path: Path) -> np.ndarray:
-    """[H, W] float32 depth from a single-channel EXR written by write_exr."""
+    """[H, W] float32 depth from a single-channel EXR written by _write_views (runtime.imageio.write_exr)."""
     return read_image(path, "depth", channels=1, scale=False)[..., 0]
 
 
@@ -182,7 +165,7 @@ def _write_views(folder: Path, sub: str, cams: list[CameraSpec], views: list[Vie
         files = {"image": f"{sub}/{c.name}.png", "depth": f"{sub}/{c.name}_depth.exr",
                  "sky": f"{sub}/{c.name}_sky.png", "semantic": f"{sub}/{c.name}_sem.png"}
         _write_png(folder / files["image"], v.rgb)
-        write_exr(folder / files["depth"], v.depth)
+        write_exr(folder / files["depth"], v.depth[..., None], ("Z",), compression="zip")   # lossless
         _write_png(folder / files["sky"], (v.sky * 255).astype(np.uint8))
         _write_png(folder / files["semantic"], v.semantic)
         d = c.to_dict(image=files["image"], depth=files["depth"])
