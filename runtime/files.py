@@ -1,16 +1,39 @@
-"""Folder and file helpers shared by the model folder writer (model_export.export) and scene folders
-(runtime.scene): atomic folder replacement and format-tagged JSON documents."""
+"""Folder and file helpers shared by the model folder writer (model_export.export), scene folders (runtime.scene),
+the server's folder store and the training checkpoints: atomic file and folder replacement and format-tagged
+JSON documents. (The client keeps its own atomic file: it must not import the runtime.)"""
 
 from __future__ import annotations
 
 import json
 import os
+import secrets
 import shutil
 import tempfile
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Any
+from typing import IO, Any
+
+
+@contextmanager
+def atomic_file(path: str | os.PathLike, mode: str = "wb", fsync: bool = False, **open_kw: Any) -> Iterator[IO]:
+    """A file opened (``mode``: "wb" or "w", ``open_kw`` passed to open) beside ``path`` as .NAME.RANDOM.part and
+    renamed onto ``path`` when the block completes (after an fsync of its data with ``fsync``), so readers see the
+    old file or the new one, never a half-written one; removed when the block raises."""
+    if mode not in ("wb", "w"):
+        raise ValueError(f"atomic_file: mode must be 'wb' or 'w', got {mode!r}")
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.{secrets.token_hex(4)}.part")
+    try:
+        with open(tmp, mode.replace("w", "x"), **open_kw) as f:
+            yield f
+            if fsync:
+                f.flush()
+                os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
 
 
 @contextmanager

@@ -28,6 +28,8 @@ import time
 from pathlib import Path
 from typing import Any
 
+from xyzcyl.runtime.files import atomic_file
+
 from .base import (
     SCENE_ID,
     STATES,
@@ -56,15 +58,8 @@ def folder_bytes(path: Path) -> int:
 
 
 def _write_json_atomic(path: Path, doc: dict[str, Any]) -> None:
-    tmp = path.with_name(f".{path.name}.{secrets.token_hex(4)}.tmp")
-    try:
-        with open(tmp, "w") as f:
-            json.dump(doc, f, allow_nan=False)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
+    with atomic_file(path, "w", fsync=True) as f:
+        json.dump(doc, f, allow_nan=False)
 
 
 class FolderStore(BaseStore):
