@@ -9,6 +9,11 @@ import pytest
 
 REPO = Path(__file__).resolve().parents[1]
 
+# Servers the tests start (in process and `xyzcyl serve` subprocesses, which inherit the environment) skip the
+# start-up warm-up (~2 s each with a warm numba cache, dozens of starts in the suite): tests/server/test_warmup.py
+# turns it back on for the test of the warm-up itself.
+os.environ.setdefault("XYZCYL_WARM_UP", "false")
+
 
 @pytest.fixture(scope="session")
 def _default_numba_threads() -> int:

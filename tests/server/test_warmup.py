@@ -80,7 +80,7 @@ def test_serve_warms_up_before_ready_first_requests_not_slow(tmp_path):
     cache = tmp_path / "numba-cache"
     cache.mkdir()
     log = tmp_path / "serve.log"
-    env = {**os.environ, "NUMBA_CACHE_DIR": str(cache)}
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(cache), "XYZCYL_WARM_UP": "true"}   # tests/conftest.py turns it off
     port = free_port()
     url = f"http://127.0.0.1:{port}"
     with open(log, "ab") as out:
