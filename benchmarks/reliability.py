@@ -1170,7 +1170,7 @@ def eviction(ctx: Ctx, kind: str) -> dict:
         return {"quota": kind, "flags": flags, "quota_bytes": quota if kind == "bytes" else None,
                 "scene_bytes": scene_bytes, "posted": 6, "kept": kept, "expected": used[-keep:],
                 "records": len(recs), "store_bytes": sum(r["bytes"] or 0 for r in recs if r["state"] == "ready"),
-                "evictions_metric": metric(m, "xyzcyl_store_evictions"),
+                "evictions_metric": metric(m, "xyzcyl_store_evictions_total"),
                 "folders": len(os.listdir(store / "scenes"))}
 
 
@@ -1179,7 +1179,8 @@ def eviction(ctx: Ctx, kind: str) -> dict:
 
 def cmd_security(args, ctx: Ctx) -> dict:
     key = "reliability-" + secrets.token_urlsafe(12)
-    flags = ["--api-keys", key, "--ort-threads", "1", "--max-body-bytes", str(8 << 20)]
+    # --api-docs true: with keys the OpenAPI document is off by default, and this reads every route from it
+    flags = ["--api-keys", key, "--api-docs", "true", "--ort-threads", "1", "--max-body-bytes", str(8 << 20)]
     auth = {"Authorization": f"Bearer {key}"}
     doc: dict = {"flags": ["--api-keys", "<generated>", *flags[2:]]}
     with ctx.serve(ctx.store("security"), flags) as (_proc, url, _ready_s), client(url, 60, auth) as c, \

@@ -81,7 +81,8 @@ class XyzcylError(Exception):
         self.retry_after = retry_after
 
     def __str__(self) -> str:
-        where = f"{self.field}: " if self.field and not self.message.startswith(f"{self.field}:") else ""
+        named = self.field and self.message.startswith((f"{self.field}:", f"part {self.field!r}:"))
+        where = f"{self.field}: " if self.field and not named else ""
         tag = f"{self.status} {self.code}" if self.status is not None else self.code
         return f"{where}{self.message} [{tag}]"
 

@@ -281,7 +281,7 @@ def evaluate(data_dirs: Sequence[str | Path], cfg: EvalConfig, checkpoint: str |
     ``cfg.sheet_scenes`` scenes of each data set and setting, their first view as {"title", "gt", "pred",
     "gt_depth", "depth", "psnr"} (images [H, W, 3] 0..1, depths [H, W] metres; gt_depth 0 outside the PCC's
     pixels) for ``write_sheet``."""
-    from tqdm import tqdm
+    from xyzcyl.runtime.progress import progress_bar
 
     from . import metrics as M
     from .dataset import DatasetConfig, SceneDataset
@@ -313,8 +313,8 @@ def evaluate(data_dirs: Sequence[str | Path], cfg: EvalConfig, checkpoint: str |
             jobs.append((root, rig, setting, ds, n))
 
     rows: list[dict[str, Any]] = []
-    bar = tqdm(total=sum(j[4] for j in jobs), desc=f"eval {cfg.method}", unit="scene", disable=not progress,
-               dynamic_ncols=True)
+    bar = progress_bar(total=sum(j[4] for j in jobs), desc=f"eval {cfg.method}", unit="scene", enabled=progress,
+                       dynamic_ncols=True)
     for root, rig, setting, ds, n in jobs:
         for i in range(n):
             item = ds.item(i, 0)

@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import csv
 import json
-import os
 import signal
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -31,6 +30,7 @@ from typing import Any
 import numpy as np
 import torch
 import torch.nn.functional as F
+from xyzcyl.runtime.files import atomic_file
 
 from .config import ConfigError, ModelConfig, _Frozen
 from .dataset import DatasetConfig, SceneDataset
@@ -255,9 +255,8 @@ def to_device(item: Any, device: torch.device) -> Any:
 
 
 def save_atomic(obj: Any, path: Path) -> None:
-    tmp = path.with_suffix(path.suffix + ".tmp")
-    torch.save(obj, tmp)
-    os.replace(tmp, path)
+    with atomic_file(path) as f:
+        torch.save(obj, f)
 
 
 def load_checkpoint(path: str | Path) -> dict[str, Any]:
@@ -316,13 +315,11 @@ def write_log(path: Path, rows: list[dict[str, Any]]) -> None:
         for k in r:
             if k not in keys:
                 keys.append(k)
-    tmp = path.with_suffix(".csv.tmp")
-    with tmp.open("w", newline="") as f:
+    with atomic_file(path, "w", newline="") as f:
         w = csv.DictWriter(f, fieldnames=keys)
         w.writeheader()
         for r in rows:
             w.writerow(r)
-    os.replace(tmp, path)
 
 
 def plot_losses(rows: list[dict[str, Any]], path: Path, title: str = "") -> None:
@@ -456,7 +453,7 @@ def train(data_dir: str | Path | list[str | Path], run_dir: str | Path, model_cf
     ``device``: where the network, its inputs and the losses live (resolve_device); the splatting renderer
     always runs on the host CPU (render_fn.RenderViews copies across). Checkpoints load onto any device.
     Returns a summary dict (steps done, last losses, wall time, paths)."""
-    from tqdm import tqdm
+    from xyzcyl.runtime.progress import progress_bar
 
     dev = resolve_device(device)
     run_dir = Path(run_dir)
@@ -542,8 +539,8 @@ def train(data_dir: str | Path | list[str | Path], run_dir: str | Path, model_cf
     try:
         with ThreadPoolExecutor(1) as pool:
             nxt = pool.submit(fetch, step) if step < end else None
-            bar = tqdm(total=tcfg.steps, initial=start, desc=f"train {tcfg.stage}", unit="step",
-                       disable=not progress, dynamic_ncols=True)
+            bar = progress_bar(total=tcfg.steps, initial=start, desc=f"train {tcfg.stage}", unit="step",
+                               enabled=progress, dynamic_ncols=True)
             while step < end:
                 t0 = time.perf_counter()
                 item = nxt.result()

@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from .rig import MAX_SIZE, Camera, Rig, RigError
+from .rig import MAX_SIZE, Camera, Rig, RigError, plain
 from .rotations import quat_to_rotmat, rotmat_to_quat
 
 # OpenGL camera (x right, y up, z back) <-> OpenCV camera (x right, y down, z forward): flip y and z.
@@ -70,7 +70,7 @@ def _num(record: Mapping[str, Any], key: str, where: str) -> float:
         raise ConversionError(f"{where}: {key} is missing")
     v = record[key]
     if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
-        raise ConversionError(f"{where}: {key} must be a finite number (got {v!r})")
+        raise ConversionError(f"{where}: {key} must be a finite number (got {plain(v)!r})")
     return float(v)
 
 
@@ -181,7 +181,7 @@ def _path_size(doc: Mapping[str, Any], key: str) -> int:
     v = doc.get(key)
     if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v != int(v) \
             or not 0 < int(v) <= MAX_SIZE:
-        raise _path_error(key, f"must be an integer in 1..{MAX_SIZE} (got {v!r})")
+        raise _path_error(key, f"must be an integer in 1..{MAX_SIZE} (got {plain(v)!r})")
     return int(v)
 
 

@@ -21,7 +21,7 @@ from typing import Any, Literal
 
 import numpy as np
 
-from .rig import Camera, Rig
+from .rig import Camera, Rig, plain
 
 # The paper's (rho, dh) per dataset and module: tables "Model architecture ... on nuScenes / Carla-Centric" and
 # "UCCM Parameter Settings for Zero-shot Generalization". Argoverse's occupancy rho is printed as 0.09 in the
@@ -59,7 +59,7 @@ class CylinderSpec:
     def __post_init__(self) -> None:
         c = np.array(self.centre, dtype=np.float64).reshape(-1)
         if c.shape != (3,) or not np.all(np.isfinite(c)):
-            raise CylinderError(f"centre must be 3 finite numbers (got {self.centre!r})")
+            raise CylinderError(f"centre must be 3 finite numbers (got {plain(self.centre)!r})")
         c.setflags(write=False)
         object.__setattr__(self, "centre", c)
         for key in ("radius", "z_min", "z_max"):
@@ -74,7 +74,7 @@ class CylinderSpec:
         for key in ("height", "width"):
             v = getattr(self, key)
             if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or not 0 < int(v) <= 65536:
-                raise CylinderError(f"{key} must be an integer in 1..65536 (got {v!r})")
+                raise CylinderError(f"{key} must be an integer in 1..65536 (got {plain(v)!r})")
             object.__setattr__(self, key, int(v))
 
     @property

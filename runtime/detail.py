@@ -36,7 +36,7 @@ import numpy as np
 
 from .render import Gaussians
 from .render.gaussians import SH_C0
-from .rig import Camera
+from .rig import Camera, plain
 from .rotations import rotmat_to_quat, rotmats_to_quats
 
 
@@ -80,7 +80,7 @@ class DetailOptions:
 
     def __post_init__(self) -> None:
         def bad(name: str, why: str) -> DetailError:
-            return DetailError(f"detail.{name}: {why} (got {getattr(self, name)!r})")
+            return DetailError(f"detail.{name}: {why} (got {plain(getattr(self, name))!r})")
 
         if isinstance(self.stride, bool) or not isinstance(self.stride, int) or not 1 <= self.stride <= 16:
             raise bad("stride", "must be an integer in 1..16")

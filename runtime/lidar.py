@@ -36,7 +36,7 @@ from typing import Any
 
 import numpy as np
 
-from .rig import Camera, Rig, RigError, _check_pose
+from .rig import Camera, Rig, RigError, _check_pose, plain
 
 MIN_DEPTH = 1.0   # m camera z: nearer returns are the ego vehicle's own body or sensor mounts, not the scene
 MAX_DEPTH = 80.0  # m camera z: the usual cap of driving depth benchmarks (KITTI, Eigen split)
@@ -80,7 +80,7 @@ def read_points(path: str | os.PathLike, columns: int | None = None) -> tuple[np
     elif name.endswith(".bin"):
         c = columns if columns is not None else (5 if name.endswith(".pcd.bin") else 4)
         if not isinstance(c, int) or isinstance(c, bool) or c < 3:
-            raise LidarError(f"lidar: columns must be an integer >= 3 (got {c!r})")
+            raise LidarError(f"lidar: columns must be an integer >= 3 (got {plain(c)!r})")
         size = p.stat().st_size
         if size % (4 * c):
             raise LidarError(f"lidar: {str(p)!r} has {size} bytes, not a whole number of {c}-column float32 "
@@ -133,7 +133,7 @@ def eval_camera(cam: Camera, width: int) -> Camera:
     """The camera the check projects and renders with: ``cam`` without distortion (the renderer has none), resized
     to ``width`` pixels wide (height rounded to keep the aspect ratio)."""
     if not isinstance(width, int) or width < 8:
-        raise LidarError(f"width must be an integer >= 8 (got {width!r})")
+        raise LidarError(f"width must be an integer >= 8 (got {plain(width)!r})")
     height = max(1, round(cam.height * width / cam.width))
     return cam.replace(distortion=None).resized(width, height)
 

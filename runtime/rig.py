@@ -23,9 +23,10 @@ from typing import Any, Literal
 
 import numpy as np
 
+from .rotations import ORTHO_TOL  # max |R^T R - I| entry accepted for a pose's rotation (the renderer's too)
+
 MAX_CAMERAS = 16
 MAX_SIZE = 16384
-ORTHO_TOL = 1e-3  # max |R^T R - I| entry accepted for cam_to_ego's rotation (calibration files carry ~1e-7 noise)
 # K's structural zeros and ones and cam_to_ego's bottom row are compared with this absolute tolerance: JSON
 # written by float code can carry 1e-16-level round-off, anything larger is a real (refused) parameter.
 STRUCT_TOL = 1e-9
@@ -75,7 +76,7 @@ class Camera:
         for key in ("width", "height"):
             v = getattr(self, key)
             if isinstance(v, bool) or not isinstance(v, (int, np.integer)):
-                raise RigError(f"{where}: {key} must be an integer (got {v!r})")
+                raise RigError(f"{where}: {key} must be an integer (got {plain(v)!r})")
             if not 0 < int(v) <= MAX_SIZE:
                 raise RigError(f"{where}: {key} must be in 1..{MAX_SIZE} (got {v})")
             object.__setattr__(self, key, int(v))
@@ -416,10 +417,91 @@ def save_rig(rig: Rig, path: str | os.PathLike) -> None:
 
 
 # -- image files -------------------------------------------------------------------------------------------------
+#
+# Every image the runtime reads (rig images, depth maps, ego masks, uploads) goes through _open_image and, for the
+# pixels, _decode. ``what`` names the field in errors ("camera 'CAM_FRONT': image", "part 'CAM_FRONT'"); ``label``
+# names the file after it (default: "file '<path>'"; the server passes e.g. "the image" so that no path of its store
+# reaches a message).
 
-def image_size(path: Path, what: str) -> tuple[int, int]:
-    """(width, height) from the file header (OpenImageIO; no pixel decoding)."""
-    inp = _open_image(path, what)
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+
+
+def _label(path: Path, label: str | None) -> str:
+    return f"file {str(path)!r}" if label is None else label
+
+
+def _reason(text: str, path: Path) -> str:
+    """A decoder's message as one line without the file's path: OpenImageIO appends ' ("<path>")' to libjpeg's
+    messages and may return several lines (the first says what went wrong)."""
+    p = str(path)
+    line = next((ln.strip() for ln in text.splitlines() if ln.strip()), "")
+    for s in {p, Path(p).name}:
+        line = line.replace(f' ("{s}")', "").replace(f'"{s}"', "the file").replace(f"'{s}'", "the file")
+    return line.replace(p, "the file")
+
+
+def _why(reason: str) -> str:
+    return f" ({reason})" if reason else ""
+
+
+def _png_problem(path: Path, crc: bool) -> str | None:
+    """Why a PNG file is broken in its chunk structure, or None (also for a file that is not a PNG). Walks the
+    chunks (length, type, CRC) up to IEND: cut short, a chunk of an invalid type, IHDR's CRC (always) or, with
+    ``crc``, any critical chunk's (IHDR, PLTE, IDAT, IEND; ancillary ones are libpng's to skip) not matching.
+    Checked before libpng sees the file: libpng reports these by printing a stray 'libpng error: ...' line to
+    stderr besides the error OpenImageIO returns (and a truncated PNG decodes nothing useful)."""
+    import struct
+    import zlib
+
+    with open(path, "rb") as f:
+        if f.read(8) != PNG_SIGNATURE:
+            return None
+        size = f.seek(0, 2)
+        pos = 8
+        while True:
+            f.seek(pos)
+            head = f.read(8)
+            if len(head) < 8:
+                return "the PNG ends before its IEND chunk"
+            n, kind = struct.unpack(">I4s", head)
+            if not kind.isalpha():
+                return f"the PNG has a chunk of invalid type {kind.decode('latin-1')!r} at byte {pos}"
+            name = kind.decode("ascii")
+            if pos + 12 + n > size:
+                return f"the PNG ends inside its {name} chunk"
+            if kind == b"IHDR" or (crc and kind[:1].isupper()):
+                c, left = zlib.crc32(kind), n
+                while left:
+                    block = f.read(min(left, 1 << 20))
+                    c, left = zlib.crc32(block, c), left - len(block)
+                if struct.unpack(">I", f.read(4))[0] != c & 0xFFFFFFFF:
+                    return f"the PNG's {name} chunk fails its CRC"
+            if kind == b"IEND":
+                return None
+            pos += 12 + n
+
+
+def _jpeg_problem(path: Path) -> str | None:
+    """Why a JPEG file is cut short, or None (also for a file that is not a JPEG). Its last scan must be followed by
+    the end-of-image marker FF D9 (entropy-coded data never holds FF D9; bytes after the marker, a trailer some
+    cameras append, are fine). libjpeg notices a missing end only when it needs bytes past the file's end: a file
+    cut in its last few bytes can decode without a word."""
+    import mmap
+
+    with open(path, "rb") as f:
+        if f.read(3) != b"\xff\xd8\xff":
+            return None
+        with mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) as m:
+            sos = m.rfind(b"\xff\xda")
+            if sos >= 0 and m.find(b"\xff\xd9", sos + 2) < 0:
+                return "the JPEG ends before its end-of-image marker"
+    return None
+
+
+def image_size(path: Path, what: str, label: str | None = None) -> tuple[int, int]:
+    """(width, height) from the file header (OpenImageIO; no pixel decoding). The file's structure is checked (a
+    PNG's chunks, a JPEG's end marker), which finds most files cut short; read_image finds the rest."""
+    inp = _open_image(path, what, label)
     try:
         spec = inp.spec()
         return int(spec.width), int(spec.height)
@@ -427,37 +509,70 @@ def image_size(path: Path, what: str) -> tuple[int, int]:
         inp.close()
 
 
-def _open_image(path: Path, what: str):
+def _open_image(path: Path, what: str, label: str | None = None, crc: bool = False):
     """An OpenImageIO ImageInput for `path` (caller closes it); RigError naming `what` if absent/unreadable."""
     import OpenImageIO as oiio
 
     if not Path(path).is_file():
-        raise RigError(f"{what}: file {str(path)!r} does not exist")
+        raise RigError(f"{what}: {_label(path, label)} does not exist")
+    try:
+        problem = _png_problem(path, crc) or _jpeg_problem(path)
+    except OSError as exc:
+        raise RigError(f"{what}: cannot read {_label(path, label)}{_why(exc.strerror or '')}") from None
+    if problem is not None:
+        raise RigError(f"{what}: {_label(path, label)} is cut short or corrupt ({problem})")
     inp = oiio.ImageInput.open(str(path))
     if inp is None:
-        raise RigError(f"{what}: cannot read {str(path)!r} ({oiio.geterror()})")
+        raise RigError(f"{what}: cannot read {_label(path, label)}{_why(_reason(oiio.geterror(), path))}")
     return inp
 
 
-def read_image(path: Path, what: str, channels: int = 3, scale: bool = True) -> np.ndarray:
-    """Read an image file as float32 [H, W, channels] (RGB order; grey replicated, alpha dropped).
+# libjpeg warnings about a file's metadata, not its pixels (such files decode whole; some cameras write them).
+# OpenImageIO reports libjpeg's warnings as errors; any other one ("Premature end of JPEG file", "Corrupt JPEG
+# data: ...") refuses the file.
+_METADATA_WARNINGS = ("unknown JFIF revision number", "thumbnail image size does not match data length",
+                      "Invalid SOS parameters for sequential JPEG", "Unknown Adobe color transform code",
+                      "Corrupt JPEG data: bad ICC marker")
 
-    Integer files are scaled to 0..1 when `scale` (8-bit /255, 16-bit /65535); float files (EXR, HDR) are
-    returned as stored. Raises RigError naming `what` when the file is missing or unreadable.
-    """
-    import OpenImageIO as oiio
 
-    inp = _open_image(path, what)
+def _damage(problem: str) -> bool:
+    """Whether a decoder's error text says the pixels are damaged (not just a metadata warning)."""
+    return any(not any(w in line for w in _METADATA_WARNINGS) for line in problem.splitlines() if line.strip())
+
+
+def _decode(path: Path, what: str, label: str | None = None) -> np.ndarray:
+    """The pixels of an image file in the file's own type ([H, W] or [H, W, C]); RigError naming `what` when the
+    file is missing, unreadable, cut short or corrupt. A cut JPEG "decodes" (libjpeg fills the rest with grey and
+    only warns "Premature end of JPEG file"): a warning of the decoder about the pixels refuses the file."""
+    inp = _open_image(path, what, label, crc=True)
     try:
         spec = inp.spec()
         # the file's own type (integers stay exact): without it OpenImageIO's Python read_image converts to float
         # and scales integers to 0..1, whatever `scale` says (a 16-bit depth PNG of 5000 mm read as 0.076)
         native = inp.read_image(0, 0, 0, spec.nchannels, spec.format)
+        problem = inp.geterror()
     finally:
         inp.close()
-    if native is None:
-        raise RigError(f"{what}: cannot decode {str(path)!r} ({oiio.geterror()})")
-    a = np.asarray(native)
+    if native is None or _damage(problem):
+        raise RigError(f"{what}: {_label(path, label)} is cut short or corrupt"
+                       f"{_why(_reason(problem, path) or 'the decoder returned no pixels')}")
+    return np.asarray(native)
+
+
+def verify_image(path: Path, what: str, label: str | None = None) -> None:
+    """Decode an image file in full and drop the pixels: RigError (as read_image's) when it is cut short or
+    corrupt. For checking an upload before a job is queued (read the header with image_size first: it refuses a
+    decompression bomb without decoding)."""
+    _decode(path, what, label)
+
+
+def read_image(path: Path, what: str, channels: int = 3, scale: bool = True, label: str | None = None) -> np.ndarray:
+    """Read an image file as float32 [H, W, channels] (RGB order; grey replicated, alpha dropped).
+
+    Integer files are scaled to 0..1 when `scale` (8-bit /255, 16-bit /65535); float files (EXR, HDR) are
+    returned as stored. Raises RigError naming `what` when the file is missing, unreadable, cut short or corrupt.
+    """
+    a = _decode(path, what, label)
     if a.ndim == 2:
         a = a[..., None]
     if np.issubdtype(a.dtype, np.integer):
@@ -472,32 +587,38 @@ def read_image(path: Path, what: str, channels: int = 3, scale: bool = True) -> 
     elif n == 1:
         img = np.repeat(img, channels, axis=-1)
     else:
-        raise RigError(f"{what}: {str(path)!r} has {n} channels, expected {channels}")
+        raise RigError(f"{what}: {_label(path, label)} has {n} channels, expected {channels}")
     return np.ascontiguousarray(img)
 
 
-def read_depth(path: Path, what: str) -> np.ndarray:
+def read_depth(path: Path, what: str, label: str | None = None) -> np.ndarray:
     """A depth map file -> [H, W] float32 metres along the optical axis. Float files (EXR, TIFF) hold metres;
     integer files (16-bit PNG, the usual depth-camera export) hold millimetres (0 = no depth). RigError naming
     `what` when the file is missing or unreadable."""
     import OpenImageIO as oiio
 
-    inp = _open_image(path, what)
+    inp = _open_image(path, what, label)
     try:
         integer = inp.spec().format.basetype in (oiio.UINT8, oiio.UINT16, oiio.UINT32, oiio.INT16, oiio.INT32)
     finally:
         inp.close()
-    d = read_image(path, what, channels=1, scale=False)[..., 0]
+    d = read_image(path, what, channels=1, scale=False, label=label)[..., 0]
     return d * np.float32(0.001) if integer else d
 
 
 # -- validation helpers ------------------------------------------------------------------------------------------
 
+def plain(value: Any) -> Any:
+    """``value`` for an error message's ``{...!r}``: numpy scalars and arrays as plain Python numbers and lists
+    (numpy 2 writes a scalar as ``np.float64(-633.0)``); anything else unchanged. The validators' one place for it."""
+    return value.tolist() if isinstance(value, (np.generic, np.ndarray)) else value
+
+
 def _numbers(value: Any, where: str, key: str) -> np.ndarray:
     try:
         a = np.array(value, dtype=np.float64)
     except (TypeError, ValueError):
-        raise RigError(f"{where}: {key} must be numbers (got {value!r:.80})") from None
+        raise RigError(f"{where}: {key} must be numbers (got {plain(value)!r:.80})") from None
     if not np.all(np.isfinite(a)):
         bad = tuple(int(i) for i in np.argwhere(~np.isfinite(a))[0]) if a.ndim else ()
         idx = "".join(f"[{i}]" for i in bad)
@@ -511,11 +632,11 @@ def _check_K(K: Any, where: str) -> np.ndarray:
         raise RigError(f"{where}: K must be 3x3 (got shape {K.shape})")
     for (r, c), want in {(0, 1): 0.0, (1, 0): 0.0, (2, 0): 0.0, (2, 1): 0.0, (2, 2): 1.0}.items():
         if abs(K[r, c] - want) > STRUCT_TOL:
-            raise RigError(f"{where}: K[{r}][{c}] must be {want:g} (got {K[r, c]!r})")
+            raise RigError(f"{where}: K[{r}][{c}] must be {want:g} (got {plain(K[r, c])!r})")
     if not K[0, 0] > 0:
-        raise RigError(f"{where}: K[0][0] (fx) must be > 0 (got {K[0, 0]!r})")
+        raise RigError(f"{where}: K[0][0] (fx) must be > 0 (got {plain(K[0, 0])!r})")
     if not K[1, 1] > 0:
-        raise RigError(f"{where}: K[1][1] (fy) must be > 0 (got {K[1, 1]!r})")
+        raise RigError(f"{where}: K[1][1] (fy) must be > 0 (got {plain(K[1, 1])!r})")
     K = K.copy()
     K[0, 1] = K[1, 0] = K[2, 0] = K[2, 1] = 0.0
     K[2, 2] = 1.0

@@ -1,8 +1,16 @@
-"""Quaternions (wxyz) <-> rotation matrices: the one numpy implementation used across the runtime."""
+"""Quaternions (wxyz) <-> rotation matrices: the one numpy implementation used across the runtime; and ORTHO_TOL,
+the one tolerance on a pose's rotation that every validator uses (rig.Camera's cam_to_ego and lidar_to_ego, the
+renderer's cam_to_world in runtime/render/cameras.py)."""
 
 from __future__ import annotations
 
 import numpy as np
+
+# max |R^T R - I| entry accepted for a pose's rotation block (calibration files carry ~1e-7 noise, poses stored in
+# float32 ~1e-7, rotations printed with 4 decimals ~1e-4). One constant for every check: a rig that rig.load_rig
+# accepts must never be refused later by the renderer's camera (the rig took 1e-3 and the renderer 1e-4: such a
+# rig's LiDAR reconstruction then failed with an internal error, issue 27).
+ORTHO_TOL = 1e-3
 
 
 def quat_to_rotmat(q: np.ndarray) -> np.ndarray:

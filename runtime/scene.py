@@ -269,8 +269,10 @@ class Scene:
         meta = read_json_doc(jp, SCENE_FORMAT, SceneError, "scene")
         try:
             rig = Rig.from_dict(meta["rig"])
-        except (RigError, KeyError) as e:
-            raise SceneError(f"scene: {str(jp)!r}: rig: {e}") from None
+        except KeyError:
+            raise SceneError(f"scene: {str(jp)!r}: rig is missing") from None
+        except RigError as e:           # its message names the rig or the camera already
+            raise SceneError(f"scene: {str(jp)!r}: {e}") from None
         pp = d / PLY_NAME
         if not pp.is_file():
             raise SceneError(f"scene: {str(pp)!r} is missing")
@@ -303,7 +305,7 @@ def rig_camera(cam: Camera, forward: float = 0.0, width: int | None = None, heig
     """A runtime.render camera for a rig camera (pinhole: K and size, distortion ignored; equirectangular),
     moved ``forward`` metres along ego x, optionally at another size (K scaled with Camera.resized)."""
     if width is not None or height is not None:
-        cam = cam.resized(width or cam.width, height or cam.height)
+        cam = cam.resized(cam.width if width is None else width, cam.height if height is None else height)
     T = np.array(cam.cam_to_ego, dtype=np.float64)
     T[0, 3] += float(forward)
     if cam.model == "equirectangular":

@@ -36,7 +36,11 @@
 #   - no systemd here: podman logs "level=error ... unable to get systemd connection to add/start/remove
 #     healthchecks" for a container with a HEALTHCHECK (harmless: no timer runs the check; this script runs it
 #     once with `podman healthcheck run`);
-#   - otherwise the defaults worked (overlay storage, runc, cgroupfs manager, netavark bridge network for the
+#   - the OCI runtime is runc, chosen by this script (`podman --runtime PATH-OF-RUNC`, installed with apt-get when
+#     absent): Debian's podman may come with crun alone, and crun fails on a cgroup v1 / hybrid host ("cgroups in
+#     hybrid mode not supported"); runc works on both. A `--runtime` in XYZCYL_PODMAN_FLAGS wins; without runc and
+#     without apt-get, podman's own default is used (with a warning);
+#   - otherwise the defaults worked (overlay storage, cgroupfs manager, netavark bridge network for the
 #     build's pip and for -p 127.0.0.1:PORT:8000); where they do not, set XYZCYL_PODMAN_FLAGS (global flags, e.g.
 #     "--cgroup-manager=cgroupfs --storage-driver=vfs"), XYZCYL_BUILD_FLAGS (e.g. "--isolation=chroot
 #     --network=host") and XYZCYL_RUN_FLAGS (more `podman run` flags).
@@ -91,18 +95,44 @@ trap cleanup EXIT
 trap 'exit 130' INT TERM
 
 # ---- tools
+# the OCI runtime named in XYZCYL_PODMAN_FLAGS (--runtime X or --runtime=X), if any
+flag_runtime() {
+    local i
+    for ((i = 0; i < ${#PODMAN_FLAGS[@]}; i++)); do
+        case "${PODMAN_FLAGS[i]}" in
+            --runtime=*) echo "${PODMAN_FLAGS[i]#--runtime=}"; return 0 ;;
+            --runtime) echo "${PODMAN_FLAGS[i + 1]:-}"; return 0 ;;
+        esac
+    done
+    return 1
+}
 need=()
 command -v podman > /dev/null || need+=(podman)
-command -v runc > /dev/null || command -v crun > /dev/null || need+=(runc)
+# runc, even where crun is there: see "podman notes" above
+if ! flag_runtime > /dev/null && ! command -v runc > /dev/null; then need+=(runc); fi
 command -v curl > /dev/null || need+=(curl)
 command -v python3 > /dev/null || die "python3 is needed on the host (standard library only)"
 if [ ${#need[@]} -gt 0 ]; then
-    command -v apt-get > /dev/null || die "missing: ${need[*]} (install podman and runc)"
-    log "installing ${need[*]} uidmap fuse-overlayfs slirp4netns from Debian"
-    timeout 600 apt-get update -q > "$OUT/apt.log" 2>&1 || true
-    DEBIAN_FRONTEND=noninteractive timeout 900 apt-get install -y -q --no-install-recommends \
-        "${need[@]}" uidmap fuse-overlayfs slirp4netns containernetworking-plugins >> "$OUT/apt.log" 2>&1 \
-        || die "apt-get install failed (see $OUT/apt.log)"
+    if command -v apt-get > /dev/null; then
+        log "installing ${need[*]} uidmap fuse-overlayfs slirp4netns from Debian"
+        timeout 600 apt-get update -q > "$OUT/apt.log" 2>&1 || true
+        DEBIAN_FRONTEND=noninteractive timeout 900 apt-get install -y -q --no-install-recommends \
+            "${need[@]}" uidmap fuse-overlayfs slirp4netns containernetworking-plugins >> "$OUT/apt.log" 2>&1 \
+            || die "apt-get install failed (see $OUT/apt.log)"
+    elif [ "${need[*]}" = runc ]; then
+        log "WARNING: no runc and no apt-get to install it: podman's default OCI runtime is used (crun fails on a" \
+            "cgroup v1 / hybrid host; XYZCYL_PODMAN_FLAGS=\"--runtime PATH\" chooses one)"
+    else
+        die "missing: ${need[*]} (install podman and runc)"
+    fi
+fi
+if RUNTIME=$(flag_runtime); then
+    log "OCI runtime $RUNTIME (XYZCYL_PODMAN_FLAGS)"
+elif RUNTIME=$(command -v runc); then
+    PODMAN_FLAGS=(--runtime "$RUNTIME" "${PODMAN_FLAGS[@]}")
+    log "OCI runtime $RUNTIME (podman --runtime)"
+else
+    RUNTIME="podman's default"
 fi
 log "$(podman --version); out: $OUT"
 
@@ -323,6 +353,7 @@ print(json.dumps({
     "base": "$BASE",
     "base_kind": "$BASE_KIND",
     "podman": "$(podman --version | awk '{print $3}')",
+    "oci_runtime": "$RUNTIME",
     "python": "$PYVER",
     "image_size_mb": mb("$IMAGE_BYTES"),
     "base_size_mb": mb("$BASE_BYTES"),

@@ -34,7 +34,7 @@ from .errors import ApiError, TooLarge, error_body
 from .jobs import Reconstructions, Renders
 from .metrics import Metrics
 from .settings import Settings
-from .store import FolderStore, open_store
+from .store import FolderStore, StoreUnavailable, open_store
 
 log = logging.getLogger("xyzcyl.server")
 API_VERSION = "1"
@@ -134,6 +134,13 @@ def _install_handlers(app: FastAPI) -> None:
     async def _api_error(request: Request, exc: ApiError):
         return JSONResponse(exc.body(), status_code=exc.status, headers=exc.headers)
 
+    @app.exception_handler(StoreUnavailable)
+    async def _store_down(request: Request, exc: StoreUnavailable):
+        # the s3:// store stopped answering after start-up (logged by the store): not this request's fault, and
+        # over once the bucket answers again
+        retry = str(request.app.state.service.settings.retry_after_s)
+        return _json_error(503, "store_unavailable", str(exc), None, {"Retry-After": retry})
+
     @app.exception_handler(RequestValidationError)
     async def _validation(request: Request, exc: RequestValidationError):
         errs = exc.errors()
@@ -203,7 +210,12 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             await service.reconstructions.stop()
             service.renders.stop()
 
+    # /openapi.json, /docs and /redoc are not behind the API keys (a browser sends no key): with keys set they are
+    # off unless api_docs says otherwise
+    docs = settings.docs_open()
     app = FastAPI(title="xyzcyl", version=__version__, lifespan=lifespan,
+                  openapi_url="/openapi.json" if docs else None, docs_url="/docs" if docs else None,
+                  redoc_url="/redoc" if docs else None,
                   summary="Feed-forward 3D Gaussian splatting of a surround-camera rig: post a rig, get Gaussians, "
                           "render views at any pose.",
                   description="docs/api.md in the repository: every endpoint with a curl example and the error "
@@ -272,7 +284,10 @@ async def _sweep(service: Service) -> None:
         return
     while True:
         await asyncio.sleep(min(60.0, max(1.0, ttl / 4)))
-        removed = await asyncio.to_thread(service.store.sweep)
+        try:
+            removed = await asyncio.to_thread(service.store.sweep)
+        except StoreUnavailable:        # logged by the store; the next round tries again
+            continue
         if removed:
             log.info("TTL removed %d scenes", len(removed))
 

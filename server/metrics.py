@@ -4,7 +4,7 @@ GET /metrics exposes them in the text format."""
 from __future__ import annotations
 
 from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram, generate_latest
-from prometheus_client.core import GaugeMetricFamily
+from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily
 
 # seconds; renders are ~0.05-0.5 s, reconstructions ~0.5-5 s on 2 cores (docs/api.md)
 _LATENCY = (0.005, 0.01, 0.025, 0.05, 0.1, 0.2, 0.3, 0.5, 0.75, 1.0, 1.5, 2.5, 5.0, 10.0, 30.0, 60.0)
@@ -21,8 +21,9 @@ class _StoreCollector:
             scenes.add_metric([state], n)
         yield scenes
         yield GaugeMetricFamily("xyzcyl_store_bytes", "bytes of ready scenes in the store", value=u["bytes"])
-        yield GaugeMetricFamily("xyzcyl_store_evictions", "scenes evicted by the quota since start",
-                                value=u["evicted"])
+        # a counter (exposed as xyzcyl_store_evictions_total): it only grows, so rate() and increase() apply
+        yield CounterMetricFamily("xyzcyl_store_evictions", "scenes evicted by the quota since start",
+                                  value=u["evicted"])
 
 
 class Metrics:

@@ -75,6 +75,9 @@ class Settings(BaseSettings):
     # security
     api_keys: CommaList = Field((), description="accepted API keys (comma-separated); empty: no authentication")
     cors_origins: CommaList = Field((), description="CORS allowed origins (comma-separated); empty: CORS off")
+    api_docs: bool | None = Field(None, description="serve /openapi.json, /docs and /redoc (the API's description, "
+                                                    "without a key) to anyone; default: only when no API keys are set "
+                                                    "(with keys they answer 404)")
 
     # scale-out: the s3:// store (server/store/s3.py, docs/deploy.md)
     s3_cache: Path | None = Field(None, description="s3:// store: local folder for downloaded scenes and work in "
@@ -106,6 +109,10 @@ class Settings(BaseSettings):
         from xyzcyl.runtime.inference import default_model_dir
 
         return default_model_dir()
+
+    def docs_open(self) -> bool:
+        """Whether /openapi.json, /docs and /redoc are served: ``api_docs``, else only without API keys."""
+        return (not self.api_keys) if self.api_docs is None else bool(self.api_docs)
 
 
 __all__ = ["Settings"]

@@ -3,7 +3,7 @@
     xyzcyl client reconstruct RIG_JSON [--wait [S]] [--detail-stride N | --no-detail] [--json]
     xyzcyl client render SCENE_ID (--camera NAME | --K FX FY CX CY --cam-to-world M*16 | --cam-to-world M*16 --fov F
                          | --carla X Y Z PITCH YAW ROLL --fov F) [--width W --height H] --out FILE
-                         [--output rgb|depth|alpha] [--quality Q]
+                         [--output rgb|depth|alpha] [--quality Q] [--forward M] [--left M] [--up M] [--yaw DEG]
     xyzcyl client path SCENE_ID CAMERA_PATH_JSON --out DIR [--video OUT.mp4] [--fps N] [--output ...] [--format ...]
     xyzcyl client gaussians SCENE_ID --out scene.ply|scene.splat
     xyzcyl client scene SCENE_ID [--wait [S]]
@@ -23,6 +23,7 @@ import os
 import sys
 from pathlib import Path
 
+_SCENE_HELP = "the scene's id (printed by `xyzcyl client reconstruct`)"
 _FORMATS = {".png": "png", ".jpg": "jpeg", ".jpeg": "jpeg", ".exr": "exr"}
 
 
@@ -43,6 +44,9 @@ def _common() -> argparse.ArgumentParser:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    # the pose flags of `xyzcyl render` (one definition; a light module: argparse at import, numpy when run)
+    from xyzcyl.runtime.commands.pose_flags import add_matrix_argument, add_move_arguments
+
     parser.description = ("Talk to a running `xyzcyl serve` (docs/client.md): reconstruct a rig, render views and "
                           "camera paths, download Gaussians, list and delete scenes.")
     common = _common()
@@ -52,7 +56,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                        description="Upload RIG_JSON with the images (and depth and ego mask files) it names, "
                                    "relative to its folder. Prints the scene id on stdout (the scene JSON with "
                                    "--json).")
-    p.add_argument("rig", metavar="RIG_JSON")
+    p.add_argument("rig", metavar="RIG_JSON", help="the rig.json; the files it names are read relative to its folder")
     p.add_argument("--wait", nargs="?", type=float, const=600.0, default=None, metavar="S",
                    help="wait until the scene is ready or failed, up to S seconds (default 600)")
     p.add_argument("--no-depth", action="store_true", help="do not upload the depth files the rig names")
@@ -68,12 +72,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                        description="Render one view and write the server's bytes to --out as they are; the "
                                    "extension picks the format (.png, .jpg/.jpeg, .exr). Poses are in the scene's "
                                    "ego frame (x forward, y left, z up, metres; docs/api.md).")
-    p.add_argument("scene", metavar="SCENE_ID")
+    p.add_argument("scene", metavar="SCENE_ID", help=_SCENE_HELP)
     pose = p.add_argument_group("pose (exactly one of --camera, --cam-to-world, --carla)")
     pose.add_argument("--camera", metavar="NAME", help="an input camera of the scene's rig")
-    pose.add_argument("--cam-to-world", type=float, nargs=16, metavar="M",
-                      help="4x4 camera-to-ego matrix, row-major, OpenCV camera axes (x right, y down, z forward); "
-                           "with --K or --fov")
+    add_matrix_argument(pose, "--cam-to-world",
+                        help="4x4 camera-to-ego matrix, OpenCV camera axes (x right, y down, z forward); with --K "
+                             "or --fov")
     pose.add_argument("--K", type=float, nargs=4, metavar=("FX", "FY", "CX", "CY"),
                       help="pinhole intrinsics in pixels (OpenCV: pixel u is centred at x = u)")
     pose.add_argument("--carla", type=float, nargs=6, metavar=("X", "Y", "Z", "PITCH", "YAW", "ROLL"),
@@ -86,13 +90,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                    help="rgb (default), depth (png: 16-bit millimetres; exr: float metres) or alpha")
     p.add_argument("--quality", type=int, metavar="Q", help="JPEG quality 1..100 (default 90)")
     p.add_argument("--out", required=True, metavar="FILE", help="output .png, .jpg or .exr")
+    add_move_arguments(p)
 
     p = sub.add_parser("path", parents=[common], help="render a camera path (nerfstudio camera_path.json or "
                        "{\"cameras\": [...]}) to frames and a video",
                        description="Render every camera of CAMERA_PATH_JSON in one batch request and write the frames "
                                    "(frame_00000.png ...) and index.json into --out; --video also writes an mp4.")
-    p.add_argument("scene", metavar="SCENE_ID")
-    p.add_argument("camera_path", metavar="CAMERA_PATH_JSON")
+    p.add_argument("scene", metavar="SCENE_ID", help=_SCENE_HELP)
+    p.add_argument("camera_path", metavar="CAMERA_PATH_JSON",
+                   help="{\"cameras\": [...]} (the items of POST /render; docs/api.md) or a nerfstudio camera_path.json")
     p.add_argument("--out", required=True, metavar="DIR", help="folder for the frames (created)")
     p.add_argument("--video", metavar="OUT.mp4", help="also write the frames as an mp4 video (OpenCV, mp4v)")
     p.add_argument("--fps", type=float, default=None, help="video frame rate (default: the camera path's fps, else 24)")
@@ -101,13 +107,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     p.add_argument("--quality", type=int, metavar="Q", help="JPEG quality 1..100")
 
     p = sub.add_parser("gaussians", parents=[common], help="download the Gaussians (.ply or .splat)")
-    p.add_argument("scene", metavar="SCENE_ID")
+    p.add_argument("scene", metavar="SCENE_ID", help=_SCENE_HELP)
     p.add_argument("--out", required=True, metavar="FILE",
                    help="scene.ply (3DGS binary PLY) or scene.splat (antimatter15)")
     p.add_argument("--format", choices=("ply", "splat"), default=None, help="default: from the extension")
 
     p = sub.add_parser("scene", parents=[common], help="print a scene's JSON")
-    p.add_argument("scene", metavar="SCENE_ID")
+    p.add_argument("scene", metavar="SCENE_ID", help=_SCENE_HELP)
     p.add_argument("--wait", nargs="?", type=float, const=600.0, default=None, metavar="S",
                    help="first wait until it is ready or failed, up to S seconds")
 
@@ -115,19 +121,20 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     p.add_argument("--json", action="store_true", help="one JSON object per line")
 
     p = sub.add_parser("delete", parents=[common], help="delete a scene")
-    p.add_argument("scene", metavar="SCENE_ID")
+    p.add_argument("scene", metavar="SCENE_ID", help=_SCENE_HELP)
 
 
 # ----------------------------------------------------------------------------------------------- helpers
 
 def _bar(args, total, unit: str, desc: str):
-    """A tqdm progress callback (done, total) -> None and its closer; nothing when --quiet."""
-    if args.quiet:
-        return None, lambda: None
-    from tqdm import tqdm
+    """A tqdm progress callback (done, total) -> None and its closer; nothing when --quiet or when stderr is not a
+    terminal (runtime.progress: a redirected bar wrote `upload: 0.00B [00:00, ?B/s]` lines into logs)."""
+    from xyzcyl.runtime.progress import is_terminal, progress_bar
 
-    bar = tqdm(total=total, unit=unit, unit_scale=unit == "B", unit_divisor=1024 if unit == "B" else 1000,
-               desc=desc, file=sys.stderr, leave=False, dynamic_ncols=True)
+    if args.quiet or not is_terminal(sys.stderr):
+        return None, lambda: None
+    bar = progress_bar(total=total, unit=unit, unit_scale=unit == "B", unit_divisor=1024 if unit == "B" else 1000,
+                       desc=desc, file=sys.stderr, leave=False, dynamic_ncols=True)
 
     def update(done: int, tot: int | None) -> None:
         if tot is not None and bar.total != tot:
@@ -178,7 +185,8 @@ def _reconstruct(c, args) -> int:
         wait = args.wait is not None
         if wait and not args.quiet:
             def progress(done, total):
-                update(done, total)
+                if update is not None:          # no bar when stderr is not a terminal
+                    update(done, total)
                 if done == total:
                     close()
                     print(f"uploaded {total / 1e6:.1f} MB; waiting for the reconstruction ...", file=sys.stderr)
@@ -196,6 +204,13 @@ def _reconstruct(c, args) -> int:
 
 
 def _pose(args) -> object:
+    from xyzcyl.runtime.commands.pose_flags import PoseArgError, move_from_args, parse_matrix
+
+    try:
+        move = move_from_args(args)
+        c2w = None if args.cam_to_world is None else parse_matrix(args.cam_to_world, "--cam-to-world")
+    except PoseArgError as e:
+        raise _UsageError(e.field, e.message) from None
     modes = [m for m, on in (("--camera", args.camera), ("--cam-to-world", args.cam_to_world),
                              ("--carla", args.carla)) if on is not None]
     if len(modes) != 1:
@@ -206,6 +221,10 @@ def _pose(args) -> object:
         for flag, v in (("--K", args.K), ("--fov", args.fov)):
             if v is not None:
                 raise _UsageError(flag, "cannot be combined with --camera (the camera has its intrinsics)")
+        if move:
+            # the service answers an input camera's size but not its pose, so the client cannot move it
+            raise _UsageError(move.flags()[0], "moves an explicit pose only: pass the camera's cam_to_ego from "
+                                               "the rig.json with --cam-to-world (and its --K) instead of --camera")
         return args.camera
     if args.width is None or args.height is None:
         raise _UsageError("--width" if args.width is None else "--height", "required unless --camera")
@@ -214,13 +233,14 @@ def _pose(args) -> object:
             raise _UsageError("--K", "a CARLA camera takes --fov (square pixels, centred principal point)")
         if args.fov is None:
             raise _UsageError("--fov", "required with --carla")
-        return dict(zip(("x", "y", "z", "pitch", "yaw", "roll"), args.carla), fov=args.fov)
+        return dict(zip(("x", "y", "z", "pitch", "yaw", "roll"), move.apply_carla(*args.carla)), fov=args.fov)
     if (args.K is None) == (args.fov is None):
         raise _UsageError("--K", "give exactly one of --K FX FY CX CY and --fov DEG with --cam-to-world")
+    pose = move.apply(c2w).reshape(-1).tolist()
     if args.K is not None:
         fx, fy, cx, cy = args.K
-        return {"K": [[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]], "cam_to_ego": args.cam_to_world}
-    return {"fov": args.fov, "cam_to_ego": args.cam_to_world}
+        return {"K": [[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]], "cam_to_ego": pose}
+    return {"fov": args.fov, "cam_to_ego": pose}
 
 
 def _render(c, args) -> int:

@@ -9,7 +9,8 @@ def add_runtime_arguments(parser: argparse.ArgumentParser) -> None:
     """--lpips-backbone/--lpips-lin/--lpips-net (local LPIPS weights), --threads, --quiet."""
     parser.add_argument("--lpips-backbone", default=None, help="local VGG16/AlexNet features state dict")
     parser.add_argument("--lpips-lin", default=None, help="local LPIPS v0.1 linear-layer weights")
-    parser.add_argument("--lpips-net", default="vgg", choices=("vgg", "alex"))
+    parser.add_argument("--lpips-net", default="vgg", choices=("vgg", "alex"),
+                        help="LPIPS backbone: vgg (default) or alex")
     parser.add_argument("--threads", type=int, default=None,
                         help="CPU threads of torch and of the numba renderer (default: all cores)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")

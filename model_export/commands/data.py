@@ -28,7 +28,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     s.add_argument("--supersample", type=int, default=2, help="ss: ss x ss RGB samples per pixel")
     s.add_argument("--no-shadows", action="store_true", help="no sun shadows (faster)")
     s.add_argument("--voxels", default="0.4,0.8", help="comma list of occupancy voxel sizes, metres")
-    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--seed", type=int, default=0,
+                   help="data set seed: scene i is the same for the same (seed, i) (default 0)")
     s.add_argument("--near-cars", type=float, default=0.0, metavar="P",
                    help="probability of a scene with traffic beside the ego: cars in the neighbouring lanes and "
                         "parking lane 1-3 m from the ego, as real rigs see them (default 0: none within 8 m)")
@@ -40,9 +41,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "one process, all cores per scene); the files are identical for any N")
     s.add_argument("--quiet", action="store_true", help="no progress bar")
     g = sub.add_parser("gallery", help="contact sheet of a data set")
-    g.add_argument("dataset", type=Path)
+    g.add_argument("dataset", type=Path, help="data set folder (`xyzcyl data synth` output)")
     g.add_argument("--out", required=True, type=Path, help="output PNG")
-    g.add_argument("--scenes", type=int, default=8)
+    g.add_argument("--scenes", type=int, default=8, help="the first N scenes, one row each (default 8)")
     g.add_argument("--tile-width", type=int, default=200, help="pixels per tile")
 
 
@@ -69,7 +70,6 @@ def run(args: argparse.Namespace) -> int:
             print(f"{n} scenes rendered into {args.out}")
             return 0
         import cv2
-
         from xyzcyl.model_export.data.gallery import contact_sheet
 
         if args.scenes < 1:

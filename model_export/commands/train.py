@@ -40,14 +40,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--target-scale", type=float, default=1.0,
                         help="render and supervise the targets at this fraction of their size (e.g. 0.5: 4x "
                              "fewer pixels per step; evaluation stays at full size)")
-    parser.add_argument("--lr", type=float, default=1e-4)
+    parser.add_argument("--lr", type=float, default=1e-4,
+                        help="peak learning rate of AdamW (linear warm-up, then cosine decay; default 1e-4)")
     parser.add_argument("--warmup", type=int, default=None,
                         help="warm-up steps (default: min(1000, steps // 10), the paper uses 1000 of 100k)")
     parser.add_argument("--ckpt-every", type=int, default=50, help="steps between checkpoints")
     parser.add_argument("--val-every", type=int, default=0, help="steps between validation passes (0: at the end)")
-    parser.add_argument("--val-scenes", type=int, default=4)
+    parser.add_argument("--val-scenes", type=int, default=4,
+                        help="validation scenes per pass, the first N of --val (default 4)")
     parser.add_argument("--voxel-size", type=float, default=None, help="occupancy voxel (default: the preset's)")
-    parser.add_argument("--ablation", default="none", choices=sorted(ABLATIONS))
+    parser.add_argument("--ablation", default="none", choices=sorted(ABLATIONS),
+                        help="train without one part of the network: the volume or pixel Gaussians, the separate "
+                             "background, or the RGB path (default none)")
     parser.add_argument("--volume-selection", default=None, choices=("predicted", "ground_truth"),
                         help="voxels that carry volume Gaussians in stage render (default: the preset's, "
                              "predicted); evaluation always uses the predicted occupancy")
@@ -89,7 +93,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="probability that a training scene's inputs carry a simulated LiDAR sweep, made into "
                              "the depth input as the runtime makes a real one (stage render; docs/training.md): the "
                              "model learns to use LiDAR depth; 0 disables")
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--seed", type=int, default=0,
+                        help="seed of the weights' initialisation, the scene order and the augmentations (default 0)")
     parser.add_argument("--device", default="cpu",
                         help="cpu or cuda (cuda:N): where the network and its losses run; the splatting renderer "
                              "stays on the host CPU (default cpu)")

@@ -256,7 +256,7 @@ def synth(out: Path, n: int, cfg: SynthConfig, progress: bool = True, workers: i
     previous one. workers N > 1: N spawned processes render and write whole scenes side by side, each with
     max(1, cores() // N) numba threads. The files are the same byte for byte whatever `workers` is.
     """
-    from tqdm import tqdm
+    from xyzcyl.runtime.progress import progress_bar
 
     if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
         raise ValueError(f"workers: must be an integer >= 1, got {workers!r}")
@@ -279,7 +279,7 @@ def synth(out: Path, n: int, cfg: SynthConfig, progress: bool = True, workers: i
     tmp.mkdir(exist_ok=True)
     todo = [i for i in range(n) if not (out / scene_name(i)).is_dir()]
     workers = min(workers, len(todo))
-    with tqdm(total=len(todo), desc="synth", unit="scene", disable=not progress) as bar:
+    with progress_bar(total=len(todo), desc="synth", unit="scene", enabled=progress) as bar:
         if workers <= 1:
             pending: Future | None = None
             with ThreadPoolExecutor(1) as pool:

@@ -1,5 +1,5 @@
 """`xyzcyl lidar-eval RIG_JSON`: how far off a reconstruction's depth is, against a LiDAR sweep of the same
-timestamp (the rig's `lidar` block or --lidar FILE). Reconstructs the rig with the onnxruntime model (or reads a
+timestamp (the rig's `lidar` block or --lidar-file FILE). Reconstructs the rig with the onnxruntime model (or reads a
 scene folder of it), renders each input camera's depth, and prints AbsRel, RMSE, δ < 1.25 and the median
 ratio rendered / LiDAR per camera, for all cameras and per range. See docs/inference.md and runtime/lidar.py."""
 
@@ -19,7 +19,7 @@ from .detail_flags import add_detail_arguments, detail_options
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     from ..lidar import ALPHA_MIN, MAX_DEPTH, MIN_DEPTH, OCCLUSION_RADIUS
 
-    parser.add_argument("rig", metavar="RIG_JSON", help="rig.json (cameras, images, and a lidar block unless --lidar)")
+    parser.add_argument("rig", metavar="RIG_JSON", help="rig.json (cameras, images, and a lidar block unless --lidar-file)")
     src = parser.add_mutually_exclusive_group()
     src.add_argument("--model", default=None, metavar="DIR",
                      help="model folder to reconstruct with (default: $XYZCYL_MODEL, else the shipped "
@@ -34,7 +34,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "otherwise)")
     parser.add_argument("--holdout", type=float, default=None, metavar="F",
                         help="LiDAR-guided reconstruction, checked fairly: a random fraction F of the sweep's points "
-                             "(seed 0) is the depth input (`xyzcyl reconstruct --lidar`), the rest is checked")
+                             "(seed 0) is the depth input (`xyzcyl reconstruct --lidar-file`), the rest is checked")
     parser.add_argument("--use-depth", action="store_true",
                         help="reconstruct with the rig's depth files (default: ignore them, use the depth head: a "
                              "depth file made from the same LiDAR would make the check circular)")

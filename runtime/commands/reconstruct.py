@@ -68,10 +68,8 @@ def run(args: argparse.Namespace) -> int:
 
         numba.set_num_threads(min(args.threads, numba.config.NUMBA_NUM_THREADS))
     try:
-        t0 = time.perf_counter()
-        say(f"load model {model_dir}")
-        rec = Reconstructor.load(model_dir, threads=args.threads)
-        t_load = time.perf_counter() - t0
+        # the inputs first (the rig, its files' presence and sizes, the LiDAR sweep): a bad rig is refused at
+        # once, not after the model's load (~1 s)
         say(f"read rig {args.rig}")
         rig = load_rig(args.rig)
         depths = [None] * len(rig.cameras) if args.no_depth else None
@@ -81,6 +79,10 @@ def run(args: argparse.Namespace) -> int:
             say(f"{len(pts.points)} LiDAR points from {pts.source}"
                 + (f" ({pts.nonfinite} with a non-finite coordinate left out)" if pts.nonfinite else ""))
             lidar = pts.points
+        t0 = time.perf_counter()
+        say(f"load model {model_dir}")
+        rec = Reconstructor.load(model_dir, threads=args.threads)
+        t_load = time.perf_counter() - t0
         scene = rec.reconstruct(rig, depths=depths, progress=say, lidar=lidar, detail=detail)
         say(f"write {out}")
         t1 = time.perf_counter()

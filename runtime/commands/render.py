@@ -1,18 +1,21 @@
 """`xyzcyl render PLY|SCENE_DIR ...`: render a 3DGS PLY (INRIA layout) or a scene folder (`xyzcyl reconstruct`:
 Gaussians composited over the scene's background panorama) from one camera pose to PNG (RGB) or EXR (float32
 channels R G B A Z; Z = expected depth in metres, 0 where A == 0). The pose: --K/--cam-to-world, or --camera NAME
-(an input camera of the scene's rig), optionally moved --forward M metres along ego x. See docs/renderer.md and
+(an input camera of the scene's rig), optionally moved (--forward/--left/--up metres along ego x/y/z, --yaw degrees
+to the left; runtime/commands/pose_flags.py, shared with `xyzcyl client render`). See docs/renderer.md and
 docs/inference.md."""
 
 from __future__ import annotations
 
 import argparse
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
 from ..rig import RigError
+from .pose_flags import PoseArgError, add_matrix_argument, add_move_arguments, move_from_args, parse_matrix
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -25,13 +28,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--K", type=float, nargs=4, metavar=("FX", "FY", "CX", "CY"),
                         help="pinhole intrinsics in pixels, OpenCV (pixel u is centred at x = u); required "
                              "unless --equirect or --camera")
-    parser.add_argument("--cam-to-world", type=float, nargs=16, default=None, metavar="M",
-                        help="4x4 camera-to-world matrix, row-major (OpenCV camera: x right, y down, z forward); "
-                             "required unless --camera")
+    add_matrix_argument(parser, "--cam-to-world",
+                        help="4x4 camera-to-world matrix (OpenCV camera: x right, y down, z forward); required "
+                             "unless --camera")
     parser.add_argument("--camera", default=None, metavar="NAME",
                         help="SCENE_DIR only: render from this input camera of the scene's rig (its K, size, pose)")
-    parser.add_argument("--forward", type=float, default=0.0, metavar="M",
-                        help="move the camera M metres along ego x (forward) before rendering")
     parser.add_argument("--out", required=True, metavar="PATH", help="output .png (RGB, 8 bit) or .exr "
                         "(float32 R G B A Z)")
     parser.add_argument("--background", type=float, nargs=3, default=None, metavar=("R", "G", "B"),
@@ -42,6 +43,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--antialiased", action="store_true", help="gsplat's antialiased opacity compensation")
     parser.add_argument("--max-points", type=int, default=None, help="refuse PLYs with more Gaussians")
     parser.add_argument("--threads", type=int, default=None, help="renderer threads (default: all cores)")
+    add_move_arguments(parser)
 
 
 def _fail(msg: str) -> int:
@@ -63,8 +65,14 @@ def run(args: argparse.Namespace) -> int:
         return _fail(f"--out: folder {str(out.parent)!r} does not exist")
     if args.background is not None and not all(np.isfinite(args.background)):
         return _fail("--background: values must be finite")
-    if not np.isfinite(args.forward):
-        return _fail("--forward: must be finite")
+    try:
+        move = move_from_args(args)
+        c2w = None if args.cam_to_world is None else parse_matrix(args.cam_to_world, "--cam-to-world")
+    except PoseArgError as exc:
+        return _fail(str(exc))
+    for flag, v in (("--width", args.width), ("--height", args.height)):
+        if v is not None and v < 1:          # 0 too: with --camera it would mean "the camera's own size"
+            return _fail(f"{flag}: must be >= 1, got {v}")
     if args.threads is not None:
         if args.threads < 1:
             return _fail(f"--threads: must be >= 1, got {args.threads}")
@@ -74,6 +82,8 @@ def run(args: argparse.Namespace) -> int:
     src = Path(args.ply)
     is_scene = src.is_dir()
     what = "SCENE_DIR" if is_scene else "PLY"
+    if not src.exists():
+        return _fail(f"PLY|SCENE_DIR: {args.ply!r} does not exist")
     if args.camera is not None:
         if not is_scene:
             return _fail("--camera: needs a SCENE_DIR (a PLY has no rig); pass --K and --cam-to-world instead")
@@ -107,10 +117,11 @@ def run(args: argparse.Namespace) -> int:
             except KeyError:
                 return _fail(f"--camera: no camera {args.camera!r} in the scene's rig (cameras: "
                              f"{', '.join(scene.rig.names)})")
-            cam = rig_camera(rc, forward=args.forward, width=args.width, height=args.height)
+            if move:
+                rc = replace(rc, cam_to_ego=move.apply(rc.cam_to_ego))
+            cam = rig_camera(rc, width=args.width, height=args.height)
         else:
-            c2w = np.array(args.cam_to_world, dtype=np.float64).reshape(4, 4)
-            c2w[0, 3] += args.forward
+            c2w = move.apply(c2w)
             if args.equirect:
                 cam = EquirectCamera(c2w, args.width, args.height)
             else:

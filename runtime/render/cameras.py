@@ -7,6 +7,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..rotations import ORTHO_TOL
+
 
 class CameraError(ValueError):
     """Invalid camera; the message names the field."""
@@ -21,8 +23,8 @@ def _check_pose(m) -> np.ndarray:
     if not np.allclose(m[3], [0, 0, 0, 1], atol=1e-9):
         raise CameraError("cam_to_world: last row must be [0, 0, 0, 1]")
     r = m[:3, :3]
-    # 1e-4: poses typed by hand or stored in float32 are orthonormal to ~1e-7; 1e-4 rejects only real errors.
-    if not np.allclose(r.T @ r, np.eye(3), atol=1e-4) or np.linalg.det(r) < 0:
+    # ORTHO_TOL: the rig's tolerance too (runtime/rotations.py), so no camera of a valid rig is refused here
+    if not np.allclose(r.T @ r, np.eye(3), atol=ORTHO_TOL, rtol=0.0) or np.linalg.det(r) < 0:
         raise CameraError("cam_to_world: rotation block must be orthonormal with determinant +1")
     return m
 

@@ -41,6 +41,7 @@ def run(args: argparse.Namespace) -> int:
     if args.print_settings:
         shown = settings.model_dump(mode="json")
         shown["api_keys"] = [f"{k[:2]}...({len(k)} chars)" for k in settings.api_keys]
+        shown["model"] = str(settings.model_dir().resolve())   # the folder it would load ($XYZCYL_MODEL, shipped)
         print(json.dumps(shown, indent=1))
         return 0
     import uvicorn

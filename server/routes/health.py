@@ -3,6 +3,8 @@ an API key, and none wait for a queue: they answer while the service is busy."""
 
 from __future__ import annotations
 
+import asyncio
+
 from fastapi import APIRouter, Request
 from fastapi.responses import JSONResponse, Response
 from pydantic import BaseModel
@@ -36,14 +38,23 @@ async def live() -> dict:
     return {"live": True}
 
 
+async def not_ready(s) -> str | None:
+    """Why the service cannot take work now (None: it can): draining, loading (or its start-up error), or a store
+    that cannot be reached (an s3:// store probes its bucket, at most every 2 s)."""
+    if s.draining:
+        return "draining"
+    if not s.ready:
+        return s.startup_error or "loading the model"
+    return await asyncio.to_thread(s.store.health)
+
+
 @router.get("/v2/health/ready", summary="the model is loaded and scenes can be posted", response_model=Readiness,
-            responses={503: {"model": Readiness,
-                             "description": "still loading, draining, or the workers failed to start"}})
+            responses={503: {"model": Readiness, "description": "still loading, draining, the workers failed to "
+                                                                 "start, or the scene store cannot be reached"}})
 async def ready(request: Request):
-    s = service_of(request)
-    if s.ready and not s.draining:
+    reason = await not_ready(service_of(request))
+    if reason is None:
         return {"ready": True}
-    reason = "draining" if s.draining else (s.startup_error or "loading the model")
     return JSONResponse({"ready": False, "reason": reason}, status_code=503, headers={"Retry-After": "1"})
 
 
@@ -85,8 +96,7 @@ async def model_metadata(request: Request, name: str) -> dict:
             response_model=ModelReadiness, responses={**_NOT_FOUND, 503: {"model": ModelReadiness}})
 async def model_ready(request: Request, name: str):
     _model_metadata(request, name)
-    s = service_of(request)
-    ok = s.ready and not s.draining
+    ok = await not_ready(service_of(request)) is None
     return JSONResponse({"name": name, "ready": ok}, status_code=200 if ok else 503)
 
 

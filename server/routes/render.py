@@ -25,10 +25,12 @@ from xyzcyl.runtime.views import (
 
 from ..app import Service, service_of
 from ..errors import Invalid, UnsupportedMedia
+from ..params import known_query
 from ..security import require_key
 from .scenes import ERRORS, load_scene, ready_record
 
-router = APIRouter(prefix="/v1", tags=["render"], dependencies=[Depends(require_key)])
+# require_key first (401 before anything else), then known_query (422 for a query parameter the route lacks)
+router = APIRouter(prefix="/v1", tags=["render"], dependencies=[Depends(require_key), Depends(known_query)])
 
 _CARLA = ("x", "y", "z", "pitch", "yaw", "roll")
 _MEDIA = {"png": "image/png", "jpeg": "image/jpeg", "exr": "image/x-exr"}

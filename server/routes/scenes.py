@@ -15,15 +15,17 @@ from pydantic import BaseModel, Field
 from starlette.datastructures import UploadFile
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from xyzcyl.runtime.inference import DEFAULT_DETAIL
-from xyzcyl.runtime.rig import Rig, RigError, image_size, save_rig
+from xyzcyl.runtime.rig import Rig, RigError, image_size, save_rig, verify_image
 
 from ..app import Service, service_of
 from ..errors import ApiError, Busy, Conflict, Invalid, NotFound, StorageFull, UnsupportedMedia
 from ..jobs import Job
+from ..params import known_query
 from ..security import require_key
 from ..store import StoreFull, new_scene_id
 
-router = APIRouter(prefix="/v1", tags=["scenes"], dependencies=[Depends(require_key)])
+# require_key first (401 before anything else), then known_query (422 for a query parameter the route lacks)
+router = APIRouter(prefix="/v1", tags=["scenes"], dependencies=[Depends(require_key), Depends(known_query)])
 
 RIG_PART_BYTES = 1 << 20          # a rig.json of 16 cameras is ~10 kB; 1 MiB is plenty
 _MAGIC = ((b"\x89PNG\r\n\x1a\n", ".png"), (b"\xff\xd8\xff", ".jpg"), (b"\x76\x2f\x31\x01", ".exr"),
@@ -151,23 +153,28 @@ def _save_part(part: UploadFile, field: str, dest_stem: Path) -> Path:
 
 
 def _check_image(path: Path, field: str, cam, max_pixels: int, what: str) -> None:
+    """The saved part's header (size, pixel limit: nothing decoded yet, so a decompression bomb is refused here),
+    then one full decode that refuses a file cut short or corrupt (a cut JPEG otherwise "decodes" with the rest
+    grey). Messages name the part once and say ``what`` for the file (never the store's path)."""
     try:
-        w, h = image_size(path, f"part {field!r}")          # the header only: nothing is decoded here
+        w, h = image_size(path, f"part {field!r}", label=what)
     except RigError as e:
-        raise Invalid(f"part {field!r}: not a readable image ({e})", field) from None
+        raise Invalid(str(e), field) from None
     if w * h > max_pixels:
         raise Invalid(f"part {field!r}: {what} is {w}x{h} = {w * h} pixels, over the limit of {max_pixels}", field)
     if (w, h) != (cam.width, cam.height):
         raise Invalid(f"part {field!r}: {what} is {w}x{h}, but the rig declares camera {cam.name!r} as "
                       f"{cam.width}x{cam.height}", field)
+    try:
+        verify_image(path, f"part {field!r}", label=what)
+    except RigError as e:
+        raise Invalid(str(e), field) from None
 
 
 def _ingest_ego_mask(part, cam, dest_stem: Path, max_pixels: int) -> str:
     """An 'ego_mask:<camera>' part (PNG 8/16-bit, any channels, or JPEG; non-zero = the ego's own body) saved as
-    ``dest_stem`` + its type's suffix and decoded once in full (runtime.detail.read_ego_mask, as the worker reads
-    it). Returns the saved file's name for the rig's camera ``ego_mask``."""
-    from xyzcyl.runtime.detail import read_ego_mask
-
+    ``dest_stem`` + its type's suffix and decoded once in full (_check_image: the decoder the worker's
+    runtime.detail.read_ego_mask reads it with). Returns the saved file's name for the rig's camera ``ego_mask``."""
     field = f"ego_mask:{cam.name}"
     if not isinstance(part, UploadFile):
         raise Invalid(f"part {field!r} must be a file part (a PNG or JPEG mask)", field)
@@ -175,17 +182,7 @@ def _ingest_ego_mask(part, cam, dest_stem: Path, max_pixels: int) -> str:
     if path.suffix not in (".png", ".jpg"):
         raise UnsupportedMedia(f"part {field!r}: an ego mask must be a PNG or JPEG, not {path.suffix[1:].upper()}",
                                field)
-    _check_image(path, field, cam, max_pixels, "the ego mask")
-    if path.suffix == ".jpg":                   # a cut JPEG decodes without an error (the rest grey): its end marker
-        with open(path, "rb") as f:
-            f.seek(max(0, f.seek(0, 2) - 2))
-            if f.read(2) != b"\xff\xd9":
-                raise Invalid(f"part {field!r}: the JPEG is cut short (no end-of-image marker)", field)
-    try:
-        read_ego_mask(path, cam)
-    except RigError as e:
-        why = str(e).replace(repr(str(path)), "the part").replace(" ()", "")   # not the server's folder
-        raise Invalid(f"part {field!r}: the ego mask does not decode ({why})", field) from None
+    _check_image(path, field, cam, max_pixels, "the ego mask")      # size, then a full decode (cut or corrupt)
     return path.name
 
 
@@ -248,7 +245,7 @@ def _ingest(form, service: Service, work: Path) -> Rig:
     try:
         rig = Rig.from_dict(doc)
     except RigError as e:
-        raise Invalid(f"rig: {e}", "rig") from None
+        raise Invalid(str(e), "rig") from None          # its message names the rig or the camera, and the field
     except (TypeError, ValueError, AttributeError, KeyError) as e:
         raise Invalid(f"rig: {type(e).__name__}: {e}", "rig") from None
     limit = min(st.max_cameras, int((service.info.meta.get("input") or {}).get("max_cameras", st.max_cameras)))

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import math
 
-from .base import SCENE_ID, BaseStore, StoreFull, new_scene_id
+from .base import SCENE_ID, BaseStore, StoreFull, StoreUnavailable, new_scene_id
 from .folder import FolderStore
 
 
@@ -25,4 +25,4 @@ def open_store(settings) -> BaseStore:
     return FolderStore(settings.store, **quota)
 
 
-__all__ = ["SCENE_ID", "BaseStore", "FolderStore", "StoreFull", "new_scene_id", "open_store"]
+__all__ = ["SCENE_ID", "BaseStore", "FolderStore", "StoreFull", "StoreUnavailable", "new_scene_id", "open_store"]

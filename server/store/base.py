@@ -31,6 +31,12 @@ class StoreFull(OSError):
     """The store's quota (or the disk) cannot take the scene."""
 
 
+class StoreUnavailable(OSError):
+    """The store cannot be reached (its object storage does not answer, refuses the credentials, or fails with a
+    server error): the service answers 503 + Retry-After and /v2/health/ready turns 503 until it answers again.
+    The message names no endpoint or bucket (the details are logged)."""
+
+
 def new_scene_id() -> str:
     """22 URL-safe characters, 128 random bits (unguessable, not enumerable)."""
     return secrets.token_urlsafe(16)
@@ -96,6 +102,10 @@ class BaseStore:
         for cb in self.on_delete:
             cb(sid)
 
+    def health(self) -> str | None:
+        """None when the store can be used, else why not (for /v2/health/ready). A local folder always can."""
+        return None
+
     # -- quota decisions (pure: records in, ids out) -------------------------------------------------------------
     def failed_beyond_quota(self, records: Iterable[dict[str, Any]]) -> list[str]:
         """Failed records beyond ``max_scenes`` of them, oldest first (to be deleted)."""
@@ -158,6 +168,6 @@ class BaseStore:
                 "max_bytes": self.max_bytes, "evicted": self.evicted}
 
 
-__all__ = ["SCENE_ID", "STATES", "TOUCH_PERSIST_S", "BaseStore", "StoreFull", "check_id", "copy_record",
-           "failed_fields", "interrupted_message", "is_record", "new_record", "new_scene_id", "newest_first",
-           "ready_fields", "valid_id"]
+__all__ = ["SCENE_ID", "STATES", "TOUCH_PERSIST_S", "BaseStore", "StoreFull", "StoreUnavailable", "check_id",
+           "copy_record", "failed_fields", "interrupted_message", "is_record", "new_record", "new_scene_id",
+           "newest_first", "ready_fields", "valid_id"]

@@ -36,12 +36,20 @@ replicas: two replicas that create at the same moment can both pass the count ch
 per concurrent replica), a use is seen by others only once its marker is written (up to a minute late), and the
 TTL compares the object store's clock (LastModified) with this replica's. ``evicted`` counts this replica's
 evictions.
+
+Outages. When the bucket stops answering after start-up (connection refused or timed out, credentials refused,
+5xx), every public method raises base.StoreUnavailable (the service: 503 + Retry-After) instead of botocore's
+error, and for OUTAGE_HOLD_S after each such failure calls fail at once without trying S3 (a request does not sit
+through boto3's retries again for every client); then the next call tries S3 again. ``health()``
+(/v2/health/ready) reports the outage, probing the bucket with one short HEAD at most every PROBE_TTL_S; it is
+ready again as soon as a probe succeeds. Connection attempts give up after CONNECT_TIMEOUT_S.
 """
 
 from __future__ import annotations
 
 import atexit
 import concurrent.futures as cf
+import functools
 import json
 import logging
 import os
@@ -59,6 +67,7 @@ from .base import (
     TOUCH_PERSIST_S,
     BaseStore,
     StoreFull,
+    StoreUnavailable,
     check_id,
     copy_record,
     failed_fields,
@@ -75,6 +84,14 @@ log = logging.getLogger("xyzcyl.server")
 STALE_MARGIN_S = 120.0        # beyond the reconstruction timeout: the upload of the scene's files
 _CACHE_GRACE_S = 10.0         # a local copy used this recently is never evicted (a render may be opening it)
 USAGE_TTL_S = 5.0             # /metrics lists the bucket at most this often
+OUTAGE_HOLD_S = 2.0           # after a failure that says the bucket is unreachable, calls fail at once this long
+PROBE_TTL_S = 2.0             # health() HEADs the bucket at most this often
+CONNECT_TIMEOUT_S = 5.0       # boto3's default is 60 s per attempt: an unreachable endpoint held requests minutes
+PROBE_TIMEOUT_S = 2.0         # health()'s HEAD: one attempt, connect and read
+# ClientError codes that mean the bucket cannot be used now (besides any 5xx status)
+_OUTAGE_CODES = {"SlowDown", "RequestTimeout", "Throttling", "ThrottlingException", "RequestLimitExceeded",
+                 "ServiceUnavailable", "InternalError", "AccessDenied", "InvalidAccessKeyId", "ExpiredToken",
+                 "InvalidToken", "SignatureDoesNotMatch", "RequestTimeTooSkewed", "NoSuchBucket"}
 
 
 def _now() -> float:
@@ -106,6 +123,38 @@ def _missing(e: Exception) -> bool:
     return str(err.get("Code")) in ("NoSuchKey", "404", "NotFound")
 
 
+def _outage(e: BaseException) -> bool:
+    """Whether an exception from boto3 says that the bucket cannot be reached or used now (network, timeouts,
+    credentials, a 5xx or throttling answer, the bucket gone), as opposed to a missing object or a bug."""
+    from boto3.exceptions import RetriesExceededError, S3TransferFailedError, S3UploadFailedError
+    from botocore import exceptions as bx
+
+    if isinstance(e, bx.ClientError):
+        status = int(e.response.get("ResponseMetadata", {}).get("HTTPStatusCode") or 0)
+        return status >= 500 or str(e.response.get("Error", {}).get("Code")) in _OUTAGE_CODES
+    return isinstance(e, (bx.ConnectionError, bx.HTTPClientError, bx.NoCredentialsError, bx.PartialCredentialsError,
+                          bx.CredentialRetrievalError, bx.IncompleteReadError, RetriesExceededError,
+                          S3UploadFailedError, S3TransferFailedError))
+
+
+def _reachable(method):
+    """A public S3Store method whose outage errors become StoreUnavailable (see the module doc, "Outages")."""
+    @functools.wraps(method)
+    def call(self: S3Store, *args, **kwargs):
+        self._fail_fast()
+        try:
+            out = method(self, *args, **kwargs)
+        except StoreUnavailable:
+            raise
+        except Exception as e:
+            if _outage(e):
+                raise self._down(e) from e
+            raise
+        return out
+
+    return call
+
+
 class S3Store(BaseStore):
     def __init__(self, url: str, max_scenes: int = 100, max_bytes: int = 10 << 30, when_full: str = "evict",
                  ttl_s: float | None = None, cache_dir: str | os.PathLike | None = None,
@@ -123,7 +172,14 @@ class S3Store(BaseStore):
         except ValueError as e:
             raise OSError(str(e)) from None
         self.client = client or boto3.client("s3", config=Config(
-            max_pool_connections=32, retries={"mode": "standard", "max_attempts": 5}))
+            max_pool_connections=32, retries={"mode": "standard", "max_attempts": 5},
+            connect_timeout=CONNECT_TIMEOUT_S))
+        # health()'s client: one attempt with short timeouts (a readiness probe must answer within seconds)
+        self.probe_client = client or boto3.client("s3", config=Config(
+            retries={"mode": "standard", "max_attempts": 1}, connect_timeout=PROBE_TIMEOUT_S,
+            read_timeout=PROBE_TIMEOUT_S))
+        self._outage_at: float | None = None                     # time.monotonic() of the last outage error
+        self._probed: tuple[float, str | None] | None = None      # (when, health()) of the last probe
         if cache_dir is None:
             cache_dir = tempfile.mkdtemp(prefix="xyzcyl-s3-cache-")
             atexit.register(shutil.rmtree, cache_dir, True)
@@ -202,6 +258,44 @@ class S3Store(BaseStore):
 
     def _tombstoned(self, sid: str) -> bool:
         return self._exists(self._key("deleted", sid))
+
+    # -- outages (module doc) -----------------------------------------------------------------------------------
+    _UNREACHABLE = "the scene store cannot be reached; retry later"
+
+    def _fail_fast(self) -> None:
+        t = self._outage_at
+        if t is not None and time.monotonic() - t < OUTAGE_HOLD_S:
+            raise StoreUnavailable(self._UNREACHABLE)
+
+    def _down(self, e: BaseException) -> StoreUnavailable:
+        """Record an outage error (logged when it starts an outage, or a minute after the last one)."""
+        now = time.monotonic()
+        if self._outage_at is None or now - self._outage_at > 60.0:
+            log.warning("the scene store %s cannot be reached (%s: %s); answering 503 until it can", self.url,
+                        type(e).__name__, e)
+        self._outage_at = now
+        return StoreUnavailable(self._UNREACHABLE)
+
+    def health(self) -> str | None:
+        """None when the bucket answers, else why not (/v2/health/ready's reason): an outage seen by any call in the
+        last OUTAGE_HOLD_S, else a HEAD of the bucket (one attempt, PROBE_TIMEOUT_S), at most every PROBE_TTL_S."""
+        now = time.monotonic()
+        if self._outage_at is not None and now - self._outage_at < OUTAGE_HOLD_S:
+            return self._UNREACHABLE
+        probed = self._probed
+        if probed is not None and now - probed[0] < PROBE_TTL_S:
+            return probed[1]
+        try:
+            self.probe_client.head_bucket(Bucket=self.bucket)
+            reason = None
+            if self._outage_at is not None:
+                self._outage_at = None
+                log.info("the scene store %s answers again", self.url)
+        except Exception as e:      # noqa: BLE001 - any failure of the probe means "not ready"
+            self._down(e)
+            reason = self._UNREACHABLE
+        self._probed = (time.monotonic(), reason)
+        return reason
 
     # -- opening and recovery -----------------------------------------------------------------------------------
     def open(self) -> dict[str, int]:
@@ -283,6 +377,7 @@ class S3Store(BaseStore):
         return True
 
     # -- paths ----------------------------------------------------------------------------------------------------
+    @_reachable
     def scene_dir(self, sid: str) -> Path:
         """The local folder of a ready scene, downloaded on first use (KeyError when unknown, not ready, or
         deleted while it was downloaded)."""
@@ -384,6 +479,7 @@ class S3Store(BaseStore):
             self._notify_deleted(sid)
 
     # -- records --------------------------------------------------------------------------------------------------
+    @_reachable
     def get(self, sid: str) -> dict[str, Any] | None:
         if not valid_id(sid):
             return None
@@ -444,11 +540,13 @@ class S3Store(BaseStore):
         base = self._key("used") + "/"
         return {o["Key"][len(base):]: o["LastModified"].timestamp() for o in self._objects(base)}
 
+    @_reachable
     def list(self, offset: int = 0, limit: int = 100) -> tuple[list[dict[str, Any]], int]:
         """Records, newest first, and the total count."""
         recs = newest_first(self._snapshot())
         return [copy_record(r) for r in recs[offset:offset + limit]], len(recs)
 
+    @_reachable
     def create(self, sid: str, record: dict[str, Any]) -> dict[str, Any]:
         """A new ``queued`` record owned by this replica; makes room under the scene-count quota first."""
         check_id(sid)
@@ -472,6 +570,7 @@ class S3Store(BaseStore):
         got = self._read(sid)
         return None if got is None else got[0]
 
+    @_reachable
     def update(self, sid: str, **fields: Any) -> dict[str, Any] | None:
         """Change fields of a record (None when it was deleted meanwhile)."""
         rec = self._fresh(sid)
@@ -480,12 +579,14 @@ class S3Store(BaseStore):
         rec.update(fields, updated_ts=_now())
         return copy_record(rec) if self._write_checked(rec) else None
 
+    @_reachable
     def fail(self, sid: str, code: str, message: str) -> dict[str, Any] | None:
         rec = self._fresh(sid)
         if rec is None:
             return None
         return copy_record(rec) if self._fail_record(rec, code, message) else None
 
+    @_reachable
     def commit(self, sid: str, folder: Path, **fields: Any) -> dict[str, Any] | None:
         """Upload a finished scene folder, then mark the record ready (with ``fields``); keep the byte quota by
         evicting least recently used scenes first. The folder becomes this replica's local copy. None when the
@@ -551,6 +652,7 @@ class S3Store(BaseStore):
         except Exception as e:       # noqa: BLE001 - a lost use mark must never fail a render
             log.warning("scene %s: use mark not written (%s)", sid, e)
 
+    @_reachable
     def delete(self, sid: str) -> bool:
         """Remove a scene: tombstone, record, then its files. False when unknown."""
         if not valid_id(sid):
@@ -578,6 +680,7 @@ class S3Store(BaseStore):
                 self.evicted += 1
 
     # -- quota ----------------------------------------------------------------------------------------------------
+    @_reachable
     def sweep(self, now: float | None = None) -> list[str]:
         """Delete scenes unused for longer than ttl_s; drop use markers and tombstones left by deletes. Returns the
         removed ids."""
@@ -611,7 +714,7 @@ class S3Store(BaseStore):
         if hit is None or time.monotonic() - hit[1] > USAGE_TTL_S:
             try:
                 hit = self._usage = (self.usage_of(self._snapshot()), time.monotonic())
-            except (BotoCoreError, ClientError) as e:
+            except (BotoCoreError, ClientError, StoreUnavailable) as e:
                 log.warning("store usage: the bucket cannot be listed (%s)", e)
                 if hit is None:
                     return self.usage_of([])

@@ -246,6 +246,30 @@ def test_reconstruct_sends_the_rigs_lidar_file(client, tmp_path):
         client.delete(s.id)
 
 
+def test_reconstruct_of_a_cut_image_is_refused_naming_the_camera(client, tmp_path):
+    """Regression (issue 27, defect 1): a rig whose JPEG was cut short was reconstructed (the decoder filled the rest
+    with grey). The server refuses the upload: InvalidRequestError (422) naming the camera, no scene made."""
+    import shutil
+
+    import cv2
+
+    d = tmp_path / "rig"
+    shutil.copytree(EXAMPLE, d)
+    doc = rig_doc()
+    back = next(c for c in doc["cameras"] if c["name"] == "CAM_BACK")
+    jpeg = cv2.imencode(".jpg", cv2.imread(str(d / back["image"])))[1].tobytes()
+    back["image"] = "images/CAM_BACK.jpg"
+    (d / back["image"]).write_bytes(jpeg[: len(jpeg) * 2 // 3])
+    (d / "rig.json").write_text(json.dumps(doc))
+    before = sum(1 for _ in client.scenes())
+    with pytest.raises(InvalidRequestError) as e:
+        client.reconstruct(d / "rig.json")
+    assert (e.value.status, e.value.code, e.value.field) == (422, "invalid", "CAM_BACK"), e.value
+    assert "cut short" in e.value.message and str(d) not in e.value.message, e.value.message
+    assert str(e.value).startswith("part 'CAM_BACK': the image is cut short") and str(e.value).count("CAM_BACK") == 1
+    assert sum(1 for _ in client.scenes()) == before
+
+
 def test_client_side_refusals_name_the_field(client, tmp_path):
     doc = rig_doc()
     (tmp_path / "rig.json").write_text(json.dumps(doc))      # its images are not beside this copy

@@ -5,6 +5,7 @@ from __future__ import annotations
 import copy
 import json
 import math
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -301,3 +302,112 @@ def test_resized_camera_matches_cv2_area_resampling():
     o, d = cam.pixel_rays(np.array([[4.5, 2.5]]))
     uv, _, _ = half.project(o + 5.0 * d)
     np.testing.assert_allclose(uv[0], [u, v], atol=1e-9)   # the block lands exactly on one output pixel
+
+
+# -- issue 27: cut or corrupt images, plain numbers in messages --------------------------------------------------
+
+def _image_rig(tmp_path, suffix: str, n: int = 2) -> Path:
+    """A rig of ``n`` 64x48 cameras whose images are real-looking (noise) files of type ``suffix``."""
+    d = _rig_dict(n)
+    rng = np.random.default_rng(0)
+    for k, c in enumerate(d["cameras"]):
+        c["image"] = f"cam{k}{suffix}"
+        assert cv2.imwrite(str(tmp_path / c["image"]), rng.integers(0, 255, (48, 64, 3)).astype(np.uint8))
+    (tmp_path / "rig.json").write_text(json.dumps(d))
+    return tmp_path / "rig.json"
+
+
+_CUTS = {
+    # case: (image type, damage to the file's bytes, substring of the reason)
+    "jpeg cut": (".jpg", lambda b: b[: len(b) * 2 // 3], "ends before its end-of-image marker"),
+    "jpeg with FF bytes inside": (".jpg", lambda b: b[:2000] + b"\xff" * 100 + b[2100:], "Corrupt JPEG data"),
+    "jpeg without its end marker": (".jpg", lambda b: b[:-2], "ends before its end-of-image marker"),
+    "png cut": (".png", lambda b: b[: len(b) // 2], "ends inside its IDAT chunk"),
+    "png without IEND": (".png", lambda b: b[:-12], "ends before its IEND chunk"),
+    "png bit flip": (".png", lambda b: b[:200] + bytes([b[200] ^ 0xFF]) + b[201:], "IDAT chunk fails its CRC"),
+}
+
+
+@pytest.mark.parametrize("case", list(_CUTS))
+def test_cut_or_corrupt_image_is_refused_naming_the_camera(tmp_path, capfd, case):
+    """Regression (issue 27, defects 1 and 5): a cut JPEG decoded without an error (libjpeg fills the rest with grey
+    and only warns), a cut PNG's message ended in '()' (the global OpenImageIO error, not the reader's) and libpng
+    printed a stray 'libpng error: ...' line. Now: RigError naming the camera and why, one line, nothing printed."""
+    suffix, damage, reason = _CUTS[case]
+    rig_json = _image_rig(tmp_path, suffix)
+    f = tmp_path / f"cam1{suffix}"
+    f.write_bytes(damage(f.read_bytes()))
+    with pytest.raises(RigError) as info:
+        load_rig(rig_json).load_images()
+    msg = str(info.value)
+    assert msg.startswith("camera 'CAM_1': image: ") and "cut short or corrupt" in msg and reason in msg, msg
+    assert "\n" not in msg and "()" not in msg and '("' not in msg, msg
+    out, err = capfd.readouterr()
+    assert "libpng" not in out + err, err
+
+
+def test_image_with_bytes_after_its_end_is_accepted(tmp_path):
+    """The decoder decides (not a look at the last bytes): data after a JPEG's end marker (some cameras append
+    a trailer) and after a PNG's IEND are not damage."""
+    for suffix in (".jpg", ".png"):
+        rig_json = _image_rig(tmp_path, suffix, n=1)
+        f = tmp_path / f"cam0{suffix}"
+        f.write_bytes(f.read_bytes() + b"\x00trailer" * 100)
+        (img,) = load_rig(rig_json).load_images()
+        assert img.shape == (48, 64, 3)
+
+
+def test_jpeg_metadata_warning_is_accepted(tmp_path):
+    """libjpeg's warnings about metadata (here an unknown JFIF revision, which some cameras write) reach us as
+    decoder errors too, but the pixels are whole: accepted, unlike the warnings about damaged data."""
+    rig_json = _image_rig(tmp_path, ".jpg", n=1)
+    (want,) = load_rig(rig_json).load_images()
+    f = tmp_path / "cam0.jpg"
+    b = bytearray(f.read_bytes())
+    i = b.find(b"JFIF\x00")
+    assert i > 0
+    b[i + 5] = 3                      # JFIF major version 3: "Warning: unknown JFIF revision number 3.01"
+    f.write_bytes(bytes(b))
+    (img,) = load_rig(rig_json).load_images()
+    np.testing.assert_array_equal(img, want)
+
+
+def test_unreadable_image_label_keeps_paths_out(tmp_path):
+    """``label`` names the file instead of its path (the server's store paths never reach a message), and the
+    decoder's own mention of the file ('("<path>")') is dropped."""
+    from xyzcyl.runtime.rig import image_size, verify_image
+
+    p = tmp_path / "upload.jpg"
+    ok, buf = cv2.imencode(".jpg", np.random.default_rng(0).integers(0, 255, (48, 64, 3)).astype(np.uint8))
+    assert ok
+    p.write_bytes(buf.tobytes()[:2000] + b"\xff" * 100 + buf.tobytes()[2100:])
+    assert image_size(p, "part 'CAM_0'", label="the image") == (64, 48)      # the header and the end are whole
+    with pytest.raises(RigError) as info:
+        verify_image(p, "part 'CAM_0'", label="the image")
+    assert str(info.value).startswith("part 'CAM_0': the image is cut short or corrupt (JPEG error: Corrupt JPEG "
+                                      "data"), str(info.value)
+    assert str(tmp_path) not in str(info.value) and "upload.jpg" not in str(info.value)
+    p.write_bytes(b"\x89PNG\r\n\x1a\n" + b"garbage" * 8)
+    with pytest.raises(RigError) as info:
+        image_size(p, "part 'CAM_0'", label="the image")
+    msg = str(info.value)
+    assert msg.startswith("part 'CAM_0': the image is cut short or corrupt") and str(tmp_path) not in msg, msg
+    assert msg.count("CAM_0") == 1
+
+
+def test_numbers_in_messages_are_plain():
+    """Regression (issue 27, defect 5): numpy 2 scalars showed as 'np.float64(-633.0)' in validation messages."""
+    d = _rig_dict(1)
+    d["cameras"][0]["K"][0][0] = -633.0
+    with pytest.raises(RigError, match=r"\(got -633\.0\)$"):
+        Rig.from_dict(d)
+    d = _rig_dict(1)
+    d["cameras"][0]["K"][1][0] = 0.5
+    with pytest.raises(RigError, match=r"K\[1\]\[0\] must be 0 \(got 0\.5\)$"):
+        Rig.from_dict(d)
+    cam = ring_rig(1).cameras[0]
+    with pytest.raises(RigError, match=r"width must be an integer \(got 64\.5\)$"):
+        cam.replace(width=np.float64(64.5))
+    with pytest.raises(RigError) as info:
+        cam.replace(K=np.diag([np.float32(-2.0), 1.0, 1.0]))
+    assert "np." not in str(info.value) and "(got -2.0)" in str(info.value), str(info.value)

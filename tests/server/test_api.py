@@ -369,6 +369,34 @@ def _many(rig):
     rig["cameras"] = [dict(rig["cameras"][0], name=f"CAM_{i:02d}") for i in range(17)]
 
 
+def _no_cameras(rig):
+    rig["cameras"] = []
+
+
+def jpeg_of(name: str) -> bytes:
+    """The example camera's image as a JPEG (the rig declares it 800x450, whatever the file type)."""
+    ok, buf = cv2.imencode(".jpg", decode(example_images()[name], cv2.IMREAD_COLOR))
+    assert ok
+    return buf.tobytes()
+
+
+def jpeg_with_ff_run(name: str) -> bytes:
+    """A JPEG whose header and end marker are whole, with a run of FF bytes in its scan data (corrupt data)."""
+    b = jpeg_of(name)
+    return b[:len(b) // 2] + b"\xff" * 100 + b[len(b) // 2 + 100:]
+
+
+# issue 27 (defects 1 and 5): cut or corrupt image parts were accepted (a cut JPEG decodes with the rest grey: the
+# scene had a grey wall) or named the part twice with the store's temporary path
+CUT_IMAGES = {
+    "image JPEG cut short": ("b.jpg", lambda: jpeg_of("CAM_BACK")[:-5000], "image/jpeg"),
+    "image JPEG without its end marker": ("b.jpg", lambda: jpeg_of("CAM_BACK")[:-2], "image/jpeg"),
+    "image JPEG with corrupt data": ("b.jpg", lambda: jpeg_with_ff_run("CAM_BACK"), "image/jpeg"),
+    "image PNG cut short": ("b.png", lambda: example_images()["CAM_BACK"][:100_000], "image/png"),
+    "image PNG with a garbage header": ("b.png", lambda: b"\x89PNG\r\n\x1a\n" + b"garbage " * 40, "image/png"),
+}
+
+
 UPLOAD_ERRORS = {
     # case: (files, status, field, code)
     "missing rig part": (lambda: rig_files(drop=("rig",)), 422, "rig", "invalid"),
@@ -377,6 +405,7 @@ UPLOAD_ERRORS = {
     "K with fx < 0": (lambda: rig_files(_rig_with(_bad_fx)), 422, "rig", "invalid"),
     "non-orthonormal cam_to_ego": (lambda: rig_files(_rig_with(_skewed_pose)), 422, "rig", "invalid"),
     "more cameras than max_cameras": (lambda: rig_files(_rig_with(_many))[:1], 422, "rig.cameras", "invalid"),
+    "rig with no cameras": (lambda: rig_files(_rig_with(_no_cameras)), 422, "rig", "invalid"),
     "missing image part": (lambda: rig_files(drop=("CAM_BACK",)), 422, "CAM_BACK", "invalid"),
     "unknown part": (lambda: rig_files(extra=[("CAM_TOP", ("t.png", png_bytes(8, 8), "image/png"))]), 422,
                      "CAM_TOP", "invalid"),
@@ -392,6 +421,10 @@ UPLOAD_ERRORS = {
                            "CAM_BACK", "unsupported_media_type"),
     "image with a text media type": (lambda: rig_files(images={"CAM_BACK": ("b.txt", b"hello", "text/plain")}),
                                      415, "CAM_BACK", "unsupported_media_type"),
+    **{case: ((lambda f=f, make=make, t=t: rig_files(images={"CAM_BACK": (f, make(), t)})), 422, "CAM_BACK",
+              "invalid") for case, (f, make, t) in CUT_IMAGES.items()},
+    "depth part cut short": (lambda: rig_files(extra=[("depth:CAM_FRONT", (
+        "d.png", png_bytes(800, 450, 1, np.uint16)[:-3000], "image/png"))]), 422, "depth:CAM_FRONT", "invalid"),
     "depth part of the wrong size": (lambda: rig_files(extra=[("depth:CAM_FRONT", (
         "d.png", png_bytes(80, 45, 1, np.uint16), "image/png"))]), 422, "depth:CAM_FRONT", "invalid"),
     "depth part as JPEG": (lambda: rig_files(extra=[("depth:CAM_FRONT", (
@@ -436,6 +469,29 @@ def test_post_bad_upload(client, env, case):
     assert tmp_left(env) == []                             # and the upload was removed
 
 
+@pytest.mark.parametrize("case", list(CUT_IMAGES))
+def test_post_cut_or_corrupt_image_names_the_part_once(client, env, case):
+    """Regression (issue 27, defects 1 and 5): one line that names the part once and says what is wrong with the
+    file, without the store's temporary path (nor the '()' of an empty decoder message)."""
+    name, make, ctype = CUT_IMAGES[case]
+    e = err(client.post("/v1/scenes?wait=5", files=rig_files(images={"CAM_BACK": (name, make(), ctype)})), 422,
+            "CAM_BACK", "invalid")
+    msg = e["message"]
+    assert msg.startswith("part 'CAM_BACK': ") and msg.count("CAM_BACK") == 1, msg
+    assert "cut short or corrupt" in msg or "cannot read the image" in msg, msg
+    assert str(env.store_root) not in msg and "image_0" not in msg and "/" not in msg, msg
+    assert "\n" not in msg and "()" not in msg, msg
+
+
+def test_post_rig_errors_name_the_rig_once_with_plain_numbers(client, env):
+    """Regression (issue 27, defect 5): 'rig: rig: cameras must have 1..16 entries' and 'K[0][0] (fx) must be > 0
+    (got np.float64(-633.0))'."""
+    e = err(client.post("/v1/scenes?wait=5", files=rig_files(_rig_with(_no_cameras))), 422, "rig", "invalid")
+    assert e["message"] == "rig: cameras must have 1..16 entries (got 0)", e
+    e = err(client.post("/v1/scenes?wait=5", files=rig_files(_rig_with(_bad_fx))), 422, "rig", "invalid")
+    assert e["message"] == "camera 'CAM_FRONT_RIGHT': K[0][0] (fx) must be > 0 (got -633.0)", e
+
+
 def test_post_with_a_lidar_part(client, env):
     """A 'lidar' part becomes the depth input of every camera (counts.lidar_cameras); without it a rig's lidar block
     (a file name of the client's) is not used."""
@@ -452,6 +508,23 @@ def test_post_with_a_lidar_part(client, env):
     assert "lidar_cameras" not in r.json()["counts"]
     for sid in (info["id"], r.json()["id"]):
         assert client.delete(f"/v1/scenes/{sid}").status_code == 204
+
+
+def test_post_a_rotation_the_rig_accepts_with_lidar(client, env):
+    """CAM_FRONT's rotation off by |R^T R - I| = 8e-4 (within the rig's tolerance) with a LiDAR part: the renderer's
+    camera once refused it (tolerance 1e-4), and the job failed with code `error` (a 500 with ?wait); now one
+    tolerance (runtime.rotations.ORTHO_TOL) and the scene is made. Issue 27 defect 8."""
+    def tilt(rig):
+        T = np.array(rig["cameras"][0]["cam_to_ego"], dtype=np.float64)
+        u, _, vt = np.linalg.svd(T[:3, :3])
+        T[:3, :3] = u @ vt * np.sqrt(1 + 8e-4)
+        rig["cameras"][0]["cam_to_ego"] = T.tolist()
+
+    r = client.post("/v1/scenes?wait=60&detail=false", files=rig_files(_rig_with(tilt), extra=[(
+        "lidar", ("sweep.npy", wall_npy(), "application/octet-stream"))]))
+    assert r.status_code == 201, r.text
+    assert r.json()["counts"]["lidar_cameras"] == 6
+    assert client.delete(f"/v1/scenes/{r.json()['id']}").status_code == 204
 
 
 def test_post_with_ego_mask_parts(client, env):
@@ -1078,7 +1151,7 @@ def test_metrics(client, env):
 
 
 def _v1_routes(client: TestClient) -> list[tuple[str, str]]:
-    paths = client.get("/openapi.json").json()["paths"]
+    paths = client.app.openapi()["paths"]          # from the app: with API keys /openapi.json is not served
     return [(m.upper(), p.replace("{scene_id}", "AAAAAAAAAAAAAAAAAAAAAA"))
             for p, ops in paths.items() if p.startswith("/v1") for m in ops]
 

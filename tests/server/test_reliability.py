@@ -127,12 +127,13 @@ HEAD_TIMEOUT = 2.0
 
 @pytest.fixture(scope="module")
 def guarded(ctx):
-    """One `xyzcyl serve` with API keys, an 8 MiB body limit and a 2 s header timeout, and a ready scene."""
+    """One `xyzcyl serve` with API keys (and --api-docs true: the test reads the live OpenAPI document), an 8 MiB
+    body limit and a 2 s header timeout, and a ready scene."""
     import types
 
     store = ctx.store("guarded")
-    flags = ["--api-keys", KEY, "--max-body-bytes", str(LIMIT), "--ort-threads", "1", "--render-threads", "1",
-             "--header-timeout-s", str(HEAD_TIMEOUT)]
+    flags = ["--api-keys", KEY, "--api-docs", "true", "--max-body-bytes", str(LIMIT), "--ort-threads", "1",
+             "--render-threads", "1", "--header-timeout-s", str(HEAD_TIMEOUT)]
     try:
         with ctx.serve(store, flags) as (proc, url, _):
             with R.client(url, 120, AUTH) as c:

@@ -347,3 +347,66 @@ def test_two_replicas_share_the_bucket(bucket, tmp_path):
         assert not (tmp_path / "a" / "scenes" / sid).exists()          # a dropped its copy
     assert keys(bucket, "pfx/records/") == [] and keys(bucket, "pfx/scenes/") == []
     assert os.environ["AWS_ENDPOINT_URL"].startswith("http://127.0.0.1:")
+
+
+# ----------------------------------------------------------------------------------------------- an outage
+
+
+def test_an_unreachable_bucket_is_503_and_not_ready(s3_endpoint, tmp_path, monkeypatch):
+    """The bucket stops answering after start-up (its server stops): the /v1 routes answer 503 store_unavailable +
+    Retry-After (not 500), /v2/health/ready turns 503, /metrics still answers; once the bucket is back, both
+    recover. Issue 27 defect 8. An app without its lifespan (no workers): the store is opened and the service
+    marked ready by hand."""
+    from fastapi.testclient import TestClient
+    from moto.server import ThreadedMotoServer
+    from xyzcyl.server import Settings, create_app
+
+    port = _free_port()
+    url = f"http://127.0.0.1:{port}"
+    monkeypatch.setenv("AWS_ENDPOINT_URL", url)         # this test's own S3 server, stopped below
+    server = ThreadedMotoServer(ip_address="127.0.0.1", port=port, verbose=False)
+    server.start()
+    try:
+        boto3.client("s3").create_bucket(Bucket="outage")
+        app = create_app(Settings(store="s3://outage/pfx", s3_cache=tmp_path / "cache", replica_id="r"))
+        service = app.state.service
+        store = service.store
+        store.open()
+        service.ready = True
+        sid = ready_scene(store)
+        client = TestClient(app)
+        assert client.get("/v2/health/ready").status_code == 200
+        assert client.get("/v1/scenes").json()["total"] == 1
+        assert client.get(f"/v1/scenes/{sid}").json()["state"] == "ready"
+    finally:
+        server.stop()
+
+    store._probed = None            # the probe's last answer (kept 2 s) is from before the stop
+    for method, path in (("GET", "/v1/scenes"), ("GET", f"/v1/scenes/{sid}"), ("DELETE", f"/v1/scenes/{sid}"),
+                         ("GET", f"/v1/scenes/{sid}/render?camera=CAM_FRONT"), ("GET", f"/v1/scenes/{sid}/gaussians")):
+        t0 = time.monotonic()
+        r = client.request(method, path)
+        assert r.status_code == 503, (method, path, r.status_code, r.text)
+        assert r.json()["error"]["code"] == "store_unavailable" and r.headers["retry-after"] == "1"
+        assert "127.0.0.1" not in r.text and "outage" not in r.text          # no endpoint or bucket in the body
+        assert time.monotonic() - t0 < 10
+    r = client.get("/v2/health/ready")
+    assert r.status_code == 503 and r.json() == {"ready": False, "reason": "the scene store cannot be reached; "
+                                                                           "retry later"}
+    assert client.get("/v2/models/xyzcyl-cpu-v1/ready").status_code == 503
+    assert client.get("/v2/health/live").status_code == 200
+    assert client.get("/metrics").status_code == 200
+
+    server = ThreadedMotoServer(ip_address="127.0.0.1", port=port, verbose=False)   # back, with the same objects
+    server.start()                                                                   # (moto's state is in-process)
+    try:
+        t0 = time.monotonic()
+        while client.get("/v2/health/ready").status_code != 200:
+            assert time.monotonic() - t0 < 10, "ready did not come back"
+            time.sleep(0.2)
+        r = client.get("/v1/scenes")
+        assert r.status_code == 200 and r.json()["total"] == 1
+        assert client.get(f"/v1/scenes/{sid}").json()["state"] == "ready"
+        assert client.delete(f"/v1/scenes/{sid}").status_code == 204
+    finally:
+        server.stop()

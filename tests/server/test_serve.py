@@ -133,3 +133,25 @@ def test_serve_subprocess_restart_same_bytes(tmp_path):
         if log.is_file():
             sys.stderr.write(f"--- xyzcyl serve output ({log}) ---\n{log.read_text(errors='replace')[-8000:]}\n")
         raise
+
+
+def test_print_settings_shows_the_resolved_model(tmp_path, monkeypatch, capsys):
+    """--print-settings names the model folder the server would load, not `null` (issue 27, defect 7): the shipped
+    one by default, $XYZCYL_MODEL or --model (absolute) when given."""
+    pytest.importorskip("pydantic_settings")
+    from xyzcyl.clients import cli
+    from xyzcyl.runtime.inference import default_model_dir
+
+    monkeypatch.delenv("XYZCYL_MODEL", raising=False)
+
+    def shown(*argv) -> dict:
+        capsys.readouterr()
+        assert cli.main(["serve", "--print-settings", *argv]) == 0
+        return json.loads(capsys.readouterr().out)
+
+    default = shown()["model"]
+    assert default == str(default_model_dir().resolve()) and (Path(default) / "model.json").is_file()
+    monkeypatch.chdir(tmp_path)
+    assert shown("--model", "m")["model"] == str(tmp_path / "m")
+    monkeypatch.setenv("XYZCYL_MODEL", str(tmp_path / "env"))
+    assert shown()["model"] == str(tmp_path / "env")

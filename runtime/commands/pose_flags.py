@@ -1,0 +1,209 @@
+"""Camera-pose flags shared by `xyzcyl render` and `xyzcyl client render`: one definition of the flags and of
+their arithmetic, so both commands read a pose and move a camera the same way.
+
+- a 4x4 matrix flag (``--cam-to-world``) takes 16 numbers in any float notation (``-1e-05`` too; the dispatcher's
+  parser accepts negative numbers in scientific notation, clients/cli.py), or one value: a JSON list (flat 16 or
+  4x4; numpy's printed form, brackets without commas, too), or a file: ``.npy`` (16 or 4x4 numbers) or
+  ``.json`` / text (a list as above, or an object with ``cam_to_ego`` or ``cam_to_world``) -- parse_matrix;
+- the camera moves ``--forward M``, ``--left M``, ``--up M`` (metres along ego x, y, z: x forward, y left, z up)
+  and ``--yaw DEG`` (turn left, counter-clockwise seen from above, about the vertical through the camera's
+  centre; applied before the shift) -- add_move_arguments, move_from_args, CameraMove.apply (a 4x4 pose) and
+  CameraMove.apply_carla (a CARLA transform; the same move in CARLA's left-handed axes).
+
+Light on purpose: argparse, json, math and pathlib at import, numpy inside the functions, nothing else of the
+runtime, so the HTTP client (clients/commands/client.py) can use it without the renderer, numba or OpenCV.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+MOVE_FLAGS = ("--forward", "--left", "--up", "--yaw")
+MATRIX_KEYS = ("cam_to_ego", "cam_to_world")     # the pose's key in a .json object
+
+
+class PoseArgError(ValueError):
+    """A pose flag's value that cannot be used. ``field``: the flag (e.g. "--cam-to-world");
+    str(e) = "<flag>: <message>"."""
+
+    def __init__(self, field: str, message: str):
+        super().__init__(f"{field}: {message}")
+        self.field = field
+        self.message = message
+
+
+def add_matrix_argument(parser, flag: str, help: str) -> None:
+    """A 4x4 matrix flag: 16 numbers, or one JSON list / .npy / .json file (see parse_matrix)."""
+    action = parser.add_argument(flag, nargs="+", default=None, metavar="M",
+                                 help=f"{help}; 16 numbers row-major, or one JSON list (16 or 4x4) or a .npy/.json "
+                                      "file")
+    action.numbers = 16     # xyzcyl's parser (clients/cli.py) takes 16 numbers in a row as one value, no more
+
+
+def _numbers_in(text: str) -> list[str]:
+    """The number tokens of a list written as JSON, numpy prints it or plain: brackets and commas are separators."""
+    return text.replace("[", " ").replace("]", " ").replace(",", " ").split()
+
+
+def _in(what: str) -> str:
+    return f"{what}: " if what else ""
+
+
+def _to_matrix(v: Any, flag: str, what: str):
+    import numpy as np
+
+    try:
+        m = np.asarray(v, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise PoseArgError(flag, f"{_in(what)}expected 16 numbers or a 4x4 list of numbers") from None
+    if m.shape not in ((16,), (4, 4)):
+        raise PoseArgError(flag, f"{_in(what)}expected 16 numbers or 4x4, got shape {list(m.shape)}")
+    if not np.isfinite(m).all():
+        raise PoseArgError(flag, f"{_in(what)}values must be finite")
+    return m.reshape(4, 4)
+
+
+def _from_text(text: str, flag: str, what: str):
+    try:
+        doc = json.loads(text)
+    except ValueError:
+        doc = None
+    if isinstance(doc, dict):
+        keys = [k for k in MATRIX_KEYS if k in doc]
+        if len(keys) != 1:
+            raise PoseArgError(flag, f"{_in(what)}a JSON object must hold one of {', '.join(MATRIX_KEYS)}")
+        return _to_matrix(doc[keys[0]], flag, f"{_in(what)}{keys[0]}")
+    if isinstance(doc, list):
+        return _to_matrix(doc, flag, what)
+    tokens = _numbers_in(text)
+    try:
+        values = [float(t) for t in tokens]
+    except ValueError:
+        bad = next(t for t in tokens if not _is_float(t))
+        raise PoseArgError(flag, f"{_in(what)}{bad!r} is not a number") from None
+    if len(values) != 16:
+        raise PoseArgError(flag, f"{_in(what)}expected 16 numbers, got {len(values)}")
+    return _to_matrix(values, flag, what)
+
+
+def _is_file(path: Path) -> bool:
+    try:
+        return path.is_file()
+    except (OSError, ValueError):      # e.g. a long list of numbers is no file name
+        return False
+
+
+def _is_float(t: str) -> bool:
+    try:
+        float(t)
+    except ValueError:
+        return False
+    return True
+
+
+def parse_matrix(values: str | list[str] | tuple[str, ...], flag: str = "--cam-to-world"):
+    """[4, 4] float64 from a matrix flag's values (strings as argparse gives them, or one string):
+
+    - 16 numbers, row-major, any float notation (``-1e-05``);
+    - one value that names a file: ``.npy`` (16 or 4x4 numbers) or anything else read as text (.json: a list of
+      16 or 4x4 numbers, or an object with ``cam_to_ego`` or ``cam_to_world``);
+    - one value holding the numbers: a JSON list, numpy's printed form (``[[ 0. 0. 1. 5.] [-1. ...]]``), or 16
+      numbers separated by spaces or commas (``--cam-to-world="0 0 1 5 ..."``).
+
+    Values must be finite; the rotation is validated where the camera is made (the renderer, the server).
+    PoseArgError naming ``flag`` otherwise."""
+    import numpy as np
+
+    vals = [values] if isinstance(values, str) else [str(v) for v in values]
+    if not vals:
+        raise PoseArgError(flag, "expected 16 numbers, a JSON list or a .npy/.json file")
+    if len(vals) == 1:
+        v = vals[0].strip()
+        path = Path(v)
+        if _is_file(path):
+            try:
+                if path.suffix.lower() == ".npy":
+                    return _to_matrix(np.load(path, allow_pickle=False), flag, repr(v))
+                return _from_text(path.read_text(), flag, repr(v))
+            except PoseArgError:
+                raise
+            except OSError as e:
+                raise PoseArgError(flag, f"cannot read {v!r}: {e.strerror or e}") from None
+            except ValueError as e:     # not a .npy file (or one of objects), or not text
+                kind = "a .npy array of numbers" if path.suffix.lower() == ".npy" else "text"
+                raise PoseArgError(flag, f"{v!r} is not {kind} ({e})") from None
+        if path.suffix.lower() in (".npy", ".json"):
+            raise PoseArgError(flag, f"no such file {v!r}")
+        return _from_text(v, flag, "")
+    if len(vals) != 16:
+        raise PoseArgError(flag, f"expected 16 numbers, got {len(vals)} values")
+    return _from_text(" ".join(vals), flag, "")
+
+
+@dataclass(frozen=True)
+class CameraMove:
+    """A camera move in the ego frame: turn ``yaw`` degrees to the left (counter-clockwise seen from above) about
+    the vertical through the camera's centre, then shift ``forward``, ``left``, ``up`` metres along ego x, y, z."""
+
+    forward: float = 0.0
+    left: float = 0.0
+    up: float = 0.0
+    yaw: float = 0.0
+
+    def __bool__(self) -> bool:
+        return any((self.forward, self.left, self.up, self.yaw))
+
+    def flags(self) -> list[str]:
+        """The move flags that are set (for messages)."""
+        return [f for f, v in zip(MOVE_FLAGS, (self.forward, self.left, self.up, self.yaw)) if v]
+
+    def apply(self, pose):
+        """The moved copy of a 4x4 camera-to-ego pose (OpenCV camera axes; [4, 4] float64)."""
+        import numpy as np
+
+        T = np.array(pose, dtype=np.float64).reshape(4, 4)
+        if self.yaw:
+            a = math.radians(self.yaw)
+            c, s = math.cos(a), math.sin(a)
+            T[:3, :3] = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]) @ T[:3, :3]
+        T[:3, 3] += (self.forward, self.left, self.up)
+        return T
+
+    def apply_carla(self, x: float, y: float, z: float, pitch: float, yaw: float, roll: float
+                    ) -> tuple[float, float, float, float, float, float]:
+        """The same move for a CARLA transform relative to the vehicle (left-handed: x forward, y right, z up,
+        metres; pitch, yaw (turning right), roll degrees): CARLA's yaw is the outermost rotation, about the
+        sensor's vertical, so the turn is yaw - self.yaw and the shift is (forward, -left, up)."""
+        return (x + self.forward, y - self.left, z + self.up, pitch, yaw - self.yaw, roll)
+
+
+def add_move_arguments(parser) -> None:
+    """--forward, --left, --up (metres along ego x, y, z) and --yaw (degrees, turning left)."""
+    g = parser.add_argument_group("camera moves (ego frame: x forward, y left, z up; applied to the pose)")
+    g.add_argument("--forward", type=float, default=0.0, metavar="M",
+                   help="move the camera M metres along ego x (forward; negative: back)")
+    g.add_argument("--left", type=float, default=0.0, metavar="M",
+                   help="move the camera M metres along ego y (left; negative: right)")
+    g.add_argument("--up", type=float, default=0.0, metavar="M",
+                   help="move the camera M metres along ego z (up; negative: down)")
+    g.add_argument("--yaw", type=float, default=0.0, metavar="DEG",
+                   help="turn the camera DEG degrees to the left (counter-clockwise seen from above; negative: "
+                        "right) about the vertical through its centre, before the shift")
+
+
+def move_from_args(args: argparse.Namespace) -> CameraMove:
+    """The CameraMove of the flags; PoseArgError naming a flag whose value is not finite."""
+    values = {f: float(getattr(args, f[2:])) for f in MOVE_FLAGS}
+    for flag, v in values.items():
+        if not math.isfinite(v):
+            raise PoseArgError(flag, f"must be finite, got {v}")
+    return CameraMove(*values.values())
+
+
+__all__ = ["MOVE_FLAGS", "CameraMove", "PoseArgError", "add_matrix_argument", "add_move_arguments",
+           "move_from_args", "parse_matrix"]
