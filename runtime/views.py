@@ -30,6 +30,7 @@ import numpy as np
 from numba import njit
 
 from . import convert
+from .errors import FieldError
 from .render import CameraError, EquirectCamera, PinholeCamera
 from .rig import MAX_SIZE, STRUCT_TOL, Rig
 from .scene import Scene, render_view, rig_camera
@@ -53,17 +54,9 @@ KEY_DECIMALS = 9          # key(): K and cam_to_world entries rounded to 1e-9 (p
 KEY_VERSION = 1           # bump when the canonical description changes (invalidates caches and ETags)
 
 
-class ViewError(ValueError):
+class ViewError(FieldError):
     """A render request that cannot be honoured. ``field``: the request field at fault (e.g. "cam_to_ego",
     "fov", "width", "format", "cameras[3].fov", "camera_path[2].camera_to_world"); str(e) = "<field>: <message>"."""
-
-    def __init__(self, field: str, message: str):
-        super().__init__(f"{field}: {message}")
-        self.field = field
-        self.message = message
-
-    def __reduce__(self):  # picklable with both arguments (worker processes)
-        return (type(self), (self.field, self.message))
 
 
 # ------------------------------------------------------------------------------------------- field parsing
@@ -110,13 +103,12 @@ def _matrix(v: Any, field: str, rows: int, cols: int) -> np.ndarray:
 
 
 def _camera(build, fields: Mapping[str, str]):
-    """Run a runtime.render camera constructor; its CameraError ("cam_to_world: ...", "K: ...", "width: ...")
-    becomes a ViewError naming the request field that the error's prefix maps to in ``fields``."""
+    """Run a runtime.render camera constructor; its CameraError (field "cam_to_world", "K", "width", ...) becomes
+    a ViewError naming the request field that the camera's field maps to in ``fields``."""
     try:
         return build()
     except CameraError as e:
-        key, _, detail = str(e).partition(": ")
-        raise ViewError(fields.get(key, fields["*"]), detail or str(e)) from None
+        raise ViewError(fields.get(e.field, fields["*"]), e.message) from None
 
 
 def _from_conversion(e: convert.ConversionError, default: str) -> ViewError:

@@ -127,11 +127,11 @@ def run(args: argparse.Namespace) -> int:
             else:
                 fx, fy, cx, cy = args.K
                 cam = PinholeCamera(np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]]), c2w, args.width, args.height)
-    except (CameraError, RigError) as exc:
-        field = str(exc).split(":")[0]
-        flag = {"cam_to_world": "--cam-to-world", "K": "--K"}.get(field, f"--{field}")
-        if isinstance(exc, RigError):
-            flag = "--camera" if args.camera is not None else "--width"
+    except CameraError as exc:
+        flag = {"cam_to_world": "--cam-to-world", "K": "--K"}.get(exc.field, f"--{exc.field}")
+        return _fail(f"{flag}: {exc.message}")
+    except RigError as exc:
+        flag = "--camera" if args.camera is not None else "--width"
         return _fail(f"{flag}: {str(exc).split(': ', 1)[-1]}")
     if args.background is not None:
         bg = args.background

@@ -7,32 +7,33 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..errors import FieldError
 from ..rotations import ORTHO_TOL
 
 
-class CameraError(ValueError):
-    """Invalid camera; the message names the field."""
+class CameraError(FieldError):
+    """Invalid camera: ``field`` ("K", "cam_to_world", "width", "height") and ``message`` (runtime.errors)."""
 
 
 def _check_pose(m) -> np.ndarray:
     m = np.asarray(m, dtype=np.float64)
     if m.shape != (4, 4):
-        raise CameraError(f"cam_to_world: expected shape [4, 4], got {list(m.shape)}")
+        raise CameraError("cam_to_world", f"expected shape [4, 4], got {list(m.shape)}")
     if not np.all(np.isfinite(m)):
-        raise CameraError(f"cam_to_world: {int(np.count_nonzero(~np.isfinite(m)))} non-finite values")
+        raise CameraError("cam_to_world", f"{int(np.count_nonzero(~np.isfinite(m)))} non-finite values")
     if not np.allclose(m[3], [0, 0, 0, 1], atol=1e-9):
-        raise CameraError("cam_to_world: last row must be [0, 0, 0, 1]")
+        raise CameraError("cam_to_world", "last row must be [0, 0, 0, 1]")
     r = m[:3, :3]
     # ORTHO_TOL: the rig's tolerance too (runtime/rotations.py), so no camera of a valid rig is refused here
     if not np.allclose(r.T @ r, np.eye(3), atol=ORTHO_TOL, rtol=0.0) or np.linalg.det(r) < 0:
-        raise CameraError("cam_to_world: rotation block must be orthonormal with determinant +1")
+        raise CameraError("cam_to_world", "rotation block must be orthonormal with determinant +1")
     return m
 
 
 def _check_size(width, height) -> tuple[int, int]:
     for name, v in (("width", width), ("height", height)):
         if int(v) != v or int(v) < 1 or int(v) > 32768:
-            raise CameraError(f"{name}: must be an integer in 1..32768, got {v!r}")
+            raise CameraError(name, f"must be an integer in 1..32768, got {v!r}")
     return int(width), int(height)
 
 
@@ -63,11 +64,11 @@ class PinholeCamera(_Posed):
     def __post_init__(self) -> None:
         k = np.asarray(self.K, dtype=np.float64)
         if k.shape != (3, 3) or not np.all(np.isfinite(k)):
-            raise CameraError(f"K: expected a finite [3, 3] matrix, got shape {list(k.shape)}")
+            raise CameraError("K", f"expected a finite [3, 3] matrix, got shape {list(k.shape)}")
         if k[0, 0] <= 0 or k[1, 1] <= 0:
-            raise CameraError("K: focal lengths K[0][0], K[1][1] must be > 0")
+            raise CameraError("K", "focal lengths K[0][0], K[1][1] must be > 0")
         if k[0, 1] != 0 or k[1, 0] != 0 or k[2, 0] != 0 or k[2, 1] != 0 or k[2, 2] != 1:
-            raise CameraError("K: must be [[fx, 0, cx], [0, fy, cy], [0, 0, 1]]")
+            raise CameraError("K", "must be [[fx, 0, cx], [0, fy, cy], [0, 0, 1]]")
         object.__setattr__(self, "K", k)
         object.__setattr__(self, "cam_to_world", _check_pose(self.cam_to_world))
         w, h = _check_size(self.width, self.height)

@@ -139,3 +139,24 @@ def test_splat_layout(tmp_path):
     order = np.argsort(-key, kind="stable")
     assert np.array_equal(rows[:, 0:3], g.means[order])
     assert np.all(np.diff(key[order]) <= 0)
+
+
+def test_camera_errors_name_their_field_as_an_attribute():
+    """CameraError carries ``field`` and ``message`` (runtime.errors.FieldError): callers map the field to their
+    own names (a CLI flag, a request field) without parsing the message, and the error survives pickling."""
+    import pickle
+
+    from xyzcyl.runtime.errors import FieldError
+    from xyzcyl.runtime.render import CameraError, PinholeCamera
+
+    K = np.array([[100.0, 0, 50], [0, 100.0, 40], [0, 0, 1]])
+    cases = ((dict(K=K * np.array([[-1], [1], [1]])), "K"), (dict(cam_to_world=np.zeros((4, 4))), "cam_to_world"),
+             (dict(width=0), "width"), (dict(height=40000), "height"))
+    for change, field in cases:
+        args = dict(K=K, cam_to_world=np.eye(4), width=100, height=80) | change
+        with pytest.raises(CameraError) as info:
+            PinholeCamera(**args)
+        e = info.value
+        assert isinstance(e, FieldError) and e.field == field and str(e) == f"{field}: {e.message}"
+        again = pickle.loads(pickle.dumps(e))
+        assert (type(again), again.field, again.message) == (CameraError, e.field, e.message)
