@@ -44,8 +44,8 @@ def main() -> int:
     from xyzcyl.model_export.lifting import rig_inputs
     from xyzcyl.model_export.model import XYZCylinder, blend
     from xyzcyl.model_export.render_fn import render_views
+    from xyzcyl.runtime.camera import Camera
     from xyzcyl.runtime.lifting import background_grid, spec_from_array
-    from xyzcyl.runtime.render import PinholeCamera
     from xyzcyl.runtime.rig import ring_rig
 
     torch.manual_seed(0)
@@ -61,7 +61,7 @@ def main() -> int:
     inp = rig_inputs(rig, cfg)
     images = torch.rand(6, 3, H, W)
     gt = torch.rand(cfg.grid.shape) < args.occupied
-    cams = [PinholeCamera(c.K, c.cam_to_ego, c.width, c.height) for c in rig.cameras[: args.views]]
+    cams = [Camera(K=c.K, cam_to_ego=c.cam_to_ego, width=c.width, height=c.height) for c in rig.cameras[: args.views]]
     spec = spec_from_array(inp["spec_vol"].numpy(), cfg.cylinder.height, cfg.cylinder.width)
     grids = torch.from_numpy(np.stack([background_grid(spec, c.K, c.cam_to_world, c.width, c.height)
                                        for c in cams]))

@@ -56,7 +56,8 @@ from pathlib import Path
 import numba
 import numpy as np
 from numba import njit, prange
-from xyzcyl.runtime.render import Gaussians, PinholeCamera, render
+from xyzcyl.runtime.camera import Camera
+from xyzcyl.runtime.render import Gaussians, render
 from xyzcyl.runtime.render.projection import pinhole_limits
 from xyzcyl.runtime.render.result import background_image
 
@@ -263,19 +264,19 @@ def _rasterise(ranges, point_list, xy, conic_opacity, colour, depth, bg, width, 
 
 
 # ----------------------------------------------------------------------------------------------------- driver
-def render_peer(gaussians: Gaussians, camera: PinholeCamera, background=None, *, radius: str = "circle",
+def render_peer(gaussians: Gaussians, camera: Camera, background=None, *, radius: str = "circle",
                 near: float = 0.01, timings: dict[str, float] | None = None
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Render with the plain 3DGS-style peer (see the module docstring).
 
-    gaussians: SH degree 0 (higher bands are refused rather than ignored). camera: PinholeCamera only.
+    gaussians: SH degree 0 (higher bands are refused rather than ignored). camera: Camera only.
     background: None (black), an RGB triple or an image [H, W, 3], as for `render`. radius: "circle" (3DGS) or
     "box" (gsplat >= 1.5). near: m, Gaussians with camera z below are culled (3DGS uses 0.2; 0.01 is ours).
     timings: if given, filled with seconds per stage: project, sort (prefix sum, keys, argsort, tile ranges),
     raster, and with instances, the number of (tile, Gaussian) pairs.
     Returns rgb [H, W, 3], alpha [H, W], depth [H, W] (camera z, m; 0 where alpha == 0), float32."""
-    if not isinstance(camera, PinholeCamera):
-        raise TypeError(f"camera: the peer renderer supports PinholeCamera only, got {type(camera).__name__}")
+    if not isinstance(camera, Camera):
+        raise TypeError(f"camera: the peer renderer supports Camera only, got {type(camera).__name__}")
     if gaussians.sh.shape[1] != 1:
         raise ValueError(f"sh: the peer renderer evaluates SH degree 0 only, got {gaussians.sh_degree}")
     if radius not in RADII:

@@ -20,7 +20,8 @@ import time
 
 import numba
 import numpy as np
-from xyzcyl.runtime.render import Gaussians, PinholeCamera, render
+from xyzcyl.runtime.camera import Camera
+from xyzcyl.runtime.render import Gaussians, render
 
 RESOLUTIONS = ((400, 224), (1600, 900))
 
@@ -35,10 +36,10 @@ def scene(n: int, seed: int = 0) -> Gaussians:
                      rng.normal(scale=0.6, size=(n, 1, 3)).astype(np.float32))
 
 
-def camera(width: int, height: int) -> PinholeCamera:
+def camera(width: int, height: int) -> Camera:
     f = width / 2.0
     K = np.array([[f, 0, (width - 1) / 2], [0, f, (height - 1) / 2], [0, 0, 1.0]])
-    return PinholeCamera(K, np.eye(4), width, height)
+    return Camera(K=K, cam_to_ego=np.eye(4), width=width, height=height)
 
 
 def main() -> None:

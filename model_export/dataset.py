@@ -37,7 +37,8 @@ from typing import Any
 
 import numpy as np
 import torch
-from xyzcyl.runtime.rig import Camera, Rig, load_rig, read_image
+from xyzcyl.runtime.camera import Camera
+from xyzcyl.runtime.rig import Rig, load_rig, read_image
 
 from .config import ConfigError, _Frozen
 from .data.classes import EGO, ROAD, SIDEWALK, TERRAIN

@@ -19,7 +19,8 @@ from collections.abc import Sequence
 
 import numpy as np
 import torch
-from xyzcyl.runtime.render import Gaussians, PinholeCamera, render, render_backward
+from xyzcyl.runtime.camera import Camera
+from xyzcyl.runtime.render import Gaussians, render, render_backward
 
 KEYS = ("means", "quats", "log_scales", "opacity_logits", "sh")
 
@@ -56,7 +57,7 @@ class RenderViews(torch.autograd.Function):
         return (*out, None, None)
 
 
-def render_views(gaussians: dict[str, torch.Tensor], cameras: Sequence[PinholeCamera], **options):
+def render_views(gaussians: dict[str, torch.Tensor], cameras: Sequence[Camera], **options):
     """Render T pinhole views of the same size over black.
 
     gaussians: dict means [G, 3], quats [G, 4], log_scales [G, 3], opacity_logits [G], sh [G, S, 3] (ego frame).
@@ -80,7 +81,7 @@ def gsplat_available() -> bool:
     return True
 
 
-def render_views_gsplat(gaussians: dict[str, torch.Tensor], cameras: Sequence[PinholeCamera]):
+def render_views_gsplat(gaussians: dict[str, torch.Tensor], cameras: Sequence[Camera]):
     """CUDA path with gsplat.rasterization (the outputs of render_views). Requires CUDA and gsplat; not
     exercised by the CPU test-suite (no GPU in CI). gsplat samples pixel (u, v) at (u + 0.5, v + 0.5), the
     runtime renderer at (u, v) (OpenCV), so the principal point is shifted by half a pixel to match."""
@@ -88,7 +89,7 @@ def render_views_gsplat(gaussians: dict[str, torch.Tensor], cameras: Sequence[Pi
 
     dev = torch.device("cuda")
     g = {k: v.to(dev) for k, v in gaussians.items()}
-    viewmats = torch.stack([torch.as_tensor(np.linalg.inv(c.cam_to_world), dtype=torch.float32) for c in cameras])
+    viewmats = torch.stack([torch.as_tensor(np.linalg.inv(c.cam_to_ego), dtype=torch.float32) for c in cameras])
     Ks = torch.stack([torch.as_tensor(c.K, dtype=torch.float32) for c in cameras])
     Ks[:, 0, 2] += 0.5
     Ks[:, 1, 2] += 0.5

@@ -150,10 +150,10 @@ def depth_head_abs_rel(pred: torch.Tensor, depth: torch.Tensor, valid: torch.Ten
 
 
 def target_cameras(targets: dict[str, Any]) -> list:
-    from xyzcyl.runtime.render import PinholeCamera
+    from xyzcyl.runtime.camera import Camera
 
-    return [PinholeCamera(np.asarray(K, np.float64), np.asarray(T, np.float64), targets["width"], targets["height"])
-            for K, T in zip(targets["K"], targets["cam_to_ego"])]
+    return [Camera(K=np.asarray(K, np.float64), cam_to_ego=np.asarray(T, np.float64), width=targets["width"],
+                   height=targets["height"]) for K, T in zip(targets["K"], targets["cam_to_ego"])]
 
 
 def lidar_depth_input(model, images: torch.Tensor, item: dict[str, Any]

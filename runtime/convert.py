@@ -21,7 +21,9 @@ from typing import Any
 
 import numpy as np
 
-from .rig import MAX_SIZE, Camera, Rig, RigError, plain
+from .camera import MAX_SIZE, Camera
+from .errors import RigError, plain
+from .rig import Rig
 from .rotations import quat_to_rotmat, rotmat_to_quat
 
 # OpenGL camera (x right, y up, z back) <-> OpenCV camera (x right, y down, z forward): flip y and z.
@@ -41,9 +43,12 @@ class ConversionError(RigError):
     """A foreign record that cannot be converted; the message names the record and field. ``field``: the JSON
     path of the field at fault (e.g. "camera_path[2].fov") where the converter states it, else None."""
 
-    def __init__(self, message: str, field: str | None = None):
-        super().__init__(message)
-        self.field = field
+    def __init__(self, message: str, field: str | None = None):  # noqa: D107 -- the message names record and field
+        ValueError.__init__(self, message)
+        self.field, self.message, self.where = field, message, None
+
+    def __reduce__(self):
+        return (type(self), (self.message, self.field))
 
 
 # -- small rotation helpers ----------------------------------------------------------------------------------

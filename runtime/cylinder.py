@@ -21,7 +21,9 @@ from typing import Any, Literal
 
 import numpy as np
 
-from .rig import Camera, Rig, plain
+from .camera import Camera
+from .errors import plain
+from .rig import Rig
 
 # The paper's (rho, dh) per dataset and module: tables "Model architecture ... on nuScenes / Carla-Centric" and
 # "UCCM Parameter Settings for Zero-shot Generalization". Argoverse's occupancy rho is printed as 0.09 in the

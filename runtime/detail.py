@@ -34,9 +34,10 @@ from dataclasses import dataclass, fields
 import numba
 import numpy as np
 
+from .camera import Camera
+from .errors import plain
 from .render import Gaussians
 from .render.gaussians import SH_C0
-from .rig import Camera, plain
 from .rotations import rotmat_to_quat, rotmats_to_quats
 
 
@@ -886,13 +887,13 @@ def read_ego_mask(path, cam: Camera) -> np.ndarray:
     camera when the size differs."""
     from .rig import RigError, read_image
 
-    a = read_image(path, f"camera {cam.name!r}: ego_mask", channels=1, scale=False)
+    a = read_image(path, "ego_mask", channels=1, scale=False, where=cam.where)
     a = np.asarray(a)
     if a.ndim == 3:
         a = a[..., 0]
     if a.shape != (cam.height, cam.width):
-        raise RigError(f"camera {cam.name!r}: ego_mask has shape {list(a.shape)}, but the rig declares "
-                       f"{cam.width}x{cam.height} (width x height)")
+        raise RigError("ego_mask", f"has shape {list(a.shape)}, but the rig declares "
+                       f"{cam.width}x{cam.height} (width x height)", cam.where)
     return a > 0
 
 

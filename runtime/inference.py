@@ -28,11 +28,13 @@ from typing import Any
 
 import numpy as np
 
+from .camera import Camera
 from .detail import DetailOptions
+from .errors import RigError
 from .files import read_json_doc
 from .lifting import LiftingParams, background_grid, build_lifting_inputs, spec_from_array
 from .render import Gaussians
-from .rig import Camera, Rig, RigError
+from .rig import Rig
 from .scene import Background, Scene, bake_grid
 
 MODEL_FORMAT = "xyzcyl-model"
@@ -157,8 +159,8 @@ def as_rgb(img: np.ndarray, cam: Camera) -> np.ndarray:
     if a.ndim == 2:
         a = a[..., None]
     if a.ndim != 3 or a.shape[:2] != (cam.height, cam.width) or a.shape[2] not in (1, 3, 4):
-        raise RigError(f"camera {cam.name!r}: image has shape {list(np.shape(img))}, but the rig declares "
-                       f"{cam.width}x{cam.height} (width x height) RGB")
+        raise RigError("image", f"has shape {list(np.shape(img))}, but the rig declares "
+                       f"{cam.width}x{cam.height} (width x height) RGB", cam.where)
     if a.shape[2] == 1:
         a = np.repeat(a, 3, axis=2)
     a = a[..., :3]
@@ -167,10 +169,10 @@ def as_rgb(img: np.ndarray, cam: Camera) -> np.ndarray:
     elif np.issubdtype(a.dtype, np.floating):
         out = a.astype(np.float32)
         if not np.all(np.isfinite(out)):
-            raise RigError(f"camera {cam.name!r}: image has non-finite values")
+            raise RigError("image", "has non-finite values", cam.where)
         out = np.clip(out, 0.0, 1.0)
     else:
-        raise RigError(f"camera {cam.name!r}: image dtype {a.dtype} is not a number type")
+        raise RigError("image", f"dtype {a.dtype} is not a number type", cam.where)
     return np.ascontiguousarray(out)
 
 
@@ -199,14 +201,14 @@ def check_depth(d: np.ndarray, cam: Camera) -> np.ndarray:
     if a.ndim == 3 and a.shape[2] == 1:
         a = a[..., 0]
     if a.ndim != 2 or a.shape != (cam.height, cam.width):
-        raise RigError(f"camera {cam.name!r}: depth has shape {list(np.shape(d))}, but the rig declares "
-                       f"{cam.width}x{cam.height} (width x height)")
+        raise RigError("depth", f"has shape {list(np.shape(d))}, but the rig declares "
+                       f"{cam.width}x{cam.height} (width x height)", cam.where)
     a = a.astype(np.float32)
     bad = int(np.count_nonzero(~np.isfinite(a)))
     if bad:
-        raise RigError(f"camera {cam.name!r}: depth has {bad} non-finite (NaN/inf) values")
+        raise RigError("depth", f"has {bad} non-finite (NaN/inf) values", cam.where)
     if (a < 0).any():
-        raise RigError(f"camera {cam.name!r}: depth has negative values")
+        raise RigError("depth", "has negative values", cam.where)
     return a
 
 
@@ -304,7 +306,7 @@ class Reconstructor:
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Validated, resized network inputs: images [N, 3, H, W], depth [N, 1, h, w], depth_mask [N]."""
         if len(images) != len(rig.cameras):
-            raise RigError(f"rig: {len(rig.cameras)} cameras but {len(images)} images")
+            raise RigError("images", f"{len(rig.cameras)} cameras but {len(images)} images", "rig")
         H, W = self.info.input_size
         imgs = np.stack([resize_area(as_rgb(img, cam), H, W).transpose(2, 0, 1)
                          for img, cam in zip(images, rig.cameras)])
@@ -313,12 +315,12 @@ class Reconstructor:
         mask = np.zeros(len(rig.cameras), np.float32)
         if depths is not None:
             if len(depths) != len(rig.cameras):
-                raise RigError(f"rig: {len(rig.cameras)} cameras but {len(depths)} depth maps")
+                raise RigError("depths", f"{len(rig.cameras)} cameras but {len(depths)} depth maps", "rig")
             for n, (d, cam) in enumerate(zip(depths, rig.cameras)):
                 if d is None:
                     continue
                 if cam.model != "pinhole":
-                    raise RigError(f"camera {cam.name!r}: depth is supported for pinhole cameras only")
+                    raise RigError("depth", "is supported for pinhole cameras only", cam.where)
                 depth[n, 0] = resize_nearest(check_depth(d, cam), h, w)
                 mask[n] = 1.0
         return np.ascontiguousarray(imgs, np.float32), depth, mask
@@ -339,7 +341,7 @@ class Reconstructor:
         t: dict[str, float] = {}
         t_all = time.perf_counter()
         if len(rig.cameras) > 16:
-            raise RigError(f"rig: at most 16 cameras, got {len(rig.cameras)}")
+            raise RigError("cameras", f"at most 16 cameras, got {len(rig.cameras)}", "rig")
         t0 = time.perf_counter()
         if images is None:
             say("decode images")
@@ -511,11 +513,11 @@ class Reconstructor:
 
     def background_network(self, scene: Scene, camera) -> np.ndarray:
         """The background network run per view (the reference the baked panorama approximates): [H, W, 3] for a
-        runtime.render PinholeCamera, from the scene's in-memory appearance plane."""
+        runtime.camera.Camera (pinhole), from the scene's in-memory appearance plane."""
         if scene.app_plane is None or "background" not in self.sessions or scene.background is None:
             raise InferenceError("background: this scene has no appearance plane (loaded from disk?) or the "
                                  "model no background graph")
-        g = background_grid(scene.background.cylinder, camera.K, camera.cam_to_world, camera.width, camera.height)
+        g = background_grid(scene.background.cylinder, camera.K, camera.cam_to_ego, camera.width, camera.height)
         out = self._run("background", {"app_plane": scene.app_plane, "grids": g[None]})["background"][0]
         return np.ascontiguousarray(out.transpose(1, 2, 0))
 

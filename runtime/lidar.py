@@ -36,7 +36,9 @@ from typing import Any
 
 import numpy as np
 
-from .rig import Camera, Rig, RigError, _check_pose, plain
+from .camera import Camera, check_pose
+from .errors import RigError, plain
+from .rig import Rig
 
 MIN_DEPTH = 1.0   # m camera z: nearer returns are the ego vehicle's own body or sensor mounts, not the scene
 MAX_DEPTH = 80.0  # m camera z: the usual cap of driving depth benchmarks (KITTI, Eigen split)
@@ -121,7 +123,7 @@ def load_lidar(rig: Rig, file: str | os.PathLike | None = None, columns: int | N
     T = np.eye(4)
     if "lidar_to_ego" in block:
         try:
-            T = _check_pose(block["lidar_to_ego"], "rig: lidar", "lidar_to_ego")
+            T = check_pose(block["lidar_to_ego"], "rig: lidar", "lidar_to_ego")
         except RigError as exc:
             raise LidarError(str(exc)) from None
     xyz, bad = read_points(path, columns)

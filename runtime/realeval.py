@@ -109,12 +109,13 @@ def image_metrics(pred: np.ndarray, gt: np.ndarray) -> dict[str, float]:
 
 def ego_to_world(rig: Rig, where: str) -> np.ndarray:
     """[4, 4] the rig's ego pose (rig.json ``ego_to_world`` or ``ego_to_global``), RigError naming ``where``."""
-    from .rig import _check_pose
+    from .camera import check_pose
 
     for key in EGO_POSE_KEYS:
         if key in rig.extra:
-            return _check_pose(rig.extra[key], where, key)
-    raise RigError(f"{where}: has no {' or '.join(EGO_POSE_KEYS)} (needed to place another frame's cameras)")
+            return check_pose(rig.extra[key], where, key)
+    raise RigError(EGO_POSE_KEYS[0], f"is missing (or {' or '.join(EGO_POSE_KEYS[1:])}): needed to place another frame's "
+                   "cameras", where)
 
 
 @dataclass(frozen=True)
@@ -128,13 +129,13 @@ def load_frames(folder: str | Path) -> list[Frame]:
     """The frames of a drive: each sub-folder of ``folder`` holding a rig.json with an ego pose, in name order."""
     root = Path(folder)
     if not root.is_dir():
-        raise RigError(f"frames: {str(root)!r} is not a folder")
+        raise RigError("frames", f"{str(root)!r} is not a folder")
     out = []
     for sub in sorted(p for p in root.iterdir() if (p / "rig.json").is_file()):
         rig = load_rig(sub / "rig.json")
         out.append(Frame(sub.name, rig, ego_to_world(rig, f"frame {sub.name!r}: rig")))
     if len(out) < 2:
-        raise RigError(f"frames: {str(root)!r} needs at least two sub-folders with a rig.json (found {len(out)})")
+        raise RigError("frames", f"{str(root)!r} needs at least two sub-folders with a rig.json (found {len(out)})")
     return out
 
 

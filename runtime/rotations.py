@@ -1,6 +1,6 @@
 """Quaternions (wxyz) <-> rotation matrices: the one numpy implementation used across the runtime; and ORTHO_TOL,
 the one tolerance on a pose's rotation that every validator uses (rig.Camera's cam_to_ego and lidar_to_ego, the
-renderer's cam_to_world in runtime/render/cameras.py)."""
+renderer's, in runtime/camera.py: one validator)."""
 
 from __future__ import annotations
 

@@ -2,7 +2,7 @@
 rendering a view of it. docs/inference.md states the folder format and the background decision.
 
     scene = Scene.load("/tmp/scene")
-    rgb, depth, alpha = render_view(scene, PinholeCamera(K, cam_to_ego, 1600, 900))
+    rgb, depth, alpha = render_view(scene, Camera(K=K, cam_to_ego=cam_to_ego, width=1600, height=900))
 
 Folder (written atomically: a temporary sibling folder renamed into place):
     scene.ply        standard 3DGS PLY (x y z nx ny nz f_dc_* [f_rest_*] opacity scale_* rot_*), ego frame
@@ -31,10 +31,11 @@ from typing import Any
 import numba
 import numpy as np
 
+from .camera import Camera
 from .cylinder import CylinderSpec
 from .files import atomic_folder, read_json_doc
-from .render import EquirectCamera, Gaussians, PinholeCamera, render
-from .rig import Camera, Rig
+from .render import Gaussians, render
+from .rig import Rig
 
 SCENE_FORMAT = "xyzcyl-scene"
 SCENE_VERSION = 1
@@ -103,7 +104,7 @@ class Background:
                               "v = -2 (z - centre_z) / (z_max - z_min); rows clamped"}
 
     def render(self, camera, step: int = 4) -> np.ndarray:
-        """[H, W, 3] float32: the panorama seen by a runtime.render PinholeCamera or EquirectCamera.
+        """[H, W, 3] float32: the panorama seen by a runtime.camera.Camera (pinhole or equirectangular).
 
         ``step`` > 1: the rays are traced at 1/step of the resolution (the camera resized with the pixel-centre
         convention of Camera.resized) and the result resized back bilinearly (cv2.INTER_LINEAR, the same
@@ -114,7 +115,7 @@ class Background:
             import cv2
 
             w, h = math.ceil(W / step), math.ceil(H / step)
-            small = _scaled_camera(camera, w, h)
+            small = camera.resized(w, h)
             img = self._trace(small)
             return cv2.resize(img, (W, H), interpolation=cv2.INTER_LINEAR)
         return self._trace(camera)
@@ -122,29 +123,16 @@ class Background:
     def _trace(self, camera) -> np.ndarray:
         out = np.empty((camera.height, camera.width, 3), np.float32)
         c = self.cylinder
-        T = np.ascontiguousarray(camera.cam_to_world, np.float64)
+        T = np.ascontiguousarray(camera.cam_to_ego, np.float64)
         args = (self.image, self.v_range[0], self.v_range[1], float(c.centre[0]), float(c.centre[1]),
                 float(c.centre[2]), float(c.radius), float(c.Z_u))
-        if isinstance(camera, PinholeCamera):
-            K = camera.K
-            _bg_pinhole(*args, float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]), T, out)
-        elif isinstance(camera, EquirectCamera):
-            d = np.ascontiguousarray(camera.pixel_rays() @ T[:3, :3].T, np.float64)
+        if camera.is_equirect:
+            d = np.ascontiguousarray(camera.pixel_rays()[1], np.float64)
             _bg_dirs(*args, T, d, out)
         else:
-            raise TypeError(f"camera: expected PinholeCamera or EquirectCamera, got {type(camera).__name__}")
+            K = camera.K
+            _bg_pinhole(*args, float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]), T, out)
         return out
-
-
-def _scaled_camera(camera, width: int, height: int):
-    """The same camera imaging at width x height (pixel u spans [u - 1/2, u + 1/2]: cx' = s (cx + 1/2) - 1/2)."""
-    if isinstance(camera, EquirectCamera):
-        return EquirectCamera(camera.cam_to_world, width, height)
-    sx, sy = width / camera.width, height / camera.height
-    K = np.array(camera.K, dtype=np.float64)
-    K[0, 0], K[0, 2] = sx * K[0, 0], sx * (K[0, 2] + 0.5) - 0.5
-    K[1, 1], K[1, 2] = sy * K[1, 1], sy * (K[1, 2] + 0.5) - 0.5
-    return PinholeCamera(K, camera.cam_to_world, width, height)
 
 
 @numba.njit(cache=True, inline="always")
@@ -302,20 +290,19 @@ class Scene:
 
 
 def rig_camera(cam: Camera, forward: float = 0.0, width: int | None = None, height: int | None = None):
-    """A runtime.render camera for a rig camera (pinhole: K and size, distortion ignored; equirectangular),
-    moved ``forward`` metres along ego x, optionally at another size (K scaled with Camera.resized)."""
+    """A render camera for a rig camera (pinhole: K and size, distortion dropped: the renderer draws undistorted
+    cameras; equirectangular), moved ``forward`` metres along ego x, optionally at another size (K scaled with
+    Camera.resized). Name and files are dropped."""
     if width is not None or height is not None:
         cam = cam.resized(cam.width if width is None else width, cam.height if height is None else height)
     T = np.array(cam.cam_to_ego, dtype=np.float64)
     T[0, 3] += float(forward)
-    if cam.model == "equirectangular":
-        return EquirectCamera(T, cam.width, cam.height)
-    return PinholeCamera(np.array(cam.K, dtype=np.float64), T, cam.width, cam.height)
+    return Camera(width=cam.width, height=cam.height, cam_to_ego=T, K=cam.K, model=cam.model)
 
 
 def render_view(scene: Scene, camera, **options) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(rgb [H, W, 3], depth [H, W], alpha [H, W]) float32 of ``scene`` seen by a runtime.render PinholeCamera /
-    EquirectCamera: the Gaussians composited over the background panorama (I = I_fg + (1 - A_fg) I_bg; black
+    """(rgb [H, W, 3], depth [H, W], alpha [H, W]) float32 of ``scene`` seen by a runtime.camera.Camera
+    (pinhole or equirectangular, undistorted): the Gaussians composited over the background panorama (I = I_fg + (1 - A_fg) I_bg; black
     without a background). Depth and alpha are the Gaussians' (depth 0 where alpha is 0). ``options``: the
     renderer's (RenderOptions)."""
     bg = scene.background.render(camera) if scene.background is not None else None

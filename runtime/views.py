@@ -22,7 +22,7 @@ import json
 import math
 import tempfile
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -30,12 +30,12 @@ import numpy as np
 from numba import njit
 
 from . import convert
+from .camera import STRUCT_TOL, Camera, CameraError, check_size, pinhole_K
 from .errors import FieldError
-from .render import CameraError, EquirectCamera, PinholeCamera
-from .rig import MAX_SIZE, STRUCT_TOL, Rig
+from .rig import Rig
 from .scene import Scene, render_view, rig_camera
 
-OUTPUTS = ("rgb", "depth", "alpha")
+OUTPUTS = ("rgb", "depth", "alpha", "all")   # all: R G B A Z in one EXR (xyzcyl render's .exr default)
 FORMATS = ("png", "jpeg", "exr")
 MEDIA_TYPES = {"png": "image/png", "jpeg": "image/jpeg", "exr": "image/x-exr"}
 EXTENSIONS = {"png": ".png", "jpeg": ".jpg", "exr": ".exr"}
@@ -49,9 +49,9 @@ PNG_COMPRESSION = 1        # ISA-L level (0..3); 1: as small as 2 and 3 here, 17
 PNG_FILTERS = {"rgb": "up", "depth": "up", "alpha": "sub"}
 DEPTH_PNG_SCALE = 1000.0  # depth PNG: 16-bit unsigned millimetres (metres x 1000), 0 = no surface
 DEPTH_PNG_MAX = 65535     # uint16 ceiling: depths beyond 65.535 m saturate there
-EXR_CHANNELS = {"rgb": ("R", "G", "B"), "depth": ("Z",), "alpha": ("A",)}
-KEY_DECIMALS = 9          # key(): K and cam_to_world entries rounded to 1e-9 (pixels, metres / unitless)
-KEY_VERSION = 1           # bump when the canonical description changes (invalidates caches and ETags)
+EXR_CHANNELS = {"rgb": ("R", "G", "B"), "depth": ("Z",), "alpha": ("A",), "all": ("R", "G", "B", "A", "Z")}
+KEY_DECIMALS = 9          # key(): K and cam_to_ego entries rounded to 1e-9 (pixels, metres / unitless)
+KEY_VERSION = 2           # bump when the canonical description changes (invalidates caches and ETags)
 
 
 class ViewError(FieldError):
@@ -78,10 +78,11 @@ def _number(v: Any, field: str) -> float:
 
 
 def _size(v: Any, field: str) -> int:
-    """An image dimension: an integer (2.0 accepted, 2.5 not) in 1..MAX_SIZE (the rig's limit, 16384 px)."""
-    if not _is_number(v) or not math.isfinite(float(v)) or float(v) != int(v) or not 1 <= int(v) <= MAX_SIZE:
-        raise ViewError(field, f"must be an integer in 1..{MAX_SIZE} (got {_short(v)})")
-    return int(v)
+    """An image dimension (runtime.camera.check_size: an integer, 2.0 accepted, 2.5 not, in 1..16384)."""
+    try:
+        return check_size(v, field)
+    except CameraError as e:
+        raise ViewError(field, e.message) from None
 
 
 def _matrix(v: Any, field: str, rows: int, cols: int) -> np.ndarray:
@@ -103,12 +104,12 @@ def _matrix(v: Any, field: str, rows: int, cols: int) -> np.ndarray:
 
 
 def _camera(build, fields: Mapping[str, str]):
-    """Run a runtime.render camera constructor; its CameraError (field "cam_to_world", "K", "width", ...) becomes
-    a ViewError naming the request field that the camera's field maps to in ``fields``."""
+    """Run a camera constructor; its CameraError (field "cam_to_ego", "K[0][0]", "width", ...) becomes a ViewError
+    naming the request field that the camera's field (its root name) maps to in ``fields``."""
     try:
         return build()
     except CameraError as e:
-        raise ViewError(fields.get(e.field, fields["*"]), e.message) from None
+        raise ViewError(fields.get(e.root_field, fields["*"]), e.message) from None
 
 
 def _from_conversion(e: convert.ConversionError, default: str) -> ViewError:
@@ -120,104 +121,196 @@ def _from_conversion(e: convert.ConversionError, default: str) -> ViewError:
     return ViewError(field, msg.split(head, 1)[1] if head in msg else msg)
 
 
-# ------------------------------------------------------------------------------------------- cameras
+# ------------------------------------------------------------------------------------------- view specs
+
+CARLA_KEYS = ("x", "y", "z", "pitch", "yaw", "roll")
+_POSES = ('camera=NAME, cam_to_ego=16 numbers (+ fx/fy/cx/cy or fov), or CARLA x,y,z,pitch,yaw,roll (+ fov)')
 
 
-def _opencv(cam_to_ego, width, height, fx=None, fy=None, cx=None, cy=None, fov=None, *,
-            fields: Mapping[str, str]) -> PinholeCamera:
-    W, H = _size(width, fields["width"]), _size(height, fields["height"])
-    T = _matrix(cam_to_ego, fields["cam_to_ego"], 4, 4)
-    if (fx is None) == (fov is None):
-        raise ViewError(fields["fov"], "give exactly one of fx (focal length, pixels; with optional fy, cx, cy) "
-                                       "and fov (horizontal degrees)")
-    if fov is not None:
-        for key, v in (("fy", fy), ("cx", cx), ("cy", cy)):
-            if v is not None:
-                raise ViewError(fields[key], "cannot be combined with fov (square pixels, centred principal point)")
-        deg = _number(fov, fields["fov"])
+@dataclass(frozen=True, kw_only=True)
+class ViewSpec:
+    """One view as a user states it -- a GET query, an item of a batch, the flags of ``xyzcyl render`` -- before it
+    is resolved against a scene's rig. Every transport fills one ViewSpec and resolves it here: one parser, one set
+    of checks and messages.
+
+    Exactly one pose:
+    - ``camera``: an input camera of the scene's rig (its K, size and pose; width / height optional: the camera
+      resized, one side given -> the other follows its aspect ratio);
+    - ``cam_to_ego`` (16 numbers row-major or [4, 4], OpenCV camera -> ego, metres) with width, height and either
+      ``K`` ([3, 3] or 9 numbers, no skew), ``fx`` (``fy`` defaults to fx, ``cx``, ``cy`` to the image centre
+      ((W-1)/2, (H-1)/2), OpenCV pixel centres) or ``fov`` (HORIZONTAL degrees in (0, 180), square pixels,
+      centred principal point); or, with ``model="equirectangular"``, no intrinsics (a full 360x180 panorama);
+    - ``carla``: a CARLA sensor pose {x, y, z (metres), pitch, yaw, roll (degrees)} relative to the vehicle,
+      with ``fov`` and width, height (runtime.convert.camera_from_carla).
+    ``output`` / ``format`` / ``quality``: as ViewRequest.
+    ``names``: the name each attribute has in the transport, for errors -- the query parameter, the JSON path
+    ("cameras[2].fov", "cameras[0].transform.location.x"), the CLI flag ("--cam-to-world"); an attribute not
+    listed keeps its own name. Every refusal is a ViewError naming the field by that name."""
+
+    camera: str | None = None
+    cam_to_ego: Any = None
+    K: Any = None
+    fx: Any = None
+    fy: Any = None
+    cx: Any = None
+    cy: Any = None
+    fov: Any = None
+    carla: Mapping[str, Any] | None = None
+    model: str = "pinhole"
+    width: Any = None
+    height: Any = None
+    output: str = "rgb"
+    format: str = "png"
+    quality: Any = 90
+    names: Mapping[str, str] = field(default_factory=dict)
+
+    def name(self, attr: str) -> str:
+        """The transport's name of attribute ``attr`` (for errors)."""
+        return self.names.get(attr, attr)
+
+    def resolve_camera(self, rig: Rig | None = None) -> Camera:
+        """The render camera (ego frame) the spec describes; ``rig``: the scene's rig (needed for ``camera``)."""
+        carla = dict(self.carla) if self.carla else {}
+        modes = [m for m, on in (("camera", self.camera is not None), ("cam_to_ego", self.cam_to_ego is not None),
+                                 ("carla", bool(carla))) if on]
+        if len(modes) != 1:
+            second = modes[1] if len(modes) > 1 else "camera"
+            raise ViewError(self.name(next(iter(carla), "x")) if second == "carla" else self.name(second),
+                            f"give exactly one pose: {_POSES}; got {' and '.join(modes) or 'none'}")
+        if self.camera is not None:
+            return self._rig_camera(rig)
+        if self.cam_to_ego is not None:
+            return self._opencv()
+        return self._carla(carla)
+
+    def request(self, rig: Rig | None = None) -> ViewRequest:
+        """The ViewRequest: the resolved camera with output, format and quality (errors named by ``names``)."""
+        cam = self.resolve_camera(rig)
+        try:
+            return ViewRequest(cam, self.output, self.format, self.quality)
+        except ViewError as e:
+            raise ViewError(self.name(e.field), e.message) from None
+
+    # -- the three poses ----------------------------------------------------------------------------------------
+    def _size(self, attr: str) -> int:
+        return _size(getattr(self, attr), self.name(attr))
+
+    def _rig_camera(self, rig: Rig | None) -> Camera:
+        if rig is None:
+            raise ViewError(self.name("camera"), "input cameras need a scene's rig (none given)")
+        name = self.camera
+        if not isinstance(name, str) or name not in rig.names:
+            raise ViewError(self.name("camera"), f"no camera {_short(name)} in the scene's rig "
+                                                 f"(cameras: {', '.join(rig.names)})")
+        cam = rig.camera(name)
+        w = None if self.width is None else self._size("width")
+        h = None if self.height is None else self._size("height")
+        if w is not None and h is None:   # one side given: the other follows the camera's aspect ratio
+            h = _size(max(1, round(w * cam.height / cam.width)), self.name("width"))
+        elif h is not None and w is None:
+            w = _size(max(1, round(h * cam.width / cam.height)), self.name("height"))
+        return _camera(lambda: rig_camera(cam, width=w, height=h),
+                       {"width": self.name("width"), "height": self.name("height"), "*": self.name("camera")})
+
+    def _opencv(self) -> Camera:
+        for attr in ("width", "height"):
+            if getattr(self, attr) is None:
+                raise ViewError(self.name(attr), "is required with cam_to_ego")
+        W, H = self._size("width"), self._size("height")
+        T = _matrix(self.cam_to_ego, self.name("cam_to_ego"), 4, 4)
+        fields = {"cam_to_ego": self.name("cam_to_ego"), "width": self.name("width"), "height": self.name("height"),
+                  "*": self.name("cam_to_ego")}
+        if self.model == "equirectangular":
+            for attr in ("K", "fx", "fy", "cx", "cy", "fov"):
+                if getattr(self, attr) is not None:
+                    raise ViewError(self.name(attr), "an equirectangular panorama takes no intrinsics")
+            return _camera(lambda: Camera(model="equirectangular", cam_to_ego=T, width=W, height=H), fields)
+        if self.model != "pinhole":
+            raise ViewError(self.name("model"), f"must be pinhole or equirectangular (got {_short(self.model)})")
+        fx, fy, cx, cy = self.fx, self.fy, self.cx, self.cy
+        if self.K is not None:
+            for attr in ("fx", "fy", "cx", "cy", "fov"):
+                if getattr(self, attr) is not None:
+                    raise ViewError(self.name(attr), "cannot be combined with K")
+            K = _matrix(self.K, self.name("K"), 3, 3)
+            if abs(K[0, 1]) > STRUCT_TOL or abs(K[1, 0]) > STRUCT_TOL or np.any(np.abs(K[2] - [0, 0, 1]) > STRUCT_TOL):
+                raise ViewError(self.name("K"), "must be [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] (no skew)")
+            fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+            names = dict.fromkeys(("fx", "fy", "cx", "cy"), self.name("K"))
+        else:
+            names = {k: self.name(k) for k in ("fx", "fy", "cx", "cy")}
+        if (fx is None) == (self.fov is None):
+            raise ViewError(self.name("fov"), "give exactly one of fx (focal length, pixels; with optional fy, cx, "
+                                              "cy) and fov (horizontal degrees)")
+        if self.fov is not None:
+            for key, v in (("fy", fy), ("cx", cx), ("cy", cy)):
+                if v is not None:
+                    raise ViewError(names[key], "cannot be combined with fov (square pixels, centred principal "
+                                                "point)")
+            fx = fy = W / (2.0 * math.tan(math.radians(self._fov()) / 2.0))
+        else:
+            fx = _number(fx, names["fx"])
+            fy = fx if fy is None else _number(fy, names["fy"])
+            for key, v in (("fx", fx), ("fy", fy)):
+                if v <= 0:
+                    raise ViewError(names[key], f"focal length must be > 0 pixels (got {v})")
+        # OpenCV pixel centres: column u's centre is at x = u, so the image centre is ((W-1)/2, (H-1)/2).
+        cx = (W - 1) / 2.0 if cx is None else _number(cx, names["cx"])
+        cy = (H - 1) / 2.0 if cy is None else _number(cy, names["cy"])
+        K = pinhole_K(fx, fy, cx, cy)
+        return _camera(lambda: Camera(K=K, cam_to_ego=T, width=W, height=H), dict(fields, K=names["fx"]))
+
+    def _fov(self) -> float:
+        deg = _number(self.fov, self.name("fov"))
         if not 0.0 < deg < 180.0:
-            raise ViewError(fields["fov"], f"must be a horizontal field of view in (0, 180) degrees (got {deg})")
-        fx = fy = W / (2.0 * math.tan(math.radians(deg) / 2.0))
-    else:
-        fx = _number(fx, fields["fx"])
-        fy = fx if fy is None else _number(fy, fields["fy"])
-        for key, v in (("fx", fx), ("fy", fy)):
-            if v <= 0:
-                raise ViewError(fields[key], f"focal length must be > 0 pixels (got {v})")
-    # OpenCV pixel centres: column u's centre is at x = u, so the image centre is ((W-1)/2, (H-1)/2).
-    cx = (W - 1) / 2.0 if cx is None else _number(cx, fields["cx"])
-    cy = (H - 1) / 2.0 if cy is None else _number(cy, fields["cy"])
-    K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
-    return _camera(lambda: PinholeCamera(K, T, W, H),
-                   {"cam_to_world": fields["cam_to_ego"], "K": fields["fx"], "width": fields["width"],
-                    "height": fields["height"], "*": fields["cam_to_ego"]})
+            raise ViewError(self.name("fov"), f"must be a horizontal field of view in (0, 180) degrees (got {deg})")
+        return deg
+
+    def _carla(self, carla: Mapping[str, Any]) -> Camera:
+        missing = [k for k in CARLA_KEYS if carla.get(k) is None] + [k for k in ("fov", "width", "height")
+                                                                     if getattr(self, k) is None]
+        if missing:
+            raise ViewError(self.name(missing[0]), f"a CARLA pose needs x, y, z, pitch, yaw, roll, fov, width, "
+                                                   f"height; missing {', '.join(missing)}")
+        pose = {k: _number(carla[k], self.name(k)) for k in CARLA_KEYS}
+        deg = self._fov()
+        W, H = self._size("width"), self._size("height")
+        sensor = {"transform": {"location": {k: pose[k] for k in ("x", "y", "z")},
+                                "rotation": {k: pose[k] for k in ("pitch", "yaw", "roll")}},
+                  "fov": deg, "image_size_x": W, "image_size_y": H}
+        try:
+            cam = convert.camera_from_carla(sensor)
+        except convert.ConversionError as e:  # not expected: every number was checked above
+            raise _from_conversion(e, self.name("fov")) from None
+        return rig_camera(cam)
 
 
-_OPENCV_FIELDS = {k: k for k in ("cam_to_ego", "width", "height", "fx", "fy", "cx", "cy", "fov")}
-
-
-def camera_from_opencv(cam_to_ego, width, height, fx=None, fy=None, cx=None, cy=None, fov=None) -> PinholeCamera:
-    """A pinhole camera in the project's convention.
-
-    cam_to_ego: 16 numbers row-major or [4, 4]: OpenCV camera (x right, y down, z forward) -> ego (x forward,
-    y left, z up), metres; validated (bottom row [0, 0, 0, 1], orthonormal rotation with det +1 to 1e-4) and
-    kept as given. width, height: pixels, integers in 1..16384.
-    Intrinsics, exactly one of:
-    - fx pixels (fy defaults to fx; cx, cy default to the image centre ((W-1)/2, (H-1)/2), OpenCV pixel centres:
-      pixel u's centre is at x = u);
-    - fov: HORIZONTAL field of view in degrees, in (0, 180): fx = fy = W / (2 tan(fov/2)), principal point at
-      the image centre (fy, cx, cy must then be absent).
+def camera_from_opencv(cam_to_ego, width, height, fx=None, fy=None, cx=None, cy=None, fov=None) -> Camera:
+    """A pinhole camera in the project's convention (ViewSpec's cam_to_ego pose): cam_to_ego 16 numbers row-major
+    or [4, 4], OpenCV camera -> ego, metres, validated (bottom row, orthonormal rotation with det +1) and kept as
+    given; width, height pixels in 1..16384; exactly one of fx [fy cx cy] (pixels) and fov (horizontal degrees).
     Errors: ViewError naming the argument ("cam_to_ego", "width", "fov", "fx", ...)."""
-    return _opencv(cam_to_ego, width, height, fx, fy, cx, cy, fov, fields=_OPENCV_FIELDS)
+    return ViewSpec(cam_to_ego=cam_to_ego, width=width, height=height, fx=fx, fy=fy, cx=cx, cy=cy,
+                    fov=fov).resolve_camera()
 
 
-def _carla(loc, rot, fov, width, height, fields: Mapping[str, str]) -> PinholeCamera:
-    xyz = {k: _number(v, fields[k]) for k, v in zip(("x", "y", "z"), loc)}
-    pyr = {k: _number(v, fields[k]) for k, v in zip(("pitch", "yaw", "roll"), rot)}
-    deg = _number(fov, fields["fov"])
-    if not 0.0 < deg < 180.0:
-        raise ViewError(fields["fov"], f"must be a horizontal field of view in (0, 180) degrees (got {deg})")
-    W, H = _size(width, fields["width"]), _size(height, fields["height"])
-    sensor = {"transform": {"location": xyz, "rotation": pyr}, "fov": deg, "image_size_x": W, "image_size_y": H}
-    try:
-        cam = convert.camera_from_carla(sensor)
-    except convert.ConversionError as e:  # not expected: every number was checked above
-        raise _from_conversion(e, fields["fov"]) from None
-    return rig_camera(cam)
-
-
-def camera_from_carla_pose(x, y, z, pitch, yaw, roll, fov, width, height) -> PinholeCamera:
+def camera_from_carla_pose(x, y, z, pitch, yaw, roll, fov, width, height) -> Camera:
     """A CARLA camera sensor's transform relative to its vehicle (CARLA's left-handed axes: x forward, y right,
     z up, metres; pitch (up +), yaw (right +), roll degrees), fov = horizontal degrees, width x height pixels
     (CARLA's image_size_x / image_size_y) -> pinhole camera in the ego frame. The conversion is
     runtime.convert.camera_from_carla (the project's one CARLA converter; docs/conventions.md derives it): f =
     W / (2 tan(fov/2)) for x and y, principal point ((W-1)/2, (H-1)/2). Errors: ViewError naming the argument."""
-    fields = {k: k for k in ("x", "y", "z", "pitch", "yaw", "roll", "fov", "width", "height")}
-    return _carla((x, y, z), (pitch, yaw, roll), fov, width, height, fields)
+    carla = dict(zip(CARLA_KEYS, (x, y, z, pitch, yaw, roll)))
+    return ViewSpec(carla=carla, fov=fov, width=width, height=height).resolve_camera()
 
 
-def _rig(rig: Rig, name, width, height, fields: Mapping[str, str]):
-    if not isinstance(name, str) or name not in rig.names:
-        raise ViewError(fields["camera"], f"no camera {_short(name)} in the scene's rig "
-                                          f"(cameras: {', '.join(rig.names)})")
-    cam = rig.camera(name)
-    w = None if width is None else _size(width, fields["width"])
-    h = None if height is None else _size(height, fields["height"])
-    if w is not None and h is None:   # one side given: the other follows the camera's aspect ratio
-        h = _size(max(1, round(w * cam.height / cam.width)), fields["width"])
-    elif h is not None and w is None:
-        w = _size(max(1, round(h * cam.width / cam.height)), fields["height"])
-    return rig_camera(cam, width=w, height=h)
-
-
-def camera_from_rig(rig: Rig, name: str, width: int | None = None, height: int | None = None
-                    ) -> PinholeCamera | EquirectCamera:
+def camera_from_rig(rig: Rig, name: str, width: int | None = None, height: int | None = None) -> Camera:
     """The scene rig's input camera ``name`` as a render camera (runtime.scene.rig_camera: pinhole K and pose,
-    distortion ignored; equirectangular cameras stay equirectangular), optionally at width x height pixels (K
-    scaled with the pixel-centre convention of rig.Camera.resized). Only one of width / height given: the other
+    distortion dropped; equirectangular cameras stay equirectangular), optionally at width x height pixels (K
+    scaled with the pixel-centre convention of Camera.resized). Only one of width / height given: the other
     follows the camera's aspect ratio (rounded). Unknown name -> ViewError("camera", "no camera 'x' in the
     scene's rig (cameras: a, b)")."""
-    return _rig(rig, name, width, height, {"camera": "camera", "width": "width", "height": "height"})
+    return ViewSpec(camera=name, width=width, height=height).resolve_camera(rig)
 
 
 # ------------------------------------------------------------------------------------------- batches
@@ -242,45 +335,40 @@ def _only(item: Mapping[str, Any], allowed: tuple[str, ...], where: str, kind: s
             raise ViewError(f"{where}.{key}", f"unknown field ({kind} takes {', '.join(allowed)})")
 
 
-def _batch_item(item: Any, where: str, rig: Rig | None):
+def spec_from_item(item: Any, where: str) -> ViewSpec:
+    """The ViewSpec of one batch item (cameras_from_batch states the item kinds); ``where`` is its JSON path
+    ("cameras[2]"), the prefix of every error's field."""
     if not isinstance(item, Mapping):
         raise ViewError(where, f"must be an object: {_ITEM_KINDS}")
     if "camera" in item:
         _only(item, _RIG_KEYS, where, "an input camera")
-        if rig is None:
-            raise ViewError(f"{where}.camera", "input cameras need a scene's rig (none given)")
-        return _rig(rig, item["camera"], item.get("width"), item.get("height"),
-                    {k: f"{where}.{k}" for k in ("camera", "width", "height")})
+        return ViewSpec(camera=item["camera"], width=item.get("width"), height=item.get("height"),
+                        names={k: f"{where}.{k}" for k in ("camera", "width", "height")})
     if "transform" in item:   # a CARLA sensor; its other blueprint attributes (sensor_tick, ...) are ignored
         tf = item["transform"]
         if not isinstance(tf, Mapping):
             raise ViewError(f"{where}.transform", 'must be {"location": {x, y, z}, "rotation": {pitch, yaw, roll}}')
         loc = _get(tf, "location", f"{where}.transform")
         rot = _get(tf, "rotation", f"{where}.transform")
-        for key, sub, names in (("location", loc, "x, y, z"), ("rotation", rot, "pitch, yaw, roll")):
+        for key, sub, keys in (("location", loc, "x, y, z"), ("rotation", rot, "pitch, yaw, roll")):
             if not isinstance(sub, Mapping):
-                raise ViewError(f"{where}.transform.{key}", f"must be an object {{{names}}}")
-        fields = {k: f"{where}.transform.location.{k}" for k in ("x", "y", "z")}
-        fields.update({k: f"{where}.transform.rotation.{k}" for k in ("pitch", "yaw", "roll")})
-        fields.update(fov=f"{where}.fov", width=f"{where}.image_size_x", height=f"{where}.image_size_y")
-        return _carla([_get(loc, k, f"{where}.transform.location") for k in ("x", "y", "z")],
-                      [_get(rot, k, f"{where}.transform.rotation") for k in ("pitch", "yaw", "roll")],
-                      _get(item, "fov", where), _get(item, "image_size_x", where),
-                      _get(item, "image_size_y", where), fields)
-    fields = {k: f"{where}.{k}" for k in ("cam_to_ego", "width", "height", "fov")}
+                raise ViewError(f"{where}.transform.{key}", f"must be an object {{{keys}}}")
+        names = {k: f"{where}.transform.location.{k}" for k in ("x", "y", "z")}
+        names.update({k: f"{where}.transform.rotation.{k}" for k in ("pitch", "yaw", "roll")})
+        names.update(fov=f"{where}.fov", width=f"{where}.image_size_x", height=f"{where}.image_size_y")
+        carla = {k: _get(loc, k, f"{where}.transform.location") for k in ("x", "y", "z")}
+        carla.update({k: _get(rot, k, f"{where}.transform.rotation") for k in ("pitch", "yaw", "roll")})
+        return ViewSpec(carla=carla, fov=_get(item, "fov", where), width=_get(item, "image_size_x", where),
+                        height=_get(item, "image_size_y", where), names=names)
+    names = {k: f"{where}.{k}" for k in ("cam_to_ego", "width", "height", "fov", "K")}
     if "K" in item:
         _only(item, _OPENCV_K_KEYS, where, "an OpenCV camera with K")
-        K = _matrix(item["K"], f"{where}.K", 3, 3)
-        if abs(K[0, 1]) > STRUCT_TOL or abs(K[1, 0]) > STRUCT_TOL or np.any(np.abs(K[2] - [0, 0, 1]) > STRUCT_TOL):
-            raise ViewError(f"{where}.K", "must be [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] (no skew)")
-        fields.update({k: f"{where}.K" for k in ("fx", "fy", "cx", "cy")})
-        return _opencv(_get(item, "cam_to_ego", where), _get(item, "width", where), _get(item, "height", where),
-                       fx=K[0, 0], fy=K[1, 1], cx=K[0, 2], cy=K[1, 2], fields=fields)
+        return ViewSpec(cam_to_ego=_get(item, "cam_to_ego", where), K=item["K"], width=_get(item, "width", where),
+                        height=_get(item, "height", where), names=names)
     if "fov" in item:
         _only(item, _OPENCV_FOV_KEYS, where, "an OpenCV camera with fov")
-        fields.update({k: f"{where}.{k}" for k in ("fx", "fy", "cx", "cy")})
-        return _opencv(_get(item, "cam_to_ego", where), _get(item, "width", where), _get(item, "height", where),
-                       fov=item["fov"], fields=fields)
+        return ViewSpec(cam_to_ego=_get(item, "cam_to_ego", where), fov=item["fov"],
+                        width=_get(item, "width", where), height=_get(item, "height", where), names=names)
     raise ViewError(where, f"expected one of {_ITEM_KINDS}")
 
 
@@ -290,7 +378,7 @@ def _check_count(field: str, n: int, max_frames: int | None) -> None:
 
 
 def cameras_from_batch(doc: Mapping[str, Any], rig: Rig | None = None, max_frames: int | None = None
-                       ) -> list[PinholeCamera | EquirectCamera]:
+                       ) -> list[Camera]:
     """The cameras of a batch request (all in the ego frame), in order. ``doc`` is either
 
     (a) {"cameras": [item, ...]}, each item one of
@@ -326,7 +414,7 @@ def cameras_from_batch(doc: Mapping[str, Any], rig: Rig | None = None, max_frame
     if not isinstance(items, (list, tuple)) or not items:
         raise ViewError("cameras", f"must be a non-empty list (got {_short(items)})")
     _check_count("cameras", len(items), max_frames)
-    return [_batch_item(item, f"cameras[{i}]", rig) for i, item in enumerate(items)]
+    return [spec_from_item(item, f"cameras[{i}]").resolve_camera(rig) for i, item in enumerate(items)]
 
 
 # ------------------------------------------------------------------------------------------- requests
@@ -336,14 +424,16 @@ def cameras_from_batch(doc: Mapping[str, Any], rig: Rig | None = None, max_frame
 class ViewRequest:
     """One view to render and how to encode it. Compare requests with key() (the camera holds arrays)."""
 
-    camera: PinholeCamera | EquirectCamera   # ego frame: cam_to_world = OpenCV camera -> ego, metres
+    camera: Camera   # a render camera (runtime.camera; undistorted), ego frame: cam_to_ego, metres
     output: str = "rgb"      # rgb | depth | alpha
     format: str = "png"      # png | jpeg | exr (jpeg cannot hold depth)
     quality: int = 90        # JPEG quality 1..100 (kept, and part of key(), for every format)
 
     def __post_init__(self) -> None:
-        if not isinstance(self.camera, (PinholeCamera, EquirectCamera)):
-            raise ViewError("camera", f"expected a PinholeCamera or EquirectCamera, got {type(self.camera).__name__}")
+        if not isinstance(self.camera, Camera):
+            raise ViewError("camera", f"expected a runtime.camera.Camera, got {type(self.camera).__name__}")
+        if self.camera.distortion is not None:
+            raise ViewError("camera", "the renderer draws undistorted cameras only (drop the distortion)")
         if not isinstance(self.output, str) or self.output not in OUTPUTS:
             raise ViewError("output", f"must be one of {', '.join(OUTPUTS)} (got {_short(self.output)})")
         if not isinstance(self.format, str) or self.format not in FORMATS:
@@ -352,6 +442,8 @@ class ViewRequest:
         if isinstance(q, (bool, np.bool_)) or not isinstance(q, (int, np.integer)) or not 1 <= int(q) <= 100:
             raise ViewError("quality", f"must be an integer in 1..100 (got {_short(q)})")
         object.__setattr__(self, "quality", int(q))
+        if self.output == "all" and self.format != "exr":
+            raise ViewError("output", "all (R G B A Z float32 channels) needs format exr")
         if self.format == "jpeg" and self.output == "depth":
             raise ViewError("format", "jpeg cannot hold depth (8-bit, lossy): use png (16-bit millimetres) or exr "
                                       "(float32 metres)")
@@ -371,16 +463,16 @@ class ViewRequest:
         return self.camera.width * self.camera.height
 
     def description(self) -> dict[str, Any]:
-        """The canonical description key() hashes: camera type, K (None for equirectangular) and cam_to_world
+        """The canonical description key() hashes: camera model, K (None for equirectangular) and cam_to_ego
         (row-major, rounded to 1e-9, -0.0 written as 0.0), width, height, output, format, quality."""
         c = self.camera
 
         def rounded(a) -> list[float]:
             return [float(x) + 0.0 for x in np.round(np.asarray(a, np.float64), KEY_DECIMALS).ravel()]
 
-        pinhole = isinstance(c, PinholeCamera)
-        return {"v": KEY_VERSION, "camera": "pinhole" if pinhole else "equirectangular",
-                "K": rounded(c.K) if pinhole else None, "cam_to_world": rounded(c.cam_to_world),
+        pinhole = not c.is_equirect
+        return {"v": KEY_VERSION, "camera": c.model,
+                "K": rounded(c.K) if pinhole else None, "cam_to_ego": rounded(c.cam_to_ego),
                 "width": c.width, "height": c.height, "output": self.output, "format": self.format,
                 "quality": self.quality}
 
@@ -591,11 +683,14 @@ def encode_view(rgb, depth, alpha, request: ViewRequest) -> bytes:
              optimisation), exr float32 channels R G B (as rendered, not clipped);
     - depth: png 16-bit grey millimetres (depth_to_mm16: 0 = no surface, saturates at 65.535 m; Up), exr
              float32 channel Z metres;
-    - alpha: png (Sub filter) / jpeg 8-bit grey (round(255 a)), exr float32 channel A."""
+    - alpha: png (Sub filter) / jpeg 8-bit grey (round(255 a)), exr float32 channel A;
+    - all:   exr float32 channels R G B A Z (all three arrays needed)."""
     H, W = request.camera.height, request.camera.width
     out, fmt = request.output, request.format
     if out == "rgb":
         a = _plane(rgb, "rgb", (H, W, 3))
+    elif out == "all":
+        a = np.dstack([_plane(rgb, "rgb", (H, W, 3)), _plane(alpha, "alpha", (H, W)), _plane(depth, "depth", (H, W))])
     else:
         a = _plane(depth if out == "depth" else alpha, out, (H, W))
     if fmt == "exr":
@@ -627,6 +722,7 @@ __all__ = [
     "PNG_FILTERS",
     "ViewError",
     "ViewRequest",
+    "ViewSpec",
     "camera_from_carla_pose",
     "camera_from_opencv",
     "camera_from_rig",
@@ -635,4 +731,5 @@ __all__ = [
     "encode_png",
     "encode_view",
     "render_request",
+    "spec_from_item",
 ]

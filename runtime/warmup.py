@@ -101,7 +101,7 @@ def tiny_scene():
 def view_requests(scene) -> list:
     """The warm-up views (runtime.views.ViewRequest): a pinhole pose in every output and format, an input camera of
     the rig, and an equirectangular view."""
-    from .render import EquirectCamera
+    from .camera import Camera
     from .views import ViewRequest, camera_from_opencv, camera_from_rig
 
     pin = camera_from_opencv(_FRONT, VIEW_W, VIEW_H, fov=70.0)
@@ -110,7 +110,7 @@ def view_requests(scene) -> list:
     reqs = [ViewRequest(pin, out, fmt) for out, fmt in (("rgb", "png"), ("rgb", "jpeg"), ("rgb", "exr"),
                                                         ("depth", "png"), ("depth", "exr"), ("alpha", "png"))]
     reqs.append(ViewRequest(camera_from_rig(scene.rig, "WARM_LEFT", width=VIEW_W)))
-    reqs.append(ViewRequest(EquirectCamera(T, 2 * VIEW_W, VIEW_W)))
+    reqs.append(ViewRequest(Camera(model="equirectangular", cam_to_ego=T, width=2 * VIEW_W, height=VIEW_W)))
     return reqs
 
 

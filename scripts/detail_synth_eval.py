@@ -38,10 +38,11 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from xyzcyl.runtime.camera import Camera
 from xyzcyl.runtime.detail import DetailOptions
 from xyzcyl.runtime.inference import Reconstructor, default_model_dir
 from xyzcyl.runtime.realeval import image_metrics, psnr
-from xyzcyl.runtime.rig import Camera, Rig, read_image
+from xyzcyl.runtime.rig import Rig, read_image
 from xyzcyl.runtime.scene import render_view, rig_camera
 from xyzcyl.runtime.views import camera_from_opencv
 

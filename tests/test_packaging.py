@@ -50,7 +50,8 @@ def test_cli_help_is_fast_and_torch_free():
 
 
 def test_cli_commands_resolve():
-    from xyzcyl.clients import cli
     import importlib.util
+
+    from xyzcyl.clients import cli
     for cmd in cli.COMMANDS:
         assert importlib.util.find_spec(cmd.module) is not None, f"{cmd.name}: {cmd.module} missing"

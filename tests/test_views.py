@@ -10,8 +10,9 @@ import cv2
 import numpy as np
 import pytest
 from xyzcyl.runtime import convert
-from xyzcyl.runtime.render import EquirectCamera, Gaussians, PinholeCamera
-from xyzcyl.runtime.rig import Camera, Rig, look_rotation
+from xyzcyl.runtime.camera import Camera
+from xyzcyl.runtime.render import Gaussians
+from xyzcyl.runtime.rig import Rig, look_rotation
 from xyzcyl.runtime.scene import Scene, render_view, rig_camera
 from xyzcyl.runtime.views import (
     ViewError,
@@ -65,7 +66,7 @@ def test_opencv_K_and_pose_reach_the_camera_exactly():
     T = _pose(37.0, 3.0, (0.1, 0.2, 0.3))
     for pose in (T.ravel().tolist(), T.tolist(), T):
         cam = camera_from_opencv(pose, 321, 123, fx=211.25, fy=207.5, cx=160.25, cy=60.75)
-        np.testing.assert_array_equal(cam.cam_to_world, T)
+        np.testing.assert_array_equal(cam.cam_to_ego, T)
         np.testing.assert_array_equal(cam.K, [[211.25, 0, 160.25], [0, 207.5, 60.75], [0, 0, 1]])
     cam = camera_from_opencv(T, 100, 50, fx=80.0)   # fy = fx, principal point at the OpenCV image centre
     np.testing.assert_array_equal(cam.K, [[80.0, 0, 49.5], [0, 80.0, 24.5], [0, 0, 1]])
@@ -112,19 +113,19 @@ def test_carla_pose_is_convert_camera_from_carla(pose):
                                                    "rotation": {"pitch": pitch, "yaw": yaw, "roll": roll}},
                                      "fov": 85.0, "image_size_x": 800, "image_size_y": 450})
     np.testing.assert_array_equal(cam.K, ref.K)
-    np.testing.assert_array_equal(cam.cam_to_world, ref.cam_to_ego)
-    assert isinstance(cam, PinholeCamera) and (cam.width, cam.height) == (800, 450)
+    np.testing.assert_array_equal(cam.cam_to_ego, ref.cam_to_ego)
+    assert isinstance(cam, Camera) and (cam.width, cam.height) == (800, 450)
 
 
 def test_carla_forward_camera_looks_along_ego_x():
     cam = camera_from_carla_pose(1.5, 0.5, 1.7, 0, 0, 0, 90, 640, 480)
-    R = cam.cam_to_world[:3, :3]
+    R = cam.cam_to_ego[:3, :3]
     np.testing.assert_allclose(R[:, 2], [1, 0, 0], atol=1e-12)    # optical axis (OpenCV z) = ego forward
     np.testing.assert_allclose(R[:, 0], [0, -1, 0], atol=1e-12)   # image right = ego right (-y)
     np.testing.assert_allclose(R[:, 1], [0, 0, -1], atol=1e-12)   # image down = ego down
-    np.testing.assert_allclose(cam.cam_to_world[:3, 3], [1.5, -0.5, 1.7])   # CARLA y right -> ego -y
+    np.testing.assert_allclose(cam.cam_to_ego[:3, 3], [1.5, -0.5, 1.7])   # CARLA y right -> ego -y
     right = camera_from_carla_pose(0, 0, 0, 0, 90, 0, 90, 640, 480)   # CARLA yaw + turns right
-    np.testing.assert_allclose(right.cam_to_world[:3, 2], [0, -1, 0], atol=1e-12)
+    np.testing.assert_allclose(right.cam_to_ego[:3, 2], [0, -1, 0], atol=1e-12)
     assert right.K[0, 0] == pytest.approx(320.0)
 
 
@@ -145,7 +146,7 @@ def test_camera_from_rig_and_resizing():
     cam = camera_from_rig(rig, "CAM_BACK")
     ref = rig_camera(rig.camera("CAM_BACK"))
     np.testing.assert_array_equal(cam.K, ref.K)
-    np.testing.assert_array_equal(cam.cam_to_world, ref.cam_to_world)
+    np.testing.assert_array_equal(cam.cam_to_ego, ref.cam_to_ego)
     half = camera_from_rig(rig, "CAM_BACK", width=100)   # height follows the aspect ratio
     assert (half.width, half.height) == (100, 50)
     np.testing.assert_allclose(half.K, rig_camera(rig.camera("CAM_BACK"), width=100, height=50).K)
@@ -181,13 +182,13 @@ def _camera_path() -> dict:
 
 def test_camera_path_flips_opengl_to_opencv_and_uses_vertical_fov():
     cams = cameras_from_batch(_camera_path())
-    assert len(cams) == 2 and all(isinstance(c, PinholeCamera) for c in cams)
+    assert len(cams) == 2 and all(isinstance(c, Camera) for c in cams)
     a, b = cams
-    np.testing.assert_array_equal(a.cam_to_world[:3, 2], [1, 0, 0])    # OpenCV z = ego +x (GL -z)
-    np.testing.assert_array_equal(a.cam_to_world[:3, 1], [0, 0, -1])   # OpenCV y (down) = -GL y (up)
-    np.testing.assert_array_equal(a.cam_to_world[:3, 0], [0, -1, 0])
-    np.testing.assert_array_equal(a.cam_to_world[:3, 3], [1, 2, 3])
-    np.testing.assert_array_equal(b.cam_to_world[:3, 2], [0, 1, 0])
+    np.testing.assert_array_equal(a.cam_to_ego[:3, 2], [1, 0, 0])    # OpenCV z = ego +x (GL -z)
+    np.testing.assert_array_equal(a.cam_to_ego[:3, 1], [0, 0, -1])   # OpenCV y (down) = -GL y (up)
+    np.testing.assert_array_equal(a.cam_to_ego[:3, 0], [0, -1, 0])
+    np.testing.assert_array_equal(a.cam_to_ego[:3, 3], [1, 2, 3])
+    np.testing.assert_array_equal(b.cam_to_ego[:3, 2], [0, 1, 0])
     f = 30.0 / math.tan(math.radians(25.0))   # (H/2) / tan(vertical fov / 2), square pixels
     np.testing.assert_allclose(a.K, [[f, 0, 39.5], [0, f, 29.5], [0, 0, 1]], rtol=1e-15)
     assert math.degrees(2 * math.atan(60 / (2 * b.K[1, 1]))) == pytest.approx(30.0)
@@ -221,8 +222,8 @@ def test_camera_path_equirectangular():
     doc = _camera_path()
     doc["camera_type"] = "equirectangular"
     cams = cameras_from_batch(doc)
-    assert all(isinstance(c, EquirectCamera) for c in cams)
-    np.testing.assert_array_equal(cams[0].cam_to_world[:3, 2], [1, 0, 0])
+    assert all(isinstance(c, Camera) for c in cams)
+    np.testing.assert_array_equal(cams[0].cam_to_ego[:3, 2], [1, 0, 0])
     out = convert.cameras_to_nerfstudio_path(convert.cameras_from_nerfstudio_path(doc))
     assert out["camera_type"] == "equirectangular" and "fov" not in out["camera_path"][0]
 
@@ -273,11 +274,11 @@ def test_batch_accepts_each_item_kind():
     ref_k = camera_from_opencv(T, 300, 160, fx=200.0, fy=190.0, cx=150.0, cy=80.0)
     for c in cams[:2]:
         np.testing.assert_array_equal(c.K, ref_k.K)
-        np.testing.assert_array_equal(c.cam_to_world, T)
+        np.testing.assert_array_equal(c.cam_to_ego, T)
     np.testing.assert_array_equal(cams[2].K, camera_from_opencv(T, 320, 240, fov=60).K)
     ref_carla = camera_from_carla_pose(1.0, 0.5, 1.8, -5, 20, 0, 70, 320, 180)
     np.testing.assert_array_equal(cams[3].K, ref_carla.K)
-    np.testing.assert_array_equal(cams[3].cam_to_world, ref_carla.cam_to_world)
+    np.testing.assert_array_equal(cams[3].cam_to_ego, ref_carla.cam_to_ego)
     np.testing.assert_array_equal(cams[4].K, camera_from_rig(rig, "CAM_BACK").K)
     assert (cams[5].width, cams[5].height) == (80, 45)
 
@@ -344,8 +345,12 @@ def test_request_validation_and_media_types():
             ViewRequest(cam, **kwargs)
         assert _field(ei) == field
     with pytest.raises(ViewError) as ei:
-        ViewRequest(_rig().camera("CAM_FRONT"))   # a rig Camera, not a render camera
+        ViewRequest("CAM_FRONT")   # a name, not a camera
     assert _field(ei) == "camera"
+    with pytest.raises(ViewError) as ei:       # the renderer draws undistorted cameras only
+        ViewRequest(_rig().camera("CAM_FRONT").replace(distortion=(0.1, 0.0, 0.0, 0.0)))
+    assert _field(ei) == "camera"
+    ViewRequest(_rig().camera("CAM_FRONT"))    # one camera type: a rig's camera renders as it is
 
 
 def test_key_is_stable_and_changes_with_every_field():
@@ -365,7 +370,7 @@ def test_key_is_stable_and_changes_with_every_field():
     others = [req(W=65, format="jpeg"), req(H=47, format="jpeg"), req(output="alpha", format="jpeg"),
               req(format="png"), req(format="jpeg", quality=91),
               ViewRequest(camera_from_opencv(T, 64, 48, fx=50.0, fy=51.0, cx=31.5, cy=23.25), format="jpeg"),
-              ViewRequest(EquirectCamera(T, 64, 48), format="jpeg")]
+              ViewRequest(Camera(model="equirectangular", cam_to_ego=T, width=64, height=48), format="jpeg")]
     for i in range(3):   # every rotation and translation entry (1e-6 stays within the 1e-4 orthonormality test)
         for j in range(4):
             moved = T.copy()

@@ -23,40 +23,13 @@ from __future__ import annotations
 
 import json
 import math
-from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 import numpy as np
+from xyzcyl.runtime.camera import Camera
+from xyzcyl.runtime.errors import RigError
 
 R0 = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
-
-
-@dataclass(frozen=True, eq=False)
-class CameraSpec:
-    """A pinhole camera: K [3,3] pixels (OpenCV, pixel centre at integer u), cam_to_ego [4,4] (OpenCV camera)."""
-
-    name: str
-    width: int
-    height: int
-    K: np.ndarray
-    cam_to_ego: np.ndarray
-    extra: tuple[tuple[str, Any], ...] = ()
-
-    def to_dict(self, **files: str) -> dict:
-        d = {"name": self.name, **files, "width": self.width, "height": self.height,
-             "K": np.round(self.K, 9).tolist(), "cam_to_ego": np.round(self.cam_to_ego, 9).tolist(),
-             "distortion": None, "model": "pinhole"}
-        d.update(dict(self.extra))
-        return d
-
-    @property
-    def hfov_deg(self) -> float:
-        return math.degrees(2 * math.atan(self.width / (2 * self.K[0, 0])))
-
-    @property
-    def vfov_deg(self) -> float:
-        return math.degrees(2 * math.atan(self.height / (2 * self.K[1, 1])))
 
 
 def rotation(yaw_deg: float, pitch_deg: float, roll_deg: float) -> np.ndarray:
@@ -138,22 +111,22 @@ CARLA_FOV = {"CAM_BACK": 110.0}  # others 70
 PRESETS = ("nuscenes", "carla-centric", "pandaset", "waymo", "once", "argoverse")
 
 
-def base_rig(name: str, width: int, height: int) -> list[CameraSpec]:
+def base_rig(name: str, width: int, height: int) -> list[Camera]:
     """The un-jittered cameras of a preset or of a rig JSON file (raises ValueError naming 'rig')."""
-    cams: list[CameraSpec] = []
+    cams: list[Camera] = []
     if name in ("nuscenes", "pandaset"):
         for n, x, y, z, yaw, pitch, roll, fxn, fyn, cxn, cyn in (NUSCENES if name == "nuscenes" else PANDASET):
-            cams.append(CameraSpec(n, width, height, K_scaled(fxn, fyn, cxn, cyn, width, height),
-                                   pose((x, y, z), yaw, pitch, roll)))
+            cams.append(Camera(name=n, width=width, height=height, K=K_scaled(fxn, fyn, cxn, cyn, width, height),
+                               cam_to_ego=pose((x, y, z), yaw, pitch, roll)))
     elif name == "carla-centric":
         for n, x, y, z, yaw, pitch, roll, *_ in NUSCENES:
-            cams.append(CameraSpec(n, width, height, K_from_fov(CARLA_FOV.get(n, 70.0), width, height),
-                                   pose((x, y, z), yaw, 0.0, 0.0)))
+            cams.append(Camera(name=n, width=width, height=height, K=K_from_fov(CARLA_FOV.get(n, 70.0), width, height),
+                               cam_to_ego=pose((x, y, z), yaw, 0.0, 0.0)))
     elif name in ("waymo", "once", "argoverse"):
         table = {"waymo": WAYMO, "once": ONCE, "argoverse": ARGOVERSE}[name]
         for n, x, y, z, yaw, pitch, roll, hfov in table:
-            cams.append(CameraSpec(n, width, height, K_from_fov(hfov, width, height),
-                                   pose((x, y, z), yaw, pitch, roll)))
+            cams.append(Camera(name=n, width=width, height=height, K=K_from_fov(hfov, width, height),
+                               cam_to_ego=pose((x, y, z), yaw, pitch, roll)))
     else:
         path = Path(name)
         if not path.is_file():
@@ -169,13 +142,13 @@ def base_rig(name: str, width: int, height: int) -> list[CameraSpec]:
                 T = np.asarray(c["cam_to_ego"], float)
                 if T.shape != (4, 4) or K.shape != (3, 3):
                     raise ValueError(f"rig: camera #{i}: K must be 3x3 and cam_to_ego 4x4")
-                cams.append(CameraSpec(str(c.get("name", f"cam{i}")), width, height, Ks, T))
-        except (KeyError, TypeError, json.JSONDecodeError) as exc:
+                cams.append(Camera(name=str(c.get("name", f"cam{i}")), width=width, height=height, K=Ks, cam_to_ego=T))
+        except (KeyError, TypeError, json.JSONDecodeError, RigError) as exc:
             raise ValueError(f"rig: cannot read cameras from {name!r}: {exc}") from exc
     return cams
 
 
-def jitter(cams: list[CameraSpec], rng: np.random.Generator, pos_m: float = 0.02, ang_deg: float = 0.5):
+def jitter(cams: list[Camera], rng: np.random.Generator, pos_m: float = 0.02, ang_deg: float = 0.5):
     """Per-scene mount jitter: position +-pos_m (uniform per axis), rotation by yaw/pitch/roll +-ang_deg."""
     out = []
     for c in cams:
@@ -183,7 +156,7 @@ def jitter(cams: list[CameraSpec], rng: np.random.Generator, pos_m: float = 0.02
         a = rng.uniform(-ang_deg, ang_deg, 3)
         T[:3, :3] = T[:3, :3] @ _cam_small_rotation(a)  # small rotation about the camera's own axes
         T[:3, 3] += rng.uniform(-pos_m, pos_m, 3)
-        out.append(CameraSpec(c.name, c.width, c.height, c.K.copy(), T, c.extra))
+        out.append(c.replace(cam_to_ego=T))
     return out
 
 
@@ -196,7 +169,7 @@ def _cam_small_rotation(a_deg: np.ndarray) -> np.ndarray:
     return Ry @ Rx @ Rz
 
 
-def ego_forward_targets(cams: list[CameraSpec], lane_dir: np.ndarray, rng: np.random.Generator):
+def ego_forward_targets(cams: list[Camera], lane_dir: np.ndarray, rng: np.random.Generator):
     """The input rig moved back by U(1,3) m and forward by U(1,3) m along the lane (paper's T0 and T2)."""
     back, fwd = rng.uniform(1.0, 3.0), rng.uniform(1.0, 3.0)
     out = []
@@ -204,8 +177,7 @@ def ego_forward_targets(cams: list[CameraSpec], lane_dir: np.ndarray, rng: np.ra
         for c in cams:
             T = c.cam_to_ego.copy()
             T[:3, 3] += off * np.asarray(lane_dir, float)
-            out.append(CameraSpec(f"{c.name}_{tag}", c.width, c.height, c.K.copy(), T,
-                                  (("ego_offset_m", round(float(off), 6)),)))
+            out.append(c.replace(name=f"{c.name}_{tag}", cam_to_ego=T, extra={"ego_offset_m": round(float(off), 6)}))
     return out
 
 

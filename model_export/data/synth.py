@@ -10,12 +10,13 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
+from xyzcyl.runtime.camera import Camera
 from xyzcyl.runtime.imageio import write_exr
 from xyzcyl.runtime.rig import read_image
 
 from . import classes as C
 from .occupancy import PAPER_RANGE, OccupancyGrid, bev, occupancy
-from .rigs import CameraSpec, K_from_fov, base_rig, ego_forward_targets, inward_directions, jitter, look_at
+from .rigs import K_from_fov, base_rig, ego_forward_targets, inward_directions, jitter, look_at
 from .scene import GENERATOR_VERSION, Scene, SceneConfig, sample_scene
 from .trace import Grid, View, build_grid, point_inside, render_view, segment_blocked
 
@@ -80,14 +81,14 @@ class SynthConfig:
 @dataclass(eq=False)
 class SceneData:
     scene: Scene
-    inputs: list[CameraSpec]
+    inputs: list[Camera]
     input_views: list[View]
-    targets: dict[str, list[CameraSpec]] = field(default_factory=dict)
+    targets: dict[str, list[Camera]] = field(default_factory=dict)
     target_views: dict[str, list[View]] = field(default_factory=dict)
     occupancy: dict[str, np.ndarray] = field(default_factory=dict)  # tag -> semantic [X,Y,Z] uint8
 
 
-def inward_cameras(scene: Scene, grid: Grid, cfg: SynthConfig, rng: np.random.Generator) -> list[CameraSpec]:
+def inward_cameras(scene: Scene, grid: Grid, cfg: SynthConfig, rng: np.random.Generator) -> list[Camera]:
     """V cameras on a hemisphere around the ego car looking at its centre.
 
     A candidate is re-drawn (up to 40 times, random direction in the same elevation band) if its centre is
@@ -110,8 +111,8 @@ def inward_cameras(scene: Scene, grid: Grid, cfg: SynthConfig, rng: np.random.Ge
             a = rng.uniform(0, 2 * np.pi)
             z = rng.uniform(np.sin(np.radians(8)), np.sin(np.radians(70)))
             d = np.array([np.sqrt(1 - z * z) * np.cos(a), np.sqrt(1 - z * z) * np.sin(a), z])
-        out.append(CameraSpec(f"inward_{i:03d}", cfg.width, cfg.height, K, look_at(eye, centre),
-                              (("occluded", not ok),)))
+        out.append(Camera(name=f"inward_{i:03d}", width=cfg.width, height=cfg.height, K=K,
+                          cam_to_ego=look_at(eye, centre), extra={"occluded": not ok}))
     return out
 
 
@@ -122,9 +123,8 @@ def render_scene(cfg: SynthConfig, index: int) -> SceneData:
     rng = np.random.default_rng([int(cfg.seed), int(index), 0xCA3])
     cams = jitter(base_rig(cfg.rig, cfg.width, cfg.height), rng, cfg.jitter_pos_m, cfg.jitter_deg)
 
-    def draw(cs: list[CameraSpec], skip_ego: bool) -> list[View]:
-        return [render_view(scene, grid, c.K, c.cam_to_ego, c.width, c.height, cfg.supersample, skip_ego,
-                            cfg.shadows) for c in cs]
+    def draw(cs: list[Camera], skip_ego: bool) -> list[View]:
+        return [render_view(scene, grid, c, cfg.supersample, skip_ego, cfg.shadows) for c in cs]
 
     data = SceneData(scene, cams, draw(cams, True))
     for setting in cfg.targets:
@@ -158,7 +158,7 @@ def _write_png(path: Path, img: np.ndarray) -> None:
         raise OSError(f"cannot write {path}")
 
 
-def _write_views(folder: Path, sub: str, cams: list[CameraSpec], views: list[View]) -> list[dict]:
+def _write_views(folder: Path, sub: str, cams: list[Camera], views: list[View]) -> list[dict]:
     (folder / sub).mkdir(parents=True, exist_ok=True)
     out = []
     for c, v in zip(cams, views):
@@ -168,7 +168,7 @@ def _write_views(folder: Path, sub: str, cams: list[CameraSpec], views: list[Vie
         write_exr(folder / files["depth"], v.depth[..., None], ("Z",), compression="zip")   # lossless
         _write_png(folder / files["sky"], (v.sky * 255).astype(np.uint8))
         _write_png(folder / files["semantic"], v.semantic)
-        d = c.to_dict(image=files["image"], depth=files["depth"])
+        d = c.replace(image=files["image"], depth=files["depth"]).to_dict()
         d["sky"], d["semantic"] = files["sky"], files["semantic"]
         out.append(d)
     return out

@@ -20,14 +20,57 @@ from dataclasses import dataclass
 
 import numpy as np
 from numba import njit, prange
+from xyzcyl.runtime.camera import Camera
 
 from . import classes as C
 from .photos import NO_PHOTOS, photo_bank
-from .scene import (BOX, CYL, ELL, G_ASPH, G_COS, G_CSTYLE, G_DASH, G_HASX, G_LANEW, G_MARKCOL, G_NFWD,
-                    G_NLANES, G_PHOTO, G_PHOTO_L, G_PHOTO_TILE, G_SEED, G_SIN, G_TERR, G_UX, G_VD0, G_VL, G_VR,
-                    G_WX, G_XWALK, S_AMB, S_CLOUD, S_COFF, S_CSCALE, S_FOG, S_HORIZON, S_SUNCOL, S_SUNDIR,
-                    S_ZENITH, T_BARK, T_CARBODY, T_FACADE, T_FENCE, T_FOLIAGE, T_GLASS, T_PHOTO, T_SIDEWALK,
-                    T_SIGN, T_TLIGHT, Scene, primitive_bounds)
+from .scene import (
+    BOX,
+    CYL,
+    ELL,
+    G_ASPH,
+    G_COS,
+    G_CSTYLE,
+    G_DASH,
+    G_HASX,
+    G_LANEW,
+    G_MARKCOL,
+    G_NFWD,
+    G_NLANES,
+    G_PHOTO,
+    G_PHOTO_L,
+    G_PHOTO_TILE,
+    G_SEED,
+    G_SIN,
+    G_TERR,
+    G_UX,
+    G_VD0,
+    G_VL,
+    G_VR,
+    G_WX,
+    G_XWALK,
+    S_AMB,
+    S_CLOUD,
+    S_COFF,
+    S_CSCALE,
+    S_FOG,
+    S_HORIZON,
+    S_SUNCOL,
+    S_SUNDIR,
+    S_ZENITH,
+    T_BARK,
+    T_CARBODY,
+    T_FACADE,
+    T_FENCE,
+    T_FOLIAGE,
+    T_GLASS,
+    T_PHOTO,
+    T_SIDEWALK,
+    T_SIGN,
+    T_TLIGHT,
+    Scene,
+    primitive_bounds,
+)
 
 BIG = 1e30
 NO_HIT = -1
@@ -714,9 +757,11 @@ class View:
         return self.semantic == C.SKY
 
 
-def render_view(scene: Scene, grid: Grid, K: np.ndarray, cam_to_ego: np.ndarray, width: int, height: int,
-                ss: int = 2, skip_ego: bool = True, shadows: bool = True) -> View:
-    """Ray trace one pinhole camera (K [3,3] px, OpenCV; cam_to_ego [4,4]) of `scene`."""
+def render_view(scene: Scene, grid: Grid, camera: Camera, ss: int = 2, skip_ego: bool = True,
+                shadows: bool = True) -> View:
+    """Ray trace one pinhole camera (runtime.camera.Camera: K [3,3] px, OpenCV; cam_to_ego [4,4]; its distortion
+    is not traced) of `scene`."""
+    K, cam_to_ego, width, height = camera.K, camera.cam_to_ego, camera.width, camera.height
     rgb = np.empty((height, width, 3), np.uint8)
     depth = np.empty((height, width), np.float32)
     sem = np.empty((height, width), np.uint8)

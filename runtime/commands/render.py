@@ -1,7 +1,10 @@
 """`xyzcyl render PLY|SCENE_DIR ...`: render a 3DGS PLY (INRIA layout) or a scene folder (`xyzcyl reconstruct`:
-Gaussians composited over the scene's background panorama) from one camera pose to PNG (RGB) or EXR (float32
-channels R G B A Z; Z = expected depth in metres, 0 where A == 0). The pose: --K/--cam-to-world, or --camera NAME
-(an input camera of the scene's rig), optionally moved (--forward/--left/--up metres along ego x/y/z, --yaw degrees
+Gaussians composited over the scene's background panorama) from one camera pose. The view is stated as a
+runtime.views.ViewSpec and encoded by runtime.views.encode_view, exactly as the HTTP service does: --out .png /
+.jpg / .exr, --output rgb | depth | alpha (PNG depth: 16-bit millimetres; EXR: float32 metres), or for an .exr the
+default "all" (float32 channels R G B A Z; Z = expected depth in metres, 0 where A == 0). The pose: --K or --fov with
+--cam-to-world, --equirect with --cam-to-world, or --camera NAME (an input camera of the scene's rig), optionally
+moved (--forward/--left/--up metres along ego x/y/z, --yaw degrees
 to the left; runtime/commands/pose_flags.py, shared with `xyzcyl client render`). See docs/renderer.md and
 docs/inference.md."""
 
@@ -9,12 +12,10 @@ from __future__ import annotations
 
 import argparse
 import sys
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 
-from ..rig import RigError
 from .pose_flags import PoseArgError, add_matrix_argument, add_move_arguments, move_from_args, parse_matrix
 
 
@@ -26,15 +27,23 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "with --camera: resize that camera)")
     parser.add_argument("--height", type=int, default=None, help="image height, pixels (as --width)")
     parser.add_argument("--K", type=float, nargs=4, metavar=("FX", "FY", "CX", "CY"),
-                        help="pinhole intrinsics in pixels, OpenCV (pixel u is centred at x = u); required "
-                             "unless --equirect or --camera")
+                        help="pinhole intrinsics in pixels, OpenCV (pixel u is centred at x = u); this or --fov is "
+                             "required unless --equirect or --camera")
+    parser.add_argument("--fov", type=float, default=None, metavar="DEG",
+                        help="horizontal field of view in degrees, instead of --K (square pixels, centred "
+                             "principal point)")
     add_matrix_argument(parser, "--cam-to-world",
                         help="4x4 camera-to-world matrix (OpenCV camera: x right, y down, z forward); required "
                              "unless --camera")
     parser.add_argument("--camera", default=None, metavar="NAME",
                         help="SCENE_DIR only: render from this input camera of the scene's rig (its K, size, pose)")
-    parser.add_argument("--out", required=True, metavar="PATH", help="output .png (RGB, 8 bit) or .exr "
-                        "(float32 R G B A Z)")
+    parser.add_argument("--out", required=True, metavar="PATH",
+                        help="output file: .png, .jpg or .exr, encoded as the service encodes (docs/inference.md "
+                             "'Encodings')")
+    parser.add_argument("--output", choices=("rgb", "depth", "alpha", "all"), default=None,
+                        help="what to write: rgb (default for .png/.jpg), depth (PNG: 16-bit millimetres; EXR: "
+                             "float32 metres), alpha, or all (.exr only, the default there: R G B A Z)")
+    parser.add_argument("--quality", type=int, default=90, help="JPEG quality 1..100 (default 90)")
     parser.add_argument("--background", type=float, nargs=3, default=None, metavar=("R", "G", "B"),
                         help="background colour in 0..1 (default: the scene's background panorama for a "
                              "SCENE_DIR, black for a PLY)")
@@ -51,16 +60,25 @@ def _fail(msg: str) -> int:
     return 2
 
 
+# where each ViewSpec attribute comes from on this command line (its errors name the flag)
+FLAGS = {"camera": "--camera", "cam_to_ego": "--cam-to-world", "fx": "--K", "fy": "--K", "cx": "--K", "cy": "--K",
+         "K": "--K", "fov": "--fov", "model": "--equirect", "width": "--width", "height": "--height",
+         "output": "--output", "format": "--out", "quality": "--quality"}
+FORMATS = {".png": "png", ".jpg": "jpeg", ".jpeg": "jpeg", ".exr": "exr"}
+
+
 def run(args: argparse.Namespace) -> int:
-    from ..imageio import write_exr, write_png
-    from ..render import CameraError, EquirectCamera, GaussianError, Gaussians, PinholeCamera, render
+    from ..camera import CameraError
+    from ..files import atomic_file
+    from ..render import GaussianError, Gaussians, render
     from ..render.gaussians import DEFAULT_MAX_POINTS
-    from ..scene import JSON_NAME, Scene, SceneError, rig_camera
+    from ..scene import JSON_NAME, Scene, SceneError
+    from ..views import ViewError, ViewRequest, ViewSpec, encode_view
 
     out = Path(args.out)
-    suffix = out.suffix.lower()
-    if suffix not in (".png", ".exr"):
-        return _fail(f"--out: extension must be .png or .exr, got {out.suffix or 'none'!r}")
+    fmt = FORMATS.get(out.suffix.lower())
+    if fmt is None:
+        return _fail(f"--out: extension must be .png, .jpg or .exr, got {out.suffix or 'none'!r}")
     if not out.parent.is_dir():
         return _fail(f"--out: folder {str(out.parent)!r} does not exist")
     if args.background is not None and not all(np.isfinite(args.background)):
@@ -87,15 +105,15 @@ def run(args: argparse.Namespace) -> int:
     if args.camera is not None:
         if not is_scene:
             return _fail("--camera: needs a SCENE_DIR (a PLY has no rig); pass --K and --cam-to-world instead")
-        if args.cam_to_world is not None or args.K is not None or args.equirect:
-            return _fail("--camera: give either --camera or --K/--cam-to-world/--equirect, not both")
+        if args.cam_to_world is not None or args.K is not None or args.fov is not None or args.equirect:
+            return _fail("--camera: give either --camera or --K/--fov/--cam-to-world/--equirect, not both")
     else:
         if args.cam_to_world is None:
             return _fail("--cam-to-world: required (or --camera NAME with a SCENE_DIR)")
         if args.width is None or args.height is None:
             return _fail(f"--{'width' if args.width is None else 'height'}: required unless --camera")
-        if not args.equirect and args.K is None:
-            return _fail("--K: required for a pinhole camera (or pass --equirect)")
+        if not args.equirect and args.K is None and args.fov is None:
+            return _fail("--K: required for a pinhole camera (or --fov, or pass --equirect)")
     if is_scene and not (src / JSON_NAME).is_file():
         return _fail(f"SCENE_DIR: {str(src)!r} has no {JSON_NAME} (not a scene folder)")
     if not is_scene and not src.is_file():
@@ -110,29 +128,21 @@ def run(args: argparse.Namespace) -> int:
             g = Gaussians.load_ply(src, max_points=max_points)
     except (GaussianError, SceneError) as exc:
         return _fail(f"{what}: {exc}")
+    fx, fy, cx, cy = args.K if args.K is not None else (None,) * 4
+    output = args.output or ("all" if fmt == "exr" else "rgb")
+    spec = ViewSpec(camera=args.camera, cam_to_ego=None if c2w is None else move.apply(c2w), fx=fx, fy=fy, cx=cx,
+                    cy=cy, fov=args.fov, model="equirectangular" if args.equirect else "pinhole", width=args.width,
+                    height=args.height, output=output, format=fmt, quality=args.quality, names=FLAGS)
     try:
-        if args.camera is not None:
-            try:
-                rc = scene.rig.camera(args.camera)
-            except KeyError:
-                return _fail(f"--camera: no camera {args.camera!r} in the scene's rig (cameras: "
-                             f"{', '.join(scene.rig.names)})")
-            if move:
-                rc = replace(rc, cam_to_ego=move.apply(rc.cam_to_ego))
-            cam = rig_camera(rc, width=args.width, height=args.height)
-        else:
-            c2w = move.apply(c2w)
-            if args.equirect:
-                cam = EquirectCamera(c2w, args.width, args.height)
-            else:
-                fx, fy, cx, cy = args.K
-                cam = PinholeCamera(np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]]), c2w, args.width, args.height)
-    except CameraError as exc:
-        flag = {"cam_to_world": "--cam-to-world", "K": "--K"}.get(exc.field, f"--{exc.field}")
-        return _fail(f"{flag}: {exc.message}")
-    except RigError as exc:
-        flag = "--camera" if args.camera is not None else "--width"
-        return _fail(f"{flag}: {str(exc).split(': ', 1)[-1]}")
+        req = spec.request(None if scene is None else scene.rig)
+        if args.camera is not None and move:
+            req = ViewRequest(req.camera.replace(cam_to_ego=move.apply(req.camera.cam_to_ego)), req.output,
+                              req.format, req.quality)
+    except ViewError as exc:
+        return _fail(str(exc))
+    except CameraError as exc:       # a moved input camera: the camera's field as the flag that set it
+        return _fail(f"{FLAGS.get(exc.root_field, '--' + exc.root_field)}: {exc.message}")
+    cam = req.camera
     if args.background is not None:
         bg = args.background
     elif scene is not None and scene.background is not None:
@@ -140,11 +150,10 @@ def run(args: argparse.Namespace) -> int:
     else:
         bg = None
     res = render(g, cam, background=bg, antialiased=args.antialiased)
+    data = encode_view(res.rgb, res.depth, res.alpha, req)
     try:
-        if suffix == ".png":
-            write_png(out, res.rgb)
-        else:
-            write_exr(str(out), np.dstack([res.rgb, res.alpha, res.depth]), ("R", "G", "B", "A", "Z"))
+        with atomic_file(out) as f:
+            f.write(data)
     except OSError as exc:
         return _fail(f"--out: {exc}")
     print(f"rendered {len(g)} Gaussians -> {out} ({cam.width}x{cam.height}, "

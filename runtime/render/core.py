@@ -10,10 +10,10 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
+from ..camera import Camera
 from . import kernels as K
-from .cameras import EquirectCamera, PinholeCamera
 from .gaussians import Gaussians
-from .projection import RenderOptions, equirect_jacobian, pinhole_limits, project_reference
+from .projection import RenderOptions, check_camera, equirect_jacobian, pinhole_limits, project_reference
 from .result import GaussianGrads, RenderResult, background_image
 from .sh import sh_basis
 
@@ -35,14 +35,13 @@ class _State:
 
 
 def _camera_args(camera):
-    w2c = np.linalg.inv(camera.cam_to_world)
+    check_camera(camera)
+    w2c = np.linalg.inv(camera.cam_to_ego)
     Rw, tw = np.ascontiguousarray(w2c[:3, :3]), np.ascontiguousarray(w2c[:3, 3])
-    if isinstance(camera, PinholeCamera):
-        k = camera.K
-        return Rw, tw, 0, k[0, 0], k[1, 1], k[0, 2], k[1, 2], *pinhole_limits(camera)
-    if isinstance(camera, EquirectCamera):
+    if camera.is_equirect:
         return Rw, tw, 1, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
-    raise TypeError(f"camera: expected PinholeCamera or EquirectCamera, got {type(camera).__name__}")
+    k = camera.K
+    return Rw, tw, 0, k[0, 0], k[1, 1], k[0, 2], k[1, 2], *pinhole_limits(camera)
 
 
 def chunk_planes(camera, opts: RenderOptions) -> np.ndarray:
@@ -53,9 +52,9 @@ def chunk_planes(camera, opts: RenderOptions) -> np.ndarray:
     image, i.e. x + z (cx + 3.34 sqrt(low_pass) + 1) / fx + 3.34 c smax >= 0 (left side; c = sqrt(1 + lim^2)
     bounds the clamped Jacobian's row norm, 3.34 is the pre-cull's radius in sigmas, the extra pixel absorbs
     rounding); the other sides alike. Equirect: none (returns [0, 5])."""
-    if not isinstance(camera, PinholeCamera):
+    if camera.is_equirect:
         return np.zeros((0, 5))
-    w2c = np.linalg.inv(camera.cam_to_world)
+    w2c = np.linalg.inv(camera.cam_to_ego)
     Rw, tw = w2c[:3, :3], w2c[:3, 3]
     fx, fy, cx, cy = camera.K[0, 0], camera.K[1, 1], camera.K[0, 2], camera.K[1, 2]
     lxn, lxp, lyn, lyp = pinhole_limits(camera)
@@ -131,7 +130,7 @@ def _prepare(g: Gaussians, camera, opts: RenderOptions, cull_chunks: bool = True
     counts = np.zeros(nch, np.int64)
     if m:
         K.project_kernel(_c(g.means), _c(g.quats), _c(g.log_scales), _c(g.opacity_logits), _c(g.sh),
-                         np.ascontiguousarray(camera.cam_to_world[:3, 3]), *cam,
+                         np.ascontiguousarray(camera.cam_to_ego[:3, 3]), *cam,
                          bool(opts.antialiased), opts.radius_mode == "opacity", pre, base, rows, trange, dep,
                          gid, counts)
     t1 = time.perf_counter()
@@ -145,7 +144,7 @@ def _prepare(g: Gaussians, camera, opts: RenderOptions, cull_chunks: bool = True
 
 
 def render(gaussians: Gaussians, camera, background=None, **options) -> RenderResult:
-    """Render Gaussians from a PinholeCamera or EquirectCamera.
+    """Render Gaussians from a runtime.camera.Camera (pinhole or equirectangular, undistorted).
 
     background: None (black), an RGB triple, or an image [H, W, 3] (0..1). Options: see RenderOptions.
     Returns RenderResult(rgb [H, W, 3], alpha [H, W], depth [H, W]) float32; depth is the expected camera z
@@ -161,7 +160,7 @@ def render(gaussians: Gaussians, camera, background=None, **options) -> RenderRe
     last = _scratch("last", (H, W), np.int32)          # kept for the backward pass only
     t_final = _scratch("t_final", (H, W), np.float32)
     row_evals = np.empty(start.shape[0] - 1, np.int64)
-    K.raster_forward(start, ids, rows, ntx, W, H, isinstance(camera, EquirectCamera), bg, rgb, alpha, depth, last,
+    K.raster_forward(start, ids, rows, ntx, W, H, camera.is_equirect, bg, rgb, alpha, depth, last,
                      t_final, row_evals)
     timings["raster"] = time.perf_counter() - t0
     state = _State(opts, ntx, start, ids, rows, gid, bg, last, t_final, timings, row_evals)
@@ -192,7 +191,7 @@ def render_backward(gaussians: Gaussians, camera, result: RenderResult, d_rgb, d
     g_al = _as_grad(d_alpha, (H, W), "d_alpha")
     g_d = _as_grad(d_depth, (H, W), "d_depth")
     n = len(gaussians)
-    wrap = isinstance(camera, EquirectCamera)
+    wrap = camera.is_equirect
     feat = K.instance_features(st.start, st.ids, st.rows, st.ntx, W, wrap)
     ids = st.ids
     g_inst = np.zeros((ids.shape[0], 10), np.float64)
@@ -244,7 +243,7 @@ def _chain(g: Gaussians, camera, opts: RenderOptions, g2: np.ndarray):
     g_cov3 = T.transpose(0, 2, 1) @ GS @ T
     g_T = 2.0 * GS @ T @ cov3
     g_J = g_T @ Rw.T[None]
-    if isinstance(camera, EquirectCamera):
+    if camera.is_equirect:
         gp = _equirect_point_grad(pr, camera, g_J, g_mx, g_my, g_z)
     else:
         gp = _pinhole_point_grad(pr, camera, g_J, g_mx, g_my, g_z)
@@ -273,7 +272,7 @@ def _chain(g: Gaussians, camera, opts: RenderOptions, g2: np.ndarray):
     # colour -> SH (and view direction -> means)
     kc = g.sh.shape[1]
     g_col = g_col * pr["colour_unclamped"]
-    v = g.means.astype(np.float64) - camera.cam_to_world[:3, 3][None]
+    v = g.means.astype(np.float64) - camera.cam_to_ego[:3, 3][None]
     vn = np.maximum(np.linalg.norm(v, axis=1, keepdims=True), 1e-12)
     d = v / vn
     basis, dbasis = sh_basis(d, kc, with_grad=True)
@@ -285,7 +284,7 @@ def _chain(g: Gaussians, camera, opts: RenderOptions, g2: np.ndarray):
     return g_means, g_quats, g_log_scales, g_logit, g_sh
 
 
-def _pinhole_point_grad(pr, camera: PinholeCamera, g_J, g_mx, g_my, g_z):
+def _pinhole_point_grad(pr, camera: Camera, g_J, g_mx, g_my, g_z):
     """dL/d(camera-frame point) [N, 3] through mean2d, depth z and the (clamped) EWA Jacobian."""
     n = g_J.shape[0]
     x, y, z = pr["p_cam"][:, 0], pr["p_cam"][:, 1], pr["p_cam"][:, 2]
@@ -306,7 +305,7 @@ def _pinhole_point_grad(pr, camera: PinholeCamera, g_J, g_mx, g_my, g_z):
     return gp
 
 
-def _equirect_point_grad(pr, camera: EquirectCamera, g_J, g_mx, g_my, g_z):
+def _equirect_point_grad(pr, camera: Camera, g_J, g_mx, g_my, g_z):
     """dL/d(camera-frame point) [N, 3] for the equirect map: mean2d's derivative is the unclamped spherical
     Jacobian, depth r's is p / r, and the Jacobian's own derivative is taken by complex step (exact to
     rounding for this analytic map; the pole clamp is held fixed, as a max() is)."""

@@ -7,8 +7,8 @@ from dataclasses import dataclass, fields
 
 import numpy as np
 
+from ..camera import Camera, CameraError
 from ..rotations import quat_to_rotmat
-from .cameras import EquirectCamera, PinholeCamera
 from .gaussians import Gaussians
 from .sh import sh_colours
 
@@ -47,7 +47,17 @@ class RenderOptions:
         return cls(**options)
 
 
-def pinhole_limits(camera: PinholeCamera) -> tuple[float, float, float, float]:
+def check_camera(camera) -> None:
+    """The renderer draws a runtime.camera.Camera, pinhole or equirectangular, without lens distortion: TypeError
+    for anything else, CameraError (field "distortion") for a distorted camera."""
+    if not isinstance(camera, Camera):
+        raise TypeError(f"camera: expected a runtime.camera.Camera, got {type(camera).__name__}")
+    if camera.distortion is not None:
+        raise CameraError("distortion", "the renderer draws undistorted cameras only (pinhole or equirectangular); "
+                          "drop the distortion coefficients or undistort the images first", camera.where)
+
+
+def pinhole_limits(camera: Camera) -> tuple[float, float, float, float]:
     """Jacobian clamp on x/z and y/z (as gsplat): the image plus 0.3 * tan(half fov) beyond each edge.
     Returns (lim_x_neg, lim_x_pos, lim_y_neg, lim_y_pos), all >= 0, x/z is clamped to [-lim_x_neg, lim_x_pos]."""
     fx, fy, cx, cy = camera.K[0, 0], camera.K[1, 1], camera.K[0, 2], camera.K[1, 2]
@@ -82,14 +92,15 @@ def project_reference(g: Gaussians, camera, opts: RenderOptions) -> dict:
     opacity [N] (after the optional antialiasing compensation); pmax [N] (power cutoff of the footprint);
     depth [N] (camera z for pinhole, distance for equirect); colour [N, 3]; plus intermediates for backward."""
     n = len(g)
-    w2c = np.linalg.inv(camera.cam_to_world)
+    check_camera(camera)
+    w2c = np.linalg.inv(camera.cam_to_ego)
     Rw, tw = w2c[:3, :3], w2c[:3, 3]
     means = g.means.astype(np.float64)
     p = means @ Rw.T + tw                                   # [N, 3] camera frame
     x, y, z = p[:, 0], p[:, 1], p[:, 2]
     J = np.zeros((n, 2, 3))
     clamp = np.zeros((n, 2), bool)
-    if isinstance(camera, PinholeCamera):
+    if not camera.is_equirect:
         fx, fy, cx, cy = camera.K[0, 0], camera.K[1, 1], camera.K[0, 2], camera.K[1, 2]
         depth = z
         zs = np.where(z > 0, z, 1.0)
@@ -102,7 +113,7 @@ def project_reference(g: Gaussians, camera, opts: RenderOptions) -> dict:
         J[:, 0, 2] = -fx * sxc / zs
         J[:, 1, 1] = fy / zs
         J[:, 1, 2] = -fy * syc / zs
-    elif isinstance(camera, EquirectCamera):
+    else:
         W, H = camera.width, camera.height
         r = np.linalg.norm(p, axis=1)
         depth = r
@@ -111,8 +122,6 @@ def project_reference(g: Gaussians, camera, opts: RenderOptions) -> dict:
         mean2d = np.stack([W * (phi + np.pi) / (2 * np.pi) - 0.5, H * theta / np.pi - 0.5], 1)
         clamp[:, 0] = rho < r * np.sin(np.pi / (2 * H))
         J = equirect_jacobian(p, W, H, clamp[:, 0])
-    else:
-        raise TypeError(f"camera: expected PinholeCamera or EquirectCamera, got {type(camera).__name__}")
 
     R = quat_to_rotmat(g.quats)
     s = np.exp(g.log_scales.astype(np.float64))
@@ -137,7 +146,7 @@ def project_reference(g: Gaussians, camera, opts: RenderOptions) -> dict:
         ext = np.minimum(OPACITY_EXTENT_MAX, np.sqrt(2 * np.log(np.maximum(opa_eff, ALPHA_MIN) / ALPHA_MIN)))
         pmax = 0.5 * ext * ext
     valid = (depth >= opts.near) & (depth <= opts.far) & (det > 0) & (opa_eff >= ALPHA_MIN)
-    colour, unclamped = sh_colours(g.means, g.sh, camera.cam_to_world[:3, 3])
+    colour, unclamped = sh_colours(g.means, g.sh, camera.cam_to_ego[:3, 3])
     return dict(valid=valid, mean2d=mean2d, conic=conic, opacity=opa_eff, pmax=pmax, depth=depth,
                 colour=colour, colour_unclamped=unclamped, p_cam=p, J=J, clamp=clamp, Rw=Rw, R=R, s=s, M=M,
                 cov3=cov3, cov2_raw=cov2_raw, cov2=cov2, det=det, opa=opa, comp=comp)

@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import numpy as np
 
-from .cameras import EquirectCamera
 from .gaussians import Gaussians
 from .projection import ALPHA_MAX, ALPHA_MIN, T_MIN, RenderOptions, project_reference
 from .result import RenderResult, background_image
@@ -26,7 +25,7 @@ def render_reference(gaussians: Gaussians, camera, background=None, **options) -
     mx, my = pr["mean2d"][idx, 0], pr["mean2d"][idx, 1]
     ca, cb, cc = pr["conic"][idx, 0], pr["conic"][idx, 1], pr["conic"][idx, 2]
     op, pmax, z, col = pr["opacity"][idx], pr["pmax"][idx], pr["depth"][idx], pr["colour"][idx]
-    equirect = isinstance(camera, EquirectCamera)
+    equirect = camera.is_equirect
 
     rgb = np.zeros((H, W, 3))
     alpha = np.zeros((H, W))

@@ -213,7 +213,7 @@ async def render_batch(request: Request, scene_id: str,
                 cam = req.camera
                 index.append({"file": name, "width": cam.width, "height": cam.height,
                               "K": getattr(cam, "K", None).tolist() if getattr(cam, "K", None) is not None else None,
-                              "cam_to_ego": cam.cam_to_world.tolist()})
+                              "cam_to_ego": cam.cam_to_ego.tolist()})
                 yield sink.take()
             zf.writestr("index.json", json.dumps({"scene": scene_id, "output": opts["output"],
                                                   "format": opts["format"], "frames": index}, indent=1))

@@ -9,7 +9,8 @@ import sys
 from pathlib import Path
 
 import numpy as np
-from xyzcyl.runtime.render import Gaussians, PinholeCamera, RenderOptions, render, render_reference
+from xyzcyl.runtime.camera import Camera
+from xyzcyl.runtime.render import Gaussians, RenderOptions, render, render_reference
 from xyzcyl.runtime.render.projection import project_reference
 
 REPO = Path(__file__).resolve().parents[2]
@@ -33,13 +34,13 @@ def _scene(seed: int, n: int, logit_range: tuple[float, float]) -> Gaussians:
                      rng.normal(scale=0.5, size=(n, 1, 3)).astype(np.float32))
 
 
-def _camera() -> PinholeCamera:
+def _camera() -> Camera:
     """64x48, off-centre principal point and fx != fy (so x / y mix-ups show)."""
     K = np.array([[40.0, 0, 31.8], [0, 42.0, 23.3], [0, 0, 1]])
-    return PinholeCamera(K, np.eye(4), 64, 48)
+    return Camera(K=K, cam_to_ego=np.eye(4), width=64, height=48)
 
 
-def _tile_footprint_reference(g: Gaussians, camera: PinholeCamera, background) -> tuple[np.ndarray, ...]:
+def _tile_footprint_reference(g: Gaussians, camera: Camera, background) -> tuple[np.ndarray, ...]:
     """3DGS's forward in float64 numpy, per pixel against every Gaussian: a Gaussian is evaluated on every
     pixel of every 16x16 tile its 3-sigma circle (ceil(3 sqrt(largest eigenvalue of cov2d))) touches, with no
     cut at the ellipse; alpha = min(0.99, o exp(-power)), skipped below 1/255, the pixel stops before a

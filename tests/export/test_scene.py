@@ -7,10 +7,11 @@ import json
 import numpy as np
 import pytest
 from net_helpers import overlap_rig
+from xyzcyl.runtime.camera import Camera
 from xyzcyl.runtime.cylinder import CylinderSpec
 from xyzcyl.runtime.inference import Reconstructor
 from xyzcyl.runtime.lifting import background_grid
-from xyzcyl.runtime.render import EquirectCamera, PinholeCamera, render
+from xyzcyl.runtime.render import render
 from xyzcyl.runtime.rig import look_rotation
 from xyzcyl.runtime.scene import Background, Scene, SceneError, bake_grid, render_view, rig_camera
 
@@ -63,15 +64,15 @@ def test_panorama_lookup_follows_the_ray_cylinder_rule():
     K = np.array([[60.0, 0, 39.5], [0, 60.0, 24.5], [0, 0, 1]])
     for yaw, pitch, pos in ((0.3, 0.0, (0.5, -0.2, 1.9)), (2.9, 0.4, (3.0, 1.0, 1.2)), (-1.0, 1.2, (0, 0, 0))):
         T = _pose(yaw, pitch, pos)
-        got = bg.render(PinholeCamera(K, T, 80, 50), step=1)
+        got = bg.render(Camera(K=K, cam_to_ego=T, width=80, height=50), step=1)
         uv = background_grid(SPEC, K, T, 80, 50)
         np.testing.assert_allclose(got, _sample_ref(bg, uv.astype(np.float64)), atol=2e-5)
     T = _pose(0.0, 1.5)   # nearly straight up: every ray leaves through the top cap and reads the top row
     uv = background_grid(SPEC, K, T, 80, 50).astype(np.float64)
     assert (uv[..., 1] < -1.4).all()
     top = _sample_ref(Background(image=np.repeat(bg.image[:1], 26, 0), cylinder=SPEC, v_range=(-1.4, 1.4)), uv)
-    np.testing.assert_allclose(bg.render(PinholeCamera(K, T, 80, 50), step=1), top, atol=2e-5)
-    eq = bg.render(EquirectCamera(_pose(0.0), 64, 32), step=1)
+    np.testing.assert_allclose(bg.render(Camera(K=K, cam_to_ego=T, width=80, height=50), step=1), top, atol=2e-5)
+    eq = bg.render(Camera(model="equirectangular", cam_to_ego=_pose(0.0), width=64, height=32), step=1)
     assert eq.shape == (32, 64, 3) and np.isfinite(eq).all()
 
 

@@ -326,7 +326,7 @@ def test_several_data_folders_are_one_set(tiny_data, tmp_path):
 def test_zoom_camera_maps_pixels_like_the_resampling():
     from xyzcyl.model_export.dataset import zoom_camera
 
-    cam = Camera("c", 64, 32, np.array([[40.0, 0, 31.5], [0, 38.0, 15.2], [0, 0, 1]]), CAM_FORWARD)
+    cam = Camera(name="c", width=64, height=32, K=np.array([[40.0, 0, 31.5], [0, 38.0, 15.2], [0, 0, 1]]), cam_to_ego=CAM_FORWARD)
     z, x0, y0 = 1.3, 7.25, 3.5
     new, inv = zoom_camera(cam, z, x0, y0)
     assert new.width == cam.width and new.height == cam.height

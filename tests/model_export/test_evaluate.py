@@ -22,7 +22,8 @@ from xyzcyl.model_export.evaluate import (
     write_reports,
 )
 from xyzcyl.model_export.train import build_model
-from xyzcyl.runtime.render import PinholeCamera, render
+from xyzcyl.runtime.camera import Camera
+from xyzcyl.runtime.render import render
 
 
 def _checkpoint(path, stage="render"):
@@ -87,7 +88,7 @@ def test_oracle_reproduces_an_input_view(tiny_synth_data):
                             np.stack([c.cam_to_ego for c in rig.cameras]))
     assert len(g) == int((depth > 0).sum())
     for k, c in enumerate(rig.cameras):
-        r = render(g, PinholeCamera(c.K, c.cam_to_ego, c.width, c.height))
+        r = render(g, Camera(K=c.K, cam_to_ego=c.cam_to_ego, width=c.width, height=c.height))
         inner = cv2.erode((depth[k] > 0).astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
         assert inner.sum() > 100
         assert M.psnr(r.rgb[inner], img[k][inner]) > 22.0, c.name

@@ -159,7 +159,7 @@ def _cam(K, T, w=8, h=6):
     """[one input Camera] with intrinsics K and pose T, w x h pixels."""
     from xyzcyl.runtime.rig import Camera
 
-    return [Camera("in", w, h, K, T)]
+    return [Camera(name="in", width=w, height=h, K=K, cam_to_ego=T)]
 
 
 def test_seen_by_inputs_hand_cases():

@@ -9,8 +9,8 @@ from xyzcyl.model_export.config import AblationConfig, UNetConfig, preset
 from xyzcyl.model_export.lifting import rig_inputs
 from xyzcyl.model_export.model import GAUSSIAN_KEYS, XYZCylinder, blend
 from xyzcyl.model_export.render_fn import render_views
+from xyzcyl.runtime.camera import Camera
 from xyzcyl.runtime.lifting import background_grid, spec_from_array
-from xyzcyl.runtime.render import PinholeCamera
 
 
 def _images(n, cfg, seed=0):
@@ -171,7 +171,7 @@ def _target_views(rig, inp, cfg):
         ca, sa = math.cos(pitch), math.sin(pitch)
         Rx = np.array([[1, 0, 0], [0, ca, -sa], [0, sa, ca]])  # about camera x: looks up for positive pitch
         T[:3, :3] = T[:3, :3] @ Rx
-        cams.append(PinholeCamera(c.K, T, c.width, c.height))
+        cams.append(Camera(K=c.K, cam_to_ego=T, width=c.width, height=c.height))
     spec = spec_from_array(inp["spec_vol"].numpy(), cfg.cylinder.height, cfg.cylinder.width)
     grids = np.stack([background_grid(spec, c.K, c.cam_to_world, c.width, c.height) for c in cams])
     return cams, torch.from_numpy(grids)

@@ -3,7 +3,7 @@ import pytest
 import torch
 from net_helpers import one_thread
 from xyzcyl.model_export.render_fn import KEYS, render_views
-from xyzcyl.runtime.render import PinholeCamera
+from xyzcyl.runtime.camera import Camera
 
 
 def _scene(dtype=torch.float64, n=6, seed=0):
@@ -23,7 +23,7 @@ def _cams():
     c, s = np.cos(0.1), np.sin(0.1)
     T2[:3, :3] = [[c, 0, s], [0, 1, 0], [-s, 0, c]]
     T2[:3, 3] = [0.2, -0.1, 0.0]
-    return [PinholeCamera(K, np.eye(4), 48, 32), PinholeCamera(K, T2, 48, 32)]
+    return [Camera(K=K, cam_to_ego=np.eye(4), width=48, height=32), Camera(K=K, cam_to_ego=T2, width=48, height=32)]
 
 
 def _loss(g, cams, w):
@@ -81,6 +81,6 @@ def test_rejects_mixed_sizes():
     g = _scene(torch.float32)
     K = np.array([[40.0, 0, 23.5], [0, 40.0, 15.5], [0, 0, 1]])
     with pytest.raises(ValueError, match="cameras"):
-        render_views(g, [PinholeCamera(K, np.eye(4), 48, 32), PinholeCamera(K, np.eye(4), 40, 32)])
+        render_views(g, [Camera(K=K, cam_to_ego=np.eye(4), width=48, height=32), Camera(K=K, cam_to_ego=np.eye(4), width=40, height=32)])
 
 __all__ = ["one_thread"]  # autouse fixture, imported for pytest

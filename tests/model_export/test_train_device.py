@@ -26,7 +26,7 @@ from xyzcyl.model_export.train import (
     train,
     train_mode,
 )
-from xyzcyl.runtime.render import PinholeCamera
+from xyzcyl.runtime.camera import Camera
 
 __all__ = ["one_thread"]  # autouse fixture, imported for pytest
 
@@ -56,7 +56,7 @@ def _gaussians(dtypes, device="cpu", n=5):
 
 def _render_grads(g):
     K = np.array([[30.0, 0, 15.5], [0, 30.0, 11.5], [0, 0, 1]])
-    rgb, alpha, depth = render_views(g, [PinholeCamera(K, np.eye(4), 32, 24)])
+    rgb, alpha, depth = render_views(g, [Camera(K=K, cam_to_ego=np.eye(4), width=32, height=24)])
     (rgb.sum() + alpha.sum() + 0.1 * depth.sum()).backward()
     return rgb
 

@@ -101,8 +101,8 @@ def _missing_image(rig: dict, root: Path) -> None:
 
 
 @pytest.mark.parametrize("change,line", [
-    (_negative_fx, "camera 'CAM_FRONT_RIGHT': K[0][0] (fx) must be > 0 (got -633.0)"),
-    (_no_cameras, "rig: cameras must have 1..16 entries (got 0)"),
+    (_negative_fx, "camera 'CAM_FRONT_RIGHT': K[0][0]: fx must be > 0 (got -633.0)"),
+    (_no_cameras, "rig: cameras: must have 1..16 entries (got 0)"),
     (_missing_image, "camera 'CAM_BACK_RIGHT': image: file "),
 ])
 def test_reconstruct_checks_the_rig_before_the_model_loads(jpeg_rig, tmp_path, capfd, no_model_load, change, line):

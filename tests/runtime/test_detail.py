@@ -718,5 +718,5 @@ def test_read_ego_mask(tmp_path):
     cv2.imwrite(str(tmp_path / "m.png"), a)
     np.testing.assert_array_equal(read_ego_mask(tmp_path / "m.png", cam), a > 0)
     cv2.imwrite(str(tmp_path / "small.png"), a[:20])
-    with pytest.raises(RigError, match="'front': ego_mask has shape"):
+    with pytest.raises(RigError, match="'front': ego_mask: has shape"):
         read_ego_mask(tmp_path / "small.png", cam)

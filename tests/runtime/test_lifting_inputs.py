@@ -105,7 +105,7 @@ def test_focal_n_hand_values():
     np.testing.assert_allclose(focal_n(ring_rig(4, hfov_deg=50.0, width=64, height=32)) / f,
                                1 / math.tan(math.radians(25)), rtol=1e-6)
     # equirectangular: W / (2 pi) and H / pi pixels per radian
-    pano = Rig([Camera("pano", 512, 256, None, np.eye(4), model="equirectangular")])
+    pano = Rig([Camera(name="pano", width=512, height=256, K=None, cam_to_ego=np.eye(4), model="equirectangular")])
     np.testing.assert_allclose(focal_n(pano), 1 / (math.pi * math.sqrt(2)), rtol=1e-6)
     cfg = {"cylinder": {"height": 8, "width": 32, "z_range": [-3.0, 13.0], "rho_occ": 0.9, "rho_vol": 0.98,
                         "rho_pix": 0.98, "dh_occ": 0.0, "dh_vol": 0.4, "dh_pix": 0.4},

@@ -484,12 +484,12 @@ def test_post_cut_or_corrupt_image_names_the_part_once(client, env, case):
 
 
 def test_post_rig_errors_name_the_rig_once_with_plain_numbers(client, env):
-    """Regression (issue 27, defect 5): 'rig: rig: cameras must have 1..16 entries' and 'K[0][0] (fx) must be > 0
+    """Regression (issue 27, defect 5): 'rig: rig: cameras: must have 1..16 entries' and 'K[0][0]: fx must be > 0
     (got np.float64(-633.0))'."""
     e = err(client.post("/v1/scenes?wait=5", files=rig_files(_rig_with(_no_cameras))), 422, "rig", "invalid")
-    assert e["message"] == "rig: cameras must have 1..16 entries (got 0)", e
+    assert e["message"] == "rig: cameras: must have 1..16 entries (got 0)", e
     e = err(client.post("/v1/scenes?wait=5", files=rig_files(_rig_with(_bad_fx))), 422, "rig", "invalid")
-    assert e["message"] == "camera 'CAM_FRONT_RIGHT': K[0][0] (fx) must be > 0 (got -633.0)", e
+    assert e["message"] == "camera 'CAM_FRONT_RIGHT': K[0][0]: fx must be > 0 (got -633.0)", e
 
 
 def test_post_with_a_lidar_part(client, env):

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import pytest
-
 from xyzcyl.model_export.data.synth import SynthConfig, render_scene
 
 TINY = SynthConfig(height=32, width=56, inward_views=4, seed=7)

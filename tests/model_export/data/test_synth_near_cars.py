@@ -7,7 +7,6 @@ from __future__ import annotations
 from dataclasses import replace
 
 import numpy as np
-
 from synth_helpers import check_probability_field
 from xyzcyl.model_export.data import classes as C
 from xyzcyl.model_export.data.occupancy import inside_any

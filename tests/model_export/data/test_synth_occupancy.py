@@ -5,10 +5,16 @@ from __future__ import annotations
 import math
 
 import numpy as np
-
 from xyzcyl.model_export.data.classes import EGO
-from xyzcyl.model_export.data.occupancy import (OccupancyGrid, bev, box_overlaps, cylinder_overlaps,
-                                                 ellipsoid_overlaps, inside_any, occupancy)
+from xyzcyl.model_export.data.occupancy import (
+    OccupancyGrid,
+    bev,
+    box_overlaps,
+    cylinder_overlaps,
+    ellipsoid_overlaps,
+    inside_any,
+    occupancy,
+)
 from xyzcyl.model_export.data.scene import sample_scene
 
 SAMPLES = 9  # per axis, dense sampling of a voxel for the reference

@@ -7,12 +7,19 @@ from dataclasses import replace
 
 import cv2
 import numpy as np
-
 from synth_helpers import check_probability_field
 from xyzcyl.model_export.data import classes as C
 from xyzcyl.model_export.data.photos import LUMA, photo_bank, photo_indices
-from xyzcyl.model_export.data.scene import (G_PHOTO, G_PHOTO_L, G_PHOTO_TILE, T_FACADE, T_PHOTO, T_SIDEWALK,
-                                            SceneConfig, sample_scene)
+from xyzcyl.model_export.data.scene import (
+    G_PHOTO,
+    G_PHOTO_L,
+    G_PHOTO_TILE,
+    T_FACADE,
+    T_PHOTO,
+    T_SIDEWALK,
+    SceneConfig,
+    sample_scene,
+)
 from xyzcyl.model_export.data.synth import SynthConfig, render_scene
 from xyzcyl.model_export.data.trace import photo_texel
 

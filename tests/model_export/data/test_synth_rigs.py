@@ -7,7 +7,6 @@ import math
 
 import numpy as np
 import pytest
-
 from xyzcyl.model_export.data.rigs import PRESETS, base_rig, ego_forward_targets, jitter
 
 
@@ -22,12 +21,12 @@ def test_nuscenes_rig_reproduces_template(real_data):
             vfov = math.degrees(2 * math.atan(t["height"] / (2 * K[1, 1])))
             # the table stores fx/W to 5 digits: 1e-5 relative ~ 0.001 deg; 224/900 != 400/1600 exactly (0.56
             # vs 0.5625) so the vertical FoV at 400x224 differs by the aspect change: 0.3 deg allowed there
-            assert abs(c.hfov_deg - hfov) < 0.01
-            assert abs(c.vfov_deg - vfov) < (0.01 if H == 900 else 0.3)
+            assert abs(math.degrees(c.horizontal_fov) - hfov) < 0.01
+            assert abs(math.degrees(c.vertical_fov) - vfov) < (0.01 if H == 900 else 0.3)
             # mounts rounded to 1 mm and 0.001 deg
             np.testing.assert_allclose(c.cam_to_ego[:3, 3], np.asarray(t["cam_to_ego"])[:3, 3], atol=1e-3)
             np.testing.assert_allclose(c.cam_to_ego[:3, :3], np.asarray(t["cam_to_ego"])[:3, :3], atol=1e-4)
-    fovs = sorted(round(c.hfov_deg) for c in base_rig("nuscenes", 400, 224))
+    fovs = sorted(round(math.degrees(c.horizontal_fov)) for c in base_rig("nuscenes", 400, 224))
     assert fovs[-1] == 89 and fovs[0] == 64
 
 
@@ -43,7 +42,7 @@ def test_pandaset_rig_reproduces_template(real_data):
 def test_presets_fovs(name, n, fovs):
     cams = base_rig(name, 400, 224)
     assert len(cams) == n
-    assert {round(c.hfov_deg) for c in cams} == fovs
+    assert {round(math.degrees(c.horizontal_fov)) for c in cams} == fovs
     for c in cams:
         R = c.cam_to_ego[:3, :3]
         np.testing.assert_allclose(R.T @ R, np.eye(3), atol=1e-9)
@@ -61,7 +60,7 @@ def test_rig_from_json_scales_intrinsics(tmp_path):
     p.write_text(json.dumps({"cameras": [c.to_dict() for c in cams]}))
     small = base_rig(str(p), 400, 225)
     for a, b in zip(cams, small):
-        assert abs(a.hfov_deg - b.hfov_deg) < 1e-9 and abs(a.vfov_deg - b.vfov_deg) < 1e-9
+        assert abs(math.degrees(a.horizontal_fov) - math.degrees(b.horizontal_fov)) < 1e-9 and abs(math.degrees(a.vertical_fov) - math.degrees(b.vertical_fov)) < 1e-9
     with pytest.raises(ValueError, match="rig"):
         base_rig(str(tmp_path / "missing.json"), 400, 224)
 
@@ -102,7 +101,7 @@ def _check_street(scene, name):
     grid = build_grid(scene)
     street = []
     for cam in base_rig(name, 48, 27):
-        sem = render_view(scene, grid, cam.K, cam.cam_to_ego, 48, 27, ss=1, shadows=False).semantic
+        sem = render_view(scene, grid, cam, ss=1, shadows=False).semantic
         # every camera: not an empty field (structures in view) and not mostly sky
         assert np.mean(sem == SKY) < 0.6, cam.name
         assert np.mean(sem >= BUILDING) > 0.05, cam.name

@@ -3,11 +3,11 @@
 from __future__ import annotations
 
 import numpy as np
-
 from xyzcyl.model_export.data.occupancy import signed_distance
 from xyzcyl.model_export.data.scene import ELL, sample_scene
 from xyzcyl.model_export.data.synth import render_scene
 from xyzcyl.model_export.data.trace import NO_HIT, build_grid, reference_closest_hit, render_view
+from xyzcyl.runtime.camera import Camera
 
 SURFACE_TOL = 0.01  # metres: the bound for "lies on a primitive surface"
 
@@ -97,7 +97,7 @@ def test_grid_traversal_matches_brute_force_on_many_rays():
         T = np.eye(4)
         T[:3, 0], T[:3, 1], T[:3, 2], T[:3, 3] = x, np.cross(f, x), f, eye
         K = np.array([[40.0, 0, 3.5], [0, 40.0, 2.5], [0, 0, 1]])
-        v = render_view(scene, grid, K, T, 8, 6, ss=1, skip_ego=True, shadows=False)
+        v = render_view(scene, grid, Camera(K=K, cam_to_ego=T, width=8, height=6), ss=1, skip_ego=True, shadows=False)
         uu, vv = np.meshgrid(np.arange(8.0), np.arange(6.0))
         dc = np.stack([(uu.ravel() - 3.5) / 40, (vv.ravel() - 2.5) / 40, np.ones(48)], 1)
         t_ref, p_ref = reference_closest_hit(scene, np.repeat(eye[None], 48, 0), dc @ T[:3, :3].T, True)

@@ -3,7 +3,8 @@
 from __future__ import annotations
 
 import numpy as np
-from xyzcyl.runtime.render import Gaussians, PinholeCamera
+from xyzcyl.runtime.camera import Camera
+from xyzcyl.runtime.render import Gaussians
 
 
 def random_gaussians(rng, n, lo=(-3, -2, 2), hi=(3, 2, 10), scale=(0.05, 0.5), opacity=(-3.0, 3.0), degree=0,
@@ -30,11 +31,11 @@ def look_at(eye, target, up=(0, 0, 1)) -> np.ndarray:
     return m
 
 
-def pinhole(width=83, height=61, f=60.0, cx=None, cy=None, c2w=None) -> PinholeCamera:
+def pinhole(width=83, height=61, f=60.0, cx=None, cy=None, c2w=None) -> Camera:
     cx = (width - 1) / 2 + 0.3 if cx is None else cx
     cy = (height - 1) / 2 - 0.2 if cy is None else cy
     K = np.array([[f, 0, cx], [0, f * 1.05, cy], [0, 0, 1.0]])
-    return PinholeCamera(K, np.eye(4) if c2w is None else c2w, width, height)
+    return Camera(K=K, cam_to_ego=np.eye(4) if c2w is None else c2w, width=width, height=height)
 
 
 def concat(*gs: Gaussians) -> Gaussians:

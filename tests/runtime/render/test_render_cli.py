@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 from render_scenes import random_gaussians
 from xyzcyl.clients import cli
-from xyzcyl.runtime.render import Gaussians, PinholeCamera, render
+from xyzcyl.runtime.camera import Camera
+from xyzcyl.runtime.render import Gaussians, render
 
 EYE = [str(v) for v in np.eye(4).ravel()]
 
@@ -30,7 +31,7 @@ def test_png_and_exr(ply, tmp_path):
 
     assert cli.main(_argv(ply, tmp_path / "a.png", "--background", "0.1", "0.2", "0.3")) == 0
     assert cli.main(_argv(ply, tmp_path / "a.exr", "--background", "0.1", "0.2", "0.3")) == 0
-    cam = PinholeCamera(np.array([[40, 0, 23.5], [0, 40, 15.5], [0, 0, 1.0]]), np.eye(4), 48, 32)
+    cam = Camera(K=np.array([[40, 0, 23.5], [0, 40, 15.5], [0, 0, 1.0]]), cam_to_ego=np.eye(4), width=48, height=32)
     ref = render(Gaussians.load_ply(ply), cam, (0.1, 0.2, 0.3))
     png = cv2.imread(str(tmp_path / "a.png"), cv2.IMREAD_UNCHANGED)[..., ::-1]
     assert png.shape == (32, 48, 3) and png.dtype == np.uint8
@@ -42,6 +43,35 @@ def test_png_and_exr(ply, tmp_path):
     assert np.array_equal(exr, np.dstack([ref.rgb, ref.alpha, ref.depth]))  # float32 stored exactly
 
 
+@pytest.mark.parametrize("out, output", [("d.png", "depth"), ("a.jpg", "alpha"), ("c.jpg", "rgb"), ("z.exr", "depth")])
+def test_every_output_is_the_services_encoding(ply, tmp_path, out, output):
+    """One encoder for the CLI and HTTP (issue 27, house 2): `xyzcyl render --output X --out F` writes exactly the
+    bytes runtime.views.encode_view gives the service for the same view (16-bit depth PNG and JPEG included)."""
+    from xyzcyl.runtime.views import ViewRequest, camera_from_opencv, encode_view
+
+    assert cli.main(_argv(ply, tmp_path / out, "--output", output, "--quality", "80")) == 0
+    cam = camera_from_opencv(np.eye(4), 48, 32, fx=40, fy=40, cx=23.5, cy=15.5)
+    req = ViewRequest(cam, output, {"png": "png", "jpg": "jpeg", "exr": "exr"}[out.split(".")[1]], 80)
+    ref = render(Gaussians.load_ply(ply), cam)
+    assert (tmp_path / out).read_bytes() == encode_view(ref.rgb, ref.depth, ref.alpha, req)
+
+
+def test_fov_flag_is_the_services_fov(ply, tmp_path):
+    """--fov resolves through the same ViewSpec as the query's fov (horizontal degrees, centred principal point)."""
+    from xyzcyl.runtime.views import camera_from_opencv
+
+    argv = ["render", str(ply), "--width", "48", "--height", "32", "--fov", "62", "--cam-to-world", *EYE,
+            "--out", str(tmp_path / "f.exr")]
+    assert cli.main(argv) == 0
+    ref = render(Gaussians.load_ply(ply), camera_from_opencv(np.eye(4), 48, 32, fov=62))
+    import OpenImageIO as oiio
+
+    inp = oiio.ImageInput.open(str(tmp_path / "f.exr"))
+    exr = inp.read_image(oiio.FLOAT)
+    inp.close()
+    assert np.array_equal(exr[..., :3], ref.rgb)
+
+
 def test_equirect(ply, tmp_path):
     argv = ["render", str(ply), "--width", "64", "--height", "32", "--cam-to-world", *EYE,
             "--out", str(tmp_path / "p.png"), "--equirect"]
@@ -49,7 +79,7 @@ def test_equirect(ply, tmp_path):
 
 
 @pytest.mark.parametrize("change, field", [
-    (("--out", "x.jpg"), "--out"),
+    (("--out", "x.bmp"), "--out"),
     (("--K", "-1", "40", "1", "1"), "--K"),
     (("--width", "0"), "--width"),
     (("--cam-to-world", *(["2"] + EYE[1:])), "--cam-to-world"),

@@ -6,15 +6,8 @@ import numba
 import numpy as np
 import pytest
 from render_scenes import concat, look_at, pinhole, random_gaussians
-from xyzcyl.runtime.render import (
-    EquirectCamera,
-    Gaussians,
-    PinholeCamera,
-    RenderOptions,
-    kernels,
-    render,
-    render_reference,
-)
+from xyzcyl.runtime.camera import Camera
+from xyzcyl.runtime.render import Gaussians, RenderOptions, kernels, render, render_reference
 
 # 1e-4: the fast path rasterises in float32 with a polynomial exp (relative error < 2e-6) and sums up to a
 # few hundred float32 terms per pixel; the float64 reference differs by ~1e-6 typically. 1e-4 leaves room
@@ -120,7 +113,7 @@ def test_single_gaussian_closed_form_and_pixel_convention():
     g = Gaussians(np.array([[0, 0, d]], np.float32), np.array([[1, 0, 0, 0]], np.float32),
                   np.full((1, 3), np.log(s), np.float32), np.array([np.log(o / (1 - o))], np.float32),
                   np.zeros((1, 1, 3), np.float32))
-    cam = PinholeCamera(np.array([[f, 0, 20.0], [0, f, 13.0], [0, 0, 1]]), np.eye(4), 41, 27)
+    cam = Camera(K=np.array([[f, 0, 20.0], [0, f, 13.0], [0, 0, 1]]), cam_to_ego=np.eye(4), width=41, height=27)
     var = (f * s / d) ** 2 + 0.3
     u, v = np.meshgrid(np.arange(41), np.arange(27))
     expect = o * np.exp(-((u - 20.0) ** 2 + (v - 13.0) ** 2) / (2 * var))
@@ -138,7 +131,7 @@ def test_equirect_matches_reference_across_the_seam_and_poles():
     seam = random_gaussians(rng, 20, lo=(-0.3, -1, -6), hi=(0.3, 1, -3), scale=(0.2, 0.5))  # straight behind
     poles = random_gaussians(rng, 10, lo=(-0.2, -6, -0.2), hi=(0.2, 6, 0.2), scale=(0.1, 0.4))
     g = concat(all_round, seam, poles)
-    cam = EquirectCamera(np.eye(4), 96, 48)
+    cam = Camera(model="equirectangular", cam_to_ego=np.eye(4), width=96, height=48)
     _compare(g, cam, (0.0, 0.2, 0.1))
     # a Gaussian straight behind the camera shows on both the first and the last columns
     behind = Gaussians(np.array([[0, 0, -4]], np.float32), np.array([[1, 0, 0, 0]], np.float32),
@@ -151,7 +144,7 @@ def test_equirect_matches_reference_across_the_seam_and_poles():
 def test_equirect_pixel_convention():
     # forward (+z) -> u = (W-1)/2, right (+x) -> u = 3W/4 - 0.5, up (-y) -> top rows, horizon -> v = (H-1)/2
     W, H = 64, 32
-    cam = EquirectCamera(np.eye(4), W, H)
+    cam = Camera(model="equirectangular", cam_to_ego=np.eye(4), width=W, height=H)
     pts = {"fwd": ((0, 0, 5), (H / 2 - 0.5, W / 2 - 0.5)), "right": ((5, 0, 0), (H / 2 - 0.5, 3 * W / 4 - 0.5))}
     for name, (p, (v0, u0)) in pts.items():
         g = Gaussians(np.array([p], np.float32), np.array([[1, 0, 0, 0]], np.float32),
@@ -177,9 +170,9 @@ def test_bad_inputs_name_the_field():
     with pytest.raises(ValueError, match="bogus"):
         render(g, pinhole(), bogus=1)
     with pytest.raises(ValueError, match="K"):
-        PinholeCamera(np.eye(3) * -1, np.eye(4), 10, 10)
-    with pytest.raises(ValueError, match="cam_to_world"):
-        PinholeCamera(np.eye(3), np.diag([1, 1, 2, 1.0]), 10, 10)
+        Camera(K=np.eye(3) * -1, cam_to_ego=np.eye(4), width=10, height=10)
+    with pytest.raises(ValueError, match="cam_to_ego"):
+        Camera(K=np.eye(3), cam_to_ego=np.diag([1, 1, 2, 1.0]), width=10, height=10)
     assert RenderOptions().near == 0.01
 
 

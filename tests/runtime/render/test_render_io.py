@@ -146,17 +146,17 @@ def test_camera_errors_name_their_field_as_an_attribute():
     own names (a CLI flag, a request field) without parsing the message, and the error survives pickling."""
     import pickle
 
+    from xyzcyl.runtime.camera import Camera, CameraError
     from xyzcyl.runtime.errors import FieldError
-    from xyzcyl.runtime.render import CameraError, PinholeCamera
 
     K = np.array([[100.0, 0, 50], [0, 100.0, 40], [0, 0, 1]])
-    cases = ((dict(K=K * np.array([[-1], [1], [1]])), "K"), (dict(cam_to_world=np.zeros((4, 4))), "cam_to_world"),
+    cases = ((dict(K=K * np.array([[-1], [1], [1]])), "K"), (dict(cam_to_ego=np.zeros((4, 4))), "cam_to_ego"),
              (dict(width=0), "width"), (dict(height=40000), "height"))
     for change, field in cases:
-        args = dict(K=K, cam_to_world=np.eye(4), width=100, height=80) | change
+        args = dict(K=K, cam_to_ego=np.eye(4), width=100, height=80) | change
         with pytest.raises(CameraError) as info:
-            PinholeCamera(**args)
+            Camera(**args)
         e = info.value
-        assert isinstance(e, FieldError) and e.field == field and str(e) == f"{field}: {e.message}"
+        assert isinstance(e, FieldError) and e.root_field == field and str(e) == f"{e.field}: {e.message}"
         again = pickle.loads(pickle.dumps(e))
         assert (type(again), again.field, again.message) == (CameraError, e.field, e.message)
