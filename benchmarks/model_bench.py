@@ -63,7 +63,7 @@ def main() -> int:
     gt = torch.rand(cfg.grid.shape) < args.occupied
     cams = [Camera(K=c.K, cam_to_ego=c.cam_to_ego, width=c.width, height=c.height) for c in rig.cameras[: args.views]]
     spec = spec_from_array(inp["spec_vol"].numpy(), cfg.cylinder.height, cfg.cylinder.width)
-    grids = torch.from_numpy(np.stack([background_grid(spec, c.K, c.cam_to_world, c.width, c.height)
+    grids = torch.from_numpy(np.stack([background_grid(spec, c.K, c.cam_to_ego, c.width, c.height)
                                        for c in cams]))
     opt = torch.optim.AdamW([p for p in model.parameters() if p.requires_grad], lr=1e-4)
     target = torch.rand(len(cams), 3, H, W)

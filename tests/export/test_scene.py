@@ -143,7 +143,7 @@ def test_render_view_composites_the_background(scene):
     np.testing.assert_array_equal(alpha, fg.alpha)
     np.testing.assert_array_equal(depth, fg.depth)
     moved = rig_camera(s.rig.cameras[1], forward=2.0, width=96, height=48)
-    assert moved.cam_to_world[0, 3] == pytest.approx(cam.cam_to_world[0, 3] + 2.0)
+    assert moved.cam_to_ego[0, 3] == pytest.approx(cam.cam_to_ego[0, 3] + 2.0)
 
 
 @pytest.mark.slow   # the session's ONNX export

@@ -173,7 +173,7 @@ def _target_views(rig, inp, cfg):
         T[:3, :3] = T[:3, :3] @ Rx
         cams.append(Camera(K=c.K, cam_to_ego=T, width=c.width, height=c.height))
     spec = spec_from_array(inp["spec_vol"].numpy(), cfg.cylinder.height, cfg.cylinder.width)
-    grids = np.stack([background_grid(spec, c.K, c.cam_to_world, c.width, c.height) for c in cams])
+    grids = np.stack([background_grid(spec, c.K, c.cam_to_ego, c.width, c.height) for c in cams])
     return cams, torch.from_numpy(grids)
 
 
