@@ -2,7 +2,7 @@
 Gaussians composited over the scene's background panorama) from one camera pose to PNG (RGB) or EXR (float32
 channels R G B A Z; Z = expected depth in metres, 0 where A == 0). The pose: --K/--cam-to-world, or --camera NAME
 (an input camera of the scene's rig), optionally moved (--forward/--left/--up metres along ego x/y/z, --yaw degrees
-to the left; runtime/commands/pose_flags.py, shared with `xyzcyl client render`). See docs/renderer.md and
+to the left; common/poses.py, shared with `xyzcyl client render`). See docs/renderer.md and
 docs/inference.md."""
 
 from __future__ import annotations
@@ -13,9 +13,15 @@ from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
+from xyzcyl.common.poses import (
+    PoseArgError,
+    add_matrix_argument,
+    add_move_arguments,
+    move_from_args,
+    parse_matrix,
+)
 
 from ..rig import RigError
-from .pose_flags import PoseArgError, add_matrix_argument, add_move_arguments, move_from_args, parse_matrix
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -52,7 +58,9 @@ def _fail(msg: str) -> int:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..imageio import write_exr, write_png
+    from xyzcyl.common.media import write_exr
+
+    from ..imageio import write_png
     from ..render import CameraError, EquirectCamera, GaussianError, Gaussians, PinholeCamera, render
     from ..render.gaussians import DEFAULT_MAX_POINTS
     from ..scene import JSON_NAME, Scene, SceneError, rig_camera

@@ -10,8 +10,11 @@ their arithmetic, so both commands read a pose and move a camera the same way.
   centre; applied before the shift) -- add_move_arguments, move_from_args, CameraMove.apply (a 4x4 pose) and
   CameraMove.apply_carla (a CARLA transform; the same move in CARLA's left-handed axes).
 
-Light on purpose: argparse, json, math and pathlib at import, numpy inside the functions, nothing else of the
-runtime, so the HTTP client (clients/commands/client.py) can use it without the renderer, numba or OpenCV.
+- CARLA_POSE: the names of a CARLA transform's six numbers, as the render endpoint's query and the client take
+  them.
+
+Light on purpose: argparse, json, math and pathlib at import, numpy inside the functions, nothing of xyzcyl, so
+the HTTP client (clients/commands/client.py) uses it without the runtime (the renderer, numba, OpenCV).
 """
 
 from __future__ import annotations
@@ -24,6 +27,7 @@ from pathlib import Path
 from typing import Any
 
 MOVE_FLAGS = ("--forward", "--left", "--up", "--yaw")
+CARLA_POSE = ("x", "y", "z", "pitch", "yaw", "roll")   # location (metres) and rotation (degrees), in this order
 MATRIX_KEYS = ("cam_to_ego", "cam_to_world")     # the pose's key in a .json object
 
 
@@ -205,5 +209,5 @@ def move_from_args(args: argparse.Namespace) -> CameraMove:
     return CameraMove(*values.values())
 
 
-__all__ = ["MOVE_FLAGS", "CameraMove", "PoseArgError", "add_matrix_argument", "add_move_arguments",
+__all__ = ["CARLA_POSE", "MOVE_FLAGS", "CameraMove", "PoseArgError", "add_matrix_argument", "add_move_arguments",
            "move_from_args", "parse_matrix"]
