@@ -271,9 +271,8 @@ def _failure(info: SceneInfo) -> XyzcylError:
     """A failed scene as the error POST /v1/scenes?wait= would have answered (same status for the same code)."""
     err = info.error or {}
     code = str(err.get("code") or "failed")
-    status = {"invalid_input": 422, "storage_full": 507}.get(code, 500)
-    return error_for(status, code, f"scene {info.id}: {err.get('message', 'failed')}",
-                     "rig" if status == 422 else None, scene_id=info.id)
+    status, fld = wire.failure_answer(code)
+    return error_for(status, code, f"scene {info.id}: {err.get('message', 'failed')}", fld, scene_id=info.id)
 
 
 # ----------------------------------------------------------------------------------------------- uploads

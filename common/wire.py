@@ -30,6 +30,13 @@ def error_body(code: str, message: str, field: str | None = None) -> dict[str, A
     return ErrorBody(error=ErrorDetail(code=code, message=message, field=field)).model_dump()
 
 
+def failure_answer(code: str) -> tuple[int, str | None]:
+    """(status, field) of the error that POST /v1/scenes?wait= answers for a scene failed with ``code`` (and that
+    the client raises for it after polling): invalid_input 422 naming the rig, storage_full 507, else 500."""
+    status = {"invalid_input": 422, "storage_full": 507}.get(code, 500)
+    return status, "rig" if status == 422 else None
+
+
 # an input camera of a scene's rig
 class CameraInfo(BaseModel):
     name: str
@@ -105,4 +112,4 @@ class BatchIndex(BaseModel):
 
 
 __all__ = ["STATES", "BatchIndex", "CameraInfo", "DetailInfo", "ErrorBody", "ErrorDetail", "FrameInfo",
-           "ModelReadiness", "Readiness", "SceneInfo", "SceneList", "SceneState", "error_body"]
+           "ModelReadiness", "Readiness", "SceneInfo", "SceneList", "SceneState", "error_body", "failure_answer"]
