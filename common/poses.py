@@ -88,7 +88,7 @@ def _from_text(text: str, flag: str, what: str):
     try:
         values = [float(t) for t in tokens]
     except ValueError:
-        bad = next(t for t in tokens if not _is_float(t))
+        bad = next(t for t in tokens if not is_number(t))
         raise PoseArgError(flag, f"{_in(what)}{bad!r} is not a number") from None
     if len(values) != 16:
         raise PoseArgError(flag, f"{_in(what)}expected 16 numbers, got {len(values)}")
@@ -102,9 +102,11 @@ def _is_file(path: Path) -> bool:
         return False
 
 
-def _is_float(t: str) -> bool:
+def is_number(text: str) -> bool:
+    """Whether ``text`` is a number in any float notation (``-1e-05``, ``inf``); the dispatcher's parser
+    (clients/cli.py) asks it too."""
     try:
-        float(t)
+        float(text)
     except ValueError:
         return False
     return True
@@ -210,4 +212,4 @@ def move_from_args(args: argparse.Namespace) -> CameraMove:
 
 
 __all__ = ["CARLA_POSE", "MOVE_FLAGS", "CameraMove", "PoseArgError", "add_matrix_argument", "add_move_arguments",
-           "move_from_args", "parse_matrix"]
+           "is_number", "move_from_args", "parse_matrix"]
