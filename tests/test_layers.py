@@ -85,6 +85,17 @@ def test_common_imports_nothing_else_of_xyzcyl():
         assert bad == [], f"{path.relative_to(REPO)} imports {bad}"
 
 
+def test_the_clients_scene_has_the_wire_fields():
+    """The client's SceneInfo dataclass (its public type) has the fields of the wire model the server answers with,
+    plus ``raw``: a field added to one is added to the other."""
+    import dataclasses
+
+    from xyzcyl.clients.client import SceneInfo
+    from xyzcyl.common import wire
+
+    assert {f.name for f in dataclasses.fields(SceneInfo)} == {*wire.SceneInfo.model_fields, "raw"}
+
+
 def test_common_is_packaged():
     tool = tomllib.loads((REPO / "pyproject.toml").read_text())["tool"]["setuptools"]
     assert "xyzcyl.common" in tool["packages"] and tool["package-dir"]["xyzcyl.common"] == "common"
