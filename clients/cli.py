@@ -17,6 +17,8 @@ import re
 import sys
 from dataclasses import dataclass
 
+from xyzcyl.common.poses import is_number
+
 # What looks like a negative number (a value, not an option): "-" then a digit, or "-." then a digit -- the pattern
 # of Python 3.14's argparse (gh-124823). Python 3.11-3.13 use '^-\d+$|^-\d*\.\d+$', which takes "-1e-05" (how
 # numpy prints poses) for an option: `--cam-to-world ... -1e-05 ...` -> "expected 16 arguments".
@@ -29,7 +31,7 @@ class Parser(argparse.ArgumentParser):
     - negative numbers in any float notation are values (``--forward -2e0``, ``--cam-to-world ... -1e-05 ...``);
     - ``--opt=V1 V2 ...`` for an option taking several values is read as ``--opt V1 V2 ...`` (argparse gives the
       ``=`` form one value only), so ``--cam-to-world=0 0 1 5 ...`` works as written;
-    - an option whose action has ``numbers = N`` (a matrix flag, runtime/commands/pose_flags.py) takes N numbers
+    - an option whose action has ``numbers = N`` (a matrix flag, common/poses.py) takes N numbers
       in a row, or one value that is not a number (a JSON list, a file), as its one value and nothing after it,
       so positional arguments may follow as they could with ``nargs=N`` (fewer numbers are all given to the
       action, which names the count in its error).
@@ -58,11 +60,11 @@ class Parser(argparse.ArgumentParser):
                 continue
             rest = ([value] if eq else []) + args[i + 1:]
             n = getattr(action, "numbers", None)
-            if n and len(rest) >= n and all(_is_number(t) for t in rest[:n]):      # N numbers: one value
+            if n and len(rest) >= n and all(is_number(t) for t in rest[:n]):      # N numbers: one value
                 out.append(f"{flag}={' '.join(rest[:n])}")
                 i += 1 + n - (1 if eq else 0)
                 continue
-            if n and rest and not _is_number(rest[0]) and (eq or not rest[0].startswith("-")):  # a file, a list
+            if n and rest and not is_number(rest[0]) and (eq or not rest[0].startswith("-")):  # a file, a list
                 out.append(f"{flag}={rest[0]}")
                 i += 1 if eq else 2
                 continue
@@ -73,14 +75,6 @@ class Parser(argparse.ArgumentParser):
 
 def _several(action: argparse.Action) -> bool:
     return action.nargs in ("+", "*") or (isinstance(action.nargs, int) and action.nargs > 1)
-
-
-def _is_number(text: str) -> bool:
-    try:
-        float(text)
-    except ValueError:
-        return False
-    return True
 
 
 def version() -> str:

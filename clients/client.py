@@ -26,7 +26,6 @@ file, a camera it cannot express) raises InvalidRequestError with ``status`` Non
 
 from __future__ import annotations
 
-import contextlib
 import email.utils
 import json
 import numbers
@@ -37,12 +36,17 @@ import tempfile
 import time
 import zipfile
 from collections.abc import Callable, Iterable, Iterator, Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import IO, Any, Self
 
 import httpx
 import numpy as np
+from pydantic import BaseModel, ValidationError
+from xyzcyl.common import wire
+from xyzcyl.common.files import atomic_file
+from xyzcyl.common.media import EXR, SNIFF_BYTES, exr_bytes, media_of_suffix, sniff
+from xyzcyl.common.poses import CARLA_POSE
 
 DEFAULT_SERVER = "http://127.0.0.1:8000"
 USER_AGENT = "xyzcyl-client/0.1"
@@ -52,11 +56,6 @@ _CHUNK = 1 << 20
 _MAX_WAIT_QUERY = 3600          # the server refuses ?wait= above this (it also caps it at its wait_max_s)
 _BACKOFF_S, _BACKOFF_CAP_S = 0.25, 4.0
 _IDEMPOTENT = ("GET", "HEAD", "OPTIONS", "DELETE", "PUT")
-_CARLA = ("x", "y", "z", "pitch", "yaw", "roll")
-_MEDIA_BY_SUFFIX = {".png": "image/png", ".jpg": "image/jpeg", ".jpeg": "image/jpeg", ".exr": "image/x-exr",
-                    ".tif": "image/tiff", ".tiff": "image/tiff"}
-_MAGIC = ((b"\x89PNG\r\n\x1a\n", "image/png"), (b"\xff\xd8\xff", "image/jpeg"), (b"\x76\x2f\x31\x01", "image/x-exr"),
-          (b"II*\x00", "image/tiff"), (b"MM\x00*", "image/tiff"))
 
 # Module-level so tests can patch them (retry delays, wait deadlines).
 _sleep = time.sleep
@@ -210,15 +209,13 @@ def _error_from(resp: httpx.Response) -> XyzcylError:
     status = resp.status_code
     code, message, fld = f"http_{status}", resp.reason_phrase or f"HTTP {status}", None
     try:
-        err = resp.json().get("error")
-        if isinstance(err, Mapping):
-            code = str(err.get("code") or code)
-            message = str(err.get("message") or message)
-            fld = err.get("field")
-    except (ValueError, AttributeError, UnicodeDecodeError):
+        err = wire.ErrorBody.model_validate_json(resp.content).error
+    except ValidationError:     # not the API's error body (a proxy's page, no body): its text, if any
         text = resp.text.strip() if resp.content else ""
         if text:
             message = text[:300]
+    else:
+        code, message, fld = err.code or code, err.message or message, err.field
     return error_for(status, code, message, fld, scene_id=_scene_id_from(resp), retry_after=_retry_after(resp))
 
 
@@ -226,7 +223,8 @@ def _error_from(resp: httpx.Response) -> XyzcylError:
 
 @dataclass(frozen=True)
 class SceneInfo:
-    """A scene as the server describes it (GET /v1/scenes/{id}; docs/api.md). ``raw`` is the whole JSON."""
+    """A scene as the server describes it (GET /v1/scenes/{id}; docs/api.md; its fields are those of
+    xyzcyl.common.wire.SceneInfo, the JSON the server answers with). ``raw`` is the whole JSON."""
 
     id: str
     state: str                                 # queued | running | ready | failed
@@ -247,8 +245,9 @@ class SceneInfo:
 
     @classmethod
     def from_json(cls, d: Mapping[str, Any]) -> SceneInfo:
-        known = {k: d.get(k) for k in ("created", "updated", "error", "model", "counts", "gaussians", "background",
-                                       "bbox", "timings", "bytes", "detail")}
+        """The scene of its JSON (``id`` and ``state`` required, the others None or empty when absent; the client
+        checks a server's answer against wire.SceneInfo before)."""
+        known = {f.name: d.get(f.name) for f in fields(cls) if f.name not in _SCENE_CONVERTED}
         return cls(id=str(d["id"]), state=str(d["state"]), cameras=tuple(d.get("cameras") or ()),
                    links=dict(d.get("links") or {}), raw=dict(d), **known)
 
@@ -265,13 +264,15 @@ class SceneInfo:
         return [c["name"] for c in self.cameras]
 
 
+_SCENE_CONVERTED = ("id", "state", "cameras", "links", "raw")
+
+
 def _failure(info: SceneInfo) -> XyzcylError:
     """A failed scene as the error POST /v1/scenes?wait= would have answered (same status for the same code)."""
     err = info.error or {}
     code = str(err.get("code") or "failed")
-    status = {"invalid_input": 422, "storage_full": 507}.get(code, 500)
-    return error_for(status, code, f"scene {info.id}: {err.get('message', 'failed')}",
-                     "rig" if status == 422 else None, scene_id=info.id)
+    status, fld = wire.failure_answer(code)
+    return error_for(status, code, f"scene {info.id}: {err.get('message', 'failed')}", fld, scene_id=info.id)
 
 
 # ----------------------------------------------------------------------------------------------- uploads
@@ -336,11 +337,10 @@ class _Multipart:
             progress(self.length, self.length)
 
 
-def _sniff(data: bytes) -> str:
-    for magic, media in _MAGIC:
-        if data.startswith(magic):
-            return media
-    return "application/octet-stream"
+def _media_type(head: bytes) -> str:
+    """The media type of a part whose file name says nothing, from its first bytes."""
+    media = sniff(head)
+    return "application/octet-stream" if media is None else media.type
 
 
 def encode_png(image: np.ndarray) -> bytes:
@@ -379,12 +379,7 @@ def _encode_depth(depth: np.ndarray) -> tuple[bytes, str, str]:
         return encode_png(d), ".png", "image/png"
     if d.dtype.kind != "f":
         raise _invalid(f"a depth array must be uint16 (millimetres) or float (metres), not {d.dtype}", None)
-    from xyzcyl.runtime.imageio import write_exr
-
-    with tempfile.TemporaryDirectory(prefix="xyzcyl-depth-") as tmp:
-        path = Path(tmp) / "depth.exr"
-        write_exr(path, d.astype(np.float32)[..., None], ("Z",), compression="zip")
-        return path.read_bytes(), ".exr", "image/x-exr"
+    return exr_bytes(d.astype(np.float32)[..., None], ("Z",), compression="zip"), EXR.suffix, EXR.type
 
 
 def _part(name: str, src: Any, root: Path | None, depth: bool) -> _Part:
@@ -395,14 +390,14 @@ def _part(name: str, src: Any, root: Path | None, depth: bool) -> _Part:
             path = root / path
         if not path.is_file():
             raise InvalidRequestError(None, "file_missing", f"cannot read {str(path)!r}: no such file", name)
-        media = _MEDIA_BY_SUFFIX.get(path.suffix.lower())
-        if media is None:
-            with open(path, "rb") as f:
-                media = _sniff(f.read(16))
-        return _Part(name, path.name, media, path=path)
+        media = media_of_suffix(path.suffix)
+        if media is not None:
+            return _Part(name, path.name, media.type, path=path)
+        with open(path, "rb") as f:
+            return _Part(name, path.name, _media_type(f.read(SNIFF_BYTES)), path=path)
     if isinstance(src, (bytes, bytearray, memoryview)):
         data = bytes(src)
-        return _Part(name, stem, _sniff(data[:16]), data=data)
+        return _Part(name, stem, _media_type(data[:SNIFF_BYTES]), data=data)
     if isinstance(src, np.ndarray):
         try:
             if depth:
@@ -486,7 +481,7 @@ def _by_camera(values: Any, names: list[str], what: str) -> dict[str, Any] | Non
 def _fields(camera: Any) -> dict[str, Any]:
     if isinstance(camera, Mapping):
         return dict(camera)
-    keys = ("K", "cam_to_ego", "cam_to_world", "width", "height", "fov", "camera", *_CARLA, "transform",
+    keys = ("K", "cam_to_ego", "cam_to_world", "width", "height", "fov", "camera", *CARLA_POSE, "transform",
             "image_size_x", "image_size_y")
     return {k: getattr(camera, k) for k in keys if getattr(camera, k, None) is not None}
 
@@ -531,12 +526,12 @@ def view_params(camera: Any, width: int | None = None, height: int | None = None
                 raise _invalid('must be {"location": {x, y, z}, "rotation": {pitch, yaw, roll}}', "camera.transform")
             c = {**tf["location"], **tf["rotation"], "fov": c.get("fov"),
                  "width": c.get("image_size_x", c.get("width")), "height": c.get("image_size_y", c.get("height"))}
-        if any(k in c for k in _CARLA):
-            missing = [k for k in (*_CARLA, "fov") if c.get(k) is None]
+        if any(k in c for k in CARLA_POSE):
+            missing = [k for k in (*CARLA_POSE, "fov") if c.get(k) is None]
             if missing:
                 raise _invalid(f"a CARLA pose needs x, y, z, pitch, yaw, roll and fov; missing {', '.join(missing)}",
                                f"camera.{missing[0]}")
-            p = {k: _num(c[k], f"camera.{k}") for k in (*_CARLA, "fov")}
+            p = {k: _num(c[k], f"camera.{k}") for k in (*CARLA_POSE, "fov")}
         elif "cam_to_ego" in c or "cam_to_world" in c:
             pose = c.get("cam_to_ego", c.get("cam_to_world"))
             p = {"cam_to_ego": ",".join(repr(x) for x in _flat(pose, 16, "camera.cam_to_ego"))}
@@ -588,7 +583,7 @@ def decode_image(data: bytes, output: str = "rgb") -> np.ndarray:
     """A view's bytes (PNG, JPEG or EXR, as the render endpoints answer) -> float32 array: rgb [H, W, 3] in
     0..1, RGB order (EXR: linear floats as stored); depth [H, W] in metres (16-bit PNG millimetres x 0.001; 0 = no
     surface); alpha [H, W] in 0..1."""
-    if data[:4] == b"\x76\x2f\x31\x01":
+    if sniff(data[:SNIFF_BYTES]) == EXR:
         a = _read_float_image(data)
     else:
         import cv2
@@ -649,12 +644,13 @@ class FrameBatch:
         self._zip = zipfile.ZipFile(spool)
         try:
             self.index: dict[str, Any] = json.loads(self._zip.read("index.json"))
-        except (KeyError, ValueError) as e:
+            index = wire.BatchIndex.model_validate(self.index)
+        except (KeyError, ValueError) as e:       # not JSON, or not a wire.BatchIndex (a ValidationError)
             self.close()
             raise ServerError(None, "bad_batch", f"the batch answer has no readable index.json ({e})") from None
-        self.output = str(self.index.get("output", "rgb"))
-        self.format = str(self.index.get("format", "png"))
-        self.names = [f["file"] for f in self.index.get("frames", [])]
+        self.output = index.output
+        self.format = index.format
+        self.names = [f.file for f in index.frames]
         self.decode = decode
         self._next = 0
 
@@ -819,12 +815,9 @@ class Client:
         return ConnectionFailed(None, code, f"{method} {self.base_url}{path.split('?')[0]} {what}: {detail}",
                                 "server")
 
-    def _json(self, method: str, path: str, **kw) -> Any:
-        resp = self._send(method, path, **kw)
-        try:
-            return resp.json()
-        except ValueError:
-            raise ServerError(resp.status_code, "bad_answer", f"{method} {path}: the answer is not JSON") from None
+    def _json(self, method: str, path: str, body: type[BaseModel], **kw) -> Any:
+        """The answer's JSON, checked against its wire type ``body``."""
+        return _answer(self._send(method, path, **kw), body, f"{method} {path}")
 
     def _download(self, method: str, path: str, sink: IO[bytes], *, on_chunk: Callable[[bytes], None] | None = None,
                   on_start: Callable[[httpx.Response], None] | None = None, idempotent: bool | None = None,
@@ -930,7 +923,7 @@ class Client:
         resp = self._send("POST", "/v1/scenes", params=params or None, content=lambda: body.stream(progress),
                           headers=body.headers, idempotent=False,
                           timeout=httpx.Timeout(self.timeout, read=self.timeout + held))
-        info = SceneInfo.from_json(resp.json())
+        info = SceneInfo.from_json(_answer(resp, wire.SceneInfo, "POST /v1/scenes"))
         if not wait or info.ready:
             return info
         if info.failed:
@@ -957,13 +950,13 @@ class Client:
 
     def scene(self, scene_id: str) -> SceneInfo:
         """GET /v1/scenes/{id}."""
-        return SceneInfo.from_json(self._json("GET", f"/v1/scenes/{_seg(scene_id)}"))
+        return SceneInfo.from_json(self._json("GET", f"/v1/scenes/{_seg(scene_id)}", wire.SceneInfo))
 
     def scenes(self, page_size: int = 100) -> Iterator[SceneInfo]:
         """Every scene, newest first (GET /v1/scenes, page by page)."""
         offset, seen = 0, set()
         while True:
-            page = self._json("GET", "/v1/scenes", params={"offset": offset, "limit": page_size})
+            page = self._json("GET", "/v1/scenes", wire.SceneList, params={"offset": offset, "limit": page_size})
             for d in page.get("scenes", []):
                 if d["id"] not in seen:      # a scene posted meanwhile shifts the pages by one
                     seen.add(d["id"])
@@ -1056,19 +1049,20 @@ class Client:
             raise
 
 
-@contextlib.contextmanager
-def atomic_file(path: str | os.PathLike) -> Iterator[IO[bytes]]:
-    """A binary file written beside ``path`` (.NAME.RANDOM.part, created with the umask's permissions) and renamed
-    onto it when the block completes; removed when it raises."""
-    path = Path(path)
-    tmp = path.with_name(f".{path.name}.{secrets.token_hex(4)}.part")
+def _answer(resp: httpx.Response, body: type[BaseModel], what: str) -> Any:
+    """The JSON of a 2xx answer, checked against its wire type ``body`` (ServerError ``bad_answer`` otherwise)."""
     try:
-        with open(tmp, "xb") as f:
-            yield f
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
+        doc = resp.json()
+    except ValueError:
+        raise ServerError(resp.status_code, "bad_answer", f"{what}: the answer is not JSON") from None
+    try:
+        body.model_validate(doc)
+    except ValidationError as e:
+        first = e.errors()[0]
+        where = ".".join(str(x) for x in first["loc"]) or "body"
+        raise ServerError(resp.status_code, "bad_answer", f"{what}: the answer is not a {body.__name__} ({where}: "
+                          f"{first['msg']})") from None
+    return doc
 
 
 def _seg(scene_id: str) -> str:

@@ -1,62 +1,17 @@
-"""Folder and file helpers shared by the model folder writer (model_export.export), scene folders (runtime.scene),
-the server's folder store and the training checkpoints: atomic file and folder replacement and format-tagged
-JSON documents. (The client keeps its own atomic file: it must not import the runtime.)"""
+"""Format-tagged JSON documents (model.json, scene.json): read_json_doc. The atomic writes are
+xyzcyl.common.files (one implementation for the runtime, the server, the client and training)."""
 
 from __future__ import annotations
 
 import json
 import os
-import secrets
-import shutil
-import tempfile
-from collections.abc import Iterator
-from contextlib import contextmanager
 from pathlib import Path
-from typing import IO, Any
+from typing import Any
 
-
-@contextmanager
-def atomic_file(path: str | os.PathLike, mode: str = "wb", fsync: bool = False, **open_kw: Any) -> Iterator[IO]:
-    """A file opened (``mode``: "wb" or "w", ``open_kw`` passed to open) beside ``path`` as .NAME.RANDOM.part and
-    renamed onto ``path`` when the block completes (after an fsync of its data with ``fsync``), so readers see the
-    old file or the new one, never a half-written one; removed when the block raises."""
-    if mode not in ("wb", "w"):
-        raise ValueError(f"atomic_file: mode must be 'wb' or 'w', got {mode!r}")
-    path = Path(path)
-    tmp = path.with_name(f".{path.name}.{secrets.token_hex(4)}.part")
-    try:
-        with open(tmp, mode.replace("w", "x"), **open_kw) as f:
-            yield f
-            if fsync:
-                f.flush()
-                os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
-
-
-@contextmanager
-def atomic_folder(out: str | os.PathLike) -> Iterator[Path]:
-    """Yield a temporary sibling of ``out`` to fill; when the block succeeds it is renamed to ``out`` (an existing
-    ``out`` is moved aside first and removed afterwards), when it raises it is removed. Readers never see a
-    half-written folder under ``out``."""
-    out = Path(out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))
-    os.chmod(tmp, 0o755)   # mkdtemp makes it private; the result is an ordinary folder
-    try:
-        yield tmp
-        if out.exists():
-            old = Path(tempfile.mkdtemp(prefix=f".{out.name}.old.", dir=out.parent))
-            os.replace(out, old / out.name)
-            os.replace(tmp, out)
-            shutil.rmtree(old, ignore_errors=True)
-        else:
-            os.replace(tmp, out)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
+# Kept importable from here only for runtime/scene.py, model_export/export.py and model_export/train.py, which the
+# camera-type refactor (issue 27, house 1) is rewriting: switch their import lines to xyzcyl.common.files, then
+# delete this line.
+from xyzcyl.common.files import atomic_file, atomic_folder  # noqa: F401
 
 
 def read_json_doc(path: str | os.PathLike, fmt: str, error: type[Exception], what: str) -> dict[str, Any]:

@@ -1,5 +1,6 @@
 """The HTTP service (FastAPI) over xyzcyl.runtime: ``create_app(Settings(...))``; ``xyzcyl serve`` runs it.
-This package imports xyzcyl.runtime only (tests/test_packaging.py checks it). docs/api.md describes the API."""
+This package imports xyzcyl.runtime and xyzcyl.common only (tests/test_packaging.py checks it). docs/api.md describes
+the API; docs/design.md the modules (app.py the shell, routes/ parse and answer, service.py does the work)."""
 
 from __future__ import annotations
 

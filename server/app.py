@@ -3,60 +3,40 @@
     from xyzcyl.server import Settings, create_app
     app = create_app(Settings(store="/tmp/store"))        # uvicorn.run(app) or `xyzcyl serve`
 
-The lifespan opens the store (recovering from a crash), starts the render pool and then, in the background, warms
-up (``warm_up``: a tiny render in the render pool, runtime.warmup) and starts the reconstruction workers (each loads
-the model and, with ``warm_up``, runs a tiny reconstruction); ``/v2/health/ready`` answers 503 until all of that
-has finished, so the first real request compiles no numba kernel. Middleware:
-the body limit (413 from Content-Length before anything is read, or as soon as a streamed body passes it),
-metrics per route template, CORS when origins are configured. Endpoints live in routes/; API keys are checked
-by a dependency of the /v1 routes.
+The application is the HTTP shell around one service.Service (``app.state.service``), which owns what the
+endpoints do. The lifespan starts it: it opens the store (recovering from a crash) and then, in the background,
+warms up (``warm_up``: a tiny render in the render pool, runtime.warmup) and starts the reconstruction workers
+(each loads the model and, with ``warm_up``, runs a tiny reconstruction); ``/v2/health/ready`` answers 503 until
+all of that has finished, so the first real request compiles no numba kernel. Middleware: the body limit (413
+from Content-Length before anything is read, or as soon as a streamed body passes it), metrics per route
+template, CORS when origins are configured. Errors become the one error body (errors.py). Endpoints live in
+routes/ and take their dependencies (the service, API keys, known query parameters) from deps.py, never from
+this module.
 """
 
 from __future__ import annotations
 
-import asyncio
 import contextlib
 import json
 import logging
 import time
-from dataclasses import dataclass, field
-from pathlib import Path
 
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse, Response
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.requests import ClientDisconnect
-from xyzcyl.runtime.inference import ModelError, ModelInfo, verify_model
 
-from .cache import BytesCache, SceneCache
+from .deps import service_of
 from .errors import ApiError, TooLarge, error_body
-from .jobs import Reconstructions, Renders
 from .metrics import Metrics
+from .routes import health, render, scenes
+from .service import Service
 from .settings import Settings
-from .store import FolderStore, StoreUnavailable, open_store
+from .store import StoreUnavailable
 
 log = logging.getLogger("xyzcyl.server")
 API_VERSION = "1"
-
-
-@dataclass
-class Service:
-    """Everything the endpoints use; one per app (``request.app.state.service``)."""
-
-    settings: Settings
-    info: ModelInfo
-    store: FolderStore
-    metrics: Metrics
-    renders: Renders
-    reconstructions: Reconstructions
-    scenes: SceneCache
-    views: BytesCache
-    ready: bool = False
-    draining: bool = False
-    startup_error: str | None = None
-    started: float = field(default_factory=time.time)
-    recovered: dict[str, int] = field(default_factory=dict)
 
 
 def _status_code_name(status: int) -> str:
@@ -138,7 +118,7 @@ def _install_handlers(app: FastAPI) -> None:
     async def _store_down(request: Request, exc: StoreUnavailable):
         # the s3:// store stopped answering after start-up (logged by the store): not this request's fault, and
         # over once the bucket answers again
-        retry = str(request.app.state.service.settings.retry_after_s)
+        retry = str(service_of(request).settings.retry_after_s)
         return _json_error(503, "store_unavailable", str(exc), None, {"Retry-After": retry})
 
     @app.exception_handler(RequestValidationError)
@@ -172,43 +152,20 @@ def _install_handlers(app: FastAPI) -> None:
 
 
 def create_app(settings: Settings | None = None) -> FastAPI:
-    """The application. Raises ModelError at once when the model folder is missing or altered."""
+    """The application. Raises runtime.inference.ModelError at once when the model folder is missing or
+    altered."""
     from . import __version__
-    from .routes import health, render, scenes
 
     settings = settings or Settings()
-    info = verify_model(settings.model_dir())
-    metrics = Metrics()
-    store = open_store(settings)
-    service = Service(settings=settings, info=info, store=store, metrics=metrics,
-                      renders=Renders(settings, metrics),
-                      reconstructions=Reconstructions(settings, store, metrics, Path(info.path)),
-                      scenes=SceneCache(settings.scene_cache), views=BytesCache(settings.render_cache_bytes))
-    metrics.watch_store(store)
-
-    def forget(sid: str) -> None:
-        service.scenes.drop(sid)
-        service.views.drop_owner(sid)
-
-    store.on_delete.append(forget)
+    service = Service.create(settings)
 
     @contextlib.asynccontextmanager
     async def lifespan(app: FastAPI):
-        service.recovered = await asyncio.to_thread(store.open)
-        if any(service.recovered[k] for k in ("interrupted", "files_missing", "orphans")):
-            log.warning("store recovered: %s", service.recovered)
-        start = asyncio.create_task(_start_workers(service), name="start-workers")
-        sweep = asyncio.create_task(_sweep(service), name="ttl-sweep")
+        await service.start()
         try:
             yield
         finally:
-            service.draining = True
-            service.ready = False
-            for t in (start, sweep):
-                t.cancel()
-            await asyncio.gather(start, sweep, return_exceptions=True)
-            await service.reconstructions.stop()
-            service.renders.stop()
+            await service.stop()
 
     # /openapi.json, /docs and /redoc are not behind the API keys (a browser sends no key): with keys set they are
     # off unless api_docs says otherwise
@@ -230,71 +187,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
         app.add_middleware(CORSMiddleware, allow_origins=list(settings.cors_origins), allow_methods=["*"],
                            allow_headers=["*"], expose_headers=["Location", "ETag", "Retry-After"])
-    app.add_middleware(_Guard, settings=settings, metrics=metrics)
+    app.add_middleware(_Guard, settings=settings, metrics=service.metrics)
     return app
 
 
-def _warm_renders() -> float:
-    """runtime.warmup.warm_render in a temporary folder: the render path's kernels and encoders, in this process."""
-    import tempfile
-
-    from xyzcyl.runtime.warmup import warm_render
-
-    with tempfile.TemporaryDirectory(prefix="xyzcyl-warmup-") as tmp:
-        return warm_render(tmp)
-
-
-async def _warm_up_renders(service: Service) -> float | None:
-    """The render warm-up in the render pool (its threads run ``compute_nice`` nicer, and numba's worker threads,
-    started by the first parallel kernel, inherit that); the seconds, or None when it failed (logged: renders
-    then compile or load the kernels on the first request)."""
-    try:
-        return await asyncio.get_running_loop().run_in_executor(service.renders.pool, _warm_renders)
-    except asyncio.CancelledError:
-        raise
-    except Exception:
-        log.exception("the render warm-up failed; the first render compiles or loads the kernels instead")
-        return None
-
-
-async def _start_workers(service: Service) -> None:
-    try:
-        t0 = time.perf_counter()
-        renders = None
-        if service.settings.warm_up:
-            # before the workers start: on a cold numba cache this compiles the render kernels once, and the
-            # workers then load them from the cache (compiling in both at once would take both cores twice as long)
-            renders = await _warm_up_renders(service)
-        workers = await service.reconstructions.start()
-        if service.settings.warm_up:
-            log.info("warm-up took %.1f s (renders %s, reconstruction workers %.1f s)", time.perf_counter() - t0,
-                     "failed" if renders is None else f"{renders:.1f} s", workers)
-        service.ready = True
-        log.info("model %s %s loaded; ready", service.info.name, service.info.version)
-    except asyncio.CancelledError:
-        raise
-    except Exception as e:
-        service.startup_error = f"{type(e).__name__}: {e}"
-        log.exception("the reconstruction workers did not start")
-
-
-async def _sweep(service: Service) -> None:
-    ttl = service.settings.scene_ttl_s
-    if ttl is None:
-        return
-    while True:
-        await asyncio.sleep(min(60.0, max(1.0, ttl / 4)))
-        try:
-            removed = await asyncio.to_thread(service.store.sweep)
-        except StoreUnavailable:        # logged by the store; the next round tries again
-            continue
-        if removed:
-            log.info("TTL removed %d scenes", len(removed))
-
-
-def service_of(request: Request) -> Service:
-    return request.app.state.service
-
-
-__all__ = ["API_VERSION", "ModelError", "Service", "create_app", "service_of"]
-
+__all__ = ["API_VERSION", "create_app"]

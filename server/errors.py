@@ -3,11 +3,14 @@
     {"error": {"code": "invalid", "message": "camera 'CAM_FRONT': K: fx must be > 0", "field": "rig"}}
 
 Endpoints raise ApiError subclasses; app.py turns them (and FastAPI's own validation errors, unknown routes and
-wrong methods) into that body. docs/api.md has the table of codes."""
+wrong methods) into that body (xyzcyl.common.wire.ErrorBody, which the client parses). docs/api.md has the table
+of codes."""
 
 from __future__ import annotations
 
 from typing import Any
+
+from xyzcyl.common.wire import error_body, failure_answer
 
 
 class ApiError(Exception):
@@ -27,10 +30,6 @@ class ApiError(Exception):
 
     def body(self) -> dict[str, Any]:
         return error_body(self.code, self.message, self.field)
-
-
-def error_body(code: str, message: str, field: str | None = None) -> dict[str, Any]:
-    return {"error": {"code": code, "message": message, "field": field}}
 
 
 class Unauthorized(ApiError):
@@ -71,5 +70,12 @@ class StorageFull(ApiError):
     status, code = 507, "storage_full"
 
 
+def scene_failure(sid: str, code: str, message: str, headers: dict[str, str] | None = None) -> ApiError:
+    """What POST /v1/scenes?wait= answers for a scene that failed with ``code`` (wire.failure_answer: the status
+    and field the client maps back)."""
+    status, field = failure_answer(code)
+    return ApiError(f"scene {sid}: {message}", field, headers, code=code, status=status)
+
+
 __all__ = ["ApiError", "Busy", "Conflict", "Invalid", "NotFound", "StorageFull", "TooLarge",
-           "Unauthorized", "UnsupportedMedia", "error_body"]
+           "Unauthorized", "UnsupportedMedia", "error_body", "scene_failure"]

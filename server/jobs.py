@@ -8,8 +8,9 @@
 - ``Renders``: a thread pool of ``render_threads`` (the numba kernels release the GIL) with at most
   ``render_queue`` renders waiting; beyond it ``run`` raises Busy (503 + Retry-After).
 
-Each worker process runs ``_worker_init`` once and then ``_worker_reconstruct`` per job; they return plain tuples,
-never exceptions, so nothing depends on pickling error types. With ``warm_up`` (the setting), ``_worker_init`` also
+Each worker process runs ``_worker_init`` once and then ``_worker_reconstruct`` per job; they return typed results
+(``WorkerStarted``; ``Reconstructed`` or ``ReconstructFailed``: plain dataclasses), never exceptions, so nothing
+depends on pickling error types. With ``warm_up`` (the setting), ``_worker_init`` also
 runs one tiny reconstruction (runtime.warmup's rig: two small pinhole cameras and a LiDAR sweep, through
 ``_worker_reconstruct``: the LiDAR path, the detail layer, the scene's files) after loading the model, so the
 worker's numba kernels are compiled or loaded from numba's cache before the server reports ready.
@@ -33,10 +34,53 @@ from .errors import Busy
 
 log = logging.getLogger("xyzcyl.server")
 
+
+# -------------------------------------------------------------------------------------- what the workers answer
+
+@dataclass(frozen=True)
+class Reconstructed:
+    """A finished reconstruction: the scene folder is written; its metadata for the record."""
+
+    model: dict[str, Any]            # name, version, model_json_sha256
+    counts: dict[str, int]
+    timings: dict[str, float]        # seconds per stage, "total" the reconstruction's
+    bbox: dict[str, list[float]] | None
+    gaussians: int
+    background: bool
+    lifting_cached: bool             # the rig's lifting inputs came from the worker's cache
+    pid: int                         # the worker process
+
+    def record_fields(self, queued_s: float, worker_s: float) -> dict[str, Any]:
+        """The fields the store's ``commit`` marks the record ready with: the timings gain ``queued`` (the wait
+        for a worker) and ``worker_total`` (the reconstruction and writing the folder)."""
+        return {"model": self.model, "counts": self.counts,
+                "timings": {**self.timings, "queued": queued_s, "worker_total": worker_s}, "bbox": self.bbox,
+                "gaussians": self.gaussians, "background": self.background}
+
+
+@dataclass(frozen=True)
+class ReconstructFailed:
+    """A reconstruction that failed: ``code`` is the record's error code (``invalid_input``: the rig or an image
+    cannot be used; ``storage_full``; ``error``: anything else) and ``message`` says why."""
+
+    code: str
+    message: str
+
+
+@dataclass(frozen=True)
+class WorkerStarted:
+    """A worker's answer once it has loaded the model (and, with ``warm_up``, run its warm-up reconstruction):
+    its pid and the warm-up's seconds or error (both None without a warm-up)."""
+
+    pid: int
+    warm_up_s: float | None = None
+    warm_up_error: str | None = None
+
+
 # -------------------------------------------------------------------------------------- in the worker process
 
 _RECONSTRUCTOR = None
-_WARMED: tuple[float | None, str | None] = (None, None)   # (warm-up seconds, error) of this worker process
+_WARMED = (None, None)      # (warm-up seconds, error) of this worker process
 
 
 def _exit_with_parent(ppid: int, every_s: float = 1.0) -> None:
@@ -96,24 +140,22 @@ def _worker_warm_up() -> tuple[float | None, str | None]:
     try:
         with tempfile.TemporaryDirectory(prefix="xyzcyl-warmup-") as tmp:
             rig = write_rig(Path(tmp) / "rig")
-            status, value = _worker_reconstruct(str(rig / "rig.json"), str(Path(tmp) / "scene"),
-                                                DEFAULT_DETAIL.stride)
+            result = _worker_reconstruct(str(rig / "rig.json"), str(Path(tmp) / "scene"), DEFAULT_DETAIL.stride)
     except Exception as e:      # noqa: BLE001 - reported to the server, never fatal to the worker
         return None, f"{type(e).__name__}: {e}"
-    if status != "ok":
-        return None, f"{status}: {value}"
+    if isinstance(result, ReconstructFailed):
+        return None, f"{result.code}: {result.message}"
     return time.perf_counter() - t0, None
 
 
-def _worker_ping() -> tuple[int, float | None, str | None]:
-    """(pid, warm-up seconds or None, warm-up error or None); answered once _worker_init has finished."""
-    return os.getpid(), *_WARMED
+def _worker_ping() -> WorkerStarted:
+    """Answered once _worker_init has finished."""
+    return WorkerStarted(os.getpid(), *_WARMED)
 
 
-def _worker_reconstruct(rig_json: str, out_dir: str, detail_stride: int | None) -> tuple[str, Any]:
-    """("ok", scene metadata) | ("invalid", message) | ("storage_full", message) | ("error", message).
-    detail_stride: the detail layer's stride (the runtime's other detail settings stay at their defaults), None for
-    no detail layer."""
+def _worker_reconstruct(rig_json: str, out_dir: str, detail_stride: int | None) -> Reconstructed | ReconstructFailed:
+    """The scene of ``rig_json`` written to ``out_dir``, or why not. detail_stride: the detail layer's stride (the
+    runtime's other detail settings stay at their defaults), None for no detail layer."""
     import errno
     from dataclasses import replace
 
@@ -130,19 +172,19 @@ def _worker_reconstruct(rig_json: str, out_dir: str, detail_stride: int | None) 
         scene = _RECONSTRUCTOR.reconstruct(rig, lidar=lidar, detail=detail)
         scene.save(out_dir)
         meta = scene.to_json()
-        return "ok", {k: meta[k] for k in ("model", "counts", "timings", "bbox", "lifting_cached")} | {
-            "gaussians": meta["gaussians"]["count"], "background": meta["background"] is not None,
-            "pid": os.getpid()}
+        return Reconstructed(model=meta["model"], counts=meta["counts"], timings=meta["timings"], bbox=meta["bbox"],
+                             gaussians=meta["gaussians"]["count"], background=meta["background"] is not None,
+                             lifting_cached=meta["lifting_cached"], pid=os.getpid())
     except (RigError, InferenceError, SceneError, LidarError, DetailError) as e:
-        return "invalid", str(e)
+        return ReconstructFailed("invalid_input", str(e))
     except OSError as e:
         if e.errno in (errno.ENOSPC, errno.EDQUOT):
-            return "storage_full", f"the store's disk is full ({e.strerror})"
-        return "error", f"{type(e).__name__}: {e}"
+            return ReconstructFailed("storage_full", f"the store's disk is full ({e.strerror})")
+        return ReconstructFailed("error", f"{type(e).__name__}: {e}")
     except MemoryError:
-        return "error", "out of memory"
+        return ReconstructFailed("error", "out of memory")
     except Exception as e:      # noqa: BLE001 - reported as the job's failure, never raised into the server
-        return "error", f"{type(e).__name__}: {e}"
+        return ReconstructFailed("error", f"{type(e).__name__}: {e}")
 
 
 # -------------------------------------------------------------------------------------- in the server process
@@ -229,13 +271,12 @@ class Reconstructions:
         return time.perf_counter() - t0
 
     @staticmethod
-    def _started(answer: tuple[int, float | None, str | None]) -> None:
-        pid, seconds, error = answer
-        if error is not None:
+    def _started(answer: WorkerStarted) -> None:
+        if answer.warm_up_error is not None:
             log.error("reconstruction worker %d: the warm-up reconstruction failed (%s); its first job compiles "
-                      "or loads the kernels instead", pid, error)
-        elif seconds is not None:
-            log.info("reconstruction worker %d: warm-up reconstruction took %.1f s", pid, seconds)
+                      "or loads the kernels instead", answer.pid, answer.warm_up_error)
+        elif answer.warm_up_s is not None:
+            log.info("reconstruction worker %d: warm-up reconstruction took %.1f s", answer.pid, answer.warm_up_s)
 
     async def stop(self) -> None:
         """Stop the consumers and the workers; the jobs this process still held (queued or running) are failed
@@ -308,7 +349,7 @@ class Reconstructions:
         fut = loop.run_in_executor(worker.pool, _worker_reconstruct, str(job.work / "rig.json"), str(out),
                                    job.detail_stride)
         try:
-            status, value = await asyncio.wait_for(fut, self.settings.reconstruct_timeout_s)
+            result = await asyncio.wait_for(fut, self.settings.reconstruct_timeout_s)
         except TimeoutError:
             worker.replace()
             await self._failed(job, "timeout", "the reconstruction ran longer than "
@@ -320,16 +361,14 @@ class Reconstructions:
                                "the job was not finished")
             return
         seconds = time.perf_counter() - t0
-        if status != "ok":
-            await self._failed(job, {"invalid": "invalid_input"}.get(status, status), value)
+        if isinstance(result, ReconstructFailed):
+            await self._failed(job, result.code, result.message)
             return
         from .store import StoreFull
 
         try:
-            rec = await asyncio.to_thread(
-                self.store.commit, job.sid, out, model=value["model"], counts=value["counts"],
-                timings={**value["timings"], "queued": t0 - job.submitted, "worker_total": seconds},
-                bbox=value["bbox"], gaussians=value["gaussians"], background=value["background"])
+            rec = await asyncio.to_thread(self.store.commit, job.sid, out,
+                                          **result.record_fields(t0 - job.submitted, seconds))
         except StoreFull as e:
             await self._failed(job, "storage_full", str(e))
             return
@@ -379,4 +418,4 @@ class Renders:
         self.pool.shutdown(wait=True, cancel_futures=True)
 
 
-__all__ = ["Job", "Reconstructions", "Renders"]
+__all__ = ["Job", "ReconstructFailed", "Reconstructed", "Reconstructions", "Renders", "WorkerStarted"]

@@ -45,7 +45,7 @@ def _common() -> argparse.ArgumentParser:
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     # the pose flags of `xyzcyl render` (one definition; a light module: argparse at import, numpy when run)
-    from xyzcyl.runtime.commands.pose_flags import add_matrix_argument, add_move_arguments
+    from xyzcyl.common.poses import add_matrix_argument, add_move_arguments
 
     parser.description = ("Talk to a running `xyzcyl serve` (docs/client.md): reconstruct a rig, render views and "
                           "camera paths, download Gaussians, list and delete scenes.")
@@ -128,8 +128,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def _bar(args, total, unit: str, desc: str):
     """A tqdm progress callback (done, total) -> None and its closer; nothing when --quiet or when stderr is not a
-    terminal (runtime.progress: a redirected bar wrote `upload: 0.00B [00:00, ?B/s]` lines into logs)."""
-    from xyzcyl.runtime.progress import is_terminal, progress_bar
+    terminal (common.progress: a redirected bar wrote `upload: 0.00B [00:00, ?B/s]` lines into logs)."""
+    from xyzcyl.common.progress import is_terminal, progress_bar
 
     if args.quiet or not is_terminal(sys.stderr):
         return None, lambda: None
@@ -150,7 +150,7 @@ def _say(args, text: str) -> None:
 
 
 def _write_atomic(path: Path, data: bytes) -> None:
-    from xyzcyl.clients.client import atomic_file
+    from xyzcyl.common.files import atomic_file
 
     with atomic_file(path) as f:
         f.write(data)
@@ -204,7 +204,7 @@ def _reconstruct(c, args) -> int:
 
 
 def _pose(args) -> object:
-    from xyzcyl.runtime.commands.pose_flags import PoseArgError, move_from_args, parse_matrix
+    from xyzcyl.common.poses import CARLA_POSE, PoseArgError, move_from_args, parse_matrix
 
     try:
         move = move_from_args(args)
@@ -233,7 +233,7 @@ def _pose(args) -> object:
             raise _UsageError("--K", "a CARLA camera takes --fov (square pixels, centred principal point)")
         if args.fov is None:
             raise _UsageError("--fov", "required with --carla")
-        return dict(zip(("x", "y", "z", "pitch", "yaw", "roll"), move.apply_carla(*args.carla)), fov=args.fov)
+        return dict(zip(CARLA_POSE, move.apply_carla(*args.carla)), fov=args.fov)
     if (args.K is None) == (args.fov is None):
         raise _UsageError("--K", "give exactly one of --K FX FY CX CY and --fov DEG with --cam-to-world")
     pose = move.apply(c2w).reshape(-1).tolist()

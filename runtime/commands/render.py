@@ -5,7 +5,7 @@ runtime.views.ViewSpec and encoded by runtime.views.encode_view, exactly as the 
 default "all" (float32 channels R G B A Z; Z = expected depth in metres, 0 where A == 0). The pose: --K or --fov with
 --cam-to-world, --equirect with --cam-to-world, or --camera NAME (an input camera of the scene's rig), optionally
 moved (--forward/--left/--up metres along ego x/y/z, --yaw degrees
-to the left; runtime/commands/pose_flags.py, shared with `xyzcyl client render`). See docs/renderer.md and
+to the left; common/poses.py, shared with `xyzcyl client render`). See docs/renderer.md and
 docs/inference.md."""
 
 from __future__ import annotations
@@ -15,8 +15,13 @@ import sys
 from pathlib import Path
 
 import numpy as np
-
-from .pose_flags import PoseArgError, add_matrix_argument, add_move_arguments, move_from_args, parse_matrix
+from xyzcyl.common.poses import (
+    PoseArgError,
+    add_matrix_argument,
+    add_move_arguments,
+    move_from_args,
+    parse_matrix,
+)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

@@ -1,16 +1,18 @@
-"""Where scenes live: records (state, metadata) and the scene folders. ``open_store(settings)`` picks the
-backend from ``settings.store``: a folder path (folder.FolderStore) or ``s3://bucket/prefix`` (s3.S3Store, for
-several replicas; boto3 is imported only then). Both share base.BaseStore's ids, record shapes and quota rules."""
+"""Where scenes live: records (record.SceneRecord: state, metadata) and the scene folders, behind base.Store (the
+protocol the service uses). ``open_store(settings)`` picks the backend from ``settings.store``: a folder path
+(folder.FolderStore) or ``s3://bucket/prefix`` (s3.S3Store, for several replicas; boto3 is imported only then).
+Both share record.py's ids and record format and base.BaseStore's quota rules."""
 
 from __future__ import annotations
 
 import math
 
-from .base import SCENE_ID, BaseStore, StoreFull, StoreUnavailable, new_scene_id
+from .base import BaseStore, Store, StoreFull, StoreUnavailable
 from .folder import FolderStore
+from .record import SCENE_ID, SceneFailure, SceneRecord, new_scene_id
 
 
-def open_store(settings) -> BaseStore:
+def open_store(settings) -> Store:
     quota = {"max_scenes": settings.max_scenes, "max_bytes": settings.max_store_bytes,
              "when_full": settings.when_full, "ttl_s": settings.scene_ttl_s}
     if str(settings.store).startswith("s3://"):
@@ -25,4 +27,5 @@ def open_store(settings) -> BaseStore:
     return FolderStore(settings.store, **quota)
 
 
-__all__ = ["SCENE_ID", "BaseStore", "FolderStore", "StoreFull", "StoreUnavailable", "new_scene_id", "open_store"]
+__all__ = ["SCENE_ID", "BaseStore", "FolderStore", "SceneFailure", "SceneRecord", "Store", "StoreFull",
+           "StoreUnavailable", "new_scene_id", "open_store"]

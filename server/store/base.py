@@ -1,9 +1,9 @@
-"""What every store backend shares: scene ids, the record's shape and states, and the quota decisions.
+"""What every store backend shares: the Store protocol (what the service calls), the quota decisions, and helpers
+for the local folders. Records and ids are record.py's.
 
-A record is a JSON object ``{"id", "state", "created_ts", "updated_ts", "error", ...}`` with ``state`` one of
-STATES; a ready record also has ``bytes`` and ``last_used``. The quota functions below only *decide* (which
-scenes to evict, whether the store is full): they take the records as a list and return ids, so the folder store
-(records in memory) and the S3 store (records from a listing) apply the same rules:
+The quota functions below only *decide* (which scenes to evict, whether the store is full): they take the records
+as a list and return ids, so the folder store (records in memory) and the S3 store (records from a listing) apply
+the same rules:
 
 - ``max_scenes`` counts queued, running and ready records (failed ones are kept for inspection, at most
   ``max_scenes`` of them, oldest dropped first);
@@ -16,14 +16,16 @@ scenes to evict, whether the store is full): they take the records as a list and
 
 from __future__ import annotations
 
-import json
-import re
+import builtins
+import os
 import secrets
-from collections.abc import Callable, Iterable
-from typing import Any
+import shutil
+from collections.abc import Callable, Iterable, Mapping
+from pathlib import Path
+from typing import Any, Protocol, runtime_checkable
 
-SCENE_ID = re.compile(r"^[A-Za-z0-9_-]{22}$")
-STATES = ("queued", "running", "ready", "failed")
+from .record import SCENE_ID, STATES, SceneRecord, check_id, new_scene_id, valid_id
+
 TOUCH_PERSIST_S = 60.0     # last use is written to the store at most this often per scene (renders are hot)
 
 
@@ -37,53 +39,89 @@ class StoreUnavailable(OSError):
     The message names no endpoint or bucket (the details are logged)."""
 
 
-def new_scene_id() -> str:
-    """22 URL-safe characters, 128 random bits (unguessable, not enumerable)."""
-    return secrets.token_urlsafe(16)
+@runtime_checkable
+class Store(Protocol):
+    """A scene store, as the service uses it: records (SceneRecord) and, once ready, the scene's folder.
+    folder.FolderStore and s3.S3Store implement it (both on BaseStore's quota rules); open_store picks one.
 
+    Every method is thread-safe and blocking (the service calls them in threads). An unknown or malformed id is
+    simply unknown: None, False or KeyError, never a path built from it. ``on_delete`` callbacks get the id of
+    each scene removed (deleted, evicted, expired, or found gone)."""
 
-def valid_id(sid: Any) -> bool:
-    return isinstance(sid, str) and SCENE_ID.match(sid) is not None
+    max_scenes: int
+    max_bytes: int
+    when_full: str                       # "evict" | "reject"
+    ttl_s: float | None
+    evicted: int                         # scenes evicted by the quota since start
+    on_delete: list[Callable[[str], None]]
 
+    def open(self) -> dict[str, int]:
+        """Prepare and recover after a crash: {"ready", "interrupted", "files_missing", "orphans"}."""
 
-def check_id(sid: Any) -> str:
-    """The id itself, or KeyError before any path or object key is built from a malformed one."""
-    if not valid_id(sid):
-        raise KeyError(sid)
-    return sid
+    def health(self) -> str | None:
+        """None when the store can be used, else why not (/v2/health/ready's reason)."""
 
+    def get(self, sid: str) -> SceneRecord | None:
+        """A copy of the scene's record, or None."""
 
-def copy_record(rec: dict[str, Any]) -> dict[str, Any]:
-    return json.loads(json.dumps(rec))
+    def list(self, offset: int = 0, limit: int = 100) -> tuple[builtins.list[SceneRecord], int]:
+        """A page of records, newest first, and the total count."""
 
+    def create(self, sid: str, record: Mapping[str, Any]) -> SceneRecord:
+        """A new ``queued`` record with the fields of ``record`` (cameras, detail); makes room under the
+        scene-count quota first (StoreFull when it cannot; ValueError when the id exists)."""
 
-def is_record(sid: str, rec: Any) -> bool:
-    """Whether ``rec`` (parsed JSON stored under ``sid``) is a well-formed record of that scene."""
-    return valid_id(sid) and isinstance(rec, dict) and rec.get("id") == sid and rec.get("state") in STATES
+    def update(self, sid: str, **fields: Any) -> SceneRecord | None:
+        """Change fields of a record (None when it was deleted meanwhile)."""
 
+    def fail(self, sid: str, code: str, message: str) -> SceneRecord | None:
+        """Mark a scene failed with an error (None when it was deleted meanwhile)."""
 
-def new_record(sid: str, record: dict[str, Any], now: float) -> dict[str, Any]:
-    return {**record, "id": sid, "state": "queued", "created_ts": now, "updated_ts": now, "error": None}
+    def commit(self, sid: str, folder: Path, **fields: Any) -> SceneRecord | None:
+        """Take a finished scene folder into the store and mark the record ready with ``fields``, keeping the byte
+        quota (StoreFull); None when the record was deleted meanwhile. The folder is gone afterwards."""
 
+    def touch(self, sid: str) -> None:
+        """Mark a scene used now (LRU eviction, TTL)."""
 
-def failed_fields(code: str, message: str, now: float) -> dict[str, Any]:
-    return {"state": "failed", "error": {"code": code, "message": message}, "updated_ts": now}
+    def delete(self, sid: str) -> bool:
+        """Remove a scene, record and files (False when unknown)."""
 
+    def scene_dir(self, sid: str) -> Path:
+        """The local folder of a ready scene (KeyError when unknown or not ready)."""
 
-def ready_fields(size: int, now: float) -> dict[str, Any]:
-    return {"state": "ready", "bytes": int(size), "last_used": now, "updated_ts": now, "error": None}
+    def work_dir(self) -> Path:
+        """A new empty local folder for an upload or a reconstruction (the caller removes it)."""
+
+    def sweep(self, now: float | None = None) -> builtins.list[str]:
+        """Delete the scenes unused for longer than ``ttl_s``; the removed ids."""
+
+    def usage(self) -> dict[str, Any]:
+        """For /metrics: {"scenes": {state: n}, "bytes", "max_scenes", "max_bytes", "evicted"}."""
 
 
 def interrupted_message(state: str) -> str:
     return f"the server stopped while this reconstruction was {state}; post the rig again"
 
 
-def newest_first(records: Iterable[dict[str, Any]]) -> list[dict[str, Any]]:
-    return sorted(records, key=lambda r: (r.get("created_ts", 0.0), r["id"]), reverse=True)
+def newest_first(records: Iterable[SceneRecord]) -> list[SceneRecord]:
+    return sorted(records, key=lambda r: (r.created_ts, r.id), reverse=True)
 
 
-def _last_used(rec: dict[str, Any]) -> float:
-    return float(rec.get("last_used", rec.get("updated_ts", 0.0)))
+def folder_bytes(path: Path) -> int:
+    return sum(f.stat().st_size for f in path.rglob("*") if f.is_file())
+
+
+def remove_folder(folder: Path, trash_dir: Path) -> None:
+    """Remove ``folder``: renamed into ``trash_dir`` first (invisible at once), then removed."""
+    if not folder.exists():
+        return
+    trash = trash_dir / f"deleted-{secrets.token_hex(6)}"
+    try:
+        os.replace(folder, trash)
+    except OSError:
+        trash = folder
+    shutil.rmtree(trash, ignore_errors=True)
 
 
 class BaseStore:
@@ -107,19 +145,19 @@ class BaseStore:
         return None
 
     # -- quota decisions (pure: records in, ids out) -------------------------------------------------------------
-    def failed_beyond_quota(self, records: Iterable[dict[str, Any]]) -> list[str]:
+    def failed_beyond_quota(self, records: Iterable[SceneRecord]) -> list[str]:
         """Failed records beyond ``max_scenes`` of them, oldest first (to be deleted)."""
-        failed = sorted((r for r in records if r["state"] == "failed"), key=lambda r: r.get("updated_ts", 0.0))
-        return [r["id"] for r in failed[:max(0, len(failed) - self.max_scenes)]]
+        failed = sorted((r for r in records if r.state == "failed"), key=lambda r: r.updated_ts)
+        return [r.id for r in failed[:max(0, len(failed) - self.max_scenes)]]
 
-    def _lru_ready(self, records: Iterable[dict[str, Any]], exclude: str) -> list[dict[str, Any]]:
-        return sorted((r for r in records if r["state"] == "ready" and r["id"] != exclude),
-                      key=lambda r: r.get("last_used", 0.0))
+    def _lru_ready(self, records: Iterable[SceneRecord], exclude: str) -> list[SceneRecord]:
+        return sorted((r for r in records if r.state == "ready" and r.id != exclude),
+                      key=lambda r: r.last_used or 0.0)
 
-    def room_for_scene(self, records: list[dict[str, Any]], exclude: str) -> list[str]:
+    def room_for_scene(self, records: list[SceneRecord], exclude: str) -> list[str]:
         """The ready scenes to evict so that one more scene fits under ``max_scenes`` (StoreFull when it cannot,
         or when ``when_full`` is reject)."""
-        need = sum(r["state"] != "failed" for r in records) - self.max_scenes + 1
+        need = sum(r.state != "failed" for r in records) - self.max_scenes + 1
         if need <= 0:
             return []
         full = StoreFull(f"the store holds its maximum of {self.max_scenes} scenes; delete some "
@@ -129,9 +167,9 @@ class BaseStore:
         victims = self._lru_ready(records, exclude)
         if len(victims) < need:
             raise full
-        return [r["id"] for r in victims[:need]]
+        return [r.id for r in victims[:need]]
 
-    def room_for_bytes(self, records: list[dict[str, Any]], sid: str, size: int) -> list[str]:
+    def room_for_bytes(self, records: list[SceneRecord], sid: str, size: int) -> list[str]:
         """The ready scenes to evict so that ``size`` more bytes fit under ``max_bytes`` (StoreFull when the scene
         alone is over the quota, when eviction cannot make room, or when ``when_full`` is reject)."""
         if size > self.max_bytes:
@@ -144,30 +182,30 @@ class BaseStore:
             raise full
         out = []
         for r in self._lru_ready(records, sid):
-            out.append(r["id"])
-            used -= int(r.get("bytes", 0))
+            out.append(r.id)
+            used -= r.bytes or 0
             if used + size <= self.max_bytes:
                 return out
         raise full
 
-    def expired(self, records: Iterable[dict[str, Any]], now: float) -> list[str]:
+    def expired(self, records: Iterable[SceneRecord], now: float) -> list[str]:
         """Ready and failed scenes unused for longer than ``ttl_s`` (none without a TTL)."""
         if self.ttl_s is None:
             return []
-        return [r["id"] for r in records if r["state"] in ("ready", "failed") and now - _last_used(r) > self.ttl_s]
+        return [r.id for r in records if r.state in ("ready", "failed") and now - r.last_use > self.ttl_s]
 
     @staticmethod
-    def ready_bytes(records: Iterable[dict[str, Any]]) -> int:
-        return sum(int(r.get("bytes", 0)) for r in records if r["state"] == "ready")
+    def ready_bytes(records: Iterable[SceneRecord]) -> int:
+        return sum(r.bytes or 0 for r in records if r.state == "ready")
 
-    def usage_of(self, records: list[dict[str, Any]]) -> dict[str, Any]:
+    def usage_of(self, records: list[SceneRecord]) -> dict[str, Any]:
         states = {s: 0 for s in STATES}
         for r in records:
-            states[r["state"]] += 1
+            states[r.state] += 1
         return {"scenes": states, "bytes": self.ready_bytes(records), "max_scenes": self.max_scenes,
                 "max_bytes": self.max_bytes, "evicted": self.evicted}
 
 
-__all__ = ["SCENE_ID", "STATES", "TOUCH_PERSIST_S", "BaseStore", "StoreFull", "StoreUnavailable", "check_id",
-           "copy_record", "failed_fields", "interrupted_message", "is_record", "new_record", "new_scene_id",
-           "newest_first", "ready_fields", "valid_id"]
+__all__ = ["SCENE_ID", "STATES", "TOUCH_PERSIST_S", "BaseStore", "SceneRecord", "Store", "StoreFull",
+           "StoreUnavailable", "check_id", "folder_bytes", "interrupted_message", "new_scene_id", "newest_first",
+           "remove_folder", "valid_id"]

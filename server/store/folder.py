@@ -14,7 +14,8 @@ SCENE_ID before any path is built from them.
 Quota: at most ``max_scenes`` records (not counting failed ones) and ``max_bytes`` of ready scene folders. When a
 new scene would exceed them, ``when_full="evict"`` deletes the least recently used ready scenes (use = created,
 rendered or downloaded), ``"reject"`` raises StoreFull (507). ``ttl_s`` deletes scenes unused for that long. The
-decisions are base.BaseStore's, shared with the S3 store (s3.py).
+decisions are base.BaseStore's, shared with the S3 store (s3.py); both implement base.Store. Records are
+record.SceneRecord, kept unchanged in memory (a change replaces one) and handed out as copies.
 """
 
 from __future__ import annotations
@@ -25,36 +26,31 @@ import secrets
 import shutil
 import threading
 import time
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-from xyzcyl.runtime.files import atomic_file
+from xyzcyl.common.files import atomic_file
 
 from .base import (
     SCENE_ID,
     STATES,
     TOUCH_PERSIST_S,
     BaseStore,
+    SceneRecord,
     StoreFull,
     check_id,
-    copy_record,
-    failed_fields,
+    folder_bytes,
     interrupted_message,
-    is_record,
-    new_record,
     new_scene_id,
     newest_first,
-    ready_fields,
+    remove_folder,
     valid_id,
 )
 
 
 def _now() -> float:
     return time.time()
-
-
-def folder_bytes(path: Path) -> int:
-    return sum(f.stat().st_size for f in path.rglob("*") if f.is_file())
 
 
 def _write_json_atomic(path: Path, doc: dict[str, Any]) -> None:
@@ -67,7 +63,7 @@ class FolderStore(BaseStore):
                  when_full: str = "evict", ttl_s: float | None = None):
         super().__init__(max_scenes=max_scenes, max_bytes=max_bytes, when_full=when_full, ttl_s=ttl_s)
         self.root = Path(root)
-        self._records: dict[str, dict[str, Any]] = {}
+        self._records: dict[str, SceneRecord] = {}
         self._persisted_use: dict[str, float] = {}
         self._lock = threading.RLock()
 
@@ -85,8 +81,8 @@ class FolderStore(BaseStore):
             for p in (self.root / "records").glob("*.json"):
                 sid = p.stem
                 try:
-                    rec = json.loads(p.read_text())
-                    if not is_record(sid, rec):
+                    rec = SceneRecord.parse(sid, json.loads(p.read_text()))
+                    if rec is None:
                         raise ValueError("not a record")
                 except (OSError, ValueError):
                     p.unlink(missing_ok=True)        # a stray or damaged file: never half-visible
@@ -95,19 +91,19 @@ class FolderStore(BaseStore):
                 self._records[sid] = rec
             for sid, rec in list(self._records.items()):
                 folder = self._scene_path(sid)
-                if rec["state"] in ("queued", "running"):
-                    self._fail_locked(sid, "interrupted", interrupted_message(rec["state"]))
+                if rec.state in ("queued", "running"):
+                    self._fail_locked(sid, "interrupted", interrupted_message(rec.state))
                     report["interrupted"] += 1
-                elif rec["state"] == "ready":
+                elif rec.state == "ready":
                     if (folder / "scene.json").is_file():
                         report["ready"] += 1
-                        self._persisted_use[sid] = rec.get("last_used", rec.get("created_ts", 0.0))
+                        self._persisted_use[sid] = rec.last_used if rec.last_used is not None else rec.created_ts
                     else:
                         self._fail_locked(sid, "files_missing", "the scene's files are missing from the store")
                         report["files_missing"] += 1
             for p in (self.root / "scenes").iterdir():
                 rec = self._records.get(p.name)
-                if rec is None or rec["state"] != "ready":
+                if rec is None or rec.state != "ready":
                     self._remove_folder(p)
                     report["orphans"] += 1
         return report
@@ -122,7 +118,7 @@ class FolderStore(BaseStore):
     def scene_dir(self, sid: str) -> Path:
         """The folder of a ready scene (KeyError when unknown or not ready)."""
         rec = self.get(sid)
-        if rec is None or rec["state"] != "ready":
+        if rec is None or rec.state != "ready":
             raise KeyError(sid)
         return self._scene_path(sid)
 
@@ -133,23 +129,23 @@ class FolderStore(BaseStore):
         return d
 
     # -- records ------------------------------------------------------------------------------------------------
-    def get(self, sid: str) -> dict[str, Any] | None:
+    def get(self, sid: str) -> SceneRecord | None:
         if not valid_id(sid):
             return None
         with self._lock:
             rec = self._records.get(sid)
-            return None if rec is None else copy_record(rec)
+            return None if rec is None else rec.model_copy(deep=True)
 
-    def list(self, offset: int = 0, limit: int = 100) -> tuple[list[dict[str, Any]], int]:
+    def list(self, offset: int = 0, limit: int = 100) -> tuple[list[SceneRecord], int]:
         """Records, newest first, and the total count."""
         with self._lock:
             recs = newest_first(self._records.values())
-            page = [copy_record(r) for r in recs[offset:offset + limit]]
+            page = [r.model_copy(deep=True) for r in recs[offset:offset + limit]]
             return page, len(recs)
 
-    def create(self, sid: str, record: dict[str, Any]) -> dict[str, Any]:
+    def create(self, sid: str, record: Mapping[str, Any]) -> SceneRecord:
         """A new ``queued`` record; makes room under the scene-count quota first (StoreFull when it cannot)."""
-        rec = new_record(sid, record, _now())
+        rec = SceneRecord.queued(sid, record, _now())
         with self._lock:
             if sid in self._records:
                 raise ValueError(f"scene id {sid} exists")
@@ -162,33 +158,33 @@ class FolderStore(BaseStore):
             except BaseException:       # not on disk (disk full, bad id): not in the store either
                 del self._records[sid]
                 raise
-            return copy_record(rec)
+            return rec.model_copy(deep=True)
 
-    def update(self, sid: str, **fields: Any) -> dict[str, Any] | None:
+    def update(self, sid: str, **fields: Any) -> SceneRecord | None:
         """Change fields of a record (None when it was deleted meanwhile)."""
         with self._lock:
             rec = self._records.get(sid)
             if rec is None:
                 return None
-            rec.update(fields, updated_ts=_now())
+            self._records[sid] = rec = rec.updated(_now(), **fields)
             self._persist(sid)
-            return copy_record(rec)
+            return rec.model_copy(deep=True)
 
-    def fail(self, sid: str, code: str, message: str) -> dict[str, Any] | None:
+    def fail(self, sid: str, code: str, message: str) -> SceneRecord | None:
         with self._lock:
             if sid not in self._records:
                 return None
             self._fail_locked(sid, code, message)
-            return copy_record(self._records[sid])
+            return self._records[sid].model_copy(deep=True)
 
     def _fail_locked(self, sid: str, code: str, message: str) -> None:
-        self._records[sid].update(failed_fields(code, message, _now()))
+        self._records[sid] = self._records[sid].failed(code, message, _now())
         self._persist(sid)
 
     def _persist(self, sid: str) -> None:
-        _write_json_atomic(self._record_path(sid), self._records[sid])
+        _write_json_atomic(self._record_path(sid), self._records[sid].to_json())
 
-    def commit(self, sid: str, folder: Path, **fields: Any) -> dict[str, Any] | None:
+    def commit(self, sid: str, folder: Path, **fields: Any) -> SceneRecord | None:
         """Move a finished scene folder into place and mark the record ready (with ``fields``); then keep the byte
         quota by evicting least recently used scenes. None when the record was deleted meanwhile (the folder is
         removed). StoreFull when this scene alone is over the quota, or the disk is full."""
@@ -205,11 +201,10 @@ class FolderStore(BaseStore):
             self._evict(victims)
             os.replace(folder, self._scene_path(sid))
             now = _now()
-            rec = self._records[sid]
-            rec.update(fields, **ready_fields(size, now))
+            self._records[sid] = rec = self._records[sid].ready(size, now, **fields)
             self._persisted_use[sid] = now
             self._persist(sid)
-            return copy_record(rec)
+            return rec.model_copy(deep=True)
 
     def touch(self, sid: str) -> None:
         """Mark a scene used now (for LRU eviction and the TTL)."""
@@ -218,7 +213,7 @@ class FolderStore(BaseStore):
             rec = self._records.get(sid)
             if rec is None:
                 return
-            rec["last_used"] = now
+            self._records[sid] = rec.replace(last_used=now)
             if now - self._persisted_use.get(sid, 0.0) >= TOUCH_PERSIST_S:
                 self._persisted_use[sid] = now
                 try:
@@ -239,14 +234,7 @@ class FolderStore(BaseStore):
         return True
 
     def _remove_folder(self, folder: Path) -> None:
-        if not folder.exists():
-            return
-        trash = self.root / "tmp" / f"deleted-{secrets.token_hex(6)}"
-        try:
-            os.replace(folder, trash)      # invisible at once, then removed
-        except OSError:
-            trash = folder
-        shutil.rmtree(trash, ignore_errors=True)
+        remove_folder(folder, self.root / "tmp")
 
     # -- quota ----------------------------------------------------------------------------------------------------
     def _evict(self, victims: list[str]) -> None:

@@ -59,23 +59,23 @@ import socket
 import tempfile
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping
 from pathlib import Path
 from typing import Any
+
+from xyzcyl.common.files import atomic_folder
 
 from .base import (
     TOUCH_PERSIST_S,
     BaseStore,
+    SceneRecord,
     StoreFull,
     StoreUnavailable,
     check_id,
-    copy_record,
-    failed_fields,
+    folder_bytes,
     interrupted_message,
-    is_record,
-    new_record,
     newest_first,
-    ready_fields,
+    remove_folder,
     valid_id,
 )
 
@@ -111,10 +111,6 @@ def parse_url(url: str) -> tuple[str, str]:
         raise ValueError(f"no bucket in {url!r} (s3://bucket/prefix)")
     prefix = prefix.strip("/")
     return bucket, (prefix + "/" if prefix else "")
-
-
-def _folder_bytes(path: Path) -> int:
-    return sum(f.stat().st_size for f in path.rglob("*") if f.is_file())
 
 
 def _missing(e: Exception) -> bool:
@@ -190,8 +186,8 @@ class S3Store(BaseStore):
         self.stale_queued_s = float(stale_queued_s if stale_queued_s is not None else stale_running_s)
         self.record_ttl_s = float(record_ttl_s)
         self._lock = threading.RLock()                          # this replica's quota decisions
-        self._ready: dict[str, tuple[dict[str, Any], float]] = {}   # id -> (ready record, fetched at)
-        self._etags: dict[str, tuple[str, dict[str, Any]]] = {}     # id -> (ETag, record) seen by a listing
+        self._ready: dict[str, tuple[SceneRecord, float]] = {}      # id -> (ready record, fetched at)
+        self._etags: dict[str, tuple[str, SceneRecord]] = {}        # id -> (ETag, record) seen by a listing
         self._seen: set[str] = set()                            # ids this replica has served (to forget)
         self._used: dict[str, float] = {}                       # id -> last use here
         self._persisted_use: dict[str, float] = {}
@@ -227,7 +223,7 @@ class S3Store(BaseStore):
                 return False
             raise
 
-    def _read(self, sid: str) -> tuple[dict[str, Any], str] | None:
+    def _read(self, sid: str) -> tuple[SceneRecord, str] | None:
         """(record, ETag) from S3, or None when there is none (or it is not a record)."""
         from botocore.exceptions import ClientError
 
@@ -239,15 +235,16 @@ class S3Store(BaseStore):
                 return None
             raise
         try:
-            rec = json.loads(body)
+            rec = SceneRecord.parse(sid, json.loads(body))
         except ValueError:
             return None
-        return (rec, obj.get("ETag", "")) if is_record(sid, rec) else None
+        return None if rec is None else (rec, obj.get("ETag", ""))
 
-    def _write(self, rec: dict[str, Any]) -> None:
+    def _write(self, rec: SceneRecord) -> None:
         self._usage = None
-        self.client.put_object(Bucket=self.bucket, Key=self._record_key(rec["id"]),
-                               Body=json.dumps(rec, allow_nan=False).encode(), ContentType="application/json")
+        self.client.put_object(Bucket=self.bucket, Key=self._record_key(rec.id),
+                               Body=json.dumps(rec.to_json(), allow_nan=False).encode(),
+                               ContentType="application/json")
 
     def _delete_keys(self, keys: list[str]) -> None:
         for i in range(0, len(keys), 1000):
@@ -316,7 +313,7 @@ class S3Store(BaseStore):
             for p in (self.cache / "scenes").iterdir():
                 if valid_id(p.name) and (p / "scene.json").is_file():      # a copy kept from the last run
                     age = max(0.0, time.time() - p.stat().st_mtime)
-                    self._local[p.name] = [float(_folder_bytes(p)), time.monotonic() - age]
+                    self._local[p.name] = [float(folder_bytes(p)), time.monotonic() - age]
                 else:
                     self._remove_local(p)
         report = {"ready": 0, "interrupted": 0, "files_missing": 0, "orphans": 0}
@@ -324,14 +321,14 @@ class S3Store(BaseStore):
         for obj in self._objects(self._key("scenes") + "/"):
             sid, _, name = obj["Key"][len(self._key("scenes")) + 1:].partition("/")
             files.setdefault(sid, set()).add(name)
-        records = {r["id"]: r for r in self._snapshot(expire=False)}
+        records = {r.id: r for r in self._snapshot(expire=False)}
         now = _now()
         for sid, rec in records.items():
-            if rec["state"] in ("queued", "running"):
-                mine_or_dead = rec.get("owner") == self.replica_id or self._stale(rec, now)
-                if mine_or_dead and self._fail_record(rec, "interrupted", interrupted_message(rec["state"])):
+            if rec.state in ("queued", "running"):
+                mine_or_dead = rec.owner == self.replica_id or self._stale(rec, now)
+                if mine_or_dead and self._fail_record(rec, "interrupted", interrupted_message(rec.state)):
                     report["interrupted"] += 1
-            elif rec["state"] == "ready":
+            elif rec.state == "ready":
                 if "scene.json" in files.get(sid, ()) or self._exists(self._scene_prefix(sid) + "scene.json"):
                     report["ready"] += 1
                 elif self._fail_record(rec, "files_missing", "the scene's files are missing from the store"):
@@ -342,37 +339,38 @@ class S3Store(BaseStore):
                 report["orphans"] += 1
         for sid in list(self._local):
             rec = records.get(sid)
-            if rec is None or rec["state"] != "ready":
+            if rec is None or rec.state != "ready":
                 self._drop_local(sid)
         self._clean_litter(now, set(records))
         self._opened = True
         return report
 
-    def _stale(self, rec: dict[str, Any], now: float) -> bool:
+    def _stale(self, rec: SceneRecord, now: float) -> bool:
         """A queued/running record whose owner stopped updating it (a dead replica's job)."""
-        window = self.stale_running_s if rec["state"] == "running" else self.stale_queued_s
-        return now - float(rec.get("updated_ts", 0.0)) > window
+        window = self.stale_running_s if rec.state == "running" else self.stale_queued_s
+        return now - rec.updated_ts > window
 
-    def _expire_if_stale(self, rec: dict[str, Any]) -> dict[str, Any]:
-        if (rec["state"] in ("queued", "running") and rec.get("owner") != self.replica_id
-                and self._stale(rec, _now())):
-            self._fail_record(rec, "interrupted", interrupted_message(rec["state"]) +
-                              f" (replica {rec.get('owner')} stopped updating it)")
+    def _expire_if_stale(self, rec: SceneRecord) -> SceneRecord:
+        """The record, failed (``interrupted``, and written) when it is another replica's stale job."""
+        if rec.state in ("queued", "running") and rec.owner != self.replica_id and self._stale(rec, _now()):
+            rec = rec.failed("interrupted", interrupted_message(rec.state) +
+                             f" (replica {rec.owner} stopped updating it)", _now())
+            self._write_checked(rec)
         return rec
 
-    def _fail_record(self, rec: dict[str, Any], code: str, message: str) -> bool:
-        """Write ``rec`` as failed (in place); False when it was deleted meanwhile."""
-        rec.update(failed_fields(code, message, _now()))
-        return self._write_checked(rec)
+    def _fail_record(self, rec: SceneRecord, code: str, message: str) -> SceneRecord | None:
+        """Write ``rec`` as failed; the failed record, or None when it was deleted meanwhile."""
+        rec = rec.failed(code, message, _now())
+        return rec if self._write_checked(rec) else None
 
-    def _write_checked(self, rec: dict[str, Any]) -> bool:
+    def _write_checked(self, rec: SceneRecord) -> bool:
         """Write a record, then look for the scene's tombstone: a delete that began before this write may have
         removed the record before it (the write would resurrect it), so finish that delete. False when the scene
         is deleted. (A delete writes its tombstone before removing the record, so either it removes this write
         or this check sees the tombstone.)"""
         self._write(rec)
-        if self._tombstoned(rec["id"]):
-            self._purge(rec["id"])
+        if self._tombstoned(rec.id):
+            self._purge(rec.id)
             return False
         return True
 
@@ -382,7 +380,7 @@ class S3Store(BaseStore):
         """The local folder of a ready scene, downloaded on first use (KeyError when unknown, not ready, or
         deleted while it was downloaded)."""
         rec = self.get(sid)
-        if rec is None or rec["state"] != "ready":
+        if rec is None or rec.state != "ready":
             raise KeyError(sid)
         local = self.cache / "scenes" / sid
         with self._lock:
@@ -395,17 +393,16 @@ class S3Store(BaseStore):
         self._trim_cache(keep=sid)
         return local
 
-    def _download(self, sid: str, rec: dict[str, Any], local: Path) -> None:
+    def _download(self, sid: str, rec: SceneRecord, local: Path) -> None:
         from botocore.exceptions import ClientError
 
-        names = list(rec.get("files") or ())
+        names = list(rec.files or ())
         if not names:
             base = self._scene_prefix(sid)
             names = [o["Key"][len(base):] for o in self._objects(base)]
         if any(not n or n.startswith("/") or ".." in Path(n).parts for n in names):
             raise KeyError(sid)                  # never a path outside the scene's folder
-        tmp = self.cache / "tmp" / f"download-{secrets.token_hex(6)}"
-        try:
+        with atomic_folder(local) as tmp:        # a copy cut short by an error is never seen
             for name in names:
                 dest = tmp / name
                 dest.parent.mkdir(parents=True, exist_ok=True)
@@ -417,12 +414,8 @@ class S3Store(BaseStore):
                     raise
             if not (tmp / "scene.json").is_file():
                 raise KeyError(sid)
-            shutil.rmtree(local, ignore_errors=True)
-            os.replace(tmp, local)
-        finally:
-            shutil.rmtree(tmp, ignore_errors=True)
         with self._lock:
-            self._local[sid] = [float(_folder_bytes(local)), time.monotonic()]
+            self._local[sid] = [float(folder_bytes(local)), time.monotonic()]
 
     def work_dir(self) -> Path:
         """A new empty local folder for an upload or a reconstruction (the caller removes it)."""
@@ -432,14 +425,7 @@ class S3Store(BaseStore):
 
     # -- the local cache --------------------------------------------------------------------------------------
     def _remove_local(self, folder: Path) -> None:
-        if not folder.exists():
-            return
-        trash = self.cache / "tmp" / f"deleted-{secrets.token_hex(6)}"
-        try:
-            os.replace(folder, trash)
-        except OSError:
-            trash = folder
-        shutil.rmtree(trash, ignore_errors=True)
+        remove_folder(folder, self.cache / "tmp")
 
     def _drop_local(self, sid: str) -> None:
         with self._lock:
@@ -480,13 +466,13 @@ class S3Store(BaseStore):
 
     # -- records --------------------------------------------------------------------------------------------------
     @_reachable
-    def get(self, sid: str) -> dict[str, Any] | None:
+    def get(self, sid: str) -> SceneRecord | None:
         if not valid_id(sid):
             return None
         with self._lock:
             hit = self._ready.get(sid)
         if hit is not None and time.monotonic() - hit[1] < self.record_ttl_s:
-            return copy_record(hit[0])
+            return hit[0].model_copy(deep=True)
         got = self._read(sid)
         if got is None:
             self._forget(sid)
@@ -494,11 +480,11 @@ class S3Store(BaseStore):
         rec = self._expire_if_stale(got[0])
         with self._lock:
             self._seen.add(sid)
-            if rec["state"] == "ready":
+            if rec.state == "ready":
                 self._ready[sid] = (rec, time.monotonic())
-        return copy_record(rec)
+        return rec.model_copy(deep=True)
 
-    def _snapshot(self, with_use: bool = False, expire: bool = True) -> list[dict[str, Any]]:
+    def _snapshot(self, with_use: bool = False, expire: bool = True) -> list[SceneRecord]:
         """Every record in the store (read again only where its ETag changed since the last listing), with
         ``last_used`` raised to the use markers' times when ``with_use``; other replicas' stale jobs failed when
         ``expire``. Scenes this replica knew and the listing lacks are forgotten."""
@@ -521,7 +507,7 @@ class S3Store(BaseStore):
                     known[sid] = (got[1], got[0])
                 else:
                     listed.pop(sid)
-        records = [copy_record(known[sid][1]) for sid in listed]
+        records = [known[sid][1] for sid in listed]
         if expire:
             records = [self._expire_if_stale(r) for r in records]
         with self._lock:
@@ -530,10 +516,10 @@ class S3Store(BaseStore):
             self._forget(sid)
         if with_use:
             marks = self._use_marks()
-            for rec in records:
-                t = max(marks.get(rec["id"], 0.0), self._used.get(rec["id"], 0.0))
-                if t > rec.get("last_used", 0.0):
-                    rec["last_used"] = t
+            for i, rec in enumerate(records):
+                t = max(marks.get(rec.id, 0.0), self._used.get(rec.id, 0.0))
+                if t > (rec.last_used or 0.0):
+                    records[i] = rec.replace(last_used=t)
         return records
 
     def _use_marks(self) -> dict[str, float]:
@@ -541,61 +527,62 @@ class S3Store(BaseStore):
         return {o["Key"][len(base):]: o["LastModified"].timestamp() for o in self._objects(base)}
 
     @_reachable
-    def list(self, offset: int = 0, limit: int = 100) -> tuple[list[dict[str, Any]], int]:
+    def list(self, offset: int = 0, limit: int = 100) -> tuple[list[SceneRecord], int]:
         """Records, newest first, and the total count."""
         recs = newest_first(self._snapshot())
-        return [copy_record(r) for r in recs[offset:offset + limit]], len(recs)
+        return [r.model_copy(deep=True) for r in recs[offset:offset + limit]], len(recs)
 
     @_reachable
-    def create(self, sid: str, record: dict[str, Any]) -> dict[str, Any]:
+    def create(self, sid: str, record: Mapping[str, Any]) -> SceneRecord:
         """A new ``queued`` record owned by this replica; makes room under the scene-count quota first."""
         check_id(sid)
         now = _now()
-        rec = new_record(sid, record, now) | {"owner": self.replica_id}
+        rec = SceneRecord.queued(sid, {**record, "owner": self.replica_id}, now)
         with self._lock:
             if self._exists(self._record_key(sid)):
                 raise ValueError(f"scene id {sid} exists")
             records = self._snapshot(with_use=True)
             if now - self._cleaned > 3600.0:
-                self._clean_litter(now, {r["id"] for r in records})
+                self._clean_litter(now, {r.id for r in records})
             for old in self.failed_beyond_quota(records):
                 self.delete(old)
             self._evict(self.room_for_scene(records, exclude=sid))
             self._write(rec)
-        return copy_record(rec)
+        return rec.model_copy(deep=True)
 
     def _fresh(self, sid: str) -> dict[str, Any] | None:
+        """The record's JSON as S3 holds it now (read again, never cached), or None."""
         if not valid_id(sid):
             return None
         got = self._read(sid)
-        return None if got is None else got[0]
+        return None if got is None else got[0].to_json()
 
     @_reachable
-    def update(self, sid: str, **fields: Any) -> dict[str, Any] | None:
+    def update(self, sid: str, **fields: Any) -> SceneRecord | None:
         """Change fields of a record (None when it was deleted meanwhile)."""
-        rec = self._fresh(sid)
-        if rec is None:
+        doc = self._fresh(sid)
+        if doc is None:
             return None
-        rec.update(fields, updated_ts=_now())
-        return copy_record(rec) if self._write_checked(rec) else None
+        rec = SceneRecord.from_json(doc).updated(_now(), **fields)
+        return rec.model_copy(deep=True) if self._write_checked(rec) else None
 
     @_reachable
-    def fail(self, sid: str, code: str, message: str) -> dict[str, Any] | None:
-        rec = self._fresh(sid)
-        if rec is None:
+    def fail(self, sid: str, code: str, message: str) -> SceneRecord | None:
+        doc = self._fresh(sid)
+        if doc is None:
             return None
-        return copy_record(rec) if self._fail_record(rec, code, message) else None
+        return self._fail_record(SceneRecord.from_json(doc), code, message)
 
     @_reachable
-    def commit(self, sid: str, folder: Path, **fields: Any) -> dict[str, Any] | None:
+    def commit(self, sid: str, folder: Path, **fields: Any) -> SceneRecord | None:
         """Upload a finished scene folder, then mark the record ready (with ``fields``); keep the byte quota by
         evicting least recently used scenes first. The folder becomes this replica's local copy. None when the
         record was deleted meanwhile; StoreFull when the quota cannot take the scene (the folder is removed)."""
         folder = Path(folder)
         files = {p.relative_to(folder).as_posix(): p for p in sorted(folder.rglob("*")) if p.is_file()}
         size = sum(p.stat().st_size for p in files.values())
-        rec = self._fresh(sid)
-        if rec is None:
+        doc = self._fresh(sid)
+        if doc is None:
             shutil.rmtree(folder, ignore_errors=True)
             return None
         with self._lock:
@@ -609,7 +596,7 @@ class S3Store(BaseStore):
             for name, path in files.items():
                 self.client.upload_file(str(path), self.bucket, self._scene_prefix(sid) + name)
             now = _now()
-            rec.update(fields, **ready_fields(size, now), files=sorted(files))
+            rec = SceneRecord.from_json(doc).ready(size, now, **fields, files=sorted(files))
             ok = self._write_checked(rec)
         except BaseException:
             shutil.rmtree(folder, ignore_errors=True)
@@ -624,10 +611,10 @@ class S3Store(BaseStore):
             os.replace(folder, local)
             self._local[sid] = [float(size), time.monotonic()]
             self._seen.add(sid)
-            self._ready[sid] = (copy_record(rec), time.monotonic())
+            self._ready[sid] = (rec, time.monotonic())
             self._used[sid] = self._persisted_use[sid] = now
         self._trim_cache(keep=sid)
-        return copy_record(rec)
+        return rec.model_copy(deep=True)
 
     def touch(self, sid: str) -> None:
         """Mark a scene used now (LRU, TTL); its marker object is rewritten at most once a minute, in the
@@ -689,7 +676,7 @@ class S3Store(BaseStore):
         old = self.expired(records, now)
         for sid in old:
             self.delete(sid)
-        self._clean_litter(now, {r["id"] for r in records} - set(old))
+        self._clean_litter(now, {r.id for r in records} - set(old))
         return old
 
     def _clean_litter(self, now: float, live: set[str]) -> None:

@@ -307,8 +307,9 @@ def _error(status: int, code: str, field=None, headers=None) -> httpx.Response:
                           headers=headers)
 
 
-SCENE_JSON = {"id": "s1", "state": "ready", "cameras": [{"name": "A", "width": 8, "height": 8, "model": "pinhole"}],
-              "links": {"self": "/v1/scenes/s1"}}
+SCENE_JSON = {"id": "s1", "state": "ready", "created": "2026-11-25T17:34:37+00:00",
+              "updated": "2026-11-25T17:34:42+00:00",
+              "cameras": [{"name": "A", "width": 8, "height": 8, "model": "pinhole"}], "links": {"self": "/v1/scenes/s1"}}
 
 
 @pytest.fixture

@@ -61,7 +61,7 @@ def test_matrix_forms(sent, tmp_path, capsys):
 
 
 def test_moves_on_cam_to_world_are_the_render_commands(sent, tmp_path, capsys):
-    from xyzcyl.runtime.commands.pose_flags import CameraMove
+    from xyzcyl.common.poses import CameraMove
 
     rc, err = _client(capsys, "--cam-to-world", *SCI, "--fov", "90", "--width", "80", "--height", "45",
                       "--forward", "-2e0", "--left", "0.5", "--up", "1e-1", "--yaw", "-1.5e1",

@@ -92,7 +92,7 @@ def test_bad_rig_input_names_the_camera(tiny_export, rig_copy, tmp_path, capsys,
     elif case == "corrupt":
         img.write_bytes(img.read_bytes()[:200] + b"\x00" * 300)
     else:
-        from xyzcyl.runtime.imageio import write_exr
+        from xyzcyl.common.media import write_exr
 
         d = np.full((450, 800, 1), 10.0, np.float32)
         d[5, 7] = np.nan

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import pytest
-from xyzcyl.runtime.files import atomic_file
+from xyzcyl.common.files import atomic_file
 
 
 def test_atomic_file_replaces_on_success_and_keeps_the_old_file_on_error(tmp_path):

@@ -11,7 +11,7 @@ import sys
 
 import numpy as np
 import pytest
-from xyzcyl.runtime.commands.pose_flags import CameraMove, PoseArgError, parse_matrix
+from xyzcyl.common.poses import CameraMove, PoseArgError, parse_matrix
 
 # the issue's pose: 5 m ahead, 1.6 m up, looking forward, as numpy prints it (one entry -1e-05)
 POSE = np.array([[0, 0, 1, 5], [-1, 0, 0, -1e-05], [0, -1, 0, 1.6], [0, 0, 0, 1.0]])
@@ -101,7 +101,7 @@ def test_carla_move_is_the_same_move(move):
 
 def test_module_is_light():
     """The HTTP client imports pose_flags: it must not bring the renderer, numba, OpenCV or onnxruntime."""
-    code = ("import sys; from xyzcyl.runtime.commands import pose_flags; pose_flags.parse_matrix(" + repr(TOKENS)
+    code = ("import sys; from xyzcyl.common import poses as pose_flags; pose_flags.parse_matrix(" + repr(TOKENS)
             + "); heavy = [m for m in sys.modules if m.split('.')[0] in ('numba', 'cv2', 'onnxruntime', 'torch') "
             "or (m.startswith('xyzcyl.runtime.') and m not in ('xyzcyl.runtime.commands', "
             "'xyzcyl.runtime.commands.pose_flags'))]; assert not heavy, heavy")
@@ -111,7 +111,7 @@ def test_module_is_light():
 def test_move_flags_must_be_finite():
     import argparse
 
-    from xyzcyl.runtime.commands.pose_flags import add_move_arguments, move_from_args
+    from xyzcyl.common.poses import add_move_arguments, move_from_args
 
     p = argparse.ArgumentParser()
     add_move_arguments(p)

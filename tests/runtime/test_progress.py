@@ -9,7 +9,7 @@ import io
 import re
 from pathlib import Path
 
-from xyzcyl.runtime.progress import is_terminal, progress_bar
+from xyzcyl.common.progress import is_terminal, progress_bar
 
 REPO = Path(__file__).resolve().parents[2]
 

@@ -10,8 +10,11 @@ their arithmetic, so both commands read a pose and move a camera the same way.
   centre; applied before the shift) -- add_move_arguments, move_from_args, CameraMove.apply (a 4x4 pose) and
   CameraMove.apply_carla (a CARLA transform; the same move in CARLA's left-handed axes).
 
-Light on purpose: argparse, json, math and pathlib at import, numpy inside the functions, nothing else of the
-runtime, so the HTTP client (clients/commands/client.py) can use it without the renderer, numba or OpenCV.
+- CARLA_POSE: the names of a CARLA transform's six numbers, as the render endpoint's query and the client take
+  them.
+
+Light on purpose: argparse, json, math and pathlib at import, numpy inside the functions, nothing of xyzcyl, so
+the HTTP client (clients/commands/client.py) uses it without the runtime (the renderer, numba, OpenCV).
 """
 
 from __future__ import annotations
@@ -24,6 +27,7 @@ from pathlib import Path
 from typing import Any
 
 MOVE_FLAGS = ("--forward", "--left", "--up", "--yaw")
+CARLA_POSE = ("x", "y", "z", "pitch", "yaw", "roll")   # location (metres) and rotation (degrees), in this order
 MATRIX_KEYS = ("cam_to_ego", "cam_to_world")     # the pose's key in a .json object
 
 
@@ -84,7 +88,7 @@ def _from_text(text: str, flag: str, what: str):
     try:
         values = [float(t) for t in tokens]
     except ValueError:
-        bad = next(t for t in tokens if not _is_float(t))
+        bad = next(t for t in tokens if not is_number(t))
         raise PoseArgError(flag, f"{_in(what)}{bad!r} is not a number") from None
     if len(values) != 16:
         raise PoseArgError(flag, f"{_in(what)}expected 16 numbers, got {len(values)}")
@@ -98,9 +102,11 @@ def _is_file(path: Path) -> bool:
         return False
 
 
-def _is_float(t: str) -> bool:
+def is_number(text: str) -> bool:
+    """Whether ``text`` is a number in any float notation (``-1e-05``, ``inf``); the dispatcher's parser
+    (clients/cli.py) asks it too."""
     try:
-        float(t)
+        float(text)
     except ValueError:
         return False
     return True
@@ -205,5 +211,5 @@ def move_from_args(args: argparse.Namespace) -> CameraMove:
     return CameraMove(*values.values())
 
 
-__all__ = ["MOVE_FLAGS", "CameraMove", "PoseArgError", "add_matrix_argument", "add_move_arguments",
-           "move_from_args", "parse_matrix"]
+__all__ = ["CARLA_POSE", "MOVE_FLAGS", "CameraMove", "PoseArgError", "add_matrix_argument", "add_move_arguments",
+           "is_number", "move_from_args", "parse_matrix"]

@@ -1,0 +1,455 @@
+"""The service object: one per app (``request.app.state.service``; routes get it through deps.service_of). It owns
+what the endpoints do, in MLServer's shape: a route parses its request and answers in a few lines, the Service
+does the work.
+
+- its life: ``Service.create(settings)`` (checks the model, opens nothing yet), ``start()`` in the app's lifespan
+  (opens the store, recovering from a crash; starts the render warm-up, then the reconstruction workers, in the
+  background, and the TTL sweep), ``stop()``; ``not_ready()`` says why it cannot take work;
+- scenes: ``create_scene`` (admission, the upload into a work folder (uploads.py), the record, the job, the
+  optional wait), ``record`` / ``ready_record``, ``list_scenes``, ``delete_scene``, the files (``scene_file``,
+  ``splat``, ``background``);
+- renders: ``view_request`` (a render query to a runtime.views.ViewRequest and its ETag), ``render``,
+  ``render_batch`` (the zip of frames, streamed);
+- ``model_metadata`` for the Open Inference Protocol paths.
+
+Blocking work runs off the event loop: the store's calls in threads, renders and scene loads in the render pool
+(jobs.Renders), reconstructions in the worker processes (jobs.Reconstructions)."""
+
+from __future__ import annotations
+
+import asyncio
+import errno
+import hashlib
+import json
+import logging
+import shutil
+import tempfile
+import time
+import zipfile
+from collections.abc import AsyncIterator, Awaitable, Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import IO, Any
+
+from starlette.exceptions import HTTPException as StarletteHTTPException
+from xyzcyl.common.wire import BatchIndex, FrameInfo
+from xyzcyl.runtime.inference import ModelInfo, verify_model
+from xyzcyl.runtime.views import ViewError, ViewRequest, ViewSpec, cameras_from_batch, render_request
+
+from .cache import BytesCache, SceneCache
+from .errors import Busy, Conflict, Invalid, NotFound, StorageFull
+from .jobs import Job, Reconstructions, Renders
+from .metrics import Metrics
+from .schemas import RenderQuery
+from .settings import Settings
+from .store import SceneFailure, SceneRecord, Store, StoreFull, StoreUnavailable, new_scene_id, open_store
+from .uploads import RIG_PART_BYTES, ingest
+
+log = logging.getLogger("xyzcyl.server")
+
+_DTYPES = {"float32": "FP32", "float16": "FP16", "int64": "INT64", "int32": "INT32", "uint8": "UINT8",
+           "bool": "BOOL"}
+
+
+@dataclass
+class Service:
+    """Everything the endpoints use, and what they do (module doc)."""
+
+    settings: Settings
+    info: ModelInfo
+    store: Store
+    metrics: Metrics
+    renders: Renders
+    reconstructions: Reconstructions
+    scenes: SceneCache
+    views: BytesCache
+    ready: bool = False
+    draining: bool = False
+    startup_error: str | None = None
+    started: float = field(default_factory=time.time)
+    recovered: dict[str, int] = field(default_factory=dict)
+    _tasks: list[asyncio.Task] = field(default_factory=list, repr=False)
+
+    @classmethod
+    def create(cls, settings: Settings) -> Service:
+        """The service of ``settings``; raises runtime.inference.ModelError at once when the model folder is
+        missing or altered. Nothing runs before ``start``."""
+        info = verify_model(settings.model_dir())
+        metrics = Metrics()
+        store = open_store(settings)
+        service = cls(settings=settings, info=info, store=store, metrics=metrics,
+                      renders=Renders(settings, metrics),
+                      reconstructions=Reconstructions(settings, store, metrics, Path(info.path)),
+                      scenes=SceneCache(settings.scene_cache), views=BytesCache(settings.render_cache_bytes))
+        metrics.watch_store(store)
+        store.on_delete.append(service._forget)
+        return service
+
+    def _forget(self, sid: str) -> None:
+        self.scenes.drop(sid)
+        self.views.drop_owner(sid)
+
+    # ------------------------------------------------------------------------------------------- its life
+    async def start(self) -> None:
+        """Open the store (recovering from a crash), then in the background: the warm-up and the reconstruction
+        workers (``ready`` once they run), and the TTL sweep."""
+        self.recovered = await asyncio.to_thread(self.store.open)
+        if any(self.recovered[k] for k in ("interrupted", "files_missing", "orphans")):
+            log.warning("store recovered: %s", self.recovered)
+        self._tasks = [asyncio.create_task(self._start_workers(), name="start-workers"),
+                       asyncio.create_task(self._sweep(), name="ttl-sweep")]
+
+    async def stop(self) -> None:
+        """Drain: not ready, the background tasks cancelled, the workers and the render pool stopped (the jobs
+        still held are failed ``interrupted``)."""
+        self.draining = True
+        self.ready = False
+        for t in self._tasks:
+            t.cancel()
+        await asyncio.gather(*self._tasks, return_exceptions=True)
+        await self.reconstructions.stop()
+        self.renders.stop()
+
+    async def not_ready(self) -> str | None:
+        """Why the service cannot take work now (None: it can): draining, loading (or its start-up error), or a
+        store that cannot be reached (an s3:// store probes its bucket, at most every 2 s)."""
+        if self.draining:
+            return "draining"
+        if not self.ready:
+            return self.startup_error or "loading the model"
+        return await asyncio.to_thread(self.store.health)
+
+    async def _warm_up_renders(self) -> float | None:
+        """The render warm-up in the render pool (its threads run ``compute_nice`` nicer, and numba's worker
+        threads, started by the first parallel kernel, inherit that); the seconds, or None when it failed (logged:
+        renders then compile or load the kernels on the first request)."""
+        try:
+            return await asyncio.get_running_loop().run_in_executor(self.renders.pool, _warm_renders)
+        except asyncio.CancelledError:
+            raise
+        except Exception:
+            log.exception("the render warm-up failed; the first render compiles or loads the kernels instead")
+            return None
+
+    async def _start_workers(self) -> None:
+        try:
+            t0 = time.perf_counter()
+            renders = None
+            if self.settings.warm_up:
+                # before the workers start: on a cold numba cache this compiles the render kernels once, and the
+                # workers then load them from the cache (compiling in both at once would take both cores twice as
+                # long)
+                renders = await self._warm_up_renders()
+            workers = await self.reconstructions.start()
+            if self.settings.warm_up:
+                log.info("warm-up took %.1f s (renders %s, reconstruction workers %.1f s)", time.perf_counter() - t0,
+                         "failed" if renders is None else f"{renders:.1f} s", workers)
+            self.ready = True
+            log.info("model %s %s loaded; ready", self.info.name, self.info.version)
+        except asyncio.CancelledError:
+            raise
+        except Exception as e:
+            self.startup_error = f"{type(e).__name__}: {e}"
+            log.exception("the reconstruction workers did not start")
+
+    async def _sweep(self) -> None:
+        ttl = self.settings.scene_ttl_s
+        if ttl is None:
+            return
+        while True:
+            await asyncio.sleep(min(60.0, max(1.0, ttl / 4)))
+            try:
+                removed = await asyncio.to_thread(self.store.sweep)
+            except StoreUnavailable:        # logged by the store; the next round tries again
+                continue
+            if removed:
+                log.info("TTL removed %d scenes", len(removed))
+
+    # ------------------------------------------------------------------------------------------- scenes
+    async def record(self, sid: str) -> SceneRecord:
+        """The scene's record; NotFound for an unknown or malformed id (never a path). Off the loop: an S3 store
+        reads over the network."""
+        rec = await asyncio.to_thread(self.store.get, sid)
+        if rec is None:
+            raise NotFound(f"no scene {sid!r}", "id")
+        return rec
+
+    async def ready_record(self, sid: str) -> SceneRecord:
+        """The record of a ready scene; Conflict (409) while it is queued or running, or when it failed."""
+        rec = await self.record(sid)
+        if rec.state == "failed":
+            message = rec.error.message if rec.error is not None else "unknown error"
+            raise Conflict(f"scene {sid} failed: {message}", "id", code="scene_failed")
+        if rec.state != "ready":
+            raise Conflict(f"scene {sid} is {rec.state}; poll GET /v1/scenes/{sid} until it is ready", "id",
+                           headers={"Retry-After": "1"})
+        return rec
+
+    async def create_scene(self, read_form: Callable[..., Awaitable[Any]], detail_stride: int | None,
+                           wait: float | None) -> SceneRecord:
+        """POST /v1/scenes: admit (Busy while loading or with the queue full), read the multipart form with
+        ``read_form`` (the request's ``form``) into a work folder (uploads.ingest), create the record and queue the
+        job (detail_stride None: no detail layer); with ``wait``, hold up to that many seconds (at most
+        ``wait_max_s``) for the job to end. Returns the scene's record then (a failed one when it was deleted
+        meanwhile)."""
+        st = self.settings
+        if not self.ready:
+            raise Busy("the model is still loading; retry shortly", st.retry_after_s)
+        if self.reconstructions.full():
+            self.metrics.rejected.labels("reconstruct").inc()
+            raise Busy(f"{self.reconstructions.pending} reconstructions are running or queued; retry later",
+                       st.retry_after_s)
+        n = st.max_cameras
+        work = await asyncio.to_thread(self.store.work_dir)
+        form = None
+        try:
+            try:
+                form = await read_form(max_files=3 * n + 8, max_fields=3 * n + 8, max_part_size=RIG_PART_BYTES)
+            except StarletteHTTPException as e:
+                raise Invalid(f"the multipart body cannot be parsed: {e.detail}", "body") from None
+            rig = await asyncio.to_thread(ingest, form, work, st, self.info.meta.get("input") or {})
+            sid = new_scene_id()
+            cameras = [{"name": c.name, "width": c.width, "height": c.height, "model": c.model} for c in rig.cameras]
+            try:
+                await asyncio.to_thread(self.store.create, sid, {"cameras": cameras, "detail": {
+                    "enabled": detail_stride is not None, "stride": detail_stride}})
+            except StoreFull as e:
+                raise StorageFull(str(e)) from None
+            job = Job(sid=sid, work=work, detail_stride=detail_stride)
+            try:
+                self.reconstructions.submit(job)
+            except Busy:
+                self.store.delete(sid)
+                raise
+        except OSError as e:
+            await asyncio.to_thread(shutil.rmtree, work, True)
+            if e.errno in (errno.ENOSPC, errno.EDQUOT):
+                raise StorageFull(f"the store's disk is full ({e.strerror})") from None
+            raise
+        except BaseException:
+            await asyncio.to_thread(shutil.rmtree, work, True)
+            raise
+        finally:
+            if form is not None:
+                await form.close()
+        if wait:
+            try:
+                await asyncio.wait_for(asyncio.shield(job.done.wait()), min(wait, st.wait_max_s))
+            except TimeoutError:
+                pass
+        return await asyncio.to_thread(self.store.get, sid) or SceneRecord(
+            id=sid, state="failed", cameras=cameras,
+            error=SceneFailure(code="deleted", message="the scene was deleted"))
+
+    async def list_scenes(self, offset: int, limit: int) -> tuple[list[SceneRecord], int]:
+        """A page of records, newest first, and the total count."""
+        return await asyncio.to_thread(self.store.list, offset, limit)
+
+    async def delete_scene(self, sid: str) -> None:
+        await self.record(sid)
+        await asyncio.to_thread(self.store.delete, sid)
+
+    async def scene_file(self, sid: str, name: str) -> IO[bytes]:
+        """A file of a ready scene's folder, opened (the scene counts as used); NotFound when it was deleted."""
+        await asyncio.to_thread(self.store.touch, sid)
+        return await asyncio.to_thread(self._open_scene_file, sid, name)
+
+    def _open_scene_file(self, sid: str, name: str) -> IO[bytes]:
+        try:
+            return open(self.store.scene_dir(sid) / name, "rb")
+        except (KeyError, FileNotFoundError):
+            raise NotFound(f"scene {sid} was deleted", "id") from None
+
+    async def splat(self, sid: str) -> bytes:
+        """A ready scene's Gaussians as antimatter15's .splat (made from the loaded scene, in the render pool)."""
+        await asyncio.to_thread(self.store.touch, sid)
+        scene = await self.renders.run(self.load_scene, sid)
+        return await self.renders.run(scene.gaussians.splat_bytes)
+
+    async def background(self, sid: str, format: str) -> IO[bytes]:
+        """A ready scene's background panorama file (png or exr), opened; NotFound ``no_background`` for a model
+        without a background graph."""
+        rec = await self.ready_record(sid)
+        if not rec.background:
+            raise NotFound(f"scene {sid} has no background (the model has no background graph)", "id",
+                           code="no_background")
+        return await self.scene_file(sid, "background.png" if format == "png" else "background.exr")
+
+    def load_scene(self, sid: str):
+        """The loaded runtime Scene of a ready scene (from the scene cache), in a worker thread."""
+        from xyzcyl.runtime.scene import Scene, SceneError
+
+        def load():
+            try:
+                return Scene.load(self.store.scene_dir(sid))
+            except (KeyError, SceneError, FileNotFoundError):
+                raise NotFound(f"scene {sid} was deleted", "id") from None
+
+        return self.scenes.get(sid, load)
+
+    def _rig(self, sid: str):
+        """The scene's rig (calibration) from the loaded scene."""
+        return self.load_scene(sid).rig
+
+    # ------------------------------------------------------------------------------------------- renders
+    def check_size(self, camera, field: str = "width") -> None:
+        """Invalid when a view is over the render limits (its longer side, its pixels)."""
+        st = self.settings
+        w, h = camera.width, camera.height
+        if max(w, h) > st.max_render_side:
+            raise Invalid(f"{field}: a view of {w}x{h} has a side over the limit of {st.max_render_side} pixels",
+                          ("width" if w >= h else "height") if field == "width" else field)
+        if w * h > st.max_render_pixels:
+            raise Invalid(f"{field}: a view of {w}x{h} = {w * h} pixels is over the limit of "
+                          f"{st.max_render_pixels}", field)
+
+    def view_key(self, sid: str, req: ViewRequest) -> str:
+        """The view's ETag: the scene, the model and the request."""
+        h = hashlib.sha256(f"{sid}|{self.info.name}|{self.info.version}|{req.key()}".encode()).hexdigest()
+        return f'"{h[:40]}"'
+
+    async def view_request(self, sid: str, q: RenderQuery) -> tuple[ViewRequest, str]:
+        """GET /v1/scenes/{id}/render's query as a ViewRequest of a ready scene, and its ETag. Exactly one pose:
+        an input camera, cam_to_ego with fx/fy/cx/cy or fov, or a CARLA transform with fov (Invalid otherwise,
+        naming the field)."""
+        await self.ready_record(sid)
+        spec = ViewSpec(camera=q.camera, cam_to_ego=None if q.cam_to_ego is None else _numbers(q.cam_to_ego,
+                                                                                                "cam_to_ego", 16),
+                        fx=q.fx, fy=q.fy, cx=q.cx, cy=q.cy, fov=q.fov, carla=q.carla() or None, width=q.width,
+                        height=q.height, output=q.output, format=q.format, quality=q.quality)
+        rig = await self.renders.run(self._rig, sid) if q.camera is not None else None
+        try:
+            req = spec.request(rig)
+            self.check_size(req.camera)
+        except ViewError as e:
+            raise Invalid(str(e), e.field) from None
+        return req, self.view_key(sid, req)
+
+    async def render(self, sid: str, req: ViewRequest, key: str) -> bytes:
+        """The encoded view (from the render cache, else rendered in the render pool; Busy when it is full)."""
+        await asyncio.to_thread(self.store.touch, sid)
+        return await self.renders.run(self._render_bytes, sid, req, key)
+
+    def _render_bytes(self, sid: str, req: ViewRequest, key: str) -> bytes:
+        hit = self.views.get(key)
+        if hit is not None:
+            self.metrics.render_cache.labels("hit").inc()
+            return hit
+        self.metrics.render_cache.labels("miss").inc()
+        scene = self.load_scene(sid)
+        t0 = time.perf_counter()
+        data = render_request(scene, req)
+        self.metrics.render_seconds.observe(time.perf_counter() - t0)
+        self.views.put(key, data, owner=sid)
+        return data
+
+    async def render_batch(self, sid: str, doc: dict[str, Any], output: str | None, format: str | None,
+                           quality: int | None) -> AsyncIterator[bytes]:
+        """POST /v1/scenes/{id}/render's body ``doc`` ({"cameras": [...]} or a nerfstudio camera path) as a zip of
+        frames and index.json (wire.BatchIndex), streamed frame by frame. ``output``, ``format``, ``quality``: the
+        query's, which win over the body's. Everything is checked, and Busy raised when the render pool is full,
+        before the first byte."""
+        opts = {}
+        for k, v, allowed in (("output", output, ("rgb", "depth", "alpha")),
+                              ("format", format, ("png", "jpeg", "exr"))):
+            val = v if v is not None else doc.get(k, "rgb" if k == "output" else "png")
+            if val not in allowed:
+                raise Invalid(f"{k}: one of {', '.join(allowed)}", k)
+            opts[k] = val
+        q = quality if quality is not None else doc.get("quality", 90)
+        if isinstance(q, bool) or not isinstance(q, int) or not 1 <= q <= 100:
+            raise Invalid("quality: an integer in 1..100", "quality")
+        rig = await self.renders.run(self._rig, sid)
+        try:
+            cams = cameras_from_batch(doc, rig=rig, max_frames=self.settings.max_batch_frames)
+            for i, c in enumerate(cams):
+                self.check_size(c, f"cameras[{i}]")
+            reqs = [ViewRequest(camera=c, output=opts["output"], format=opts["format"], quality=q) for c in cams]
+        except ViewError as e:
+            raise Invalid(str(e), e.field) from None
+        if self.renders.busy():
+            await self.renders.run(lambda: None)     # raises Busy (503 + Retry-After) before anything is streamed
+        await asyncio.to_thread(self.store.touch, sid)
+        return self._frames(sid, reqs, opts["output"], opts["format"])
+
+    async def _frames(self, sid: str, reqs: list[ViewRequest], output: str, format: str) -> AsyncIterator[bytes]:
+        sink = _Sink()
+        frames = []
+        with zipfile.ZipFile(sink, "w", compression=zipfile.ZIP_STORED) as zf:
+            for i, req in enumerate(reqs):
+                data = await self.renders.run(self._render_bytes, sid, req, self.view_key(sid, req), force=True)
+                name = f"frame_{i:05d}{req.extension}"
+                zf.writestr(name, data)
+                cam = req.camera
+                K = getattr(cam, "K", None)
+                frames.append(FrameInfo(file=name, width=cam.width, height=cam.height,
+                                        K=K.tolist() if K is not None else None,
+                                        cam_to_ego=cam.cam_to_ego.tolist()))
+                yield sink.take()
+            index = BatchIndex(scene=sid, output=output, format=format, frames=frames)
+            zf.writestr("index.json", json.dumps(index.model_dump(), indent=1))
+        yield sink.take()
+
+    # ------------------------------------------------------------------------------------------- the model
+    def model_metadata(self, name: str) -> dict[str, Any]:
+        """The Open Inference Protocol's model metadata (the encode graph's tensors); NotFound for another
+        name."""
+        info = self.info
+        if name != info.name:
+            raise NotFound(f"no model {name!r}; this server serves {info.name!r}", "name")
+        graphs = info.meta.get("graphs", {})
+        enc = graphs.get("encode", {})
+        return {"name": info.name, "versions": [info.version], "platform": "onnxruntime_onnx",
+                "inputs": _tensors(enc.get("inputs", [])), "outputs": _tensors(enc.get("outputs", [])),
+                "parameters": {"graphs": sorted(graphs), "input": info.meta.get("input"),
+                               "counts": info.meta.get("counts")}}
+
+
+def _tensors(entries) -> list[dict]:
+    out = []
+    for e in entries:
+        shape = [d if isinstance(d, int) else -1 for d in e.get("shape", [])]
+        out.append({"name": e["name"], "datatype": _DTYPES.get(str(e.get("dtype")), str(e.get("dtype")).upper()),
+                    "shape": shape})
+    return out
+
+
+def _numbers(text: str, field: str, n: int) -> list[float]:
+    try:
+        vals = [float(v) for v in text.replace(" ", "").split(",") if v != ""]
+    except ValueError:
+        raise Invalid(f"{field}: {n} comma-separated numbers expected", field) from None
+    if len(vals) != n:
+        raise Invalid(f"{field}: {n} comma-separated numbers expected, got {len(vals)}", field)
+    return vals
+
+
+def _warm_renders() -> float:
+    """runtime.warmup.warm_render in a temporary folder: the render path's kernels and encoders, in this process."""
+    from xyzcyl.runtime.warmup import warm_render
+
+    with tempfile.TemporaryDirectory(prefix="xyzcyl-warmup-") as tmp:
+        return warm_render(tmp)
+
+
+class _Sink:
+    """A write-only file for zipfile (not seekable: zipfile then writes data descriptors) that hands out what
+    was written so far."""
+
+    def __init__(self):
+        self.parts: list[bytes] = []
+
+    def write(self, b) -> int:
+        self.parts.append(bytes(b))
+        return len(b)
+
+    def flush(self) -> None:
+        pass
+
+    def take(self) -> bytes:
+        out = b"".join(self.parts)
+        self.parts.clear()
+        return out
+
+
+__all__ = ["Service"]

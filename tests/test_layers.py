@@ -1,0 +1,121 @@
+"""The layers of issue 27, house 3 (docs/design.md): the HTTP client imports no xyzcyl.runtime and no xyzcyl.server,
+xyzcyl.common imports nothing else of xyzcyl, and the server's routes never import server/app.py (they take the
+service and their dependencies from deps.py). Each rule is checked twice: by importing in a fresh interpreter
+(and running the code paths that used to import lazily), and by reading every import statement of the files,
+those inside functions included."""
+
+from __future__ import annotations
+
+import ast
+import subprocess
+import sys
+import tomllib
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+FOLDERS = {"xyzcyl.common": "common", "xyzcyl.runtime": "runtime", "xyzcyl.server": "server",
+           "xyzcyl.clients": "clients", "xyzcyl.model_export": "model_export"}
+
+
+def _module_of(path: Path) -> str:
+    for dotted, folder in FOLDERS.items():
+        root = REPO / folder
+        if path.is_relative_to(root):
+            parts = path.relative_to(root).with_suffix("").parts
+            return ".".join((dotted, *(parts[:-1] if parts[-1] == "__init__" else parts)))
+    raise ValueError(path)
+
+
+def imports_of(path: Path) -> set[str]:
+    """The absolute names of every module a file imports (relative imports resolved; `from a import b` counts as
+    a.b too, b may be a module), at any depth of the file."""
+    module = _module_of(path)
+    package = module if path.name == "__init__.py" else module.rpartition(".")[0]
+    out: set[str] = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.Import):
+            out |= {a.name for a in node.names}
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = package.split(".")
+                base = base[:len(base) - node.level + 1]
+                name = ".".join(base + ([node.module] if node.module else []))
+            else:
+                name = node.module or ""
+            out.add(name)
+            out |= {f"{name}.{a.name}" for a in node.names}
+    return out
+
+
+def _run(code: str) -> None:
+    subprocess.run([sys.executable, "-c", code], check=True, timeout=120, cwd=REPO)
+
+
+def test_the_client_imports_no_runtime_and_no_server():
+    # the modules, then the paths that imported runtime helpers lazily: a float depth map as EXR, the pose flags,
+    # the progress bar
+    _run("import argparse, sys\n"
+         "import numpy as np\n"
+         "from xyzcyl.clients import client\n"
+         "from xyzcyl.clients.commands import client as command\n"
+         "assert client._encode_depth(np.ones((4, 4), np.float32))[1] == '.exr'\n"
+         "parser = argparse.ArgumentParser()\n"
+         "command.add_arguments(parser)\n"
+         "args = parser.parse_args(['render', 'S', '--carla', '1', '0', '2', '0', '0', '0', '--fov', '90',\n"
+         "                          '--width', '8', '--height', '8', '--out', 'x.png', '--forward', '1'])\n"
+         "assert command._pose(args)['x'] == 2.0\n"
+         "args.quiet = False\n"
+         "command._bar(args, 10, 'B', 'upload')[1]()\n"
+         "bad = sorted(m for m in sys.modules if m.startswith(('xyzcyl.runtime', 'xyzcyl.server')))\n"
+         "assert not bad, bad\n")
+    for path in (REPO / "clients" / "client.py", REPO / "clients" / "commands" / "client.py"):
+        bad = sorted(m for m in imports_of(path) if m.startswith(("xyzcyl.runtime", "xyzcyl.server")))
+        assert bad == [], f"{path.relative_to(REPO)} imports {bad}"
+
+
+def test_common_imports_nothing_else_of_xyzcyl():
+    modules = sorted(_module_of(p) for p in (REPO / "common").glob("*.py"))
+    _run("import sys\n"
+         f"for m in {modules!r}: __import__(m)\n"
+         "bad = sorted(m for m in sys.modules if m.startswith('xyzcyl.') and not m.startswith('xyzcyl.common'))\n"
+         "assert not bad, bad\n")
+    for path in (REPO / "common").rglob("*.py"):
+        bad = sorted(m for m in imports_of(path) if m.startswith("xyzcyl") and m != "xyzcyl"
+                     and not m.startswith("xyzcyl.common"))
+        assert bad == [], f"{path.relative_to(REPO)} imports {bad}"
+
+
+def test_the_clients_scene_has_the_wire_fields():
+    """The client's SceneInfo dataclass (its public type) has the fields of the wire model the server answers with,
+    plus ``raw``: a field added to one is added to the other."""
+    import dataclasses
+
+    from xyzcyl.clients.client import SceneInfo
+    from xyzcyl.common import wire
+
+    assert {f.name for f in dataclasses.fields(SceneInfo)} == {*wire.SceneInfo.model_fields, "raw"}
+
+
+def test_common_is_packaged():
+    tool = tomllib.loads((REPO / "pyproject.toml").read_text())["tool"]["setuptools"]
+    assert "xyzcyl.common" in tool["packages"] and tool["package-dir"]["xyzcyl.common"] == "common"
+    extras = tomllib.loads((REPO / "pyproject.toml").read_text())["project"]["optional-dependencies"]
+    assert [d.split(">")[0].split("=")[0] for d in extras["client"]] == ["httpx"]     # the client extra stays small
+
+
+def test_routes_never_import_the_app():
+    """Nothing the routes import, directly or through other server modules, is server/app.py (the cycle app ->
+    routes -> app is gone), and importing the routes loads no app."""
+    server = {_module_of(p): p for p in (REPO / "server").rglob("*.py")}
+    for start in sorted(m for m in server if m.startswith("xyzcyl.server.routes.")):
+        seen, todo = set(), [start]
+        while todo:
+            m = todo.pop()
+            if m in seen:
+                continue
+            seen.add(m)
+            todo += [n for n in imports_of(server[m]) if n in server and n != "xyzcyl.server"]
+        assert "xyzcyl.server.app" not in seen, f"{start} reaches xyzcyl.server.app"
+    _run("import sys\n"
+         "from xyzcyl.server.routes import health, render, scenes\n"
+         "assert 'xyzcyl.server.app' not in sys.modules\n")
