@@ -281,7 +281,7 @@ def evaluate(data_dirs: Sequence[str | Path], cfg: EvalConfig, checkpoint: str |
     ``cfg.sheet_scenes`` scenes of each data set and setting, their first view as {"title", "gt", "pred",
     "gt_depth", "depth", "psnr"} (images [H, W, 3] 0..1, depths [H, W] metres; gt_depth 0 outside the PCC's
     pixels) for ``write_sheet``."""
-    from xyzcyl.runtime.progress import progress_bar
+    from xyzcyl.common.progress import progress_bar
 
     from . import metrics as M
     from .dataset import DatasetConfig, SceneDataset

@@ -36,7 +36,7 @@ from typing import Any, ClassVar
 import numpy as np
 import torch
 from torch import nn
-from xyzcyl.runtime.files import atomic_folder
+from xyzcyl.common.files import atomic_folder
 
 from .config import ModelConfig
 from .model import GAUSSIAN_KEYS, XYZCylinder

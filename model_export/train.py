@@ -30,7 +30,7 @@ from typing import Any
 import numpy as np
 import torch
 import torch.nn.functional as F
-from xyzcyl.runtime.files import atomic_file
+from xyzcyl.common.files import atomic_file
 
 from .config import ConfigError, ModelConfig, _Frozen
 from .dataset import DatasetConfig, SceneDataset
@@ -453,7 +453,7 @@ def train(data_dir: str | Path | list[str | Path], run_dir: str | Path, model_cf
     ``device``: where the network, its inputs and the losses live (resolve_device); the splatting renderer
     always runs on the host CPU (render_fn.RenderViews copies across). Checkpoints load onto any device.
     Returns a summary dict (steps done, last losses, wall time, paths)."""
-    from xyzcyl.runtime.progress import progress_bar
+    from xyzcyl.common.progress import progress_bar
 
     dev = resolve_device(device)
     run_dir = Path(run_dir)

@@ -8,11 +8,6 @@ import os
 from pathlib import Path
 from typing import Any
 
-# Kept importable from here only for runtime/scene.py, model_export/export.py and model_export/train.py, which the
-# camera-type refactor (issue 27, house 1) is rewriting: switch their import lines to xyzcyl.common.files, then
-# delete this line.
-from xyzcyl.common.files import atomic_file, atomic_folder  # noqa: F401
-
 
 def read_json_doc(path: str | os.PathLike, fmt: str, error: type[Exception], what: str) -> dict[str, Any]:
     """The JSON object in ``path`` whose "format" is ``fmt``; ``error`` (message starting with ``what``, naming

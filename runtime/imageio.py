@@ -9,11 +9,6 @@ from pathlib import Path
 
 import numpy as np
 
-# Kept importable from here only for runtime/scene.py, runtime/views.py and model_export/data/synth.py, which the
-# camera-type refactor (issue 27, house 1) is rewriting: switch their import lines to xyzcyl.common.media, then
-# delete this line.
-from xyzcyl.common.media import write_exr  # noqa: F401
-
 
 def read_exr(path: str | os.PathLike) -> np.ndarray:
     """[H, W, C] float32 of an EXR (or any float image OpenImageIO reads); OSError naming the file."""

@@ -30,10 +30,11 @@ from typing import Any
 
 import numba
 import numpy as np
+from xyzcyl.common.files import atomic_folder
 
 from .camera import Camera
 from .cylinder import CylinderSpec
-from .files import atomic_folder, read_json_doc
+from .files import read_json_doc
 from .render import Gaussians, render
 from .rig import Rig
 
@@ -238,7 +239,9 @@ class Scene:
         with atomic_folder(out) as tmp:
             self.gaussians.save_ply(tmp / PLY_NAME)
             if self.background is not None:
-                from .imageio import write_exr, write_png
+                from xyzcyl.common.media import write_exr
+
+                from .imageio import write_png
 
                 write_exr(tmp / EXR_NAME, self.background.image, ("R", "G", "B"))
                 write_png(tmp / PNG_NAME, self.background.image)

@@ -61,7 +61,6 @@ class RenderQuery:
         return {k: getattr(self, k) for k in CARLA_POSE if getattr(self, k) is not None}
 
 
-
 def _iso(ts: float | None) -> str:
     return dt.datetime.fromtimestamp(ts or 0.0, dt.UTC).replace(microsecond=0).isoformat()
 

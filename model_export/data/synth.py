@@ -10,8 +10,8 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
+from xyzcyl.common.media import write_exr
 from xyzcyl.runtime.camera import Camera
-from xyzcyl.runtime.imageio import write_exr
 from xyzcyl.runtime.rig import read_image
 
 from . import classes as C
@@ -256,7 +256,7 @@ def synth(out: Path, n: int, cfg: SynthConfig, progress: bool = True, workers: i
     previous one. workers N > 1: N spawned processes render and write whole scenes side by side, each with
     max(1, cores() // N) numba threads. The files are the same byte for byte whatever `workers` is.
     """
-    from xyzcyl.runtime.progress import progress_bar
+    from xyzcyl.common.progress import progress_bar
 
     if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
         raise ValueError(f"workers: must be an integer >= 1, got {workers!r}")

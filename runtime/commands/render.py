@@ -73,8 +73,9 @@ FORMATS = {".png": "png", ".jpg": "jpeg", ".jpeg": "jpeg", ".exr": "exr"}
 
 
 def run(args: argparse.Namespace) -> int:
+    from xyzcyl.common.files import atomic_file
+
     from ..camera import CameraError
-    from ..files import atomic_file
     from ..render import GaussianError, Gaussians, render
     from ..render.gaussians import DEFAULT_MAX_POINTS
     from ..scene import JSON_NAME, Scene, SceneError

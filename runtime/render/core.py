@@ -220,7 +220,6 @@ def _adj(m):
 
 def _chain(g: Gaussians, camera, opts: RenderOptions, g2: np.ndarray):
     """2D gradients per Gaussian [N, 10] (mean2d x y, conic a b c, opacity, colour rgb, depth) -> 3D."""
-    n = len(g)
     pr = project_reference(g, camera, opts)
     g_mx, g_my, g_ca, g_cb, g_cc, g_op = (g2[:, k] for k in range(6))
     g_col, g_z = g2[:, 6:9], g2[:, 9].copy()
