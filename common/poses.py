@@ -41,9 +41,10 @@ class PoseArgError(ValueError):
         self.message = message
 
 
-def add_matrix_argument(parser, flag: str, help: str) -> None:
-    """A 4x4 matrix flag: 16 numbers, or one JSON list / .npy / .json file (see parse_matrix)."""
-    action = parser.add_argument(flag, nargs="+", default=None, metavar="M",
+def add_matrix_argument(parser, *flags: str, help: str) -> None:
+    """A 4x4 matrix flag (``flags``: its name, then aliases): 16 numbers, or one JSON list / .npy / .json file (see
+    parse_matrix)."""
+    action = parser.add_argument(*flags, nargs="+", default=None, metavar="M",
                                  help=f"{help}; 16 numbers row-major, or one JSON list (16 or 4x4) or a .npy/.json "
                                       "file")
     action.numbers = 16     # xyzcyl's parser (clients/cli.py) takes 16 numbers in a row as one value, no more

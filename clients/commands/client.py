@@ -75,9 +75,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     p.add_argument("scene", metavar="SCENE_ID", help=_SCENE_HELP)
     pose = p.add_argument_group("pose (exactly one of --camera, --cam-to-world, --carla)")
     pose.add_argument("--camera", metavar="NAME", help="an input camera of the scene's rig")
-    add_matrix_argument(pose, "--cam-to-world",
-                        help="4x4 camera-to-ego matrix, OpenCV camera axes (x right, y down, z forward); with --K "
-                             "or --fov")
+    add_matrix_argument(pose, "--cam-to-world", "--cam-to-ego",
+                        help="4x4 camera-to-ego matrix, OpenCV camera axes (x right, y down, z forward; "
+                             "--cam-to-ego is the same flag); with --K or --fov")
     pose.add_argument("--K", type=float, nargs=4, metavar=("FX", "FY", "CX", "CY"),
                       help="pinhole intrinsics in pixels (OpenCV: pixel u is centred at x = u)")
     pose.add_argument("--carla", type=float, nargs=6, metavar=("X", "Y", "Z", "PITCH", "YAW", "ROLL"),

@@ -37,9 +37,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--fov", type=float, default=None, metavar="DEG",
                         help="horizontal field of view in degrees, instead of --K (square pixels, centred "
                              "principal point)")
-    add_matrix_argument(parser, "--cam-to-world",
-                        help="4x4 camera-to-world matrix (OpenCV camera: x right, y down, z forward); required "
-                             "unless --camera")
+    add_matrix_argument(parser, "--cam-to-world", "--cam-to-ego",
+                        help="4x4 camera-to-ego matrix, the scene's frame (OpenCV camera: x right, y down, "
+                             "z forward; --cam-to-ego is the same flag); required unless --camera")
     parser.add_argument("--camera", default=None, metavar="NAME",
                         help="SCENE_DIR only: render from this input camera of the scene's rig (its K, size, pose)")
     parser.add_argument("--out", required=True, metavar="PATH",
