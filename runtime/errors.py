@@ -7,8 +7,15 @@ recover it): ``FieldError(field, message, where=None)``.
 - ``where``: optionally, the thing the field belongs to, as people name it ("camera 'CAM_FRONT'", "rig").
 
 ``str(e)`` is ``"<where>: <field>: <message>"``, or ``"<field>: <message>"`` without ``where``.
-runtime.views.ViewError (render requests), runtime.camera.CameraError (cameras) and RigError (rigs) derive from
-it. ``plain`` is the one place that turns numpy values into plain Python for a message.
+
+Every runtime error that reports bad input derives from it (tests/runtime/test_errors.py walks them): RigError
+(rigs) and runtime.camera.CameraError (cameras), runtime.convert.ConversionError (foreign records: ``where``
+the record, "transforms.json: frames[3]"), runtime.views.ViewError (render requests), runtime.scene.SceneError,
+runtime.lidar.LidarError, runtime.detail.DetailError, runtime.inference.ModelError and InferenceError,
+runtime.render.GaussianError (``where`` "PLY 'g.ply'"), runtime.cylinder.CylinderError and the command-line
+flags' errors (runtime.commands.pose_flags.PoseArgError, eval-real's: ``field`` the flag, "--cam-to-world").
+A caller that maps an error to an HTTP field or a flag reads ``field`` / ``root_field``, never the message.
+``plain`` is the one place that turns numpy values into plain Python for a message.
 """
 
 from __future__ import annotations
@@ -16,7 +23,12 @@ from __future__ import annotations
 import re
 from typing import Any
 
-import numpy as np
+# Fields, by convention: the name the user wrote, as a path into what they wrote -- a rig.json / scene.json /
+# model.json key ("K[0][0]", "lidar.lidar_to_ego", "graphs.encode.file"), a PLY property or header entry
+# ("rot_0", "element vertex"), a request field ("cameras[3].fov") or a command-line flag ("--detail-stride").
+# Where no single field is at fault (a whole file missing, unreadable, of another format, altered or too large),
+# the field is the file's role -- "scene", "model", "lidar", "splat" -- and the message names the file:
+# "scene: '/s/scene.json' is missing (not a scene folder)".
 
 
 class FieldError(ValueError):
@@ -44,7 +56,10 @@ class RigError(FieldError):
 
 def plain(value: Any) -> Any:
     """``value`` for an error message's ``{...!r}``: numpy scalars and arrays as plain Python numbers and lists
-    (numpy 2 writes a scalar as ``np.float64(-633.0)``); anything else unchanged. The validators' one place for it."""
+    (numpy 2 writes a scalar as ``np.float64(-633.0)``); anything else unchanged. The validators' one place for it.
+    (numpy imported here: the pose flags import this module for the client, numpy-free at import.)"""
+    import numpy as np
+
     return value.tolist() if isinstance(value, (np.generic, np.ndarray)) else value
 
 
