@@ -11,7 +11,7 @@ their arithmetic, so both commands read a pose and move a camera the same way.
   CameraMove.apply_carla (a CARLA transform; the same move in CARLA's left-handed axes).
 
 Light on purpose: argparse, json, math and pathlib at import, numpy inside the functions, nothing else of the
-runtime, so the HTTP client (clients/commands/client.py) can use it without the renderer, numba or OpenCV.
+runtime but its error base (runtime.errors, which imports no numpy at import either), so the HTTP client (clients/commands/client.py) can use it without the renderer, numba or OpenCV.
 """
 
 from __future__ import annotations
@@ -23,18 +23,15 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from ..errors import FieldError
+
 MOVE_FLAGS = ("--forward", "--left", "--up", "--yaw")
 MATRIX_KEYS = ("cam_to_ego", "cam_to_world")     # the pose's key in a .json object
 
 
-class PoseArgError(ValueError):
+class PoseArgError(FieldError):
     """A pose flag's value that cannot be used. ``field``: the flag (e.g. "--cam-to-world");
     str(e) = "<flag>: <message>"."""
-
-    def __init__(self, field: str, message: str):
-        super().__init__(f"{field}: {message}")
-        self.field = field
-        self.message = message
 
 
 def add_matrix_argument(parser, flag: str, help: str) -> None:

@@ -100,11 +100,12 @@ def test_carla_move_is_the_same_move(move):
 
 
 def test_module_is_light():
-    """The HTTP client imports pose_flags: it must not bring the renderer, numba, OpenCV or onnxruntime."""
+    """The HTTP client imports pose_flags: it must not bring the renderer, numba, OpenCV or onnxruntime (of the
+    runtime, only its error base, runtime.errors: re and typing)."""
     code = ("import sys; from xyzcyl.runtime.commands import pose_flags; pose_flags.parse_matrix(" + repr(TOKENS)
             + "); heavy = [m for m in sys.modules if m.split('.')[0] in ('numba', 'cv2', 'onnxruntime', 'torch') "
             "or (m.startswith('xyzcyl.runtime.') and m not in ('xyzcyl.runtime.commands', "
-            "'xyzcyl.runtime.commands.pose_flags'))]; assert not heavy, heavy")
+            "'xyzcyl.runtime.commands.pose_flags', 'xyzcyl.runtime.errors'))]; assert not heavy, heavy")
     subprocess.run([sys.executable, "-c", code], check=True, timeout=120)
 
 
