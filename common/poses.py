@@ -13,8 +13,9 @@ their arithmetic, so both commands read a pose and move a camera the same way.
 - CARLA_POSE: the names of a CARLA transform's six numbers, as the render endpoint's query and the client take
   them.
 
-Light on purpose: argparse, json, math and pathlib at import, numpy inside the functions, nothing of xyzcyl, so
-the HTTP client (clients/commands/client.py) uses it without the runtime (the renderer, numba, OpenCV).
+Light on purpose: argparse, json, math and pathlib at import, numpy inside the functions, nothing of xyzcyl but
+common.errors, so the HTTP client (clients/commands/client.py) uses it without the runtime (the renderer, numba,
+OpenCV).
 """
 
 from __future__ import annotations
@@ -26,19 +27,16 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from .errors import FieldError
+
 MOVE_FLAGS = ("--forward", "--left", "--up", "--yaw")
 CARLA_POSE = ("x", "y", "z", "pitch", "yaw", "roll")   # location (metres) and rotation (degrees), in this order
 MATRIX_KEYS = ("cam_to_ego", "cam_to_world")     # the pose's key in a .json object
 
 
-class PoseArgError(ValueError):
+class PoseArgError(FieldError):
     """A pose flag's value that cannot be used. ``field``: the flag (e.g. "--cam-to-world");
     str(e) = "<flag>: <message>"."""
-
-    def __init__(self, field: str, message: str):
-        super().__init__(f"{field}: {message}")
-        self.field = field
-        self.message = message
 
 
 def add_matrix_argument(parser, *flags: str, help: str) -> None:

@@ -40,15 +40,9 @@ _CARLA_TOL_PX = 1e-3  # principal point must be within this of the image centre 
 
 
 class ConversionError(RigError):
-    """A foreign record that cannot be converted; the message names the record and field. ``field``: the JSON
-    path of the field at fault (e.g. "camera_path[2].fov") where the converter states it, else None."""
-
-    def __init__(self, message: str, field: str | None = None):  # noqa: D107 -- the message names record and field
-        ValueError.__init__(self, message)
-        self.field, self.message, self.where = field, message, None
-
-    def __reduce__(self):
-        return (type(self), (self.message, self.field))
+    """A foreign record that cannot be converted: ``field`` the field at fault, as a JSON path inside ``where``,
+    the record ("transforms.json: frames[3]", "camera_path.json", "carla sensor FRONT", "camera 'CAM_FRONT'");
+    a camera's own check (RigError) keeps its field, its camera named after the record."""
 
 
 # -- small rotation helpers ----------------------------------------------------------------------------------
@@ -70,13 +64,20 @@ def _pose(R: np.ndarray, t: Sequence[float]) -> np.ndarray:
     return T
 
 
-def _num(record: Mapping[str, Any], key: str, where: str) -> float:
+def _num(record: Mapping[str, Any], key: str, where: str, path: str = "") -> float:
+    """``record[key]`` as a float; ConversionError with field ``path + key`` (``path``: the record's place inside
+    ``where``, e.g. "transform.location.")."""
     if key not in record:
-        raise ConversionError(f"{where}: {key} is missing")
+        raise ConversionError(path + key, "is missing", where)
     v = record[key]
     if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
-        raise ConversionError(f"{where}: {key} must be a finite number (got {plain(v)!r})")
+        raise ConversionError(path + key, f"must be a finite number (got {plain(v)!r})", where)
     return float(v)
+
+
+def _from_camera(exc: RigError, where: str) -> ConversionError:
+    """A camera's own check (RigError naming the camera) as raised by a converter: the camera after the record."""
+    return ConversionError(exc.field, exc.message, f"{where}: {exc.where}" if exc.where else where)
 
 
 # -- nerfstudio ----------------------------------------------------------------------------------------------
@@ -92,31 +93,31 @@ def rig_from_nerfstudio(transforms: Mapping[str, Any], root: str | Path | None =
     """
     frames = transforms.get("frames")
     if not isinstance(frames, list) or not frames:
-        raise ConversionError("transforms.json: frames must be a non-empty list")
+        raise ConversionError("frames", "must be a non-empty list", "transforms.json")
     cams = []
     used: set[str] = set()
     for k, fr in enumerate(frames):
         where = f"transforms.json: frames[{k}]"
         if not isinstance(fr, Mapping):
-            raise ConversionError(f"{where}: must be an object")
+            raise ConversionError(f"frames[{k}]", "must be an object", "transforms.json")
         merged = {**{key: v for key, v in transforms.items() if key != "frames"}, **fr}
         model = str(merged.get("camera_model", "OPENCV")).upper()
         if model not in ("PINHOLE", "OPENCV", "SIMPLE_PINHOLE", "EQUIRECTANGULAR"):
-            raise ConversionError(f"{where}: camera_model {model!r} is not supported (PINHOLE, OPENCV, "
-                                  f"SIMPLE_PINHOLE, EQUIRECTANGULAR)")
+            raise ConversionError("camera_model", f"{model!r} is not supported (PINHOLE, OPENCV, SIMPLE_PINHOLE, "
+                                                  "EQUIRECTANGULAR)", where)
         if "transform_matrix" not in fr:
-            raise ConversionError(f"{where}: transform_matrix is missing")
+            raise ConversionError("transform_matrix", "is missing", where)
         try:
             c2w = np.array(fr["transform_matrix"], dtype=np.float64)
         except (TypeError, ValueError):
-            raise ConversionError(f"{where}: transform_matrix must be 4x4 numbers") from None
+            raise ConversionError("transform_matrix", "must be 4x4 numbers", where) from None
         if c2w.shape == (3, 4):
             c2w = np.vstack([c2w, [0.0, 0.0, 0.0, 1.0]])
         if c2w.shape != (4, 4):
-            raise ConversionError(f"{where}: transform_matrix must be 4x4 (got shape {c2w.shape})")
+            raise ConversionError("transform_matrix", f"must be 4x4 (got shape {c2w.shape})", where)
         w, h = _num(merged, "w", where), _num(merged, "h", where)
         if w != int(w) or h != int(h):
-            raise ConversionError(f"{where}: w and h must be integers (got {w}, {h})")
+            raise ConversionError("w" if w != int(w) else "h", f"w and h must be integers (got {w}, {h})", where)
         file_path = fr.get("file_path")
         name = fr.get("name") or (Path(file_path).stem if file_path else f"camera_{k}")
         if name in used:
@@ -140,7 +141,7 @@ def rig_from_nerfstudio(transforms: Mapping[str, Any], root: str | Path | None =
                                model=cam_model, distortion=distortion, image=file_path,
                                depth=fr.get("depth_file_path"), extra=extra))
         except RigError as exc:
-            raise ConversionError(f"{where}: {exc}") from None
+            raise _from_camera(exc, where) from None
     top = {key: v for key, v in transforms.items()
            if key not in ("frames", "camera_model", "fl_x", "fl_y", "cx", "cy", "w", "h", *_NS_DIST)}
     return Rig(cameras=tuple(cams), root=None if root is None else Path(root), extra=top)
@@ -162,8 +163,8 @@ def rig_to_nerfstudio(rig: Rig) -> dict[str, Any]:
             fr.update(camera_model="OPENCV", fl_x=K[0, 0], fl_y=K[1, 1], cx=K[0, 2] + 0.5, cy=K[1, 2] + 0.5)
             d = cam.distortion or ()
             if len(d) > 5:
-                raise ConversionError(f"camera {cam.name!r}: distortion has {len(d)} coefficients; nerfstudio "
-                                      f"OPENCV holds k1 k2 p1 p2 k3 only")
+                raise ConversionError("distortion", f"has {len(d)} coefficients; nerfstudio OPENCV holds k1 k2 p1 "
+                                                    "p2 k3 only", cam.where)
             fr.update({key: float(v) for key, v in zip(_NS_DIST, d)})
         fr["transform_matrix"] = (cam.cam_to_ego @ GL_FROM_CV).tolist()
         fr.update(cam.extra)
@@ -179,7 +180,7 @@ _CENTRE_TOL_PX = _CARLA_TOL_PX  # a camera path's principal point must be this c
 
 
 def _path_error(field: str, detail: str) -> ConversionError:
-    return ConversionError(f"{_NS_PATH}: {field}: {detail}", field=field)
+    return ConversionError(field, detail, _NS_PATH)
 
 
 def _path_size(doc: Mapping[str, Any], key: str) -> int:
@@ -256,9 +257,8 @@ def cameras_from_nerfstudio_path(doc: Mapping[str, Any]) -> list[Camera]:
         try:
             cams.append(Camera(name=f"frame_{k:05d}", width=W, height=H, K=K, cam_to_ego=c2w @ GL_FROM_CV,
                                model=model))
-        except RigError as exc:  # the pose checks (bottom row, orthonormal rotation, det +1)
-            detail = str(exc).split(": ", 1)[-1].removeprefix("cam_to_ego ")
-            raise _path_error(f"{where}.camera_to_world", detail) from None
+        except RigError as exc:  # the pose checks (bottom row, orthonormal rotation, det +1) of cam_to_ego
+            raise _path_error(f"{where}.camera_to_world", exc.message) from None
     return cams
 
 
@@ -271,29 +271,29 @@ def cameras_to_nerfstudio_path(cameras: Sequence[Camera], fps: float = 24.0) -> 
     (16 numbers, row-major, OpenGL axes), fov (vertical degrees; pinholes only) and aspect (W/H), and
     seconds = len / fps and fps (ns-render reads "seconds" for the video length)."""
     if not cameras:
-        raise ConversionError(f"{_NS_PATH}: cameras: need at least one camera", field="cameras")
+        raise ConversionError("cameras", "need at least one camera", _NS_PATH)
     first = cameras[0]
     W, H, model = first.width, first.height, first.model
     frames = []
     for cam in cameras:
         where = f"camera {cam.name!r}"
         if (cam.width, cam.height, cam.model) != (W, H, model):
-            raise ConversionError(f"{where}: width/height/model: a camera path has one size and model "
-                                  f"({W}x{H} {model}; got {cam.width}x{cam.height} {cam.model})")
+            raise ConversionError("width/height/model", f"a camera path has one size and model ({W}x{H} {model}; "
+                                                        f"got {cam.width}x{cam.height} {cam.model})", where)
         fr: dict[str, Any] = {"camera_to_world": (cam.cam_to_ego @ GL_FROM_CV).reshape(-1).tolist()}
         if model == "pinhole":
             K = cam.K
             if cam.distortion is not None:
-                raise ConversionError(f"{where}: distortion: camera paths are undistorted pinholes")
+                raise ConversionError("distortion", "camera paths are undistorted pinholes", where)
             if abs(K[0, 0] - K[1, 1]) > 1e-9 * K[0, 0]:
-                raise ConversionError(f"{where}: K: fx != fy, a camera path has square pixels")
+                raise ConversionError("K", "fx != fy, a camera path has square pixels", where)
             if abs(K[0, 2] - (W - 1) / 2) > _CENTRE_TOL_PX or abs(K[1, 2] - (H - 1) / 2) > _CENTRE_TOL_PX:
-                raise ConversionError(f"{where}: K: principal point must be the image centre ((W-1)/2, (H-1)/2)")
+                raise ConversionError("K", "principal point must be the image centre ((W-1)/2, (H-1)/2)", where)
             fr["fov"] = math.degrees(cam.vertical_fov)
         fr["aspect"] = W / H
         frames.append(fr)
     if not (math.isfinite(fps) and fps > 0):
-        raise ConversionError(f"{_NS_PATH}: fps: must be > 0 (got {fps})", field="fps")
+        raise ConversionError("fps", f"must be > 0 (got {fps})", _NS_PATH)
     return {"camera_type": "perspective" if model == "pinhole" else "equirectangular",
             "render_width": W, "render_height": H, "fps": fps, "seconds": len(frames) / fps,
             "camera_path": frames}
@@ -327,15 +327,16 @@ def camera_from_carla(sensor: Mapping[str, Any], name: str | None = None, image:
     tf = sensor.get("transform")
     if not isinstance(tf, Mapping) or not isinstance(tf.get("location"), Mapping) \
             or not isinstance(tf.get("rotation"), Mapping):
-        raise ConversionError(f"{where}: transform must hold location {{x, y, z}} and rotation {{pitch, yaw, roll}}")
-    loc = [_num(tf["location"], k, f"{where}: transform.location") for k in ("x", "y", "z")]
-    rot = [_num(tf["rotation"], k, f"{where}: transform.rotation") for k in ("pitch", "yaw", "roll")]
+        raise ConversionError("transform", "must hold location {x, y, z} and rotation {pitch, yaw, roll}", where)
+    loc = [_num(tf["location"], k, where, "transform.location.") for k in ("x", "y", "z")]
+    rot = [_num(tf["rotation"], k, where, "transform.rotation.") for k in ("pitch", "yaw", "roll")]
     fov = _num(sensor, "fov", where)
     if not 0 < fov < 180:
-        raise ConversionError(f"{where}: fov must be in (0, 180) degrees (got {fov})")
+        raise ConversionError("fov", f"must be in (0, 180) degrees (got {fov})", where)
     W, H = _num(sensor, "image_size_x", where), _num(sensor, "image_size_y", where)
     if W != int(W) or H != int(H):
-        raise ConversionError(f"{where}: image_size_x/y must be integers (got {W}, {H})")
+        raise ConversionError("image_size_x" if W != int(W) else "image_size_y",
+                              f"image_size_x/y must be integers (got {W}, {H})", where)
     W, H = int(W), int(H)
     f = W / (2.0 * math.tan(math.radians(fov) / 2.0))
     K = np.array([[f, 0.0, (W - 1) / 2.0], [0.0, f, (H - 1) / 2.0], [0.0, 0.0, 1.0]])
@@ -350,12 +351,13 @@ def camera_to_carla(camera: Camera) -> dict[str, Any]:
     non-square pixels, off-centre principal point (> 1e-3 px), distortion, equirectangular."""
     where = f"camera {camera.name!r}"
     if camera.model != "pinhole" or camera.distortion is not None:
-        raise ConversionError(f"{where}: model/distortion: CARLA cameras are undistorted pinholes")
+        raise ConversionError("model" if camera.model != "pinhole" else "distortion",
+                              "CARLA cameras are undistorted pinholes", where)
     K, W, H = camera.K, camera.width, camera.height
     if abs(K[0, 0] - K[1, 1]) > 1e-9 * K[0, 0]:
-        raise ConversionError(f"{where}: K: fx != fy, CARLA has square pixels")
+        raise ConversionError("K", "fx != fy, CARLA has square pixels", where)
     if abs(K[0, 2] - (W - 1) / 2) > _CARLA_TOL_PX or abs(K[1, 2] - (H - 1) / 2) > _CARLA_TOL_PX:
-        raise ConversionError(f"{where}: K: principal point must be the image centre ((W-1)/2, (H-1)/2) for CARLA")
+        raise ConversionError("K", "principal point must be the image centre ((W-1)/2, (H-1)/2) for CARLA", where)
     M = EGO_FROM_CARLA @ camera.rotation @ UE_FROM_CV.T
     pitch = math.degrees(math.asin(max(-1.0, min(1.0, M[2, 0]))))
     if math.hypot(M[0, 0], M[1, 0]) > 1e-9:
@@ -380,28 +382,28 @@ def camera_from_nuscenes(record: Mapping[str, Any], name: str, width: int = 1600
     where = f"nuscenes calibrated_sensor {name!r}"
     for key in ("translation", "rotation", "camera_intrinsic"):
         if key not in record:
-            raise ConversionError(f"{where}: {key} is missing")
+            raise ConversionError(key, "is missing", where)
     try:
         t = np.array(record["translation"], dtype=np.float64)
         q = np.array(record["rotation"], dtype=np.float64)
     except (TypeError, ValueError):
-        raise ConversionError(f"{where}: translation/rotation must be numbers") from None
+        raise ConversionError("translation/rotation", "must be numbers", where) from None
     if t.shape != (3,) or not np.all(np.isfinite(t)):
-        raise ConversionError(f"{where}: translation must be 3 finite numbers")
+        raise ConversionError("translation", "must be 3 finite numbers", where)
     if q.shape != (4,) or not np.all(np.isfinite(q)) or not abs(np.linalg.norm(q) - 1.0) < 1e-3:
-        raise ConversionError(f"{where}: rotation must be a unit quaternion (w, x, y, z)")
+        raise ConversionError("rotation", "must be a unit quaternion (w, x, y, z)", where)
     extra = {k: v for k, v in record.items() if k not in ("translation", "rotation", "camera_intrinsic")}
     try:
         return Camera(name=name, width=width, height=height, K=record["camera_intrinsic"],
                       cam_to_ego=_pose(quat_wxyz_to_matrix(q), t), image=image, extra=extra)
     except RigError as exc:
-        raise ConversionError(f"{where}: {exc}") from None
+        raise _from_camera(exc, where) from None
 
 
 def camera_to_nuscenes(camera: Camera) -> dict[str, Any]:
     """Camera -> nuScenes calibrated_sensor-style record (inverse of camera_from_nuscenes; w >= 0)."""
     if camera.model != "pinhole":
-        raise ConversionError(f"camera {camera.name!r}: model: nuScenes cameras are pinholes")
+        raise ConversionError("model", "nuScenes cameras are pinholes", camera.where)
     return {**camera.extra, "translation": camera.position.tolist(),
             "rotation": matrix_to_quat_wxyz(camera.rotation).tolist(), "camera_intrinsic": camera.K.tolist()}
 
@@ -417,7 +419,8 @@ def mirror_camera(camera: Camera, plane_x: float, name: str) -> Camera:
     F = diag(-1, 1, 1) in the camera frame (det +1 again); K: cx' = W-1-cx.
     """
     if camera.model != "pinhole" or camera.distortion is not None:
-        raise ConversionError(f"camera {camera.name!r}: model: only undistorted pinhole cameras can be mirrored")
+        raise ConversionError("model" if camera.model != "pinhole" else "distortion",
+                              "only undistorted pinhole cameras can be mirrored", camera.where)
     S = np.diag([-1.0, 1.0, 1.0])
     R = S @ camera.rotation @ S  # S doubles as the camera-frame x flip F
     t = S @ camera.position + [2.0 * plane_x, 0.0, 0.0]
@@ -442,15 +445,15 @@ def complete_waymo_rig(rig: Rig, images: Sequence[np.ndarray], names: Mapping[st
     """
     roles = ("front", "front_left", "front_right", "side_left", "side_right")
     if set(rig.names) != {names[r] for r in roles} or len(rig) != 5:
-        raise ConversionError(f"rig: cameras must be exactly {[names[r] for r in roles]} (got {rig.names})")
+        raise ConversionError("cameras", f"must be exactly {[names[r] for r in roles]} (got {rig.names})", "rig")
     if len(images) != len(rig):
-        raise ConversionError(f"images: need {len(rig)} images, one per camera (got {len(images)})")
+        raise ConversionError("images", f"need {len(rig)} images, one per camera (got {len(images)})")
     by_role = {r: rig.camera(names[r]) for r in roles}
     img = {r: np.asarray(images[rig.names.index(names[r])]) for r in roles}
     for r in roles:
         if img[r].shape[:2] != (by_role[r].height, by_role[r].width):
-            raise ConversionError(f"camera {names[r]!r}: image is {img[r].shape[1]}x{img[r].shape[0]}, but width "
-                                  f"x height is {by_role[r].width}x{by_role[r].height}")
+            raise ConversionError("image", f"is {img[r].shape[1]}x{img[r].shape[0]}, but width x height is "
+                                           f"{by_role[r].width}x{by_role[r].height}", by_role[r].where)
     plane_x = float(np.mean([c.position[0] for c in by_role.values()]))
     virtual = {"rear": ("front", "REAR"), "rear_left": ("front_left", "REAR_LEFT"),
                "rear_right": ("front_right", "REAR_RIGHT"), "side_left": ("side_left", names["side_left"]),

@@ -22,7 +22,7 @@ from typing import Any, Literal
 import numpy as np
 
 from .camera import Camera
-from .errors import plain
+from .errors import FieldError, plain
 from .rig import Rig
 
 # The paper's (rho, dh) per dataset and module: tables "Model architecture ... on nuScenes / Carla-Centric" and
@@ -43,8 +43,9 @@ OFF_GRID = -2.0  # normalised grid value written for invalid cylinder pixels: fu
 Order = Literal["cw", "ccw"]
 
 
-class CylinderError(ValueError):
-    """Invalid cylinder parameters; the message names the parameter."""
+class CylinderError(FieldError):
+    """Invalid cylinder parameters: ``field`` the parameter (a scene.json background.cylinder key, or a
+    from_rig / from_preset argument: "z_range", "rho", "dh", "preset", "module")."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -61,22 +62,22 @@ class CylinderSpec:
     def __post_init__(self) -> None:
         c = np.array(self.centre, dtype=np.float64).reshape(-1)
         if c.shape != (3,) or not np.all(np.isfinite(c)):
-            raise CylinderError(f"centre must be 3 finite numbers (got {plain(self.centre)!r})")
+            raise CylinderError("centre", f"must be 3 finite numbers (got {plain(self.centre)!r})")
         c.setflags(write=False)
         object.__setattr__(self, "centre", c)
         for key in ("radius", "z_min", "z_max"):
             v = float(getattr(self, key))
             if not math.isfinite(v):
-                raise CylinderError(f"{key} must be finite (got {v})")
+                raise CylinderError(key, f"must be finite (got {v})")
             object.__setattr__(self, key, v)
         if not self.radius > 0:
-            raise CylinderError(f"radius must be > 0 (got {self.radius})")
+            raise CylinderError("radius", f"must be > 0 (got {self.radius})")
         if not self.z_max > self.z_min:
-            raise CylinderError(f"z_range: z_max must be > z_min (got {self.z_min}, {self.z_max})")
+            raise CylinderError("z_max", f"must be > z_min (got {self.z_min}, {self.z_max})")
         for key in ("height", "width"):
             v = getattr(self, key)
             if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or not 0 < int(v) <= 65536:
-                raise CylinderError(f"{key} must be an integer in 1..65536 (got {plain(v)!r})")
+                raise CylinderError(key, f"must be an integer in 1..65536 (got {plain(v)!r})")
             object.__setattr__(self, key, int(v))
 
     @property
@@ -99,19 +100,19 @@ class CylinderSpec:
         """
         z_min, z_max = (float(z) for z in z_range)
         if not (math.isfinite(z_min) and math.isfinite(z_max)) or not z_max > z_min:
-            raise CylinderError(f"z_range: need finite z_min < z_max (got {z_min}, {z_max})")
+            raise CylinderError("z_range", f"need finite z_min < z_max (got {z_min}, {z_max})")
         rho, dh = float(rho), float(dh)
         if not math.isfinite(rho) or rho <= 0:
-            raise CylinderError(f"rho must be a finite number > 0 (got {rho})")
+            raise CylinderError("rho", f"must be a finite number > 0 (got {rho})")
         if not math.isfinite(dh):
-            raise CylinderError(f"dh must be finite (got {dh})")
+            raise CylinderError("dh", f"must be finite (got {dh})")
         f_min = min(c.vertical_fov for c in rig.cameras)
         half = rho * f_min / 2.0
         if half >= math.pi / 2.0:
             raise CylinderError(
-                f"rho: rho * f_min / 2 = {rho:g} * {f_min:.4f} / 2 = {half:.4f} rad >= pi/2, so "
-                f"tan(rho f_min / 2) is not positive and R_u is undefined; use rho < {math.pi / f_min:.4f} "
-                f"for this rig (f_min = {math.degrees(f_min):.2f} deg)")
+                "rho", f"rho * f_min / 2 = {rho:g} * {f_min:.4f} / 2 = {half:.4f} rad >= pi/2, so "
+                       f"tan(rho f_min / 2) is not positive and R_u is undefined; use rho < {math.pi / f_min:.4f} "
+                       f"for this rig (f_min = {math.degrees(f_min):.2f} deg)")
         radius = (z_max - z_min) / 2.0 / math.tan(half)
         centre = np.mean([c.position for c in rig.cameras], axis=0) + np.array([0.0, 0.0, dh])
         return cls(centre=centre, radius=radius, z_min=z_min, z_max=z_max, height=height, width=width,
@@ -121,9 +122,9 @@ class CylinderSpec:
     def from_preset(cls, rig: Rig, dataset: str, module: str = "occupancy", **kwargs: Any) -> CylinderSpec:
         """from_rig with the paper's (rho, dh) for `dataset` and `module` (see PRESETS)."""
         if dataset not in PRESETS:
-            raise CylinderError(f"preset must be one of {sorted(PRESETS)} (got {dataset!r})")
+            raise CylinderError("preset", f"must be one of {sorted(PRESETS)} (got {dataset!r})")
         if module not in MODULES:
-            raise CylinderError(f"module must be one of {MODULES} (got {module!r})")
+            raise CylinderError("module", f"must be one of {MODULES} (got {module!r})")
         rho, dh = PRESETS[dataset][module]
         return cls.from_rig(rig, rho=rho, dh=dh, **kwargs)
 
@@ -170,7 +171,7 @@ class CylinderSpec:
     def from_dict(cls, d: Mapping[str, Any]) -> CylinderSpec:
         missing = [k for k in ("centre", "radius", "z_min", "z_max", "height", "width") if k not in d]
         if missing:
-            raise CylinderError(f"{missing[0]} is missing from the cylinder spec")
+            raise CylinderError(missing[0], "is missing from the cylinder spec")
         return cls(centre=d["centre"], radius=d["radius"], z_min=d["z_min"], z_max=d["z_max"],
                    height=d["height"], width=d["width"], rho=d.get("rho"), dh=d.get("dh", 0.0))
 

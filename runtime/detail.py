@@ -35,14 +35,14 @@ import numba
 import numpy as np
 
 from .camera import Camera
-from .errors import plain
+from .errors import FieldError, plain
 from .render import Gaussians
 from .render.gaussians import SH_C0
 from .rotations import rotmat_to_quat, rotmats_to_quats
 
 
-class DetailError(ValueError):
-    """An invalid detail setting; the message names the field."""
+class DetailError(FieldError):
+    """An invalid detail setting: ``field`` "detail.<setting>" ("detail.stride")."""
 
 
 @dataclass(frozen=True)
@@ -81,7 +81,7 @@ class DetailOptions:
 
     def __post_init__(self) -> None:
         def bad(name: str, why: str) -> DetailError:
-            return DetailError(f"detail.{name}: {why} (got {plain(getattr(self, name))!r})")
+            return DetailError(f"detail.{name}", f"{why} (got {plain(getattr(self, name))!r})")
 
         if isinstance(self.stride, bool) or not isinstance(self.stride, int) or not 1 <= self.stride <= 16:
             raise bad("stride", "must be an integer in 1..16")

@@ -30,7 +30,7 @@ import numpy as np
 
 from .camera import Camera
 from .detail import DetailOptions
-from .errors import RigError
+from .errors import FieldError, RigError
 from .files import read_json_doc
 from .lifting import LiftingParams, background_grid, build_lifting_inputs, spec_from_array
 from .render import Gaussians
@@ -46,12 +46,13 @@ DEFAULT_BAKE_SCALE = 4
 DEFAULT_DETAIL = DetailOptions()   # the detail layer is on by default (docs/inference.md, "Detail Gaussians")
 
 
-class ModelError(ValueError):
-    """The model folder is missing, incomplete or altered; the message names the file."""
+class ModelError(FieldError):
+    """The model folder is missing, incomplete or altered: ``field`` the model.json key at fault ("name",
+    "files", "graphs.encode.file"; ``where`` "model"), or "model" (the folder or a file of it as a whole)."""
 
 
-class InferenceError(ValueError):
-    """An input cannot be reconstructed; the message names the camera or the field."""
+class InferenceError(FieldError):
+    """An input cannot be reconstructed: ``field`` the input at fault ("lidar", "background")."""
 
 
 # ------------------------------------------------------------------------------------------- model folder
@@ -106,12 +107,12 @@ def read_model_info(model_dir: str | os.PathLike) -> ModelInfo:
     """Parse ``model_dir/model.json`` (ModelError naming the file when absent or invalid)."""
     d = Path(model_dir)
     if not d.is_dir():
-        raise ModelError(f"model: {str(d)!r} is not a folder")
+        raise ModelError("model", f"{str(d)!r} is not a folder")
     p = d / "model.json"
     meta = read_json_doc(p, MODEL_FORMAT, ModelError, "model")
     for key in ("name", "version", "config", "input", "graphs", "files", "selection"):
         if key not in meta:
-            raise ModelError(f"model: {str(p)!r} lacks {key!r}")
+            raise ModelError(key, f"is missing from {str(p)!r}", "model")
     return ModelInfo(d, meta)
 
 
@@ -119,14 +120,14 @@ def read_model_file(info: ModelInfo, name: str, verify: bool = True) -> bytes:
     """The bytes of a file of the model folder, checked against model.json's sha256 (ModelError naming it)."""
     entry = info.meta["files"].get(name)
     if entry is None:
-        raise ModelError(f"model file {name!r}: not listed in {info.path / 'model.json'}")
+        raise ModelError("files", f"{name!r} is not listed in {info.path / 'model.json'}", "model")
     p = info.path / name
     if not p.is_file():
-        raise ModelError(f"model file {name!r} is missing from {str(info.path)!r}")
+        raise ModelError("model", f"file {name!r} is missing from {str(info.path)!r}")
     data = p.read_bytes()
     if verify and _sha256(data) != entry["sha256"]:
-        raise ModelError(f"model file {name!r} in {str(info.path)!r} is altered: sha256 {_sha256(data)[:16]}… "
-                         f"differs from model.json's {str(entry['sha256'])[:16]}…")
+        raise ModelError("model", f"file {name!r} in {str(info.path)!r} is altered: sha256 {_sha256(data)[:16]}… "
+                                  f"differs from model.json's {str(entry['sha256'])[:16]}…")
     return data
 
 
@@ -241,7 +242,7 @@ def _session(data: bytes, threads: int | None, name: str, spin: bool = False):
     try:
         return ort.InferenceSession(data, so, providers=["CPUExecutionProvider"])
     except Exception as e:  # noqa: BLE001 -- onnxruntime raises its own exception types
-        raise ModelError(f"model file {name!r}: onnxruntime cannot load it ({e})") from None
+        raise ModelError("model", f"file {name!r}: onnxruntime cannot load it ({e})") from None
 
 
 class Reconstructor:
@@ -271,10 +272,10 @@ class Reconstructor:
         sessions = {}
         for g, entry in info.meta["graphs"].items():
             if entry["file"] not in blobs:
-                raise ModelError(f"model file {entry['file']!r}: graph {g!r} is not listed in files")
+                raise ModelError(f"graphs.{g}.file", f"{entry['file']!r} is not listed in files", "model")
             sessions[g] = _session(blobs[entry["file"]], threads, entry["file"], spin)
         if "encode" not in sessions:
-            raise ModelError(f"model: {info.path / 'model.json'} has no 'encode' graph")
+            raise ModelError("graphs", f"{info.path / 'model.json'} has no 'encode' graph", "model")
         return cls(info, sessions, threads, cache_size, bake_scale)
 
     # -- lifting inputs ---------------------------------------------------------------------------------------
@@ -473,7 +474,7 @@ class Reconstructor:
 
         pts = np.asarray(lidar, np.float64)
         if pts.ndim != 2 or pts.shape[1] != 3 or not np.all(np.isfinite(pts)):
-            raise InferenceError(f"lidar: need finite points of shape [P, 3] (got {list(pts.shape)})")
+            raise InferenceError("lidar", f"need finite points of shape [P, 3] (got {list(pts.shape)})")
         h, w = self.info.depth_size
         depth, mask = depth.copy(), mask.copy()
         scales: list[float | None] = []
@@ -515,8 +516,8 @@ class Reconstructor:
         """The background network run per view (the reference the baked panorama approximates): [H, W, 3] for a
         runtime.camera.Camera (pinhole), from the scene's in-memory appearance plane."""
         if scene.app_plane is None or "background" not in self.sessions or scene.background is None:
-            raise InferenceError("background: this scene has no appearance plane (loaded from disk?) or the "
-                                 "model no background graph")
+            raise InferenceError("background", "this scene has no appearance plane (loaded from disk?) or the "
+                                               "model no background graph")
         g = background_grid(scene.background.cylinder, camera.K, camera.cam_to_ego, camera.width, camera.height)
         out = self._run("background", {"app_plane": scene.app_plane, "grids": g[None]})["background"][0]
         return np.ascontiguousarray(out.transpose(1, 2, 0))

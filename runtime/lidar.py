@@ -37,7 +37,7 @@ from typing import Any
 import numpy as np
 
 from .camera import Camera, check_pose
-from .errors import RigError, plain
+from .errors import FieldError, RigError, plain
 from .rig import Rig
 
 MIN_DEPTH = 1.0   # m camera z: nearer returns are the ego vehicle's own body or sensor mounts, not the scene
@@ -49,8 +49,9 @@ RANGE_BINS = (0.0, 10.0, 20.0, 40.0, 80.0)  # m, LiDAR depth bins of the per-ran
 MAX_POINTS = 20_000_000  # refuse larger sweeps (a 128-beam sweep has ~0.3 M points; this guards memory)
 
 
-class LidarError(ValueError):
-    """Invalid or missing LiDAR input. The message names the field or file."""
+class LidarError(FieldError):
+    """Invalid or missing LiDAR input: ``field`` "lidar" (the sweep file as a whole), "columns" (``where``
+    "lidar"), the rig's lidar block ("lidar", "lidar.file", "lidar.lidar_to_ego"; ``where`` "rig") or "width"."""
 
 
 @dataclass(frozen=True)
@@ -67,31 +68,31 @@ def read_points(path: str | os.PathLike, columns: int | None = None) -> tuple[np
     else 4)."""
     p = Path(path)
     if not p.is_file():
-        raise LidarError(f"lidar: file {str(p)!r} does not exist")
+        raise LidarError("lidar", f"file {str(p)!r} does not exist")
     name = p.name.lower()
     if name.endswith(".npy"):
         if columns is not None:
-            raise LidarError("lidar: columns applies to .bin files only (a .npy file has its own shape)")
+            raise LidarError("columns", "applies to .bin files only (a .npy file has its own shape)", "lidar")
         try:
             a = np.load(p, allow_pickle=False, mmap_mode="r")
         except (ValueError, OSError) as exc:
-            raise LidarError(f"lidar: {str(p)!r} is not a readable .npy array ({exc})") from None
+            raise LidarError("lidar", f"{str(p)!r} is not a readable .npy array ({exc})") from None
         if a.ndim != 2 or a.shape[1] < 3 or not np.issubdtype(a.dtype, np.number):
-            raise LidarError(f"lidar: {str(p)!r} must hold numbers of shape [N, C >= 3] (got {a.dtype} "
-                             f"{list(a.shape)})")
+            raise LidarError("lidar", f"{str(p)!r} must hold numbers of shape [N, C >= 3] (got {a.dtype} "
+                                      f"{list(a.shape)})")
     elif name.endswith(".bin"):
         c = columns if columns is not None else (5 if name.endswith(".pcd.bin") else 4)
         if not isinstance(c, int) or isinstance(c, bool) or c < 3:
-            raise LidarError(f"lidar: columns must be an integer >= 3 (got {plain(c)!r})")
+            raise LidarError("columns", f"must be an integer >= 3 (got {plain(c)!r})", "lidar")
         size = p.stat().st_size
         if size % (4 * c):
-            raise LidarError(f"lidar: {str(p)!r} has {size} bytes, not a whole number of {c}-column float32 "
-                             f"rows (set columns)")
+            raise LidarError("lidar", f"{str(p)!r} has {size} bytes, not a whole number of {c}-column float32 "
+                                      f"rows (set columns)")
         a = np.fromfile(p, dtype="<f4").reshape(-1, c)
     else:
-        raise LidarError(f"lidar: {str(p)!r}: unknown format (use .npy or a float32 .bin)")
+        raise LidarError("lidar", f"{str(p)!r}: unknown format (use .npy or a float32 .bin)")
     if a.shape[0] > MAX_POINTS:
-        raise LidarError(f"lidar: {str(p)!r} has {a.shape[0]} points, more than {MAX_POINTS}")
+        raise LidarError("lidar", f"{str(p)!r} has {a.shape[0]} points, more than {MAX_POINTS}")
     xyz = np.asarray(a[:, :3], dtype=np.float64)
     ok = np.all(np.isfinite(xyz), axis=1)
     return np.ascontiguousarray(xyz[ok]), int((~ok).sum())
@@ -108,13 +109,13 @@ def load_lidar(rig: Rig, file: str | os.PathLike | None = None, columns: int | N
     frame already unless the rig's block gives lidar_to_ego). `columns` overrides the block's."""
     block = rig.extra.get("lidar")
     if block is not None and not isinstance(block, dict):
-        raise LidarError(f"rig: lidar must be an object (got {type(block).__name__})")
+        raise LidarError("lidar", f"must be an object (got {type(block).__name__})", "rig")
     block = block or {}
     if file is None:
         if "file" not in block:
-            raise LidarError("rig: has no lidar.file (pass the LiDAR file explicitly)")
+            raise LidarError("lidar.file", "rig has no lidar.file (pass the LiDAR file explicitly)")
         if not isinstance(block["file"], str):
-            raise LidarError(f"rig: lidar.file must be a string (got {block['file']!r:.60})")
+            raise LidarError("lidar.file", f"must be a string (got {block['file']!r:.60})", "rig")
         path = rig.path(block["file"])
     else:
         path = Path(file)
@@ -123,9 +124,9 @@ def load_lidar(rig: Rig, file: str | os.PathLike | None = None, columns: int | N
     T = np.eye(4)
     if "lidar_to_ego" in block:
         try:
-            T = check_pose(block["lidar_to_ego"], "rig: lidar", "lidar_to_ego")
+            T = check_pose(block["lidar_to_ego"], "rig", "lidar.lidar_to_ego")
         except RigError as exc:
-            raise LidarError(str(exc)) from None
+            raise LidarError(exc.field, exc.message, exc.where) from None
     xyz, bad = read_points(path, columns)
     ego = xyz @ T[:3, :3].T + T[:3, 3]
     return LidarPoints(points=ego, nonfinite=bad, source=str(path))
@@ -135,7 +136,7 @@ def eval_camera(cam: Camera, width: int) -> Camera:
     """The camera the check projects and renders with: ``cam`` without distortion (the renderer has none), resized
     to ``width`` pixels wide (height rounded to keep the aspect ratio)."""
     if not isinstance(width, int) or width < 8:
-        raise LidarError(f"width must be an integer >= 8 (got {plain(width)!r})")
+        raise LidarError("width", f"must be an integer >= 8 (got {plain(width)!r})")
     height = max(1, round(cam.height * width / cam.width))
     return cam.replace(distortion=None).resized(width, height)
 

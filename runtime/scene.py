@@ -34,6 +34,7 @@ from xyzcyl.common.files import atomic_folder
 
 from .camera import Camera
 from .cylinder import CylinderSpec
+from .errors import FieldError
 from .files import read_json_doc
 from .render import Gaussians, render
 from .rig import Rig
@@ -43,8 +44,10 @@ SCENE_VERSION = 1
 PLY_NAME, EXR_NAME, PNG_NAME, JSON_NAME = "scene.ply", "background.exr", "background.png", "scene.json"
 
 
-class SceneError(ValueError):
-    """A scene folder is missing, incomplete or invalid; the message names the file."""
+class SceneError(FieldError):
+    """A scene folder is missing, incomplete or invalid: ``field`` "scene" (the folder or one of its files as a
+    whole, the message naming the file), or the scene.json / PLY field at fault with ``where`` naming the file
+    ("scene '/s/scene.json'", "scene PLY '/s/scene.ply'") and, for a rig camera, the camera."""
 
 
 # ------------------------------------------------------------------------------------------- background
@@ -84,13 +87,13 @@ class Background:
     def __post_init__(self) -> None:
         img = np.ascontiguousarray(self.image, np.float32)
         if img.ndim != 3 or img.shape[2] != 3 or min(img.shape[:2]) < 1:
-            raise SceneError(f"background: image must be [H, W, 3], got {list(img.shape)}")
+            raise SceneError("image", f"must be [H, W, 3], got {list(img.shape)}", "background")
         if not np.all(np.isfinite(img)):
-            raise SceneError("background: image has non-finite values")
+            raise SceneError("image", "has non-finite values", "background")
         object.__setattr__(self, "image", img)
         v0, v1 = (float(x) for x in self.v_range)
         if not (math.isfinite(v0) and math.isfinite(v1) and v1 > v0):
-            raise SceneError(f"background: v_range must be increasing finite numbers, got {self.v_range}")
+            raise SceneError("v_range", f"must be increasing finite numbers, got {self.v_range}", "background")
         object.__setattr__(self, "v_range", (v0, v1))
 
     def to_dict(self) -> dict[str, Any]:
@@ -235,7 +238,7 @@ class Scene:
         existing folder is replaced when ``overwrite``)."""
         out = Path(folder)
         if out.exists() and not overwrite:
-            raise SceneError(f"scene: {str(out)!r} exists")
+            raise SceneError("scene", f"{str(out)!r} exists")
         with atomic_folder(out) as tmp:
             self.gaussians.save_ply(tmp / PLY_NAME)
             if self.background is not None:
@@ -261,16 +264,17 @@ class Scene:
         try:
             rig = Rig.from_dict(meta["rig"])
         except KeyError:
-            raise SceneError(f"scene: {str(jp)!r}: rig is missing") from None
-        except RigError as e:           # its message names the rig or the camera already
-            raise SceneError(f"scene: {str(jp)!r}: {e}") from None
+            raise SceneError("rig", "is missing", f"scene {str(jp)!r}") from None
+        except RigError as e:           # its where names the rig or the camera
+            raise SceneError(e.field, e.message, f"scene {str(jp)!r}: {e.where}" if e.where else
+                             f"scene {str(jp)!r}") from None
         pp = d / PLY_NAME
         if not pp.is_file():
-            raise SceneError(f"scene: {str(pp)!r} is missing")
+            raise SceneError("scene", f"{str(pp)!r} is missing")
         try:
             g = Gaussians.load_ply(pp, max_points=max_points or DEFAULT_MAX_POINTS)
-        except GaussianError as e:
-            raise SceneError(f"scene: {str(pp)!r}: {e}") from None
+        except GaussianError as e:      # its where names the file by its name alone: here, by its path
+            raise SceneError(e.field, e.message, f"scene PLY {str(pp)!r}") from None
         bg = None
         b = meta.get("background")
         if b:
@@ -278,7 +282,7 @@ class Scene:
 
             ep = d / b.get("file", EXR_NAME)
             if not ep.is_file():
-                raise SceneError(f"scene: {str(ep)!r} is missing")
+                raise SceneError("scene", f"{str(ep)!r} is missing")
             img = read_exr(ep)
             c = b["cylinder"]
             spec = CylinderSpec(centre=c["centre"], radius=c["radius"], z_min=c["z_min"], z_max=c["z_max"],

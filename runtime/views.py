@@ -111,13 +111,10 @@ def _camera(build, fields: Mapping[str, str]):
         raise ViewError(fields.get(e.root_field, fields["*"]), e.message) from None
 
 
-def _from_conversion(e: convert.ConversionError, default: str) -> ViewError:
-    """runtime.convert's error as a ViewError: its ``field`` when it states one, the message without the
-    converter's "<record>: <field>: " prefix."""
-    field = e.field or default
-    msg = str(e)
-    head = f": {field}: "
-    return ViewError(field, msg.split(head, 1)[1] if head in msg else msg)
+def _from_conversion(e: convert.ConversionError, field: str | None = None) -> ViewError:
+    """runtime.convert's error as a ViewError naming ``field``, else the converter's own field (the JSON path
+    of a camera_path.json document, which is the request's)."""
+    return ViewError(field or e.field, e.message)
 
 
 # ------------------------------------------------------------------------------------------- view specs
@@ -407,7 +404,7 @@ def cameras_from_batch(doc: Mapping[str, Any], rig: Rig | None = None, max_frame
         try:
             cams = convert.cameras_from_nerfstudio_path(doc)
         except convert.ConversionError as e:
-            raise _from_conversion(e, "camera_path") from None
+            raise _from_conversion(e) from None
         return [rig_camera(c) for c in cams]
     items = _get(doc, "cameras", "")
     if not isinstance(items, (list, tuple)) or not items:

@@ -18,10 +18,11 @@ def add_detail_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def detail_options(args: argparse.Namespace):
-    """The DetailOptions the flags ask for (None: --no-detail), or a usage error message (str) naming the flag."""
+    """The DetailOptions the flags ask for (None: --no-detail); FieldError naming the flag (--detail-stride)."""
     from dataclasses import replace
 
     from ..detail import DetailError
+    from ..errors import FieldError
     from ..inference import DEFAULT_DETAIL
 
     if args.no_detail:
@@ -30,5 +31,5 @@ def detail_options(args: argparse.Namespace):
         return DEFAULT_DETAIL
     try:
         return replace(DEFAULT_DETAIL, stride=args.detail_stride)
-    except DetailError:
-        return f"--detail-stride: must be an integer in 1..16, got {args.detail_stride}"
+    except DetailError as e:        # its field is detail.stride, set by this flag
+        raise FieldError("--detail-stride", e.message) from None

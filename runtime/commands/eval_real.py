@@ -22,6 +22,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from ..errors import FieldError
 from .detail_flags import add_detail_arguments, detail_options
 
 MODES = {"off": ("off",), "on": ("on",), "both": ("off", "on")}
@@ -63,8 +64,8 @@ def _fail(msg: str) -> int:
     return 2
 
 
-class _Usage(Exception):
-    """A user error found while planning; the message names the flag."""
+class _Usage(FieldError):
+    """A user error found while planning: ``field`` the flag or argument ("--pairs", "PATH")."""
 
 
 def _finite(x: Any) -> Any:
@@ -97,15 +98,15 @@ def parse_pairs(text: str, names: list[str]) -> list[tuple[str, str]]:
         a, sep, b = item.partition(":")
         a, b = a.strip(), b.strip()
         if not sep or not a or not b:
-            raise _Usage(f"--pairs: {item!r} is not A:B (two frame folder names)")
+            raise _Usage("--pairs", f"{item!r} is not A:B (two frame folder names)")
         if a == b:
-            raise _Usage(f"--pairs: {item!r} pairs a frame with itself")
+            raise _Usage("--pairs", f"{item!r} pairs a frame with itself")
         unknown += [n for n in (a, b) if n not in names and n not in unknown]
         out.append((a, b))
     if unknown:
-        raise _Usage(f"--pairs: unknown frame(s) {', '.join(map(repr, unknown))} (frames: {', '.join(names)})")
+        raise _Usage("--pairs", f"unknown frame(s) {', '.join(map(repr, unknown))} (frames: {', '.join(names)})")
     if not out:
-        raise _Usage("--pairs: no pair given")
+        raise _Usage("--pairs", "no pair given")
     return list(dict.fromkeys(out))
 
 
@@ -114,10 +115,10 @@ def _camera_names(text: str | None, known: list[str]) -> list[str] | None:
         return None
     names = list(dict.fromkeys(n.strip() for n in text.split(",") if n.strip()))
     if not names:
-        raise _Usage("--cameras: no camera name given")
+        raise _Usage("--cameras", "no camera name given")
     unknown = [n for n in names if n not in known]
     if unknown:
-        raise _Usage(f"--cameras: unknown camera(s) {', '.join(map(repr, unknown))} (cameras: {', '.join(known)})")
+        raise _Usage("--cameras", f"unknown camera(s) {', '.join(map(repr, unknown))} (cameras: {', '.join(known)})")
     return names
 
 
@@ -171,46 +172,47 @@ def _run(args: argparse.Namespace) -> int:
     t_start = time.perf_counter()
     # ------------------------------------------------------------------ flags
     if args.threads is not None and args.threads < 1:
-        raise _Usage(f"--threads: must be >= 1, got {args.threads}")
+        raise _Usage("--threads", f"must be >= 1, got {args.threads}")
     if args.max_pairs is not None and args.max_pairs < 1:
-        raise _Usage(f"--max-pairs: must be >= 1, got {args.max_pairs}")
+        raise _Usage("--max-pairs", f"must be >= 1, got {args.max_pairs}")
     lo = 0.8 if args.min_distance is None else args.min_distance
     hi = 2.1 if args.max_distance is None else args.max_distance
     if not (math.isfinite(lo) and lo >= 0):
-        raise _Usage(f"--min-distance: must be a finite number >= 0, got {lo}")
+        raise _Usage("--min-distance", f"must be a finite number >= 0, got {lo}")
     if not math.isfinite(hi):
-        raise _Usage(f"--max-distance: must be finite, got {hi}")
+        raise _Usage("--max-distance", f"must be finite, got {hi}")
     if hi < lo:
-        raise _Usage(f"--max-distance: {hi:g} is less than --min-distance {lo:g}")
+        raise _Usage("--max-distance", f"{hi:g} is less than --min-distance {lo:g}")
     if args.pairs is not None and (args.min_distance is not None or args.max_distance is not None):
-        raise _Usage("--pairs: names the pairs, so it takes no --min-distance / --max-distance")
-    detail = detail_options(args)
-    if isinstance(detail, str):
-        raise _Usage(detail)
+        raise _Usage("--pairs", "names the pairs, so it takes no --min-distance / --max-distance")
+    try:
+        detail = detail_options(args)
+    except FieldError as exc:
+        raise _Usage(exc.field, exc.message) from None
     modes = MODES[args.lidar]
     out = Path(args.out)
     if out.exists() and not out.is_dir():
-        raise _Usage(f"--out: {str(out)!r} exists and is not a folder")
+        raise _Usage("--out", f"{str(out)!r} exists and is not a folder")
     model_dir = Path(args.model) if args.model else default_model_dir()
     if not model_dir.exists():
-        raise _Usage(f"--model: no model folder at {str(model_dir)!r}")
+        raise _Usage("--model", f"no model folder at {str(model_dir)!r}")
     say = (lambda msg: None) if args.quiet else (lambda msg: print(f"  {msg}", file=sys.stderr, flush=True))
 
     # ------------------------------------------------------------------ what to evaluate
     path = Path(args.path)
     if not path.exists():
-        raise _Usage(f"PATH: {str(path)!r} does not exist")
+        raise _Usage("PATH", f"{str(path)!r} does not exist")
     novel = path.is_dir()
     try:
         if novel:
             if not any((p / "rig.json").is_file() for p in path.iterdir() if p.is_dir()) \
                     and (path / "rig.json").is_file():
-                raise _Usage(f"PATH: {str(path)!r} holds one rig, not frame sub-folders; pass its rig.json for "
-                             "the input views")
+                raise _Usage("PATH", f"{str(path)!r} holds one rig, not frame sub-folders; pass its rig.json for "
+                                     "the input views")
             try:
                 frames = realeval.load_frames(path)
             except RigError as exc:
-                raise _Usage(f"PATH: {exc}") from None
+                raise _Usage("PATH", str(exc)) from None
             by_name = {f.name: f for f in frames}
             if args.pairs is not None:
                 pairs = [(by_name[a], by_name[b]) for a, b in parse_pairs(args.pairs, list(by_name))]
@@ -218,16 +220,17 @@ def _run(args: argparse.Namespace) -> int:
                 pairs = realeval.pairs_within(frames, lo, hi)
                 if not pairs:
                     d = [realeval.frame_distance(a, b) for a in frames for b in frames if a is not b]
-                    raise _Usage(f"--min-distance / --max-distance: no pair of frames is {lo:g}..{hi:g} m apart "
-                                 f"(the frames are {min(d):.2f}..{max(d):.2f} m apart)")
+                    raise _Usage("--min-distance / --max-distance",
+                                 f"no pair of frames is {lo:g}..{hi:g} m apart (the frames are "
+                                 f"{min(d):.2f}..{max(d):.2f} m apart)")
             pairs = spread(pairs, args.max_pairs)
             recon = list(dict.fromkeys(a.name for a, _ in pairs))           # frames to reconstruct, in order
             known = list(dict.fromkeys(n for a, b in pairs for n in b.rig.names if n in a.rig.names))
         else:
             if args.pairs is not None or args.min_distance is not None or args.max_distance is not None \
                     or args.max_pairs is not None:
-                raise _Usage("--pairs / --min-distance / --max-distance / --max-pairs: for a folder of frames "
-                             "(novel views); PATH is one rig")
+                raise _Usage("--pairs / --min-distance / --max-distance / --max-pairs",
+                             "for a folder of frames (novel views); PATH is one rig")
             rig = load_rig(path)
             frames, pairs, recon = [], [], [path.parent.name or "rig"]
             known = rig.names
@@ -236,14 +239,14 @@ def _run(args: argparse.Namespace) -> int:
         if "on" in modes:
             missing = [n for n in recon if not has_lidar(rigs[n])]
             if missing:
-                raise _Usage(f"--lidar {args.lidar}: rig of {', '.join(map(repr, missing))} has no LiDAR sweep "
-                             "(a lidar block with a file); use --lidar off")
+                raise _Usage("--lidar", f"rig of {', '.join(map(repr, missing))} has no LiDAR sweep (a lidar block "
+                                        f"with a file), needed by --lidar {args.lidar}; use --lidar off")
     except RigError as exc:
-        raise _Usage(f"PATH: {exc}") from None
+        raise _Usage("PATH", str(exc)) from None
     try:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
-        raise _Usage(f"--out: {exc}") from None
+        raise _Usage("--out", str(exc)) from None
 
     if args.threads is not None:
         import numba

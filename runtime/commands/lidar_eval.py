@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..errors import FieldError
 from .detail_flags import add_detail_arguments, detail_options
 
 
@@ -98,9 +99,10 @@ def run(args: argparse.Namespace) -> int:
 
     if args.threads is not None and args.threads < 1:
         return _fail(f"--threads: must be >= 1, got {args.threads}")
-    detail = detail_options(args)
-    if isinstance(detail, str):
-        return _fail(detail)
+    try:
+        detail = detail_options(args)
+    except FieldError as exc:
+        return _fail(str(exc))
     if args.scene is not None and (args.no_detail or args.detail_stride is not None):
         return _fail("--detail-stride / --no-detail: apply to a reconstruction, not to --scene")
     if args.width < 8 or args.width > 4096:

@@ -9,6 +9,7 @@ import sys
 import time
 from pathlib import Path
 
+from ..errors import FieldError
 from .detail_flags import add_detail_arguments, detail_options
 
 
@@ -50,9 +51,10 @@ def run(args: argparse.Namespace) -> int:
         return _fail(f"--threads: must be >= 1, got {args.threads}")
     if args.no_lidar and (args.lidar_file is not None or args.lidar_columns is not None):
         return _fail("--no-lidar: cannot be combined with --lidar-file / --lidar-columns")
-    detail = detail_options(args)
-    if isinstance(detail, str):
-        return _fail(detail)
+    try:
+        detail = detail_options(args)
+    except FieldError as exc:
+        return _fail(str(exc))
     out = Path(args.out)
     if out.exists() and not args.force:
         return _fail(f"--out: {str(out)!r} exists (pass --force to replace it)")

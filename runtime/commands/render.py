@@ -132,8 +132,10 @@ def run(args: argparse.Namespace) -> int:
             g = scene.gaussians
         else:
             g = Gaussians.load_ply(src, max_points=max_points)
-    except (GaussianError, SceneError) as exc:
+    except SceneError as exc:
         return _fail(f"{what}: {exc}")
+    except GaussianError as exc:     # its where names the PLY file ("PLY 'g.ply'")
+        return _fail(str(exc))
     fx, fy, cx, cy = args.K if args.K is not None else (None,) * 4
     output = args.output or ("all" if fmt == "exr" else "rgb")
     spec = ViewSpec(camera=args.camera, cam_to_ego=None if c2w is None else move.apply(c2w), fx=fx, fy=fy, cx=cx,

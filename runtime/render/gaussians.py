@@ -13,6 +13,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ..errors import FieldError
+
 SH_C0 = 0.28209479177387814
 DEFAULT_MAX_POINTS = 20_000_000  # PLY reader refuses headers claiming more vertices (memory guard)
 _INT_TYPES = {"char": 1, "uchar": 1, "int8": 1, "uint8": 1, "short": 2, "ushort": 2, "int16": 2,
@@ -20,8 +22,10 @@ _INT_TYPES = {"char": 1, "uchar": 1, "int8": 1, "uint8": 1, "short": 2, "ushort"
               "double": 8, "float64": 8}
 
 
-class GaussianError(ValueError):
-    """Invalid Gaussian parameters or file; the message names the field."""
+class GaussianError(FieldError):
+    """Invalid Gaussian parameters or file: ``field`` the array ("means", "quats", ...), the PLY property or
+    header entry ("rot_0", "f_rest", "element vertex", "format", "header", "body") or the .splat record field
+    ("scale"); ``where`` the file ("PLY 'g.ply'", "splat"); field "splat" for .splat data as a whole."""
 
 
 def sigmoid(x: np.ndarray) -> np.ndarray:
@@ -65,23 +69,23 @@ class Gaussians:
             fields[name] = arr
         means = fields["means"]
         if means.ndim != 2 or means.shape[1] != 3:
-            raise GaussianError(f"means: expected shape [N, 3], got {list(means.shape)}")
+            raise GaussianError("means", f"expected shape [N, 3], got {list(means.shape)}")
         n = means.shape[0]
         expect = {"quats": (n, 4), "log_scales": (n, 3), "opacity_logits": (n,)}
         for name, shape in expect.items():
             if fields[name].shape != shape:
-                raise GaussianError(f"{name}: expected shape {list(shape)}, got {list(fields[name].shape)}")
+                raise GaussianError(name, f"expected shape {list(shape)}, got {list(fields[name].shape)}")
         sh = fields["sh"]
         if sh.ndim != 3 or sh.shape[0] != n or sh.shape[2] != 3 or sh.shape[1] not in (1, 4, 9, 16):
-            raise GaussianError(f"sh: expected shape [N, (d+1)^2 with d in 0..3, 3] with N={n}, got {list(sh.shape)}")
+            raise GaussianError("sh", f"expected shape [N, (d+1)^2 with d in 0..3, 3] with N={n}, got {list(sh.shape)}")
         for name, arr in fields.items():
             bad = int(np.count_nonzero(~np.isfinite(arr)))
             if bad:
-                raise GaussianError(f"{name}: {bad} non-finite values")
+                raise GaussianError(name, f"{bad} non-finite values")
         qn = np.einsum("ij,ij->i", fields["quats"], fields["quats"], dtype=np.float64)   # squared norms, float64
         zero = int(np.count_nonzero(qn < 1e-20))
         if zero:
-            raise GaussianError(f"quats: {zero} quaternions with zero norm")
+            raise GaussianError("quats", f"{zero} quaternions with zero norm")
 
     # ----------------------------------------------------------------------------------------------------
     def __len__(self) -> int:
@@ -139,36 +143,36 @@ class Gaussians:
         from plyfile import PlyData
 
         path = Path(path)
+        where = _ply_where(path)
         n, props, fmt, header_len = _read_ply_header(path)
         if n > max_points:
-            raise GaussianError(f"{path.name}: element vertex: header claims {n} points, more than the "
-                                f"maximum {max_points}")
+            raise GaussianError("element vertex", f"header claims {n} points, more than the maximum {max_points}",
+                                where)
         if fmt != "ascii":
             row = sum(_INT_TYPES[t] for _, t in props)
             need = header_len + n * row
             size = path.stat().st_size
             if size < need:
-                raise GaussianError(f"{path.name}: truncated: {size} bytes, header needs {need} "
-                                    f"({n} vertices x {row} bytes + {header_len} header bytes)")
+                raise GaussianError("body", f"truncated: {size} bytes, header needs {need} "
+                                            f"({n} vertices x {row} bytes + {header_len} header bytes)", where)
         try:
             ply = PlyData.read(str(path))
             vert = ply["vertex"].data
         except Exception as exc:  # plyfile raises various types on malformed bodies
-            raise GaussianError(f"{path.name}: unreadable PLY body: {exc}") from None
+            raise GaussianError("body", f"unreadable: {exc}", where) from None
         names = set(vert.dtype.names or ())
         required = ["x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity",
                     "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
         missing = [p for p in required if p not in names]
         if missing:
-            raise GaussianError(f"{path.name}: vertex property {missing[0]!r} missing")
+            raise GaussianError(missing[0], "vertex property missing", where)
         n_rest = sum(1 for p in names if p.startswith("f_rest_"))
         degree = _n_rest_to_degree(n_rest)
         if degree is None:
-            raise GaussianError(f"{path.name}: f_rest: {n_rest} properties, expected 0, 9, 24 or 45 "
-                                "(SH degree 0..3)")
+            raise GaussianError("f_rest", f"{n_rest} properties, expected 0, 9, 24 or 45 (SH degree 0..3)", where)
         for i in range(n_rest):
             if f"f_rest_{i}" not in names:
-                raise GaussianError(f"{path.name}: vertex property 'f_rest_{i}' missing")
+                raise GaussianError(f"f_rest_{i}", "vertex property missing", where)
 
         def col(*ps):
             return np.stack([np.asarray(vert[p], dtype=np.float32) for p in ps], axis=1)
@@ -185,11 +189,11 @@ class Gaussians:
         for name, arr in arrays.items():
             bad = int(np.count_nonzero(~np.isfinite(arr)))
             if bad:
-                raise GaussianError(f"{path.name}: {name}: {bad} non-finite values")
+                raise GaussianError(name, f"{bad} non-finite values", where)
         try:
             return cls(**arrays)
         except GaussianError as exc:
-            raise GaussianError(f"{path.name}: {exc}") from None
+            raise GaussianError(exc.field, exc.message, where) from None
 
     # ---------------------------------------------------------------------------------- .splat (antimatter15)
     def splat_bytes(self) -> bytes:
@@ -223,23 +227,23 @@ class Gaussians:
         multiple of 32, the count is over ``max_points``, a value is not finite, a scale is <= 0 or a quaternion
         is zero."""
         if len(data) % 32:
-            raise GaussianError(f"splat: {len(data)} bytes is not a multiple of 32 (one record per Gaussian)")
+            raise GaussianError("splat", f"{len(data)} bytes is not a multiple of 32 (one record per Gaussian)")
         n = len(data) // 32
         if n > max_points:
-            raise GaussianError(f"splat: {n} records, more than the maximum {max_points}")
+            raise GaussianError("splat", f"{n} records, more than the maximum {max_points}")
         rec = np.frombuffer(data, dtype=[("pos", "<f4", 3), ("scale", "<f4", 3), ("rgba", "u1", 4),
                                          ("rot", "u1", 4)], count=n)
         pos, scale = rec["pos"].astype(np.float32), rec["scale"].astype(np.float64)
         for name, a in (("position", pos), ("scale", scale)):
             bad = int(np.count_nonzero(~np.isfinite(a)))
             if bad:
-                raise GaussianError(f"splat: {name}: {bad} non-finite values")
+                raise GaussianError(name, f"{bad} non-finite values", "splat")
         if (scale <= 0).any():
-            raise GaussianError(f"splat: scale: {int(np.count_nonzero(scale <= 0))} values <= 0")
+            raise GaussianError("scale", f"{int(np.count_nonzero(scale <= 0))} values <= 0", "splat")
         rgba = rec["rgba"].astype(np.float64) / 255.0
         q = (rec["rot"].astype(np.float64) - 128.0) / 128.0
         if (np.linalg.norm(q, axis=1) == 0).any():
-            raise GaussianError("splat: rotation: zero quaternion")
+            raise GaussianError("rotation", "zero quaternion", "splat")
         a = np.clip(rgba[:, 3], 0.5 / 255.0, 1.0 - 0.5 / 255.0)
         return cls(means=pos, quats=q.astype(np.float32), log_scales=np.log(scale).astype(np.float32),
                    opacity_logits=np.log(a / (1.0 - a)).astype(np.float32),
@@ -251,20 +255,26 @@ class Gaussians:
         path = Path(path)
         size = path.stat().st_size
         if size // 32 > max_points:
-            raise GaussianError(f"{path.name}: {size // 32} records, more than the maximum {max_points}")
+            raise GaussianError("splat", f"{path.name!r} has {size // 32} records, more than the maximum {max_points}")
         return cls.from_splat_bytes(path.read_bytes(), max_points)
+
+
+def _ply_where(path: Path) -> str:
+    """A PLY file as its errors name it (their ``where``)."""
+    return f"PLY {path.name!r}"
 
 
 def _read_ply_header(path: Path) -> tuple[int, list[tuple[str, str]], str, int]:
     """Parse only the PLY header: (vertex count, vertex properties [(name, type)], format, header bytes)."""
+    where = _ply_where(path)
     with open(path, "rb") as f:
         head = f.read(65536)
     end = head.find(b"end_header")
     if not head.startswith(b"ply") or end < 0:
-        raise GaussianError(f"{path.name}: not a PLY file (missing 'ply' magic or 'end_header')")
+        raise GaussianError("header", "not a PLY file (missing 'ply' magic or 'end_header')", where)
     nl = head.find(b"\n", end)
     if nl < 0:
-        raise GaussianError(f"{path.name}: truncated header")
+        raise GaussianError("header", "truncated", where)
     header_len = nl + 1
     lines = head[:end].decode("ascii", errors="replace").splitlines()
     fmt, n, props, element, seen_vertex, before = None, None, [], None, False, 0
@@ -281,23 +291,23 @@ def _read_ply_header(path: Path) -> tuple[int, list[tuple[str, str]], str, int]:
                 try:
                     n = int(tok[2])
                 except ValueError:
-                    raise GaussianError(f"{path.name}: element vertex: bad count {tok[2]!r}") from None
+                    raise GaussianError("element vertex", f"bad count {tok[2]!r}", where) from None
             elif not seen_vertex:
                 before += 1
         elif tok[0] == "property" and element == "vertex":
             if len(tok) < 3:               # a bare "property" line (it was an IndexError)
-                raise GaussianError(f"{path.name}: vertex property line {line!r} not understood")
+                raise GaussianError("header", f"vertex property line {line!r} not understood", where)
             if tok[1] == "list":
-                raise GaussianError(f"{path.name}: vertex property {tok[-1]!r}: list properties not supported")
+                raise GaussianError(tok[-1], "vertex property: list properties not supported", where)
             if len(tok) != 3 or tok[1] not in _INT_TYPES:
-                raise GaussianError(f"{path.name}: vertex property line {line!r} not understood")
+                raise GaussianError("header", f"vertex property line {line!r} not understood", where)
             props.append((tok[2], tok[1]))
     if fmt not in ("ascii", "binary_little_endian", "binary_big_endian"):
-        raise GaussianError(f"{path.name}: format {fmt!r} not supported")
+        raise GaussianError("format", f"{fmt!r} not supported", where)
     if n is None:
-        raise GaussianError(f"{path.name}: no 'element vertex' in header")
+        raise GaussianError("element vertex", "not in the header", where)
     if n < 0:
-        raise GaussianError(f"{path.name}: element vertex: negative count {n}")
+        raise GaussianError("element vertex", f"negative count {n}", where)
     if before:
-        raise GaussianError(f"{path.name}: element vertex must come first")
+        raise GaussianError("element vertex", "must come first", where)
     return n, props, fmt, header_len

@@ -62,9 +62,9 @@ def test_read_points_formats_and_nonfinite(tmp_path):
     a[:, :3].copy().tofile(tmp_path / "odd.bin")     # 9 floats: not whole 4-column rows
     with pytest.raises(LidarError, match="whole number of 4-column"):
         read_points(tmp_path / "odd.bin")
-    with pytest.raises(LidarError, match="columns must be an integer >= 3"):
+    with pytest.raises(LidarError, match="columns: must be an integer >= 3"):
         read_points(tmp_path / "k.bin", columns=2)
-    with pytest.raises(LidarError, match="columns applies to .bin"):
+    with pytest.raises(LidarError, match="columns: applies to .bin"):
         read_points(tmp_path / "p.npy", columns=4)
     np.save(tmp_path / "flat.npy", np.zeros(5))
     with pytest.raises(LidarError, match=r"shape \[N, C >= 3\]"):
@@ -95,7 +95,7 @@ def test_load_lidar_applies_lidar_to_ego(tmp_path):
     bad = Rig(cameras=(_camera(),), root=tmp_path, extra={"lidar": {"file": "p.npy", "lidar_to_ego": [[1, 0], [0, 1]]}})
     with pytest.raises(LidarError, match="lidar_to_ego: must be 4x4"):
         load_lidar(bad)
-    with pytest.raises(LidarError, match="lidar must be an object"):
+    with pytest.raises(LidarError, match="lidar: must be an object"):
         load_lidar(Rig(cameras=(_camera(),), root=tmp_path, extra={"lidar": "p.npy"}))
 
 
