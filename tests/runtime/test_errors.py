@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import xyzcyl.common as common_pkg
 import xyzcyl.runtime as runtime_pkg
 from xyzcyl.runtime.errors import FieldError
 
@@ -24,9 +25,12 @@ NOT_INPUT: dict[str, str] = {}
 
 
 def _runtime_exception_classes() -> list[type[BaseException]]:
-    """Every exception class defined in a module of xyzcyl.runtime (imported here: the walk is complete)."""
+    """Every exception class defined in a module of xyzcyl.runtime or xyzcyl.common (the base and the flag
+    parser's error live there; imported here: the walk is complete)."""
     found = []
-    for info in pkgutil.walk_packages(runtime_pkg.__path__, runtime_pkg.__name__ + "."):
+    infos = [info for pkg in (runtime_pkg, common_pkg) for info in pkgutil.walk_packages(pkg.__path__,
+                                                                                         pkg.__name__ + ".")]
+    for info in infos:
         mod = importlib.import_module(info.name)
         for _, cls in inspect.getmembers(mod, inspect.isclass):
             if issubclass(cls, BaseException) and cls.__module__ == mod.__name__:
@@ -44,7 +48,7 @@ def test_the_walk_finds_the_runtime_errors():
             "PoseArgError"} <= names, names
 
 
-@pytest.mark.parametrize("cls", CLASSES, ids=lambda c: f"{c.__module__.removeprefix('xyzcyl.runtime.')}.{c.__name__}")
+@pytest.mark.parametrize("cls", CLASSES, ids=lambda c: f"{c.__module__.removeprefix('xyzcyl.')}.{c.__name__}")
 def test_every_runtime_error_is_a_field_error_and_pickles(cls):
     name = f"{cls.__module__}.{cls.__qualname__}"
     if name in NOT_INPUT:
@@ -79,7 +83,7 @@ def _cases(tmp: Path):
     """(error, its class name, field, where) of one real raise site per module."""
     from xyzcyl.runtime import convert
     from xyzcyl.runtime.commands.eval_real import parse_pairs
-    from xyzcyl.runtime.commands.pose_flags import parse_matrix
+    from xyzcyl.common.poses import parse_matrix
     from xyzcyl.runtime.cylinder import CylinderSpec
     from xyzcyl.runtime.detail import DetailOptions
     from xyzcyl.runtime.inference import MODEL_FORMAT, read_model_info
