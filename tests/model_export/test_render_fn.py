@@ -1,7 +1,6 @@
 import numpy as np
 import pytest
 import torch
-from net_helpers import one_thread
 from xyzcyl.model_export.render_fn import KEYS, render_views
 from xyzcyl.runtime.render import PinholeCamera
 
@@ -83,4 +82,4 @@ def test_rejects_mixed_sizes():
     with pytest.raises(ValueError, match="cameras"):
         render_views(g, [PinholeCamera(K, np.eye(4), 48, 32), PinholeCamera(K, np.eye(4), 40, 32)])
 
-__all__ = ["one_thread"]  # autouse fixture, imported for pytest
+pytestmark = pytest.mark.usefixtures("one_thread")  # tests/model_export/conftest.py
