@@ -20,6 +20,8 @@ from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Self
 
+from xyzcyl.testing import REPO
+
 HOST = "127.0.0.1"
 XYZCYL = Path(sys.executable).parent / "xyzcyl"     # the console script of the running interpreter's install
 READY_S = 60.0
@@ -39,8 +41,9 @@ def free_port(host: str = HOST) -> int:
 
 class Server:
     """A started `xyzcyl serve --host 127.0.0.1 --port <free port> --store STORE ARGS...` (not waited for: see
-    ``wait_ready``). ``proc`` is the process, ``url`` its base URL, ``ready_s`` the seconds from the start to
-    ready (once ``wait_ready`` returned), ``stop_info`` how ``stop`` ended it."""
+    ``wait_ready``), run in ``cwd`` (default: the source checkout, as the harness's users always did).
+    ``proc`` is the process, ``url`` its base URL, ``ready_s`` the seconds from the start to ready (once
+    ``wait_ready`` returned), ``stop_info`` how ``stop`` ended it."""
 
     def __init__(self, store: Path | str, log: Path, args: Sequence[str] = (), *,
                  env: Mapping[str, str] | None = None, cwd: Path | str | None = None):
@@ -52,7 +55,8 @@ class Server:
         self.stop_info: dict | None = None
         self.started = time.perf_counter()
         with open(self.log, "ab") as out:
-            self.proc = subprocess.Popen(self.argv, stdout=out, stderr=subprocess.STDOUT, cwd=cwd,
+            self.proc = subprocess.Popen(self.argv, stdout=out, stderr=subprocess.STDOUT,
+                                         cwd=cwd if cwd is not None else REPO if REPO.is_dir() else None,
                                          env=None if env is None else dict(env))
 
     @property
