@@ -21,6 +21,7 @@ COPY runtime ./runtime
 COPY server ./server
 COPY clients ./clients
 COPY model_export ./model_export
+COPY testing ./testing
 # non-editable: the code lives in the venv's site-packages, the model is found through XYZCYL_MODEL
 RUN pip install '.[server]' \
  && if python -c 'import torch' 2>/dev/null; then echo 'torch must not be in the image' >&2; exit 1; fi \

@@ -33,14 +33,13 @@ import time
 from pathlib import Path
 
 import numpy as np
+from xyzcyl.testing.rigs import make_rig  # the example rig as 6 JPEGs at width x height
 
 # torch's OpenMP threads busy-wait between operators by default; on cores shared with other work (this machine's two
 # cores run training beside the benchmark) that made torch eager ~10x slower at 2 threads (8.2 s instead of 0.77 s
 # per forward, measured). onnxruntime's sessions do not spin either (runtime.inference), so both sides are measured
 # without busy-waiting. Set before torch is imported.
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
-REPO = Path(__file__).resolve().parents[1]
-EXAMPLE = REPO / "examples" / "synth_nuscenes" / "rig.json"
 
 
 def rss_mb() -> float:
@@ -57,29 +56,6 @@ def rss_mb() -> float:
 
 def emit(d: dict) -> None:
     print(json.dumps(d), flush=True)
-
-
-def make_rig(work: Path, width: int = 1600, height: int = 900) -> Path:
-    """The example rig at width x height, JPEG quality 90 (the issue's 6 x 1600x900 JPEG input)."""
-    import cv2
-    from xyzcyl.runtime.rig import load_rig, save_rig
-
-    out = work / f"rig{width}"
-    if (out / "rig.json").is_file():
-        return out / "rig.json"
-    out.mkdir(parents=True, exist_ok=True)
-    rig = load_rig(EXAMPLE)
-    cams = []
-    for c in rig.cameras:
-        img = cv2.imread(str(rig.path(c.image)), cv2.IMREAD_COLOR)
-        big = cv2.resize(img, (width, height), interpolation=cv2.INTER_LINEAR)
-        name = f"{c.name}.jpg"
-        cv2.imwrite(str(out / name), big, [cv2.IMWRITE_JPEG_QUALITY, 90])
-        cams.append(c.resized(width, height).replace(image=name))
-    from xyzcyl.runtime.rig import Rig
-
-    save_rig(Rig(cameras=tuple(cams), extra=rig.extra), out / "rig.json")
-    return out / "rig.json"
 
 
 def export_random(work: Path, occupied: float, rig_json: Path, threads: int) -> Path:

@@ -49,20 +49,16 @@ import argparse
 import json
 import math
 import os
-import sys
 import time
-from pathlib import Path
 
 import numba
 import numpy as np
+import render_bench  # a sibling script: its folder is on the path (run as a script, or pytest's pythonpath)
 from numba import njit, prange
 from xyzcyl.runtime.camera import Camera
 from xyzcyl.runtime.render import Gaussians, render
 from xyzcyl.runtime.render.projection import pinhole_limits
 from xyzcyl.runtime.render.result import background_image
-
-sys.path.insert(0, str(Path(__file__).parent))
-import render_bench
 
 TILE = 16                    # tile edge, pixels (3DGS BLOCK_X / BLOCK_Y)
 SH_C0 = 0.28209479177387814  # degree-0 SH basis constant (3DGS)

@@ -1,5 +1,5 @@
 """Reliability and security benchmarks of the HTTP service (issue 14, items 3-8): one JSON document per subcommand,
-all traffic on 127.0.0.1 against a real `xyzcyl serve` subprocess (benchmarks/server_bench.py's ``_serve``), every
+all traffic on 127.0.0.1 against a real `xyzcyl serve` subprocess (xyzcyl.testing.serve), every
 loop bounded in count and in time. docs/reliability.md has what each case checks, its targets and the last figures.
 
     .venv/bin/python benchmarks/reliability.py load      [--quick] [--out FILE]   # 4 clients x 60 s (+ 2 reconstructions)
@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import itertools
 import json
 import os
 import random
@@ -33,30 +34,23 @@ import sys
 import tempfile
 import threading
 import time
-import zlib
 from pathlib import Path
 
 import numpy as np
-
-sys.path.insert(0, str(Path(__file__).parent))
-import itertools
-
-from server_bench import (
-    XYZCYL,
+from server_bench import (  # a sibling script: its folder is on the path (run as a script, or pytest's pythonpath)
     Poses,
-    _serve,
     children,
     cmdline,
     load,
     machine,
-    make_rig,
     metric,
-    multipart,
     other_jobs,
     rss_mb,
     stats,
     uptime,
 )
+from xyzcyl.testing.rigs import make_rig, multipart_body, png_header_only, rig_files
+from xyzcyl.testing.serve import XYZCYL, serve
 
 HOST = "127.0.0.1"
 TARGETS = {
@@ -147,7 +141,7 @@ class Ctx:
         self.extra = list(extra or [])          # --serve-args: added to every server's flags
         self.quick = quick
         self.rig_json = make_rig(work, 800, 450)
-        self.files = multipart(self.rig_json)
+        self.files = rig_files(rig_json=self.rig_json)
         self.rig = json.loads(self.rig_json.read_text())
         self.poses = Poses(self.rig_json, step=2e-4)
         self.log = work / "serve.log"
@@ -157,8 +151,13 @@ class Ctx:
         self._n += 1
         return self.work / f"store-{self._n:02d}-{name}"
 
+    @contextlib.contextmanager
     def serve(self, store: Path, flags: list[str]):
-        return _serve(store, self.log, flags + self.extra, ready_s=180.0)
+        """A ready `xyzcyl serve` (xyzcyl.testing.serve) on ``store`` with ``flags``: yields (process, base url,
+        seconds to ready); SIGTERM when the block ends (killed if it does not exit in 30 s)."""
+        with serve(store, self.log, ["--log-level", "warning", *flags, *self.extra], ready_s=180.0, stop_s=30.0,
+                   every=0.1) as server:
+            yield server.proc, server.url, server.ready_s
 
 
 def client(url: str, timeout: float = 120.0, headers: dict | None = None):
@@ -572,11 +571,8 @@ def raw_over_limit(port: int, pid: int, limit: int, chunked: bool, path: str = "
 
 
 def png_bomb(width: int = 30000, height: int = 30000) -> bytes:
-    """A valid-looking PNG of ~80 bytes whose header says width x height 8-bit RGB (2.7 GB decoded)."""
-    def chunk(t: bytes, d: bytes) -> bytes:
-        return struct.pack(">I", len(d)) + t + d + struct.pack(">I", zlib.crc32(t + d) & 0xFFFFFFFF)
-    return (b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", width, height, 8, 2, 0, 0, 0))
-            + chunk(b"IDAT", zlib.compress(b"\x00" * 4096, 9)) + chunk(b"IEND", b""))
+    """A valid-looking PNG of ~60 bytes whose header says width x height 8-bit RGB (2.7 GB decoded)."""
+    return png_header_only(width, height)
 
 
 def jpeg_bomb(width: int = 30000, height: int = 30000) -> bytes:
@@ -609,13 +605,11 @@ def post_bomb(url: str, ctx: Ctx, pid: int, data: bytes, media: str) -> dict:
 
 
 def rig_17(ctx: Ctx) -> list:
+    """The rig with 17 copies of its first camera (one more than max_cameras), each sending that camera's JPEG."""
     doc = json.loads(ctx.rig_json.read_text())
     base = doc["cameras"][0]
-    img = next(v for k, v in ctx.files if k == base["name"])
-    cams = [{**base, "name": f"CAM_{i:02d}", "image": f"CAM_{i:02d}.jpg"} for i in range(17)]
-    doc["cameras"] = cams
-    return [("rig", ("rig.json", json.dumps(doc).encode(), "application/json"))] + [
-        (c["name"], (c["image"], img[1], "image/jpeg")) for c in cams]
+    doc["cameras"] = [{**base, "name": f"CAM_{i:02d}", "image": f"CAM_{i:02d}.jpg"} for i in range(17)]
+    return rig_files(doc, rig_json=ctx.rig_json)
 
 
 def ply_bomb(path: Path, n: int = 10**9) -> Path:
@@ -994,15 +988,11 @@ def noise_rig(ctx: Ctx) -> tuple[bytes, str]:
     import cv2
 
     rng = np.random.default_rng(0)
-    boundary = secrets.token_hex(12)
-    parts = [b"--" + boundary.encode() + b'\r\nContent-Disposition: form-data; name="rig"; filename="rig.json"\r\n'
-             b"Content-Type: application/json\r\n\r\n" + ctx.rig_json.read_bytes() + b"\r\n"]
-    for cam in ctx.rig["cameras"]:
-        _ok, png = cv2.imencode(".png", rng.integers(0, 256, (cam["height"], cam["width"], 3), dtype=np.uint8))
-        parts.append(b"--" + boundary.encode() + f'\r\nContent-Disposition: form-data; name="{cam["name"]}"; '
-                     f'filename="{cam["name"]}.png"\r\nContent-Type: image/png\r\n\r\n'.encode() + png.tobytes()
-                     + b"\r\n")
-    return b"".join(parts) + b"--" + boundary.encode() + b"--\r\n", boundary
+    noise = {cam["name"]: cv2.imencode(".png", rng.integers(0, 256, (cam["height"], cam["width"], 3),
+                                                            dtype=np.uint8))[1].tobytes()
+             for cam in ctx.rig["cameras"]}
+    body, content_type = multipart_body(rig_files(images=noise, rig_json=ctx.rig_json))
+    return body, content_type.partition("boundary=")[2]
 
 
 def disconnect_upload(port: int, pid: int, store: Path, body: bytes, boundary: str, fraction: float,

@@ -42,8 +42,6 @@ REPO = Path(__file__).resolve().parents[1]
 PANDASET = REPO.parent / "shared" / "data" / "real" / "pandaset_002_seq" / "frame_20" / "rig.json"
 SIZES = ((1920, 1080), (1600, 900), (800, 450))
 
-sys.path.insert(0, str(Path(__file__).parent))
-
 
 def build_scene(work: Path, name: str, rig_json: Path, stride: int | None, threads: int):
     """The scene `name` at `stride` (None: the default DetailOptions), reconstructed once and cached in work."""
@@ -178,7 +176,7 @@ def main() -> int:
             print(json.dumps(row), flush=True)
         return 0
     args.work.mkdir(parents=True, exist_ok=True)
-    from inference_bench import make_rig
+    from xyzcyl.testing.rigs import make_rig
 
     rigs = [("example", make_rig(args.work, 1600, 900))]
     if PANDASET.is_file():

@@ -15,7 +15,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import socket
 import subprocess
 import sys
 import tempfile
@@ -23,15 +22,10 @@ import time
 from pathlib import Path
 
 import httpx
+from xyzcyl.testing.rigs import example_rig, rig_files
+from xyzcyl.testing.serve import free_port, serve
 
-ROOT = Path(__file__).resolve().parents[1]
 BIN = Path(sys.executable).parent
-
-
-def _port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def _status(pid: int) -> dict[str, str]:
@@ -50,12 +44,11 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--store", choices=["folder", "s3"], default="folder")
     args = ap.parse_args()
-    ex = ROOT / "examples" / "synth_nuscenes"
     env = dict(os.environ)
     work = Path(tempfile.mkdtemp(prefix="xyzcyl-mem-"))
     moto = None
     if args.store == "s3":
-        mport = _port()
+        mport = free_port()
         moto = subprocess.Popen([str(BIN / "moto_server"), "-H", "127.0.0.1", "-p", str(mport)],
                                 stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         env.update(AWS_ACCESS_KEY_ID="bench", AWS_SECRET_ACCESS_KEY="bench", AWS_DEFAULT_REGION="us-east-1",
@@ -73,60 +66,42 @@ def main() -> int:
         env["XYZCYL_S3_CACHE"] = str(work / "cache")
     else:
         store = str(work / "store")
-    port = _port()
-    t0 = time.time()
-    log = open(work / "serve.log", "w")  # noqa: SIM115 - the server's stderr for its whole life
-    srv = subprocess.Popen([str(BIN / "xyzcyl"), "serve", "--port", str(port), "--store", store], env=env,
-                           stdout=subprocess.DEVNULL, stderr=log)
     try:
-        c = httpx.Client(base_url=f"http://127.0.0.1:{port}", timeout=300)
-        while True:
-            try:
-                if c.get("/v2/health/ready").status_code == 200:
-                    break
-            except httpx.HTTPError:
-                pass
-            if srv.poll() is not None or time.time() - t0 > 300:
-                raise SystemExit(f"the server did not become ready; see {work / 'serve.log'}")
-            time.sleep(0.1)
-        ready_s = time.time() - t0
-        rig = json.loads((ex / "rig.json").read_text())
-        files = [("rig", ("rig.json", json.dumps(rig), "application/json"))]
-        for cam in rig["cameras"]:
-            files.append((cam["name"], (cam["name"] + ".png", (ex / cam["image"]).read_bytes(), "image/png")))
-        t1 = time.time()
-        r = c.post("/v1/scenes?wait=300", files=files)
-        r.raise_for_status()
-        reconstruct_s = time.time() - t1
-        scene = r.json()
-        sid = scene["id"]
-        renders = 0
-        for cam in rig["cameras"]:
-            for q in ({"camera": cam["name"]}, {"camera": cam["name"], "output": "depth", "format": "exr"}):
-                c.get(f"/v1/scenes/{sid}/render", params=q).raise_for_status()
-                renders += 1
-        carla = {"x": 0, "y": 0, "z": 1.6, "pitch": 0, "yaw": 0, "roll": 0, "fov": 90, "width": 1600, "height": 900}
-        c.get(f"/v1/scenes/{sid}/render", params=carla).raise_for_status()
-        c.post(f"/v1/scenes/{sid}/render",
-               json={"cameras": [{"camera": cam["name"]} for cam in rig["cameras"]]}).raise_for_status()
-        renders += 1 + len(rig["cameras"])
-        for fmt in ("ply", "splat"):
-            c.get(f"/v1/scenes/{sid}/gaussians", params={"format": fmt}).raise_for_status()
-        procs = {}
-        for pid in [srv.pid, *_children(srv.pid)]:
-            cmd = Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")
-            role = ("server" if pid == srv.pid else "resource_tracker" if b"resource_tracker" in b" ".join(cmd)
-                    else "worker")
-            st = _status(pid)
-            procs[f"{role}:{pid}"] = {"VmHWM_kB": int(st["VmHWM"].split()[0]), "VmRSS_kB": int(st["VmRSS"].split()[0])}
-        print(json.dumps({"store": args.store, "ready_s": round(ready_s, 1), "reconstruct_s": round(reconstruct_s, 1),
-                          "cameras": len(rig["cameras"]), "gaussians": scene["gaussians"],
-                          "scene_bytes": scene["bytes"], "renders": renders, "processes": procs,
-                          "peak_total_MiB": round(sum(p["VmHWM_kB"] for p in procs.values()) / 1024)}))
+        with serve(store, work / "serve.log", ready_s=300.0, stop_s=60.0, env=env, every=0.1) as srv:
+            ready_s = srv.ready_s
+            c = httpx.Client(base_url=srv.url, timeout=300)
+            rig = example_rig()
+            files = rig_files()
+            t1 = time.time()
+            r = c.post("/v1/scenes?wait=300", files=files)
+            r.raise_for_status()
+            reconstruct_s = time.time() - t1
+            scene = r.json()
+            sid = scene["id"]
+            renders = 0
+            for cam in rig["cameras"]:
+                for q in ({"camera": cam["name"]}, {"camera": cam["name"], "output": "depth", "format": "exr"}):
+                    c.get(f"/v1/scenes/{sid}/render", params=q).raise_for_status()
+                    renders += 1
+            carla = {"x": 0, "y": 0, "z": 1.6, "pitch": 0, "yaw": 0, "roll": 0, "fov": 90, "width": 1600, "height": 900}
+            c.get(f"/v1/scenes/{sid}/render", params=carla).raise_for_status()
+            c.post(f"/v1/scenes/{sid}/render",
+                   json={"cameras": [{"camera": cam["name"]} for cam in rig["cameras"]]}).raise_for_status()
+            renders += 1 + len(rig["cameras"])
+            for fmt in ("ply", "splat"):
+                c.get(f"/v1/scenes/{sid}/gaussians", params={"format": fmt}).raise_for_status()
+            procs = {}
+            for pid in [srv.pid, *_children(srv.pid)]:
+                cmd = Path(f"/proc/{pid}/cmdline").read_bytes().split(b"\0")
+                role = ("server" if pid == srv.pid else "resource_tracker" if b"resource_tracker" in b" ".join(cmd)
+                        else "worker")
+                st = _status(pid)
+                procs[f"{role}:{pid}"] = {"VmHWM_kB": int(st["VmHWM"].split()[0]), "VmRSS_kB": int(st["VmRSS"].split()[0])}
+            print(json.dumps({"store": args.store, "ready_s": round(ready_s, 1), "reconstruct_s": round(reconstruct_s, 1),
+                              "cameras": len(rig["cameras"]), "gaussians": scene["gaussians"],
+                              "scene_bytes": scene["bytes"], "renders": renders, "processes": procs,
+                              "peak_total_MiB": round(sum(p["VmHWM_kB"] for p in procs.values()) / 1024)}))
     finally:
-        srv.terminate()
-        srv.wait(60)
-        log.close()
         if moto is not None:
             moto.terminate()
             moto.wait(10)

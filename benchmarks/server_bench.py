@@ -32,31 +32,25 @@ Targets (issue 12): reconstruct <= 1.5 s median; 1600x900 PNG <= 0.3 s median; 8
 from __future__ import annotations
 
 import argparse
-import contextlib
 import itertools
 import json
 import os
 import platform
 import re
 import shlex
-import signal
-import socket
 import statistics
 import subprocess
-import sys
 import tempfile
 import threading
 import time
 from pathlib import Path
 
 import numpy as np
+from xyzcyl.testing.rigs import make_rig, rig_files  # make_rig: the example rig as 6 JPEGs at width x height
+from xyzcyl.testing.serve import XYZCYL, serve
 
 REPO = Path(__file__).resolve().parents[1]
 
-sys.path.insert(0, str(Path(__file__).parent))
-from inference_bench import make_rig  # the example rig as 6 JPEGs at width x height
-
-XYZCYL = Path(sys.executable).parent / "xyzcyl"
 TARGETS = {"reconstruct_median_s": 1.5, "render_1600x900_png_median_s": 0.3, "render_800x600_jpeg_median_s": 0.1,
            "concurrency_4_over_1": 1.6, "rss_growth_mb": 50.0}
 
@@ -164,53 +158,6 @@ def children(pid: int) -> list[int]:
 # ----------------------------------------------------------------------------------------------- the server
 
 
-def free_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-@contextlib.contextmanager
-def _serve(store: Path, log: Path, extra: list[str], ready_s: float = 120.0):
-    """A running `xyzcyl serve` on a free loopback port: yields (process, base url, seconds to ready). Stopped
-    with SIGTERM on leaving (killed if it does not exit in 30 s); ``proc.stop_info`` says how it ended."""
-    import httpx
-
-    port = free_port()
-    url = f"http://127.0.0.1:{port}"
-    with open(log, "ab") as f:
-        t0 = time.perf_counter()
-        argv = [str(XYZCYL), "serve", "--host", "127.0.0.1", "--port", str(port), "--store", str(store),
-                "--log-level", "warning", *extra]
-        proc = subprocess.Popen(argv, stdout=f, stderr=subprocess.STDOUT, cwd=REPO)
-        proc.stop_info = None
-        try:
-            while True:
-                if proc.poll() is not None:
-                    raise RuntimeError(f"xyzcyl serve exited with {proc.returncode}: {log.read_text()[-4000:]}")
-                if time.perf_counter() - t0 > ready_s:
-                    raise RuntimeError(f"/v2/health/ready not 200 within {ready_s} s: {log.read_text()[-4000:]}")
-                try:
-                    if httpx.get(url + "/v2/health/ready", timeout=2.0).status_code == 200:
-                        break
-                except httpx.TransportError:
-                    pass
-                time.sleep(0.1)
-            yield proc, url, time.perf_counter() - t0
-            t1 = time.perf_counter()
-            proc.send_signal(signal.SIGTERM)
-            try:
-                rc = proc.wait(30)
-                proc.stop_info = {"returncode": rc, "seconds": round(time.perf_counter() - t1, 2)}
-            except subprocess.TimeoutExpired:
-                proc.stop_info = {"returncode": None, "seconds": None,
-                                  "note": "did not exit within 30 s of SIGTERM"}
-        finally:
-            if proc.poll() is None:
-                proc.kill()
-                proc.wait(10)
-
-
 def resolved_settings(store: Path, extra: list[str]) -> dict:
     out = subprocess.run([str(XYZCYL), "serve", "--store", str(store), *extra, "--print-settings"],
                          capture_output=True, text=True, check=True, cwd=REPO).stdout
@@ -227,14 +174,6 @@ def metric(text: str, name: str, label: str = "") -> float:
 
 
 # ----------------------------------------------------------------------------------------------- input
-
-
-def multipart(rig_json: Path) -> list:
-    doc = json.loads(rig_json.read_text())
-    files = [("rig", ("rig.json", rig_json.read_bytes(), "application/json"))]
-    for c in doc["cameras"]:
-        files.append((c["name"], (c["image"], (rig_json.parent / c["image"]).read_bytes(), "image/jpeg")))
-    return files
 
 
 class Poses:
@@ -282,7 +221,7 @@ def stats(xs: list[float]) -> dict:
 
 
 def case_reconstruct(c, rig_json: Path, runs: int) -> tuple[dict, str]:
-    files = multipart(rig_json)
+    files = rig_files(rig_json=rig_json)
     body_mb = sum(len(f[1][1]) for f in files) / 1e6
     times, server, errors, sid = [], [], {}, None
     first = None
@@ -496,7 +435,8 @@ def main() -> int:
         settings = resolved_settings(store, extra)
         doc["settings"] = settings
         poses = Poses(rig_json)
-        with _serve(store, log, extra) as (proc, url, t_ready):
+        with serve(store, log, ["--log-level", "warning", *extra], ready_s=120.0, stop_s=30.0, every=0.1) as server:
+            proc, url, t_ready = server.proc, server.url, server.ready_s
             doc["server"] = {"pid": proc.pid, "ready_s": round(t_ready, 2), "rss_ready_mb": rss_mb(proc.pid)}
             with httpx.Client(base_url=url, timeout=300.0) as c:
                 doc["server"]["version"] = c.get("/v2").json()
@@ -524,7 +464,7 @@ def main() -> int:
                 doc["server"]["rejected"] = metric(r.text, "xyzcyl_rejected_total")
                 doc["server"]["render_cache"] = {k: metric(r.text, "xyzcyl_render_cache_total", f'result="{k}"')
                                                  for k in ("hit", "miss")}
-        doc["server"]["stop"] = proc.stop_info
+        doc["server"]["stop"] = server.stop_info
     finally:
         doc["uptime_end"] = uptime()
         doc["load_end"] = load()

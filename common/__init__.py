@@ -7,6 +7,6 @@
 - ``progress``: the one place a tqdm bar is made (drawn only on a terminal);
 - ``poses``: the camera-pose flags of `xyzcyl render` and `xyzcyl client render` (matrix parsing, camera moves).
 
-The package imports nothing else from xyzcyl (tests/test_layers.py checks it), and only what the client may use:
+The package imports nothing else from xyzcyl (tests/repo/test_layers.py checks it), and only what the client may use:
 the standard library, numpy, pydantic, tqdm (and OpenImageIO inside the EXR writer), all in the base install, so
 the ``client`` extra stays httpx alone."""

@@ -1,13 +1,14 @@
-"""Shared test fixtures."""
+"""Shared test fixtures. Shared helpers (paths, rigs, the multipart builder, the `xyzcyl serve` harness, the tiny
+model config) are in the xyzcyl.testing package: import them from there, never from a conftest."""
 
 from __future__ import annotations
 
 import os
+from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
-
-REPO = Path(__file__).resolve().parents[1]
+from xyzcyl.testing import REPO
 
 # Servers the tests start (in process and `xyzcyl serve` subprocesses, which inherit the environment) skip the
 # start-up warm-up (~2 s each with a warm numba cache, dozens of starts in the suite): tests/server/test_warmup.py
@@ -59,3 +60,57 @@ def tiny_synth_data(tmp_path_factory) -> Path:
                       voxels=(0.8, 1.6), seed=3)
     synth(out, 2, cfg, progress=False)
     return out
+
+
+@dataclass
+class TinyExport:
+    model: object          # the torch XYZCylinder (eval mode) the graphs were exported from
+    dir: Path              # the model folder
+    checkpoint: Path
+
+
+@pytest.fixture(scope="session")
+def tiny_export(tmp_path_factory) -> TinyExport:
+    """One ONNX export of the tiny test config (xyzcyl.testing.model.tiny_export_config) per pytest session,
+    through `xyzcyl export` (which is thereby tested), shared by the tests of the exported graphs
+    (tests/model_export) and of the runtime that runs them (tests/runtime): the export takes about a minute
+    whatever the config's size."""
+    import torch
+    from xyzcyl.clients import cli
+    from xyzcyl.model_export.model import XYZCylinder
+    from xyzcyl.testing.model import tiny_export_config
+
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        torch.manual_seed(0)
+        cfg = tiny_export_config()
+        model = XYZCylinder(cfg).eval()
+        with torch.no_grad():
+            # random weights give the occupancy head margins of one sign (no voxel selected); spread them and
+            # centre them on a 6-camera example so that about half of the voxels are occupied (volume Gaussians to
+            # compare, the top-k branch of the selection to exercise)
+            from xyzcyl.model_export.lifting import rig_inputs
+            from xyzcyl.testing.model import overlap_rig
+
+            last = model.occ_head[-1]
+            last.weight.normal_(0.0, 1.0)
+            last.bias.zero_()
+            occ = model(torch.rand(6, 3, 64, 128), rig_inputs(overlap_rig(6), cfg))["occ_logits"]
+            last.bias[1] -= float((occ[1] - occ[0]).median())
+        # XYZCYL_TINY_EXPORT=DIR (development only): export into DIR once and reuse it in later sessions
+        reuse = os.environ.get("XYZCYL_TINY_EXPORT")
+        root = Path(reuse) if reuse else tmp_path_factory.mktemp("tiny_export")
+        root.mkdir(parents=True, exist_ok=True)
+        ck = root / "tiny.pt"
+        out = root / "tiny-model"
+        if reuse and (out / "model.json").is_file():
+            return TinyExport(model=model, dir=out, checkpoint=ck)
+        torch.save({"model": model.state_dict(), "model_cfg": cfg.to_dict(), "step": 0,
+                    "train_cfg": {"stage": "render", "steps": 0}}, ck)
+        rc = cli.main(["export", "--checkpoint", str(ck), "--out", str(out), "--name", "tiny-test",
+                       "--version", "0.0.1", "--threads", "1", "--quiet"])
+        assert rc == 0
+    finally:
+        torch.set_num_threads(threads)
+    return TinyExport(model=model, dir=out, checkpoint=ck)

@@ -5,17 +5,12 @@ reference where the two footprints cannot differ, and the same as an independent
 from __future__ import annotations
 
 import math
-import sys
-from pathlib import Path
 
 import numpy as np
+import peer_renderer as P  # benchmarks/peer_renderer.py (pyproject.toml: pytest's pythonpath)
 from xyzcyl.runtime.camera import Camera
 from xyzcyl.runtime.render import Gaussians, RenderOptions, render, render_reference
 from xyzcyl.runtime.render.projection import project_reference
-
-REPO = Path(__file__).resolve().parents[2]
-sys.path.insert(0, str(REPO / "benchmarks"))
-import peer_renderer as P
 
 # 1e-4 as in tests/runtime/render: the peer projects in float64, stores float32 features (3DGS) and blends in
 # float64; a single missed or extra Gaussian changes a pixel by more than 1/255 x its colour (> 1e-3 here).

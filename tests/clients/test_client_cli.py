@@ -7,59 +7,25 @@ from __future__ import annotations
 
 import json
 import os
-import socket
 import subprocess
-import sys
-import time
-from pathlib import Path
 
 import pytest
+from xyzcyl.testing import EXAMPLE, REPO
+from xyzcyl.testing.serve import XYZCYL, serve
 
 httpx = pytest.importorskip("httpx")
 pytest.importorskip("uvicorn")
 
-REPO = Path(__file__).resolve().parents[2]
-EXAMPLE = REPO / "examples" / "synth_nuscenes"
-XYZCYL = Path(sys.executable).parent / "xyzcyl"
 READY_S = 60.0
-
-
-def _free_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 @pytest.fixture(scope="module")
 def server(tmp_path_factory):
     assert XYZCYL.is_file(), f"{XYZCYL} not installed (pip install -e .)"
     tmp = tmp_path_factory.mktemp("serve")
-    port = _free_port()
-    url = f"http://127.0.0.1:{port}"
-    log = tmp / "serve.log"
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
-    with open(log, "wb") as out:
-        proc = subprocess.Popen([str(XYZCYL), "serve", "--host", "127.0.0.1", "--port", str(port), "--store",
-                                 str(tmp / "store"), "--ort-threads", "1"], stdout=out, stderr=subprocess.STDOUT,
-                                cwd=tmp, env=env)
-    try:
-        t0 = time.monotonic()
-        while True:
-            if proc.poll() is not None:
-                raise AssertionError(f"xyzcyl serve exited with {proc.returncode}:\n{log.read_text()[-4000:]}")
-            try:
-                if httpx.get(url + "/v2/health/ready", timeout=2.0).status_code == 200:
-                    break
-            except httpx.TransportError:
-                pass
-            if time.monotonic() - t0 > READY_S:
-                raise AssertionError(f"/v2/health/ready not 200 within {READY_S} s:\n{log.read_text()[-4000:]}")
-            time.sleep(0.2)
-        yield url
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait(10)
+    with serve(tmp / "store", tmp / "serve.log", ["--ort-threads", "1"], ready_s=READY_S, env=env, cwd=tmp) as s:
+        yield s.url
 
 
 def xyzcyl(*args: str, capsys) -> tuple[int, str, str]:

@@ -411,7 +411,7 @@ def test_simulate_lidar_by_hand():
 
 
 def test_lidar_input_in_items(tiny_data):
-    from net_helpers import synth_test_config
+    from xyzcyl.testing.model import synth_test_config
 
     cfg = synth_test_config()
     h, w = cfg.backbone.input_height // cfg.backbone.feature_stride, cfg.backbone.input_width // cfg.backbone.feature_stride

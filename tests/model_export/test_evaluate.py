@@ -8,7 +8,6 @@ import cv2
 import numpy as np
 import pytest
 import torch
-from net_helpers import synth_test_config
 from xyzcyl.clients.cli import main
 from xyzcyl.model_export import metrics as M
 from xyzcyl.model_export.dataset import DatasetConfig, SceneDataset
@@ -24,6 +23,7 @@ from xyzcyl.model_export.evaluate import (
 from xyzcyl.model_export.train import build_model
 from xyzcyl.runtime.camera import Camera
 from xyzcyl.runtime.render import render
+from xyzcyl.testing.model import synth_test_config
 
 
 def _checkpoint(path, stage="render"):

@@ -1,6 +1,5 @@
 import pytest
 import torch
-from net_helpers import one_thread
 from xyzcyl.model_export.backbone import BackboneError, EfficientLiteBackbone, ExternalBackbone
 from xyzcyl.model_export.config import BackboneConfig, preset
 
@@ -46,4 +45,4 @@ def test_external_backbone_exported(tmp_path):
     y = ExternalBackbone(cfg)(torch.rand(2, 3, 64, 128))
     assert y.shape == (2, 16, 8, 16)
 
-__all__ = ["one_thread"]  # autouse fixture, imported for pytest
+pytestmark = pytest.mark.usefixtures("one_thread")  # tests/model_export/conftest.py

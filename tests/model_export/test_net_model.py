@@ -3,7 +3,6 @@ import math
 import numpy as np
 import pytest
 import torch
-from net_helpers import one_thread, overlap_rig, tiny_config
 from xyzcyl.model_export.blocks import CylConv, YNet
 from xyzcyl.model_export.config import AblationConfig, UNetConfig, preset
 from xyzcyl.model_export.lifting import rig_inputs
@@ -11,6 +10,7 @@ from xyzcyl.model_export.model import GAUSSIAN_KEYS, XYZCylinder, blend
 from xyzcyl.model_export.render_fn import render_views
 from xyzcyl.runtime.camera import Camera
 from xyzcyl.runtime.lifting import background_grid, spec_from_array
+from xyzcyl.testing.model import overlap_rig, tiny_config
 
 
 def _images(n, cfg, seed=0):
@@ -281,7 +281,7 @@ def test_pixel_anchors_land_on_known_surface(placement):
     # convention (z-depth used as radius, or missing camera offsets) errs by metres.
     assert torch.abs(r - R).max().item() < 0.15
 
-__all__ = ["one_thread"]  # autouse fixture, imported for pytest
+pytestmark = pytest.mark.usefixtures("one_thread")  # tests/model_export/conftest.py
 
 
 @pytest.mark.parametrize("name", ["nuscenes_ca9a282c", "pandaset_002_00"])

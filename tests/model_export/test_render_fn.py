@@ -1,7 +1,6 @@
 import numpy as np
 import pytest
 import torch
-from net_helpers import one_thread
 from xyzcyl.model_export.render_fn import KEYS, render_views
 from xyzcyl.runtime.camera import Camera
 
@@ -83,4 +82,4 @@ def test_rejects_mixed_sizes():
     with pytest.raises(ValueError, match="cameras"):
         render_views(g, [Camera(K=K, cam_to_ego=np.eye(4), width=48, height=32), Camera(K=K, cam_to_ego=np.eye(4), width=40, height=32)])
 
-__all__ = ["one_thread"]  # autouse fixture, imported for pytest
+pytestmark = pytest.mark.usefixtures("one_thread")  # tests/model_export/conftest.py

@@ -4,7 +4,6 @@ import warnings
 import numpy as np
 import pytest
 import torch
-from net_helpers import one_thread, tiny_config
 from xyzcyl.model_export.lifting import (
     frustum_coords_torch,
     lift,
@@ -15,6 +14,7 @@ from xyzcyl.model_export.lifting import (
 )
 from xyzcyl.runtime.cylinder import CylinderSpec, frustum_annulus_coords, overlay, project_rig
 from xyzcyl.runtime.rig import ring_rig
+from xyzcyl.testing.model import tiny_config
 
 
 @pytest.mark.parametrize("n", [5, 6])
@@ -86,7 +86,7 @@ def test_sample_cpfg_planes_and_wrap():
     grid = torch.tensor([[[[-1.0, 0.0]]]], dtype=torch.float64)
     assert sample_plane_wrapped(plane, grid).item() == pytest.approx((W - 1) / 2, abs=1e-9)
 
-__all__ = ["one_thread"]  # autouse fixture, imported for pytest
+pytestmark = pytest.mark.usefixtures("one_thread")  # tests/model_export/conftest.py
 
 
 def test_to_torch_copies_read_only_arrays_and_shares_writable_ones():

@@ -7,7 +7,6 @@ import sys
 
 import pytest
 import torch
-from net_helpers import synth_test_config
 from xyzcyl.model_export.dataset import DatasetConfig
 from xyzcyl.model_export.losses import OptimConfig, TrainLossConfig
 from xyzcyl.model_export.train import (
@@ -19,6 +18,7 @@ from xyzcyl.model_export.train import (
     set_stage,
     train,
 )
+from xyzcyl.testing.model import synth_test_config
 
 
 def _tcfg(stage, steps, **kw):

@@ -4,7 +4,6 @@ import csv
 
 import pytest
 import torch
-from net_helpers import synth_test_config
 from xyzcyl.model_export import export as export_mod
 from xyzcyl.model_export.dataset import DatasetConfig, SceneDataset
 from xyzcyl.model_export.losses import OptimConfig, TrainLossConfig
@@ -17,6 +16,7 @@ from xyzcyl.model_export.train import (
     set_stage,
     train,
 )
+from xyzcyl.testing.model import synth_test_config
 
 
 def _tcfg(stage, steps, lr=1e-3):

@@ -10,7 +10,6 @@ import json
 import numpy as np
 import pytest
 import torch
-from net_helpers import one_thread, synth_test_config
 from xyzcyl.clients.cli import main
 from xyzcyl.model_export.dataset import DatasetConfig, SceneDataset
 from xyzcyl.model_export.losses import OptimConfig, TrainLossConfig
@@ -27,8 +26,9 @@ from xyzcyl.model_export.train import (
     train_mode,
 )
 from xyzcyl.runtime.camera import Camera
+from xyzcyl.testing.model import synth_test_config
 
-__all__ = ["one_thread"]  # autouse fixture, imported for pytest
+pytestmark = pytest.mark.usefixtures("one_thread")  # tests/model_export/conftest.py
 
 cuda = pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
 

@@ -81,9 +81,9 @@ def _rig(extra: dict | None = None):
 
 def _cases(tmp: Path):
     """(error, its class name, field, where) of one real raise site per module."""
+    from xyzcyl.common.poses import parse_matrix
     from xyzcyl.runtime import convert
     from xyzcyl.runtime.commands.eval_real import parse_pairs
-    from xyzcyl.common.poses import parse_matrix
     from xyzcyl.runtime.cylinder import CylinderSpec
     from xyzcyl.runtime.detail import DetailOptions
     from xyzcyl.runtime.inference import MODEL_FORMAT, read_model_info

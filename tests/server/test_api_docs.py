@@ -4,19 +4,11 @@
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import pytest
-from fastapi.testclient import TestClient
+from api_helpers import cold_client
 
 KEY = "docs-test-key-1"
 DOCS = ("/openapi.json", "/docs", "/redoc")
-
-
-def cold_client(tmp_path: Path, **kw) -> TestClient:
-    from xyzcyl.server import Settings, create_app
-
-    return TestClient(create_app(Settings(store=str(tmp_path / "store"), **kw)))
 
 
 @pytest.mark.parametrize("keys, api_docs, served", [

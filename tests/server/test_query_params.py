@@ -4,24 +4,17 @@ their lifespan (no worker processes): the check runs before the endpoint, so no 
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import pytest
+from api_helpers import cold_client
 from fastapi.testclient import TestClient
 
 SID = "A" * 22
 KEY = "query-test-key-1"
 
 
-def cold_app(tmp_path: Path, **kw):
-    from xyzcyl.server import Settings, create_app
-
-    return create_app(Settings(store=str(tmp_path / "store"), **kw))
-
-
 @pytest.fixture(scope="module")
 def client(tmp_path_factory) -> TestClient:
-    return TestClient(cold_app(tmp_path_factory.mktemp("query")))
+    return cold_client(tmp_path_factory.mktemp("query"))
 
 
 def _error(r, status: int) -> dict:
@@ -80,7 +73,7 @@ def test_every_route_with_query_parameters_refuses_unknown_ones(client):
 
 
 def test_the_api_key_is_checked_first(tmp_path):
-    client = TestClient(cold_app(tmp_path, api_keys=(KEY,)))
+    client = cold_client(tmp_path, api_keys=(KEY,))
     assert _error(client.get(f"/v1/scenes/{SID}/render?widht=1"), 401)["code"] == "unauthorized"
     r = client.get(f"/v1/scenes/{SID}/render?widht=1", headers={"X-API-Key": KEY})
     assert _error(r, 422)["field"] == "widht"

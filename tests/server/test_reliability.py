@@ -1,23 +1,20 @@
 """Reliability and security of the service (issue 14): the fast subset of benchmarks/reliability.py that runs in CI
 (docs/reliability.md has the long runs and their figures). Most tests talk to a real `xyzcyl serve` subprocess on
 a free loopback port over raw sockets where the client library would hide what is measured (bytes the server read,
-connections it closed, temporary files it left). What tests/server/test_api.py covers in-process (every status
-of every endpoint) is not repeated here."""
+connections it closed, temporary files it left). What tests/server/test_scenes.py, test_render.py, test_health.py
+and test_app.py cover in process (every status of every endpoint) is not repeated here."""
 
 from __future__ import annotations
 
 import errno
 import sys
 import time
-from pathlib import Path
 
 import pytest
 
 httpx = pytest.importorskip("httpx")
 
-REPO = Path(__file__).resolve().parents[2]
-sys.path.insert(0, str(REPO / "benchmarks"))
-import reliability as R
+import reliability as R  # benchmarks/reliability.py (pyproject.toml: pytest's pythonpath)
 
 
 @pytest.fixture(scope="module")

@@ -4,89 +4,15 @@ the scene is served again and the PNG is byte-identical."""
 
 from __future__ import annotations
 
-import contextlib
 import json
-import signal
-import socket
-import subprocess
 import sys
-import time
 from pathlib import Path
 
 import pytest
+from xyzcyl.testing.rigs import rig_files
+from xyzcyl.testing.serve import XYZCYL, serve
 
 httpx = pytest.importorskip("httpx")
-
-REPO = Path(__file__).resolve().parents[2]
-EXAMPLE = REPO / "examples" / "synth_nuscenes"
-XYZCYL = Path(sys.executable).parent / "xyzcyl"
-READY_S = 60.0
-STOP_S = 30.0
-
-
-def free_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-class Server:
-    """A running `xyzcyl serve`; ``log`` is the file its stdout and stderr go to."""
-
-    def __init__(self, store: Path, log: Path, out):
-        self.port = free_port()
-        self.url = f"http://127.0.0.1:{self.port}"
-        self.log = log
-        self.proc = subprocess.Popen([str(XYZCYL), "serve", "--host", "127.0.0.1", "--port", str(self.port),
-                                      "--store", str(store)], stdout=out, stderr=subprocess.STDOUT, cwd=REPO)
-
-    def output(self) -> str:
-        return self.log.read_text(errors="replace")[-8000:]
-
-    def wait_ready(self, timeout: float = READY_S) -> float:
-        t0 = time.monotonic()
-        while time.monotonic() - t0 < timeout:
-            if self.proc.poll() is not None:
-                raise AssertionError(f"xyzcyl serve exited with {self.proc.returncode}:\n{self.output()}")
-            try:
-                if httpx.get(self.url + "/v2/health/ready", timeout=2.0).status_code == 200:
-                    return time.monotonic() - t0
-            except httpx.TransportError:
-                pass
-            time.sleep(0.2)
-        raise AssertionError(f"/v2/health/ready not 200 within {timeout} s:\n{self.output()}")
-
-    def stop(self, timeout: float = STOP_S) -> None:
-        """SIGTERM; the server must drain and exit with status 0 within ``timeout`` seconds."""
-        self.proc.send_signal(signal.SIGTERM)
-        try:
-            rc = self.proc.wait(timeout)
-        except subprocess.TimeoutExpired:
-            raise AssertionError(f"xyzcyl serve did not exit within {timeout} s of SIGTERM:\n{self.output()}")
-        assert rc == 0, f"xyzcyl serve exited with status {rc} after SIGTERM (0 expected):\n{self.output()}"
-
-    def kill(self) -> None:
-        if self.proc.poll() is None:
-            self.proc.kill()
-            self.proc.wait(10)
-
-
-@contextlib.contextmanager
-def serve(store: Path, log: Path):
-    with open(log, "ab") as out:
-        server = Server(store, log, out)
-        try:
-            yield server
-        finally:
-            server.kill()
-
-
-def rig_files() -> list:
-    rig = json.loads((EXAMPLE / "rig.json").read_text())
-    files = [("rig", ("rig.json", json.dumps(rig).encode(), "application/json"))]
-    for cam in rig["cameras"]:
-        files.append((cam["name"], (Path(cam["image"]).name, (EXAMPLE / cam["image"]).read_bytes(), "image/png")))
-    return files
 
 
 def render_front(client, sid: str) -> bytes:

@@ -10,46 +10,21 @@ from __future__ import annotations
 import io
 import json
 import os
-import signal
-import socket
 import statistics
-import subprocess
 import sys
 import time
-from pathlib import Path
 
 import numpy as np
 import pytest
+from xyzcyl.testing import EXAMPLE
+from xyzcyl.testing.rigs import rig_files
+from xyzcyl.testing.serve import XYZCYL, Server
 
 httpx = pytest.importorskip("httpx")
-from test_serve import rig_files  # the example rig as multipart parts (imported after the httpx skip)
 
-REPO = Path(__file__).resolve().parents[2]
-EXAMPLE = REPO / "examples" / "synth_nuscenes"
-XYZCYL = Path(sys.executable).parent / "xyzcyl"
 READY_S = 300.0          # compiling every kernel on 2 busy shared cores: about a minute; bounded well above that
 VIEWS = 7                # renders after ready: the first and 6 more for the median
 NOTICE = "xyzcyl: compiling numba kernels once"
-
-
-def free_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def wait_ready(proc: subprocess.Popen, url: str, log: Path, timeout: float) -> float:
-    t0 = time.monotonic()
-    while time.monotonic() - t0 < timeout:
-        if proc.poll() is not None:
-            raise AssertionError(f"xyzcyl serve exited with {proc.returncode}:\n{log.read_text(errors='replace')}")
-        try:
-            if httpx.get(url + "/v2/health/ready", timeout=2.0).status_code == 200:
-                return time.monotonic() - t0
-        except httpx.TransportError:
-            pass
-        time.sleep(0.2)
-    raise AssertionError(f"/v2/health/ready not 200 within {timeout} s")
 
 
 def _lidar_part() -> tuple:
@@ -81,13 +56,10 @@ def test_serve_warms_up_before_ready_first_requests_not_slow(tmp_path):
     cache.mkdir()
     log = tmp_path / "serve.log"
     env = {**os.environ, "NUMBA_CACHE_DIR": str(cache), "XYZCYL_WARM_UP": "true"}   # tests/conftest.py turns it off
-    port = free_port()
-    url = f"http://127.0.0.1:{port}"
-    with open(log, "ab") as out:
-        proc = subprocess.Popen([str(XYZCYL), "serve", "--host", "127.0.0.1", "--port", str(port), "--store",
-                                 str(tmp_path / "store")], stdout=out, stderr=subprocess.STDOUT, cwd=REPO, env=env)
+    with Server(tmp_path / "store", log, env=env) as server:
+        url = server.url
         try:
-            waited = wait_ready(proc, url, log, READY_S)
+            waited = server.wait_ready(READY_S)
             text = log.read_text(errors="replace")
             # a cold cache: the compile was announced (the server's line through its log, the worker's on
             # stderr), and the warm-up finished, all before ready
@@ -127,12 +99,7 @@ def test_serve_warms_up_before_ready_first_requests_not_slow(tmp_path):
             # cache, as here)
             assert first <= 3.0 * median, (f"first render after ready {first:.3f} s > 3 x the median {median:.3f} s "
                                            f"(all: {[round(t, 3) for t in times]}; ready after {waited:.1f} s)")
-            proc.send_signal(signal.SIGTERM)
-            assert proc.wait(30) == 0
+            server.stop(30)
         except BaseException:
             sys.stderr.write(f"--- xyzcyl serve output ({log}) ---\n{log.read_text(errors='replace')[-8000:]}\n")
             raise
-        finally:
-            if proc.poll() is None:
-                proc.kill()
-                proc.wait(10)

@@ -12,7 +12,7 @@ import sys
 import tomllib
 from pathlib import Path
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 FOLDERS = {"xyzcyl.common": "common", "xyzcyl.runtime": "runtime", "xyzcyl.server": "server",
            "xyzcyl.clients": "clients", "xyzcyl.model_export": "model_export"}
 

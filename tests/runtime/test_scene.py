@@ -6,7 +6,6 @@ import json
 
 import numpy as np
 import pytest
-from net_helpers import overlap_rig
 from xyzcyl.runtime.camera import Camera
 from xyzcyl.runtime.cylinder import CylinderSpec
 from xyzcyl.runtime.inference import Reconstructor
@@ -14,6 +13,7 @@ from xyzcyl.runtime.lifting import background_grid
 from xyzcyl.runtime.render import render
 from xyzcyl.runtime.rig import look_rotation
 from xyzcyl.runtime.scene import Background, Scene, SceneError, bake_grid, render_view, rig_camera
+from xyzcyl.testing.model import overlap_rig
 
 SPEC = CylinderSpec(centre=[0.5, -0.2, 1.9], radius=20.0, z_min=-3.0, z_max=13.0, height=8, width=64)
 

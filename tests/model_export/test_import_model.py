@@ -7,7 +7,7 @@ import pytest
 import torch
 from xyzcyl.clients import cli
 
-pytestmark = pytest.mark.slow   # the session's ONNX export (tests/export/conftest.py) and one pattern export
+pytestmark = pytest.mark.slow   # the session's ONNX export (tests/conftest.py) and one pattern export
 
 
 def test_import_model_recovers_the_exported_weights(tiny_export, tmp_path, capsys):

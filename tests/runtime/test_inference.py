@@ -9,7 +9,6 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import pytest
-from net_helpers import overlap_rig
 from xyzcyl.runtime.inference import (
     ModelError,
     Reconstructor,
@@ -21,8 +20,9 @@ from xyzcyl.runtime.inference import (
 )
 from xyzcyl.runtime.lifting import LiftingParams
 from xyzcyl.runtime.rig import RigError
+from xyzcyl.testing.model import overlap_rig
 
-pytestmark = pytest.mark.slow   # the session's ONNX export (tests/export/conftest.py)
+pytestmark = pytest.mark.slow   # the session's ONNX export (tests/conftest.py)
 
 
 @pytest.fixture(scope="module")

@@ -8,9 +8,9 @@ import subprocess
 import sys
 
 import pytest
-from conftest import EXAMPLE_RIG
+from xyzcyl.testing import EXAMPLE_RIG
 
-pytestmark = pytest.mark.slow   # the session's ONNX export (tests/export/conftest.py)
+pytestmark = pytest.mark.slow   # the session's ONNX export (tests/conftest.py)
 
 BLOCK = """
 import importlib.abc, sys

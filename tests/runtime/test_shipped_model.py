@@ -1,5 +1,5 @@
 """The shipped default model (models/xyzcyl-cpu-v1): its checksums, and a golden run on the example rig. Skipped
-while no model is shipped; the golden reference is written by tests/export/make_golden.py."""
+while no model is shipped; the golden reference is written by tests/runtime/golden/make_golden.py."""
 
 from __future__ import annotations
 
@@ -8,10 +8,10 @@ import json
 
 import numpy as np
 import pytest
-from conftest import EXAMPLE_RIG, REPO
+from xyzcyl.testing import EXAMPLE_RIG, REPO
 
 MODEL = REPO / "models" / "xyzcyl-cpu-v1"
-GOLDEN = REPO / "tests" / "export" / "golden"
+GOLDEN = REPO / "tests" / "runtime" / "golden"
 
 needs_model = pytest.mark.skipif(not (MODEL / "model.json").is_file(), reason="no shipped model in models/ yet")
 
@@ -39,7 +39,7 @@ def test_golden_example_reconstruction():
 
     gp = GOLDEN / "xyzcyl-cpu-v1.json"
     if not gp.is_file():
-        pytest.skip("no golden reference yet: run tests/export/make_golden.py after exporting the model")
+        pytest.skip("no golden reference yet: run tests/runtime/golden/make_golden.py after exporting the model")
     gold = json.loads(gp.read_text())
     rec = Reconstructor.load(MODEL, threads=2)
     rig = load_rig(EXAMPLE_RIG)
@@ -67,7 +67,7 @@ def test_golden_example_detail():
     gp = GOLDEN / "xyzcyl-cpu-v1.json"
     gold = json.loads(gp.read_text()) if gp.is_file() else {}
     if "detail" not in gold:
-        pytest.skip("no golden detail reference yet: run tests/export/make_golden.py")
+        pytest.skip("no golden detail reference yet: run tests/runtime/golden/make_golden.py")
     d = gold["detail"]
     assert d["options"] == dataclasses.asdict(DEFAULT_DETAIL), "the default detail options changed: re-run make_golden.py"
     rec = Reconstructor.load(MODEL, threads=2)

@@ -18,11 +18,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
-from net_helpers import overlap_rig
 from xyzcyl.model_export.lifting import frustum_coords_torch, to_torch
 from xyzcyl.model_export.model import GAUSSIAN_KEYS
 from xyzcyl.runtime.inference import Reconstructor, select_voxels
 from xyzcyl.runtime.lifting import background_grid
+from xyzcyl.testing.model import overlap_rig
 
 TIGHT, LOOSE = 2e-5, 2e-4
 

@@ -8,10 +8,10 @@ import shutil
 
 import numpy as np
 import pytest
-from conftest import EXAMPLE_RIG, REPO
 from xyzcyl.clients import cli
+from xyzcyl.testing import EXAMPLE_RIG, REPO
 
-pytestmark = pytest.mark.slow   # the session's ONNX export (tests/export/conftest.py)
+pytestmark = pytest.mark.slow   # the session's ONNX export (tests/conftest.py)
 
 
 @pytest.fixture(scope="module")

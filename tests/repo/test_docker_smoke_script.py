@@ -12,8 +12,8 @@ import subprocess
 from pathlib import Path
 
 import pytest
+from xyzcyl.testing import REPO
 
-REPO = Path(__file__).resolve().parents[1]
 SCRIPT = REPO / "scripts" / "docker-smoke.sh"
 BASH = shutil.which("bash")
 TOOLS = ("dirname", "mktemp", "mkdir", "date", "timeout", "cat", "tail", "python3")

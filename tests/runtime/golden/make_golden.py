@@ -1,12 +1,12 @@
 """Write the golden reference of the shipped model on the example rig (run once after exporting the model):
 
-    .venv/bin/python tests/export/make_golden.py [--model models/xyzcyl-cpu-v1]
+    .venv/bin/python tests/runtime/golden/make_golden.py [--model models/xyzcyl-cpu-v1]
 
-Stores tests/export/golden/<model name>.json (the model.json sha256, the exact Gaussian count, the smallest
+Stores tests/runtime/golden/<model name>.json (the model.json sha256, the exact Gaussian count, the smallest
 |occupancy margin| and opacity distance to the pruning threshold -- how robust the count is to float round-off on
 another CPU) and <model name>_CAM_FRONT.png (a 400x225 render with the background) of the model's Gaussians alone
 (detail=None), and under "detail" the same of the default reconstruction (with the detail layer, runtime.detail):
-its counts and <model name>_CAM_FRONT_detail.png. tests/export/test_shipped_model.py compares against them."""
+its counts and <model name>_CAM_FRONT_detail.png. tests/runtime/test_shipped_model.py compares against them."""
 
 from __future__ import annotations
 
@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-REPO = Path(__file__).resolve().parents[2]
+REPO = Path(__file__).resolve().parents[3]
 VIEW = {"camera": "CAM_FRONT", "width": 400, "height": 225}
 
 
@@ -54,7 +54,7 @@ def main() -> int:
     op = 1 / (1 + np.exp(-scene.gaussians.opacity_logits.astype(np.float64)))
     cam = rig_camera(rig.camera(VIEW["camera"]), width=VIEW["width"], height=VIEW["height"])
     rgb, _, _ = render_view(scene, cam)
-    out = REPO / "tests" / "export" / "golden"
+    out = Path(__file__).resolve().parent
     out.mkdir(exist_ok=True)
     png = f"{rec.info.name}_{VIEW['camera']}.png"
     write_png(out / png, rgb)

@@ -6,13 +6,11 @@ import re
 import subprocess
 import sys
 import tomllib
-from pathlib import Path
 
-# Not imported from conftest: several conftest.py files exist and would shadow each other as modules.
-REPO = Path(__file__).resolve().parents[1]
+from xyzcyl.testing import REPO
 
 TOP = {"runtime": "xyzcyl.runtime", "model_export": "xyzcyl.model_export",
-       "server": "xyzcyl.server", "clients": "xyzcyl.clients"}
+       "server": "xyzcyl.server", "clients": "xyzcyl.clients", "testing": "xyzcyl.testing"}
 
 
 def test_every_package_folder_is_listed_in_pyproject():
@@ -55,3 +53,13 @@ def test_cli_commands_resolve():
     from xyzcyl.clients import cli
     for cmd in cli.COMMANDS:
         assert importlib.util.find_spec(cmd.module) is not None, f"{cmd.name}: {cmd.module} missing"
+
+
+def test_testing_package_imports_without_torch():
+    """xyzcyl.testing (what tests and benchmarks share) imports in the serving install, which has no torch: with
+    torch unimportable, every module imports and the tiny config and rigs are built."""
+    code = ("import sys; sys.modules['torch'] = None; "
+            "import xyzcyl.testing, xyzcyl.testing.rigs, xyzcyl.testing.serve, xyzcyl.testing.model as m; "
+            "m.tiny_config(); m.synth_test_config(); m.tiny_export_config(); m.overlap_rig(6); "
+            "xyzcyl.testing.rigs.rig_files()")
+    subprocess.run([sys.executable, "-c", code], check=True)
