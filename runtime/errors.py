@@ -7,8 +7,8 @@ recover it): ``FieldError(field, message, where=None)``.
 - ``where``: optionally, the thing the field belongs to, as people name it ("camera 'CAM_FRONT'", "rig").
 
 ``str(e)`` is ``"<where>: <field>: <message>"``, or ``"<field>: <message>"`` without ``where``.
-runtime.views.ViewError (render requests), runtime.camera.CameraError (cameras) and RigError (rigs) derive from
-it. ``plain`` is the one place that turns numpy values into plain Python for a message.
+runtime.views.ViewError (render requests), CameraError (cameras and their lenses; runtime.camera and runtime.lenses)
+and RigError (rigs) derive from it. ``plain`` is the one place that turns numpy values into plain Python for a message.
 """
 
 from __future__ import annotations
@@ -38,8 +38,14 @@ class FieldError(ValueError):
 
 
 class RigError(FieldError):
-    """Invalid rig or camera (runtime.rig, runtime.camera.CameraError derives from it): ``where`` is "rig" or the
+    """Invalid rig or camera (runtime.rig, CameraError derives from it): ``where`` is "rig" or the
     camera ("camera 'CAM_FRONT'"), ``field`` the rig.json field at fault."""
+
+
+class CameraError(RigError):
+    """Invalid camera or lens: ``field`` ("K[0][0]", "cam_to_ego", "width", "model", "distortion.k1", ...),
+    ``message``, and ``where`` ("camera 'CAM_FRONT'", "camera #2") when the camera has a name or an index. Defined
+    here so that runtime.camera and runtime.lenses raise the one class."""
 
 
 def plain(value: Any) -> Any:
@@ -48,4 +54,4 @@ def plain(value: Any) -> Any:
     return value.tolist() if isinstance(value, (np.generic, np.ndarray)) else value
 
 
-__all__ = ["FieldError", "RigError", "plain"]
+__all__ = ["CameraError", "FieldError", "RigError", "plain"]
