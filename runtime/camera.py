@@ -6,42 +6,38 @@ Conventions (docs/conventions.md is the full statement):
   from, so a render pose is a `cam_to_ego` too (the one name of the pose: camera -> ego);
 - camera frame: OpenCV, x right, y down, z forward; `cam_to_ego` [4, 4] maps camera points to ego points;
 - `K` in pixels, OpenCV: the centre of pixel column u is at x = u, the image spans [-0.5, W-0.5];
-- models: "pinhole" (K, optional OpenCV radial-tangential `distortion`) and "equirectangular" (a full 360x180
+- models: "pinhole" (any camera with K: an ideal pinhole, or a real lens in `distortion`, a `runtime.lenses.Lens`:
+  "opencv" (rational, tangential, thin prism), "opencv_fisheye" or "ftheta") and "equirectangular" (a full 360x180
   panorama: column -> azimuth about the camera's up axis, centre column = camera +z, columns grow towards camera
-  +x; row 0 = zenith (camera -y), last row = nadir; `K` optional and unused).
+  +x; row 0 = zenith (camera -y), last row = nadir; `K` optional and unused). `Camera.lens_model` names the five.
 
 Every check raises `CameraError(field, message, where)`: ``field`` is the camera field at fault ("K[0][0]",
-"cam_to_ego", "width", "distortion[1]", ...), ``where`` names the camera ("camera 'CAM_FRONT'") when it has a name.
+"cam_to_ego", "width", "distortion[1]", "distortion.max_angle_deg", ...), ``where`` names the camera
+("camera 'CAM_FRONT'") when it has a name.
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from types import MappingProxyType
 from typing import Any, Literal
 
 import numpy as np
 
-from .errors import RigError, plain
+from .errors import CameraError, plain
+from .lenses import IN_FRONT_EPS, Lens, project, unproject
 from .rotations import ORTHO_TOL  # max |R^T R - I| entry accepted for a pose's rotation
 
 MAX_SIZE = 16384  # pixels: the largest width or height of any camera, input or render
 # K's structural zeros and ones and cam_to_ego's bottom row are compared with this absolute tolerance: JSON
 # written by float code can carry 1e-16-level round-off, anything larger is a real (refused) parameter.
 STRUCT_TOL = 1e-9
-DISTORTION_LENGTHS = (4, 5, 8)  # OpenCV radial-tangential models (k1 k2 p1 p2 [k3 [k4 k5 k6]])
 CAMERA_KEYS = ("name", "image", "width", "height", "K", "cam_to_ego", "distortion", "model", "depth")
 MODELS = ("pinhole", "equirectangular")
-IN_FRONT_EPS = 1e-6  # metres: a point needs camera z (pinhole) / distance (equirect) above this to project
 
 CameraModel = Literal["pinhole", "equirectangular"]
-
-
-class CameraError(RigError):
-    """Invalid camera: ``field`` ("K[0][0]", "cam_to_ego", "width", "model", ...), ``message``, and ``where``
-    ("camera 'CAM_FRONT'", "camera #2") when the camera has a name or an index (runtime.errors)."""
 
 
 def where_camera(name: Any, index: int | None = None) -> str | None:
@@ -62,15 +58,18 @@ class Camera:
     """One camera. Arrays are stored as read-only float64 copies; construction validates every field.
 
     Keyword-only: ``Camera(K=K, cam_to_ego=T, width=1600, height=900)`` (a pinhole render camera),
-    ``Camera(model="equirectangular", cam_to_ego=T, width=2048, height=1024)``, or a rig entry with its name and
-    files."""
+    ``Camera(model="equirectangular", cam_to_ego=T, width=2048, height=1024)``, a camera with a lens
+    (``distortion=(k1, k2, p1, p2)`` or ``{"model": "opencv_fisheye", "k1": ..., "max_angle_deg": 95}``), or a rig
+    entry with its name and files."""
 
     width: int  # pixels
     height: int  # pixels
     cam_to_ego: np.ndarray  # [4, 4] OpenCV camera (x right, y down, z fwd) -> ego (x fwd, y left, z up), metres
     K: np.ndarray | None = None  # [3, 3] pixels, OpenCV; required for pinhole, optional (unused) for equirectangular
     model: CameraModel = "pinhole"
-    distortion: tuple[float, ...] | None = None  # OpenCV k1 k2 p1 p2 [k3 [k4 k5 k6]]; None = undistorted
+    # the lens (pinhole model only): None = ideal pinhole. Given as a Lens, OpenCV's distCoeffs list (k1 k2 p1 p2
+    # [k3 [k4 k5 k6 [s1 s2 s3 s4]]]; all zero = None) or rig.json's {"model": ...} object; stored as a Lens
+    distortion: Lens | None = None
     name: str | None = None  # a rig camera's name (unique in its rig); None for a render camera
     image: str | None = None  # file relative to Rig.root
     depth: str | None = None  # optional depth map file: float metres or 16-bit millimetres, optical axis (pinhole)
@@ -93,11 +92,10 @@ class Camera:
         if self.distortion is not None:
             if self.model != "pinhole":
                 raise CameraError("distortion", "must be null for an equirectangular camera", where)
-            d = numbers(self.distortion, "distortion", where)
-            if d.ndim != 1 or len(d) not in DISTORTION_LENGTHS:
-                raise CameraError("distortion", f"must have {DISTORTION_LENGTHS} coefficients (got shape "
-                                  f"{list(d.shape)})", where)
-            object.__setattr__(self, "distortion", tuple(float(x) for x in d) if np.any(d) else None)
+            try:
+                object.__setattr__(self, "distortion", Lens.from_json(self.distortion))
+            except CameraError as e:
+                raise CameraError(e.field, e.message, where) from None
         for key in ("image", "depth"):
             v = getattr(self, key)
             if v is not None and (not isinstance(v, str) or not v):
@@ -113,6 +111,16 @@ class Camera:
     @property
     def is_equirect(self) -> bool:
         return self.model == "equirectangular"
+
+    @property
+    def is_ideal(self) -> bool:
+        """No lens: an ideal pinhole or an equirectangular camera (the same as ``distortion is None``)."""
+        return self.distortion is None
+
+    @property
+    def lens_model(self) -> str:
+        """"pinhole" (ideal), "opencv", "opencv_fisheye", "ftheta" or "equirectangular"."""
+        return self.distortion.model if self.distortion is not None else self.model
 
     @property
     def position(self) -> np.ndarray:
@@ -134,40 +142,49 @@ class Camera:
 
     @property
     def vertical_fov(self) -> float:
-        """Vertical field of view, radians: 2*atan(H / (2 fy)) for pinhole, pi for equirectangular."""
+        """Vertical field of view, radians: 2*atan(H / (2 fy)) for pinhole (an opencv lens ignored), pi for
+        equirectangular; with a fisheye or f-theta lens the angles from the optical axis of the rays through the
+        top and bottom edges' points at u = cx, added (max_angle where the edge lies beyond the image circle)."""
         if self.is_equirect:
             return math.pi
+        if self.distortion is not None and self.distortion.model != "opencv":
+            cx = self.K[0, 2]
+            return self._edge_angles([[cx, -0.5], [cx, self.height - 0.5]])
         return 2.0 * math.atan(self.height / (2.0 * self.K[1, 1]))
 
     @property
     def horizontal_fov(self) -> float:
-        """Horizontal field of view, radians: 2*atan(W / (2 fx)) for pinhole, 2 pi for equirectangular."""
+        """Horizontal field of view, radians: 2*atan(W / (2 fx)) for pinhole (an opencv lens ignored), 2 pi for
+        equirectangular; fisheye and f-theta: as vertical_fov through the left and right edges at v = cy."""
         if self.is_equirect:
             return 2.0 * math.pi
+        if self.distortion is not None and self.distortion.model != "opencv":
+            cy = self.K[1, 2]
+            return self._edge_angles([[-0.5, cy], [self.width - 0.5, cy]])
         return 2.0 * math.atan(self.width / (2.0 * self.K[0, 0]))
+
+    def _edge_angles(self, uv: list[list[float]]) -> float:
+        d, valid = unproject(self.K, self.distortion, np.array(uv, np.float64))
+        theta = np.where(valid, np.arccos(np.clip(d[:, 2], -1.0, 1.0)), self.distortion.max_angle)
+        return float(theta.sum())
 
     def project(self, points_ego: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Project ego points into the image.
 
         points_ego: [..., 3] metres, ego frame.
         Returns uv [..., 2] pixels (OpenCV: pixel u's centre at u), z [...] metres (camera-frame z for pinhole,
-        distance from the camera centre for equirectangular), in_front [...] bool (z > 1e-6 m). uv of points
-        not in front is finite but meaningless. Bounds are not checked (see `inside`).
+        distance from the camera centre for equirectangular), in_front [...] bool: the point projects (ideal
+        pinhole and opencv lens: z > 1e-6 m; fisheye and f-theta lens: distance > 1e-6 m and its angle from the
+        optical axis <= the lens's max_angle, so z may be <= 0 beyond 90 degrees; equirectangular: distance >
+        1e-6 m). uv of points not in front is finite but meaningless. Bounds are not checked (see `inside`).
         """
         p = np.asarray(points_ego, dtype=np.float64)
         q = (p - self.position) @ self.rotation  # camera frame: R^T (p - t) for row vectors
         if self.is_equirect:
             uv, dist = _equirect_project(q, self.width, self.height)
             return uv, dist, dist > IN_FRONT_EPS
-        z = q[..., 2]
-        in_front = z > IN_FRONT_EPS
-        zs = np.where(in_front, z, 1.0)
-        x, y = q[..., 0] / zs, q[..., 1] / zs
-        if self.distortion is not None:
-            x, y = _distort(x, y, self.distortion)
-        K = self.K
-        uv = np.stack([K[0, 0] * x + K[0, 2], K[1, 1] * y + K[1, 2]], axis=-1)
-        return uv, z, in_front
+        uv, in_front = project(self.K, self.distortion, q)
+        return uv, q[..., 2], in_front
 
     def inside(self, uv: np.ndarray) -> np.ndarray:
         """[...] bool: uv [..., 2] within the image area [-0.5, W-0.5] x [-0.5, H-0.5] (pixel edges)."""
@@ -179,7 +196,9 @@ class Camera:
 
         uv: [..., 2] OpenCV pixel coordinates; default all pixel centres, shape [H, W, 2].
         Returns origins [..., 3] (the camera centre) and unit directions [..., 3], both ego frame. For a
-        pinhole camera, direction = normalise(R @ inv(K) @ [u, v, 1]) (distortion removed with OpenCV).
+        pinhole camera, direction = normalise(R @ inv(K) @ [u, v, 1]); with a lens, R @ its inverse
+        (runtime.lenses.unproject): NaN directions for pixels no ray reaches (outside a fisheye / f-theta image
+        circle at max_angle, beyond an opencv lens's fold).
         """
         if uv is None:
             vv, uu = np.meshgrid(np.arange(self.height), np.arange(self.width), indexing="ij")
@@ -188,16 +207,7 @@ class Camera:
         if self.is_equirect:
             d = _equirect_dirs(uv, self.width, self.height)
         else:
-            K = self.K
-            if self.distortion is not None:
-                import cv2
-
-                flat = cv2.undistortPoints(uv.reshape(-1, 1, 2), K, np.asarray(self.distortion)).reshape(uv.shape)
-                x, y = flat[..., 0], flat[..., 1]
-            else:
-                x = (uv[..., 0] - K[0, 2]) / K[0, 0]
-                y = (uv[..., 1] - K[1, 2]) / K[1, 1]
-            d = np.stack([x, y, np.ones_like(x)], axis=-1)
+            d = unproject(self.K, self.distortion, uv)[0]
         d = d @ self.rotation.T
         d /= np.linalg.norm(d, axis=-1, keepdims=True)
         return np.broadcast_to(self.position, d.shape).copy(), d
@@ -211,17 +221,19 @@ class Camera:
     def resized(self, width: int, height: int) -> Camera:
         """The same camera imaging at ``width`` x ``height`` pixels (an image resampled to that size). With the
         OpenCV pixel-centre convention (column u spans [u - 1/2, u + 1/2]) a scale s = width / self.width maps
-        u -> s (u + 1/2) - 1/2: fx' = s fx, cx' = s (cx + 1/2) - 1/2 (likewise v, fy, cy with height). Distortion
-        acts on normalised coordinates and stays; an equirectangular camera needs no K. Files are dropped (the
-        caller resamples the arrays)."""
+        u -> s (u + 1/2) - 1/2: fx' = s fx, cx' = s (cx + 1/2) - 1/2 (likewise v, fy, cy with height). An opencv or
+        fisheye lens acts on normalised coordinates and stays; an f-theta lens's pixel distances scale
+        (Lens.resized); an equirectangular camera needs no K. Files are dropped (the caller resamples the
+        arrays)."""
         K = None
+        sx, sy = width / self.width, height / self.height
         if self.K is not None:
-            sx, sy = width / self.width, height / self.height
             K = self.K.copy()
             K[0, 0], K[0, 2] = sx * K[0, 0], sx * (K[0, 2] + 0.5) - 0.5
             K[1, 1], K[1, 2] = sy * K[1, 1], sy * (K[1, 2] + 0.5) - 0.5
         return Camera(name=self.name, width=width, height=height, K=K, cam_to_ego=self.cam_to_ego,
-                      model=self.model, distortion=self.distortion, extra=dict(self.extra))
+                      model=self.model, distortion=None if self.distortion is None else self.distortion.resized(sx, sy),
+                      extra=dict(self.extra))
 
     # -- JSON -----------------------------------------------------------------------------------------------
     @classmethod
@@ -261,7 +273,7 @@ class Camera:
         if self.K is not None:
             d["K"] = self.K.tolist()
         d["cam_to_ego"] = self.cam_to_ego.tolist()
-        d["distortion"] = None if self.distortion is None else list(self.distortion)
+        d["distortion"] = None if self.distortion is None else self.distortion.to_json()
         if self.model != "pinhole":
             d["model"] = self.model
         if self.depth is not None:
@@ -336,18 +348,6 @@ def check_pose(T: Any, where: str | None = None, key: str = "cam_to_ego") -> np.
 
 # -- projection models -------------------------------------------------------------------------------------------
 
-def _distort(x: np.ndarray, y: np.ndarray, d: Sequence[float]) -> tuple[np.ndarray, np.ndarray]:
-    """OpenCV radial-tangential distortion of normalised coordinates (same formula as cv2.projectPoints)."""
-    k1, k2, p1, p2 = d[:4]
-    k3 = d[4] if len(d) > 4 else 0.0
-    k4, k5, k6 = d[5:8] if len(d) > 5 else (0.0, 0.0, 0.0)
-    r2 = x * x + y * y
-    radial = (1 + r2 * (k1 + r2 * (k2 + r2 * k3))) / (1 + r2 * (k4 + r2 * (k5 + r2 * k6)))
-    xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
-    yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
-    return xd, yd
-
-
 def _equirect_project(q: np.ndarray, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
     """Camera-frame points [..., 3] -> (uv [..., 2], distance [...]).
 
@@ -387,7 +387,6 @@ def pinhole_K(fx: float, fy: float, cx: float, cy: float) -> np.ndarray:
 
 __all__ = [
     "CAMERA_KEYS",
-    "DISTORTION_LENGTHS",
     "IN_FRONT_EPS",
     "MAX_SIZE",
     "MODELS",

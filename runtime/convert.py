@@ -161,7 +161,11 @@ def rig_to_nerfstudio(rig: Rig) -> dict[str, Any]:
         else:
             K = cam.K
             fr.update(camera_model="OPENCV", fl_x=K[0, 0], fl_y=K[1, 1], cx=K[0, 2] + 0.5, cy=K[1, 2] + 0.5)
-            d = cam.distortion or ()
+            lens = cam.distortion
+            if lens is not None and lens.model != "opencv":
+                raise ConversionError(f"camera {cam.name!r}: distortion: an {lens.model} lens; this writer knows "
+                                      f"nerfstudio OPENCV (k1 k2 p1 p2 k3) only")
+            d = () if lens is None else lens.opencv_coefficients()
             if len(d) > 5:
                 raise ConversionError("distortion", f"has {len(d)} coefficients; nerfstudio OPENCV holds k1 k2 p1 "
                                                     "p2 k3 only", cam.where)

@@ -10,8 +10,8 @@ message to recover it).
 ``str(e)`` is ``"<where>: <field>: <message>"``, or ``"<field>: <message>"`` without ``where``.
 
 Every runtime error that reports bad input derives from it (tests/runtime/test_errors.py walks them): RigError
-(rigs) and runtime.camera.CameraError (cameras), runtime.convert.ConversionError (foreign records: ``where``
-the record, "transforms.json: frames[3]"), runtime.views.ViewError (render requests), runtime.scene.SceneError,
+(rigs) and CameraError (cameras and their lenses: runtime.camera, runtime.lenses; defined here),
+runtime.convert.ConversionError (foreign records: ``where`` the record, "transforms.json: frames[3]"), runtime.views.ViewError (render requests), runtime.scene.SceneError,
 runtime.lidar.LidarError, runtime.detail.DetailError, runtime.inference.ModelError and InferenceError,
 runtime.render.GaussianError (``where`` "PLY 'g.ply'"), runtime.cylinder.CylinderError and the command-line
 flags' errors (xyzcyl.common.poses.PoseArgError, eval-real's: ``field`` the flag, "--cam-to-world").
@@ -27,8 +27,14 @@ from xyzcyl.common.errors import FieldError
 
 
 class RigError(FieldError):
-    """Invalid rig or camera (runtime.rig, runtime.camera.CameraError derives from it): ``where`` is "rig" or the
+    """Invalid rig or camera (runtime.rig, CameraError derives from it): ``where`` is "rig" or the
     camera ("camera 'CAM_FRONT'"), ``field`` the rig.json field at fault."""
+
+
+class CameraError(RigError):
+    """Invalid camera or lens: ``field`` ("K[0][0]", "cam_to_ego", "width", "model", "distortion.k1", ...),
+    ``message``, and ``where`` ("camera 'CAM_FRONT'", "camera #2") when the camera has a name or an index. Defined
+    here so that runtime.camera and runtime.lenses raise the one class."""
 
 
 def plain(value: Any) -> Any:
@@ -40,4 +46,4 @@ def plain(value: Any) -> Any:
     return value.tolist() if isinstance(value, (np.generic, np.ndarray)) else value
 
 
-__all__ = ["FieldError", "RigError", "plain"]
+__all__ = ["CameraError", "FieldError", "RigError", "plain"]
