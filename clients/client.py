@@ -481,8 +481,8 @@ def _by_camera(values: Any, names: list[str], what: str) -> dict[str, Any] | Non
 def _fields(camera: Any) -> dict[str, Any]:
     if isinstance(camera, Mapping):
         return dict(camera)
-    keys = ("K", "cam_to_ego", "cam_to_world", "width", "height", "fov", "camera", *CARLA_POSE, "transform",
-            "image_size_x", "image_size_y")
+    keys = ("K", "cam_to_ego", "cam_to_world", "width", "height", "fov", "distortion", "camera", *CARLA_POSE,
+            "transform", "image_size_x", "image_size_y")
     return {k: getattr(camera, k) for k in keys if getattr(camera, k, None) is not None}
 
 
@@ -510,7 +510,8 @@ def view_params(camera: Any, width: int | None = None, height: int | None = None
     - a str: an input camera of the scene (``width``/``height`` resize it; the server scales K);
     - OpenCV: a dict or object with ``cam_to_ego`` (or ``cam_to_world``; 4x4 or 16 numbers, row-major) and ``K``
       (3x3 or 9 numbers, pixels, no skew) or ``fov`` (horizontal degrees), plus ``width``/``height`` (the
-      arguments win);
+      arguments win) and optionally ``distortion``, the lens as rig.json writes it (an OpenCV coefficient list or
+      {"model": "opencv" | "opencv_fisheye" | "ftheta", ...}; an object with ``to_json()`` works too);
     - CARLA: {x, y, z, pitch, yaw, roll, fov, width, height} (a sensor's transform relative to the vehicle), or
       a CARLA sensor dict {"transform": {"location": {x, y, z}, "rotation": {pitch, yaw, roll}}, "fov",
       "image_size_x", "image_size_y"};
@@ -544,6 +545,13 @@ def view_params(camera: Any, width: int | None = None, height: int | None = None
                 p["fov"] = _num(c["fov"], "camera.fov")
             else:
                 raise _invalid("an OpenCV camera needs K (pixels) or fov (horizontal degrees)", "camera.K")
+            lens = c.get("distortion")
+            if lens is not None:
+                lens = lens.to_json() if hasattr(lens, "to_json") else lens
+                if not isinstance(lens, (list, tuple, Mapping)):
+                    raise _invalid("must be a list of OpenCV coefficients or an object {\"model\": ..., ...}",
+                                   "camera.distortion")
+                p["distortion"] = json.dumps(lens if isinstance(lens, Mapping) else list(lens), separators=(",", ":"))
         elif "camera" in c:
             p = {"camera": str(c["camera"])}
         else:

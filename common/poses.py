@@ -150,6 +150,34 @@ def parse_matrix(values: str | list[str] | tuple[str, ...], flag: str = "--cam-t
     return _from_text(" ".join(vals), flag, "")
 
 
+def parse_lens(value: str, flag: str = "--distortion") -> list | dict:
+    """A lens flag's value as rig.json writes a camera's ``distortion`` (an OpenCV coefficient list, or
+    {"model": "opencv" | "opencv_fisheye" | "ftheta", ...}; docs/conventions.md, Lens models): JSON text, or a
+    .json file holding that value or a rig camera entry / object with a ``distortion`` key. Checked for shape only
+    here (a list or an object); the lens itself is validated where the camera is made. PoseArgError naming
+    ``flag``."""
+    v = value.strip()
+    path = Path(v)
+    if _is_file(path):
+        try:
+            text = path.read_text()
+        except OSError as e:
+            raise PoseArgError(flag, f"cannot read {v!r}: {e.strerror or e}") from None
+    elif path.suffix.lower() == ".json":
+        raise PoseArgError(flag, f"no such file {v!r}")
+    else:
+        text = v
+    try:
+        lens = json.loads(text)
+    except ValueError as e:
+        raise PoseArgError(flag, f"not valid JSON ({e})") from None
+    if isinstance(lens, dict) and "distortion" in lens:
+        lens = lens["distortion"]
+    if not isinstance(lens, (list, dict)):
+        raise PoseArgError(flag, 'expected a JSON list of OpenCV coefficients or an object {"model": ..., ...}')
+    return lens
+
+
 @dataclass(frozen=True)
 class CameraMove:
     """A camera move in the ego frame: turn ``yaw`` degrees to the left (counter-clockwise seen from above) about

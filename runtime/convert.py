@@ -163,8 +163,8 @@ def rig_to_nerfstudio(rig: Rig) -> dict[str, Any]:
             fr.update(camera_model="OPENCV", fl_x=K[0, 0], fl_y=K[1, 1], cx=K[0, 2] + 0.5, cy=K[1, 2] + 0.5)
             lens = cam.distortion
             if lens is not None and lens.model != "opencv":
-                raise ConversionError(f"camera {cam.name!r}: distortion: an {lens.model} lens; this writer knows "
-                                      f"nerfstudio OPENCV (k1 k2 p1 p2 k3) only")
+                raise ConversionError("distortion", f"an {lens.model} lens; this writer knows nerfstudio OPENCV "
+                                                    "(k1 k2 p1 p2 k3) only", cam.where)
             d = () if lens is None else lens.opencv_coefficients()
             if len(d) > 5:
                 raise ConversionError("distortion", f"has {len(d)} coefficients; nerfstudio OPENCV holds k1 k2 p1 "
@@ -179,7 +179,10 @@ def rig_to_nerfstudio(rig: Rig) -> dict[str, Any]:
 # -- nerfstudio camera paths --------------------------------------------------------------------------------
 
 _NS_PATH = "camera_path.json"
-_NS_PATH_TYPES = ("perspective", "equirectangular")
+_NS_PATH_TYPES = ("perspective", "fisheye", "equirectangular")
+# nerfstudio's FISHEYE camera (cameras.py): the equidistant fisheye theta = r / f (no distortion terms in a camera
+# path), rays for r / f up to pi -- our opencv_fisheye lens with k1..k4 = 0 and max_angle_deg 180
+_NS_FISHEYE = {"model": "opencv_fisheye", "k1": 0.0, "k2": 0.0, "k3": 0.0, "k4": 0.0, "max_angle_deg": 180.0}
 _CENTRE_TOL_PX = _CARLA_TOL_PX  # a camera path's principal point must be this close to the image centre
 
 
@@ -220,8 +223,9 @@ def cameras_from_nerfstudio_path(doc: Mapping[str, Any]) -> list[Camera]:
     The fields read are those of nerfstudio's own reader (nerfstudio/cameras/camera_paths.py,
     get_path_from_json, used by `ns-render camera-path`):
     - render_width, render_height: the image size of every frame (pixels);
-    - camera_type: "perspective" (default when absent) or "equirectangular" (fisheye, omnidirectional-stereo and
-      VR180 are refused);
+    - camera_type: "perspective" (default when absent), "fisheye" (nerfstudio's equidistant fisheye, theta = r / f
+      up to 180 degrees from the axis: an opencv_fisheye lens with k1..k4 = 0, max_angle_deg 180; f from fov as
+      for perspective) or "equirectangular" (omnidirectional-stereo and VR180 are refused);
     - camera_path: [{"camera_to_world": 16 numbers, row-major [4, 4] camera -> world with OpenGL camera axes
       (x right, y up, z back), "fov": VERTICAL field of view in degrees (three.js PerspectiveCamera),
       "aspect": ignored, as nerfstudio ignores it (the size is render_width x render_height)}, ...].
@@ -248,7 +252,7 @@ def cameras_from_nerfstudio_path(doc: Mapping[str, Any]) -> list[Camera]:
         if "camera_to_world" not in fr:
             raise _path_error(f"{where}.camera_to_world", "is missing")
         c2w = _path_pose(fr["camera_to_world"], f"{where}.camera_to_world")
-        K, model = None, "pinhole"
+        K, model, lens = None, "pinhole", _NS_FISHEYE if ctype == "fisheye" else None
         if ctype == "equirectangular":
             model = "equirectangular"
         else:
@@ -260,10 +264,24 @@ def cameras_from_nerfstudio_path(doc: Mapping[str, Any]) -> list[Camera]:
             K = np.array([[f, 0.0, (W - 1) / 2.0], [0.0, f, (H - 1) / 2.0], [0.0, 0.0, 1.0]])
         try:
             cams.append(Camera(name=f"frame_{k:05d}", width=W, height=H, K=K, cam_to_ego=c2w @ GL_FROM_CV,
-                               model=model))
+                               model=model, distortion=lens))
         except RigError as exc:  # the pose checks (bottom row, orthonormal rotation, det +1) of cam_to_ego
             raise _path_error(f"{where}.camera_to_world", exc.message) from None
     return cams
+
+
+def _path_type(cam: Camera) -> str:
+    """A camera's nerfstudio camera_type: perspective (an ideal pinhole), fisheye (the equidistant lens
+    _NS_FISHEYE) or equirectangular; ConversionError for any other lens."""
+    if cam.model == "equirectangular":
+        return "equirectangular"
+    if cam.distortion is None:
+        return "perspective"
+    if cam.distortion.to_json() == _NS_FISHEYE:
+        return "fisheye"
+    raise ConversionError("distortion", "a camera path holds ideal pinholes, nerfstudio's equidistant fisheye "
+                                        f"(opencv_fisheye, k1..k4 = 0, max_angle_deg 180) or panoramas; got "
+                                        f"{cam.distortion.to_json()}", f"camera {cam.name!r}")
 
 
 def cameras_to_nerfstudio_path(cameras: Sequence[Camera], fps: float = 24.0) -> dict[str, Any]:
@@ -277,28 +295,26 @@ def cameras_to_nerfstudio_path(cameras: Sequence[Camera], fps: float = 24.0) -> 
     if not cameras:
         raise ConversionError("cameras", "need at least one camera", _NS_PATH)
     first = cameras[0]
-    W, H, model = first.width, first.height, first.model
+    W, H, model = first.width, first.height, _path_type(first)
     frames = []
     for cam in cameras:
         where = f"camera {cam.name!r}"
-        if (cam.width, cam.height, cam.model) != (W, H, model):
+        if (cam.width, cam.height, _path_type(cam)) != (W, H, model):
             raise ConversionError("width/height/model", f"a camera path has one size and model ({W}x{H} {model}; "
-                                                        f"got {cam.width}x{cam.height} {cam.model})", where)
+                                                        f"got {cam.width}x{cam.height} {_path_type(cam)})", where)
         fr: dict[str, Any] = {"camera_to_world": (cam.cam_to_ego @ GL_FROM_CV).reshape(-1).tolist()}
-        if model == "pinhole":
+        if model != "equirectangular":
             K = cam.K
-            if cam.distortion is not None:
-                raise ConversionError("distortion", "camera paths are undistorted pinholes", where)
             if abs(K[0, 0] - K[1, 1]) > 1e-9 * K[0, 0]:
                 raise ConversionError("K", "fx != fy, a camera path has square pixels", where)
             if abs(K[0, 2] - (W - 1) / 2) > _CENTRE_TOL_PX or abs(K[1, 2] - (H - 1) / 2) > _CENTRE_TOL_PX:
                 raise ConversionError("K", "principal point must be the image centre ((W-1)/2, (H-1)/2)", where)
-            fr["fov"] = math.degrees(cam.vertical_fov)
+            fr["fov"] = math.degrees(2.0 * math.atan(H / (2.0 * K[1, 1])))   # from K: a fisheye's f too
         fr["aspect"] = W / H
         frames.append(fr)
     if not (math.isfinite(fps) and fps > 0):
         raise ConversionError("fps", f"must be > 0 (got {fps})", _NS_PATH)
-    return {"camera_type": "perspective" if model == "pinhole" else "equirectangular",
+    return {"camera_type": model,
             "render_width": W, "render_height": H, "fps": fps, "seconds": len(frames) / fps,
             "camera_path": frames}
 

@@ -107,8 +107,10 @@ def _camera(build, fields: Mapping[str, str]):
     naming the request field that the camera's field (its root name) maps to in ``fields``."""
     try:
         return build()
-    except CameraError as e:
-        raise ViewError(fields.get(e.root_field, fields["*"]), e.message) from None
+    except CameraError as e:    # "distortion.k1" -> "cameras[2].distortion.k1": the sub-path is kept
+        root = e.root_field
+        name = fields[root] + e.field[len(root):] if root in fields else fields["*"]
+        raise ViewError(name, e.message) from None
 
 
 def _from_conversion(e: convert.ConversionError, field: str | None = None) -> ViewError:
@@ -135,7 +137,10 @@ class ViewSpec:
     - ``cam_to_ego`` (16 numbers row-major or [4, 4], OpenCV camera -> ego, metres) with width, height and either
       ``K`` ([3, 3] or 9 numbers, no skew), ``fx`` (``fy`` defaults to fx, ``cx``, ``cy`` to the image centre
       ((W-1)/2, (H-1)/2), OpenCV pixel centres) or ``fov`` (HORIZONTAL degrees in (0, 180), square pixels,
-      centred principal point); or, with ``model="equirectangular"``, no intrinsics (a full 360x180 panorama);
+      centred principal point; with a lens, the fov of its paraxial pinhole), and optionally ``distortion``: a
+      lens as rig.json writes one (runtime.lenses: an OpenCV coefficient list, or {"model": "opencv" |
+      "opencv_fisheye" | "ftheta", ...}); or, with ``model="equirectangular"``, no intrinsics (a full 360x180
+      panorama);
     - ``carla``: a CARLA sensor pose {x, y, z (metres), pitch, yaw, roll (degrees)} relative to the vehicle,
       with ``fov`` and width, height (runtime.convert.camera_from_carla).
     ``output`` / ``format`` / ``quality``: as ViewRequest.
@@ -151,6 +156,7 @@ class ViewSpec:
     cx: Any = None
     cy: Any = None
     fov: Any = None
+    distortion: Any = None
     carla: Mapping[str, Any] | None = None
     model: str = "pinhole"
     width: Any = None
@@ -173,6 +179,9 @@ class ViewSpec:
             second = modes[1] if len(modes) > 1 else "camera"
             raise ViewError(self.name(next(iter(carla), "x")) if second == "carla" else self.name(second),
                             f"give exactly one pose: {_POSES}; got {' and '.join(modes) or 'none'}")
+        if self.distortion is not None and self.cam_to_ego is None:
+            raise ViewError(self.name("distortion"), "a lens goes with cam_to_ego and K / fx / fov (an input "
+                                                     "camera has its own lens; a CARLA camera has none)")
         if self.camera is not None:
             return self._rig_camera(rig)
         if self.cam_to_ego is not None:
@@ -217,7 +226,7 @@ class ViewSpec:
         fields = {"cam_to_ego": self.name("cam_to_ego"), "width": self.name("width"), "height": self.name("height"),
                   "*": self.name("cam_to_ego")}
         if self.model == "equirectangular":
-            for attr in ("K", "fx", "fy", "cx", "cy", "fov"):
+            for attr in ("K", "fx", "fy", "cx", "cy", "fov", "distortion"):
                 if getattr(self, attr) is not None:
                     raise ViewError(self.name(attr), "an equirectangular panorama takes no intrinsics")
             return _camera(lambda: Camera(model="equirectangular", cam_to_ego=T, width=W, height=H), fields)
@@ -254,7 +263,8 @@ class ViewSpec:
         cx = (W - 1) / 2.0 if cx is None else _number(cx, names["cx"])
         cy = (H - 1) / 2.0 if cy is None else _number(cy, names["cy"])
         K = pinhole_K(fx, fy, cx, cy)
-        return _camera(lambda: Camera(K=K, cam_to_ego=T, width=W, height=H), dict(fields, K=names["fx"]))
+        return _camera(lambda: Camera(K=K, cam_to_ego=T, width=W, height=H, distortion=self.distortion),
+                       dict(fields, K=names["fx"], distortion=self.name("distortion")))
 
     def _fov(self) -> float:
         deg = _number(self.fov, self.name("fov"))
@@ -311,11 +321,11 @@ def camera_from_rig(rig: Rig, name: str, width: int | None = None, height: int |
 
 # ------------------------------------------------------------------------------------------- batches
 
-_ITEM_KINDS = ('{"K", "cam_to_ego", "width", "height"} (OpenCV), {"fov", "cam_to_ego", "width", "height"} '
+_ITEM_KINDS = ('{"K", "cam_to_ego", "width", "height"[, "distortion"]} (OpenCV), {"fov", "cam_to_ego", "width", "height"} '
                '(OpenCV, horizontal degrees), {"transform", "fov", "image_size_x", "image_size_y"} (CARLA sensor) '
                'or {"camera"[, "width", "height"]} (an input camera of the scene)')
-_OPENCV_K_KEYS = ("K", "cam_to_ego", "width", "height", "name")
-_OPENCV_FOV_KEYS = ("fov", "cam_to_ego", "width", "height", "name")
+_OPENCV_K_KEYS = ("K", "cam_to_ego", "width", "height", "distortion", "name")
+_OPENCV_FOV_KEYS = ("fov", "cam_to_ego", "width", "height", "distortion", "name")
 _RIG_KEYS = ("camera", "width", "height", "name")
 
 
@@ -356,15 +366,16 @@ def spec_from_item(item: Any, where: str) -> ViewSpec:
         carla.update({k: _get(rot, k, f"{where}.transform.rotation") for k in ("pitch", "yaw", "roll")})
         return ViewSpec(carla=carla, fov=_get(item, "fov", where), width=_get(item, "image_size_x", where),
                         height=_get(item, "image_size_y", where), names=names)
-    names = {k: f"{where}.{k}" for k in ("cam_to_ego", "width", "height", "fov", "K")}
+    names = {k: f"{where}.{k}" for k in ("cam_to_ego", "width", "height", "fov", "K", "distortion")}
     if "K" in item:
         _only(item, _OPENCV_K_KEYS, where, "an OpenCV camera with K")
         return ViewSpec(cam_to_ego=_get(item, "cam_to_ego", where), K=item["K"], width=_get(item, "width", where),
-                        height=_get(item, "height", where), names=names)
+                        height=_get(item, "height", where), distortion=item.get("distortion"), names=names)
     if "fov" in item:
         _only(item, _OPENCV_FOV_KEYS, where, "an OpenCV camera with fov")
         return ViewSpec(cam_to_ego=_get(item, "cam_to_ego", where), fov=item["fov"],
-                        width=_get(item, "width", where), height=_get(item, "height", where), names=names)
+                        width=_get(item, "width", where), height=_get(item, "height", where),
+                        distortion=item.get("distortion"), names=names)
     raise ViewError(where, f"expected one of {_ITEM_KINDS}")
 
 
@@ -428,8 +439,6 @@ class ViewRequest:
     def __post_init__(self) -> None:
         if not isinstance(self.camera, Camera):
             raise ViewError("camera", f"expected a runtime.camera.Camera, got {type(self.camera).__name__}")
-        if self.camera.distortion is not None:
-            raise ViewError("camera", "the renderer draws undistorted cameras only (drop the distortion)")
         if not isinstance(self.output, str) or self.output not in OUTPUTS:
             raise ViewError("output", f"must be one of {', '.join(OUTPUTS)} (got {_short(self.output)})")
         if not isinstance(self.format, str) or self.format not in FORMATS:
@@ -469,6 +478,7 @@ class ViewRequest:
         pinhole = not c.is_equirect
         return {"v": KEY_VERSION, "camera": c.model,
                 "K": rounded(c.K) if pinhole else None, "cam_to_ego": rounded(c.cam_to_ego),
+                "distortion": None if c.distortion is None else c.distortion.to_json(),
                 "width": c.width, "height": c.height, "output": self.output, "format": self.format,
                 "quality": self.quality}
 

@@ -44,6 +44,7 @@ class RenderQuery:
     cx: float | None = None
     cy: float | None = None
     fov: float | None = None
+    distortion: str | None = None       # JSON text (a list or an object), parsed by Service.view_request
     x: float | None = None
     y: float | None = None
     z: float | None = None

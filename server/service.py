@@ -315,8 +315,9 @@ class Service:
         await self.ready_record(sid)
         spec = ViewSpec(camera=q.camera, cam_to_ego=None if q.cam_to_ego is None else _numbers(q.cam_to_ego,
                                                                                                 "cam_to_ego", 16),
-                        fx=q.fx, fy=q.fy, cx=q.cx, cy=q.cy, fov=q.fov, carla=q.carla() or None, width=q.width,
-                        height=q.height, output=q.output, format=q.format, quality=q.quality)
+                        fx=q.fx, fy=q.fy, cx=q.cx, cy=q.cy, fov=q.fov,
+                        distortion=_json_value(q.distortion, "distortion"), carla=q.carla() or None, width=q.width, height=q.height, output=q.output, format=q.format,
+                        quality=q.quality)
         rig = await self.renders.run(self._rig, sid) if q.camera is not None else None
         try:
             req = spec.request(rig)
@@ -422,6 +423,19 @@ def _numbers(text: str, field: str, n: int) -> list[float]:
     if len(vals) != n:
         raise Invalid(f"{field}: {n} comma-separated numbers expected, got {len(vals)}", field)
     return vals
+
+
+def _json_value(text: str | None, field: str) -> Any:
+    """A query parameter holding JSON (a list or an object), None when absent; Invalid naming the field."""
+    if text is None:
+        return None
+    try:
+        value = json.loads(text)
+    except ValueError as e:
+        raise Invalid(f"{field}: not valid JSON ({e})", field) from None
+    if not isinstance(value, (list, dict)):
+        raise Invalid(f"{field}: a JSON list or object expected", field)
+    return value
 
 
 def _warm_renders() -> float:

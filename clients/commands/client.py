@@ -84,6 +84,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                       help="a CARLA camera sensor's transform relative to the vehicle (metres, degrees; CARLA's "
                            "left-handed axes); with --fov")
     pose.add_argument("--fov", type=float, metavar="DEG", help="horizontal field of view, degrees")
+    pose.add_argument("--distortion", metavar="JSON|FILE",
+                      help="the camera's lens as rig.json writes it (an OpenCV coefficient list or {\"model\": "
+                           "\"opencv\" | \"opencv_fisheye\" | \"ftheta\", ...}), or a .json file holding it; with "
+                           "--cam-to-world")
     p.add_argument("--width", type=int, metavar="W", help="pixels (required unless --camera; with --camera: resize)")
     p.add_argument("--height", type=int, metavar="H", help="pixels (as --width)")
     p.add_argument("--output", choices=("rgb", "depth", "alpha"), default="rgb",
@@ -204,11 +208,12 @@ def _reconstruct(c, args) -> int:
 
 
 def _pose(args) -> object:
-    from xyzcyl.common.poses import CARLA_POSE, PoseArgError, move_from_args, parse_matrix
+    from xyzcyl.common.poses import CARLA_POSE, PoseArgError, move_from_args, parse_lens, parse_matrix
 
     try:
         move = move_from_args(args)
         c2w = None if args.cam_to_world is None else parse_matrix(args.cam_to_world, "--cam-to-world")
+        lens = None if args.distortion is None else parse_lens(args.distortion)
     except PoseArgError as e:
         raise _UsageError(e.field, e.message) from None
     modes = [m for m, on in (("--camera", args.camera), ("--cam-to-world", args.cam_to_world),
@@ -217,6 +222,9 @@ def _pose(args) -> object:
         raise _UsageError(modes[1] if len(modes) > 1 else "--camera",
                           "give exactly one pose: --camera NAME, --cam-to-world M*16 (with --K or --fov), or "
                           "--carla X Y Z PITCH YAW ROLL (with --fov)")
+    if lens is not None and args.cam_to_world is None:
+        raise _UsageError("--distortion", "goes with --cam-to-world (an input camera has its own lens; a CARLA "
+                                          "camera has none)")
     if args.camera is not None:
         for flag, v in (("--K", args.K), ("--fov", args.fov)):
             if v is not None:
@@ -237,10 +245,11 @@ def _pose(args) -> object:
     if (args.K is None) == (args.fov is None):
         raise _UsageError("--K", "give exactly one of --K FX FY CX CY and --fov DEG with --cam-to-world")
     pose = move.apply(c2w).reshape(-1).tolist()
+    cam = {"cam_to_ego": pose} if lens is None else {"cam_to_ego": pose, "distortion": lens}
     if args.K is not None:
         fx, fy, cx, cy = args.K
-        return {"K": [[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]], "cam_to_ego": pose}
-    return {"fov": args.fov, "cam_to_ego": pose}
+        return {"K": [[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]], **cam}
+    return {"fov": args.fov, **cam}
 
 
 def _render(c, args) -> int:

@@ -20,6 +20,7 @@ from xyzcyl.common.poses import (
     add_matrix_argument,
     add_move_arguments,
     move_from_args,
+    parse_lens,
     parse_matrix,
 )
 
@@ -34,6 +35,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--K", type=float, nargs=4, metavar=("FX", "FY", "CX", "CY"),
                         help="pinhole intrinsics in pixels, OpenCV (pixel u is centred at x = u); this or --fov is "
                              "required unless --equirect or --camera")
+    parser.add_argument("--distortion", default=None, metavar="JSON|FILE",
+                        help="the camera's lens, as rig.json writes it: an OpenCV coefficient list or {\"model\": "
+                             "\"opencv\" | \"opencv_fisheye\" | \"ftheta\", ...} (docs/conventions.md, Lens models), "
+                             "or a .json file holding it (or a rig camera entry); with --K or --fov")
     parser.add_argument("--fov", type=float, default=None, metavar="DEG",
                         help="horizontal field of view in degrees, instead of --K (square pixels, centred "
                              "principal point)")
@@ -67,7 +72,7 @@ def _fail(msg: str) -> int:
 
 # where each ViewSpec attribute comes from on this command line (its errors name the flag)
 FLAGS = {"camera": "--camera", "cam_to_ego": "--cam-to-world", "fx": "--K", "fy": "--K", "cx": "--K", "cy": "--K",
-         "K": "--K", "fov": "--fov", "model": "--equirect", "width": "--width", "height": "--height",
+         "K": "--K", "fov": "--fov", "distortion": "--distortion", "model": "--equirect", "width": "--width", "height": "--height",
          "output": "--output", "format": "--out", "quality": "--quality"}
 FORMATS = {".png": "png", ".jpg": "jpeg", ".jpeg": "jpeg", ".exr": "exr"}
 
@@ -92,6 +97,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         move = move_from_args(args)
         c2w = None if args.cam_to_world is None else parse_matrix(args.cam_to_world, "--cam-to-world")
+        lens = None if args.distortion is None else parse_lens(args.distortion)
     except PoseArgError as exc:
         return _fail(str(exc))
     for flag, v in (("--width", args.width), ("--height", args.height)):
@@ -111,8 +117,10 @@ def run(args: argparse.Namespace) -> int:
     if args.camera is not None:
         if not is_scene:
             return _fail("--camera: needs a SCENE_DIR (a PLY has no rig); pass --K and --cam-to-world instead")
-        if args.cam_to_world is not None or args.K is not None or args.fov is not None or args.equirect:
-            return _fail("--camera: give either --camera or --K/--fov/--cam-to-world/--equirect, not both")
+        if args.cam_to_world is not None or args.K is not None or args.fov is not None or args.equirect \
+                or args.distortion is not None:
+            return _fail("--camera: give either --camera or --K/--fov/--distortion/--cam-to-world/--equirect, not "
+                         "both (an input camera has its own lens)")
     else:
         if args.cam_to_world is None:
             return _fail("--cam-to-world: required (or --camera NAME with a SCENE_DIR)")
@@ -139,8 +147,8 @@ def run(args: argparse.Namespace) -> int:
     fx, fy, cx, cy = args.K if args.K is not None else (None,) * 4
     output = args.output or ("all" if fmt == "exr" else "rgb")
     spec = ViewSpec(camera=args.camera, cam_to_ego=None if c2w is None else move.apply(c2w), fx=fx, fy=fy, cx=cx,
-                    cy=cy, fov=args.fov, model="equirectangular" if args.equirect else "pinhole", width=args.width,
-                    height=args.height, output=output, format=fmt, quality=args.quality, names=FLAGS)
+                    cy=cy, fov=args.fov, distortion=lens, model="equirectangular" if args.equirect else "pinhole",
+                    width=args.width, height=args.height, output=output, format=fmt, quality=args.quality, names=FLAGS)
     try:
         req = spec.request(None if scene is None else scene.rig)
         if args.camera is not None and move:

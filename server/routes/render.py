@@ -27,6 +27,9 @@ def render_query(
     fx: float | None = Query(None, gt=0, allow_inf_nan=False), fy: float | None = Query(None, gt=0, allow_inf_nan=False),
     cx: float | None = Query(None, allow_inf_nan=False), cy: float | None = Query(None, allow_inf_nan=False),
     fov: float | None = Query(None, gt=0, lt=180, description="horizontal field of view, degrees"),
+    distortion: str | None = Query(None, max_length=4096, description="the camera's lens as JSON, as rig.json writes "
+                                   "it: an OpenCV coefficient list, or {\"model\": \"opencv\" | \"opencv_fisheye\" | "
+                                   "\"ftheta\", ...} (docs/conventions.md, Lens models); with cam_to_ego"),
     x: float | None = Query(None, allow_inf_nan=False, description="CARLA location, metres (vehicle frame)"),
     y: float | None = Query(None, allow_inf_nan=False), z: float | None = Query(None, allow_inf_nan=False),
     pitch: float | None = Query(None, allow_inf_nan=False, description="CARLA rotation, degrees"),

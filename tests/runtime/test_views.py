@@ -245,7 +245,7 @@ def test_camera_path_errors_name_the_json_path():
     assert field_of(lambda d: d["camera_path"][1].pop("camera_to_world")) == "camera_path[1].camera_to_world"
     assert field_of(lambda d: d.pop("render_width")) == "render_width"
     assert field_of(lambda d: d.update(render_height=0.5)) == "render_height"
-    assert field_of(lambda d: d.update(camera_type="fisheye")) == "camera_type"
+    assert field_of(lambda d: d.update(camera_type="vr180_l")) == "camera_type"
     assert field_of(lambda d: d.update(camera_path=[])) == "camera_path"
     assert field_of(lambda d: d["camera_path"].__setitem__(0, 7)) == "camera_path[0]"
     assert field_of(lambda d: None, max_frames=1) == "camera_path"
@@ -347,10 +347,8 @@ def test_request_validation_and_media_types():
     with pytest.raises(ViewError) as ei:
         ViewRequest("CAM_FRONT")   # a name, not a camera
     assert _field(ei) == "camera"
-    with pytest.raises(ViewError) as ei:       # the renderer draws undistorted cameras only
-        ViewRequest(_rig().camera("CAM_FRONT").replace(distortion=(0.1, 0.0, 0.0, 0.0)))
-    assert _field(ei) == "camera"
-    ViewRequest(_rig().camera("CAM_FRONT"))    # one camera type: a rig's camera renders as it is
+    ViewRequest(_rig().camera("CAM_FRONT"))    # one camera type: a rig's camera renders as it is, lens and all
+    ViewRequest(_rig().camera("CAM_FRONT").replace(distortion=(0.1, 0.0, 0.0, 0.0)))
 
 
 def test_key_is_stable_and_changes_with_every_field():

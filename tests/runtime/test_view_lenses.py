@@ -1,0 +1,96 @@
+"""Lenses in render requests (issue 28, interfaces): a ViewSpec, a batch item, the GET query, both CLIs and the
+Python client state a camera's lens as rig.json writes it (runtime.lenses), and the errors name the lens field in
+the transport's own terms."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from xyzcyl.clients.client import view_params
+from xyzcyl.common.poses import PoseArgError, parse_lens
+from xyzcyl.runtime import convert
+from xyzcyl.runtime.views import ViewError, ViewSpec, cameras_from_batch
+
+FISHEYE = {"model": "opencv_fisheye", "k1": 0.05, "k2": -0.01, "k3": 0.0, "k4": 0.0, "max_angle_deg": 95.0}
+AHEAD = [0, 0, 1, 0, -1, 0, 0, 0, 0, -1, 0, 1.6, 0, 0, 0, 1]     # OpenCV camera looking along ego x
+
+
+def test_spec_with_a_lens_makes_a_lens_camera():
+    cam = ViewSpec(cam_to_ego=AHEAD, fov=90, width=64, height=48, distortion=FISHEYE).resolve_camera()
+    assert cam.lens_model == "opencv_fisheye" and cam.distortion.to_json() == FISHEYE
+    assert cam.K[0, 0] == pytest.approx(32.0)           # fov gives the lens's paraxial focal length
+    plain = ViewSpec(cam_to_ego=AHEAD, fov=90, width=64, height=48, distortion=[0.1, 0.0, 0.0, 0.0])
+    assert plain.resolve_camera().lens_model == "opencv"
+
+
+@pytest.mark.parametrize("spec, field", [
+    (dict(cam_to_ego=AHEAD, fov=90, width=64, height=48, distortion=dict(FISHEYE, k1="x")), "distortion.k1"),
+    (dict(cam_to_ego=AHEAD, fov=90, width=64, height=48, distortion=dict(FISHEYE, max_angle_deg=200)),
+     "distortion.max_angle_deg"),
+    (dict(cam_to_ego=AHEAD, fov=90, width=64, height=48, distortion=[0.1, float("nan"), 0, 0]), "distortion[1]"),
+    (dict(camera="CAM_FRONT", distortion=FISHEYE), "distortion"),            # an input camera has its own lens
+    (dict(carla={"x": 0, "y": 0, "z": 1, "pitch": 0, "yaw": 0, "roll": 0}, fov=90, width=64, height=48,
+          distortion=FISHEYE), "distortion"),
+    (dict(cam_to_ego=AHEAD, model="equirectangular", width=64, height=32, distortion=FISHEYE), "distortion"),
+])
+def test_lens_errors_name_the_lens_field(spec, field):
+    with pytest.raises(ViewError) as e:
+        ViewSpec(**spec).resolve_camera()
+    assert e.value.field == field, str(e.value)
+
+
+def test_batch_items_take_a_lens_and_name_its_fields_by_json_path():
+    doc = {"cameras": [{"fov": 90, "cam_to_ego": AHEAD, "width": 64, "height": 48},
+                       {"K": [[30, 0, 31.5], [0, 30, 23.5], [0, 0, 1]], "cam_to_ego": AHEAD, "width": 64,
+                        "height": 48, "distortion": FISHEYE}]}
+    cams = cameras_from_batch(doc)
+    assert [c.lens_model for c in cams] == ["pinhole", "opencv_fisheye"]
+    doc["cameras"][1]["distortion"] = dict(FISHEYE, k2=None, k5=1.0)
+    with pytest.raises(ViewError) as e:
+        cameras_from_batch(doc)
+    assert e.value.field.startswith("cameras[1].distortion"), str(e.value)
+
+
+def test_a_lens_is_part_of_the_request_key():
+    from xyzcyl.runtime.views import ViewRequest
+
+    a = ViewRequest(ViewSpec(cam_to_ego=AHEAD, fov=90, width=64, height=48).resolve_camera())
+    b = ViewRequest(ViewSpec(cam_to_ego=AHEAD, fov=90, width=64, height=48, distortion=FISHEYE).resolve_camera())
+    assert a.description()["distortion"] is None and b.description()["distortion"] == FISHEYE
+    assert a.key() != b.key()
+
+
+def test_nerfstudio_fisheye_camera_path_round_trips():
+    doc = {"render_width": 64, "render_height": 48, "camera_type": "fisheye",
+           "camera_path": [{"camera_to_world": np.eye(4).ravel().tolist(), "fov": 70.0}]}
+    cams = convert.cameras_from_nerfstudio_path(doc)
+    lens = cams[0].distortion.to_json()
+    assert lens["model"] == "opencv_fisheye" and lens["max_angle_deg"] == 180.0
+    assert all(lens[k] == 0.0 for k in ("k1", "k2", "k3", "k4"))           # nerfstudio's equidistant fisheye
+    back = convert.cameras_to_nerfstudio_path(cams)
+    assert back["camera_type"] == "fisheye" and back["camera_path"][0]["fov"] == pytest.approx(70.0)
+    # a lens nerfstudio's camera path cannot express is refused, naming the field
+    other = ViewSpec(cam_to_ego=AHEAD, fov=90, width=64, height=48, distortion=FISHEYE).resolve_camera()
+    with pytest.raises(convert.ConversionError) as e:
+        convert.cameras_to_nerfstudio_path([other])
+    assert e.value.field == "distortion"
+
+
+def test_client_sends_the_lens_as_json(tmp_path):
+    p = view_params({"cam_to_ego": AHEAD, "fov": 90, "distortion": FISHEYE}, 64, 48)
+    assert json.loads(p["distortion"]) == FISHEYE
+    cam = ViewSpec(cam_to_ego=AHEAD, fov=90, width=64, height=48, distortion=FISHEYE).resolve_camera()
+    assert json.loads(view_params(cam)["distortion"]) == FISHEYE       # a runtime Camera's Lens: its to_json()
+
+
+def test_parse_lens_reads_json_text_files_and_rig_entries(tmp_path):
+    assert parse_lens(json.dumps(FISHEYE)) == FISHEYE
+    assert parse_lens("[0.1, 0, 0, 0]") == [0.1, 0, 0, 0]
+    (tmp_path / "lens.json").write_text(json.dumps({"name": "CAM", "distortion": FISHEYE}))
+    assert parse_lens(str(tmp_path / "lens.json")) == FISHEYE
+    for bad in ("{nope", "3", str(tmp_path / "missing.json")):
+        with pytest.raises(PoseArgError) as e:
+            parse_lens(bad)
+        assert e.value.field == "--distortion"
