@@ -9,6 +9,7 @@ import json
 import threading
 import time
 import zipfile
+from urllib.parse import quote
 
 import numpy as np
 import pytest
@@ -137,6 +138,13 @@ RENDER_ERRORS = {
     "unknown format": ("camera=CAM_FRONT&format=gif", "format"),
     "unknown output": ("camera=CAM_FRONT&output=normals", "output"),
     "quality 0": ("camera=CAM_FRONT&format=jpeg&quality=0", "quality"),
+    "lens not JSON": (f"cam_to_ego={_C2E}&fov=60&width=64&height=64&distortion=%7Bnope", "distortion"),
+    "lens field": (f"cam_to_ego={_C2E}&fov=60&width=64&height=64&distortion="
+                   + quote('{"model": "opencv_fisheye", "k1": "x", "max_angle_deg": 95}'), "distortion.k1"),
+    "lens max angle": (f"cam_to_ego={_C2E}&fov=60&width=64&height=64&distortion="
+                       + quote('{"model": "ftheta", "pixeldist_to_angle_poly": [0, 0.02], "max_angle_deg": 181}'),
+                       "distortion.max_angle_deg"),
+    "lens on an input camera": ("camera=CAM_FRONT&distortion=" + quote("[0.1, 0, 0, 0]"), "distortion"),
 }
 
 
