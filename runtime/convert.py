@@ -23,6 +23,7 @@ import numpy as np
 
 from .camera import MAX_SIZE, Camera
 from .errors import RigError, plain
+from .lenses import fisheye_max_angle_deg
 from .rig import Rig
 from .rotations import quat_to_rotmat, rotmat_to_quat
 
@@ -35,7 +36,8 @@ UE_FROM_CV = np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
 EGO_FROM_CARLA = np.diag([1.0, -1.0, 1.0])
 WAYMO_NAMES = {"front": "FRONT", "front_left": "FRONT_LEFT", "front_right": "FRONT_RIGHT",
                "side_left": "SIDE_LEFT", "side_right": "SIDE_RIGHT"}
-_NS_DIST = ("k1", "k2", "p1", "p2", "k3")  # nerfstudio keys in OpenCV coefficient order
+_NS_DIST = ("k1", "k2", "p1", "p2", "k3")
+_NS_FISHEYE_DIST = ("k1", "k2", "k3", "k4")   # nerfstudio OPENCV_FISHEYE (cv2.fisheye's k1..k4)  # nerfstudio keys in OpenCV coefficient order
 _CARLA_TOL_PX = 1e-3  # principal point must be within this of the image centre to be a CARLA camera
 
 
@@ -85,8 +87,10 @@ def _from_camera(exc: RigError, where: str) -> ConversionError:
 def rig_from_nerfstudio(transforms: Mapping[str, Any], root: str | Path | None = None) -> Rig:
     """nerfstudio `transforms.json` (dict) -> Rig, world frame taken as the ego frame.
 
-    Intrinsics fl_x, fl_y, cx, cy, w, h (and OpenCV k1 k2 p1 p2 k3) at the top level or per frame;
-    camera_model PINHOLE / OPENCV / SIMPLE_PINHOLE / EQUIRECTANGULAR. transform_matrix is camera-to-world in
+    Intrinsics fl_x, fl_y, cx, cy, w, h (and OpenCV k1 k2 p1 p2 k3, or k1..k4 for a fisheye) at the top level or
+    per frame; camera_model PINHOLE / OPENCV / SIMPLE_PINHOLE / OPENCV_FISHEYE / EQUIRECTANGULAR. An
+    OPENCV_FISHEYE frame becomes an opencv_fisheye lens whose max_angle_deg (nerfstudio has none) is the widest its
+    k1..k4 allow, up to 180 (runtime.lenses.fisheye_max_angle_deg). transform_matrix is camera-to-world in
     OpenGL camera axes, so cam_to_ego = transform_matrix @ diag(1, -1, -1, 1). nerfstudio puts pixel k's centre
     at k + 0.5, OpenCV at k: cx_opencv = cx - 0.5, cy_opencv = cy - 0.5. Camera names: the frame's "name" if
     present (written by rig_to_nerfstudio), else the file name without extension.
@@ -102,9 +106,9 @@ def rig_from_nerfstudio(transforms: Mapping[str, Any], root: str | Path | None =
             raise ConversionError(f"frames[{k}]", "must be an object", "transforms.json")
         merged = {**{key: v for key, v in transforms.items() if key != "frames"}, **fr}
         model = str(merged.get("camera_model", "OPENCV")).upper()
-        if model not in ("PINHOLE", "OPENCV", "SIMPLE_PINHOLE", "EQUIRECTANGULAR"):
+        if model not in ("PINHOLE", "OPENCV", "SIMPLE_PINHOLE", "OPENCV_FISHEYE", "EQUIRECTANGULAR"):
             raise ConversionError("camera_model", f"{model!r} is not supported (PINHOLE, OPENCV, SIMPLE_PINHOLE, "
-                                                  "EQUIRECTANGULAR)", where)
+                                                  "OPENCV_FISHEYE, EQUIRECTANGULAR)", where)
         if "transform_matrix" not in fr:
             raise ConversionError("transform_matrix", "is missing", where)
         try:
@@ -125,7 +129,7 @@ def rig_from_nerfstudio(transforms: Mapping[str, Any], root: str | Path | None =
         used.add(name)
         extra = {key: v for key, v in fr.items()
                  if key not in ("file_path", "transform_matrix", "name", "depth_file_path", "camera_model",
-                                "fl_x", "fl_y", "cx", "cy", "w", "h", *_NS_DIST)}
+                                "fl_x", "fl_y", "cx", "cy", "w", "h", *_NS_DIST, "k4")}
         K, distortion, cam_model = None, None, "pinhole"
         if model == "EQUIRECTANGULAR":
             cam_model = "equirectangular"
@@ -134,8 +138,13 @@ def rig_from_nerfstudio(transforms: Mapping[str, Any], root: str | Path | None =
             fy = _num(merged, "fl_y", where) if "fl_y" in merged else fx
             cx, cy = _num(merged, "cx", where) - 0.5, _num(merged, "cy", where) - 0.5
             K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
-            coeffs = [float(merged.get(key, 0.0)) for key in _NS_DIST]
-            distortion = tuple(coeffs) if any(coeffs) else None
+            if model == "OPENCV_FISHEYE":
+                k = [_num(merged, key, where) if key in merged else 0.0 for key in _NS_FISHEYE_DIST]
+                distortion = {"model": "opencv_fisheye", **dict(zip(_NS_FISHEYE_DIST, k)),
+                              "max_angle_deg": fisheye_max_angle_deg(k)}
+            else:
+                coeffs = [float(merged.get(key, 0.0)) for key in _NS_DIST]
+                distortion = tuple(coeffs) if any(coeffs) else None
         try:
             cams.append(Camera(name=name, width=int(w), height=int(h), K=K, cam_to_ego=c2w @ GL_FROM_CV,
                                model=cam_model, distortion=distortion, image=file_path,
@@ -143,7 +152,7 @@ def rig_from_nerfstudio(transforms: Mapping[str, Any], root: str | Path | None =
         except RigError as exc:
             raise _from_camera(exc, where) from None
     top = {key: v for key, v in transforms.items()
-           if key not in ("frames", "camera_model", "fl_x", "fl_y", "cx", "cy", "w", "h", *_NS_DIST)}
+           if key not in ("frames", "camera_model", "fl_x", "fl_y", "cx", "cy", "w", "h", *_NS_DIST, "k4")}
     return Rig(cameras=tuple(cams), root=None if root is None else Path(root), extra=top)
 
 
@@ -162,9 +171,14 @@ def rig_to_nerfstudio(rig: Rig) -> dict[str, Any]:
             K = cam.K
             fr.update(camera_model="OPENCV", fl_x=K[0, 0], fl_y=K[1, 1], cx=K[0, 2] + 0.5, cy=K[1, 2] + 0.5)
             lens = cam.distortion
-            if lens is not None and lens.model != "opencv":
+            if lens is not None and lens.model == "opencv_fisheye":     # nerfstudio keeps no max angle
+                fisheye = lens.to_json()
+                fr["camera_model"] = "OPENCV_FISHEYE"
+                fr.update({key: float(fisheye[key]) for key in _NS_FISHEYE_DIST})
+                lens = None
+            elif lens is not None and lens.model != "opencv":
                 raise ConversionError("distortion", f"an {lens.model} lens; this writer knows nerfstudio OPENCV "
-                                                    "(k1 k2 p1 p2 k3) only", cam.where)
+                                                    "(k1 k2 p1 p2 k3) and OPENCV_FISHEYE (k1..k4) only", cam.where)
             d = () if lens is None else lens.opencv_coefficients()
             if len(d) > 5:
                 raise ConversionError("distortion", f"has {len(d)} coefficients; nerfstudio OPENCV holds k1 k2 p1 "

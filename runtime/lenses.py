@@ -179,6 +179,16 @@ def _fisheye_poly(k: Sequence[float]) -> tuple[float, ...]:
     return (0.0, 1.0, 0.0, k1, 0.0, k2, 0.0, k3, 0.0, k4)
 
 
+def fisheye_max_angle_deg(k: Sequence[float], limit_deg: float = 180.0) -> float:
+    """The widest ``max_angle_deg`` an opencv_fisheye lens of coefficients ``k`` (k1..k4) allows: where theta_d(theta)
+    stops increasing (less 0.1 %, so the validator's strict check holds), capped at ``limit_deg``. For formats that
+    carry no max angle (nerfstudio's OPENCV_FISHEYE)."""
+    turn = _first_turn(_fisheye_poly(tuple(float(v) for v in k)))
+    if not math.isfinite(turn):
+        return float(limit_deg)
+    return float(min(limit_deg, math.degrees(turn) * 0.999))
+
+
 def fisheye_theta_d(theta: np.ndarray, k: Sequence[float]) -> np.ndarray:
     """OpenCV fisheye: theta_d = theta (1 + k1 theta^2 + k2 theta^4 + k3 theta^6 + k4 theta^8), theta in radians."""
     theta = np.asarray(theta, dtype=np.float64)

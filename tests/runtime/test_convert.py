@@ -72,8 +72,8 @@ def test_nerfstudio_conventions():
     np.testing.assert_allclose(cam.K, [[100, 0, 31.5], [0, 110, 23.5], [0, 0, 1]])
     again = rig_from_nerfstudio(rig_to_nerfstudio(rig_from_nerfstudio(ns)))
     _same_camera(again.cameras[0], cam)
-    with pytest.raises(ConversionError, match=r"frames\[0\]: camera_model: 'OPENCV_FISHEYE'"):
-        rig_from_nerfstudio({**ns, "camera_model": "OPENCV_FISHEYE"})
+    with pytest.raises(ConversionError, match=r"frames\[0\]: camera_model: 'FISHEYE624'"):
+        rig_from_nerfstudio({**ns, "camera_model": "FISHEYE624"})
     with pytest.raises(ConversionError, match=r"frames\[0\]: fl_x: is missing"):
         rig_from_nerfstudio({k: v for k, v in ns.items() if k != "fl_x"})
     bad = json.loads(json.dumps(ns))

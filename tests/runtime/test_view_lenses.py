@@ -94,3 +94,23 @@ def test_parse_lens_reads_json_text_files_and_rig_entries(tmp_path):
         with pytest.raises(PoseArgError) as e:
             parse_lens(bad)
         assert e.value.field == "--distortion"
+
+
+def test_nerfstudio_opencv_fisheye_transforms_round_trip():
+    """transforms.json OPENCV_FISHEYE (k1..k4) <-> an opencv_fisheye lens; nerfstudio has no max angle, so the
+    reader takes the widest the coefficients allow (up to 180 degrees)."""
+    frame = {"file_path": "images/f.png", "camera_model": "OPENCV_FISHEYE", "fl_x": 300.0, "fl_y": 300.0,
+             "cx": 640.0, "cy": 480.0, "w": 1280, "h": 960, "k1": 0.02, "k2": -0.003, "k3": 0.0, "k4": 0.0,
+             "transform_matrix": np.eye(4).tolist()}
+    rig = convert.rig_from_nerfstudio({"frames": [frame]})
+    cam = rig.cameras[0]
+    lens = cam.distortion.to_json()
+    assert cam.lens_model == "opencv_fisheye" and (lens["k1"], lens["k2"]) == (0.02, -0.003)
+    assert 90.0 < lens["max_angle_deg"] <= 180.0
+    back = convert.rig_to_nerfstudio(rig)["frames"][0]
+    assert back["camera_model"] == "OPENCV_FISHEYE"
+    assert {k: back[k] for k in ("k1", "k2", "k3", "k4")} == {"k1": 0.02, "k2": -0.003, "k3": 0.0, "k4": 0.0}
+    assert (back["cx"], back["cy"]) == (640.0, 480.0)
+    strong = dict(frame, k1=-0.3)            # theta_d turns back well before 180 degrees: max angle just under it
+    turned = convert.rig_from_nerfstudio({"frames": [strong]}).cameras[0].distortion.to_json()["max_angle_deg"]
+    assert turned < 90.0
