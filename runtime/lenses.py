@@ -393,6 +393,12 @@ class Lens:
         """Radians; pi/2 for opencv (a point needs z > 0)."""
         return math.pi / 2 if self.max_angle_deg is None else math.radians(self.max_angle_deg)
 
+    @property
+    def circle_limit(self) -> float | None:
+        """The image circle of max_angle: opencv_fisheye: theta_d there (normalised by fx, fy); ftheta: its pixel
+        radius (after the linear term's inverse); opencv: None. `unproject` refuses the pixels beyond it."""
+        return getattr(self, "_limit", None)
+
     def opencv_coefficients(self) -> tuple[float, ...]:
         """An opencv lens as cv2's distCoeffs: the list form's length, else the shortest of 4, 5, 8, 12 holding
         every non-zero coefficient."""

@@ -108,20 +108,30 @@ class Background:
                               "v = -2 (z - centre_z) / (z_max - z_min); rows clamped"}
 
     def render(self, camera, step: int = 4) -> np.ndarray:
-        """[H, W, 3] float32: the panorama seen by a runtime.camera.Camera (pinhole or equirectangular).
+        """[H, W, 3] float32: the panorama seen by a runtime.camera.Camera (pinhole, with or without a lens, or
+        equirectangular), through the same rays the renderer draws: a lens camera's are Camera.pixel_rays (the
+        lens's exact inverse); pixels no ray reaches (outside a fisheye / f-theta image circle, beyond an opencv
+        lens's fold) are black.
 
         ``step`` > 1: the rays are traced at 1/step of the resolution (the camera resized with the pixel-centre
-        convention of Camera.resized) and the result resized back bilinearly (cv2.INTER_LINEAR, the same
-        convention): the panorama is smooth at view scale (a 4x4 texel of the cylinder spans several view pixels
-        at the usual sizes), and the trace costs ~1/step^2 (docs/inference.md gives the measured difference)."""
+        convention of Camera.resized, which scales an f-theta lens too) and the result resized back bilinearly
+        (cv2.INTER_LINEAR, the same convention): the panorama is smooth at view scale (a 4x4 texel of the cylinder
+        spans several view pixels at the usual sizes), and the trace costs ~1/step^2 (docs/inference.md gives the
+        measured difference). The pixels outside an image circle are then set black again at full resolution
+        (the resize blurs the circle's rim over a few pixels inside it)."""
         W, H = camera.width, camera.height
         if step > 1 and min(W, H) >= 4 * step:
             import cv2
 
+            from .render.lensmap import image_circle
+
             w, h = math.ceil(W / step), math.ceil(H / step)
             small = camera.resized(w, h)
-            img = self._trace(small)
-            return cv2.resize(img, (W, H), interpolation=cv2.INTER_LINEAR)
+            img = cv2.resize(self._trace(small), (W, H), interpolation=cv2.INTER_LINEAR)
+            inside = image_circle(camera)
+            if inside is not None:
+                img[~inside] = 0.0
+            return img
         return self._trace(camera)
 
     def _trace(self, camera) -> np.ndarray:
@@ -130,8 +140,8 @@ class Background:
         T = np.ascontiguousarray(camera.cam_to_ego, np.float64)
         args = (self.image, self.v_range[0], self.v_range[1], float(c.centre[0]), float(c.centre[1]),
                 float(c.centre[2]), float(c.radius), float(c.Z_u))
-        if camera.is_equirect:
-            d = np.ascontiguousarray(camera.pixel_rays()[1], np.float64)
+        if camera.is_equirect or camera.distortion is not None:
+            d = np.ascontiguousarray(camera.pixel_rays()[1], np.float64)      # NaN where no ray: black
             _bg_dirs(*args, T, d, out)
         else:
             K = camera.K
@@ -186,6 +196,10 @@ def _bg_dirs(pano, v0, v1, cx, cy, cz, R, Zu, T, d, out):
     H, W = out.shape[0], out.shape[1]
     for y in numba.prange(H):
         for x in range(W):
+            if not (np.isfinite(d[y, x, 0]) and np.isfinite(d[y, x, 1]) and np.isfinite(d[y, x, 2])):
+                for k in range(3):
+                    out[y, x, k] = 0.0          # no ray (outside a lens's image circle)
+                continue
             _sample(pano, v0, v1, T[0, 3], T[1, 3], T[2, 3], d[y, x, 0], d[y, x, 1], d[y, x, 2], cx, cy, cz, R,
                     Zu, out, y, x)
 
@@ -297,19 +311,20 @@ class Scene:
 
 
 def rig_camera(cam: Camera, forward: float = 0.0, width: int | None = None, height: int | None = None):
-    """A render camera for a rig camera (pinhole: K and size, distortion dropped: the renderer draws undistorted
-    cameras; equirectangular), moved ``forward`` metres along ego x, optionally at another size (K scaled with
-    Camera.resized). Name and files are dropped."""
+    """A render camera for a rig camera (pinhole: K, size and its lens, which the renderer draws (issue 28);
+    equirectangular), moved ``forward`` metres along ego x, optionally at another size (K and an f-theta lens
+    scaled with Camera.resized). Name and files are dropped."""
     if width is not None or height is not None:
         cam = cam.resized(cam.width if width is None else width, cam.height if height is None else height)
     T = np.array(cam.cam_to_ego, dtype=np.float64)
     T[0, 3] += float(forward)
-    return Camera(width=cam.width, height=cam.height, cam_to_ego=T, K=cam.K, model=cam.model)
+    return Camera(width=cam.width, height=cam.height, cam_to_ego=T, K=cam.K, model=cam.model,
+                  distortion=cam.distortion)
 
 
 def render_view(scene: Scene, camera, **options) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(rgb [H, W, 3], depth [H, W], alpha [H, W]) float32 of ``scene`` seen by a runtime.camera.Camera
-    (pinhole or equirectangular, undistorted): the Gaussians composited over the background panorama (I = I_fg + (1 - A_fg) I_bg; black
+    (pinhole, with or without a lens, or equirectangular; docs/renderer.md): the Gaussians composited over the background panorama (I = I_fg + (1 - A_fg) I_bg; black
     without a background). Depth and alpha are the Gaussians' (depth 0 where alpha is 0). ``options``: the
     renderer's (RenderOptions)."""
     bg = scene.background.render(camera) if scene.background is not None else None

@@ -12,7 +12,9 @@ import numpy as np
 
 from ..camera import Camera
 from . import kernels as K
+from . import lensmap
 from .gaussians import Gaussians
+from .lensmap import lens_params, opencv_limits
 from .projection import RenderOptions, check_camera, equirect_jacobian, pinhole_limits, project_reference
 from .result import GaussianGrads, RenderResult, background_image
 from .sh import sh_basis
@@ -35,13 +37,18 @@ class _State:
 
 
 def _camera_args(camera):
+    """(Rw, tw, model, lp, fx, fy, cx, cy, lxn, lxp, lyn, lyp) for the kernels: world -> camera, the model code
+    and lens parameters (lensmap.lens_params), K and the Jacobian clamp box (pinhole_limits; an opencv lens:
+    lensmap.opencv_limits)."""
     check_camera(camera)
     w2c = np.linalg.inv(camera.cam_to_ego)
     Rw, tw = np.ascontiguousarray(w2c[:3, :3]), np.ascontiguousarray(w2c[:3, 3])
+    model, lp = lens_params(camera)
     if camera.is_equirect:
-        return Rw, tw, 1, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
+        return Rw, tw, model, lp, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
     k = camera.K
-    return Rw, tw, 0, k[0, 0], k[1, 1], k[0, 2], k[1, 2], *pinhole_limits(camera)
+    limits = opencv_limits(camera) if model == lensmap.OPENCV else pinhole_limits(camera)
+    return Rw, tw, model, lp, k[0, 0], k[1, 1], k[0, 2], k[1, 2], *limits
 
 
 def chunk_planes(camera, opts: RenderOptions) -> np.ndarray:
@@ -51,11 +58,22 @@ def chunk_planes(camera, opts: RenderOptions) -> np.ndarray:
     image sides; a camera-frame point p is in front of a side when (for z > 0) its pre-cull box can reach the
     image, i.e. x + z (cx + 3.34 sqrt(low_pass) + 1) / fx + 3.34 c smax >= 0 (left side; c = sqrt(1 + lim^2)
     bounds the clamped Jacobian's row norm, 3.34 is the pre-cull's radius in sigmas, the extra pixel absorbs
-    rounding); the other sides alike. Equirect: none (returns [0, 5])."""
+    rounding); the other sides alike. Equirect: none (returns [0, 5]). A lens: only the culls of the mean itself,
+    which need no bound on the lens's Jacobian: opencv: near and far (camera z); opencv_fisheye and ftheta with
+    max_angle <= 90 degrees: z >= 0 (every point within max_angle has it); else none."""
     if camera.is_equirect:
         return np.zeros((0, 5))
     w2c = np.linalg.inv(camera.cam_to_ego)
     Rw, tw = w2c[:3, :3], w2c[:3, 3]
+    if camera.distortion is not None:
+        eps = 1e-6
+        if camera.distortion.model == "opencv":
+            cam = [((0.0, 0.0, 1.0), -opts.near + eps, 0.0), ((0.0, 0.0, -1.0), opts.far + eps, 0.0)]
+        elif camera.distortion.max_angle <= np.pi / 2:
+            cam = [((0.0, 0.0, 1.0), eps, 0.0)]
+        else:
+            return np.zeros((0, 5))
+        return _planes(Rw, tw, cam)
     fx, fy, cx, cy = camera.K[0, 0], camera.K[1, 1], camera.K[0, 2], camera.K[1, 2]
     lxn, lxp, lyn, lyp = pinhole_limits(camera)
     kx = 3.34 * np.sqrt(1.0 + max(lxn, lxp) ** 2)
@@ -69,6 +87,11 @@ def chunk_planes(camera, opts: RenderOptions) -> np.ndarray:
            ((-1.0, 0.0, (W - 1 - cx + pad) / fx), 0.0, kx),   # right
            ((0.0, 1.0, (cy + pad) / fy), 0.0, ky),     # top
            ((0.0, -1.0, (H - 1 - cy + pad) / fy), 0.0, ky)]   # bottom
+    return _planes(Rw, tw, cam)
+
+
+def _planes(Rw: np.ndarray, tw: np.ndarray, cam: list) -> np.ndarray:
+    """Camera-frame half-spaces (a, offset, kscale): a . p + offset >= -kscale smax -> world frame [k, 5]."""
     out = np.empty((len(cam), 5))
     for k, (a, off, ks) in enumerate(cam):
         a = np.asarray(a)
@@ -144,11 +167,14 @@ def _prepare(g: Gaussians, camera, opts: RenderOptions, cull_chunks: bool = True
 
 
 def render(gaussians: Gaussians, camera, background=None, **options) -> RenderResult:
-    """Render Gaussians from a runtime.camera.Camera (pinhole or equirectangular, undistorted).
+    """Render Gaussians from a runtime.camera.Camera: pinhole or equirectangular, a pinhole with a lens
+    (runtime.lenses: opencv, opencv_fisheye, ftheta) drawn through the lens.
 
     background: None (black), an RGB triple, or an image [H, W, 3] (0..1). Options: see RenderOptions.
     Returns RenderResult(rgb [H, W, 3], alpha [H, W], depth [H, W]) float32; depth is the expected camera z
-    (pinhole) or distance (equirect), sum(w z) / alpha, 0 where alpha == 0."""
+    (pinhole, opencv lens) or distance from the camera centre (equirect, fisheye and f-theta lenses),
+    sum(w z) / alpha, 0 where alpha == 0. Pixels outside a fisheye's or f-theta's image circle show the
+    background alone (alpha 0, depth 0)."""
     opts = RenderOptions.from_kwargs(options)
     W, H = camera.width, camera.height
     bg = background_image(background, H, W)
@@ -162,6 +188,11 @@ def render(gaussians: Gaussians, camera, background=None, **options) -> RenderRe
     row_evals = np.empty(start.shape[0] - 1, np.int64)
     K.raster_forward(start, ids, rows, ntx, W, H, camera.is_equirect, bg, rgb, alpha, depth, last,
                      t_final, row_evals)
+    model, lp = lens_params(camera)
+    if model in (lensmap.FISHEYE, lensmap.FTHETA):   # no ray reaches the pixels outside the image circle
+        k = camera.K
+        lensmap.clear_outside_circle(model, lp, k[0, 0], k[1, 1], k[0, 2], k[1, 2], bg, rgb, alpha, depth, last,
+                                     t_final)
     timings["raster"] = time.perf_counter() - t0
     state = _State(opts, ntx, start, ids, rows, gid, bg, last, t_final, timings, row_evals)
     return RenderResult(rgb, alpha, depth, state)
@@ -182,6 +213,7 @@ def render_backward(gaussians: Gaussians, camera, result: RenderResult, d_rgb, d
     d_rgb [H, W, 3], d_alpha [H, W], d_depth [H, W] (None = zero) for `result = render(gaussians, camera,
     background, **options)` with the same arguments. Pinhole and equirectangular cameras."""
     opts = RenderOptions.from_kwargs(options)
+    check_camera(camera, backward=True)
     W, H = camera.width, camera.height
     st = result.state
     if not isinstance(st, _State) or st.opts != opts or st.last.shape != (H, W):

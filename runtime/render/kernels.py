@@ -13,6 +13,8 @@ import math
 import numpy as np
 from numba import njit, prange
 
+from .lensmap import lens_project
+
 TILE = 16
 TILE_PIX = TILE * TILE
 NCG = 16    # per-Gaussian float32 row (64 bytes): mean x, y (px) as float32 hi + lo pairs (float64 precision),
@@ -90,7 +92,7 @@ def _alpha(dx, dy, A, B, C, op, pmax):
 
 # ------------------------------------------------------------------------------------------------ projection
 @njit(inline="always")
-def _precull(means, log_scales, i, Rw, tw, model, fx, fy, cx, cy, lxn, lxp, lyn, lyp, width, height, near, far,
+def _precull(means, log_scales, i, Rw, tw, model, lp, fx, fy, cx, cy, lxn, lxp, lyn, lyp, width, height, near, far,
              low_pass):
     """(keep, x, y, z): Gaussian i's camera-frame mean (float64) and whether it survives the cheap conservative
     culls: depth (camera z, equirect: distance) within [near, far]; pinhole: its box of 3.34 x (the largest
@@ -117,12 +119,29 @@ def _precull(means, log_scales, i, Rw, tw, model, fx, fy, cx, cy, lxn, lxp, lyn,
         ru = 3.34 * math.sqrt((fx / z) ** 2 * (1.0 + sxc * sxc) * smax * smax + low_pass)
         rv = 3.34 * math.sqrt((fy / z) ** 2 * (1.0 + syc * syc) * smax * smax + low_pass)
         return not (u - ru > width - 1 or u + ru < 0.0 or v - rv > height - 1 or v + rv < 0.0), x, y, z
-    r = math.sqrt(x * x + y * y + z * z)
-    return r >= near and r <= far, x, y, z
+    if model == 1:
+        r = math.sqrt(x * x + y * y + z * z)
+        return r >= near and r <= far, x, y, z
+    # a lens (lensmap): depth = camera z (opencv) or distance (fisheye, f-theta) in [near, far], the lens images
+    # the mean (opencv: inside the unfolded disc; fisheye / f-theta: within max_angle), and the box of 3.34 x (the
+    # largest scale through the lens Jacobian's row norms, plus the low-pass) reaches the image
+    d = z if model == 2 else math.sqrt(x * x + y * y + z * z)
+    if not (d >= near and d <= far):
+        return False, x, y, z
+    ok, u, v, j00, j01, j02, j10, j11, j12 = lens_project(model, lp, fx, fy, cx, cy, lxn, lxp, lyn, lyp, x, y, z)
+    if not ok:
+        return False, x, y, z
+    if u >= 0.0 and u <= width - 1 and v >= 0.0 and v <= height - 1:
+        return True, x, y, z
+    s2 = math.exp(2.0 * max(np.float64(log_scales[i, 0]), np.float64(log_scales[i, 1]),
+                            np.float64(log_scales[i, 2])))
+    ru = 3.34 * math.sqrt((j00 * j00 + j01 * j01 + j02 * j02) * s2 + low_pass)
+    rv = 3.34 * math.sqrt((j10 * j10 + j11 * j11 + j12 * j12) * s2 + low_pass)
+    return not (u - ru > width - 1 or u + ru < 0.0 or v - rv > height - 1 or v + rv < 0.0), x, y, z
 
 
 @njit(cache=True, parallel=True, nogil=True)
-def precull_counts(means, log_scales, Rw, tw, model, fx, fy, cx, cy, lxn, lxp, lyn, lyp, width, height, near, far,
+def precull_counts(means, log_scales, Rw, tw, model, lp, fx, fy, cx, cy, lxn, lxp, lyn, lyp, width, height, near, far,
                    low_pass, planes, counts):
     """counts[c] = how many Gaussians of chunk c (PROJ_CHUNK Gaussians each) survive _precull; 0 for a chunk
     whose bounding box lies wholly outside one of `planes` (chunk_planes), without looking at its Gaussians.
@@ -132,12 +151,12 @@ def precull_counts(means, log_scales, Rw, tw, model, fx, fy, cx, cy, lxn, lxp, l
         ch = _spread(k, nch)
         if ch < 0:
             continue
-        counts[ch] = _precull_chunk(means, log_scales, Rw, tw, model, fx, fy, cx, cy, lxn, lxp, lyn, lyp, width,
+        counts[ch] = _precull_chunk(means, log_scales, Rw, tw, model, lp, fx, fy, cx, cy, lxn, lxp, lyn, lyp, width,
                                     height, near, far, low_pass, planes, ch)
 
 
 @njit(cache=True, nogil=True)
-def _precull_chunk(means, log_scales, Rw, tw, model, fx, fy, cx, cy, lxn, lxp, lyn, lyp, width, height, near, far,
+def _precull_chunk(means, log_scales, Rw, tw, model, lp, fx, fy, cx, cy, lxn, lxp, lyn, lyp, width, height, near, far,
                    low_pass, planes, ch):
     i0 = ch * PROJ_CHUNK
     i1 = min(means.shape[0], i0 + PROJ_CHUNK)
@@ -145,14 +164,14 @@ def _precull_chunk(means, log_scales, Rw, tw, model, fx, fy, cx, cy, lxn, lxp, l
         return 0
     c = 0
     for i in range(i0, i1):
-        keep, _, _, _ = _precull(means, log_scales, i, Rw, tw, model, fx, fy, cx, cy, lxn, lxp, lyn, lyp, width,
+        keep, _, _, _ = _precull(means, log_scales, i, Rw, tw, model, lp, fx, fy, cx, cy, lxn, lxp, lyn, lyp, width,
                                  height, near, far, low_pass)
         c += keep
     return c
 
 
 @njit(cache=True, parallel=True, nogil=True)
-def project_kernel(means, quats, log_scales, opacity_logits, sh, campos, Rw, tw, model, fx, fy, cx, cy,
+def project_kernel(means, quats, log_scales, opacity_logits, sh, campos, Rw, tw, model, lp, fx, fy, cx, cy,
                    lxn, lxp, lyn, lyp, width, height, near, far, low_pass, antialiased, opacity_mode,
                    pre, base, rows, trange, depth_out, gid, counts):
     """Project the Gaussians (float64), parallel over chunks of PROJ_CHUNK Gaussians. Chunk c (pre[c] > 0: its
@@ -161,7 +180,8 @@ def project_kernel(means, quats, log_scales, opacity_logits, sh, campos, Rw, tw,
     float32 row (layout: NCG), trange[s] [., 2] int32 = (tx0 | tx1 << 16, ty0 | ty1 << 16) the tiles its
     bounding box touches (tx1 < tx0: the range wraps around the azimuth seam, equirect), depth_out[s] float64 =
     depth, gid[s] int32 = the Gaussian's index. Slots past counts[c] are left unwritten (never read). Slots
-    increase with the Gaussian index, so sorting slots is sorting indices. model 0 = pinhole, 1 = equirect."""
+    increase with the Gaussian index, so sorting slots is sorting indices. model 0 = pinhole, 1 = equirect,
+    2..4 a lens (lensmap: opencv, opencv_fisheye, ftheta; lp its parameters)."""
     nch = (means.shape[0] + PROJ_CHUNK - 1) // PROJ_CHUNK
     ntx = (width + TILE - 1) // TILE
     for k in prange(SPREAD * ((nch + SPREAD - 1) // SPREAD)):
@@ -170,13 +190,13 @@ def project_kernel(means, quats, log_scales, opacity_logits, sh, campos, Rw, tw,
             continue
         counts[ch] = 0
         if pre[ch] > 0:
-            counts[ch] = _project_chunk(means, quats, log_scales, opacity_logits, sh, campos, Rw, tw, model, fx,
+            counts[ch] = _project_chunk(means, quats, log_scales, opacity_logits, sh, campos, Rw, tw, model, lp, fx,
                                         fy, cx, cy, lxn, lxp, lyn, lyp, width, height, near, far, low_pass,
                                         antialiased, opacity_mode, rows, trange, depth_out, gid, ch, base[ch], ntx)
 
 
 @njit(cache=True, nogil=True)
-def _project_chunk(means, quats, log_scales, opacity_logits, sh, campos, Rw, tw, model, fx, fy, cx, cy,
+def _project_chunk(means, quats, log_scales, opacity_logits, sh, campos, Rw, tw, model, lp, fx, fy, cx, cy,
                    lxn, lxp, lyn, lyp, width, height, near, far, low_pass, antialiased, opacity_mode,
                    rows, trange, depth_out, gid, ch, slot0, ntx):
     """One chunk of project_kernel (a plain function called per chunk from the prange loop), writing from slot
@@ -185,7 +205,7 @@ def _project_chunk(means, quats, log_scales, opacity_logits, sh, campos, Rw, tw,
     i1 = min(means.shape[0], i0 + PROJ_CHUNK)
     s = slot0
     for i in range(i0, i1):
-        keep, x, y, z = _precull(means, log_scales, i, Rw, tw, model, fx, fy, cx, cy, lxn, lxp, lyn, lyp, width,
+        keep, x, y, z = _precull(means, log_scales, i, Rw, tw, model, lp, fx, fy, cx, cy, lxn, lxp, lyn, lyp, width,
                                  height, near, far, low_pass)
         if not keep:
             continue
@@ -204,6 +224,10 @@ def _project_chunk(means, quats, log_scales, opacity_logits, sh, campos, Rw, tw,
             j10 = 0.0
             j11 = fy / z
             j12 = -fy * syc / z
+        elif model >= 2:
+            depth = z if model == 2 else math.sqrt(x * x + y * y + z * z)
+            _, u, v, j00, j01, j02, j10, j11, j12 = lens_project(model, lp, fx, fy, cx, cy, lxn, lxp, lyn, lyp,
+                                                                 x, y, z)
         else:
             r = math.sqrt(x * x + y * y + z * z)
             depth = r
@@ -279,7 +303,7 @@ def _project_chunk(means, quats, log_scales, opacity_logits, sh, campos, Rw, tw,
             continue
         u_lo_f = math.ceil(max(u - rx, -1e9))
         u_hi_f = math.floor(min(u + rx, 1e9))
-        if model == 0:
+        if model != 1:
             u_lo = max(0, int(u_lo_f))
             u_hi = min(width - 1, int(u_hi_f))
             if u_lo > u_hi:

@@ -47,14 +47,69 @@ class RenderOptions:
         return cls(**options)
 
 
-def check_camera(camera) -> None:
-    """The renderer draws a runtime.camera.Camera, pinhole or equirectangular, without lens distortion: TypeError
-    for anything else, CameraError (field "distortion") for a distorted camera."""
+def check_camera(camera, backward: bool = False) -> None:
+    """The renderer draws a runtime.camera.Camera: pinhole (with or without a lens) or equirectangular; TypeError
+    for anything else. The backward pass (backward=True) draws ideal cameras only: CameraError (field
+    "distortion") for a camera with a lens."""
     if not isinstance(camera, Camera):
         raise TypeError(f"camera: expected a runtime.camera.Camera, got {type(camera).__name__}")
-    if camera.distortion is not None:
-        raise CameraError("distortion", "the renderer draws undistorted cameras only (pinhole or equirectangular); "
-                          "drop the distortion coefficients or undistort the images first", camera.where)
+    if backward and camera.distortion is not None:
+        raise CameraError("distortion", f"render_backward draws pinhole and equirectangular cameras only, not a "
+                          f"{camera.distortion.model} lens (training uses ideal pinholes: drop the distortion)",
+                          camera.where)
+
+
+REF_STEP = 1e-5   # radians: the tangent-plane step of the reference's central differences of Lens.project
+
+
+def lens_reference(camera: Camera, p: np.ndarray, near: float, far: float) -> dict:
+    """The float64 reference's view of camera-frame points p [N, 3] through the camera's lens (runtime.lenses):
+    mean2d = Lens.project; depth (camera z for opencv, distance for opencv_fisheye and ftheta); geo = the culls of
+    the mean (depth in [near, far]; opencv: z > 0 and (x/z)^2 + (y/z)^2 <= the unfolded radius
+    lensmap.opencv_valid_r2; fisheye / f-theta: angle from the axis <= max_angle and not on the axis behind);
+    the tangent frame of each mean, m = p / |p| and e1, e2 spanning the plane orthogonal to it (e1 towards larger
+    angles from the axis); DL [N, 2, 2] = d(pixel)/d(g) of L(g) = Lens.project(m + g1 e1 + g2 e2) at g = 0, by
+    central differences with step h = REF_STEP (error ~ h^2 |L^(3)| / 6 + 1e-16 |uv| / h, ~1e-10 relative for
+    these lenses; a backward second-order stencil where m + h e1 would leave max_angle); and the 2x3 Jacobian
+    J = DL [e1; e2] / |p| (the projection is constant along rays, so d(pixel)/dp has p in its null space)."""
+    from .lensmap import opencv_valid_r2
+
+    lens, K = camera.distortion, camera.K
+    x, y, z = p[:, 0], p[:, 1], p[:, 2]
+    dist = np.linalg.norm(p, axis=1)
+    uv, _ = lens.project(K, p)
+    rho = np.hypot(x, y)
+    theta = np.arctan2(rho, z)
+    if lens.model == "opencv":
+        depth = z
+        zs = np.where(z > 0, z, 1.0)
+        geo = (z > 0) & ((x / zs) ** 2 + (y / zs) ** 2 <= opencv_valid_r2(tuple(lens.coeffs)))
+    else:
+        depth = dist
+        geo = (theta <= lens.max_angle) & ((rho > 0) | (z > 0))
+    geo &= (depth >= near) & (depth <= far)
+    m = p / np.where(dist > 0, dist, 1.0)[:, None]
+    s = np.sin(theta)
+    e1 = (m * np.cos(theta)[:, None] - np.array([0.0, 0.0, 1.0])) / np.where(s > 1e-9, s, 1.0)[:, None]
+    e1 = np.where((s > 1e-9)[:, None], e1, np.array([1.0, 0.0, 0.0]))
+    e1 -= m * np.einsum("ni,ni->n", e1, m)[:, None]
+    e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
+    e2 = np.cross(m, e1)
+    h = REF_STEP
+
+    def at(g1: float, g2: float) -> np.ndarray:
+        return lens.project(K, m + g1 * e1 + g2 * e2)[0]
+
+    d1 = (at(h, 0.0) - at(-h, 0.0)) / (2 * h)
+    if lens.model != "opencv":
+        edge = theta + 1.01 * h > lens.max_angle            # m + h e1 lies beyond max_angle: backward stencil
+        if edge.any():
+            d1b = (3 * at(0.0, 0.0) - 4 * at(-h, 0.0) + at(-2 * h, 0.0)) / (2 * h)
+            d1 = np.where(edge[:, None], d1b, d1)
+    d2 = (at(0.0, h) - at(0.0, -h)) / (2 * h)
+    DL = np.stack([d1, d2], axis=2)                          # [N, 2 (u, v), 2 (g1, g2)]
+    J = DL @ np.stack([e1, e2], axis=1) / np.where(dist > 0, dist, 1.0)[:, None, None]
+    return dict(mean2d=uv, depth=depth, geo=geo, J=J, DL=DL, frame=np.stack([m, e1, e2], axis=1))
 
 
 def pinhole_limits(camera: Camera) -> tuple[float, float, float, float]:
@@ -90,7 +145,9 @@ def project_reference(g: Gaussians, camera, opts: RenderOptions) -> dict:
     """Project every Gaussian (float64). Returns arrays over all N (invalid ones flagged):
     valid [N] bool; mean2d [N, 2] px; conic [N, 3] (a, b, c) with power = 0.5 a dx^2 + b dx dy + 0.5 c dy^2;
     opacity [N] (after the optional antialiasing compensation); pmax [N] (power cutoff of the footprint);
-    depth [N] (camera z for pinhole, distance for equirect); colour [N, 3]; plus intermediates for backward."""
+    depth [N] (camera z for pinhole and an opencv lens, distance for equirect, fisheye and f-theta); colour
+    [N, 3]; plus intermediates for backward, and `lens` (lens_reference's dict, None without a lens). With a lens
+    the Jacobian is lens_reference's (central differences of Lens.project, not clamped)."""
     n = len(g)
     check_camera(camera)
     w2c = np.linalg.inv(camera.cam_to_ego)
@@ -100,7 +157,12 @@ def project_reference(g: Gaussians, camera, opts: RenderOptions) -> dict:
     x, y, z = p[:, 0], p[:, 1], p[:, 2]
     J = np.zeros((n, 2, 3))
     clamp = np.zeros((n, 2), bool)
-    if not camera.is_equirect:
+    geo = np.ones(n, bool)
+    lens = None
+    if camera.distortion is not None:
+        lens = lens_reference(camera, p, opts.near, opts.far)
+        mean2d, depth, J, geo = lens["mean2d"], lens["depth"], lens["J"], lens["geo"]
+    elif not camera.is_equirect:
         fx, fy, cx, cy = camera.K[0, 0], camera.K[1, 1], camera.K[0, 2], camera.K[1, 2]
         depth = z
         zs = np.where(z > 0, z, 1.0)
@@ -145,8 +207,8 @@ def project_reference(g: Gaussians, camera, opts: RenderOptions) -> dict:
     else:
         ext = np.minimum(OPACITY_EXTENT_MAX, np.sqrt(2 * np.log(np.maximum(opa_eff, ALPHA_MIN) / ALPHA_MIN)))
         pmax = 0.5 * ext * ext
-    valid = (depth >= opts.near) & (depth <= opts.far) & (det > 0) & (opa_eff >= ALPHA_MIN)
+    valid = geo & (depth >= opts.near) & (depth <= opts.far) & (det > 0) & (opa_eff >= ALPHA_MIN)
     colour, unclamped = sh_colours(g.means, g.sh, camera.cam_to_ego[:3, 3])
     return dict(valid=valid, mean2d=mean2d, conic=conic, opacity=opa_eff, pmax=pmax, depth=depth,
                 colour=colour, colour_unclamped=unclamped, p_cam=p, J=J, clamp=clamp, Rw=Rw, R=R, s=s, M=M,
-                cov3=cov3, cov2_raw=cov2_raw, cov2=cov2, det=det, opa=opa, comp=comp)
+                cov3=cov3, cov2_raw=cov2_raw, cov2=cov2, det=det, opa=opa, comp=comp, lens=lens)
