@@ -311,8 +311,8 @@ def camera_from_carla_pose(x, y, z, pitch, yaw, roll, fov, width, height) -> Cam
 
 
 def camera_from_rig(rig: Rig, name: str, width: int | None = None, height: int | None = None) -> Camera:
-    """The scene rig's input camera ``name`` as a render camera (runtime.scene.rig_camera: pinhole K and pose,
-    distortion dropped; equirectangular cameras stay equirectangular), optionally at width x height pixels (K
+    """The scene rig's input camera ``name`` as a render camera (runtime.scene.rig_camera: K, lens and pose;
+    equirectangular cameras stay equirectangular), optionally at width x height pixels (K
     scaled with the pixel-centre convention of Camera.resized). Only one of width / height given: the other
     follows the camera's aspect ratio (rounded). Unknown name -> ViewError("camera", "no camera 'x' in the
     scene's rig (cameras: a, b)")."""
@@ -431,7 +431,7 @@ def cameras_from_batch(doc: Mapping[str, Any], rig: Rig | None = None, max_frame
 class ViewRequest:
     """One view to render and how to encode it. Compare requests with key() (the camera holds arrays)."""
 
-    camera: Camera   # a render camera (runtime.camera; undistorted), ego frame: cam_to_ego, metres
+    camera: Camera   # a render camera (runtime.camera; any lens), ego frame: cam_to_ego, metres
     output: str = "rgb"      # rgb | depth | alpha
     format: str = "png"      # png | jpeg | exr (jpeg cannot hold depth)
     quality: int = 90        # JPEG quality 1..100 (kept, and part of key(), for every format)

@@ -72,6 +72,32 @@ def test_fov_flag_is_the_services_fov(ply, tmp_path):
     assert np.array_equal(exr[..., :3], ref.rgb)
 
 
+def test_distortion_flag_renders_the_lens(ply, tmp_path):
+    """--distortion (issue 28): a lens as rig.json writes it, JSON text or a .json file, rendered as the runtime
+    renders that lens camera; a bad lens field is named under the flag."""
+    import json
+
+    import OpenImageIO as oiio
+    from xyzcyl.runtime.views import ViewSpec
+
+    lens = {"model": "opencv_fisheye", "k1": 0.03, "k2": 0.0, "k3": 0.0, "k4": 0.0, "max_angle_deg": 95.0}
+    (tmp_path / "lens.json").write_text(json.dumps({"name": "CAM", "distortion": lens}))
+    for value in (json.dumps(lens), str(tmp_path / "lens.json")):
+        argv = ["render", str(ply), "--width", "48", "--height", "32", "--K", "20", "20", "23.5", "15.5",
+                "--distortion", value, "--cam-to-world", *EYE, "--out", str(tmp_path / "l.exr")]
+        assert cli.main(argv) == 0
+        inp = oiio.ImageInput.open(str(tmp_path / "l.exr"))
+        exr = inp.read_image(oiio.FLOAT)
+        inp.close()
+        cam = ViewSpec(cam_to_ego=np.eye(4), fx=20, fy=20, cx=23.5, cy=15.5, width=48, height=32,
+                       distortion=lens).resolve_camera()
+        ref = render(Gaussians.load_ply(ply), cam)
+        assert np.array_equal(exr[..., :3], ref.rgb)
+    bad = ["render", str(ply), "--width", "48", "--height", "32", "--fov", "90", "--distortion",
+           json.dumps(dict(lens, max_angle_deg=200)), "--cam-to-world", *EYE, "--out", str(tmp_path / "b.png")]
+    assert cli.main(bad) == 2
+
+
 def test_equirect(ply, tmp_path):
     argv = ["render", str(ply), "--width", "64", "--height", "32", "--cam-to-world", *EYE,
             "--out", str(tmp_path / "p.png"), "--equirect"]
