@@ -463,14 +463,14 @@ class Reconstructor:
 
     def lidar_depths(self, rig: Rig, gauss: Gaussians, lidar: np.ndarray, depth: np.ndarray, mask: np.ndarray
                      ) -> tuple[np.ndarray, np.ndarray, list[float | None]]:
-        """The encode graph's depth inputs with LiDAR: for each pinhole camera whose depth is not supplied
-        (mask 0), ``runtime.lidar.fuse_depth`` of the sweep's nearest point per depth cell (occlusion-filtered)
-        and the depth of ``gauss`` (the reconstruction without LiDAR) rendered at that camera. lidar: [P, 3]
+        """The encode graph's depth inputs with LiDAR: for each camera with K (any lens) whose depth is not supplied
+        (mask 0), ``runtime.lidar.fuse_depth`` of the sweep's nearest point per depth cell (occlusion-filtered;
+        projected through the camera's lens) and the depth of ``gauss`` (the reconstruction without LiDAR) along
+        the cells' true rays (runtime.raydepth), both in the camera's depth (Camera.depth_is_distance). lidar: [P, 3]
         metres, ego frame. Returns (depth [N, 1, h, w], depth_mask [N], the scale per camera or None where the
         camera kept its input)."""
         from .lidar import fuse_depth, lidar_depth_map, occlusion_filter
-        from .render import render
-        from .scene import rig_camera
+        from .raydepth import render_ray_depth
 
         pts = np.asarray(lidar, np.float64)
         if pts.ndim != 2 or pts.shape[1] != 3 or not np.all(np.isfinite(pts)):
@@ -482,11 +482,11 @@ class Reconstructor:
             if mask[n] > 0 or cam.model != "pinhole":
                 scales.append(None)
                 continue
-            small = cam.replace(distortion=None).resized(w, h)
+            small = cam.resized(w, h)                        # the lens kept: LiDAR and model along true rays
             lid = lidar_depth_map(pts, small)
             lid = np.where(occlusion_filter(lid, radius=1), lid, 0).astype(np.float32)
-            r = render(gauss, rig_camera(small))
-            depth[n, 0], s = fuse_depth(lid, r.depth, r.alpha)
+            model_depth, model_alpha = render_ray_depth(gauss, small)
+            depth[n, 0], s = fuse_depth(lid, model_depth, model_alpha)
             mask[n] = 1.0
             scales.append(s)
         return depth, mask, scales
