@@ -196,8 +196,10 @@ def resize_nearest(a: np.ndarray, height: int, width: int) -> np.ndarray:
 
 
 def check_depth(d: np.ndarray, cam: Camera) -> np.ndarray:
-    """A supplied depth map [H, W] (metres along the optical axis) -> float32; RigError naming the camera when
-    its size differs from the camera's, or it has NaN/inf or negative values."""
+    """A supplied depth map [H, W] (metres, the camera's depth: along the optical axis for a pinhole or an opencv
+    lens, along the pixel's ray from the camera centre for a fisheye or f-theta lens, Camera.depth_is_distance) ->
+    float32; RigError naming the camera when its size differs from the camera's, or it has NaN/inf or negative
+    values."""
     a = np.asarray(d)
     if a.ndim == 3 and a.shape[2] == 1:
         a = a[..., 0]
@@ -423,7 +425,7 @@ class Reconstructor:
     def add_detail(self, rig: Rig, images: Sequence[np.ndarray], coarse: Gaussians, lidar: np.ndarray | None,
                    opts: DetailOptions, counts: dict[str, int]) -> Gaussians:
         """The scene's Gaussians with the detail layer (runtime.detail): the coarse model Gaussians that a detail cell
-        covers culled, then each pinhole camera's detail Gaussians. images: the full-resolution inputs in rig order;
+        covers culled, then each K camera's detail Gaussians (any lens: on its cells' true rays). images: the full-resolution inputs in rig order;
         lidar [P, 3] metres, ego frame, or None. Adds to ``counts``: detail (Gaussians), detail_lidar /
         detail_ground / detail_model / detail_far (cells placed by LiDAR, the LiDAR's ground plane, the model's
         depth, at the far depth), detail_edge (cells dropped at depth edges), carved (cells another camera
