@@ -17,6 +17,7 @@ from xyzcyl.runtime.raydepth import render_ray_depth
 from xyzcyl.runtime.render import Gaussians
 from xyzcyl.runtime.rig import Rig, ring_rig
 from xyzcyl.runtime.scene import Scene
+from xyzcyl.testing import EXAMPLE_RIG, REPO
 
 FISHEYE = {"model": "opencv_fisheye", "k1": -0.03, "k2": 0.004, "k3": -2e-4, "k4": 0.0, "max_angle_deg": 100.0}
 FTHETA = {"model": "ftheta", "reference_poly": "angle_to_pixeldist", "angle_to_pixeldist_poly": [0.0, 21.0, 0.0, -1.5],
@@ -173,3 +174,26 @@ def test_cylinder_cli_on_a_fisheye_rig(tmp_path, capsys):
     assert valid.any(axis=0).all()
     np.testing.assert_allclose(pano, overlay(maps, "cw", valid=valid), atol=1 / 255 + 1e-6)
 
+
+
+@pytest.mark.skipif(not (REPO / "models" / "xyzcyl-cpu-v1" / "model.json").is_file(), reason="no shipped model")
+def test_reconstruct_a_fisheye_rig_with_lidar_and_detail():
+    """The whole input path on lens cameras (the example rig's cameras given a fisheye lens): LiDAR depth for every
+    camera, detail cells on the lens cameras, every Gaussian finite."""
+    from xyzcyl.runtime.inference import Reconstructor
+    from xyzcyl.runtime.rig import load_rig
+
+    rig = load_rig(EXAMPLE_RIG)
+    lens = {**FISHEYE, "max_angle_deg": 80.0}
+    fish = Rig(cameras=tuple(c.replace(distortion=lens) for c in rig.cameras))
+    rng = np.random.default_rng(0)
+    d = rng.normal(size=(20000, 3))
+    d[:, 2] = -np.abs(d[:, 2]) * 0.2
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    lidar = d * rng.uniform(3.0, 40.0, (len(d), 1)) + [0.0, 0.0, 1.8]
+    rec = Reconstructor.load(REPO / "models" / "xyzcyl-cpu-v1", threads=2)
+    scene = rec.reconstruct(fish, rig.load_images(), lidar=lidar)
+    c = scene.counts
+    assert c["lidar_cameras"] == len(rig.cameras) and c["detail"] > 10000 and c["detail_lidar"] > 0
+    g = scene.gaussians
+    assert np.isfinite(g.means).all() and np.isfinite(g.log_scales).all() and np.isfinite(g.quats).all()
