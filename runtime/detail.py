@@ -57,7 +57,7 @@ class DetailOptions:
 
     stride: int = 2                 # input pixels per detail cell along each axis (1 = every pixel)
     footprint: float = 0.5          # disc standard deviation, in cell footprints (depth x stride / focal)
-    thickness: float = 0.1          # standard deviation along the optical axis, as a fraction of the disc's
+    thickness: float = 0.1          # standard deviation along the disc's normal, as a fraction of the disc's
     surface_stretch: float = 30.0   # > 0: discs lie in the surface's tangent plane (from the neighbouring cells) where
     #                                 its tangents are at most this x the image-plane footprint (a road 20 m ahead of
     #                                 a camera 1.5 m up: ~13x); 0: all discs face their camera (seen from above, the

@@ -27,7 +27,8 @@ paired per view; the summary gives their mean over scenes with a 95 % t interval
     .venv/bin/python scripts/lens_input_eval.py --scenes 4 --out docs/runs/lens_inputs_2026-11-26.json \
         --picture docs/pictures/lens_inputs.png
 
-Deterministic (fixed seeds, single-threaded tracer order does not matter: each pixel is traced alone).
+Deterministic: fixed seeds; the tracer traces each pixel alone and the runtime's results do not depend on its
+thread count (docs/inference.md).
 """
 
 from __future__ import annotations
@@ -192,7 +193,8 @@ def main() -> int:
                     rgb, _, _ = render_scene_view(sc, Camera(K=cam.K, cam_to_ego=cam.cam_to_ego, width=cam.width,
                                                              height=cam.height))
                     m = metrics(rgb, gt.rgb.astype(np.float32) / 255.0, gt.sky)
-                    rows.append({"scene": i, "view": cam.name, "rig": name, "mode": mode, **m})
+                    rows.append({"scene": i, "view": cam.name, "rig": name, "mode": mode,
+                                 **{k: round(v, 5) for k, v in m.items()}})
                     if mode == "detail":
                         renders[(name, k)] = rgb
             print(f"scene {i} {name}: {time.perf_counter() - t_start:.0f} s", flush=True)

@@ -197,3 +197,18 @@ def test_reconstruct_a_fisheye_rig_with_lidar_and_detail():
     assert c["lidar_cameras"] == len(rig.cameras) and c["detail"] > 10000 and c["detail_lidar"] > 0
     g = scene.gaussians
     assert np.isfinite(g.means).all() and np.isfinite(g.log_scales).all() and np.isfinite(g.quats).all()
+
+
+@pytest.mark.skipif(not (REPO / "models" / "xyzcyl-cpu-v1" / "model.json").is_file(), reason="no shipped model")
+def test_depth_files_of_lens_cameras_are_taken_as_the_cameras_depth():
+    """A fisheye camera's supplied depth map (distances along its pixels' rays) goes to the network as it is,
+    resized like a pinhole's (the depth rays are in the same convention)."""
+    from xyzcyl.runtime.inference import Reconstructor, resize_nearest
+
+    rig = lens_rig(FISHEYE, n=2)
+    rec = Reconstructor.load(REPO / "models" / "xyzcyl-cpu-v1", threads=1)
+    imgs = [np.zeros((c.height, c.width, 3), np.float32) for c in rig.cameras]
+    dist = np.full((64, 96), 7.5, np.float32)
+    _, depth, mask = rec.prepare(rig, imgs, [dist, None])
+    assert mask.tolist() == [1.0, 0.0]
+    np.testing.assert_array_equal(depth[0, 0], resize_nearest(dist, *rec.info.depth_size))
