@@ -168,6 +168,47 @@ class Camera:
         theta = np.where(valid, np.arccos(np.clip(d[:, 2], -1.0, 1.0)), self.distortion.max_angle)
         return float(theta.sum())
 
+    @property
+    def depth_is_distance(self) -> bool:
+        """Whether this camera's depth is the distance from its centre along the pixel's ray (equirectangular and
+        a fisheye or f-theta lens: cameras that can image at or beyond 90 degrees from the axis, where camera z is
+        0 or negative) rather than camera z (an ideal pinhole, an opencv lens). Depth maps of the camera (files,
+        LiDAR, the network's depth head, the detail layer) hold this depth (docs/conventions.md "Depth")."""
+        return self.is_equirect or (self.distortion is not None and self.distortion.images_beyond_90)
+
+    @property
+    def paraxial_focal(self) -> tuple[float, float]:
+        """(fx, fy) pixels per radian at the optical axis: K's for an ideal pinhole, the lens's
+        (Lens.paraxial_focal) otherwise; W / 2pi and H / pi for equirectangular."""
+        if self.is_equirect:
+            return self.width / (2.0 * math.pi), self.height / math.pi
+        if self.distortion is None:
+            return float(self.K[0, 0]), float(self.K[1, 1])
+        return self.distortion.paraxial_focal(self.K)
+
+    def project_depth(self, points_ego: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """`project` with the camera's depth (depth_is_distance: the distance from the camera centre, else camera
+        z): (uv [..., 2], depth [...], in_front [...])."""
+        uv, z, front = self.project(points_ego)
+        if self.depth_is_distance and not self.is_equirect:
+            z = np.linalg.norm(np.asarray(points_ego, np.float64) - self.position, axis=-1)
+        return uv, z, front
+
+    def depth_rays(self, uv: np.ndarray | None = None) -> np.ndarray:
+        """[..., 3] camera-frame vectors r with point = depth * r for a pixel's point at the camera's depth
+        (project_depth): unit rays when depth_is_distance, else the ray scaled to z = 1. uv: [..., 2] pixels,
+        default all pixel centres [H, W, 2]. NaN for pixels no ray reaches."""
+        if uv is None:
+            vv, uu = np.meshgrid(np.arange(self.height), np.arange(self.width), indexing="ij")
+            uv = np.stack([uu, vv], axis=-1).astype(np.float64)
+        uv = np.asarray(uv, dtype=np.float64)
+        d = _equirect_dirs(uv, self.width, self.height) if self.is_equirect else \
+            unproject(self.K, self.distortion, uv)[0]
+        if self.depth_is_distance:
+            return d
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return d / d[..., 2:3]
+
     def project(self, points_ego: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Project ego points into the image.
 

@@ -4,7 +4,7 @@ Derivation"), vectorised numpy.
 Cylinder geometry (docs/conventions.md states all of it):
 - centre c = mean camera position + (0, 0, dh), ego frame; axis vertical (ego z);
 - Z_u = z_max - z_min (vertical extent of the occupancy grid), R_u = (Z_u / 2) / tan(rho * f_min / 2), f_min the
-  smallest vertical FoV of the rig's cameras;
+  smallest vertical FoV of the rig's cameras (each counted as at most pi: a wide fisheye's may exceed it);
 - theta = atan2(y - c_y, x - c_x) (0 = ego forward, counter-clockwise positive seen from above);
 - column: s = (pi - theta) / 2pi, j = s W_u - 1/2 (left -> right turns clockwise, forward at the centre column);
 - row: p = 1/2 - dz R_u / (Z_u r) with dz = z - c_z and r the horizontal distance to the axis, i = p H_u - 1/2;
@@ -95,7 +95,8 @@ class CylinderSpec:
                  dh: float = 0.0, height: int = 224, width: int = 1024) -> CylinderSpec:
         """The paper's construction: centre = mean camera position + (0, 0, dh), R_u = (Z_u/2)/tan(rho f_min/2).
 
-        f_min = min over cameras of the vertical FoV (pinhole 2 atan(H / 2 fy); equirectangular pi).
+        f_min = min over cameras of the vertical FoV (pinhole 2 atan(H / 2 fy); equirectangular pi; a fisheye or
+        f-theta lens: Camera.vertical_fov, which may exceed pi, counts as at most pi, as an equirectangular camera).
         Raises CylinderError naming the parameter when rho * f_min / 2 is not in (0, pi/2).
         """
         z_min, z_max = (float(z) for z in z_range)
@@ -106,7 +107,7 @@ class CylinderSpec:
             raise CylinderError("rho", f"must be a finite number > 0 (got {rho})")
         if not math.isfinite(dh):
             raise CylinderError("dh", f"must be finite (got {dh})")
-        f_min = min(c.vertical_fov for c in rig.cameras)
+        f_min = min(min(c.vertical_fov, math.pi) for c in rig.cameras)
         half = rho * f_min / 2.0
         if half >= math.pi / 2.0:
             raise CylinderError(

@@ -5,22 +5,27 @@ degree), while a 1920x1080 camera with a 50 degree lens has ~37 pixels per degre
 input camera its own Gaussians at its own resolution (docs/inference.md, "Detail Gaussians", has the table of
 steps and settings; docs/results.md "Detail Gaussians" the measurements behind the defaults):
 
-1. A grid camera per input camera (``grid_camera``: the camera resized by 1/stride; a cell's centre is its
-   stride x stride block's centre); a cell's colour is the block's area mean, unsharp-masked (``grid_colours``).
-2. A depth per cell (camera z, metres), in ``camera_detail``:
+1. A grid camera per input camera (``grid_camera``: the camera resized by 1/stride, its lens kept; a cell's centre
+   is its stride x stride block's centre); a cell's colour is the block's area mean, unsharp-masked
+   (``grid_colours``). Where each cell looks (its true ray, its footprint) is ``cell_geometry``: an ideal pinhole by
+   K, a camera with a lens by its exact inverse (Camera.depth_rays), so no image is undistorted or cropped.
+2. A depth per cell (the camera's depth, Camera.depth_is_distance: camera z for an ideal pinhole or an opencv lens,
+   the distance for a fisheye or f-theta lens; metres), in ``camera_detail``:
    - LiDAR: the sweep projected into the grid, nearest return per cell, returns hidden behind a nearer one within a
      fixed angle dropped (``lidar_grid_depth``), spread edge-aware over the image (``densify``: normalised fast
      global smoothing, OpenCV ximgproc); a cell within ``support_deg`` of a return is LiDAR-supported;
    - ground: cells the LiDAR does not reach whose ray meets the sweep's ground plane (``fit_ground``,
      ``ground_depth``) take its depth unless something is clearly in front;
    - model: other cells with a model surface take the model's depth (its Gaussians rendered at the grid,
-     ``model_grid_depth``; scaled by the median LiDAR / model ratio when a sweep is given);
+     ``model_grid_depth``; a lens camera along its cells' rays, runtime.raydepth; scaled by the median LiDAR / model
+     ratio when a sweep is given);
    - far: cells with no depth (sky) or beyond ``max_depth`` sit on one sphere about the ego origin
      (``sphere_depth``).
 3. No Gaussian spans a depth edge: the cells between the two sides of a jump are dropped (``edge_keep``).
 4. One Gaussian per kept cell (``cell_gaussians``, one numba pass; ``cell_gaussians_reference`` is its numpy
    definition): on the cell's ray at its depth, a disc covering the cell's footprint, in the surface's tangent plane
-   where the neighbouring cells give one (``surface_discs``), else parallel to the image plane; the cell's colour.
+   where the neighbouring cells give one (``surface_discs``), else facing the camera (parallel to the image plane;
+   a lens: across the cell's ray, sized by its angular footprint); the cell's colour.
 5. Fusion (called by ``Reconstructor.add_detail``): ``cull_covered`` drops the model's Gaussians that would veil a
    detail surface; ``carve_details`` drops the cells that another camera contradicts (it saw through them) or
    resolves more finely on the same surface. Each has a slow reference the tests compare it with.
@@ -52,7 +57,7 @@ class DetailOptions:
 
     stride: int = 2                 # input pixels per detail cell along each axis (1 = every pixel)
     footprint: float = 0.5          # disc standard deviation, in cell footprints (depth x stride / focal)
-    thickness: float = 0.1          # standard deviation along the optical axis, as a fraction of the disc's
+    thickness: float = 0.1          # standard deviation along the disc's normal, as a fraction of the disc's
     surface_stretch: float = 30.0   # > 0: discs lie in the surface's tangent plane (from the neighbouring cells) where
     #                                 its tangents are at most this x the image-plane footprint (a road 20 m ahead of
     #                                 a camera 1.5 m up: ~13x); 0: all discs face their camera (seen from above, the
@@ -70,8 +75,8 @@ class DetailOptions:
     cull_tolerance: float = 0.15    # fusion: a coarse Gaussian within this fraction behind a detail cell is culled
     dedupe: float = 0.7             # fusion: a cell another camera resolves at most this x its footprint, on the same
     #                                 surface, is dropped (0: no cell is dropped for that reason)
-    min_depth: float = 1.0          # metres camera z: nearer cells are the ego's own body
-    max_depth: float = 150.0        # metres camera z: farther depths are not trusted (the cell goes to far_depth)
+    min_depth: float = 1.0          # metres, the camera's depth: nearer cells are the ego's own body
+    max_depth: float = 150.0        # metres, the camera's depth: farther are not trusted (the cell goes to far_depth)
     ground: bool = True             # with LiDAR: cells it does not reach that look at the ground get the LiDAR's
     #                                 ground plane's depth (the LiDAR sees no ground within a few metres of the car)
     ground_max: float = 40.0        # metres camera z: the ground plane is used up to this depth
@@ -116,9 +121,95 @@ class DetailOptions:
 
 def grid_camera(cam: Camera, stride: int) -> Camera:
     """The camera whose pixels are ``cam``'s stride x stride blocks: ``cam.resized(round(W / s), round(H / s))``
-    (pixel-centre convention of Camera.resized), distortion dropped (the renderer has none)."""
+    (pixel-centre convention of Camera.resized; a lens is kept, Lens.resized)."""
     w, h = max(1, round(cam.width / stride)), max(1, round(cam.height / stride))
-    return cam.replace(distortion=None).resized(w, h)
+    return cam.resized(w, h)
+
+
+@dataclass(frozen=True, eq=False)
+class CellGeometry:
+    """Where a grid camera's cells look (``cell_geometry``): what the Gaussians, the fusion and the depth sources
+    read, one definition for an ideal pinhole and for a lens."""
+
+    rays: np.ndarray       # [h, w, 3] float64 camera frame: the cell's point at depth d is d * rays (pinhole:
+    #                        ((u - cx) / fx, (v - cy) / fy, 1); a lens: Camera.depth_rays); NaN where no ray
+    has_ray: np.ndarray    # [h, w] bool
+    f: float               # pixels per radian at the axis (the mean of fx and fy; a lens: its paraxial focal)
+    scale: np.ndarray      # [h, w] float64: the cell's footprint over depth / f (pinhole: 1, the image-plane
+    #                        footprint; a lens: f |rays| x the cell's angular size, from its true rays: across it)
+    quats: np.ndarray      # [h, w, 4] float64 wxyz, ego frame: a disc facing the cell (pinhole: the camera's
+    #                        rotation, parallel to the image plane; a lens: its local z along the cell's ray)
+    across: np.ndarray     # [h, w] float64: the cell's size across its ray per metre of depth (cell_footprint)
+
+
+_GEOMETRY: dict[int, tuple[Camera, CellGeometry]] = {}
+
+
+def cell_geometry(grid: Camera) -> CellGeometry:
+    """The CellGeometry of a grid camera (the last 16 kept, keyed by the camera object)."""
+    hit = _GEOMETRY.get(id(grid))
+    if hit is not None and hit[0] is grid:
+        return hit[1]
+    h, w = grid.height, grid.width
+    fx, fy = grid.paraxial_focal
+    f = 0.5 * (fx + fy)
+    if grid.is_ideal:
+        K = grid.K
+        x = (np.arange(w) - K[0, 2]) / K[0, 0]
+        y = (np.arange(h) - K[1, 2]) / K[1, 1]
+        rays = np.empty((h, w, 3))
+        rays[..., 0], rays[..., 1], rays[..., 2] = x[None, :], y[:, None], 1.0
+        scale = np.ones((h, w))
+        quats = np.broadcast_to(rotmat_to_quat(grid.rotation), (h, w, 4))
+        across = np.sqrt(1.0 + x[None, :] ** 2 + y[:, None] ** 2) / f
+        has = np.ones((h, w), bool)
+    else:
+        rays = grid.depth_rays()
+        has = np.all(np.isfinite(rays), axis=-1)
+        length = np.linalg.norm(rays, axis=-1)
+        across = np.where(has, length * _cell_angles(grid), 1.0 / f)   # finite on cells a point may round onto
+        scale = f * across
+        R = np.einsum("ij,hwjk->hwik", grid.rotation, _facing(rays / length[..., None]))
+        quats = rotmats_to_quats(R.reshape(-1, 3, 3)).reshape(h, w, 4)
+    geo = CellGeometry(rays, has, f, scale, quats, across)
+    _GEOMETRY[id(grid)] = (grid, geo)
+    while len(_GEOMETRY) > 16:
+        _GEOMETRY.pop(next(iter(_GEOMETRY)))
+    return geo
+
+
+def _cell_angles(grid: Camera) -> np.ndarray:
+    """[h, w] radians: the angular size of each cell of a lens camera, sqrt(a_u a_v) with a_u the angle between the
+    rays through its left and right edge midpoints (one-sided, doubled, where one of them has no ray), a_v likewise;
+    1 / f (the paraxial pixel) where neither side has one."""
+    vv, uu = np.meshgrid(np.arange(grid.height, dtype=np.float64), np.arange(grid.width, dtype=np.float64),
+                         indexing="ij")
+    centre = grid.pixel_rays(np.stack([uu, vv], -1))[1]
+    fx, fy = grid.paraxial_focal
+    sizes = []
+    for du, dv, fallback in ((0.5, 0.0, 1.0 / fx), (0.0, 0.5, 1.0 / fy)):
+        a = grid.pixel_rays(np.stack([uu + du, vv + dv], -1))[1]
+        b = grid.pixel_rays(np.stack([uu - du, vv - dv], -1))[1]
+        angle = lambda p, q: 2.0 * np.arcsin(np.clip(0.5 * np.linalg.norm(p - q, axis=-1), 0.0, 1.0))  # noqa: E731
+        both = angle(a, b)
+        one = 2.0 * np.where(np.isfinite(a).all(-1), angle(a, centre), angle(centre, b))
+        sizes.append(np.where(np.isfinite(both), both, np.where(np.isfinite(one), one, fallback)))
+    return np.sqrt(sizes[0] * sizes[1])
+
+
+def _facing(d: np.ndarray) -> np.ndarray:
+    """[..., 3, 3] camera-frame rotations whose third column is the unit ray d [..., 3] (the smallest rotation from
+    the optical axis; a half turn about x for a ray straight back); identity where d is NaN."""
+    x, y, z = d[..., 0], d[..., 1], d[..., 2]
+    ok = np.isfinite(z)
+    x, y, z = np.where(ok, x, 0.0), np.where(ok, y, 0.0), np.where(ok, z, 1.0)
+    k = 1.0 / np.maximum(1.0 + z, 1e-12)
+    R = np.stack([np.stack([1 - x * x * k, -x * y * k, x], -1),
+                  np.stack([-x * y * k, 1 - y * y * k, y], -1),
+                  np.stack([-x, -y, z], -1)], -2)
+    back = z < -1 + 1e-9
+    R[back] = np.diag([1.0, -1.0, -1.0])
+    return R
 
 
 def grid_colours(image: np.ndarray, grid: Camera, sharpen: float = 0.0, footprint: float = 0.5) -> np.ndarray:
@@ -137,8 +228,9 @@ def grid_colours(image: np.ndarray, grid: Camera, sharpen: float = 0.0, footprin
 
 
 def _angle_pixels(grid: Camera, degrees: float) -> float:
-    """Pixels of ``grid`` that ``degrees`` of view angle span at the image centre."""
-    f = 0.5 * (grid.K[0, 0] + grid.K[1, 1])
+    """Pixels of ``grid`` that ``degrees`` of view angle span at the image centre (a lens: its paraxial focal)."""
+    fx, fy = (grid.K[0, 0], grid.K[1, 1]) if grid.is_ideal else grid.paraxial_focal
+    f = 0.5 * (fx + fy)
     return f * math.tan(math.radians(degrees))
 
 
@@ -279,8 +371,13 @@ def fit_ground(points: np.ndarray, min_points: int = 200, seed: int = 0) -> np.n
 
 
 def grid_rays(grid: Camera) -> tuple[np.ndarray, np.ndarray]:
-    """(unit directions [h, w, 3] float64, ego frame, of the cells' rays; cos [h, w]: their cosine with the optical
-    axis, which turns a distance along the ray into camera z)."""
+    """(unit directions [h, w, 3] float64, ego frame, of the cells' rays; cos [h, w]: the factor that turns a
+    distance along the ray into the camera's depth: the cosine with the optical axis (camera z), 1 for a camera
+    whose depth is the distance). NaN where a lens cell has no ray."""
+    if not grid.is_ideal:
+        rays = cell_geometry(grid).rays
+        n = np.linalg.norm(rays, axis=-1)
+        return (rays / n[..., None]) @ grid.rotation.T, 1.0 / n
     K = grid.K
     x = (np.arange(grid.width) - K[0, 2]) / K[0, 0]
     y = (np.arange(grid.height) - K[1, 2]) / K[1, 1]
@@ -291,18 +388,19 @@ def grid_rays(grid: Camera) -> tuple[np.ndarray, np.ndarray]:
 
 
 def sphere_depth(grid: Camera, radius: float, rays: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
-    """[h, w] float32 camera z (metres) where each cell's ray leaves the sphere of ``radius`` about the ego origin
-    (the camera must be inside it). rays: grid_rays(grid), if already at hand."""
+    """[h, w] float32 the camera's depth (metres; 0 where a lens cell has no ray) where each cell's ray leaves the
+    sphere of ``radius`` about the ego origin (the camera must be inside it). rays: grid_rays(grid), if at hand."""
     d, cos = rays or grid_rays(grid)
     c = grid.position
     b = d @ c
     t = -b + np.sqrt(np.maximum(b * b - (c @ c - radius * radius), 0.0))
-    return (t * cos).astype(np.float32)
+    z = t * cos
+    return (z if grid.is_ideal else np.where(np.isfinite(z), z, 0.0)).astype(np.float32)
 
 
 def ground_depth(grid: Camera, plane: np.ndarray, rays: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
-    """[h, w] float32 camera z (metres) where each cell's ray meets the plane ([4], n . x + d = 0, ego frame), 0
-    where it does not (the ray parallel to it or pointing away). rays: grid_rays(grid), if already at hand."""
+    """[h, w] float32 the camera's depth (metres) where each cell's ray meets the plane ([4], n . x + d = 0, ego
+    frame), 0 where it does not (the ray parallel to it or pointing away, or no ray). rays: grid_rays(grid), if already at hand."""
     d, cos = rays or grid_rays(grid)
     n, off = plane[:3], plane[3]
     denom = d @ n
@@ -314,16 +412,17 @@ def ground_depth(grid: Camera, plane: np.ndarray, rays: tuple[np.ndarray, np.nda
 # ------------------------------------------------------------------------------------------- Gaussians
 
 
-def surface_discs(points: np.ndarray, keep: np.ndarray, f: float, max_stretch: float
-                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def surface_discs(points: np.ndarray, keep: np.ndarray, f: float, max_stretch: float,
+                  unit: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Discs in the surface's tangent plane that cover each kept cell's footprint on it.
 
-    points [h, w, 3] camera-frame points of the cells (metres); keep [h, w] bool; f: the grid's focal (pixels).
+    points [h, w, 3] camera-frame points of the cells (metres); keep [h, w] bool; f: the grid's focal (pixels);
+    unit [h, w]: the cells' footprint in metres (None: z / f, the image-plane footprint of an ideal pinhole).
     The tangents t_u, t_v are the point steps to the neighbouring cells (central differences where both neighbours
     are kept, one-sided where one is); the disc's covariance is t_u t_u^T + t_v t_v^T (the cell's footprint on the
     plane: it projects back onto the cell as a circle), its normal t_u x t_v. A cell gets no disc (ok False: it
     stays parallel to the image plane) when it has no neighbour along u or v, or a tangent is longer than
-    ``max_stretch`` x its image-plane footprint z / f (a grazing surface or a depth step).
+    ``max_stretch`` x its footprint (a grazing surface or a depth step).
     Returns, for the kept cells in np.nonzero order: rotation [M, 3, 3] (columns: the two disc axes, the normal
     towards the camera; camera frame), the disc's standard deviations along its axes per unit footprint [M, 2]
     (metres), ok [M] bool."""
@@ -344,7 +443,7 @@ def surface_discs(points: np.ndarray, keep: np.ndarray, f: float, max_stretch: f
     tu, oku = step(0, 1)
     tv, okv = step(1, 0)
     z = P[ys, xs, 2]
-    L0 = z / f
+    L0 = z / f if unit is None else unit[ys, xs]
     n = np.cross(tu, tv)
     nn = np.linalg.norm(n, axis=1)
     lu, lv = np.linalg.norm(tu, axis=1), np.linalg.norm(tv, axis=1)
@@ -368,22 +467,22 @@ def _logit(p: np.ndarray) -> np.ndarray:
 
 
 @numba.njit(cache=True)
-def _cell_point(depth, fx, fy, cx, cy, y, x, out):
+def _cell_point(depth, rays, y, x, out):
     z = depth[y, x]
-    out[0], out[1], out[2] = (x - cx) / fx * z, (y - cy) / fy * z, z
+    out[0], out[1], out[2] = rays[y, x, 0] * z, rays[y, x, 1] * z, rays[y, x, 2] * z
 
 
 @numba.njit(cache=True)
-def _tangent(depth, keep, fx, fy, cx, cy, y, x, dy, dx, c, t, tmp_p, tmp_m):
+def _tangent(depth, keep, rays, y, x, dy, dx, c, t, tmp_p, tmp_m):
     """t = the step to the neighbours along (dy, dx) as surface_discs takes it; returns whether there is one."""
     h, w = keep.shape
     yp, xp, ym, xm = y + dy, x + dx, y - dy, x - dx
     kp = 0 <= yp < h and 0 <= xp < w and keep[yp, xp]
     km = 0 <= ym < h and 0 <= xm < w and keep[ym, xm]
     if kp:
-        _cell_point(depth, fx, fy, cx, cy, yp, xp, tmp_p)
+        _cell_point(depth, rays, yp, xp, tmp_p)
     if km:
-        _cell_point(depth, fx, fy, cx, cy, ym, xm, tmp_m)
+        _cell_point(depth, rays, ym, xm, tmp_m)
     for k in range(3):
         if kp and km:
             t[k] = 0.5 * (tmp_p[k] - tmp_m[k])
@@ -423,22 +522,21 @@ def _quat(R, q):
 
 
 @numba.njit(cache=True, parallel=True, nogil=True)
-def _cells_kernel(depth, keep, row_start, fx, fy, cx, cy, Rce, tce, qcam, footprint, thickness, stretch,
+def _cells_kernel(depth, keep, row_start, rays, f, scale, Rce, tce, qcell, footprint, thickness, stretch,
                   means, quats, log_scales):
     """cell_gaussians_reference's geometry for the kept cells, one image row per task; row_start[y] = the index of
     row y's first kept cell (np.nonzero order). The row's work is a plain (serial) function: inlined into the
     prange body, the same code gave wrong tangents (the surface branch's variables, measured: discs flat)."""
     for y in numba.prange(keep.shape[0]):
-        _cells_row(depth, keep, y, row_start[y], fx, fy, cx, cy, Rce, tce, qcam, footprint, thickness, stretch,
+        _cells_row(depth, keep, y, row_start[y], rays, f, scale, Rce, tce, qcell, footprint, thickness, stretch,
                    means, quats, log_scales)
 
 
 @numba.njit(cache=True, nogil=True)
-def _cells_row(depth, keep, y, i, fx, fy, cx, cy, Rce, tce, qcam, footprint, thickness, stretch, means, quats,
+def _cells_row(depth, keep, y, i, rays, f, scale, Rce, tce, qcell, footprint, thickness, stretch, means, quats,
                log_scales):
     """One image row of _cells_kernel, its first kept cell at index i."""
     w = keep.shape[1]
-    f = 0.5 * (fx + fy)
     c = np.empty(3)
     tu = np.empty(3)
     tv = np.empty(3)
@@ -450,15 +548,15 @@ def _cells_row(depth, keep, y, i, fx, fy, cx, cy, Rce, tce, qcam, footprint, thi
     for x in range(w):
         if not keep[y, x]:
             continue
-        _cell_point(depth, fx, fy, cx, cy, y, x, c)
-        z = c[2]
+        _cell_point(depth, rays, y, x, c)
+        z = depth[y, x]
         for r in range(3):
             means[i, r] = Rce[r, 0] * c[0] + Rce[r, 1] * c[1] + Rce[r, 2] * c[2] + tce[r]
-        s = footprint * z / f
+        s = footprint * z / f * scale[y, x]
         ok = False
         if stretch > 0:
-            oku = _tangent(depth, keep, fx, fy, cx, cy, y, x, 0, 1, c, tu, tp, tm)
-            okv = _tangent(depth, keep, fx, fy, cx, cy, y, x, 1, 0, c, tv, tp, tm)
+            oku = _tangent(depth, keep, rays, y, x, 0, 1, c, tu, tp, tm)
+            okv = _tangent(depth, keep, rays, y, x, 1, 0, c, tv, tp, tm)
             if oku and okv:
                 nx = tu[1] * tv[2] - tu[2] * tv[1]
                 ny = tu[2] * tv[0] - tu[0] * tv[2]
@@ -466,7 +564,7 @@ def _cells_row(depth, keep, y, i, fx, fy, cx, cy, Rce, tce, qcam, footprint, thi
                 nn = math.sqrt(nx * nx + ny * ny + nz * nz)
                 lu = math.sqrt(tu[0] * tu[0] + tu[1] * tu[1] + tu[2] * tu[2])
                 lv = math.sqrt(tv[0] * tv[0] + tv[1] * tv[1] + tv[2] * tv[2])
-                L0 = z / f
+                L0 = z / f * scale[y, x]
                 ok = nn > 1e-12 and lu <= stretch * L0 and lv <= stretch * L0 and lu > 0
         if ok:
             nx, ny, nz = nx / nn, ny / nn, nz / nn
@@ -497,7 +595,7 @@ def _cells_row(depth, keep, y, i, fx, fy, cx, cy, Rce, tce, qcam, footprint, thi
             log_scales[i, 1] = math.log(footprint * sd2)
         else:
             for k in range(4):
-                quats[i, k] = qcam[k]
+                quats[i, k] = qcell[y, x, k]
             log_scales[i, 0] = math.log(s)
             log_scales[i, 1] = math.log(s)
         log_scales[i, 2] = math.log(thickness * s)
@@ -517,11 +615,11 @@ def cell_gaussians(grid: Camera, colours: np.ndarray, depth: np.ndarray, opacity
     means = np.empty((n, 3))
     quats = np.empty((n, 4))
     log_s = np.empty((n, 3))
-    K = grid.K
+    geo = cell_geometry(grid)
     if n:
-        _cells_kernel(np.ascontiguousarray(depth, np.float64), keep, row_start, float(K[0, 0]), float(K[1, 1]),
-                      float(K[0, 2]), float(K[1, 2]), np.ascontiguousarray(grid.rotation, np.float64),
-                      np.ascontiguousarray(grid.position, np.float64), rotmat_to_quat(grid.rotation),
+        _cells_kernel(np.ascontiguousarray(depth, np.float64), keep, row_start, np.ascontiguousarray(geo.rays),
+                      float(geo.f), np.ascontiguousarray(geo.scale), np.ascontiguousarray(grid.rotation, np.float64),
+                      np.ascontiguousarray(grid.position, np.float64), np.ascontiguousarray(geo.quats, np.float64),
                       float(footprint), float(thickness), float(surface_stretch), means, quats, log_s)
     sh = np.zeros((n, (sh_degree + 1) ** 2, 3), np.float32)
     sh[:, 0, :] = (colours[ys, xs] - 0.5) / SH_C0
@@ -535,29 +633,31 @@ def cell_gaussians_reference(grid: Camera, colours: np.ndarray, depth: np.ndarra
                              surface_stretch: float = 0.0) -> Gaussians:
     """One Gaussian per kept cell of ``grid`` (ego frame).
 
-    colours [h, w, 3] 0..1; depth [h, w] camera z metres; opacity [h, w] in (0, 1); keep [h, w] bool. Centre: the
-    cell's ray at its depth (OpenCV camera point (x z, y z, z) with x = (u - cx) / fx, y = (v - cy) / fy, moved to
-    ego by cam_to_ego); a disc parallel to the image plane with standard deviation footprint x z / f (f = the mean
-    focal of ``grid``, pixels) and thickness x that along the optical axis; SH of degree ``sh_degree`` with only
+    colours [h, w, 3] 0..1; depth [h, w] the camera's depth, metres (camera z, or the distance for a fisheye or
+    f-theta lens); opacity [h, w] in (0, 1); keep [h, w] bool (cells of a lens camera need a ray). Centre: the cell's
+    point at its depth, depth x CellGeometry.rays (an ideal pinhole: the OpenCV camera point (x z, y z, z) with
+    x = (u - cx) / fx, y = (v - cy) / fy; a lens: along the cell's true ray), moved to ego by cam_to_ego; a disc
+    facing the cell (an ideal pinhole: parallel to the image plane; a lens: across the cell's ray) with standard
+    deviation footprint x the cell's footprint (depth / f x CellGeometry.scale: z / f for an ideal pinhole, f the
+    mean focal of ``grid`` in pixels; a lens: the distance x the cell's angular size) and thickness x that along
+    its normal; SH of degree ``sh_degree`` with only
     the DC term set (colour = SH_C0 dc + 0.5). surface_stretch > 0: a cell whose neighbours give it a tangent plane
     (surface_discs, tangents at most surface_stretch x the image-plane footprint) lies in that plane instead, as the
     footprint of the cell on the surface (footprint x its extents; thickness along the normal): it looks the same
     from its own camera and keeps its shape on the surface from elsewhere."""
     ys, xs = np.nonzero(keep)
     z = depth[ys, xs].astype(np.float64)
-    K = grid.K
-    x = (np.arange(grid.width) - K[0, 2]) / K[0, 0]
-    y = (np.arange(grid.height) - K[1, 2]) / K[1, 1]
-    q = np.stack([x[xs] * z, y[ys] * z, z], axis=-1)
+    geo = cell_geometry(grid)
+    q = geo.rays[ys, xs] * z[:, None]
     means = q @ grid.rotation.T + grid.position
-    f = 0.5 * (K[0, 0] + K[1, 1])
-    s = footprint * z / f
+    f = geo.f
+    s = footprint * z / f * geo.scale[ys, xs]
     log_s = np.log(np.stack([s, s, thickness * s], axis=-1))
-    quat = np.broadcast_to(rotmat_to_quat(grid.rotation), (len(z), 4))
+    quat = geo.quats[ys, xs]
     if surface_stretch > 0 and len(z):
         d = depth.astype(np.float64)
-        P = np.stack([x[None, :] * d, y[:, None] * d, d], axis=-1)
-        R, sd, ok = surface_discs(P, keep, f, surface_stretch)
+        P = geo.rays * d[..., None]
+        R, sd, ok = surface_discs(P, keep, f, surface_stretch, None if grid.is_ideal else d / f * geo.scale)
         if ok.any():
             log_s = log_s.copy()
             log_s[ok] = np.log(np.concatenate([footprint * sd[ok], thickness * s[ok, None]], axis=1))
@@ -605,7 +705,8 @@ class CameraDetail:
     the order of ``np.nonzero(keep)`` (the order cell_gaussians emits)."""
 
     grid: Camera              # the grid camera (ego frame)
-    depth: np.ndarray         # [h, w] float32 camera z metres of the kept cells, 0 elsewhere
+    depth: np.ndarray         # [h, w] float32 the kept cells' depth (the camera's: Camera.depth_is_distance), metres,
+    #                           0 elsewhere
     keep: np.ndarray          # [h, w] bool: cells that became Gaussians
     conf: np.ndarray          # [h, w] int8: CONF_MEASURED / CONF_MODEL for kept cells, 0 elsewhere
     means: np.ndarray         # [M, 3] float64 metres, ego frame: the kept cells' centres
@@ -633,27 +734,36 @@ class CameraDetail:
 
 
 def cell_footprint(grid: Camera, u: np.ndarray, v: np.ndarray, z: np.ndarray) -> np.ndarray:
-    """[N] metres: the size of cell (u, v) of ``grid`` at camera z ``z`` across its ray, z sqrt(1 + x^2 + y^2) / f
-    (x, y normalised coordinates): how finely that camera resolves the point (smaller = sharper)."""
+    """[N] metres: the size of cell (u, v) of ``grid`` at depth ``z`` across its ray, z sqrt(1 + x^2 + y^2) / f
+    (x, y normalised coordinates; a lens: z x CellGeometry.across, the distance x the cell's angular size): how
+    finely that camera resolves the point (smaller = sharper)."""
+    if not grid.is_ideal:
+        return np.asarray(z, np.float64) * cell_geometry(grid).across[v, u]
     K = grid.K
     x, y = (u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1]
     return np.asarray(z, np.float64) * np.sqrt(1.0 + x * x + y * y) / (0.5 * (K[0, 0] + K[1, 1]))
 
 
 def _grid_pixels(grid: Camera, means: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """(indices of the points that land on a cell, their cell column, row, camera z) for means [N, 3] ego."""
-    uv, z, front = grid.project(means)
+    """(indices of the points that land on a cell, their cell column, row, depth (the camera's)) for means [N, 3]
+    ego."""
+    uv, z, front = grid.project_depth(means)
     px = np.rint(uv).astype(np.int64)
     ok = front & (px[:, 0] >= 0) & (px[:, 0] < grid.width) & (px[:, 1] >= 0) & (px[:, 1] < grid.height)
     idx = np.flatnonzero(ok)
     return idx, px[idx, 0], px[idx, 1], z[idx]
 
 
-def coarse_radius_cells(log_scales: np.ndarray, grid: Camera, z: np.ndarray) -> np.ndarray:
+def coarse_radius_cells(log_scales: np.ndarray, grid: Camera, z: np.ndarray, u: np.ndarray | None = None,
+                        v: np.ndarray | None = None) -> np.ndarray:
     """[N] the 3-sigma radius (largest axis) of Gaussians with ``log_scales`` [N, 3] at camera z ``z`` [N] (metres),
-    in cells of ``grid``."""
+    in cells of ``grid``; a lens camera: at depth z on cells (u, v), over the cells' footprint there
+    (cell_footprint)."""
+    sigma3 = 3.0 * np.exp(log_scales.astype(np.float64).max(axis=1))
+    if not grid.is_ideal:
+        return sigma3 / np.maximum(cell_footprint(grid, u, v, z), 1e-9)
     f = 0.5 * (grid.K[0, 0] + grid.K[1, 1])
-    return 3.0 * np.exp(log_scales.astype(np.float64).max(axis=1)) * f / np.maximum(z, 1e-6)
+    return sigma3 * f / np.maximum(z, 1e-6)
 
 
 def cull_covered(coarse: Gaussians, details: list[CameraDetail], tolerance: float) -> np.ndarray:
@@ -665,8 +775,8 @@ def cull_covered(coarse: Gaussians, details: list[CameraDetail], tolerance: floa
     keep = np.ones(len(coarse), bool)
     for d in details:
         idx, u, v, z = _grid_pixels(d.grid, coarse.means)
-        level = np.clip(np.ceil(np.log2(np.maximum(coarse_radius_cells(coarse.log_scales[idx], d.grid, z), 1.0))), 0,
-                        PYRAMID_LEVELS - 1).astype(np.int64)
+        level = np.clip(np.ceil(np.log2(np.maximum(coarse_radius_cells(coarse.log_scales[idx], d.grid, z, u, v),
+                                                   1.0))), 0, PYRAMID_LEVELS - 1).astype(np.int64)
         pyr = np.stack(d.max_pyramid())
         dmax = pyr[level, v, u]
         keep[idx[(dmax > 0) & (z < dmax * (1.0 + tolerance))]] = False
@@ -679,21 +789,37 @@ def cull_covered_reference(coarse: Gaussians, details: list[CameraDetail], toler
     for i, m in enumerate(np.asarray(coarse.means, np.float64)):
         sigma = math.exp(float(np.max(coarse.log_scales[i])))
         for d in details:
-            q = d.grid.rotation.T @ (m - d.grid.position)
-            if q[2] <= 1e-6:
+            hit = _cell_of(d.grid, m)
+            if hit is None:
                 continue
-            u = int(np.rint(d.grid.K[0, 0] * q[0] / q[2] + d.grid.K[0, 2]))
-            v = int(np.rint(d.grid.K[1, 1] * q[1] / q[2] + d.grid.K[1, 2]))
-            if not (0 <= u < d.grid.width and 0 <= v < d.grid.height):
-                continue
-            r_cells = 3.0 * sigma * 0.5 * (d.grid.K[0, 0] + d.grid.K[1, 1]) / q[2]
+            u, v, z = hit
+            r_cells = 3.0 * sigma * 0.5 * (d.grid.K[0, 0] + d.grid.K[1, 1]) / z if d.grid.is_ideal else \
+                3.0 * sigma / (z * cell_geometry(d.grid).across[v, u])
             L = min(max(math.ceil(math.log2(max(r_cells, 1.0))), 0), PYRAMID_LEVELS - 1)
             r = 2 ** L
             win = d.depth[max(0, v - r):v + r + 1, max(0, u - r):u + r + 1][d.keep[max(0, v - r):v + r + 1,
                                                                               max(0, u - r):u + r + 1]]
-            if win.size and q[2] < win.max() * (1.0 + tolerance):
+            if win.size and z < win.max() * (1.0 + tolerance):
                 keep[i] = False
     return keep
+
+
+def _cell_of(grid: Camera, m: np.ndarray) -> tuple[int, int, float] | None:
+    """(column, row, depth) of the cell of ``grid`` an ego point [3] lands on, None when it lands on none (for the
+    references: an ideal pinhole by its formula, a lens camera through Camera.project_depth)."""
+    if grid.is_ideal:
+        q = grid.rotation.T @ (m - grid.position)
+        if q[2] <= 1e-6:
+            return None
+        u = int(np.rint(grid.K[0, 0] * q[0] / q[2] + grid.K[0, 2]))
+        v = int(np.rint(grid.K[1, 1] * q[1] / q[2] + grid.K[1, 2]))
+        z = float(q[2])
+    else:
+        uv, dz, front = grid.project_depth(m[None])
+        if not front[0]:
+            return None
+        u, v, z = int(np.rint(uv[0, 0])), int(np.rint(uv[0, 1])), float(dz[0])
+    return (u, v, z) if 0 <= u < grid.width and 0 <= v < grid.height else None
 
 
 @numba.njit(cache=True, parallel=True, nogil=True)
@@ -742,12 +868,28 @@ def carve_details(details: list[CameraDetail], tolerance: float, dedupe: float =
         for i, di in enumerate(details):
             if i == j or not len(dj.means):
                 continue
+            if not di.grid.is_ideal:
+                _carve_lens(dj.means, conf_j, dj.rank, di, float(tolerance), float(dedupe), keep)
+                continue
             K = di.grid.K
             _carve_kernel(dj.means, conf_j, dj.rank, np.ascontiguousarray(di.grid.rotation.T),
                           np.ascontiguousarray(di.grid.position), float(K[0, 0]), float(K[1, 1]), float(K[0, 2]),
                           float(K[1, 2]), di.depth, di.conf, float(tolerance), float(dedupe), keep)
         out.append(keep)
     return out
+
+
+def _carve_lens(means: np.ndarray, conf: np.ndarray, rank: np.ndarray, di: CameraDetail, tolerance: float,
+                dedupe: float, keep: np.ndarray) -> None:
+    """_carve_kernel's rule for a camera i with a lens (numpy; its cells found through Camera.project_depth)."""
+    idx, u, v, z = _grid_pixels(di.grid, means)
+    c = di.conf[v, u]
+    ok = keep[idx] & (c != 0) & (c >= conf[idx])
+    idx, u, v, z = idx[ok], u[ok], v[ok], z[ok]
+    dc = di.depth[v, u].astype(np.float64)
+    rank_i = cell_footprint(di.grid, u, v, dc)
+    drop = (z < dc * (1.0 - tolerance)) | ((np.abs(z - dc) <= tolerance * dc) & (rank_i < dedupe * rank[idx]))
+    keep[idx[drop]] = False
 
 
 def carve_details_reference(details: list[CameraDetail], tolerance: float, dedupe: float = 1.0
@@ -761,20 +903,20 @@ def carve_details_reference(details: list[CameraDetail], tolerance: float, dedup
             for i, di in enumerate(details):
                 if i == j:
                     continue
-                q = di.grid.rotation.T @ (m - di.grid.position)
-                if q[2] <= 1e-6:
+                hit = _cell_of(di.grid, m)
+                if hit is None or not di.keep[hit[1], hit[0]]:
                     continue
-                K = di.grid.K
-                u = int(np.rint(K[0, 0] * q[0] / q[2] + K[0, 2]))
-                v = int(np.rint(K[1, 1] * q[1] / q[2] + K[1, 2]))
-                if not (0 <= u < di.grid.width and 0 <= v < di.grid.height) or not di.keep[v, u]:
-                    continue
+                u, v, z = hit
                 if di.conf[v, u] < conf_j[k]:
                     continue
                 dc = float(di.depth[v, u])
-                x, y = (u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1]
-                rank_i = dc * math.sqrt(1 + x * x + y * y) / (0.5 * (K[0, 0] + K[1, 1]))
-                if q[2] < dc * (1.0 - tolerance) or (abs(q[2] - dc) <= tolerance * dc and rank_i < dedupe * dj.rank[k]):
+                K = di.grid.K
+                if di.grid.is_ideal:
+                    x, y = (u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1]
+                    rank_i = dc * math.sqrt(1 + x * x + y * y) / (0.5 * (K[0, 0] + K[1, 1]))
+                else:
+                    rank_i = dc * float(cell_geometry(di.grid).across[v, u])
+                if z < dc * (1.0 - tolerance) or (abs(z - dc) <= tolerance * dc and rank_i < dedupe * dj.rank[k]):
                     keep[k] = False
         out.append(keep)
     return out
@@ -785,8 +927,15 @@ def carve_details_reference(details: list[CameraDetail], tolerance: float, dedup
 
 def model_grid_depth(coarse: Gaussians, grid: Camera, max_width: int = 480) -> tuple[np.ndarray, np.ndarray]:
     """(depth [h, w], alpha [h, w]) float32 of the coarse Gaussians rendered at ``grid`` (at most ``max_width``
-    pixels wide, then resized to the grid: the coarse layer holds no finer detail than that), camera z metres."""
+    pixels wide, then resized to the grid: the coarse layer holds no finer detail than that), camera z metres. A
+    grid camera with a lens: along its cells' true rays, in the camera's depth (runtime.raydepth, a panorama of at
+    most MAX_PANORAMA pixels around)."""
     import cv2
+
+    if not grid.is_ideal:
+        from .raydepth import render_ray_depth
+
+        return render_ray_depth(coarse, grid)
 
     from .render import render
     from .scene import rig_camera
@@ -872,6 +1021,8 @@ def camera_detail(cam: Camera, image: np.ndarray, coarse: Gaussians, opts: Detai
     if ego_mask is not None:
         small = cv2.resize(ego_mask.astype(np.uint8), (grid.width, grid.height), interpolation=cv2.INTER_NEAREST)
         depth[small > 0] = 0
+    if not grid.is_ideal:
+        depth[~cell_geometry(grid).has_ray] = 0                 # outside a lens's image circle: no cell
     keep = edge_keep(depth, opts.edge_ratio)
     opacity = np.where(supported | on_ground, opts.opacity, opts.model_opacity).astype(np.float64)
     g = cell_gaussians(grid, colours, depth, opacity, keep, opts.footprint, opts.thickness,

@@ -196,8 +196,10 @@ def resize_nearest(a: np.ndarray, height: int, width: int) -> np.ndarray:
 
 
 def check_depth(d: np.ndarray, cam: Camera) -> np.ndarray:
-    """A supplied depth map [H, W] (metres along the optical axis) -> float32; RigError naming the camera when
-    its size differs from the camera's, or it has NaN/inf or negative values."""
+    """A supplied depth map [H, W] (metres, the camera's depth: along the optical axis for a pinhole or an opencv
+    lens, along the pixel's ray from the camera centre for a fisheye or f-theta lens, Camera.depth_is_distance) ->
+    float32; RigError naming the camera when its size differs from the camera's, or it has NaN/inf or negative
+    values."""
     a = np.asarray(d)
     if a.ndim == 3 and a.shape[2] == 1:
         a = a[..., 0]
@@ -423,7 +425,7 @@ class Reconstructor:
     def add_detail(self, rig: Rig, images: Sequence[np.ndarray], coarse: Gaussians, lidar: np.ndarray | None,
                    opts: DetailOptions, counts: dict[str, int]) -> Gaussians:
         """The scene's Gaussians with the detail layer (runtime.detail): the coarse model Gaussians that a detail cell
-        covers culled, then each pinhole camera's detail Gaussians. images: the full-resolution inputs in rig order;
+        covers culled, then each K camera's detail Gaussians (any lens: on its cells' true rays). images: the full-resolution inputs in rig order;
         lidar [P, 3] metres, ego frame, or None. Adds to ``counts``: detail (Gaussians), detail_lidar /
         detail_ground / detail_model / detail_far (cells placed by LiDAR, the LiDAR's ground plane, the model's
         depth, at the far depth), detail_edge (cells dropped at depth edges), carved (cells another camera
@@ -463,14 +465,14 @@ class Reconstructor:
 
     def lidar_depths(self, rig: Rig, gauss: Gaussians, lidar: np.ndarray, depth: np.ndarray, mask: np.ndarray
                      ) -> tuple[np.ndarray, np.ndarray, list[float | None]]:
-        """The encode graph's depth inputs with LiDAR: for each pinhole camera whose depth is not supplied
-        (mask 0), ``runtime.lidar.fuse_depth`` of the sweep's nearest point per depth cell (occlusion-filtered)
-        and the depth of ``gauss`` (the reconstruction without LiDAR) rendered at that camera. lidar: [P, 3]
+        """The encode graph's depth inputs with LiDAR: for each camera with K (any lens) whose depth is not supplied
+        (mask 0), ``runtime.lidar.fuse_depth`` of the sweep's nearest point per depth cell (occlusion-filtered;
+        projected through the camera's lens) and the depth of ``gauss`` (the reconstruction without LiDAR) along
+        the cells' true rays (runtime.raydepth), both in the camera's depth (Camera.depth_is_distance). lidar: [P, 3]
         metres, ego frame. Returns (depth [N, 1, h, w], depth_mask [N], the scale per camera or None where the
         camera kept its input)."""
         from .lidar import fuse_depth, lidar_depth_map, occlusion_filter
-        from .render import render
-        from .scene import rig_camera
+        from .raydepth import render_ray_depth
 
         pts = np.asarray(lidar, np.float64)
         if pts.ndim != 2 or pts.shape[1] != 3 or not np.all(np.isfinite(pts)):
@@ -482,11 +484,11 @@ class Reconstructor:
             if mask[n] > 0 or cam.model != "pinhole":
                 scales.append(None)
                 continue
-            small = cam.replace(distortion=None).resized(w, h)
+            small = cam.resized(w, h)                        # the lens kept: LiDAR and model along true rays
             lid = lidar_depth_map(pts, small)
             lid = np.where(occlusion_filter(lid, radius=1), lid, 0).astype(np.float32)
-            r = render(gauss, rig_camera(small))
-            depth[n, 0], s = fuse_depth(lid, r.depth, r.alpha)
+            model_depth, model_alpha = render_ray_depth(gauss, small)
+            depth[n, 0], s = fuse_depth(lid, model_depth, model_alpha)
             mask[n] = 1.0
             scales.append(s)
         return depth, mask, scales

@@ -409,6 +409,25 @@ class Lens:
         n = next(n for n in (4, 5, 8, 12) if not any(self.coeffs[n:]))
         return self.coeffs[:n]
 
+    @property
+    def images_beyond_90(self) -> bool:
+        """Whether the model can image points at or beyond 90 degrees from the optical axis (fisheye, f-theta);
+        such a camera's depth is the distance from its centre, not camera z (docs/conventions.md "Depth")."""
+        return self.model != "opencv"
+
+    def paraxial_focal(self, K: np.ndarray) -> tuple[float, float]:
+        """(fx, fy) pixels per radian on the optical axis: the focal of the pinhole that matches the lens there.
+        opencv and opencv_fisheye: K's fx, fy (their maps have slope 1 at the axis); ftheta: the reference
+        polynomial's slope at the axis (angle_to_pixeldist_poly[1], or 1 / pixeldist_to_angle_poly[1]), times c
+        of linear_cde for x (K's fx, fy are not used by that lens)."""
+        if self.model != "ftheta":
+            return float(K[0, 0]), float(K[1, 1])
+        if self.reference_poly == "angle_to_pixeldist":
+            f = float(self.angle_to_pixeldist_poly[1])
+        else:
+            f = 1.0 / float(self.pixeldist_to_angle_poly[1])
+        return self.linear_cde[0] * f, f
+
     def resized(self, sx: float, sy: float) -> Lens:
         """The lens of the image resampled by sx, sy (runtime.camera.Camera.resized scales K): opencv and fisheye act
         on normalised coordinates and stay; f-theta's pixel distances scale (as NVIDIA's ncore does): the forward

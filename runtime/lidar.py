@@ -14,12 +14,14 @@ The rig.json `lidar` block (the format of ../shared/data/real/README.md, kept in
 - `columns` (optional, `.bin` only): C. Without it, a name ending in `.pcd.bin` means 5, any other `.bin` 4.
 
 The check (`lidar_depth_check`), per input camera at a reduced evaluation width:
-1. The LiDAR points (ego frame) are projected with the camera's pinhole model at that size (distortion left out,
-   as the renderer leaves it out), and each pixel keeps its nearest point (`lidar_depth_map`): camera z, metres.
+1. The LiDAR points (ego frame) are projected with the camera's own model at that size (its lens included,
+   Camera.project), and each pixel keeps its nearest point (`lidar_depth_map`): the camera's depth, metres
+   (Camera.depth_is_distance: camera z, or the distance for a fisheye or f-theta lens).
 2. Points the camera cannot see are dropped where a point within `OCCLUSION_RADIUS` pixels is nearer by more
    than the δ threshold (`occlusion_filter`): the LiDAR sits higher and further back than the cameras and sees
    surfaces behind what the camera sees.
-3. The reconstruction is rendered at the same camera (Gaussians only: expected camera z, `runtime.render`).
+3. The reconstruction is rendered at the same camera (Gaussians only: expected depth, `runtime.render`; a camera
+   with a lens along its pixels' true rays, `runtime.raydepth.render_ray_depth`).
    Pixels with alpha < `ALPHA_MIN` count as not covered.
 4. On the covered pixels: AbsRel, RMSE, δ < 1.25 and the median ratio rendered / LiDAR (Eigen et al. 2014),
    for each camera, for all cameras together, and per range bin.
@@ -133,20 +135,22 @@ def load_lidar(rig: Rig, file: str | os.PathLike | None = None, columns: int | N
 
 
 def eval_camera(cam: Camera, width: int) -> Camera:
-    """The camera the check projects and renders with: ``cam`` without distortion (the renderer has none), resized
-    to ``width`` pixels wide (height rounded to keep the aspect ratio)."""
+    """The camera the check projects and renders with: ``cam`` (its lens kept) resized to ``width`` pixels wide
+    (height rounded to keep the aspect ratio)."""
     if not isinstance(width, int) or width < 8:
         raise LidarError("width", f"must be an integer >= 8 (got {plain(width)!r})")
     height = max(1, round(cam.height * width / cam.width))
-    return cam.replace(distortion=None).resized(width, height)
+    return cam.resized(width, height)
 
 
 def lidar_depth_map(points: np.ndarray, cam: Camera, min_depth: float = MIN_DEPTH,
                     max_depth: float = MAX_DEPTH) -> np.ndarray:
-    """[H, W] float32 metres: the nearest LiDAR point per pixel (camera z for pinhole, distance for equirect), 0
-    where no point lands. points [N, 3] metres, ego frame; a point counts when min_depth <= z <= max_depth and its
-    projection rounds to a pixel of ``cam`` (pixel u's centre at u, docs/conventions.md)."""
-    uv, z, front = cam.project(points)
+    """[H, W] float32 metres: the nearest LiDAR point per pixel, in the camera's depth (Camera.project_depth: camera
+    z for a pinhole or an opencv lens, the distance for a fisheye, f-theta or equirect camera), 0 where no point
+    lands. points [N, 3] metres, ego frame, projected through the camera's lens; a point counts when min_depth <=
+    depth <= max_depth and its projection rounds to a pixel of ``cam`` (pixel u's centre at u,
+    docs/conventions.md)."""
+    uv, z, front = cam.project_depth(points)
     px = np.rint(uv).astype(np.int64)
     ok = front & (z >= min_depth) & (z <= max_depth)
     ok &= (px[:, 0] >= 0) & (px[:, 0] < cam.width) & (px[:, 1] >= 0) & (px[:, 1] < cam.height)
@@ -166,7 +170,7 @@ def lidar_depth_map_reference(points: np.ndarray, cam: Camera, min_depth: float 
     """`lidar_depth_map` point by point (slow, obviously correct; for the tests)."""
     out = np.zeros((cam.height, cam.width), np.float32)
     for p in np.asarray(points, np.float64):
-        uv, z, front = cam.project(p[None])
+        uv, z, front = cam.project_depth(p[None])
         u, v, z = int(np.rint(uv[0, 0])), int(np.rint(uv[0, 1])), float(z[0])
         if not front[0] or not min_depth <= z <= max_depth or not (0 <= u < cam.width and 0 <= v < cam.height):
             continue
@@ -231,6 +235,7 @@ def camera_depths(scene: Any, points: np.ndarray, width: int = 400, min_depth: f
                   max_depth: float = MAX_DEPTH, occlusion_radius: int = OCCLUSION_RADIUS) -> list[CameraDepth]:
     """Render ``scene`` (runtime.scene.Scene) at each camera of its rig and project ``points`` ([N, 3] metres, ego
     frame) there. With occlusion_radius 0 no point is dropped."""
+    from .raydepth import render_ray_depth
     from .scene import render_view, rig_camera
 
     out = []
@@ -240,7 +245,10 @@ def camera_depths(scene: Any, points: np.ndarray, width: int = 400, min_depth: f
         keep = occlusion_filter(lid, occlusion_radius) if occlusion_radius > 0 else lid > 0
         occluded = int((lid > 0).sum() - keep.sum())
         lid = np.where(keep, lid, 0).astype(np.float32)
-        _, depth, alpha = render_view(scene, rig_camera(ec))
+        if ec.is_ideal:
+            _, depth, alpha = render_view(scene, rig_camera(ec))
+        else:
+            depth, alpha = render_ray_depth(scene.gaussians, ec)
         out.append(CameraDepth(ec, lid, depth, alpha, occluded))
     return out
 

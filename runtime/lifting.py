@@ -13,10 +13,12 @@ Per module m in (occupancy, volume, pixel), each with its own cylinder (rho_m, d
   right where a real feature is exactly zero (gamma would then let an earlier camera show through).
 Pixel module only (depth geometry; see docs/architecture.md "pixel Gaussians"):
 - ``pix_rays`` [N, H_u, W_u, 3] float32: (P - c_n) / z_n(P), P the cylinder pixel's surface point, c_n the
-  camera centre, z_n(P) P's camera depth (optical-axis z; distance for equirect cameras). A camera depth D
+  camera centre, z_n(P) P's camera depth (Camera.project_depth: optical-axis z for a pinhole or an opencv lens;
+  the distance for a fisheye, f-theta or equirect camera, so points beyond 90 degrees have a depth too). A camera depth D
   sampled at the cylinder pixel then back-projects to X = c_n + D * pix_rays[n] (ego frame, exact);
 - ``pix_offsets`` [N, 3]: c_n - centre_pix, so X - centre_pix = pix_offsets[n] + D * pix_rays[n];
-- ``focal_n`` [N]: sqrt(fx / W * fy / H) per camera (``backbone.depth_focal_ref``'s focal-aware depth);
+- ``focal_n`` [N]: sqrt(fx / W * fy / H) per camera, fx, fy paraxial (``backbone.depth_focal_ref``'s
+  focal-aware depth);
 - ``pix_dirs`` [k H_u, k W_u, 3]: (P' - centre)/R_u for the upsampled (k = k_i k_o) pixel lattice, i.e. the
   horizontal-unit direction of the cylinder ray: a point at horizontal radius r along it is centre + r * dir.
 - ``grid_pixc`` [N, k H_u, k W_u, 2], ``sel_pixc`` [N, k H_u, k W_u]: ``grid_pix`` / ``sel_cw_pix`` of that
@@ -130,7 +132,7 @@ def depth_rays(rig: Rig, spec: CylinderSpec) -> tuple[np.ndarray, np.ndarray]:
     P = spec.points()                                     # [H, W, 3]
     rays, offs = [], []
     for cam in rig.cameras:
-        _, z, in_front = cam.project(P)
+        _, z, in_front = cam.project_depth(P)
         zs = np.where(in_front, z, 1.0)
         rays.append(np.where(in_front[..., None], (P - cam.position) / zs[..., None], 0.0))
         offs.append(cam.position - spec.centre)
@@ -139,10 +141,17 @@ def depth_rays(rig: Rig, spec: CylinderSpec) -> tuple[np.ndarray, np.ndarray]:
 
 def focal_n(rig: Rig) -> np.ndarray:
     """[N] float32: each camera's normalised focal length sqrt(fx / W * fy / H), pixels per radian over the image
-    size (unchanged by resizing the image; the focal-aware depth head scales its depth by it). An
-    equirectangular camera has W / (2 pi) and H / pi pixels per radian: 1 / (pi sqrt 2)."""
-    out = [1.0 / (math.pi * math.sqrt(2.0)) if c.model == "equirectangular"
-           else math.sqrt(c.K[0, 0] / c.width * c.K[1, 1] / c.height) for c in rig.cameras]
+    size (unchanged by resizing the image; the focal-aware depth head scales its depth by it). fx, fy are the
+    paraxial focal lengths (Camera.paraxial_focal: K's for a pinhole, an opencv or a fisheye lens; an f-theta
+    lens's polynomial slope at the axis), the magnification at the image centre. An equirectangular camera has
+    W / (2 pi) and H / pi pixels per radian: 1 / (pi sqrt 2)."""
+    out = []
+    for c in rig.cameras:
+        if c.model == "equirectangular":
+            out.append(1.0 / (math.pi * math.sqrt(2.0)))
+        else:
+            fx, fy = (c.K[0, 0], c.K[1, 1]) if c.distortion is None else c.paraxial_focal
+            out.append(math.sqrt(fx / c.width * fy / c.height))
     return np.array(out, np.float32)
 
 

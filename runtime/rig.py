@@ -360,7 +360,8 @@ def read_image(path: Path, what: str, channels: int = 3, scale: bool = True, lab
 
 
 def read_depth(path: Path, what: str, label: str | None = None, where: str | None = None) -> np.ndarray:
-    """A depth map file -> [H, W] float32 metres along the optical axis. Float files (EXR, TIFF) hold metres;
+    """A depth map file -> [H, W] float32 metres, the camera's depth (along the optical axis; along the pixel's ray
+    for a fisheye or f-theta lens: Camera.depth_is_distance). Float files (EXR, TIFF) hold metres;
     integer files (16-bit PNG, the usual depth-camera export) hold millimetres (0 = no depth). RigError naming
     `what` when the file is missing or unreadable."""
     import OpenImageIO as oiio

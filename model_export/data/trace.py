@@ -9,6 +9,8 @@ ray per shaded sample), distance haze, a procedural sky (gradient, sun, value-no
 Per pinhole view: RGB uint8 from ss x ss supersamples at pixel offsets ((i + 0.5)/ss - 0.5); depth (float32
 metres along the optical axis) and semantic class from one extra geometry-only ray through the exact pixel
 centre, so `p = cam_to_ego @ [depth * inv(K) @ [u, v, 1], 1]` lies on the surface. Sky pixels: depth 0, class 0.
+A camera with a lens casts each sample's true ray (Camera.depth_rays, computed in numpy and passed to the kernel):
+`p = cam_to_ego @ [depth * depth_rays(uv), 1]`, depth the camera's (distance for a fisheye or f-theta lens).
 
 The slow, obviously-correct reference (`reference_closest_hit`) intersects rays with every primitive in numpy.
 """
@@ -694,12 +696,16 @@ def _semantic(p, cls, G, px, py):
 
 @njit(parallel=True, cache=True, nogil=True, error_model="numpy", fastmath=True)
 def render_kernel(fx, fy, cx, cy, Rm, T, H, W, ss, skip_ego, shadows, kind, geo, cls, tex, col, col2, par, ego,
-                  meta, start, items, zmax, G, S, photo, rgb, depth, sem):
-    """Render one pinhole view into rgb [H,W,3] uint8, depth [H,W] float32, sem [H,W] uint8; photo: the photo
-    bank [N, H_t, W_t, 3] (NO_PHOTOS when the scene uses none)."""
+                  meta, start, items, zmax, G, S, photo, rays, has_ray, rgb, depth, sem):
+    """Render one view into rgb [H,W,3] uint8, depth [H,W] float32, sem [H,W] uint8; photo: the photo
+    bank [N, H_t, W_t, 3] (NO_PHOTOS when the scene uses none). Pinhole (rays of shape [0, ...]): the rays of
+    fx, fy, cx, cy. Otherwise rays [S, H, W, 3] float64, ego frame, one per sample (S = 1 for ss == 1, else
+    ss * ss + 1: the pixel centre, then the supersamples), scaled so that t is the camera's depth, and has_ray
+    [S, H, W] bool: samples without a ray add black, a pixel centre without one gets depth 0 and class 0."""
     ox, oy, oz = T[0], T[1], T[2]
     inv = 1.0 / (ss * ss)
     half = (H + 1) // 2
+    given_rays = rays.shape[0] > 0
     for k in prange(H):
         v = 2 * k if k < half else 2 * (k - half) + 1  # even rows, then odd rows: balances sky vs ground
         for u in range(W):
@@ -710,16 +716,24 @@ def render_kernel(fx, fy, cx, cy, Rm, T, H, W, ss, skip_ego, shadows, kind, geo,
             # samples 1..ss*ss: colour rays at offsets ((j + 0.5)/ss - 0.5, (i + 0.5)/ss - 0.5). One call site
             # of closest_hit keeps the inlined traversal code (and the compile time) small.
             for si in range(1 if ss == 1 else ss * ss + 1):
-                if si == 0:
-                    xs = (u - cx) / fx
-                    ys = (v - cy) / fy
+                if given_rays:
+                    if not has_ray[si, v, u]:
+                        if si == 0:
+                            depth[v, u] = 0.0
+                            sem[v, u] = 0
+                        continue
+                    dx, dy, dz = rays[si, v, u, 0], rays[si, v, u, 1], rays[si, v, u, 2]
                 else:
-                    xs = (u + ((si - 1) % ss + 0.5) / ss - 0.5 - cx) / fx
-                    ys = (v + ((si - 1) // ss + 0.5) / ss - 0.5 - cy) / fy
-                # camera-frame direction (x, y, 1), so that t is the depth along the optical axis
-                dx = Rm[0, 0] * xs + Rm[0, 1] * ys + Rm[0, 2]
-                dy = Rm[1, 0] * xs + Rm[1, 1] * ys + Rm[1, 2]
-                dz = Rm[2, 0] * xs + Rm[2, 1] * ys + Rm[2, 2]
+                    if si == 0:
+                        xs = (u - cx) / fx
+                        ys = (v - cy) / fy
+                    else:
+                        xs = (u + ((si - 1) % ss + 0.5) / ss - 0.5 - cx) / fx
+                        ys = (v + ((si - 1) // ss + 0.5) / ss - 0.5 - cy) / fy
+                    # camera-frame direction (x, y, 1), so that t is the depth along the optical axis
+                    dx = Rm[0, 0] * xs + Rm[0, 1] * ys + Rm[0, 2]
+                    dy = Rm[1, 0] * xs + Rm[1, 1] * ys + Rm[1, 2]
+                    dz = Rm[2, 0] * xs + Rm[2, 1] * ys + Rm[2, 2]
                 t, p, f = closest_hit(ox, oy, oz, dx, dy, dz, skip_ego, kind, geo, ego, meta, start, items, zmax)
                 if si == 0:
                     if p == NO_HIT:
@@ -745,33 +759,60 @@ def render_kernel(fx, fy, cx, cy, Rm, T, H, W, ss, skip_ego, shadows, kind, geo,
 
 @dataclass(frozen=True, eq=False)
 class View:
-    """Rendered view: rgb [H,W,3] uint8; depth [H,W] float32 metres along the optical axis (0 = sky);
-    semantic [H,W] uint8 class ids (0 = sky)."""
+    """Rendered view: rgb [H,W,3] uint8; depth [H,W] float32, the camera's depth (Camera.depth_is_distance:
+    metres along the optical axis for a pinhole or an opencv lens, from the camera centre for a fisheye or
+    f-theta lens; 0 = sky or no ray); semantic [H,W] uint8 class ids (0 = sky or no ray); valid [H,W] bool, the
+    pixels whose centre has a ray (None: all, a pinhole camera)."""
 
     rgb: np.ndarray
     depth: np.ndarray
     semantic: np.ndarray
+    valid: np.ndarray | None = None
 
     @property
     def sky(self) -> np.ndarray:
         return self.semantic == C.SKY
 
 
+NO_RAYS = np.zeros((0, 1, 1, 3), np.float64)   # render_kernel's rays for a pinhole camera
+NO_RAY_MASK = np.zeros((0, 1, 1), np.bool_)
+
+
+def sample_rays(camera: Camera, ss: int) -> tuple[np.ndarray, np.ndarray]:
+    """(rays [S, H, W, 3] float64 ego frame, has_ray [S, H, W] bool) of render_kernel for a camera with a lens:
+    Camera.depth_rays through the pixel centre and the ss x ss supersample positions ((j + 0.5)/ss - 0.5 from
+    the centre), rotated to ego; NaN rays (no ray reaches the position) are marked in has_ray and zeroed."""
+    vv, uu = np.meshgrid(np.arange(camera.height, dtype=np.float64), np.arange(camera.width, dtype=np.float64),
+                         indexing="ij")
+    offsets = [(0.0, 0.0)] if ss == 1 else \
+        [(0.0, 0.0)] + [((j + 0.5) / ss - 0.5, (i + 0.5) / ss - 0.5) for i in range(ss) for j in range(ss)]
+    uv = np.stack([np.stack([uu + du, vv + dv], axis=-1) for du, dv in offsets])
+    rays = camera.depth_rays(uv) @ camera.rotation.T
+    ok = np.all(np.isfinite(rays), axis=-1)
+    rays[~ok] = 0.0
+    return np.ascontiguousarray(rays), ok
+
+
 def render_view(scene: Scene, grid: Grid, camera: Camera, ss: int = 2, skip_ego: bool = True,
                 shadows: bool = True) -> View:
-    """Ray trace one pinhole camera (runtime.camera.Camera: K [3,3] px, OpenCV; cam_to_ego [4,4]; its distortion
-    is not traced) of `scene`."""
+    """Ray trace one camera (runtime.camera.Camera: K [3,3] px, OpenCV; cam_to_ego [4,4]) of `scene`: an ideal
+    pinhole from K; a camera with a lens (docs/conventions.md "Lens models") or an equirectangular one along each
+    sample's true ray (sample_rays; depth in the camera's convention, pixels without a ray black with depth 0,
+    View.valid)."""
     K, cam_to_ego, width, height = camera.K, camera.cam_to_ego, camera.width, camera.height
     rgb = np.empty((height, width, 3), np.uint8)
     depth = np.empty((height, width), np.float32)
     sem = np.empty((height, width), np.uint8)
     Rm = np.ascontiguousarray(cam_to_ego[:3, :3], dtype=np.float64)
     T = np.ascontiguousarray(cam_to_ego[:3, 3], dtype=np.float64)
+    pinhole = camera.is_ideal and not camera.is_equirect
+    rays, has_ray = (NO_RAYS, NO_RAY_MASK) if pinhole else sample_rays(camera, int(ss))
+    K = K if pinhole else np.eye(3)
     render_kernel(float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]), Rm, T, int(height), int(width),
                   int(ss), bool(skip_ego), bool(shadows), scene.kind, scene.geo, scene.cls, scene.tex, scene.col,
                   scene.col2, scene.par, scene.ego, grid.meta, grid.start, grid.items, grid.zmax, scene.ground,
-                  scene.sky, scene_photos(scene), rgb, depth, sem)
-    return View(rgb, depth, sem)
+                  scene.sky, scene_photos(scene), rays, has_ray, rgb, depth, sem)
+    return View(rgb, depth, sem, None if pinhole else has_ray[0].copy())
 
 
 def scene_photos(scene: Scene) -> np.ndarray:

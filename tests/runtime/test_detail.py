@@ -102,7 +102,7 @@ def test_options_defaults_and_edge_values_construct():
 def test_grid_camera_stride_one_is_the_identity():
     cam = _camera().replace(distortion=(0.1, 0.01, 0.0, 0.0))
     grid = grid_camera(cam, 1)
-    assert (grid.width, grid.height) == (cam.width, cam.height) and grid.distortion is None
+    assert (grid.width, grid.height) == (cam.width, cam.height) and grid.distortion == cam.distortion  # lens kept
     np.testing.assert_array_equal(grid.K, cam.K)                 # resized to its own size: K unchanged, exactly
     np.testing.assert_array_equal(grid.cam_to_ego, cam.cam_to_ego)
     img = np.random.default_rng(0).random((cam.height, cam.width, 3)).astype(np.float32)
