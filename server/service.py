@@ -48,6 +48,7 @@ from .uploads import RIG_PART_BYTES, ingest
 
 log = logging.getLogger("xyzcyl.server")
 
+NAME_TTL_S = 2.0        # resolve_scene: a name's scene is looked up again (a newer one of that name) this often
 _DTYPES = {"float32": "FP32", "float16": "FP16", "int64": "INT64", "int32": "INT32", "uint8": "UINT8",
            "bool": "BOOL"}
 
@@ -70,6 +71,7 @@ class Service:
     started: float = field(default_factory=time.time)
     recovered: dict[str, int] = field(default_factory=dict)
     _tasks: list[asyncio.Task] = field(default_factory=list, repr=False)
+    _names: dict[str, tuple[str, float]] = field(default_factory=dict, repr=False)   # resolve_scene's name -> id
 
     @classmethod
     def create(cls, settings: Settings) -> Service:
@@ -181,15 +183,21 @@ class Service:
 
     async def resolve_scene(self, ref: str, field: str = "scene_id") -> SceneRecord:
         """The ready scene that ``ref`` names, for the gRPC SensorsimService: a scene id, else a scene's name
-        (POST /v1/scenes?name=): the newest ready scene of that name, else the newest of any state. NotFound when
-        nothing is called so, Conflict when it is not ready (both naming ``field``)."""
+        (POST /v1/scenes?name=): the newest ready scene of that name, else the newest of any state (a name found
+        ready is remembered NAME_TTL_S seconds, so a simulator's renders do not list the store each time). NotFound
+        when nothing is called so, Conflict when it is not ready (both naming ``field``)."""
         rec = await asyncio.to_thread(self.store.get, ref) if valid_id(ref) else None
+        if rec is None and ref in self._names and time.monotonic() - self._names[ref][1] < NAME_TTL_S:
+            rec = await asyncio.to_thread(self.store.get, self._names[ref][0])     # a simulator's every render
+            rec = rec if rec is not None and rec.name == ref and rec.state == "ready" else None
         if rec is None:
             named = [r for r in await self._records() if r.name == ref]
             if not named:
                 raise NotFound(f"no scene {ref[:200]!r}: neither a scene id nor a scene's name (get_available_scenes "
                                "lists them; POST /v1/scenes?name= names a scene)", field)
             rec = next((r for r in named if r.state == "ready"), named[0])
+            if rec.state == "ready":
+                self._names[ref] = (rec.id, time.monotonic())
         return _ready(rec, field)
 
     async def scene_names(self) -> list[str]:
