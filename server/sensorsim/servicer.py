@@ -197,14 +197,12 @@ class SensorsimServicer(sensorsim_pb2_grpc.SensorsimServiceServicer):
                            self.settings.retry_after_s)
             rigs: dict[str, Any] = {}
             # the scenes first, once each (a NOT_FOUND or not-ready scene fails its items, not the call)
-            for i, it in enumerate(items):
-                sid = it.request.scene_id
-                if sid and sid not in rigs:
-                    try:
-                        rec = await self.service.resolve_scene(sid, f"items[{i}].request.scene_id")
-                        rigs[sid] = (rec.id, await self.service.scene_rig(rec.id))
-                    except (NotFound, Conflict) as e:
-                        rigs[sid] = e
+            for sid in dict.fromkeys(it.request.scene_id for it in items if it.request.scene_id):
+                try:
+                    rec = await self.service.resolve_scene(sid)
+                    rigs[sid] = (rec.id, await self.service.scene_rig(rec.id))
+                except (NotFound, Conflict) as e:
+                    rigs[sid] = e
             results = [await self._item(it, i, rigs) for i, it in enumerate(items)]     # in turn (docstring)
             return sensorsim_pb2.BatchRGBRenderReturn(items=results)
         return await self._answer("batch_render_rgb", context, work)
@@ -213,8 +211,8 @@ class SensorsimServicer(sensorsim_pb2_grpc.SensorsimServiceServicer):
                     rigs: dict[str, Any]) -> sensorsim_pb2.BatchRGBRenderReturnItem:
         try:
             got = rigs.get(it.request.scene_id)
-            if isinstance(got, Exception):
-                raise got
+            if isinstance(got, ApiError):            # its scene: unknown or not ready (named in this item's terms)
+                raise ApiError(got.message, f"items[{i}].request.{got.field}", status=got.status)
             data = await self._render(it.request, f"items[{i}].request.", rigs, force=True)
         except Exception as e:              # noqa: BLE001 - an item's failure is its answer (module docstring)
             f = failure(e)

@@ -194,7 +194,7 @@ def test_batch_of_six_cameras(live):
     items[3].request.camera_intrinsics.opencv_pinhole_param.focal_length_x = -1.0
     out = live.stub.batch_render_rgb(pb.BatchRGBRenderRequest(items=items), metadata=AUTH, timeout=TIMEOUT).items
     assert [i.success for i in out] == [True, True, False, False, True, True]
-    assert out[2].error_message.startswith("NOT_FOUND: ") and "'clipgt-nope'" in out[2].error_message
+    assert out[2].error_message.startswith("NOT_FOUND: items[2].request.scene_id: no scene 'clipgt-nope'")
     assert out[3].error_message.startswith("INVALID_ARGUMENT: items[3].request.camera_intrinsics."
                                            "opencv_pinhole_param.focal_length_x"), out[3].error_message
     assert not out[2].result.image_bytes and out[5].result.image_bytes
