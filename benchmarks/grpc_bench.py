@@ -7,12 +7,13 @@ The scene: examples/synth_nuscenes (6 cameras, 800x450) posted with a name and a
 rig), the ego moving 0.5 m forward per step and 5 cm during each exposure, so no two views are alike. The server
 runs with its render cache off (every view rendered) and its defaults otherwise (render_threads = cores).
 
-Cases, each --rounds times after --warmup rounds (client-side wall times; median, p90, min):
+Cases, --rounds rounds after --warmup rounds, each round running every case once (round-robin, so that other
+processes' load falls on every case alike; client-side wall times; median, p90, min):
 - ``grpc_batch``: one batch_render_rgb of the 6 views (the target: median <= 0.5 s on 2 cores);
 - ``http_concurrent``: the same 6 views as 6 GET /render at once (one connection each): HTTP's batch;
 - ``grpc_sequential`` / ``http_sequential``: the 6 views one call after the other (render_rgb / GET /render);
-- ``server_render_mean_s``: the server's own render + encode time of one view (Prometheus histogram), over the
-  grpc_batch rounds.
+- ``server_render_mean_s``: the server's own render + encode time of one view (Prometheus histogram), per case
+  (top level: in the grpc_batch calls).
 ``overhead``: grpc_batch - http_concurrent (what the gRPC front end adds to a step), and per view
 (grpc_sequential - http_sequential) / 6. Every gRPC image of the last round is checked byte for byte against the
 HTTP render of the same view (``identical``).
@@ -35,7 +36,6 @@ import tempfile
 import time
 from pathlib import Path
 
-import numpy as np
 from xyzcyl.testing.rigs import example_rig, rig_files
 from xyzcyl.testing.serve import serve
 
@@ -47,14 +47,6 @@ def stats(xs: list[float]) -> dict:
     s = sorted(xs)
     return {"n": len(s), "median_s": round(statistics.median(s), 4),
             "p90_s": round(s[min(len(s) - 1, math.ceil(0.9 * len(s)) - 1)], 4), "min_s": round(s[0], 4)}
-
-
-def ego_pose() -> np.ndarray:
-    c, s = math.cos(math.radians(30)), math.sin(math.radians(30))
-    E = np.eye(4)
-    E[:3, :3] = [[c, -s, 0], [s, c, 0], [0, 0, 1]]
-    E[:3, 3] = [100.0, -40.0, 0.3]
-    return E
 
 
 def metric_sum_count(text: str, name: str) -> tuple[float, float]:
@@ -76,20 +68,19 @@ def main() -> int:
 
     import grpc
     import httpx
-    from xyzcyl.server.sensorsim import frames
     from xyzcyl.server.sensorsim import sensorsim_pb2 as pb
     from xyzcyl.server.sensorsim.sensorsim_pb2_grpc import SensorsimServiceStub
+    from xyzcyl.testing.sensorsim import ego_pose, grpc_port, rgb_request, rig_with_pose, view_query
 
     E = ego_pose()
     with tempfile.TemporaryDirectory(prefix="xyzcyl-grpc-bench-") as tmp:
         tmp = Path(tmp)
         serve_args = ["--grpc-port", "0", "--render-cache-bytes", "0", *shlex.split(args.serve_args)]
         with serve(tmp / "store", tmp / "serve.log", serve_args, ready_s=300) as server:
-            port = int(re.search(r"SensorsimService \(gRPC\) listening on \S+:(\d+)", server.output()).group(1))
+            port = grpc_port(server.output())
             http = httpx.Client(base_url=server.url, timeout=120.0)
-            rig = json.loads(json.dumps(example_rig()))
-            rig["ego_to_world"] = E.tolist()
-            r = http.post("/v1/scenes", params={"wait": 120, "name": NAME}, files=rig_files(rig))
+            r = http.post("/v1/scenes", params={"wait": 120, "name": NAME},
+                          files=rig_files(rig_with_pose(example_rig(), E)))
             assert r.status_code == 201, r.text
             sid = r.json()["id"]
             channel = grpc.insecure_channel(f"127.0.0.1:{port}")
@@ -104,22 +95,10 @@ def main() -> int:
                 start, end = E.copy(), E.copy()
                 start[:3, 3] += E[:3, 0] * 0.5 * k
                 end[:3, 3] += E[:3, 0] * (0.5 * k + 0.05)
-                out = []
-                for c in cams:
-                    rc = frames.pose_matrix(c.rig_to_camera, "rig_to_camera")
-                    pair = pb.PosePair(start_pose=frames.pose_message(start @ rc),
-                                       end_pose=frames.pose_message(end @ rc))
-                    out.append(pb.RGBRenderRequest(scene_id=NAME, resolution_w=args.width,
-                                                   resolution_h=args.height, camera_intrinsics=c.intrinsics,
-                                                   sensor_pose=pair, image_format=pb.PNG, image_quality=95))
-                return out
+                return [rgb_request(c, start, end, scene=NAME, width=args.width, height=args.height) for c in cams]
 
             def http_params(req) -> dict:
-                cam = frames.view_spec(req, E)[0].request().camera
-                K = cam.K
-                return {"cam_to_ego": ",".join(repr(float(v)) for v in cam.cam_to_ego.ravel()),
-                        "fx": repr(float(K[0, 0])), "fy": repr(float(K[1, 1])), "cx": repr(float(K[0, 2])),
-                        "cy": repr(float(K[1, 2])), "width": cam.width, "height": cam.height}
+                return view_query(req, E)
 
             def grpc_batch() -> list[bytes]:
                 items = [pb.BatchRGBRenderRequestItem(camera_name=c.logical_id, request=v)
@@ -149,25 +128,29 @@ def main() -> int:
                     out.append(r.content)
                 return out
 
-            result: dict = {"cases": {}}
             cases = {"grpc_batch": grpc_batch, "http_concurrent": http_concurrent,
                      "grpc_sequential": grpc_sequential, "http_sequential": http_sequential}
-            render_mean = None
-            for name, fn in cases.items():
-                for _ in range(args.warmup):
+            for _ in range(args.warmup):
+                for fn in cases.values():
                     fn()
-                before = metric_sum_count(http.get("/metrics").text, "xyzcyl_render_duration_seconds")
-                load0 = os.getloadavg()
-                times = []
-                for _ in range(args.rounds):
+            # round-robin: each round runs every case once, so the other processes' load falls on all alike
+            times: dict[str, list[float]] = {name: [] for name in cases}
+            render: dict[str, list[float]] = {name: [0.0, 0.0] for name in cases}
+            load0 = os.getloadavg()
+            for _ in range(args.rounds):
+                for name, fn in cases.items():
+                    before = metric_sum_count(http.get("/metrics").text, "xyzcyl_render_duration_seconds")
                     t0 = time.perf_counter()
                     fn()
-                    times.append(time.perf_counter() - t0)
-                after = metric_sum_count(http.get("/metrics").text, "xyzcyl_render_duration_seconds")
-                result["cases"][name] = {**stats(times), "loadavg_before": [round(x, 2) for x in load0],
-                                         "loadavg_after": [round(x, 2) for x in os.getloadavg()]}
-                if name == "grpc_batch" and after[1] > before[1]:
-                    render_mean = (after[0] - before[0]) / (after[1] - before[1])
+                    times[name].append(time.perf_counter() - t0)
+                    after = metric_sum_count(http.get("/metrics").text, "xyzcyl_render_duration_seconds")
+                    render[name][0] += after[0] - before[0]
+                    render[name][1] += after[1] - before[1]
+            result: dict = {"cases": {name: {**stats(times[name]), "server_render_mean_s": round(
+                render[name][0] / max(render[name][1], 1), 4)} for name in cases},
+                "loadavg_before": [round(x, 2) for x in load0],
+                "loadavg_after": [round(x, 2) for x in os.getloadavg()]}
+            render_mean = render["grpc_batch"][0] / max(render["grpc_batch"][1], 1)
             # the last step's gRPC images against HTTP's renders of the same views
             k = step[0]
             reqs = views()

@@ -9,9 +9,7 @@ so every render is rendered; an API key), the example rig posted once with a nam
 
 from __future__ import annotations
 
-import json
 import math
-import re
 import threading
 import time
 from dataclasses import dataclass
@@ -28,6 +26,7 @@ from xyzcyl.server.sensorsim import common_pb2, frames  # noqa: E402
 from xyzcyl.server.sensorsim import sensorsim_pb2 as pb  # noqa: E402
 from xyzcyl.server.sensorsim.sensorsim_pb2_grpc import SensorsimServiceStub  # noqa: E402
 from xyzcyl.testing.rigs import example_rig, rig_files  # noqa: E402
+from xyzcyl.testing.sensorsim import ego_pose, grpc_port, rgb_request, rig_with_pose, view_query  # noqa: E402
 from xyzcyl.testing.serve import serve  # noqa: E402
 
 KEY = "grpc-test-key-1"
@@ -35,15 +34,6 @@ AUTH = (("x-api-key", KEY),)
 NAME = "clipgt-026d6a39-bd8f-4175-bc61-fe50ed0403a3"
 TIMEOUT = 60.0
 Code = grpc.StatusCode
-
-
-def ego_pose() -> np.ndarray:
-    """The scene's ego_to_world: 30 degrees of yaw, 100 m out in the local frame."""
-    c, s = math.cos(math.radians(30)), math.sin(math.radians(30))
-    E = np.eye(4)
-    E[:3, :3] = [[c, -s, 0], [s, c, 0], [0, 0, 1]]
-    E[:3, 3] = [100.0, -40.0, 0.3]
-    return E
 
 
 @dataclass
@@ -64,13 +54,12 @@ def live(tmp_path_factory):
     args = ["--grpc-port", "0", "--api-keys", KEY, "--render-threads", "1", "--render-queue", "0",
             "--render-cache-bytes", "0"]
     with serve(tmp / "store", log, args) as server:
-        port = int(re.search(r"SensorsimService \(gRPC\) listening on [^\s]+:(\d+)", server.output()).group(1))
+        port = grpc_port(server.output())
         with httpx.Client(base_url=server.url, headers={"x-api-key": KEY}, timeout=120.0) as http, \
                 grpc.insecure_channel(f"127.0.0.1:{port}") as channel:
-            rig = json.loads(json.dumps(example_rig()))
             E = ego_pose()
-            rig["ego_to_world"] = E.tolist()
-            r = http.post("/v1/scenes", params={"wait": 120, "name": NAME}, files=rig_files(rig))
+            r = http.post("/v1/scenes", params={"wait": 120, "name": NAME},
+                          files=rig_files(rig_with_pose(example_rig(), E)))
             assert r.status_code == 201, r.text
             assert r.json()["name"] == NAME
             stub = SensorsimServiceStub(channel)
@@ -80,25 +69,13 @@ def live(tmp_path_factory):
         server.stop(check=False)
 
 
-def render_request(live: Live, cam, w=512, h=320, fmt=pb.PNG, move: float = 0.0, scene=NAME) -> pb.RGBRenderRequest:
-    """AlpaSim's request for camera ``cam`` (an AvailableCamera) with the ego at its recorded pose moved ``move``
-    metres forward during the exposure (sensor pose = ego pose @ camera -> rig, as AlpaSim composes it)."""
-    rig_cam = frames.pose_matrix(cam.rig_to_camera, "rig_to_camera")
+def render_request(live: Live, cam, w=512, h=320, fmt=pb.PNG, move: float = 0.0,
+                   scene=NAME) -> pb.RGBRenderRequest:
+    """AlpaSim's request for camera ``cam`` with the ego at its recorded pose, moving ``move`` metres forward
+    during the exposure."""
     end = live.E.copy()
     end[:3, 3] += live.E[:3, 0] * move
-    pair = pb.PosePair(start_pose=frames.pose_message(live.E @ rig_cam), end_pose=frames.pose_message(end @ rig_cam))
-    return pb.RGBRenderRequest(scene_id=scene, resolution_w=w, resolution_h=h, camera_intrinsics=cam.intrinsics,
-                               frame_start_us=1_000_000, frame_end_us=1_033_000, sensor_pose=pair, image_format=fmt,
-                               image_quality=95)
-
-
-def http_params(live: Live, req: pb.RGBRenderRequest) -> dict:
-    """The GET /render query of the view the server makes of ``req`` (frames.view_spec, the one conversion)."""
-    cam = frames.view_spec(req, live.E)[0].request().camera
-    K = cam.K
-    return {"cam_to_ego": ",".join(repr(float(v)) for v in cam.cam_to_ego.ravel()), "fx": repr(float(K[0, 0])),
-            "fy": repr(float(K[1, 1])), "cx": repr(float(K[0, 2])), "cy": repr(float(K[1, 2])),
-            "width": cam.width, "height": cam.height}
+    return rgb_request(cam, live.E, end, scene=scene, width=w, height=h, image_format=fmt)
 
 
 def http_render(live: Live, params: dict) -> bytes:
@@ -166,7 +143,7 @@ def test_render_equals_the_http_render_byte_for_byte(live):
     req = render_request(live, front, move=0.4)                   # a rolling exposure: rendered at mid-exposure
     got = live.stub.render_rgb(req, metadata=AUTH, timeout=TIMEOUT).image_bytes
     assert got[:8] == b"\x89PNG\r\n\x1a\n" and decode(got).shape == (320, 512, 3)
-    params = http_params(live, req)
+    params = view_query(req, live.E)
     c2e = np.array([float(v) for v in params["cam_to_ego"].split(",")]).reshape(4, 4)
     rig_c2e = np.array(example_rig()["cameras"][0]["cam_to_ego"])
     assert np.allclose(c2e[:3, 3], rig_c2e[:3, 3] + [0.2, 0, 0], atol=1e-4)   # half the move, along ego x
@@ -188,7 +165,7 @@ def test_batch_of_six_cameras(live):
     for k, i in enumerate(out):
         assert i.result.image_bytes[:3] == (b"\xff\xd8\xff" if k == 4 else b"\x89PN")
         assert decode(i.result.image_bytes).shape == (320, 512, 3)
-    assert out[1].result.image_bytes == http_render(live, http_params(live, items[1].request))
+    assert out[1].result.image_bytes == http_render(live, view_query(items[1].request, live.E))
     # a bad item fails alone, answered in its place; the others render
     items[2].request.scene_id = "clipgt-nope"
     items[3].request.camera_intrinsics.opencv_pinhole_param.focal_length_x = -1.0
@@ -362,4 +339,4 @@ def test_grpc_and_http_under_load_nothing_lost(live):
         assert [i.camera_name for i in out] == [it.camera_name for it in items]
         assert all(i.success for i in out), [i.error_message for i in out]
         for it, i in zip(items, out):
-            assert i.result.image_bytes == http_render(live, http_params(live, it.request))
+            assert i.result.image_bytes == http_render(live, view_query(it.request, live.E))
