@@ -238,6 +238,17 @@ def test_bad_inputs_answer_status_codes_naming_the_field(live, case):
     fails(live.stub.render_rgb, _bad(live, change), code, field)
 
 
+def test_names_and_ego_poses_are_checked_at_the_upload(live):
+    for name in ("two words", "-leading-dash", "A" * 201, "P5FbNUGPedOE_hYDE37TqA"):      # the last: an id's form
+        r = live.http.post("/v1/scenes", params={"name": name}, files=rig_files())
+        assert r.status_code == 422 and r.json()["error"]["field"] == "name", r.text
+    bad = ego_pose()
+    bad[:3, :3] *= 2.0                                        # not a rotation
+    r = live.http.post("/v1/scenes", params={"name": "bad-pose"}, files=rig_files(rig_with_pose(example_rig(), bad)))
+    assert r.status_code == 422 and r.json()["error"]["field"] == "rig" and "ego_to_world" in r.text, r.text
+    assert live.http.get(f"/v1/scenes/{live.sid}").json()["name"] == NAME
+
+
 def test_scene_not_ready_is_failed_precondition(live):
     r = live.http.post("/v1/scenes", params={"name": "pending-scene"}, files=rig_files())
     assert r.status_code == 202, r.text
@@ -254,6 +265,8 @@ def test_scene_not_ready_is_failed_precondition(live):
         while live.http.get(f"/v1/scenes/{sid}").json()["state"] in ("queued", "running"):
             assert time.monotonic() < deadline
             time.sleep(0.2)
+        scenes = live.stub.get_available_scenes(common_pb2.Empty(), metadata=AUTH, timeout=TIMEOUT).scene_ids
+        assert scenes[:2] == ["pending-scene", NAME]            # ready now; newest first
         assert live.http.delete(f"/v1/scenes/{sid}").status_code == 204
 
 
