@@ -17,6 +17,7 @@ RUN python3 -m venv /opt/venv
 ENV PATH=/opt/venv/bin:$PATH
 WORKDIR /src
 COPY pyproject.toml README.md ./
+COPY common ./common
 COPY runtime ./runtime
 COPY server ./server
 COPY clients ./clients

@@ -228,6 +228,7 @@ class SceneInfo:
 
     id: str
     state: str                                 # queued | running | ready | failed
+    name: str | None = None                    # the name it was posted with (?name=), e.g. a simulator's scene id
     created: str | None = None                 # ISO 8601, UTC
     updated: str | None = None
     error: dict[str, Any] | None = None        # {"code", "message"} of a failed scene
@@ -869,7 +870,8 @@ class Client:
 
     def reconstruct(self, rig: Any, images: Any = None, depths: Any = None, wait: bool = True,
                     timeout: float = 600.0, progress: Progress | None = None, lidar: Any = None,
-                    detail_stride: int | None = None, detail: bool = True, ego_masks: Any = None) -> SceneInfo:
+                    detail_stride: int | None = None, detail: bool = True, ego_masks: Any = None,
+                    name: str | None = None) -> SceneInfo:
         """POST /v1/scenes: upload a rig and its images; returns the scene.
 
         rig: a rig.json path, an xyzcyl.runtime.rig.Rig, or the rig's JSON as a dict.
@@ -892,8 +894,14 @@ class Client:
         progress(sent bytes, total bytes) follows the upload.
         detail_stride: the detail layer's stride, 1..16 input pixels per detail Gaussian along each axis (None = the
         server's default, 2); detail=False: no detail layer (the model's Gaussians only; no detail_stride then).
+        name: the scene's name (?name=, e.g. a simulator's scene id: the gRPC SensorsimService lists and resolves
+        it; docs/simulators.md); the server checks it.
         Bad values raise InvalidArgumentError (a ValueError) naming the argument, before anything is sent."""
         query = _detail_params(detail_stride, detail)
+        if name is not None:
+            if not isinstance(name, str):
+                raise InvalidArgumentError(None, "invalid", f"name: must be a string (got {name!r:.60})", "name")
+            query["name"] = name
         doc, root = _rig_document(rig)
         names = [c["name"] for c in doc["cameras"]]
         imgs = _by_camera(images, names, "images")

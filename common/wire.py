@@ -54,6 +54,7 @@ class DetailInfo(BaseModel):
 # a scene as POST /v1/scenes, GET /v1/scenes/{id} and the list answer it
 class SceneInfo(BaseModel):
     id: str = Field(examples=["q3R1x9Z2bC7dE5fG8hJ0kA"])
+    name: str | None = Field(None, examples=["clipgt-026d6a39-bd8f-4175-bc61-fe50ed0403a3"])
     state: SceneState
     created: str
     updated: str

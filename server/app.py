@@ -11,7 +11,8 @@ all of that has finished, so the first real request compiles no numba kernel. Mi
 from Content-Length before anything is read, or as soon as a streamed body passes it), metrics per route
 template, CORS when origins are configured. Errors become the one error body (errors.py). Endpoints live in
 routes/ and take their dependencies (the service, API keys, known query parameters) from deps.py, never from
-this module.
+this module. With ``grpc_port`` set the lifespan also runs the gRPC SensorsimService (sensorsim/servicer.py) over
+the same service, on that port (``app.state.grpc_port``: the one it listens on).
 """
 
 from __future__ import annotations
@@ -162,9 +163,16 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     @contextlib.asynccontextmanager
     async def lifespan(app: FastAPI):
         await service.start()
+        grpc_server = None
         try:
+            if settings.grpc_port is not None:      # the SensorsimService beside the routes (docs/simulators.md)
+                from .sensorsim import servicer
+
+                grpc_server, app.state.grpc_port = await servicer.start(service)
             yield
         finally:
+            if grpc_server is not None:
+                await servicer.stop(grpc_server)
             await service.stop()
 
     # /openapi.json, /docs and /redoc are not behind the API keys (a browser sends no key): with keys set they are

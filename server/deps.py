@@ -36,7 +36,8 @@ bearer_scheme = HTTPBearer(auto_error=False, description="Authorization: Bearer 
 key_scheme = APIKeyHeader(name="X-API-Key", auto_error=False, description="X-API-Key: KEY")
 
 
-def _matches(given: str, keys: tuple[str, ...]) -> bool:
+def key_matches(given: str, keys: tuple[str, ...]) -> bool:
+    """Whether ``given`` is one of ``keys`` (the HTTP routes' and the gRPC calls' one check)."""
     g = given.encode("utf-8", "surrogateescape")
     ok = False
     for k in keys:   # every key compared (no early exit), each in constant time
@@ -54,7 +55,7 @@ async def require_key(request: Request) -> None:
         scheme, _, token = auth.partition(" ")
         if scheme.lower() == "bearer" and token:
             given = token.strip()
-    if not given or not _matches(given, keys):
+    if not given or not key_matches(given, keys):
         raise Unauthorized()
 
 
@@ -119,4 +120,5 @@ async def known_query(request: Request) -> None:
         raise err
 
 
-__all__ = ["declared_query", "known_query", "require_content_type", "require_key", "service_of", "unknown_query"]
+__all__ = ["declared_query", "key_matches", "known_query", "require_content_type", "require_key", "service_of",
+           "unknown_query"]

@@ -43,6 +43,10 @@ class Metrics:
         self.queue_depth = Gauge("xyzcyl_queue_depth", "work running or waiting", ["queue"], registry=r)
         self.rejected = Counter("xyzcyl_rejected", "requests refused because a queue was full", ["queue"],
                                 registry=r)
+        self.grpc_requests = Counter("xyzcyl_grpc_requests", "SensorsimService gRPC calls by method and status code",
+                                     ["method", "code"], registry=r)
+        self.grpc_latency = Histogram("xyzcyl_grpc_request_duration_seconds", "time to a gRPC call's answer",
+                                      ["method"], buckets=_LATENCY, registry=r)
         self.render_cache = Counter("xyzcyl_render_cache", "render cache lookups", ["result"], registry=r)
         for q in ("reconstruct", "render"):
             self.queue_depth.labels(q).set(0)

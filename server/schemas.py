@@ -75,8 +75,8 @@ def scene_info(rec: SceneRecord) -> dict[str, Any]:
         links |= {"gaussians": f"{base}/gaussians", "render": f"{base}/render"}
         if rec.background:
             links["background"] = f"{base}/background"
-    return {"id": sid, "state": rec.state, "created": _iso(rec.created_ts), "updated": _iso(rec.updated_ts),
-            "error": None if rec.error is None else rec.error.model_dump(), "cameras": rec.cameras,
+    return {"id": sid, "name": rec.name, "state": rec.state, "created": _iso(rec.created_ts),
+            "updated": _iso(rec.updated_ts), "error": None if rec.error is None else rec.error.model_dump(), "cameras": rec.cameras,
             "detail": rec.detail, "model": rec.model, "counts": rec.counts, "gaussians": rec.gaussians,
             "background": rec.background, "bbox": rec.bbox, "timings": rec.timings, "bytes": rec.bytes,
             "links": links}

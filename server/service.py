@@ -43,10 +43,12 @@ from .metrics import Metrics
 from .schemas import RenderQuery
 from .settings import Settings
 from .store import SceneFailure, SceneRecord, Store, StoreFull, StoreUnavailable, new_scene_id, open_store
+from .store.record import valid_id
 from .uploads import RIG_PART_BYTES, ingest
 
 log = logging.getLogger("xyzcyl.server")
 
+NAME_TTL_S = 2.0        # resolve_scene: a name's scene is looked up again (a newer one of that name) this often
 _DTYPES = {"float32": "FP32", "float16": "FP16", "int64": "INT64", "int32": "INT32", "uint8": "UINT8",
            "bool": "BOOL"}
 
@@ -69,6 +71,7 @@ class Service:
     started: float = field(default_factory=time.time)
     recovered: dict[str, int] = field(default_factory=dict)
     _tasks: list[asyncio.Task] = field(default_factory=list, repr=False)
+    _names: dict[str, tuple[str, float]] = field(default_factory=dict, repr=False)   # resolve_scene's name -> id
 
     @classmethod
     def create(cls, settings: Settings) -> Service:
@@ -176,22 +179,44 @@ class Service:
 
     async def ready_record(self, sid: str) -> SceneRecord:
         """The record of a ready scene; Conflict (409) while it is queued or running, or when it failed."""
-        rec = await self.record(sid)
-        if rec.state == "failed":
-            message = rec.error.message if rec.error is not None else "unknown error"
-            raise Conflict(f"scene {sid} failed: {message}", "id", code="scene_failed")
-        if rec.state != "ready":
-            raise Conflict(f"scene {sid} is {rec.state}; poll GET /v1/scenes/{sid} until it is ready", "id",
-                           headers={"Retry-After": "1"})
-        return rec
+        return _ready(await self.record(sid), "id")
+
+    async def resolve_scene(self, ref: str, field: str = "scene_id") -> SceneRecord:
+        """The ready scene that ``ref`` names, for the gRPC SensorsimService: a scene id, else a scene's name
+        (POST /v1/scenes?name=): the newest ready scene of that name, else the newest of any state (a name found
+        ready is remembered NAME_TTL_S seconds, so a simulator's renders do not list the store each time). NotFound
+        when nothing is called so, Conflict when it is not ready (both naming ``field``)."""
+        rec = await asyncio.to_thread(self.store.get, ref) if valid_id(ref) else None
+        if rec is None and ref in self._names and time.monotonic() - self._names[ref][1] < NAME_TTL_S:
+            rec = await asyncio.to_thread(self.store.get, self._names[ref][0])     # a simulator's every render
+            rec = rec if rec is not None and rec.name == ref and rec.state == "ready" else None
+        if rec is None:
+            named = [r for r in await self._records() if r.name == ref]
+            if not named:
+                raise NotFound(f"no scene {ref[:200]!r}: neither a scene id nor a scene's name (get_available_scenes "
+                               "lists them; POST /v1/scenes?name= names a scene)", field)
+            rec = next((r for r in named if r.state == "ready"), named[0])
+            if rec.state == "ready":
+                self._names[ref] = (rec.id, time.monotonic())
+        return _ready(rec, field)
+
+    async def scene_names(self) -> list[str]:
+        """What the gRPC SensorsimService lists: each ready scene's name, or its id when it has none, newest first,
+        once each."""
+        return list(dict.fromkeys(r.name or r.id for r in await self._records() if r.state == "ready"))
+
+    async def _records(self) -> list[SceneRecord]:
+        """Every record, newest first (off the loop: an S3 store reads over the network)."""
+        page, _ = await asyncio.to_thread(self.store.list, 0, 1 << 30)
+        return page
 
     async def create_scene(self, read_form: Callable[..., Awaitable[Any]], detail_stride: int | None,
-                           wait: float | None) -> SceneRecord:
+                           wait: float | None, name: str | None = None) -> SceneRecord:
         """POST /v1/scenes: admit (Busy while loading or with the queue full), read the multipart form with
-        ``read_form`` (the request's ``form``) into a work folder (uploads.ingest), create the record and queue the
-        job (detail_stride None: no detail layer); with ``wait``, hold up to that many seconds (at most
-        ``wait_max_s``) for the job to end. Returns the scene's record then (a failed one when it was deleted
-        meanwhile)."""
+        ``read_form`` (the request's ``form``) into a work folder (uploads.ingest), create the record (with its
+        ``name``, checked by the route: store.name_error) and queue the job (detail_stride None: no detail layer);
+        with ``wait``, hold up to that many seconds (at most ``wait_max_s``) for the job to end. Returns the
+        scene's record then (a failed one when it was deleted meanwhile)."""
         st = self.settings
         if not self.ready:
             raise Busy("the model is still loading; retry shortly", st.retry_after_s)
@@ -210,9 +235,11 @@ class Service:
             rig = await asyncio.to_thread(ingest, form, work, st, self.info.meta.get("input") or {})
             sid = new_scene_id()
             cameras = [{"name": c.name, "width": c.width, "height": c.height, "model": c.model} for c in rig.cameras]
+            fields = {"cameras": cameras, "detail": {"enabled": detail_stride is not None, "stride": detail_stride}}
+            if name is not None:
+                fields["name"] = name
             try:
-                await asyncio.to_thread(self.store.create, sid, {"cameras": cameras, "detail": {
-                    "enabled": detail_stride is not None, "stride": detail_stride}})
+                await asyncio.to_thread(self.store.create, sid, fields)
             except StoreFull as e:
                 raise StorageFull(str(e)) from None
             job = Job(sid=sid, work=work, detail_stride=detail_stride)
@@ -238,7 +265,7 @@ class Service:
             except TimeoutError:
                 pass
         return await asyncio.to_thread(self.store.get, sid) or SceneRecord(
-            id=sid, state="failed", cameras=cameras,
+            id=sid, name=name, state="failed", cameras=cameras,
             error=SceneFailure(code="deleted", message="the scene was deleted"))
 
     async def list_scenes(self, offset: int, limit: int) -> tuple[list[SceneRecord], int]:
@@ -291,6 +318,11 @@ class Service:
         """The scene's rig (calibration) from the loaded scene."""
         return self.load_scene(sid).rig
 
+    async def scene_rig(self, sid: str):
+        """A ready scene's rig (runtime.rig.Rig: calibration, ``extra`` with its ego_to_world), from the loaded scene
+        (loaded in the render pool when it is not in the scene cache; Busy when the pool is full)."""
+        return await self.renders.run(self._rig, sid)
+
     # ------------------------------------------------------------------------------------------- renders
     def check_size(self, camera, field: str = "width") -> None:
         """Invalid when a view is over the render limits (its longer side, its pixels)."""
@@ -326,10 +358,11 @@ class Service:
             raise Invalid(str(e), e.field) from None
         return req, self.view_key(sid, req)
 
-    async def render(self, sid: str, req: ViewRequest, key: str) -> bytes:
-        """The encoded view (from the render cache, else rendered in the render pool; Busy when it is full)."""
+    async def render(self, sid: str, req: ViewRequest, key: str, force: bool = False) -> bytes:
+        """The encoded view (from the render cache, else rendered in the render pool; Busy when it is full, unless
+        ``force``: the later views of a batch that was admitted, as render_batch's frames)."""
         await asyncio.to_thread(self.store.touch, sid)
-        return await self.renders.run(self._render_bytes, sid, req, key)
+        return await self.renders.run(self._render_bytes, sid, req, key, force=force)
 
     def _render_bytes(self, sid: str, req: ViewRequest, key: str) -> bytes:
         hit = self.views.get(key)
@@ -404,6 +437,18 @@ class Service:
                 "inputs": _tensors(enc.get("inputs", [])), "outputs": _tensors(enc.get("outputs", [])),
                 "parameters": {"graphs": sorted(graphs), "input": info.meta.get("input"),
                                "counts": info.meta.get("counts")}}
+
+
+def _ready(rec: SceneRecord, field: str) -> SceneRecord:
+    """``rec`` when it is ready; Conflict naming ``field`` while it is queued or running, or when it failed."""
+    sid = rec.id
+    if rec.state == "failed":
+        message = rec.error.message if rec.error is not None else "unknown error"
+        raise Conflict(f"scene {sid} failed: {message}", field, code="scene_failed")
+    if rec.state != "ready":
+        raise Conflict(f"scene {sid} is {rec.state}; poll GET /v1/scenes/{sid} until it is ready", field,
+                       headers={"Retry-After": "1"})
+    return rec
 
 
 def _tensors(entries) -> list[dict]:

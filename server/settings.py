@@ -8,7 +8,7 @@ import os
 from pathlib import Path
 from typing import Annotated, Literal
 
-from pydantic import Field, field_validator
+from pydantic import Field, field_validator, model_validator
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
 MiB = 1 << 20
@@ -34,6 +34,11 @@ class Settings(BaseSettings):
     store: str = Field("./xyzcyl-store", description="scene store: a folder (created if absent) or s3://bucket/prefix")
     host: str = Field("127.0.0.1", description="`xyzcyl serve`: address to listen on")
     port: int = Field(8000, ge=0, le=65535, description="`xyzcyl serve`: TCP port (0: a free one)")
+    grpc_port: int | None = Field(None, ge=0, le=65535,
+                                  description="`xyzcyl serve`: also answer AlpaSim's and CARLA NuRec's SensorsimService "
+                                              "(gRPC, docs/simulators.md) on this TCP port of the same host, over the "
+                                              "same scenes, renders, limits and API keys (0: a free one; default: "
+                                              "off)")
     header_timeout_s: float = Field(10.0, gt=0, description="`xyzcyl serve`: close a connection that has not sent a "
                                                             "whole request head (line + headers) this long after "
                                                             "connecting or after its previous answer (slow clients)")
@@ -101,6 +106,12 @@ class Settings(BaseSettings):
             if len(k) < 8:
                 raise ValueError("each API key must have at least 8 characters")
         return v
+
+    @model_validator(mode="after")
+    def _ports(self) -> Settings:
+        if self.grpc_port and self.grpc_port == self.port:
+            raise ValueError(f"grpc_port: {self.grpc_port} is the HTTP port too; give the gRPC API a port of its own")
+        return self
 
     def model_dir(self) -> Path:
         """The model folder: ``model`` or the shipped default (runtime.inference.default_model_dir)."""

@@ -7,7 +7,9 @@ POST /v1/scenes.
   ``png_header_only`` (a PNG whose header claims a size its data does not have);
 - ``xyzcyl.testing.serve``: ``Server`` / ``serve`` (`xyzcyl serve` in a subprocess on 127.0.0.1 and a free port,
   a bounded wait for /v2/health/ready, SIGTERM or kill), ``free_port``, ``XYZCYL`` (the console script);
-- ``xyzcyl.testing.model``: ``tiny_config``, ``synth_test_config`` (the network at test size) and ``overlap_rig``.
+- ``xyzcyl.testing.model``: ``tiny_config``, ``synth_test_config`` (the network at test size) and ``overlap_rig``;
+- ``xyzcyl.testing.sensorsim``: the gRPC SensorsimService's (grpc and protobuf needed): ``ego_pose``,
+  ``rig_with_pose``, AlpaSim's ``rgb_request``, the HTTP ``view_query`` of the same view, ``grpc_port``.
 
 Nothing here imports torch at import time (``xyzcyl.testing.model`` builds its configs without it), so the
 package imports in the serving install; httpx (the ``server`` and ``client`` extras) is imported where it is used.

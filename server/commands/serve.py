@@ -1,5 +1,6 @@
-"""`xyzcyl serve`: run the HTTP service with uvicorn. Every Settings field is a flag (``--store``,
-``--max-body-bytes``, ``--api-keys a,b`` ...) over its ``XYZCYL_*`` environment variable; docs/api.md."""
+"""`xyzcyl serve`: run the HTTP service with uvicorn (and, with ``--grpc-port``, the gRPC SensorsimService beside
+it: docs/simulators.md). Every Settings field is a flag (``--store``, ``--max-body-bytes``, ``--api-keys a,b``,
+``--grpc-port 50051`` ...) over its ``XYZCYL_*`` environment variable; docs/api.md."""
 
 from __future__ import annotations
 
@@ -35,8 +36,12 @@ def run(args: argparse.Namespace) -> int:
         settings = Settings(**overrides)
     except ValidationError as e:
         for err in e.errors():
-            loc = err["loc"][0] if err["loc"] else "settings"
-            print(f"xyzcyl serve: {_flag(str(loc))}: {err['msg']} (got {err.get('input')!r})", file=sys.stderr)
+            if err["loc"]:
+                print(f"xyzcyl serve: {_flag(str(err['loc'][0]))}: {err['msg']} (got {err.get('input')!r})",
+                      file=sys.stderr)
+            else:                       # a check across fields: its message starts "<field>: "
+                name, _, msg = str(err["msg"]).removeprefix("Value error, ").partition(": ")
+                print(f"xyzcyl serve: {_flag(name)}: {msg}", file=sys.stderr)
         return 2
     if args.print_settings:
         shown = settings.model_dump(mode="json")
@@ -63,9 +68,11 @@ def run(args: argparse.Namespace) -> int:
         print(f"xyzcyl serve: --store: {e}", file=sys.stderr)
         return 2
     # server_header=False: no "server: uvicorn" header (the stack's versions are not announced)
+    # loop "asyncio" with the gRPC API: grpc.aio runs on the event loop, and supports asyncio's own
     config = uvicorn.Config(app, host=settings.host, port=settings.port, log_level=args.log_level,
                             server_header=False, timeout_graceful_shutdown=30,
-                            http=_protocol_class(settings.header_timeout_s))
+                            http=_protocol_class(settings.header_timeout_s),
+                            loop="asyncio" if settings.grpc_port is not None else "auto")
     server = _server_class()(config)
     server.service = app.state.service
     server.run()

@@ -13,6 +13,7 @@ from xyzcyl.runtime.inference import DEFAULT_DETAIL
 from ..deps import known_query, require_content_type, require_key, service_of
 from ..errors import Invalid, scene_failure
 from ..schemas import ERRORS, SCENE_UPLOAD, scene_info, scene_list
+from ..store import name_error
 
 # require_key first (401 before anything else), then known_query (422 for a query parameter the route lacks)
 router = APIRouter(prefix="/v1", tags=["scenes"], dependencies=[Depends(require_key), Depends(known_query)])
@@ -46,10 +47,16 @@ async def create_scene(request: Request,
                                                                      "Gaussian along each axis (default "
                                                                      f"{DEFAULT_DETAIL.stride})"),
                        detail: bool = Query(True, description="false: no detail layer (the model's Gaussians "
-                                                              "only)")):
+                                                              "only)"),
+                       name: str | None = Query(None, max_length=200,
+                                                description="the scene's name, e.g. a simulator's scene id (AlpaSim's "
+                                                            "clipgt-...): the gRPC SensorsimService lists and "
+                                                            "resolves it (docs/simulators.md)")):
     stride = _detail_stride(request, detail, detail_stride)
+    if name is not None and (why := name_error(name)):
+        raise Invalid(f"name: {why}", "name")
     require_content_type(request, "multipart/form-data", "POST /v1/scenes")
-    rec = await service_of(request).create_scene(request.form, stride, wait)
+    rec = await service_of(request).create_scene(request.form, stride, wait, name=name)
     headers = {"Location": f"/v1/scenes/{rec.id}"}
     if rec.state == "failed" and wait:
         err = rec.error

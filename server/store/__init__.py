@@ -9,7 +9,7 @@ import math
 
 from .base import BaseStore, Store, StoreFull, StoreUnavailable
 from .folder import FolderStore
-from .record import SCENE_ID, SceneFailure, SceneRecord, new_scene_id
+from .record import SCENE_ID, SceneFailure, SceneRecord, name_error, new_scene_id, valid_id
 
 
 def open_store(settings) -> Store:
@@ -28,4 +28,4 @@ def open_store(settings) -> Store:
 
 
 __all__ = ["SCENE_ID", "BaseStore", "FolderStore", "SceneFailure", "SceneRecord", "Store", "StoreFull",
-           "StoreUnavailable", "new_scene_id", "open_store"]
+           "StoreUnavailable", "name_error", "new_scene_id", "open_store", "valid_id"]

@@ -4,7 +4,7 @@ Ids are 22 URL-safe characters (128 random bits, ``new_scene_id``), matched agai
 object key is built from one (``check_id``). The record holds a scene's state, its metadata and, once failed,
 its error:
 
-    {"cameras": [...], "detail": {"enabled": true, "stride": 2}, "id": "...", "state": "ready",
+    {"cameras": [...], "detail": {"enabled": true, "stride": 2}, "name": "clipgt-...", "id": "...", "state": "ready",
      "created_ts": 1764092077.4, "updated_ts": 1764092082.9, "error": null, "model": {...}, "counts": {...},
      "timings": {...}, "bbox": {...}, "gaussians": 544123, "background": true, "bytes": 38442211,
      "last_used": 1764092082.9}
@@ -30,6 +30,8 @@ from pydantic import BaseModel, ConfigDict
 from xyzcyl.common.wire import STATES, SceneState
 
 SCENE_ID = re.compile(r"^[A-Za-z0-9_-]{22}$")
+# a scene's optional name (POST /v1/scenes?name=): a simulator's scene id such as AlpaSim's "clipgt-<uuid>"
+SCENE_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._:/+=@-]{0,199}$")
 
 
 def new_scene_id() -> str:
@@ -39,6 +41,17 @@ def new_scene_id() -> str:
 
 def valid_id(sid: Any) -> bool:
     return isinstance(sid, str) and SCENE_ID.match(sid) is not None
+
+
+def name_error(name: str) -> str | None:
+    """Why ``name`` cannot name a scene (None: it can): SCENE_NAME's characters and length, and not of an id's
+    form (a name and an id must never be mistaken for each other where either is accepted)."""
+    if not SCENE_NAME.match(name):
+        return ("1 to 200 characters: letters, digits and . _ : / + = @ -, starting with a letter or a digit "
+                f"(got {name[:60]!r})")
+    if valid_id(name):
+        return f"{name!r} has the form of a scene id (22 characters of A-Z a-z 0-9 _ -); give a name that does not"
+    return None
 
 
 def check_id(sid: Any) -> str:
@@ -64,6 +77,7 @@ class SceneRecord(BaseModel):
     # the fields in the order today's stores write them (the JSON keeps it)
     cameras: list[dict[str, Any]] = []          # the rig's cameras as posted: {"name", "width", "height", "model"}
     detail: dict[str, Any] | None = None        # {"enabled", "stride"}; absent for scenes posted before the layer
+    name: str | None = None                     # POST /v1/scenes?name= (e.g. a simulator's scene id); absent: none
     id: str
     state: SceneState
     created_ts: float = 0.0                     # time.time() of the POST
@@ -148,4 +162,5 @@ class SceneRecord(BaseModel):
         return self.to_json().keys()
 
 
-__all__ = ["SCENE_ID", "STATES", "SceneFailure", "SceneRecord", "check_id", "new_scene_id", "valid_id"]
+__all__ = ["SCENE_ID", "SCENE_NAME", "STATES", "SceneFailure", "SceneRecord", "check_id", "name_error", "new_scene_id",
+           "valid_id"]

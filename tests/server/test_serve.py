@@ -81,3 +81,25 @@ def test_print_settings_shows_the_resolved_model(tmp_path, monkeypatch, capsys):
     assert shown("--model", "m")["model"] == str(tmp_path / "m")
     monkeypatch.setenv("XYZCYL_MODEL", str(tmp_path / "env"))
     assert shown()["model"] == str(tmp_path / "env")
+
+
+def test_grpc_port_setting_is_typed_and_checked(monkeypatch, capsys):
+    """--grpc-port (issue 29): off by default, an int, in 0..65535, not the HTTP port; refusals exit 2 naming
+    the flag; --help says what it is."""
+    pytest.importorskip("pydantic_settings")
+    from xyzcyl.clients import cli
+
+    monkeypatch.delenv("XYZCYL_GRPC_PORT", raising=False)
+    for argv, want in (((), None), (("--grpc-port", "50051"), 50051), (("--grpc-port", "0"), 0)):
+        capsys.readouterr()
+        assert cli.main(["serve", "--print-settings", *argv]) == 0
+        assert json.loads(capsys.readouterr().out)["grpc_port"] == want
+    for argv, words in ((("--grpc-port", "8000"), "is the HTTP port too"), (("--grpc-port", "70000"), "65535"),
+                        (("--grpc-port", "x"), "integer")):
+        capsys.readouterr()
+        assert cli.main(["serve", "--print-settings", *argv]) == 2
+        err = capsys.readouterr().err
+        assert err.startswith("xyzcyl serve: --grpc-port: ") and words in err, err
+    with pytest.raises(SystemExit):
+        cli.main(["serve", "--help"])
+    assert "SensorsimService" in capsys.readouterr().out

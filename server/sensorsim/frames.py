@@ -1,0 +1,316 @@
+"""The SensorsimService's messages to and from the runtime's terms: poses, cameras, render requests. No gRPC here
+(only the generated message classes), no I/O: every function is a pure conversion, and every refusal is a
+runtime.views.ViewError naming the protocol field at fault (``camera_intrinsics.opencv_pinhole_param
+.focal_length_x``, ``sensor_pose.start_pose.quat``, ``items[2].request.resolution_w``), which the servicer answers
+as INVALID_ARGUMENT.
+
+The frame chain (docs/simulators.md states it for users):
+
+    cam_to_ego = inv(E) @ S_mid @ A
+
+- S_mid: the request's ``sensor_pose`` (camera -> the scene's local frame: AlpaSim's per-scene ENU frame) at the
+  middle of the exposure: translation halfway, rotation halfway along the arc between start_pose and end_pose
+  (a rolling shutter is rendered as a global one at mid-exposure; end_pose unset: start_pose);
+- E: the scene's ``ego_to_world`` (rig.json; ``ego_to_global`` accepted too): where the ego of the reconstructed
+  rig stood in that local frame (identity when the rig has none: the local frame is then the scene's ego frame);
+- A = CAMERA_AXES: the protocol's camera frame -> ours. Both are OpenCV's (x right, y down, z forward; NuRec and
+  AlpaSim's renderers take the sensor pose as an OpenCV camera-to-world), so A is the identity, kept in the formula
+  so that the chain reads whole;
+- cam_to_ego: our camera -> ego (docs/conventions.md "Frames and cameras"), the pose a ViewSpec takes.
+
+get_available_cameras answers each rig camera's cam_to_ego @ inv(A) as the camera -> rig pose (the protocol's
+``rig_to_camera``, named the other way round): AlpaSim's rig frame (x forward, y left, z up) has our ego frame's
+axes, and its origin is then ours (the rig's, e.g. the rear axle on the ground for nuScenes-style rigs).
+
+Intrinsics: a CameraSpec holds the camera at its native resolution (camera_intrinsics.resolution_w x _h); the
+request's resolution_w x resolution_h is the image asked for, and the camera is rescaled to it with
+runtime.camera.Camera.resized (pixel centres: cx' = sx (cx + 1/2) - 1/2, fx' = sx fx; the f-theta polynomials as
+NVIDIA's ncore scales them). Principal points count from the first pixel's centre, as ours (docs/conventions.md
+"Lens models"). Lenses become the rig.json lens objects of runtime.lenses: opencv_pinhole_param with non-zero
+coefficients an "opencv" lens, opencv_fisheye_param an "opencv_fisheye" lens, ftheta_param an "ftheta" lens."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from typing import Any
+
+import numpy as np
+from xyzcyl.common.errors import FieldError
+from xyzcyl.runtime.camera import Camera, pinhole_K
+from xyzcyl.runtime.lenses import FISHEYE_NAMES, OPENCV_NAMES, fisheye_max_angle_deg
+from xyzcyl.runtime.realeval import EGO_POSE_KEYS, ego_to_world
+from xyzcyl.runtime.rig import Rig
+from xyzcyl.runtime.rotations import quat_to_rotmat, rotmat_to_quat
+from xyzcyl.runtime.views import ViewError, ViewSpec
+
+from . import common_pb2, sensorsim_pb2
+
+CAMERA_AXES = np.eye(4)             # the protocol's camera frame -> ours: both OpenCV (module docstring)
+QUAT_NORM_TOL = 1e-2                # a quaternion whose norm is off 1 by more is refused, not silently normalised
+FORMATS = {sensorsim_pb2.PNG: "png", sensorsim_pb2.JPEG: "jpeg", sensorsim_pb2.UNDEFINED: "png"}
+DEFAULT_QUALITY = 90                # image_quality 0 (unset)
+PARAMS = ("opencv_pinhole_param", "opencv_fisheye_param", "ftheta_param")
+_REFERENCE = {sensorsim_pb2.FthetaCameraParam.PIXELDIST_TO_ANGLE: "pixeldist_to_angle",
+              sensorsim_pb2.FthetaCameraParam.ANGLE_TO_PIXELDIST: "angle_to_pixeldist"}
+_REFERENCE_BACK = {v: k for k, v in _REFERENCE.items()}
+_RADIAL = ("k1", "k2", "k3", "k4", "k5", "k6")
+
+
+# ------------------------------------------------------------------------------------------- poses
+
+def pose_matrix(pose: common_pb2.Pose, field: str) -> np.ndarray:
+    """[4, 4] float64 of a common.Pose (child -> parent: R(quat) p + vec). ViewError naming ``field`` (or its
+    ``.quat`` / ``.vec``) for non-finite numbers or a quaternion that is not of unit norm (a zero one: unset)."""
+    q = np.array([pose.quat.w, pose.quat.x, pose.quat.y, pose.quat.z], dtype=np.float64)
+    t = np.array([pose.vec.x, pose.vec.y, pose.vec.z], dtype=np.float64)
+    if not np.all(np.isfinite(t)):
+        raise ViewError(f"{field}.vec", f"must be finite (got {t.tolist()})")
+    n = float(np.linalg.norm(q)) if np.all(np.isfinite(q)) else math.nan
+    if n == 0.0:
+        raise ViewError(f"{field}.quat", "is zero (the pose is not set)")
+    if not abs(n - 1.0) <= QUAT_NORM_TOL:
+        raise ViewError(f"{field}.quat", f"must be a unit quaternion (w, x, y, z) (got norm {n:.6g})")
+    T = np.eye(4)
+    T[:3, :3] = quat_to_rotmat(q)
+    T[:3, 3] = t
+    return T
+
+
+def _is_set(pose: common_pb2.Pose) -> bool:
+    q = pose.quat
+    return any(v != 0.0 for v in (q.w, q.x, q.y, q.z, pose.vec.x, pose.vec.y, pose.vec.z))
+
+
+def mid_exposure(pair: sensorsim_pb2.PosePair, field: str) -> np.ndarray:
+    """[4, 4] the pose at the middle of the exposure: translation halfway between start_pose and end_pose,
+    rotation halfway along the shorter arc (the normalised sum of the two unit quaternions, made to agree in sign,
+    is the slerp at t = 1/2). end_pose unset (all zero): start_pose."""
+    start = pose_matrix(pair.start_pose, f"{field}.start_pose")
+    if not _is_set(pair.end_pose):
+        return start
+    end = pose_matrix(pair.end_pose, f"{field}.end_pose")
+    q0, q1 = rotmat_to_quat(start[:3, :3]), rotmat_to_quat(end[:3, :3])
+    if float(q0 @ q1) < 0:
+        q1 = -q1
+    T = np.eye(4)
+    T[:3, :3] = quat_to_rotmat(q0 + q1)
+    T[:3, 3] = 0.5 * (start[:3, 3] + end[:3, 3])
+    return T
+
+
+def pose_message(T: np.ndarray) -> common_pb2.Pose:
+    """A common.Pose of a rigid [4, 4] (float32 on the wire)."""
+    w, x, y, z = (float(v) for v in rotmat_to_quat(np.asarray(T, np.float64)[:3, :3]))
+    tx, ty, tz = (float(v) for v in np.asarray(T, np.float64)[:3, 3])
+    return common_pb2.Pose(vec=common_pb2.Vec3(x=tx, y=ty, z=tz), quat=common_pb2.Quat(w=w, x=x, y=y, z=z))
+
+
+def scene_ego_to_world(rig: Rig) -> np.ndarray:
+    """[4, 4] the scene's ego pose in the simulator's local frame: the rig's ``ego_to_world`` (or
+    ``ego_to_global``), identity when it has none (POST /v1/scenes checked it: server/uploads.py)."""
+    if any(k in rig.extra for k in EGO_POSE_KEYS):
+        return ego_to_world(rig, "the scene's rig")
+    return np.eye(4)
+
+
+def cam_to_ego(sensor_pose: np.ndarray, ego_pose: np.ndarray) -> np.ndarray:
+    """The frame chain (module docstring): inv(ego_to_world) @ sensor pose @ CAMERA_AXES."""
+    return np.linalg.inv(ego_pose) @ sensor_pose @ CAMERA_AXES
+
+
+# ------------------------------------------------------------------------------------------- cameras: rig -> spec
+
+def camera_spec(cam: Camera) -> sensorsim_pb2.CameraSpec | None:
+    """A rig camera as the protocol's CameraSpec at its native resolution (None for an equirectangular camera,
+    which the protocol cannot describe). The shutter is GLOBAL: the renderer draws every pixel at one pose."""
+    spec = sensorsim_pb2.CameraSpec(logical_id=cam.name or "", resolution_w=cam.width, resolution_h=cam.height,
+                                    shutter_type=sensorsim_pb2.GLOBAL)
+    if cam.is_equirect:
+        return None
+    fx, fy, cx, cy = (float(cam.K[0, 0]), float(cam.K[1, 1]), float(cam.K[0, 2]), float(cam.K[1, 2]))
+    lens = cam.distortion
+    if lens is None or lens.model == "opencv":
+        p = spec.opencv_pinhole_param
+        p.focal_length_x, p.focal_length_y, p.principal_point_x, p.principal_point_y = fx, fy, cx, cy
+        if lens is not None:
+            c = dict(zip(OPENCV_NAMES, lens.coeffs))
+            p.radial_coeffs.extend(c[k] for k in _RADIAL)
+            p.tangential_coeffs.extend((c["p1"], c["p2"]))
+            p.thin_prism_coeffs.extend(c[k] for k in ("s1", "s2", "s3", "s4"))
+    elif lens.model == "opencv_fisheye":
+        p = spec.opencv_fisheye_param
+        p.focal_length_x, p.focal_length_y, p.principal_point_x, p.principal_point_y = fx, fy, cx, cy
+        p.radial_coeffs.extend(lens.coeffs)
+        p.max_angle = math.radians(lens.max_angle_deg)
+    else:
+        p = spec.ftheta_param
+        p.principal_point_x, p.principal_point_y = cx, cy
+        p.pixeldist_to_angle_poly.extend(lens.pixeldist_to_angle_poly)
+        p.angle_to_pixeldist_poly.extend(lens.angle_to_pixeldist_poly)
+        if lens.reference_poly is not None:
+            p.reference_poly = _REFERENCE_BACK[lens.reference_poly]
+        p.max_angle = math.radians(lens.max_angle_deg)
+        c, d, e = lens.linear_cde
+        p.linear_cde.CopyFrom(sensorsim_pb2.LinearCde(linear_c=c, linear_d=d, linear_e=e))
+    return spec
+
+
+def available_cameras(rig: Rig) -> list[sensorsim_pb2.AvailableCamerasReturn.AvailableCamera]:
+    """Every camera of the scene's rig the protocol can describe, with its camera -> rig pose (module
+    docstring)."""
+    out = []
+    for cam in rig.cameras:
+        spec = camera_spec(cam)
+        if spec is not None:
+            pose = pose_message(np.asarray(cam.cam_to_ego, np.float64) @ np.linalg.inv(CAMERA_AXES))
+            out.append(sensorsim_pb2.AvailableCamerasReturn.AvailableCamera(intrinsics=spec, rig_to_camera=pose,
+                                                                              logical_id=cam.name or ""))
+    return out
+
+
+# ------------------------------------------------------------------------------------------- requests -> views
+
+def _coeffs(values, names: tuple[str, ...], field: str) -> dict[str, float]:
+    if len(values) > len(names):
+        raise ViewError(field, f"at most {len(names)} coefficients ({', '.join(names)}; got {len(values)})")
+    return dict(zip(names, (float(v) for v in values)))
+
+
+def _lens(which: str, p: Any, field: str) -> tuple[tuple[float, float, float, float], dict[str, Any] | None,
+                                                   Mapping[str, str]]:
+    """(fx, fy, cx, cy) at the native resolution, the rig.json lens object (None: an ideal pinhole) and how the
+    lens's rig.json fields map back to the protocol's (for errors)."""
+    if which == "opencv_pinhole_param":
+        c = {**_coeffs(p.radial_coeffs, _RADIAL, f"{field}.radial_coeffs"),
+             **_coeffs(p.tangential_coeffs, ("p1", "p2"), f"{field}.tangential_coeffs"),
+             **_coeffs(p.thin_prism_coeffs, ("s1", "s2", "s3", "s4"), f"{field}.thin_prism_coeffs")}
+        lens = {"model": "opencv", **c} if any(v != 0.0 for v in c.values()) else None
+        back = {**{k: f"{field}.radial_coeffs[{i}]" for i, k in enumerate(_RADIAL)},
+                "p1": f"{field}.tangential_coeffs[0]", "p2": f"{field}.tangential_coeffs[1]",
+                **{f"s{i + 1}": f"{field}.thin_prism_coeffs[{i}]" for i in range(4)}}
+        return (p.focal_length_x, p.focal_length_y, p.principal_point_x, p.principal_point_y), lens, back
+    if which == "opencv_fisheye_param":
+        k = _coeffs(p.radial_coeffs, FISHEYE_NAMES, f"{field}.radial_coeffs")
+        ks = [k.get(n, 0.0) for n in FISHEYE_NAMES]
+        if not all(math.isfinite(v) for v in ks):
+            raise ViewError(f"{field}.radial_coeffs", f"must be finite (got {ks})")
+        # max_angle 0 (unset): the widest the coefficients allow, as for nerfstudio's OPENCV_FISHEYE
+        angle = math.degrees(p.max_angle) if p.max_angle else fisheye_max_angle_deg(ks)
+        lens = {"model": "opencv_fisheye", **dict(zip(FISHEYE_NAMES, ks)), "max_angle_deg": angle}
+        back = {**{n: f"{field}.radial_coeffs[{i}]" for i, n in enumerate(FISHEYE_NAMES)},
+                "max_angle_deg": f"{field}.max_angle"}
+        return (p.focal_length_x, p.focal_length_y, p.principal_point_x, p.principal_point_y), lens, back
+    fw, bw = [float(v) for v in p.angle_to_pixeldist_poly], [float(v) for v in p.pixeldist_to_angle_poly]
+    lens = {"model": "ftheta", "max_angle_deg": math.degrees(p.max_angle)}
+    if p.reference_poly in _REFERENCE:
+        lens["reference_poly"] = _REFERENCE[p.reference_poly]
+    if fw:
+        lens["angle_to_pixeldist_poly"] = fw
+    if bw:
+        lens["pixeldist_to_angle_poly"] = bw
+    cde = p.linear_cde
+    if p.HasField("linear_cde") and (cde.linear_c, cde.linear_d, cde.linear_e) != (0.0, 0.0, 0.0):
+        lens["linear_cde"] = [cde.linear_c, cde.linear_d, cde.linear_e]
+    # K's focal length is the lens's paraxial one (docs/conventions.md "Lens models"): the renderer of an
+    # ideal camera and the background need one; the lens itself does not use it
+    ref = lens.get("reference_poly") or ("angle_to_pixeldist" if fw else "pixeldist_to_angle")
+    poly = fw if ref == "angle_to_pixeldist" else bw
+    slope = poly[1] if len(poly) > 1 else 0.0
+    f = (slope if ref == "angle_to_pixeldist" else 1.0 / slope) if slope > 0 and math.isfinite(slope) else 1.0
+    back = {"max_angle_deg": f"{field}.max_angle", "reference_poly": f"{field}.reference_poly",
+            "angle_to_pixeldist_poly": f"{field}.angle_to_pixeldist_poly",
+            "pixeldist_to_angle_poly": f"{field}.pixeldist_to_angle_poly", "linear_cde": f"{field}.linear_cde"}
+    return (f, f, p.principal_point_x, p.principal_point_y), lens, back
+
+
+def _lens_field(e: FieldError, back: Mapping[str, str], param: str) -> str:
+    """The protocol field of a runtime lens error ("distortion.k1" -> "...radial_coeffs[0]")."""
+    sub = e.field.removeprefix("distortion").lstrip(".")
+    name, _, rest = sub.partition("[")
+    if name in back:
+        return back[name] + (f"[{rest}" if rest else "")
+    return param
+
+
+def _size(req: sensorsim_pb2.RGBRenderRequest, spec: sensorsim_pb2.CameraSpec, p: str) -> tuple[int, int, int, int]:
+    """(native W, H, asked W, H): a size not asked (0) is the native one, one side asked follows the native aspect;
+    a camera without a native size is taken at the size asked (no rescale)."""
+    nw, nh, w, h = spec.resolution_w, spec.resolution_h, req.resolution_w, req.resolution_h
+    if not nw or not nh:
+        if not w or not h:
+            raise ViewError(f"{p}resolution_w", "is 0, and so is the camera's (camera_intrinsics.resolution_w x "
+                                                "resolution_h): give the image size")
+        return w, h, w, h
+    if w and not h:
+        h = max(1, round(w * nh / nw))
+    elif h and not w:
+        w = max(1, round(h * nw / nh))
+    return nw, nh, w or nw, h or nh
+
+
+def quality(value: float, field: str) -> int:
+    """JPEG quality 1..100 of the protocol's float: 0 (unset) -> DEFAULT_QUALITY, (0, 1] a fraction (some clients
+    send 0.95), (1, 100] a percentage (AlpaSim sends 95)."""
+    q = float(value)
+    if q == 0.0:
+        return DEFAULT_QUALITY
+    if not (math.isfinite(q) and 0.0 < q <= 100.0):
+        raise ViewError(field, f"must be in (0, 1] (a fraction) or (1, 100] (a percentage) (got {q:g})")
+    return max(1, min(100, round(q * 100 if q <= 1.0 else q)))
+
+
+def view_spec(req: sensorsim_pb2.RGBRenderRequest, ego_pose: np.ndarray, prefix: str = "") -> tuple[ViewSpec, str]:
+    """The runtime ViewSpec of an RGBRenderRequest (resolved with ``spec.request()``: no rig needed) and the name
+    of its lens field (``camera_intrinsics.<param>``, for the renderer's refusal of a lens it cannot draw yet).
+    ``ego_pose``: the scene's ego_to_world; ``prefix``: the request's path in the call ("items[2].request.").
+    Refusals (ViewError) name the protocol field."""
+    p = prefix
+    ci = req.camera_intrinsics
+    which = ci.WhichOneof("camera_param")
+    if not req.HasField("camera_intrinsics") or which is None:
+        raise ViewError(f"{p}camera_intrinsics.camera_param", f"is not set: give one of {', '.join(PARAMS)}")
+    param = f"{p}camera_intrinsics.{which}"
+    if ci.WhichOneof("external_distortion") is not None:
+        raise ViewError(f"{p}camera_intrinsics.bivariate_windshield_model_param",
+                        "windshield distortion is not supported")
+    if req.insert_ego_mask:
+        raise ViewError(f"{p}insert_ego_mask", "this renderer has no ego masks (get_available_ego_masks lists none)")
+    fmt = FORMATS.get(req.image_format)
+    if fmt is None:
+        raise ViewError(f"{p}image_format", f"{sensorsim_pb2.ImageFormat.Name(req.image_format)} is not "
+                                            "supported: PNG or JPEG")
+    q = quality(req.image_quality, f"{p}image_quality")
+    if not req.HasField("sensor_pose"):
+        raise ViewError(f"{p}sensor_pose", "is not set (the camera's pose at the exposure's start and end)")
+    T = cam_to_ego(mid_exposure(req.sensor_pose, f"{p}sensor_pose"), ego_pose)
+    nw, nh, w, h = _size(req, ci, p)
+    (fx, fy, cx, cy), lens, back = _lens(which, getattr(ci, which), param)
+    names = {"fx": f"{param}.focal_length_x", "fy": f"{param}.focal_length_y", "cx": f"{param}.principal_point_x",
+             "cy": f"{param}.principal_point_y"}
+    for key, v in (("fx", fx), ("fy", fy), ("cx", cx), ("cy", cy)):
+        if not math.isfinite(v) or (key in ("fx", "fy") and v <= 0):
+            raise ViewError(names[key], f"must be finite{' and > 0' if key in ('fx', 'fy') else ''} (got {v})")
+    try:
+        cam = Camera(K=pinhole_K(fx, fy, cx, cy), cam_to_ego=T, width=nw, height=nh, distortion=lens)
+    except FieldError as e:
+        if e.root_field == "distortion":
+            raise ViewError(_lens_field(e, back, param), e.message) from None
+        field = {"width": f"{p}camera_intrinsics.resolution_w", "height": f"{p}camera_intrinsics.resolution_h",
+                 "cam_to_ego": f"{p}sensor_pose"}.get(e.root_field, param)
+        raise ViewError(field, e.message) from None
+    if (w, h) != (nw, nh):
+        try:
+            cam = cam.resized(w, h)
+        except FieldError as e:
+            raise ViewError(f"{p}resolution_{'h' if e.root_field == 'height' else 'w'}", e.message) from None
+    spec = ViewSpec(cam_to_ego=cam.cam_to_ego, K=cam.K, width=cam.width, height=cam.height,
+                    distortion=None if cam.distortion is None else cam.distortion.to_json(), format=fmt, quality=q,
+                    names={"cam_to_ego": f"{p}sensor_pose", "K": param, "width": f"{p}resolution_w",
+                           "height": f"{p}resolution_h", "distortion": param, "format": f"{p}image_format",
+                           "quality": f"{p}image_quality"})
+    return spec, param
+
+
+__all__ = ["CAMERA_AXES", "available_cameras", "cam_to_ego", "camera_spec", "mid_exposure", "pose_matrix",
+           "pose_message", "quality", "scene_ego_to_world", "view_spec"]
