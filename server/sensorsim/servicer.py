@@ -168,15 +168,10 @@ class SensorsimServicer(sensorsim_pb2_grpc.SensorsimServiceServicer):
             rec = await self.service.resolve_scene(req.scene_id, field)
             rigs[req.scene_id] = (rec.id, await self.service.scene_rig(rec.id))
         sid, rig = rigs[req.scene_id]
-        spec, lens_field = frames.view_spec(req, frames.scene_ego_to_world(rig), prefix)
+        spec, _ = frames.view_spec(req, frames.scene_ego_to_world(rig), prefix)
         view = spec.request()
         self.service.check_size(view.camera, f"{prefix}resolution_w")
-        try:
-            return await self.service.render(sid, view, self.service.view_key(sid, view), force=force)
-        except FieldError as e:
-            if e.root_field == "distortion":      # the renderer draws ideal cameras only (until lenses land there)
-                raise ViewError(lens_field, f"this camera model cannot be rendered yet ({e.message})") from None
-            raise
+        return await self.service.render(sid, view, self.service.view_key(sid, view), force=force)
 
     async def render_rgb(self, request, context):
         async def work():
