@@ -262,7 +262,7 @@ def quality(value: float, field: str) -> int:
 
 def view_spec(req: sensorsim_pb2.RGBRenderRequest, ego_pose: np.ndarray, prefix: str = "") -> tuple[ViewSpec, str]:
     """The runtime ViewSpec of an RGBRenderRequest (resolved with ``spec.request()``: no rig needed) and the name
-    of its lens field (``camera_intrinsics.<param>``, for the renderer's refusal of a lens it cannot draw yet).
+    of its lens field (``camera_intrinsics.<param>``: the protocol field a lens's errors are named by).
     ``ego_pose``: the scene's ego_to_world; ``prefix``: the request's path in the call ("items[2].request.").
     Refusals (ViewError) name the protocol field."""
     p = prefix
