@@ -373,12 +373,7 @@ def _project_chunk(means, quats, log_scales, opacity_logits, sh, campos, Rw, tw,
                                                             fx, fy)
             if not ok:
                 continue
-            hi = np.float32(u)
-            rows[s, 0] = hi
-            rows[s, 1] = np.float32(u - np.float64(hi))
-            hi = np.float32(v)
-            rows[s, 2] = hi
-            rows[s, 3] = np.float32(v - np.float64(hi))
+            _write_mean(rows, s, u, v)
             rows[s, 5] = pa0
             rows[s, 6] = pa1
             rows[s, 7] = pb0
@@ -430,12 +425,7 @@ def _project_chunk(means, quats, log_scales, opacity_logits, sh, campos, Rw, tw,
                     tx1 = ntx - 1
         ty0 = v_lo // TILE
         ty1 = v_hi // TILE
-        hi = np.float32(u)
-        rows[s, 0] = hi
-        rows[s, 1] = np.float32(u - np.float64(hi))
-        hi = np.float32(v)
-        rows[s, 2] = hi
-        rows[s, 3] = np.float32(v - np.float64(hi))
+        _write_mean(rows, s, u, v)
         if model == 2:      # the plane layout (gather_row): first image row, a0 a1 b0, ..., b1, last row
             rows[s, 4] = v_lo
             rows[s, 5] = pa0
@@ -462,6 +452,17 @@ def _project_chunk(means, quats, log_scales, opacity_logits, sh, campos, Rw, tw,
         gid[s] = i
         s += 1
     return s - slot0
+
+
+@njit(inline="always")
+def _write_mean(rows, s, u, v):
+    """Row s's mean (u, v) as float32 hi + lo pairs (float64 precision; NCG)."""
+    hi = np.float32(u)
+    rows[s, 0] = hi
+    rows[s, 1] = np.float32(u - np.float64(hi))
+    hi = np.float32(v)
+    rows[s, 2] = hi
+    rows[s, 3] = np.float32(v - np.float64(hi))
 
 
 @njit(cache=True, nogil=True)
