@@ -14,7 +14,7 @@ from ..camera import Camera
 from . import kernels as K
 from . import lensmap
 from .gaussians import Gaussians
-from .lensmap import lens_params, opencv_limits
+from .lensmap import lens_params, opencv_pixel_map
 from .projection import RenderOptions, check_camera, equirect_jacobian, pinhole_limits, project_reference
 from .result import GaussianGrads, RenderResult, background_image
 from .sh import sh_basis
@@ -36,19 +36,46 @@ class _State:
     row_evals: np.ndarray  # [ntiles] int64 16-pixel rows the raster evaluated per tile (16 Gaussian-pixel each)
 
 
+def _read_only(a: np.ndarray) -> np.ndarray:
+    a.setflags(write=False)
+    return a
+
+
+# the placeholders of an opencv camera's plane tables (lensmap.PixelPlane, read-only) for the other cameras: read-only
+# too, so every camera calls the same numba specialisation (numba types read-only arrays apart)
+_NO_TABLE = _read_only(np.zeros((0, 2)))
+_NO_TILES = _read_only(np.zeros((0, 0, 2)))
+_NO_PTAB = (_NO_TABLE, _NO_TABLE, _NO_TABLE, _NO_TILES, _NO_TILES, _NO_TILES)
+_NO_OFFSETS = _read_only(np.zeros((0, 0, 2), np.float32))
+
+
 def _camera_args(camera):
-    """(Rw, tw, model, lp, fx, fy, cx, cy, lxn, lxp, lyn, lyp) for the kernels: world -> camera, the model code
-    and lens parameters (lensmap.lens_params), K and the Jacobian clamp box (pinhole_limits; an opencv lens:
-    lensmap.opencv_limits)."""
+    """(Rw, tw, model, lp, fx, fy, cx, cy, lxn, lxp, lyn, lyp, ptab) for the kernels: world -> camera, the model
+    code and lens parameters (lensmap.lens_params), K, the Jacobian clamp box (pinhole_limits; unused with a lens)
+    and, for an opencv lens, the tables of its pixels' positions on its undistorted image plane (ptab = cols,
+    rows, tyext, rowtx, tilex, tiley of lensmap.opencv_pixel_map; else empty)."""
     check_camera(camera)
     w2c = np.linalg.inv(camera.cam_to_ego)
     Rw, tw = np.ascontiguousarray(w2c[:3, :3]), np.ascontiguousarray(w2c[:3, 3])
     model, lp = lens_params(camera)
     if camera.is_equirect:
-        return Rw, tw, model, lp, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
+        return Rw, tw, model, lp, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, _NO_PTAB
     k = camera.K
-    limits = opencv_limits(camera) if model == lensmap.OPENCV else pinhole_limits(camera)
-    return Rw, tw, model, lp, k[0, 0], k[1, 1], k[0, 2], k[1, 2], *limits
+    if model == lensmap.OPENCV:     # (no clamp box: its footprint lives on the mean's tangent plane)
+        pm = opencv_pixel_map(camera)
+        return Rw, tw, model, lp, k[0, 0], k[1, 1], k[0, 2], k[1, 2], 0.0, 0.0, 0.0, 0.0, \
+            (pm.cols, pm.rows, pm.tyext, pm.rowtx, pm.tilex, pm.tiley)
+    return Rw, tw, model, lp, k[0, 0], k[1, 1], k[0, 2], k[1, 2], *pinhole_limits(camera), _NO_PTAB
+
+
+def _plane_args(camera):
+    """(plane, offsets, kk, tilex, rowy) for the raster: plane = an opencv lens, whose pixels sit on its
+    undistorted image plane (lensmap.opencv_pixel_map; kk = fx, fy, cx, cy); else unused."""
+    if camera.distortion is None or camera.distortion.model != "opencv":
+        return False, _NO_OFFSETS, np.zeros(4), _NO_TILES, _NO_TILES
+    pm = opencv_pixel_map(camera)
+    kk = np.array([camera.K[0, 0], camera.K[1, 1], camera.K[0, 2], camera.K[1, 2]])
+    return True, pm.offsets, kk, pm.tilex, pm.rowy
 
 
 def chunk_planes(camera, opts: RenderOptions) -> np.ndarray:
@@ -186,9 +213,10 @@ def render(gaussians: Gaussians, camera, background=None, **options) -> RenderRe
     last = _scratch("last", (H, W), np.int32)          # kept for the backward pass only
     t_final = _scratch("t_final", (H, W), np.float32)
     row_evals = np.empty(start.shape[0] - 1, np.int64)
-    K.raster_forward(start, ids, rows, ntx, W, H, camera.is_equirect, bg, rgb, alpha, depth, last,
-                     t_final, row_evals)
     model, lp = lens_params(camera)
+    plane, offsets, kk, tilex, rowy = _plane_args(camera)
+    K.raster_forward(start, ids, rows, ntx, W, H, camera.is_equirect, plane, offsets, kk, tilex, rowy, bg, rgb,
+                     alpha, depth, last, t_final, row_evals)
     if model in (lensmap.FISHEYE, lensmap.FTHETA):   # no ray reaches the pixels outside the image circle
         k = camera.K
         lensmap.clear_outside_circle(model, lp, k[0, 0], k[1, 1], k[0, 2], k[1, 2], bg, rgb, alpha, depth, last,

@@ -1,5 +1,9 @@
 """numba kernels of the fast renderer: projection, tile binning, tile rasterisation (forward and backward).
 
+An opencv lens camera is drawn on its undistorted image plane (the "plane" paths: lensmap.opencv_pixel_map gives
+each pixel's position there, i.e. its ray; lensmap.opencv_plane_footprint each Gaussian's power at a ray, measured
+on the Gaussian's tangent plane as the reference does), so the lens is never linearised across a footprint.
+
 Numbers: projection in float64, rasterisation in float32 with Gaussian means stored relative to their
 tile's origin (so float32 keeps ~1e-6 px precision at any image size). exp(-power) is a polynomial
 (`_exp_neg`, relative error < 2e-6 on the footprint range) because numba from PyPI has no SVML, so np.exp
@@ -13,12 +17,14 @@ import math
 import numpy as np
 from numba import njit, prange
 
-from .lensmap import lens_project
+from .lensmap import lens_project, opencv_plane_box, opencv_plane_footprint, opencv_plane_reach, plane_weights
 
 TILE = 16
 TILE_PIX = TILE * TILE
 NCG = 16    # per-Gaussian float32 row (64 bytes): mean x, y (px) as float32 hi + lo pairs (float64 precision),
-#             bounding half-height ry, A, B, C (half conic), opacity, pmax, r, g, b, depth, pad, pad
+#             bounding half-height ry, A, B, C (half conic), opacity, pmax, r, g, b, depth, pad, pad; an opencv
+#             camera (plane layout, lensmap.opencv_plane_footprint): mean on its undistorted image plane, first
+#             image row, a0, a1, b0, opacity, pmax, r, g, b, depth, b1, last image row
 ROW_PAD = 1e-3  # px added to ry when choosing the tile rows a Gaussian is evaluated on (float32 ry rounding)
 STOP_CHECK = 16  # the raster tests for a fully stopped tile every this many instances (a power of 2)
 PROJ_CHUNK = 1024  # Gaussians per projection chunk: the unit of the frustum test on bounding boxes, of the
@@ -29,7 +35,7 @@ SPREAD = 16  # parallel loops visit their items in a G-strided order (_spread): 
 GATHER = 128  # instances gathered per batch into the raster's per-tile buffer (8 KB: stays in L1)
 NFEAT = 16  # per-instance features (one 64-byte row): mx, my (tile-local px), A = a/2, B = b, C = c/2 (conic),
 #             opacity, pmax, r, g, b, depth, first row, last row (tile-local rows the footprint can touch),
-#             pad
+#             pad (plane layout: a0, a1, b0 for A, B, C; b1, n0, n1 for the pad, see gather_row)
 
 F0 = np.float32(0.0)
 F1 = np.float32(1.0)
@@ -38,6 +44,7 @@ A_MAX = np.float32(0.99)
 A_MIN = np.float32(1.0 / 255.0)
 T_STOP = np.float32(1e-4)
 P_CLIP = np.float32(6.0)      # the exp argument is clamped here; powers above every cutoff (<= 5.55) anyway
+P_FAR = np.float32(1e30)      # the power of a pixel that sees none of a Gaussian (beyond every cutoff)
 INV16 = np.float32(1.0 / 16.0)
 
 
@@ -92,13 +99,15 @@ def _alpha(dx, dy, A, B, C, op, pmax):
 
 # ------------------------------------------------------------------------------------------------ projection
 @njit(inline="always")
-def _precull(means, log_scales, i, Rw, tw, model, lp, fx, fy, cx, cy, lxn, lxp, lyn, lyp, width, height, near, far,
-             low_pass):
+def _precull(means, log_scales, i, Rw, tw, model, lp, fx, fy, cx, cy, lxn, lxp, lyn, lyp, ptab, width,
+             height, near, far, low_pass):
     """(keep, x, y, z): Gaussian i's camera-frame mean (float64) and whether it survives the cheap conservative
     culls: depth (camera z, equirect: distance) within [near, far]; pinhole: its box of 3.34 x (the largest
-    scale through the clamped Jacobian's row norms, plus the low-pass) reaches the image. Every Gaussian the
-    full projection keeps is kept here (the full test bounds the footprint by <= 3.33 sigma of a covariance
-    no larger than this)."""
+    scale through the clamped Jacobian's row norms, plus the low-pass) reaches the image; an opencv lens: the
+    box on its undistorted image plane of a disc of 3.34 x (the largest scale, plus the low-pass through the
+    lens) on the mean's tangent plane (lensmap.opencv_plane_reach) meets the plane's extent of a pixel column
+    and of a pixel row (_plane_span). Every Gaussian the full projection keeps is kept here (the full test
+    bounds the footprint by <= 3.33 sigma of a covariance no larger than this)."""
     mxw, myw, mzw = np.float64(means[i, 0]), np.float64(means[i, 1]), np.float64(means[i, 2])
     x = Rw[0, 0] * mxw + Rw[0, 1] * myw + Rw[0, 2] * mzw + tw[0]
     y = Rw[1, 0] * mxw + Rw[1, 1] * myw + Rw[1, 2] * mzw + tw[1]
@@ -122,13 +131,37 @@ def _precull(means, log_scales, i, Rw, tw, model, lp, fx, fy, cx, cy, lxn, lxp, 
     if model == 1:
         r = math.sqrt(x * x + y * y + z * z)
         return r >= near and r <= far, x, y, z
-    # a lens (lensmap): depth = camera z (opencv) or distance (fisheye, f-theta) in [near, far], the lens images
-    # the mean (opencv: inside the unfolded disc; fisheye / f-theta: within max_angle), and the box of 3.34 x (the
-    # largest scale through the lens Jacobian's row norms, plus the low-pass) reaches the image
-    d = z if model == 2 else math.sqrt(x * x + y * y + z * z)
+    if model == 2:
+        # opencv: z in [near, far], inside the unfolded disc, and the bound of its footprint's box on the
+        # undistorted image plane meets a pixel column's and a pixel row's extent there
+        if not (z >= near and z <= far):
+            return False, x, y, z
+        sx = x / z
+        sy = y / z
+        if not (sx * sx + sy * sy <= lp[12]):
+            return False, x, y, z
+        ucols, urows = ptab[0], ptab[1]
+        u = fx * sx + cx
+        v = fy * sy + cy
+        if u >= ucols[0, 1] and u <= ucols[-1, 0] and v >= urows[0, 1] and v <= urows[-1, 0]:
+            return True, x, y, z            # the mean lies within the image's box on the plane
+        _, _, _, j00, j01, j02, j10, j11, j12 = lens_project(model, lp, fx, fy, cx, cy, x, y, z)
+        s2 = math.exp(2.0 * max(np.float64(log_scales[i, 0]), np.float64(log_scales[i, 1]),
+                                np.float64(log_scales[i, 2])))
+        ok, xlo, xhi, ylo, yhi = opencv_plane_reach(x, y, z, j00, j01, j02, j10, j11, j12, s2, low_pass, 3.34,
+                                                    fx, fy, cx, cy)
+        if not ok:
+            return False, x, y, z
+        c0, c1 = _plane_span(ucols, xlo, xhi)
+        r0, r1 = _plane_span(urows, ylo, yhi)
+        return c0 <= c1 and r0 <= r1, x, y, z
+    # fisheye, f-theta (lensmap): the distance in [near, far], the lens images the mean (within max_angle), and
+    # the box of 3.34 x (the largest scale through the lens Jacobian's row norms, plus the low-pass) reaches the
+    # image
+    d = math.sqrt(x * x + y * y + z * z)
     if not (d >= near and d <= far):
         return False, x, y, z
-    ok, u, v, j00, j01, j02, j10, j11, j12 = lens_project(model, lp, fx, fy, cx, cy, lxn, lxp, lyn, lyp, x, y, z)
+    ok, u, v, j00, j01, j02, j10, j11, j12 = lens_project(model, lp, fx, fy, cx, cy, x, y, z)
     if not ok:
         return False, x, y, z
     if u >= 0.0 and u <= width - 1 and v >= 0.0 and v <= height - 1:
@@ -140,9 +173,36 @@ def _precull(means, log_scales, i, Rw, tw, model, lp, fx, fy, cx, cy, lxn, lxp, 
     return not (u - ru > width - 1 or u + ru < 0.0 or v - rv > height - 1 or v + rv < 0.0), x, y, z
 
 
+@njit(inline="always")
+def _plane_span(table, a, b):
+    """(first, last): the pixel columns (or rows) whose extent on an opencv camera's undistorted image plane
+    (lensmap.opencv_pixel_map's search table: running max of the lines' largest coordinate, running min from the
+    end of their smallest, both non-decreasing) can meet the interval [a, b] of that coordinate: the first line
+    with table[k, 0] >= a, the last with table[k, 1] <= b (binary searches). first > last: none."""
+    n = table.shape[0]
+    lo = 0
+    hi = n
+    while lo < hi:
+        mid = (lo + hi) // 2
+        if table[mid, 0] >= a:
+            hi = mid
+        else:
+            lo = mid + 1
+    first = lo
+    lo = -1
+    hi = n - 1
+    while lo < hi:
+        mid = (lo + hi + 1) // 2
+        if table[mid, 1] <= b:
+            lo = mid
+        else:
+            hi = mid - 1
+    return first, lo
+
+
 @njit(cache=True, parallel=True, nogil=True)
-def precull_counts(means, log_scales, Rw, tw, model, lp, fx, fy, cx, cy, lxn, lxp, lyn, lyp, width, height, near, far,
-                   low_pass, planes, counts):
+def precull_counts(means, log_scales, Rw, tw, model, lp, fx, fy, cx, cy, lxn, lxp, lyn, lyp, ptab, width,
+                   height, near, far, low_pass, planes, counts):
     """counts[c] = how many Gaussians of chunk c (PROJ_CHUNK Gaussians each) survive _precull; 0 for a chunk
     whose bounding box lies wholly outside one of `planes` (chunk_planes), without looking at its Gaussians.
     An upper bound of what project_kernel keeps, so its outputs can be allocated to fit."""
@@ -151,28 +211,28 @@ def precull_counts(means, log_scales, Rw, tw, model, lp, fx, fy, cx, cy, lxn, lx
         ch = _spread(k, nch)
         if ch < 0:
             continue
-        counts[ch] = _precull_chunk(means, log_scales, Rw, tw, model, lp, fx, fy, cx, cy, lxn, lxp, lyn, lyp, width,
-                                    height, near, far, low_pass, planes, ch)
+        counts[ch] = _precull_chunk(means, log_scales, Rw, tw, model, lp, fx, fy, cx, cy, lxn, lxp, lyn, lyp, ptab,
+                                    width, height, near, far, low_pass, planes, ch)
 
 
 @njit(cache=True, nogil=True)
-def _precull_chunk(means, log_scales, Rw, tw, model, lp, fx, fy, cx, cy, lxn, lxp, lyn, lyp, width, height, near, far,
-                   low_pass, planes, ch):
+def _precull_chunk(means, log_scales, Rw, tw, model, lp, fx, fy, cx, cy, lxn, lxp, lyn, lyp, ptab, width,
+                   height, near, far, low_pass, planes, ch):
     i0 = ch * PROJ_CHUNK
     i1 = min(means.shape[0], i0 + PROJ_CHUNK)
     if planes.shape[0] and _chunk_outside(means, log_scales, planes, i0, i1):
         return 0
     c = 0
     for i in range(i0, i1):
-        keep, _, _, _ = _precull(means, log_scales, i, Rw, tw, model, lp, fx, fy, cx, cy, lxn, lxp, lyn, lyp, width,
-                                 height, near, far, low_pass)
+        keep, _, _, _ = _precull(means, log_scales, i, Rw, tw, model, lp, fx, fy, cx, cy, lxn, lxp, lyn, lyp, ptab,
+                                 width, height, near, far, low_pass)
         c += keep
     return c
 
 
 @njit(cache=True, parallel=True, nogil=True)
 def project_kernel(means, quats, log_scales, opacity_logits, sh, campos, Rw, tw, model, lp, fx, fy, cx, cy,
-                   lxn, lxp, lyn, lyp, width, height, near, far, low_pass, antialiased, opacity_mode,
+                   lxn, lxp, lyn, lyp, ptab, width, height, near, far, low_pass, antialiased, opacity_mode,
                    pre, base, rows, trange, depth_out, gid, counts):
     """Project the Gaussians (float64), parallel over chunks of PROJ_CHUNK Gaussians. Chunk c (pre[c] > 0: its
     precull_counts) writes its visible Gaussians, in index order, to slots base[c], base[c] + 1, ... (base: the
@@ -191,13 +251,14 @@ def project_kernel(means, quats, log_scales, opacity_logits, sh, campos, Rw, tw,
         counts[ch] = 0
         if pre[ch] > 0:
             counts[ch] = _project_chunk(means, quats, log_scales, opacity_logits, sh, campos, Rw, tw, model, lp, fx,
-                                        fy, cx, cy, lxn, lxp, lyn, lyp, width, height, near, far, low_pass,
-                                        antialiased, opacity_mode, rows, trange, depth_out, gid, ch, base[ch], ntx)
+                                        fy, cx, cy, lxn, lxp, lyn, lyp, ptab, width, height, near, far,
+                                        low_pass, antialiased, opacity_mode, rows, trange, depth_out, gid, ch, base[ch],
+                                        ntx)
 
 
 @njit(cache=True, nogil=True)
 def _project_chunk(means, quats, log_scales, opacity_logits, sh, campos, Rw, tw, model, lp, fx, fy, cx, cy,
-                   lxn, lxp, lyn, lyp, width, height, near, far, low_pass, antialiased, opacity_mode,
+                   lxn, lxp, lyn, lyp, ptab, width, height, near, far, low_pass, antialiased, opacity_mode,
                    rows, trange, depth_out, gid, ch, slot0, ntx):
     """One chunk of project_kernel (a plain function called per chunk from the prange loop), writing from slot
     slot0 on; returns the number of visible Gaussians written."""
@@ -205,8 +266,8 @@ def _project_chunk(means, quats, log_scales, opacity_logits, sh, campos, Rw, tw,
     i1 = min(means.shape[0], i0 + PROJ_CHUNK)
     s = slot0
     for i in range(i0, i1):
-        keep, x, y, z = _precull(means, log_scales, i, Rw, tw, model, lp, fx, fy, cx, cy, lxn, lxp, lyn, lyp, width,
-                                 height, near, far, low_pass)
+        keep, x, y, z = _precull(means, log_scales, i, Rw, tw, model, lp, fx, fy, cx, cy, lxn, lxp, lyn, lyp, ptab,
+                                 width, height, near, far, low_pass)
         if not keep:
             continue
         mxw, myw, mzw = np.float64(means[i, 0]), np.float64(means[i, 1]), np.float64(means[i, 2])
@@ -224,10 +285,17 @@ def _project_chunk(means, quats, log_scales, opacity_logits, sh, campos, Rw, tw,
             j10 = 0.0
             j11 = fy / z
             j12 = -fy * syc / z
-        elif model >= 2:
-            depth = z if model == 2 else math.sqrt(x * x + y * y + z * z)
-            _, u, v, j00, j01, j02, j10, j11, j12 = lens_project(model, lp, fx, fy, cx, cy, lxn, lxp, lyn, lyp,
-                                                                 x, y, z)
+        elif model == 2:
+            # opencv: J the lens's exact Jacobian at the mean (for cov2 = J Sigma J^T + low_pass I, whose det and
+            # opacity compensation are the reference's); (u, v) the mean on the undistorted image plane, where
+            # the raster measures each pixel's offset (lensmap.opencv_plane_footprint)
+            depth = z
+            _, _, _, j00, j01, j02, j10, j11, j12 = lens_project(model, lp, fx, fy, cx, cy, x, y, z)
+            u = fx * (x / z) + cx
+            v = fy * (y / z) + cy
+        elif model >= 3:
+            depth = math.sqrt(x * x + y * y + z * z)
+            _, u, v, j00, j01, j02, j10, j11, j12 = lens_project(model, lp, fx, fy, cx, cy, x, y, z)
         else:
             r = math.sqrt(x * x + y * y + z * z)
             depth = r
@@ -297,13 +365,46 @@ def _project_chunk(means, quats, log_scales, opacity_logits, sh, campos, Rw, tw,
         pmax = 0.5 * ext * ext
         rx = ext * math.sqrt(c00)
         ry = ext * math.sqrt(c11)
-        v_lo = max(0, int(math.ceil(max(v - ry, -1e9))))
-        v_hi = min(height - 1, int(math.floor(min(v + ry, 1e9))))
+        if model == 2:
+            # the footprint on the plane (written first: its tiles are found from the stored float32 row, as the
+            # binning finds them): an ellipse, the box of the tiles whose extent there meets it (_plane_tile_box);
+            # or, unbounded, the pixels whose positions the box of its part in front can hold (_plane_span)
+            ok, pa0, pa1, pb0, pb1 = opencv_plane_footprint(x, y, z, j00, j01, j02, j10, j11, j12, c00, c01, c11,
+                                                            fx, fy)
+            if not ok:
+                continue
+            _write_mean(rows, s, u, v)
+            rows[s, 5] = pa0
+            rows[s, 6] = pa1
+            rows[s, 7] = pb0
+            rows[s, 9] = pmax
+            rows[s, 14] = pb1
+            ell = _plane_ellipse(rows, s, fx, fy, cx, cy)
+            if ell[0]:
+                tx0, tx1, ty0, ty1 = _plane_tile_box(ell, ptab[2], ptab[3], ptab[4], ptab[5])
+                if tx1 < tx0:
+                    continue
+                v_lo = ty0 * TILE
+                v_hi = min(height - 1, ty1 * TILE + TILE - 1)
+            else:
+                ok, xlo, xhi, ylo, yhi = opencv_plane_box(x, y, z, j00, j01, j02, j10, j11, j12, c00, c01, c11, ext,
+                                                          fx, fy, cx, cy)
+                v_lo, v_hi = _plane_span(ptab[1], ylo, yhi)
+                u_lo, u_hi = _plane_span(ptab[0], xlo, xhi)
+                if not ok or v_lo > v_hi or u_lo > u_hi:
+                    continue
+                tx0 = u_lo // TILE
+                tx1 = u_hi // TILE
+        else:
+            v_lo = max(0, int(math.ceil(max(v - ry, -1e9))))
+            v_hi = min(height - 1, int(math.floor(min(v + ry, 1e9))))
         if v_lo > v_hi:
             continue
         u_lo_f = math.ceil(max(u - rx, -1e9))
         u_hi_f = math.floor(min(u + rx, 1e9))
-        if model != 1:
+        if model == 2:
+            pass            # tx0, tx1 found above
+        elif model != 1:
             u_lo = max(0, int(u_lo_f))
             u_hi = min(width - 1, int(u_hi_f))
             if u_lo > u_hi:
@@ -324,30 +425,44 @@ def _project_chunk(means, quats, log_scales, opacity_logits, sh, campos, Rw, tw,
                     tx1 = ntx - 1
         ty0 = v_lo // TILE
         ty1 = v_hi // TILE
-        hi = np.float32(u)
-        rows[s, 0] = hi
-        rows[s, 1] = np.float32(u - np.float64(hi))
-        hi = np.float32(v)
-        rows[s, 2] = hi
-        rows[s, 3] = np.float32(v - np.float64(hi))
-        rows[s, 4] = ry
-        rows[s, 5] = 0.5 * c11 / det
-        rows[s, 6] = -c01 / det
-        rows[s, 7] = 0.5 * c00 / det
+        _write_mean(rows, s, u, v)
+        if model == 2:      # the plane layout (gather_row): first image row, a0 a1 b0, ..., b1, last row
+            rows[s, 4] = v_lo
+            rows[s, 5] = pa0
+            rows[s, 6] = pa1
+            rows[s, 7] = pb0
+            rows[s, 14] = pb1
+            rows[s, 15] = v_hi
+        else:
+            rows[s, 4] = ry
+            rows[s, 5] = 0.5 * c11 / det
+            rows[s, 6] = -c01 / det
+            rows[s, 7] = 0.5 * c00 / det
+            rows[s, 14] = 0.0
+            rows[s, 15] = 0.0
         rows[s, 8] = opa
         rows[s, 9] = pmax
         vx, vy, vz = mxw - campos[0], myw - campos[1], mzw - campos[2]
         for c in range(3):
             rows[s, 10 + c] = _sh_colour(sh, i, c, vx, vy, vz)
         rows[s, 13] = depth
-        rows[s, 14] = 0.0
-        rows[s, 15] = 0.0
         trange[s, 0] = tx0 | (tx1 << 16)
         trange[s, 1] = ty0 | (ty1 << 16)
         depth_out[s] = depth
         gid[s] = i
         s += 1
     return s - slot0
+
+
+@njit(inline="always")
+def _write_mean(rows, s, u, v):
+    """Row s's mean (u, v) as float32 hi + lo pairs (float64 precision; NCG)."""
+    hi = np.float32(u)
+    rows[s, 0] = hi
+    rows[s, 1] = np.float32(u - np.float64(hi))
+    hi = np.float32(v)
+    rows[s, 2] = hi
+    rows[s, 3] = np.float32(v - np.float64(hi))
 
 
 @njit(cache=True, nogil=True)
@@ -525,12 +640,20 @@ def bin_kernel(order, trange, ntx, nty, nchunks):
     return start, ids
 
 
+_NO_K = np.zeros(4)
+_NO_TX = np.zeros((0, 0, 2))
+
+
 @njit(inline="always")
-def gather_row(cg, k, x0, y0, width, wrap, out, j):
+def gather_row(cg, k, x0, y0, width, wrap, plane, kk, tilex, rowy, out, j):
     """Per-instance features of compact Gaussian k seen from the tile at (x0, y0) -> out[j, :NFEAT] float32:
     tile-local mean (the copy nearest the tile for equirect), half conic A B C, opacity, pmax, r g b, depth,
     first and last tile-local rows the footprint can touch (first > last: it misses the tile). Forward and
-    backward use this same code."""
+    backward use this same code. plane (an opencv camera, kk = fx, fy, cx, cy): the mean on the undistorted
+    image plane, a0 a1 b0 in place of A B C, then b1, n0, n1 (lensmap.opencv_plane_footprint's power; n0, n1
+    from the mean, lensmap.plane_weights); the rows: the image rows the projection found (_plane_span), narrowed
+    to those whose pixels' extent on the plane (rowy) can meet the footprint where the tile's columns lie (tilex;
+    _plane_rows)."""
     mx = (np.float64(cg[k, 0]) + np.float64(cg[k, 1])) - x0
     if wrap:
         mx -= width * np.floor((mx - 7.5) / width + 0.5)
@@ -542,6 +665,16 @@ def gather_row(cg, k, x0, y0, width, wrap, out, j):
     out[j, 1] = my
     for c in range(9):
         out[j, 2 + c] = cg[k, 5 + c]
+    if plane:
+        n0, n1 = plane_weights(mx + x0, my + y0, kk[0], kk[1], kk[2], kk[3])
+        out[j, 13] = cg[k, 14]
+        out[j, 14] = n0
+        out[j, 15] = n1
+        r0, r1 = _plane_rows(cg, k, kk, x0, y0, tilex, rowy, max(0.0, np.float64(cg[k, 4]) - y0),
+                             min(TILE - 1.0, np.float64(cg[k, 15]) - y0))
+        out[j, 11] = r0
+        out[j, 12] = r1
+        return
     r0 = max(0.0, math.ceil(my - ry))         # the pixel rows y with |y - my| <= ry
     r1 = min(TILE - 1.0, math.floor(my + ry))
     if not wrap:
@@ -549,6 +682,147 @@ def gather_row(cg, k, x0, y0, width, wrap, out, j):
                                np.float64(cg[k, 9]), mx, my, r0, r1)
     out[j, 11] = r0
     out[j, 12] = r1
+
+
+@njit(inline="always")
+def _plane_ellipse(cg, k, fx, fy, cx, cy):
+    """An opencv camera's footprint of compact Gaussian k (plane layout, lensmap.opencv_plane_footprint: power =
+    ((a0 dx + a1 dy)^2 + (b0 dx + b1 dy)^2) / (1 + n0 dx + n1 dy)^2 <= pm about the mean (mx, my) on the
+    undistorted image plane) as an ellipse there: (bounded, k00, k01, k11, rhs, ex, ey, hx, hy), the points d with
+    (d - e)^T K' (d - e) <= rhs, K' = a a^T + b b^T - pm n n^T, e = (mx, my) + c, c = pm K'^-1 n, rhs = pm + pm n.c,
+    half-extents hx, hy (float64). Not bounded (K' not positive definite): the footprint reaches the camera's
+    z = 0 plane."""
+    mx = np.float64(cg[k, 0]) + np.float64(cg[k, 1])
+    my = np.float64(cg[k, 2]) + np.float64(cg[k, 3])
+    a0 = np.float64(cg[k, 5])
+    a1 = np.float64(cg[k, 6])
+    b0 = np.float64(cg[k, 7])
+    b1 = np.float64(cg[k, 14])
+    pm = np.float64(cg[k, 9])
+    n0, n1 = plane_weights(mx, my, fx, fy, cx, cy)
+    k00 = a0 * a0 + b0 * b0 - pm * n0 * n0
+    k01 = a0 * a1 + b0 * b1 - pm * n0 * n1
+    k11 = a1 * a1 + b1 * b1 - pm * n1 * n1
+    det = k00 * k11 - k01 * k01
+    if not (k00 > 0.0 and det > 0.0):
+        return False, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0
+    ox = pm * (k11 * n0 - k01 * n1) / det
+    oy = pm * (k00 * n1 - k01 * n0) / det
+    rhs = pm + pm * (n0 * ox + n1 * oy)
+    return True, k00, k01, k11, rhs, mx + ox, my + oy, math.sqrt(k11 * rhs / det), math.sqrt(k00 * rhs / det)
+
+
+@njit(inline="always")
+def _ell_range(kaa, kab, kbb, rhs, ha, hb, lo, hi):
+    """(ok, lo, hi): the range of the second coordinate b over the centred ellipse kaa a^2 + 2 kab a b + kbb b^2
+    <= rhs (half-extents ha, hb) where the first, a, lies in [lo, hi] (not ok: the ellipse misses that interval).
+    The extremes of its upper (concave) and lower (convex) arcs over an interval lie at their clamped
+    unconstrained extremes (as _ellipse_rows)."""
+    lo = max(lo, -ha)
+    hi = min(hi, ha)
+    if lo > hi:
+        return False, 0.0, 0.0
+    if lo <= -ha and hi >= ha:
+        return True, -hb, hb
+    det = kaa * kbb - kab * kab
+    at = min(max(-kab * hb / kaa, lo), hi)       # where the upper arc peaks
+    al = min(max(kab * hb / kaa, lo), hi)        # where the lower arc bottoms out
+    top = (-kab * at + math.sqrt(max(0.0, kbb * rhs - det * at * at))) / kbb
+    bot = (-kab * al - math.sqrt(max(0.0, kbb * rhs - det * al * al))) / kbb
+    return True, bot, top
+
+
+@njit(inline="always")
+def _plane_tile_box(ell, tyext, rowtx, tilex, tiley):
+    """(tx0, tx1, ty0, ty1): the box of the tiles whose extent on the plane meets the bounded ellipse ell
+    (_plane_ellipse; empty: tx1 < tx0). Row of tiles by row (those whose extent in Y, tyext, can meet its Y
+    range; loose where the lens bends the pixel rows on the plane): the tiles whose extent in X meets its X range
+    (rowtx's search table, followed from the previous row), trimmed from both ends to the first and last that
+    meet the ellipse itself (_plane_tile_hit)."""
+    ntx = rowtx.shape[1]
+    xlo = ell[5] - ell[7] - ROW_PAD
+    xhi = ell[5] + ell[7] + ROW_PAD
+    tya, tyb = _plane_ellipse_rows(ell, tyext)
+    tx0 = ntx
+    tx1 = -1
+    ty0 = tyb + 1
+    ty1 = -1
+    ta = 0
+    tb = -1
+    for ty in range(tya, tyb + 1):
+        if ty == tya:
+            ta, tb = _plane_span(rowtx[ty], xlo, xhi)
+        else:                               # the first tile with rowtx[ty, t, 0] >= xlo, the last with [., 1] <= xhi
+            ta = min(max(ta, 0), ntx - 1)
+            while ta > 0 and rowtx[ty, ta - 1, 0] >= xlo:
+                ta -= 1
+            while ta < ntx and rowtx[ty, ta, 0] < xlo:
+                ta += 1
+            tb = min(max(tb, 0), ntx - 1)
+            while tb < ntx - 1 and rowtx[ty, tb + 1, 1] <= xhi:
+                tb += 1
+            while tb >= 0 and rowtx[ty, tb, 1] > xhi:
+                tb -= 1
+        a = ta
+        b = tb
+        while a <= b and not _plane_tile_hit(ell, tilex, tiley, ty, a):
+            a += 1
+        while b >= a and not _plane_tile_hit(ell, tilex, tiley, ty, b):
+            b -= 1
+        if a <= b:
+            tx0 = min(tx0, a)
+            tx1 = max(tx1, b)
+            ty0 = min(ty0, ty)
+            ty1 = max(ty1, ty)
+    return tx0, tx1, ty0, ty1
+
+
+@njit(inline="always")
+def _plane_ellipse_rows(ell, tyext):
+    """(first, last): the rows of tiles whose extent in Y (tyext's search table) can meet the bounded ellipse."""
+    ey = ell[6]
+    hy = ell[8]
+    return _plane_span(tyext, ey - hy - ROW_PAD, ey + hy + ROW_PAD)
+
+
+@njit(inline="always")
+def _plane_tile_hit(ell, tilex, tiley, ty, tx):
+    """Whether tile (tx, ty)'s extent on the plane (tilex, tiley; lensmap.opencv_pixel_map) meets the ellipse ell
+    (_plane_ellipse; widened by ROW_PAD): its Y range over the tile's X extent against the tile's Y extent."""
+    bounded, k00, k01, k11, rhs, ex, ey, hx, hy = ell
+    if not bounded:
+        return True
+    xa = tilex[ty, tx, 0] - ex - ROW_PAD
+    xb = tilex[ty, tx, 1] - ex + ROW_PAD
+    ya = tiley[ty, tx, 0] - ey - ROW_PAD
+    yb = tiley[ty, tx, 1] - ey + ROW_PAD
+    if xa > hx or xb < -hx or ya > hy or yb < -hy:      # the ellipse's box misses the tile's
+        return False
+    ok, bot, top = _ell_range(k00, k01, k11, rhs, hx, hy, xa, xb)
+    return ok and bot <= yb and top >= ya
+
+
+@njit(inline="always")
+def _plane_rows(cg, k, kk, x0, y0, tilex, rowy, r0, r1):
+    """Narrow the tile-local rows [r0, r1] of the tile at (x0, y0) to those where compact Gaussian k's footprint
+    (an opencv camera, _plane_ellipse) can be: its Y range over the tile's X extent (tilex), against each row's
+    Y extent (rowy; both widened by ROW_PAD). Returns r0 > r1 where it misses the tile; [r0, r1] unchanged for
+    an unbounded footprint."""
+    bounded, k00, k01, k11, rhs, ex, ey, hx, hy = _plane_ellipse(cg, k, kk[0], kk[1], kk[2], kk[3])
+    if not bounded:
+        return r0, r1
+    tx = x0 // TILE
+    ok, bot, top = _ell_range(k00, k01, k11, rhs, hx, hy, tilex[y0 // TILE, tx, 0] - ex - ROW_PAD,
+                              tilex[y0 // TILE, tx, 1] - ex + ROW_PAD)
+    if not ok:
+        return 1.0, 0.0
+    ylo = ey + bot - ROW_PAD
+    yhi = ey + top + ROW_PAD
+    while r0 <= r1 and rowy[y0 + int(r0), tx, 1] < ylo:
+        r0 += 1.0
+    while r1 >= r0 and rowy[y0 + int(r1), tx, 0] > yhi:
+        r1 -= 1.0
+    return r0, r1
 
 
 @njit(inline="always")
@@ -584,7 +858,7 @@ def instance_features(start, ids, rows, ntx, width, wrap):
         x0 = (t % ntx) * TILE
         y0 = (t // ntx) * TILE
         for j in range(start[t], start[t + 1]):
-            gather_row(rows, ids[j], x0, y0, width, wrap, feat, j)
+            gather_row(rows, ids[j], x0, y0, width, wrap, False, _NO_K, _NO_TX, _NO_TX, feat, j)
     return feat
 
 
@@ -609,11 +883,13 @@ def _blend_px(p, power, op, pm, cr, cg, cbl, z, jj, T, c0, c1, c2, dd, lst):
 
 
 @njit(inline="always", fastmath=RASTER_MATH)
-def _blend_one(fb, j, jj, px, py, T, c0, c1, c2, dd, lst, wrap, wf, inv_w):
+def _blend_one(fb, j, jj, px, py, T, c0, c1, c2, dd, lst, wrap, plane, wf, inv_w):
     """Blend gathered instance fb[j] (global instance index jj) into the tile's pixel state, on the tile rows
     its bounding box touches, one SIMD vector (16 pixels, AVX-512) per row: a constant trip count, so no
     remainder loop. Unsigned pixel indices: numba then emits no negative-index wraparound, which would block
-    SIMD. `wrap` is passed as a literal by the caller, so LLVM drops the seam code for pinhole cameras."""
+    SIMD. `wrap` and `plane` are passed as literals by the caller, so LLVM drops the seam code for pinhole
+    cameras and keeps dy per row where the pixels' positions are a grid (plane: an opencv camera's pixels sit at
+    their undistorted positions, px and py vary along a row)."""
     mx = fb[j, 0]
     my = fb[j, 1]
     A = fb[j, 2]
@@ -625,8 +901,23 @@ def _blend_one(fb, j, jj, px, py, T, c0, c1, c2, dd, lst, wrap, wf, inv_w):
     cg = fb[j, 8]
     cbl = fb[j, 9]
     z = fb[j, 10]
+    b1 = fb[j, 13]
+    n0 = fb[j, 14]
+    n1 = fb[j, 15]
     for row in range(np.uint64(fb[j, 11]), np.uint64(fb[j, 12]) + np.uint64(1)):
         base = row * np.uint64(TILE)
+        if plane:   # lensmap.opencv_plane_footprint: A, B, C hold a0, a1, b0
+            for q in range(TILE):
+                p = base + np.uint64(q)
+                dx = px[p] - mx
+                dy = py[p] - my
+                w = F1 + n0 * dx + n1 * dy
+                a = A * dx + B * dy
+                b = C * dx + b1 * dy
+                power = (a * a + b * b) / (w * w)
+                power = power if w > F0 else P_FAR      # 90 degrees or more from the mean: none of it
+                _blend_px(p, power, op, pm, cr, cg, cbl, z, jj, T, c0, c1, c2, dd, lst)
+            continue
         dy = py[base] - my
         bdy = B * dy
         cdy = C * dy * dy
@@ -640,11 +931,16 @@ def _blend_one(fb, j, jj, px, py, T, c0, c1, c2, dd, lst, wrap, wf, inv_w):
 
 
 @njit(cache=True, parallel=True, nogil=True, fastmath=RASTER_MATH)
-def raster_forward(start, ids, rows, ntx, width, height, wrap, bg, rgb, alpha, depth, last, t_final, row_evals):
+def raster_forward(start, ids, rows, ntx, width, height, wrap, plane, offsets, kk, tilex, rowy, bg, rgb, alpha, depth,
+                   last, t_final, row_evals):
     """Front-to-back blend per tile. bg [H, W, 3] f32. Outputs rgb [H, W, 3], alpha, depth [H, W] f32,
     last [H, W] int32 (index of the last blended instance, -1 if none), t_final [H, W] f32, row_evals [ntiles]
     int64 (16-pixel tile rows evaluated: the work done, for benchmarks).
     wrap (equirect): dx is taken to the nearest copy of the Gaussian across the azimuth seam, per pixel.
+    plane (an opencv lens, kk = fx, fy, cx, cy): pixel (x, y) is evaluated at its position on the undistorted
+    image plane, (x, y) + offsets[y, x] (lensmap.opencv_pixel_map, with its tilex and rowy; NaN: no ray, no
+    Gaussian blends there), with the tangent-plane power of lensmap.opencv_plane_footprint; else offsets, kk,
+    tilex and rowy are unused.
     Each Gaussian is evaluated on the tile rows its bounding box touches, in one branch-free SIMD loop.
     A pixel that stopped (or lies outside the image) keeps -T in T: negative T means inactive."""
     ntiles = start.shape[0] - 1
@@ -666,13 +962,20 @@ def raster_forward(start, ids, rows, ntx, width, height, wrap, bg, rgb, alpha, d
         for p in range(TILE_PIX):
             px[p] = p % TILE
             py[p] = p // TILE
-        _raster_tile(t, start, ids, rows, ntx, width, height, wrap, bg, rgb, alpha, depth, last, t_final,
-                     row_evals, px, py, T, c0, c1, c2, dd, lst, fb, wf, inv_w)
+        if plane:
+            x0 = (t % ntx) * TILE
+            y0 = (t // ntx) * TILE
+            for r in range(min(TILE, height - y0)):
+                for q in range(min(TILE, width - x0)):
+                    px[r * TILE + q] = np.float32(q) + offsets[y0 + r, x0 + q, 0]
+                    py[r * TILE + q] = np.float32(r) + offsets[y0 + r, x0 + q, 1]
+        _raster_tile(t, start, ids, rows, ntx, width, height, wrap, plane, kk, tilex, rowy, bg, rgb, alpha, depth,
+                     last, t_final, row_evals, px, py, T, c0, c1, c2, dd, lst, fb, wf, inv_w)
 
 
 @njit(inline="always", fastmath=RASTER_MATH)
-def _raster_tile(t, start, ids, rows, ntx, width, height, wrap, bg, rgb, alpha, depth, last, t_final, row_evals,
-                 px, py, T, c0, c1, c2, dd, lst, fb, wf, inv_w):
+def _raster_tile(t, start, ids, rows, ntx, width, height, wrap, plane, kk, tilex, rowy, bg, rgb, alpha, depth, last,
+                 t_final, row_evals, px, py, T, c0, c1, c2, dd, lst, fb, wf, inv_w):
     """Tile t of raster_forward: blend its instance list into the scratch arrays (pixel state), then write its
     pixels out."""
     x0 = (t % ntx) * TILE
@@ -696,13 +999,15 @@ def _raster_tile(t, start, ids, rows, ntx, width, height, wrap, bg, rgb, alpha, 
             break
         nb = min(GATHER, start[t + 1] - b0)
         for jb in range(nb):  # gather this batch's features into a small contiguous buffer
-            gather_row(rows, ids[b0 + jb], x0, y0, width, wrap, fb, jb)
+            gather_row(rows, ids[b0 + jb], x0, y0, width, wrap, plane, kk, tilex, rowy, fb, jb)
         for jb in range(nb):
             nrow += np.int64(fb[jb, 12] - fb[jb, 11]) + 1
             if wrap:
-                _blend_one(fb, jb, np.int32(b0 + jb), px, py, T, c0, c1, c2, dd, lst, True, wf, inv_w)
+                _blend_one(fb, jb, np.int32(b0 + jb), px, py, T, c0, c1, c2, dd, lst, True, False, wf, inv_w)
+            elif plane:
+                _blend_one(fb, jb, np.int32(b0 + jb), px, py, T, c0, c1, c2, dd, lst, False, True, wf, inv_w)
             else:
-                _blend_one(fb, jb, np.int32(b0 + jb), px, py, T, c0, c1, c2, dd, lst, False, wf, inv_w)
+                _blend_one(fb, jb, np.int32(b0 + jb), px, py, T, c0, c1, c2, dd, lst, False, False, wf, inv_w)
             if (jb & (STOP_CHECK - 1)) == STOP_CHECK - 1 or jb == nb - 1:
                 # every STOP_CHECK instances: does any pixel still blend? (stopped pixels hold T < 0)
                 tmax = -F1

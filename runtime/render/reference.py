@@ -3,20 +3,22 @@
 Same semantics as the fast renderer (culling, footprint cutoff, alpha clamp and threshold, early stop, depth
 order with ties broken by Gaussian index). Used by the tests, never by the service.
 
-Cameras with a lens (runtime.lenses) are drawn by casting each pixel's true ray (Camera.pixel_rays' inverse of
-the lens, `Lens.unproject`) against the Gaussians: the fast path linearises the lens at each mean (its pixel
-offset from the mean is p - pi(mean) and its footprint J Sigma J^T), this one never maps a Gaussian through the
-lens. For each Gaussian it takes the plane tangent to the unit sphere at the mean's direction m (frame e1, e2;
-projection.lens_reference): in the gnomonic coordinates g = (d.e1, d.e2) / (d.m) of a ray d, the pinhole camera
-looking straight at the mean, EWA's footprint is the 3DGS one at its image centre, Jg Sigma Jg^T with Jg = [e1;
-e2] / |mean|. A pixel's ray gives its g exactly; the lens enters only as its differential DL = d(pixel)/dg at
-the mean, which expresses the low-pass filter (a pixel-space 0.3 px^2) and the cutoffs in the same units as the
-fast path: power = 1/2 (DL g)^T (DL Jg Sigma Jg^T DL^T + low_pass I)^-1 (DL g). Against the fast path's
-p - pi(mean), DL g differs by the lens's (and the gnomonic map's) curvature: O(|offset|^2 / R_c) pixels for an
-offset |offset| from the mean and a radius of curvature R_c of the lens's image of the tangent plane (for a
-fisheye, about the distance from the image centre), so the two renders agree the better the smaller the
-Gaussians are on the image. Pixels whose ray is NaN (outside a fisheye / f-theta image circle, beyond an opencv
-lens's fold) see no Gaussian; rays more than 90 degrees from a mean (d.m <= 0) see none of it."""
+Cameras with a lens (runtime.lenses) are drawn by casting each pixel's true ray (Camera.pixel_rays' inverse of the
+lens, `Lens.unproject`) against the Gaussians: for fisheye and f-theta lenses the fast path linearises the lens at
+each mean (its pixel offset from the mean is p - pi(mean), its footprint J Sigma J^T), this one never maps a
+Gaussian through the lens (for opencv lenses the fast path computes this same power from each pixel's ray,
+lensmap.opencv_plane_footprint). For each Gaussian it takes the plane tangent to the unit sphere at the mean's
+direction m (frame e1, e2; projection.lens_reference): in the gnomonic coordinates g = (d.e1, d.e2) / (d.m) of a
+ray d, the pinhole camera looking straight at the mean, EWA's footprint is the 3DGS one at its image centre, Jg
+Sigma Jg^T with Jg = [e1; e2] / |mean|. A pixel's ray gives its g exactly; the lens enters only as its differential
+DL = d(pixel)/dg at the mean, which expresses the low-pass filter (a pixel-space 0.3 px^2) and the cutoffs in the
+same units as the fast path: power = 1/2 (DL g)^T (DL Jg Sigma Jg^T DL^T + low_pass I)^-1 (DL g). Against the fast
+path's p - pi(mean), DL g differs by the lens's (and the gnomonic map's) curvature: O(|offset|^2 / R_c) pixels for
+an offset |offset| from the mean and a radius of curvature R_c of the lens's image of the tangent plane (for a
+fisheye, about the distance from the image centre), so the two renders agree the better the smaller the Gaussians
+are on the image. Pixels whose ray is NaN (outside a fisheye / f-theta image circle, beyond an opencv lens's fold;
+for an opencv lens also a ray beyond its unfolded disc, lensmap.opencv_valid_r2, where a lens that folds within the
+image unfolds again) see no Gaussian; rays more than 90 degrees from a mean (d.m <= 0) see none of it."""
 
 from __future__ import annotations
 
@@ -48,6 +50,14 @@ def render_reference(gaussians: Gaussians, camera, background=None, **options) -
         frame, DL = lens["frame"][idx], lens["DL"][idx]                      # [G, 3, 3], [G, 2, 2]
         vv, uu = np.meshgrid(np.arange(H, dtype=np.float64), np.arange(W, dtype=np.float64), indexing="ij")
         rays = unproject(camera.K, camera.distortion, np.stack([uu, vv], axis=-1))[0]   # [H, W, 3] camera frame
+        if camera.distortion.model == "opencv":
+            # rays beyond the unfolded disc (a lens that folds back within the image) see nothing: no mean is
+            # drawn there, and the fast path's footprints are defined on the unfolded part only
+            from .lensmap import opencv_valid_r2
+
+            r2v = opencv_valid_r2(tuple(camera.distortion.coeffs))
+            with np.errstate(invalid="ignore"):
+                rays[rays[..., 0] ** 2 + rays[..., 1] ** 2 > r2v * rays[..., 2] ** 2] = np.nan
 
     rgb = np.zeros((H, W, 3))
     alpha = np.zeros((H, W))

@@ -41,3 +41,24 @@ def pinhole(width=83, height=61, f=60.0, cx=None, cy=None, c2w=None) -> Camera:
 def concat(*gs: Gaussians) -> Gaussians:
     return Gaussians(*(np.concatenate([getattr(g, f) for g in gs]) for f in
                        ("means", "quats", "log_scales", "opacity_logits", "sh")))
+
+
+def sphere_shell(radius: float, centre, n: int, rng=None) -> Gaussians:
+    """n*n opaque flat discs tangent to a sphere about `centre` (a Fibonacci lattice; sigma = the lattice spacing,
+    thickness 5 mm), facing the centre: a camera there sees the surface at `radius` along every ray. SH degree 0:
+    grey, or a random colour per disc with rng (so an image compares every disc, not only the coverage)."""
+    k = np.arange(n * n) + 0.5
+    z = 1 - 2 * k / (n * n)
+    a = np.pi * (3 - np.sqrt(5)) * k
+    d = np.stack([np.sqrt(1 - z * z) * np.cos(a), np.sqrt(1 - z * z) * np.sin(a), z], 1)
+    means = (np.asarray(centre, np.float64) + radius * d).astype(np.float32)
+    step = radius * np.sqrt(4 * np.pi / (n * n))
+    axis = np.cross([0.0, 0.0, 1.0], d)
+    s = np.linalg.norm(axis, axis=1, keepdims=True)
+    ang = np.arctan2(s[:, 0], d[:, 2])
+    axis = np.where(s > 1e-9, axis / np.maximum(s, 1e-12), [1.0, 0.0, 0.0])
+    quats = np.concatenate([np.cos(ang / 2)[:, None], np.sin(ang / 2)[:, None] * axis], 1).astype(np.float32)
+    log_scales = np.log(np.tile([[step, step, 0.005]], (len(means), 1))).astype(np.float32)
+    sh = np.full((len(means), 1, 3), 0.5, np.float32) if rng is None else \
+        rng.uniform(-1.5, 1.5, (len(means), 1, 3)).astype(np.float32)
+    return Gaussians(means, quats, log_scales, np.full(len(means), 8.0, np.float32), sh)
