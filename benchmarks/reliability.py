@@ -519,6 +519,7 @@ def raw_over_limit(port: int, pid: int, limit: int, chunked: bool, path: str = "
             headers_only = {"answered_s": round(now_s() - t0, 4), "body_bytes_sent": 0}
     s.setblocking(False)
     sent, out, closed_early = 0, b"", None
+    pending, done, head_n = 0, 0, 0
     if answer:
         total = 0
     deadline = t0 + seconds
@@ -526,8 +527,9 @@ def raw_over_limit(port: int, pid: int, limit: int, chunked: bool, path: str = "
         if not out and sent < total:
             data = (prefix + piece)[:len(piece)] if sent == 0 else piece
             n = min(len(data), total - sent)
+            head_n = len(f"{n:x}\r\n") if chunked else 0       # the chunk's framing before its data
             out = (f"{n:x}\r\n".encode() + data[:n] + b"\r\n") if chunked else data[:n]
-            pending = n
+            pending, done = n, 0
         rd, wr, _ = select.select([s], [s] if out else [], [], 1.0)
         if rd:
             try:
@@ -545,11 +547,15 @@ def raw_over_limit(port: int, pid: int, limit: int, chunked: bool, path: str = "
                 closed_early = type(e).__name__
                 break
             out = out[k:]
+            done += k
             if not out:
                 sent += pending
+                done = 0
         elif sent >= total and not out:
             continue
     t_answer = now_s() - t0
+    # the data bytes of a piece the answer interrupted count too (the server may have read them all)
+    sent += min(max(done - head_n, 0), pending) if out else 0
     s.setblocking(True)
     s.settimeout(3)
     with contextlib.suppress(OSError):
