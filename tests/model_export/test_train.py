@@ -27,6 +27,24 @@ def _tcfg(stage, steps, **kw):
                        loss=TrainLossConfig(optim=OptimConfig(lr=1e-3, warmup_steps=1, total_steps=steps)), **kw)
 
 
+def _train_cli(args, capsys) -> tuple[int, str]:
+    """`xyzcyl train ARGS` in this process (a subprocess per call cost ~5 s of interpreter and torch start-up):
+    (exit status, stderr). The thread counts that --threads sets are restored after (later tests' results depend
+    on them)."""
+    import numba
+    from xyzcyl.clients import cli
+
+    n_torch, n_numba = torch.get_num_threads(), numba.get_num_threads()
+    try:
+        rc = cli.main(["train", *map(str, args)])
+    except SystemExit as e:                             # argparse's own refusals
+        rc = e.code
+    finally:
+        torch.set_num_threads(n_torch)
+        numba.set_num_threads(n_numba)
+    return rc, capsys.readouterr().err
+
+
 def _rows(path):
     with open(path, newline="") as f:
         return list(csv.DictReader(f))
@@ -130,32 +148,33 @@ def test_render_stage_from_occ(tiny_synth_data, tmp_path):
             assert torch.equal(w0[k], w1[k]), k
 
 
-def test_cli_errors_exit_2(tmp_path, tiny_synth_data):
+def test_cli_errors_exit_2(tmp_path, tiny_synth_data, capsys):
     exe = [sys.executable, "-m", "xyzcyl.clients.cli", "train"]
     r = subprocess.run(exe + ["--data", str(tmp_path / "nope"), "--stage", "occ", "--out", str(tmp_path / "r")],
                        check=False, capture_output=True, text=True)
     assert r.returncode == 2 and "data" in r.stderr and "Traceback" not in r.stderr
-    r = subprocess.run(exe + ["--data", str(tiny_synth_data), "--stage", "occ", "--out", str(tmp_path / "r"),
-                              "--resume"], check=False, capture_output=True, text=True)
-    assert r.returncode == 2 and "resume" in r.stderr
-    r = subprocess.run(exe + ["--data", str(tiny_synth_data), "--stage", "occ", "--out", str(tmp_path / "r"),
-                              "--targets", "0"], check=False, capture_output=True, text=True)
-    assert r.returncode == 2 and "num_targets" in r.stderr
-    r = subprocess.run(exe + ["--data", str(tiny_synth_data), "--stage", "occ", "--out", str(tmp_path / "r"),
-                              "--camera-drop", "2"], check=False, capture_output=True, text=True)
-    assert r.returncode == 2 and "camera_drop" in r.stderr and "Traceback" not in r.stderr
-    r = subprocess.run(exe + ["--data", str(tiny_synth_data), "--stage", "occ", "--out", str(tmp_path / "r"),
-                              "--depth-focal-ref", "wide"], check=False, capture_output=True, text=True)
-    assert r.returncode == 2 and "depth_focal_ref" in r.stderr and "Traceback" not in r.stderr
-    r = subprocess.run(exe + ["--data", str(tiny_synth_data), "--stage", "occ", "--out", str(tmp_path / "r"),
-                              "--lens-zoom", "-1"], check=False, capture_output=True, text=True)
-    assert r.returncode == 2 and "lens_zoom" in r.stderr and "Traceback" not in r.stderr
-    r = subprocess.run(exe + ["--data", str(tiny_synth_data), "--stage", "occ", "--out", str(tmp_path / "r"),
-                              "--lidar-input", "1.5"], check=False, capture_output=True, text=True)
-    assert r.returncode == 2 and "lidar_input" in r.stderr and "Traceback" not in r.stderr
-    r = subprocess.run(exe + ["--data", str(tiny_synth_data), "--data", str(tmp_path / "nope"), "--stage", "occ",
-                              "--out", str(tmp_path / "r")], check=False, capture_output=True, text=True)
-    assert r.returncode == 2 and "nope" in r.stderr
+    # the rest in this process (the same cli.main; an uncaught exception would fail the test, not exit 2)
+    rc, err = _train_cli(["--data", str(tiny_synth_data), "--stage", "occ", "--out", str(tmp_path / "r"),
+                         "--resume"], capsys)
+    assert rc == 2 and "resume" in err
+    rc, err = _train_cli(["--data", str(tiny_synth_data), "--stage", "occ", "--out", str(tmp_path / "r"),
+                         "--targets", "0"], capsys)
+    assert rc == 2 and "num_targets" in err
+    rc, err = _train_cli(["--data", str(tiny_synth_data), "--stage", "occ", "--out", str(tmp_path / "r"),
+                         "--camera-drop", "2"], capsys)
+    assert rc == 2 and "camera_drop" in err and "Traceback" not in err
+    rc, err = _train_cli(["--data", str(tiny_synth_data), "--stage", "occ", "--out", str(tmp_path / "r"),
+                         "--depth-focal-ref", "wide"], capsys)
+    assert rc == 2 and "depth_focal_ref" in err and "Traceback" not in err
+    rc, err = _train_cli(["--data", str(tiny_synth_data), "--stage", "occ", "--out", str(tmp_path / "r"),
+                         "--lens-zoom", "-1"], capsys)
+    assert rc == 2 and "lens_zoom" in err and "Traceback" not in err
+    rc, err = _train_cli(["--data", str(tiny_synth_data), "--stage", "occ", "--out", str(tmp_path / "r"),
+                         "--lidar-input", "1.5"], capsys)
+    assert rc == 2 and "lidar_input" in err and "Traceback" not in err
+    rc, err = _train_cli(["--data", str(tiny_synth_data), "--data", str(tmp_path / "nope"), "--stage", "occ",
+                         "--out", str(tmp_path / "r")], capsys)
+    assert rc == 2 and "nope" in err
 
 
 def test_load_init_skips_ablated_modules_only():
@@ -199,30 +218,27 @@ def test_load_init_keeps_own_init_of_untrained_modules_that_changed_shape():
     assert any(tuple(state[k].shape) != tuple(v.shape) for k, v in new.items())
 
 
-def test_cli_config_overrides(tmp_path, tiny_synth_data):
+def test_cli_config_overrides(tmp_path, tiny_synth_data, capsys):
     import json
 
-    exe = [sys.executable, "-m", "xyzcyl.clients.cli", "train", "--data", str(tiny_synth_data), "--stage", "occ",
-           "--steps", "1", "--quiet", "--threads", "1"]
-    r = subprocess.run(exe + ["--out", str(tmp_path / "a"), "--volume-selection", "ground_truth", "--max-voxels",
-                              "1234", "--ablation", "no-pixel", "--voxel-size", "1.6"],
-                       check=False, capture_output=True, text=True)
-    assert r.returncode == 0, r.stderr
+    exe = ["--data", str(tiny_synth_data), "--stage", "occ", "--steps", "1", "--quiet", "--threads", "1"]
+    rc, err = _train_cli(exe + ["--out", str(tmp_path / "a"), "--volume-selection", "ground_truth", "--max-voxels",
+                         "1234", "--ablation", "no-pixel", "--voxel-size", "1.6"], capsys)
+    assert rc == 0, err
     model = json.loads((tmp_path / "a" / "config.json").read_text())["model"]
     assert model["volume_selection"] == "ground_truth" and model["volume"]["max_voxels"] == 1234
     assert model["ablation"]["pixel_branch"] is False and model["grid"]["voxel_size"] == 1.6
     # without --preset the overrides apply to the --init checkpoint's config
-    r = subprocess.run(exe + ["--out", str(tmp_path / "b"), "--init", str(tmp_path / "a" / "occ.pt"),
-                              "--max-voxels", "99"], check=False, capture_output=True, text=True)
-    assert r.returncode == 0, r.stderr
+    rc, err = _train_cli(exe + ["--out", str(tmp_path / "b"), "--init", str(tmp_path / "a" / "occ.pt"),
+                         "--max-voxels", "99"], capsys)
+    assert rc == 0, err
     model = json.loads((tmp_path / "b" / "config.json").read_text())["model"]
     assert model["volume"]["max_voxels"] == 99 and model["volume_selection"] == "ground_truth"
     assert model["grid"]["voxel_size"] == 1.6
     # the issue-10 switches: no-RGB ablation, pixel lattice, placement, surface occupancy labels
-    r = subprocess.run(exe + ["--out", str(tmp_path / "c"), "--ablation", "no-rgb", "--pixel-upsample", "4",
-                              "--placement", "cylinder_ray", "--occupancy-labels", "surface", "--voxel-size", "1.6"],
-                       check=False, capture_output=True, text=True)
-    assert r.returncode == 0, r.stderr
+    rc, err = _train_cli(exe + ["--out", str(tmp_path / "c"), "--ablation", "no-rgb", "--pixel-upsample", "4",
+                         "--placement", "cylinder_ray", "--occupancy-labels", "surface", "--voxel-size", "1.6"], capsys)
+    assert rc == 0, err
     doc = json.loads((tmp_path / "c" / "config.json").read_text())
     model = doc["model"]
     assert model["ablation"]["rgb_path"] is False and model["ablation"]["rgb_occupancy"] is True
@@ -230,29 +246,27 @@ def test_cli_config_overrides(tmp_path, tiny_synth_data):
     assert doc["train"]["data"]["occupancy_labels"] == "surface"
     assert doc["data"] == str(tiny_synth_data)
     # mixed data sets (--data repeated) and the camera drop
-    r = subprocess.run(exe + ["--out", str(tmp_path / "d"), "--data", str(tiny_synth_data), "--camera-drop", "0.5",
-                              "--lens-zoom", "0.25"], check=False, capture_output=True, text=True)
-    assert r.returncode == 0, r.stderr
+    rc, err = _train_cli(exe + ["--out", str(tmp_path / "d"), "--data", str(tiny_synth_data), "--camera-drop", "0.5",
+                         "--lens-zoom", "0.25"], capsys)
+    assert rc == 0, err
     doc = json.loads((tmp_path / "d" / "config.json").read_text())
     assert doc["data"] == [str(tiny_synth_data)] * 2 and doc["train"]["data"]["camera_drop"] == 0.5
     assert doc["train"]["data"]["lens_zoom"] == 0.25
     # the focal-aware depth head: on (the occ stage's encoder reads the rigs' focal_n), then off again over --init
-    r = subprocess.run(exe + ["--out", str(tmp_path / "e"), "--depth-focal-ref", "nuscenes"],
-                       check=False, capture_output=True, text=True)
-    assert r.returncode == 0, r.stderr
+    rc, err = _train_cli(exe + ["--out", str(tmp_path / "e"), "--depth-focal-ref", "nuscenes"], capsys)
+    assert rc == 0, err
     assert json.loads((tmp_path / "e" / "config.json").read_text())["model"]["backbone"]["depth_focal_ref"] == 1.0553
-    r = subprocess.run(exe + ["--out", str(tmp_path / "f"), "--init", str(tmp_path / "e" / "occ.pt"),
-                              "--depth-focal-ref", "off"], check=False, capture_output=True, text=True)
-    assert r.returncode == 0, r.stderr
+    rc, err = _train_cli(exe + ["--out", str(tmp_path / "f"), "--init", str(tmp_path / "e" / "occ.pt"),
+                         "--depth-focal-ref", "off"], capsys)
+    assert rc == 0, err
     assert json.loads((tmp_path / "f" / "config.json").read_text())["model"]["backbone"]["depth_focal_ref"] is None
     # standardised backbone input over --init (no weights added: the occ checkpoint loads), inherited by a later run
-    r = subprocess.run(exe + ["--out", str(tmp_path / "g"), "--init", str(tmp_path / "e" / "occ.pt"),
-                              "--input-norm", "standardize"], check=False, capture_output=True, text=True)
-    assert r.returncode == 0, r.stderr
+    rc, err = _train_cli(exe + ["--out", str(tmp_path / "g"), "--init", str(tmp_path / "e" / "occ.pt"),
+                         "--input-norm", "standardize"], capsys)
+    assert rc == 0, err
     assert json.loads((tmp_path / "g" / "config.json").read_text())["model"]["backbone"]["input_norm"] == "standardize"
-    r = subprocess.run(exe + ["--out", str(tmp_path / "h"), "--init", str(tmp_path / "g" / "occ.pt")],
-                       check=False, capture_output=True, text=True)
-    assert r.returncode == 0, r.stderr
+    rc, err = _train_cli(exe + ["--out", str(tmp_path / "h"), "--init", str(tmp_path / "g" / "occ.pt")], capsys)
+    assert rc == 0, err
     assert json.loads((tmp_path / "h" / "config.json").read_text())["model"]["backbone"]["input_norm"] == "standardize"
 
 
