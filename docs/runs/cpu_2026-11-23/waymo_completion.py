@@ -16,7 +16,6 @@ import sys
 from pathlib import Path
 
 import numpy as np
-
 from xyzcyl.runtime.convert import complete_waymo_rig
 from xyzcyl.runtime.imageio import write_png
 from xyzcyl.runtime.inference import Reconstructor
