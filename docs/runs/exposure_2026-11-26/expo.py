@@ -5,7 +5,8 @@ cameras with the geometric mean of the gains fixed at 1); each camera's detail c
 gain, unclipped) at reconstruction, and the camera's gain re-applied to the whole render at that camera.
 From the repository root:
     .venv/bin/python docs/runs/exposure_2026-11-26/expo.py ../shared/data/real/pandaset_002_00/rig.json > OUT.json
-    (add `off` for no LiDAR; `whole` also feeds the harmonised images to the network: worse, see the CHANGELOG)
+    (add `off` for no LiDAR; `whole` also feeds the harmonised images to the network; `whole min` with the
+    darkest camera as the reference, so the harmonised images stay <= 1; see the CHANGELOG)
     .venv/bin/python docs/runs/exposure_2026-11-26/novel.py frame_20,frame_26,frame_32 on
     .venv/bin/python docs/runs/exposure_2026-11-26/picture.py docs/pictures/exposure_gains_experiment.jpg
 """
@@ -101,6 +102,10 @@ def main(rig_path, pairs_folder=None, lidar_on=True):
     # pass 2: harmonised
     cap.update(parts=[], details=[], cams=[])
     GAINS.update(gains)
+    if WHOLE[0] and "min" in sys.argv:     # the darkest camera as the reference: harmonised images stay <= 1
+        lo = np.min(np.stack(list(gains.values())), 0)
+        gains = {k: v / lo for k, v in gains.items()}
+        GAINS.update(gains)
     if WHOLE[0]:
         images_h = [(im / gains[c.name][None, None, :]).astype(np.float32) for im, c in zip(images, rig.cameras)]
     else:
