@@ -123,7 +123,12 @@ def opencv_distort(xy: np.ndarray, c: Sequence[float]) -> np.ndarray:
 
 def _opencv_with_jacobian(x: np.ndarray, y: np.ndarray, c: Sequence[float]) -> tuple[np.ndarray, ...]:
     """opencv_distort and its Jacobian d(xd, yd)/d(x, y) in one pass: (xd, yd, j11, j12, j21, j22)."""
-    k1, k2, p1, p2, k3, k4, k5, k6, s1, s2, s3, s4 = c
+    return opencv_distortion_terms(x, y, *c)
+
+
+def opencv_distortion_terms(x, y, k1, k2, p1, p2, k3, k4, k5, k6, s1, s2, s3, s4):
+    """The distortion and its Jacobian as plain arithmetic on scalars or arrays: the one copy of these expressions,
+    which the renderer compiles with numba (runtime.render.lensmap._opencv_distort)."""
     xx, yy, xy = x * x, y * y, x * y
     r2 = xx + yy
     n = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))

@@ -39,7 +39,7 @@ from typing import NamedTuple
 import numpy as np
 from numba import njit, prange
 
-from ..lenses import _opencv_with_jacobian
+from ..lenses import _opencv_with_jacobian, opencv_distortion_terms
 
 PINHOLE, EQUIRECT, OPENCV, FISHEYE, FTHETA = 0, 1, 2, 3, 4
 MODEL_CODES = {"opencv": OPENCV, "opencv_fisheye": FISHEYE, "ftheta": FTHETA}
@@ -391,28 +391,14 @@ def plane_weights(X, Y, fx, fy, cx, cy):
     return sx * q / fx, sy * q / fy
 
 
+_opencv_terms = njit(inline="always")(opencv_distortion_terms)
+
+
 @njit(inline="always")
 def _opencv_distort(lp, x, y):
     """OpenCV's rational + tangential + thin-prism distortion of normalised (x, y) and its 2x2 Jacobian:
-    (xd, yd, d00, d01, d10, d11), the expressions of runtime.lenses._opencv_with_jacobian."""
-    k1, k2, p1, p2, k3, k4, k5, k6, s1, s2, s3, s4 = (lp[0], lp[1], lp[2], lp[3], lp[4], lp[5], lp[6], lp[7],
-                                                      lp[8], lp[9], lp[10], lp[11])
-    xx = x * x
-    yy = y * y
-    xy = x * y
-    r2 = xx + yy
-    n = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
-    d = 1 + r2 * (k4 + r2 * (k5 + r2 * k6))
-    radial = n / d
-    dradial = ((k1 + r2 * (2 * k2 + 3 * k3 * r2)) * d - n * (k4 + r2 * (2 * k5 + 3 * k6 * r2))) / (d * d)
-    xd = x * radial + 2 * p1 * xy + p2 * (r2 + 2 * xx) + r2 * (s1 + r2 * s2)
-    yd = y * radial + p1 * (r2 + 2 * yy) + 2 * p2 * xy + r2 * (s3 + r2 * s4)
-    sx = s1 + 2 * s2 * r2
-    sy = s3 + 2 * s4 * r2
-    cross = 2 * xy * dradial + 2 * p1 * x + 2 * p2 * y
-    j11 = radial + 2 * xx * dradial + 2 * p1 * y + 6 * p2 * x + 2 * x * sx
-    j22 = radial + 2 * yy * dradial + 6 * p1 * y + 2 * p2 * x + 2 * y * sy
-    return xd, yd, j11, cross + 2 * y * sx, cross + 2 * x * sy, j22
+    (xd, yd, d00, d01, d10, d11), runtime.lenses.opencv_distortion_terms compiled."""
+    return _opencv_terms(x, y, lp[0], lp[1], lp[2], lp[3], lp[4], lp[5], lp[6], lp[7], lp[8], lp[9], lp[10], lp[11])
 
 
 # ------------------------------------------------------------------------------------------------ image circle

@@ -38,10 +38,7 @@ D.camera_detail = camera_detail
 _gc = D.grid_colours
 def grid_colours(image, grid, sharpen=0.0, footprint=0.5):
     import cv2
-    if image.shape[:2] == (grid.height, grid.width):
-        c = np.ascontiguousarray(image, np.float32)
-    else:
-        c = cv2.resize(image, (grid.width, grid.height), interpolation=cv2.INTER_AREA)
+    c = _gc(image, grid, 0.0, footprint)       # the area means; the unsharp mask below, unclipped
     if sharpen > 0:
         blur = cv2.GaussianBlur(c, (0, 0), footprint, borderType=cv2.BORDER_REFLECT)
         c = np.maximum(c + np.float32(sharpen) * (c - blur), 0.0)
