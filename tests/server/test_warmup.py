@@ -93,12 +93,13 @@ def test_serve_warms_up_before_ready_first_requests_not_slow(tmp_path):
             first, median = times[0], statistics.median(times[1:])
             print(f"ready after {waited:.1f} s; LiDAR reconstructions {[round(t, 2) for t in took]} s; renders "
                   f"{[round(t, 3) for t in times]} s")
-            # 3x the median: the first render of a scene also loads it into the scene cache (its PLY and EXR,
-            # ~0.1 s next to ~0.3 s for a 1600x900 view) and the machine is shared (a render's time varies by tens
-            # of per cent); without the warm-up the first render compiles the kernels (10 s or more on a cold
-            # cache, as here)
-            assert first <= 3.0 * median, (f"first render after ready {first:.3f} s > 3 x the median {median:.3f} s "
-                                           f"(all: {[round(t, 3) for t in times]}; ready after {waited:.1f} s)")
+            # 3x the median plus 1 s: the first render of a scene also loads it into the scene cache (its PLY and
+            # EXR, 0.1-0.2 s, next to 0.08-0.3 s for a 1600x900 view: a ratio alone failed at 0.267 s against a
+            # 0.087 s median) and the machine is shared (a render's time varies by tens of per cent); without the
+            # warm-up the first render compiles the kernels (10 s or more on a cold cache, as here), far above 1 s
+            bound = 3.0 * median + 1.0
+            assert first <= bound, (f"first render after ready {first:.3f} s > 3 x the median {median:.3f} s + 1 s "
+                                    f"(all: {[round(t, 3) for t in times]}; ready after {waited:.1f} s)")
             server.stop(30)
         except BaseException:
             sys.stderr.write(f"--- xyzcyl serve output ({log}) ---\n{log.read_text(errors='replace')[-8000:]}\n")
