@@ -331,7 +331,7 @@ def _scenes(c, args) -> int:
         else:
             print(f"{info.id}  {info.state:<7}  {info.created or '-':<25}  {info.gaussians or 0:>9} Gaussians  "
                   f"{len(info.cameras)} cameras")
-    _say(args, f"{n} scenes")
+    _say(args, f"{n} scene{'' if n == 1 else 's'}")
     return 0
 
 

@@ -84,8 +84,10 @@ def test_cli_reconstruct_render_gaussians_path(server, tmp_path, capsys, monkeyp
     index = json.loads((tmp_path / "frames" / "index.json").read_text())
     assert [f["width"] for f in index["frames"]] == [160, 160] and index["format"] == "jpeg"
 
-    rc, out, _ = xyzcyl("client", "scenes", capsys=capsys)
+    rc, out, err = xyzcyl("client", "scenes", capsys=capsys)
     assert rc == 0 and out.startswith(sid)
+    n = len(out.splitlines())
+    assert err.strip().splitlines()[-1] == (f"{n} scene" if n == 1 else f"{n} scenes")   # stderr: the count
 
     rc, out, err = xyzcyl("client", "render", "AAAAAAAAAAAAAAAAAAAAAA", "--camera", "CAM_FRONT", "--out",
                           str(tmp_path / "x.png"), capsys=capsys)

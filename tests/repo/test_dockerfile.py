@@ -1,0 +1,81 @@
+"""The Docker build context holds what the Dockerfile copies: every `COPY` source from the build context survives
+.dockerignore, and the build stage copies every package folder pyproject.toml maps (a package added to
+pyproject but filtered out by .dockerignore broke `docker build` once: `COPY common ./common` found nothing).
+scripts/docker-smoke.sh builds the image for real (podman; not part of CI)."""
+
+from __future__ import annotations
+
+import re
+import tomllib
+
+import pytest
+from xyzcyl.testing import REPO
+
+DOCKERFILE = (REPO / "Dockerfile").read_text()
+
+
+def _rules() -> list[tuple[bool, re.Pattern]]:
+    """.dockerignore as (exclude?, regex) in order. Docker's syntax: `*` and `?` stay within a path component,
+    `**` spans any number of them (a leading `**/` also none), `!` re-includes; the last matching rule wins, and
+    a rule matching a folder covers everything inside it."""
+    rules = []
+    for line in (REPO / ".dockerignore").read_text().splitlines():
+        line = line.strip()
+        if not line or line.startswith("#"):
+            continue
+        keep = line.startswith("!")
+        pat = line[1:] if keep else line
+        rx, i = "", 0
+        while i < len(pat):
+            if pat.startswith("**/", i):
+                rx, i = rx + "(?:.*/)?", i + 3
+            elif pat.startswith("**", i):
+                rx, i = rx + ".*", i + 2
+            elif pat[i] == "*":
+                rx, i = rx + "[^/]*", i + 1
+            elif pat[i] == "?":
+                rx, i = rx + "[^/]", i + 1
+            else:
+                rx, i = rx + re.escape(pat[i]), i + 1
+        rules.append((not keep, re.compile(rx + "(?:/.*)?")))
+    return rules
+
+
+def ignored(path: str) -> bool:
+    """Whether .dockerignore leaves `path` (relative to the repository root) out of the build context."""
+    out = False
+    for exclude, rx in _rules():
+        if rx.fullmatch(path):
+            out = exclude
+    return out
+
+
+def _context_copies() -> list[str]:
+    """The build-context sources of the Dockerfile's COPY lines (not `COPY --from=stage`)."""
+    srcs = []
+    for m in re.finditer(r"^COPY\s+(?!--from)(.+)$", DOCKERFILE, re.M):
+        *sources, _dest = m.group(1).split()
+        srcs += sources
+    return srcs
+
+
+def test_the_matcher_reads_docker_syntax():
+    assert ignored(".venv/bin/python") and ignored("data/x.npz")               # `*`: everything else is out
+    assert not ignored("runtime/render/kernels.py")                            # `!runtime`
+    assert ignored("runtime/render/__pycache__/kernels.cpython-311.pyc")       # `**/__pycache__`, after it
+    assert ignored("runtime/render/kernels.core.nbi")
+
+
+@pytest.mark.parametrize("src", _context_copies())
+def test_every_copied_path_is_in_the_build_context(src):
+    path = REPO / src
+    assert path.exists(), f"Dockerfile copies {src}, which does not exist"
+    assert not ignored(src), f".dockerignore leaves {src} out of the build context: add !{src}"
+    files = [p for p in path.rglob("*") if p.is_file()] if path.is_dir() else [path]
+    kept = [p for p in files if not ignored(str(p.relative_to(REPO)))]
+    assert kept, f".dockerignore leaves every file of {src} out"
+
+
+def test_the_build_stage_copies_every_package_folder():
+    folders = set(tomllib.loads((REPO / "pyproject.toml").read_text())["tool"]["setuptools"]["package-dir"].values())
+    assert folders - set(_context_copies()) == set(), "the Dockerfile's build stage must COPY these (pip install)"
