@@ -233,8 +233,11 @@ class Scene:
         if len(g) == 0:
             return None
         vis = g.opacities >= 1.0 / 255.0
-        m = g.means[vis] if vis.any() else g.means
-        return {"min": [float(x) for x in m.min(axis=0)], "max": [float(x) for x in m.max(axis=0)]}
+        if not vis.any():
+            vis[:] = True
+        # a column at a time: numpy's min/max over axis 0 of an [N, 3] array took 0.1 s for 2.16 M Gaussians
+        cols = [g.means[:, c][vis] for c in range(3)]
+        return {"min": [float(c.min()) for c in cols], "max": [float(c.max()) for c in cols]}
 
     def to_json(self) -> dict[str, Any]:
         g = self.gaussians

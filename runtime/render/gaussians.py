@@ -114,24 +114,38 @@ class Gaussians:
                            ("means", "quats", "log_scales", "opacity_logits", "sh")))
 
     # ---------------------------------------------------------------------------------------- PLY (INRIA)
+    def ply_names(self) -> list[str]:
+        """The PLY's vertex properties, in order: x y z nx ny nz f_dc_0..2 f_rest_0.. opacity scale_0..2 rot_0..3."""
+        k = self.sh.shape[1]
+        return (["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"]
+                + [f"f_rest_{i}" for i in range(3 * (k - 1))]
+                + ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"])
+
+    def ply_rows(self) -> np.ndarray:
+        """[N] structured array of the PLY's vertices (ply_names, little-endian float32), a view of one [N, P]
+        float32 block filled a property group at a time (a field-by-field fill of a structured array, through
+        float64, took 0.93 s of a 1.1 s save for 2.16 M Gaussians; this 0.1 s)."""
+        n, k = len(self), self.sh.shape[1]
+        names = self.ply_names()
+        rows = np.empty((n, len(names)), "<f4")
+        rows[:, 0:3] = self.means
+        rows[:, 3:6] = 0.0                                       # normals: unused by 3DGS readers
+        rows[:, 6:9] = self.sh[:, 0, :]
+        j = 9 + 3 * (k - 1)
+        if k > 1:                                                # channel-major: c * (k - 1) + (coefficient - 1)
+            rows[:, 9:j] = self.sh[:, 1:, :].transpose(0, 2, 1).reshape(n, 3 * (k - 1))
+        rows[:, j] = self.opacity_logits
+        rows[:, j + 1:j + 4] = self.log_scales
+        rows[:, j + 4:j + 8] = self.quats
+        return rows.view(np.dtype([(name, "<f4") for name in names])).reshape(n)
+
     def save_ply(self, path: str | os.PathLike) -> None:
         """Write the INRIA 3DGS layout: binary little endian, float32, properties
         x y z nx ny nz f_dc_0..2 f_rest_0.. opacity scale_0..2 rot_0..3; f_rest channel-major
         (f_rest index = c * ((d+1)^2 - 1) + k for colour channel c and SH coefficient k >= 1)."""
         from plyfile import PlyData, PlyElement
 
-        n, k = len(self), self.sh.shape[1]
-        names = ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"]
-        names += [f"f_rest_{i}" for i in range(3 * (k - 1))]
-        names += ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
-        data = np.empty(n, dtype=[(name, "<f4") for name in names])
-        cols = [self.means, np.zeros((n, 3)), self.sh[:, 0, :],
-                self.sh[:, 1:, :].transpose(0, 2, 1).reshape(n, 3 * (k - 1)),  # channel-major
-                self.opacity_logits[:, None], self.log_scales, self.quats]
-        flat = np.concatenate([np.asarray(c, dtype=np.float64).reshape(n, -1) for c in cols], axis=1)
-        for i, name in enumerate(names):
-            data[name] = flat[:, i]
-        PlyData([PlyElement.describe(data, "vertex")], text=False, byte_order="<").write(str(path))
+        PlyData([PlyElement.describe(self.ply_rows(), "vertex")], text=False, byte_order="<").write(str(path))
 
     @classmethod
     def load_ply(cls, path: str | os.PathLike, max_points: int = DEFAULT_MAX_POINTS) -> Gaussians:
