@@ -51,7 +51,7 @@ WORKDIR /data
 USER 10001:10001
 # Compile every numba kernel (cache=True) into NUMBA_CACHE_DIR now, through the same warm-up `xyzcyl serve` runs
 # before it reports ready (runtime/warmup.py: pinhole and equirect renders, the encoders, a reconstruction with
-# LiDAR and the detail layer): without it every start compiles them (~50 s on 2 cores). numba keys its cache
+# LiDAR and the detail layer): without it every start compiles them (~85 s on 2 cores). numba keys its cache
 # by CPU model: on another CPU the serve warm-up compiles once more (per container; mount a volume on
 # /tmp/numba-cache to keep it across restarts). The cache is left writable to every uid: numba refuses to import
 # the kernels when NUMBA_CACHE_DIR is not writable, and a platform may run the image as another uid (OpenShift,

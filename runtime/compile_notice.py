@@ -7,7 +7,7 @@ registers a listener for numba's ``numba:compile`` event (numba.core.event), whi
 really compiles (numba/core/dispatcher.py: a signature loaded from the cache returns before the event), and on
 the first compile of an xyzcyl function in this process says so once::
 
-    xyzcyl: compiling numba kernels once (up to a minute; cached in <folder> for later runs)
+    xyzcyl: compiling numba kernels once (a minute or two; cached in <folder> for later runs)
 
 runtime/render/__init__.py installs it, so every kernel user (the renderer, runtime.scene, runtime.detail) has it
 without torch or a server. The server passes a logging function instead (``install(log.info)``): the line then goes
@@ -55,7 +55,7 @@ def cache_dir(dispatcher=None) -> str:
 
 
 def message(dispatcher=None) -> str:
-    return (f"xyzcyl: compiling numba kernels once (up to a minute; cached in {cache_dir(dispatcher)} for later "
+    return (f"xyzcyl: compiling numba kernels once (a minute or two; cached in {cache_dir(dispatcher)} for later "
             "runs)")
 
 

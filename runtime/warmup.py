@@ -100,8 +100,10 @@ def tiny_scene():
 
 def view_requests(scene) -> list:
     """The warm-up views (runtime.views.ViewRequest): a pinhole pose in every output and format, an input camera of
-    the rig, and an equirectangular view."""
+    the rig, an equirectangular view, and one view through each lens model (opencv, opencv_fisheye, ftheta): the
+    projection kernels are compiled per camera model (runtime.render.kernels.project_kernel)."""
     from .camera import Camera
+    from .lenses import Lens
     from .views import ViewRequest, camera_from_opencv, camera_from_rig
 
     pin = camera_from_opencv(_FRONT, VIEW_W, VIEW_H, fov=70.0)
@@ -111,6 +113,10 @@ def view_requests(scene) -> list:
                                                         ("depth", "png"), ("depth", "exr"), ("alpha", "png"))]
     reqs.append(ViewRequest(camera_from_rig(scene.rig, "WARM_LEFT", width=VIEW_W)))
     reqs.append(ViewRequest(Camera(model="equirectangular", cam_to_ego=T, width=2 * VIEW_W, height=VIEW_W)))
+    for lens in (Lens("opencv", (-0.28, 0.07, 0.001, -0.001, 0.0)),
+                 Lens("opencv_fisheye", (0.02, -0.01, 0.002, -0.0003), max_angle_deg=95.0),
+                 Lens("ftheta", max_angle_deg=80.0, angle_to_pixeldist_poly=(0.0, 40.0, 0.0, -1.0))):
+        reqs.append(ViewRequest(pin.replace(distortion=lens)))
     return reqs
 
 

@@ -50,22 +50,23 @@ _NO_OFFSETS = _read_only(np.zeros((0, 0, 2), np.float32))
 
 
 def _camera_args(camera):
-    """(Rw, tw, model, lp, fx, fy, cx, cy, lxn, lxp, lyn, lyp, ptab) for the kernels: world -> camera, the model
-    code and lens parameters (lensmap.lens_params), K, the Jacobian clamp box (pinhole_limits; unused with a lens)
-    and, for an opencv lens, the tables of its pixels' positions on its undistorted image plane (ptab = cols,
-    rows, tyext, rowtx, tilex, tiley of lensmap.opencv_pixel_map; else empty)."""
+    """(model, (Rw, tw, lp, fx, fy, cx, cy, lxn, lxp, lyn, lyp, ptab)) for the kernels: the model code (which
+    kernel variant: kernels.project_kernel(model)) and its arguments: world -> camera, the lens parameters
+    (lensmap.lens_params), K, the Jacobian clamp box (pinhole_limits; unused with a lens) and, for an opencv lens,
+    the tables of its pixels' positions on its undistorted image plane (ptab = cols, rows, tyext, rowtx, tilex,
+    tiley of lensmap.opencv_pixel_map; else empty)."""
     check_camera(camera)
     w2c = np.linalg.inv(camera.cam_to_ego)
     Rw, tw = np.ascontiguousarray(w2c[:3, :3]), np.ascontiguousarray(w2c[:3, 3])
     model, lp = lens_params(camera)
     if camera.is_equirect:
-        return Rw, tw, model, lp, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, _NO_PTAB
+        return model, (Rw, tw, lp, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, _NO_PTAB)
     k = camera.K
     if model == lensmap.OPENCV:     # (no clamp box: its footprint lives on the mean's tangent plane)
         pm = opencv_pixel_map(camera)
-        return Rw, tw, model, lp, k[0, 0], k[1, 1], k[0, 2], k[1, 2], 0.0, 0.0, 0.0, 0.0, \
-            (pm.cols, pm.rows, pm.tyext, pm.rowtx, pm.tilex, pm.tiley)
-    return Rw, tw, model, lp, k[0, 0], k[1, 1], k[0, 2], k[1, 2], *pinhole_limits(camera), _NO_PTAB
+        return model, (Rw, tw, lp, k[0, 0], k[1, 1], k[0, 2], k[1, 2], 0.0, 0.0, 0.0, 0.0,
+                       (pm.cols, pm.rows, pm.tyext, pm.rowtx, pm.tilex, pm.tiley))
+    return model, (Rw, tw, lp, k[0, 0], k[1, 1], k[0, 2], k[1, 2], *pinhole_limits(camera), _NO_PTAB)
 
 
 def _plane_args(camera):
@@ -163,13 +164,14 @@ def _prepare(g: Gaussians, camera, opts: RenderOptions, cull_chunks: bool = True
     t0 = time.perf_counter()
     n = len(g)
     nch = (n + K.PROJ_CHUNK - 1) // K.PROJ_CHUNK
-    cam = (*_camera_args(camera), W, H, float(opts.near), float(opts.far), float(opts.low_pass))
+    model, (*cargs, ptab) = _camera_args(camera)
+    cam = (*cargs, W, H, float(opts.near), float(opts.far), float(opts.low_pass))   # kernels: the camera tuple
     pre = np.zeros(nch, np.int64)
     if n:
         # pass 1: an upper bound of the visible Gaussians per chunk, so the outputs are allocated to fit (a
         # slot per Gaussian made the kernel zero up to 64 bytes x N of fresh huge pages per render)
-        K.precull_counts(_c(g.means), _c(g.log_scales), *cam,
-                         chunk_planes(camera, opts) if cull_chunks else np.zeros((0, 5)), pre)
+        K.precull_counts(model)(_c(g.means), _c(g.log_scales), cam, ptab,
+                                chunk_planes(camera, opts) if cull_chunks else np.zeros((0, 5)), pre)
     base = np.zeros(nch, np.int64)
     np.cumsum(pre[:-1], out=base[1:])
     m = int(pre.sum())
@@ -179,10 +181,10 @@ def _prepare(g: Gaussians, camera, opts: RenderOptions, cull_chunks: bool = True
     gid = _scratch("gid", (m,), np.int32)
     counts = np.zeros(nch, np.int64)
     if m:
-        K.project_kernel(_c(g.means), _c(g.quats), _c(g.log_scales), _c(g.opacity_logits), _c(g.sh),
-                         np.ascontiguousarray(camera.cam_to_ego[:3, 3]), *cam,
-                         bool(opts.antialiased), opts.radius_mode == "opacity", pre, base, rows, trange, dep,
-                         gid, counts)
+        K.project_kernel(model)(_c(g.means), _c(g.quats), _c(g.log_scales), _c(g.opacity_logits), _c(g.sh),
+                                np.ascontiguousarray(camera.cam_to_ego[:3, 3]), cam, ptab,
+                                bool(opts.antialiased), opts.radius_mode == "opacity", pre, base, rows, trange,
+                                dep, gid, counts)
     t1 = time.perf_counter()
     visible = K.visible_slots(counts, base)
     # depth order: float32 depths (positive: near > 0, so their bit patterns order like the values), ties by

@@ -12,10 +12,12 @@ would not vectorise. The backward pass replays the forward decisions with the sa
 
 from __future__ import annotations
 
+import functools
 import math
 
 import numpy as np
-from numba import njit, prange
+from numba import njit, prange, types
+from numba.extending import overload
 
 from .lensmap import lens_project, opencv_plane_box, opencv_plane_footprint, opencv_plane_reach, plane_weights
 
@@ -200,258 +202,331 @@ def _plane_span(table, a, b):
     return first, lo
 
 
-@njit(cache=True, parallel=True, nogil=True)
-def precull_counts(means, log_scales, Rw, tw, model, lp, fx, fy, cx, cy, lxn, lxp, lyn, lyp, ptab, width,
-                   height, near, far, low_pass, planes, counts):
-    """counts[c] = how many Gaussians of chunk c (PROJ_CHUNK Gaussians each) survive _precull; 0 for a chunk
-    whose bounding box lies wholly outside one of `planes` (chunk_planes), without looking at its Gaussians.
-    An upper bound of what project_kernel keeps, so its outputs can be allocated to fit."""
-    nch = (means.shape[0] + PROJ_CHUNK - 1) // PROJ_CHUNK
-    for k in prange(SPREAD * ((nch + SPREAD - 1) // SPREAD)):
-        ch = _spread(k, nch)
-        if ch < 0:
-            continue
-        counts[ch] = _precull_chunk(means, log_scales, Rw, tw, model, lp, fx, fy, cx, cy, lxn, lxp, lyn, lyp, ptab,
-                                    width, height, near, far, low_pass, planes, ch)
+# ------------------------------------------------------------------ kernels specialised per camera model
+# The projection's kernels are compiled per camera model (0 = pinhole, 1 = equirect, 2..4 the lensmap lenses:
+# opencv, opencv_fisheye, ftheta): `model` is a constant of each variant's code (a closure variable, which numba's
+# branch pruning resolves, inside the inlined helpers too), so a variant holds its own model's code only: one
+# kernel taking the model as a run-time value held all five, and its pinhole projection ran ~45 % slower than
+# before the lens models came (docs/renderer.md "numba compile cache"; the price: every variant compiles apart,
+# ~2x the compile of all models). numba caches each variant apart (a closure's values are part of its cache key).
+# The raster stays one kernel for every model. The
+# per-chunk functions stay plain (not parallel) functions called from the prange loops, as parfor compiles a big
+# inlined loop body slowly; the parallel kernels reach their model's chunk function through an overload on the
+# model constant (_precull_chunk_call, _project_chunk_call), since a closure over a compiled function is not
+# cacheable (its pickle holds a per-process id).
+#
+# cam, the camera tuple of every projection kernel: (Rw, tw, lp, fx, fy, cx, cy, lxn, lxp, lyn, lyp, width, height,
+# near, far, low_pass): world -> camera [3, 3], [3]; the lens parameters (lensmap.lens_params); K; the Jacobian
+# clamp box (pinhole_limits); the image size (px); the depth range (m); the low-pass (px^2). ptab, apart (a tuple
+# nested in a tuple does not pass into a prange loop): the opencv plane tables (core._camera_args).
 
 
-@njit(cache=True, nogil=True)
-def _precull_chunk(means, log_scales, Rw, tw, model, lp, fx, fy, cx, cy, lxn, lxp, lyn, lyp, ptab, width,
-                   height, near, far, low_pass, planes, ch):
-    i0 = ch * PROJ_CHUNK
-    i1 = min(means.shape[0], i0 + PROJ_CHUNK)
-    if planes.shape[0] and _chunk_outside(means, log_scales, planes, i0, i1):
-        return 0
-    c = 0
-    for i in range(i0, i1):
-        keep, _, _, _ = _precull(means, log_scales, i, Rw, tw, model, lp, fx, fy, cx, cy, lxn, lxp, lyn, lyp, ptab,
-                                 width, height, near, far, low_pass)
-        c += keep
-    return c
+@functools.cache
+def _chunk_functions(model: int):
+    """(precull_chunk, project_chunk): one chunk of precull_counts / project_kernel, compiled for one camera
+    model (the closure's `model`)."""
+    model = int(model)
 
+    @njit(cache=True, nogil=True)
+    def precull_chunk(means, log_scales, cam, ptab, planes, ch):
+        """How many Gaussians of chunk ch survive _precull (0 when the chunk's box lies outside one of planes)."""
+        Rw, tw, lp, fx, fy, cx, cy, lxn, lxp, lyn, lyp, width, height, near, far, low_pass = cam
+        i0 = ch * PROJ_CHUNK
+        i1 = min(means.shape[0], i0 + PROJ_CHUNK)
+        if planes.shape[0] and _chunk_outside(means, log_scales, planes, i0, i1):
+            return 0
+        c = 0
+        for i in range(i0, i1):
+            keep, _, _, _ = _precull(means, log_scales, i, Rw, tw, model, lp, fx, fy, cx, cy, lxn, lxp, lyn, lyp,
+                                     ptab, width, height, near, far, low_pass)
+            c += keep
+        return c
 
-@njit(cache=True, parallel=True, nogil=True)
-def project_kernel(means, quats, log_scales, opacity_logits, sh, campos, Rw, tw, model, lp, fx, fy, cx, cy,
-                   lxn, lxp, lyn, lyp, ptab, width, height, near, far, low_pass, antialiased, opacity_mode,
-                   pre, base, rows, trange, depth_out, gid, counts):
-    """Project the Gaussians (float64), parallel over chunks of PROJ_CHUNK Gaussians. Chunk c (pre[c] > 0: its
-    precull_counts) writes its visible Gaussians, in index order, to slots base[c], base[c] + 1, ... (base: the
-    exclusive prefix sum of pre) and their number (<= pre[c]) to counts[c]; per slot s: rows[s] = the 64-byte
-    float32 row (layout: NCG), trange[s] [., 2] int32 = (tx0 | tx1 << 16, ty0 | ty1 << 16) the tiles its
-    bounding box touches (tx1 < tx0: the range wraps around the azimuth seam, equirect), depth_out[s] float64 =
-    depth, gid[s] int32 = the Gaussian's index. Slots past counts[c] are left unwritten (never read). Slots
-    increase with the Gaussian index, so sorting slots is sorting indices. model 0 = pinhole, 1 = equirect,
-    2..4 a lens (lensmap: opencv, opencv_fisheye, ftheta; lp its parameters)."""
-    nch = (means.shape[0] + PROJ_CHUNK - 1) // PROJ_CHUNK
-    ntx = (width + TILE - 1) // TILE
-    for k in prange(SPREAD * ((nch + SPREAD - 1) // SPREAD)):
-        ch = _spread(k, nch)
-        if ch < 0:
-            continue
-        counts[ch] = 0
-        if pre[ch] > 0:
-            counts[ch] = _project_chunk(means, quats, log_scales, opacity_logits, sh, campos, Rw, tw, model, lp, fx,
-                                        fy, cx, cy, lxn, lxp, lyn, lyp, ptab, width, height, near, far,
-                                        low_pass, antialiased, opacity_mode, rows, trange, depth_out, gid, ch, base[ch],
-                                        ntx)
-
-
-@njit(cache=True, nogil=True)
-def _project_chunk(means, quats, log_scales, opacity_logits, sh, campos, Rw, tw, model, lp, fx, fy, cx, cy,
-                   lxn, lxp, lyn, lyp, ptab, width, height, near, far, low_pass, antialiased, opacity_mode,
-                   rows, trange, depth_out, gid, ch, slot0, ntx):
-    """One chunk of project_kernel (a plain function called per chunk from the prange loop), writing from slot
-    slot0 on; returns the number of visible Gaussians written."""
-    i0 = ch * PROJ_CHUNK
-    i1 = min(means.shape[0], i0 + PROJ_CHUNK)
-    s = slot0
-    for i in range(i0, i1):
-        keep, x, y, z = _precull(means, log_scales, i, Rw, tw, model, lp, fx, fy, cx, cy, lxn, lxp, lyn, lyp, ptab,
-                                 width, height, near, far, low_pass)
-        if not keep:
-            continue
-        mxw, myw, mzw = np.float64(means[i, 0]), np.float64(means[i, 1]), np.float64(means[i, 2])
-        if model == 0:
-            depth = z
-            sx = x / z
-            sy = y / z
-            u = fx * sx + cx
-            v = fy * sy + cy
-            sxc = min(max(sx, -lxn), lxp)
-            syc = min(max(sy, -lyn), lyp)
-            j00 = fx / z
-            j01 = 0.0
-            j02 = -fx * sxc / z
-            j10 = 0.0
-            j11 = fy / z
-            j12 = -fy * syc / z
-        elif model == 2:
-            # opencv: J the lens's exact Jacobian at the mean (for cov2 = J Sigma J^T + low_pass I, whose det and
-            # opacity compensation are the reference's); (u, v) the mean on the undistorted image plane, where
-            # the raster measures each pixel's offset (lensmap.opencv_plane_footprint)
-            depth = z
-            _, _, _, j00, j01, j02, j10, j11, j12 = lens_project(model, lp, fx, fy, cx, cy, x, y, z)
-            u = fx * (x / z) + cx
-            v = fy * (y / z) + cy
-        elif model >= 3:
-            depth = math.sqrt(x * x + y * y + z * z)
-            _, u, v, j00, j01, j02, j10, j11, j12 = lens_project(model, lp, fx, fy, cx, cy, x, y, z)
-        else:
-            r = math.sqrt(x * x + y * y + z * z)
-            depth = r
-            rho = math.sqrt(x * x + z * z)
-            rho_j = max(rho, r * math.sin(math.pi / (2.0 * height)))
-            u = width * (math.atan2(x, z) + math.pi) / (2.0 * math.pi) - 0.5
-            v = height * math.atan2(rho, -y) / math.pi - 0.5
-            ku = width / (2.0 * math.pi)
-            kv = height / math.pi
-            j00 = ku * z / (rho_j * rho_j)
-            j01 = 0.0
-            j02 = -ku * x / (rho_j * rho_j)
-            j10 = -kv * y * x / (r * r * rho_j)
-            j11 = kv * rho / (r * r)
-            j12 = -kv * y * z / (r * r * rho_j)
-        # rotation from the normalised quaternion
-        qw, qx, qy, qz = np.float64(quats[i, 0]), np.float64(quats[i, 1]), np.float64(quats[i, 2]), \
-            np.float64(quats[i, 3])
-        qn = 1.0 / math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
-        qw *= qn
-        qx *= qn
-        qy *= qn
-        qz *= qn
-        r00 = 1 - 2 * (qy * qy + qz * qz)
-        r01 = 2 * (qx * qy - qw * qz)
-        r02 = 2 * (qx * qz + qw * qy)
-        r10 = 2 * (qx * qy + qw * qz)
-        r11 = 1 - 2 * (qx * qx + qz * qz)
-        r12 = 2 * (qy * qz - qw * qx)
-        r20 = 2 * (qx * qz - qw * qy)
-        r21 = 2 * (qy * qz + qw * qx)
-        r22 = 1 - 2 * (qx * qx + qy * qy)
-        s0 = math.exp(np.float64(log_scales[i, 0]))
-        s1 = math.exp(np.float64(log_scales[i, 1]))
-        s2 = math.exp(np.float64(log_scales[i, 2]))
-        # T = J Rw (2x3); A = T R S (2x3); cov2 = A A^T
-        t00 = j00 * Rw[0, 0] + j01 * Rw[1, 0] + j02 * Rw[2, 0]
-        t01 = j00 * Rw[0, 1] + j01 * Rw[1, 1] + j02 * Rw[2, 1]
-        t02 = j00 * Rw[0, 2] + j01 * Rw[1, 2] + j02 * Rw[2, 2]
-        t10 = j10 * Rw[0, 0] + j11 * Rw[1, 0] + j12 * Rw[2, 0]
-        t11 = j10 * Rw[0, 1] + j11 * Rw[1, 1] + j12 * Rw[2, 1]
-        t12 = j10 * Rw[0, 2] + j11 * Rw[1, 2] + j12 * Rw[2, 2]
-        a00 = (t00 * r00 + t01 * r10 + t02 * r20) * s0
-        a01 = (t00 * r01 + t01 * r11 + t02 * r21) * s1
-        a02 = (t00 * r02 + t01 * r12 + t02 * r22) * s2
-        a10 = (t10 * r00 + t11 * r10 + t12 * r20) * s0
-        a11 = (t10 * r01 + t11 * r11 + t12 * r21) * s1
-        a12 = (t10 * r02 + t11 * r12 + t12 * r22) * s2
-        c00 = a00 * a00 + a01 * a01 + a02 * a02
-        c01 = a00 * a10 + a01 * a11 + a02 * a12
-        c11 = a10 * a10 + a11 * a11 + a12 * a12
-        det_raw = c00 * c11 - c01 * c01
-        c00 += low_pass
-        c11 += low_pass
-        det = c00 * c11 - c01 * c01
-        if not (det > 0.0):
-            continue
-        opa = 1.0 / (1.0 + math.exp(-np.float64(opacity_logits[i])))
-        if antialiased:
-            opa *= math.sqrt(max(det_raw / det, 0.0))
-        if not (opa >= 1.0 / 255.0):
-            continue
-        if opacity_mode:
-            ext = min(3.33, math.sqrt(2.0 * math.log(opa * 255.0)))
-        else:
-            ext = 3.0
-        pmax = 0.5 * ext * ext
-        rx = ext * math.sqrt(c00)
-        ry = ext * math.sqrt(c11)
-        if model == 2:
-            # the footprint on the plane (written first: its tiles are found from the stored float32 row, as the
-            # binning finds them): an ellipse, the box of the tiles whose extent there meets it (_plane_tile_box);
-            # or, unbounded, the pixels whose positions the box of its part in front can hold (_plane_span)
-            ok, pa0, pa1, pb0, pb1 = opencv_plane_footprint(x, y, z, j00, j01, j02, j10, j11, j12, c00, c01, c11,
-                                                            fx, fy)
-            if not ok:
+    @njit(cache=True, nogil=True)
+    def project_chunk(means, quats, log_scales, opacity_logits, sh, campos, cam, ptab, antialiased, opacity_mode,
+                      rows, trange, depth_out, gid, ch, slot0, ntx):
+        """One chunk of project_kernel, writing from slot slot0 on; returns the number of visible Gaussians
+        written."""
+        Rw, tw, lp, fx, fy, cx, cy, lxn, lxp, lyn, lyp, width, height, near, far, low_pass = cam
+        i0 = ch * PROJ_CHUNK
+        i1 = min(means.shape[0], i0 + PROJ_CHUNK)
+        s = slot0
+        for i in range(i0, i1):
+            keep, x, y, z = _precull(means, log_scales, i, Rw, tw, model, lp, fx, fy, cx, cy, lxn, lxp, lyn, lyp,
+                                     ptab, width, height, near, far, low_pass)
+            if not keep:
                 continue
-            _write_mean(rows, s, u, v)
-            rows[s, 5] = pa0
-            rows[s, 6] = pa1
-            rows[s, 7] = pb0
-            rows[s, 9] = pmax
-            rows[s, 14] = pb1
-            ell = _plane_ellipse(rows, s, fx, fy, cx, cy)
-            if ell[0]:
-                tx0, tx1, ty0, ty1 = _plane_tile_box(ell, ptab[2], ptab[3], ptab[4], ptab[5])
-                if tx1 < tx0:
-                    continue
-                v_lo = ty0 * TILE
-                v_hi = min(height - 1, ty1 * TILE + TILE - 1)
+            mxw, myw, mzw = np.float64(means[i, 0]), np.float64(means[i, 1]), np.float64(means[i, 2])
+            if model == 0:
+                depth = z
+                sx = x / z
+                sy = y / z
+                u = fx * sx + cx
+                v = fy * sy + cy
+                sxc = min(max(sx, -lxn), lxp)
+                syc = min(max(sy, -lyn), lyp)
+                j00 = fx / z
+                j01 = 0.0
+                j02 = -fx * sxc / z
+                j10 = 0.0
+                j11 = fy / z
+                j12 = -fy * syc / z
+            elif model == 2:
+                # opencv: J the lens's exact Jacobian at the mean (for cov2 = J Sigma J^T + low_pass I, whose det and
+                # opacity compensation are the reference's); (u, v) the mean on the undistorted image plane, where
+                # the raster measures each pixel's offset (lensmap.opencv_plane_footprint)
+                depth = z
+                _, _, _, j00, j01, j02, j10, j11, j12 = lens_project(model, lp, fx, fy, cx, cy, x, y, z)
+                u = fx * (x / z) + cx
+                v = fy * (y / z) + cy
+            elif model >= 3:
+                depth = math.sqrt(x * x + y * y + z * z)
+                _, u, v, j00, j01, j02, j10, j11, j12 = lens_project(model, lp, fx, fy, cx, cy, x, y, z)
             else:
-                ok, xlo, xhi, ylo, yhi = opencv_plane_box(x, y, z, j00, j01, j02, j10, j11, j12, c00, c01, c11, ext,
-                                                          fx, fy, cx, cy)
-                v_lo, v_hi = _plane_span(ptab[1], ylo, yhi)
-                u_lo, u_hi = _plane_span(ptab[0], xlo, xhi)
-                if not ok or v_lo > v_hi or u_lo > u_hi:
+                r = math.sqrt(x * x + y * y + z * z)
+                depth = r
+                rho = math.sqrt(x * x + z * z)
+                rho_j = max(rho, r * math.sin(math.pi / (2.0 * height)))
+                u = width * (math.atan2(x, z) + math.pi) / (2.0 * math.pi) - 0.5
+                v = height * math.atan2(rho, -y) / math.pi - 0.5
+                ku = width / (2.0 * math.pi)
+                kv = height / math.pi
+                j00 = ku * z / (rho_j * rho_j)
+                j01 = 0.0
+                j02 = -ku * x / (rho_j * rho_j)
+                j10 = -kv * y * x / (r * r * rho_j)
+                j11 = kv * rho / (r * r)
+                j12 = -kv * y * z / (r * r * rho_j)
+            # rotation from the normalised quaternion
+            qw, qx, qy, qz = np.float64(quats[i, 0]), np.float64(quats[i, 1]), np.float64(quats[i, 2]), \
+                np.float64(quats[i, 3])
+            qn = 1.0 / math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
+            qw *= qn
+            qx *= qn
+            qy *= qn
+            qz *= qn
+            r00 = 1 - 2 * (qy * qy + qz * qz)
+            r01 = 2 * (qx * qy - qw * qz)
+            r02 = 2 * (qx * qz + qw * qy)
+            r10 = 2 * (qx * qy + qw * qz)
+            r11 = 1 - 2 * (qx * qx + qz * qz)
+            r12 = 2 * (qy * qz - qw * qx)
+            r20 = 2 * (qx * qz - qw * qy)
+            r21 = 2 * (qy * qz + qw * qx)
+            r22 = 1 - 2 * (qx * qx + qy * qy)
+            s0 = math.exp(np.float64(log_scales[i, 0]))
+            s1 = math.exp(np.float64(log_scales[i, 1]))
+            s2 = math.exp(np.float64(log_scales[i, 2]))
+            # T = J Rw (2x3); A = T R S (2x3); cov2 = A A^T
+            t00 = j00 * Rw[0, 0] + j01 * Rw[1, 0] + j02 * Rw[2, 0]
+            t01 = j00 * Rw[0, 1] + j01 * Rw[1, 1] + j02 * Rw[2, 1]
+            t02 = j00 * Rw[0, 2] + j01 * Rw[1, 2] + j02 * Rw[2, 2]
+            t10 = j10 * Rw[0, 0] + j11 * Rw[1, 0] + j12 * Rw[2, 0]
+            t11 = j10 * Rw[0, 1] + j11 * Rw[1, 1] + j12 * Rw[2, 1]
+            t12 = j10 * Rw[0, 2] + j11 * Rw[1, 2] + j12 * Rw[2, 2]
+            a00 = (t00 * r00 + t01 * r10 + t02 * r20) * s0
+            a01 = (t00 * r01 + t01 * r11 + t02 * r21) * s1
+            a02 = (t00 * r02 + t01 * r12 + t02 * r22) * s2
+            a10 = (t10 * r00 + t11 * r10 + t12 * r20) * s0
+            a11 = (t10 * r01 + t11 * r11 + t12 * r21) * s1
+            a12 = (t10 * r02 + t11 * r12 + t12 * r22) * s2
+            c00 = a00 * a00 + a01 * a01 + a02 * a02
+            c01 = a00 * a10 + a01 * a11 + a02 * a12
+            c11 = a10 * a10 + a11 * a11 + a12 * a12
+            det_raw = c00 * c11 - c01 * c01
+            c00 += low_pass
+            c11 += low_pass
+            det = c00 * c11 - c01 * c01
+            if not (det > 0.0):
+                continue
+            opa = 1.0 / (1.0 + math.exp(-np.float64(opacity_logits[i])))
+            if antialiased:
+                opa *= math.sqrt(max(det_raw / det, 0.0))
+            if not (opa >= 1.0 / 255.0):
+                continue
+            if opacity_mode:
+                ext = min(3.33, math.sqrt(2.0 * math.log(opa * 255.0)))
+            else:
+                ext = 3.0
+            pmax = 0.5 * ext * ext
+            rx = ext * math.sqrt(c00)
+            ry = ext * math.sqrt(c11)
+            if model == 2:
+                # the footprint on the plane (written first: its tiles are found from the stored float32 row, as the
+                # binning finds them): an ellipse, the box of the tiles whose extent there meets it (_plane_tile_box);
+                # or, unbounded, the pixels whose positions the box of its part in front can hold (_plane_span)
+                ok, pa0, pa1, pb0, pb1 = opencv_plane_footprint(x, y, z, j00, j01, j02, j10, j11, j12, c00, c01, c11,
+                                                                fx, fy)
+                if not ok:
+                    continue
+                _write_mean(rows, s, u, v)
+                rows[s, 5] = pa0
+                rows[s, 6] = pa1
+                rows[s, 7] = pb0
+                rows[s, 9] = pmax
+                rows[s, 14] = pb1
+                ell = _plane_ellipse(rows, s, fx, fy, cx, cy)
+                if ell[0]:
+                    tx0, tx1, ty0, ty1 = _plane_tile_box(ell, ptab[2], ptab[3], ptab[4], ptab[5])
+                    if tx1 < tx0:
+                        continue
+                    v_lo = ty0 * TILE
+                    v_hi = min(height - 1, ty1 * TILE + TILE - 1)
+                else:
+                    ok, xlo, xhi, ylo, yhi = opencv_plane_box(x, y, z, j00, j01, j02, j10, j11, j12, c00, c01, c11, ext,
+                                                              fx, fy, cx, cy)
+                    v_lo, v_hi = _plane_span(ptab[1], ylo, yhi)
+                    u_lo, u_hi = _plane_span(ptab[0], xlo, xhi)
+                    if not ok or v_lo > v_hi or u_lo > u_hi:
+                        continue
+                    tx0 = u_lo // TILE
+                    tx1 = u_hi // TILE
+            else:
+                v_lo = max(0, int(math.ceil(max(v - ry, -1e9))))
+                v_hi = min(height - 1, int(math.floor(min(v + ry, 1e9))))
+            if v_lo > v_hi:
+                continue
+            u_lo_f = math.ceil(max(u - rx, -1e9))
+            u_hi_f = math.floor(min(u + rx, 1e9))
+            if model == 2:
+                pass            # tx0, tx1 found above
+            elif model != 1:
+                u_lo = max(0, int(u_lo_f))
+                u_hi = min(width - 1, int(u_hi_f))
+                if u_lo > u_hi:
                     continue
                 tx0 = u_lo // TILE
                 tx1 = u_hi // TILE
-        else:
-            v_lo = max(0, int(math.ceil(max(v - ry, -1e9))))
-            v_hi = min(height - 1, int(math.floor(min(v + ry, 1e9))))
-        if v_lo > v_hi:
-            continue
-        u_lo_f = math.ceil(max(u - rx, -1e9))
-        u_hi_f = math.floor(min(u + rx, 1e9))
-        if model == 2:
-            pass            # tx0, tx1 found above
-        elif model != 1:
-            u_lo = max(0, int(u_lo_f))
-            u_hi = min(width - 1, int(u_hi_f))
-            if u_lo > u_hi:
-                continue
-            tx0 = u_lo // TILE
-            tx1 = u_hi // TILE
-        else:
-            if u_hi_f < u_lo_f:
-                continue
-            if u_hi_f - u_lo_f + 1 >= width:
-                tx0 = 0
-                tx1 = ntx - 1
             else:
-                tx0 = (int(u_lo_f) % width) // TILE
-                tx1 = (int(u_hi_f) % width) // TILE
-                if int(u_lo_f) % width > int(u_hi_f) % width and tx1 >= tx0:
+                if u_hi_f < u_lo_f:
+                    continue
+                if u_hi_f - u_lo_f + 1 >= width:
                     tx0 = 0
                     tx1 = ntx - 1
-        ty0 = v_lo // TILE
-        ty1 = v_hi // TILE
-        _write_mean(rows, s, u, v)
-        if model == 2:      # the plane layout (gather_row): first image row, a0 a1 b0, ..., b1, last row
-            rows[s, 4] = v_lo
-            rows[s, 5] = pa0
-            rows[s, 6] = pa1
-            rows[s, 7] = pb0
-            rows[s, 14] = pb1
-            rows[s, 15] = v_hi
-        else:
-            rows[s, 4] = ry
-            rows[s, 5] = 0.5 * c11 / det
-            rows[s, 6] = -c01 / det
-            rows[s, 7] = 0.5 * c00 / det
-            rows[s, 14] = 0.0
-            rows[s, 15] = 0.0
-        rows[s, 8] = opa
-        rows[s, 9] = pmax
-        vx, vy, vz = mxw - campos[0], myw - campos[1], mzw - campos[2]
-        for c in range(3):
-            rows[s, 10 + c] = _sh_colour(sh, i, c, vx, vy, vz)
-        rows[s, 13] = depth
-        trange[s, 0] = tx0 | (tx1 << 16)
-        trange[s, 1] = ty0 | (ty1 << 16)
-        depth_out[s] = depth
-        gid[s] = i
-        s += 1
-    return s - slot0
+                else:
+                    tx0 = (int(u_lo_f) % width) // TILE
+                    tx1 = (int(u_hi_f) % width) // TILE
+                    if int(u_lo_f) % width > int(u_hi_f) % width and tx1 >= tx0:
+                        tx0 = 0
+                        tx1 = ntx - 1
+            ty0 = v_lo // TILE
+            ty1 = v_hi // TILE
+            _write_mean(rows, s, u, v)
+            if model == 2:      # the plane layout (gather_row): first image row, a0 a1 b0, ..., b1, last row
+                rows[s, 4] = v_lo
+                rows[s, 5] = pa0
+                rows[s, 6] = pa1
+                rows[s, 7] = pb0
+                rows[s, 14] = pb1
+                rows[s, 15] = v_hi
+            else:
+                rows[s, 4] = ry
+                rows[s, 5] = 0.5 * c11 / det
+                rows[s, 6] = -c01 / det
+                rows[s, 7] = 0.5 * c00 / det
+                rows[s, 14] = 0.0
+                rows[s, 15] = 0.0
+            rows[s, 8] = opa
+            rows[s, 9] = pmax
+            vx, vy, vz = mxw - campos[0], myw - campos[1], mzw - campos[2]
+            for c in range(3):
+                rows[s, 10 + c] = _sh_colour(sh, i, c, vx, vy, vz)
+            rows[s, 13] = depth
+            trange[s, 0] = tx0 | (tx1 << 16)
+            trange[s, 1] = ty0 | (ty1 << 16)
+            depth_out[s] = depth
+            gid[s] = i
+            s += 1
+        return s - slot0
+
+    return precull_chunk, project_chunk
+
+
+def _precull_chunk_call(model, means, log_scales, cam, ptab, planes, ch):
+    """(numba only) the precull chunk function of `model` (a compile-time constant)."""
+    raise NotImplementedError("called from numba kernels only")
+
+
+@overload(_precull_chunk_call)
+def _ol_precull_chunk_call(model, means, log_scales, cam, ptab, planes, ch):
+    if not isinstance(model, types.IntegerLiteral):
+        return None
+    fn = _chunk_functions(model.literal_value)[0]
+
+    def impl(model, means, log_scales, cam, ptab, planes, ch):
+        return fn(means, log_scales, cam, ptab, planes, ch)
+    return impl
+
+
+def _project_chunk_call(model, means, quats, log_scales, opacity_logits, sh, campos, cam, ptab, antialiased,
+                        opacity_mode, rows, trange, depth_out, gid, ch, slot0, ntx):
+    """(numba only) the project chunk function of `model` (a compile-time constant)."""
+    raise NotImplementedError("called from numba kernels only")
+
+
+@overload(_project_chunk_call)
+def _ol_project_chunk_call(model, means, quats, log_scales, opacity_logits, sh, campos, cam, ptab, antialiased,
+                           opacity_mode, rows, trange, depth_out, gid, ch, slot0, ntx):
+    if not isinstance(model, types.IntegerLiteral):
+        return None
+    fn = _chunk_functions(model.literal_value)[1]
+
+    def impl(model, means, quats, log_scales, opacity_logits, sh, campos, cam, ptab, antialiased, opacity_mode,
+             rows, trange, depth_out, gid, ch, slot0, ntx):
+        return fn(means, quats, log_scales, opacity_logits, sh, campos, cam, ptab, antialiased, opacity_mode, rows,
+                  trange, depth_out, gid, ch, slot0, ntx)
+    return impl
+
+
+@functools.cache
+def precull_counts(model: int):
+    """The pre-cull kernel of one camera model (see above): kernel(means, log_scales, cam, ptab, planes, counts):
+    counts[c] = how many Gaussians of chunk c (PROJ_CHUNK Gaussians each) survive _precull; 0 for a chunk whose
+    bounding box lies wholly outside one of `planes` (chunk_planes), without looking at its Gaussians. An upper
+    bound of what project_kernel keeps, so its outputs can be allocated to fit."""
+    model = int(model)
+
+    @njit(cache=True, parallel=True, nogil=True)
+    def precull_counts_kernel(means, log_scales, cam, ptab, planes, counts):
+        nch = (means.shape[0] + PROJ_CHUNK - 1) // PROJ_CHUNK
+        for k in prange(SPREAD * ((nch + SPREAD - 1) // SPREAD)):
+            ch = _spread(k, nch)
+            if ch < 0:
+                continue
+            counts[ch] = _precull_chunk_call(model, means, log_scales, cam, ptab, planes, ch)
+
+    return precull_counts_kernel
+
+
+@functools.cache
+def project_kernel(model: int):
+    """The projection kernel of one camera model (see above): kernel(means, quats, log_scales, opacity_logits, sh,
+    campos, cam, ptab, antialiased, opacity_mode, pre, base, rows, trange, depth_out, gid, counts): project the
+    Gaussians (float64), parallel over chunks of PROJ_CHUNK Gaussians. Chunk c (pre[c] > 0: its precull_counts)
+    writes its visible Gaussians, in index order, to slots base[c], base[c] + 1, ... (base: the exclusive prefix
+    sum of pre) and their number (<= pre[c]) to counts[c]; per slot s: rows[s] = the 64-byte float32 row
+    (layout: NCG), trange[s] [., 2] int32 = (tx0 | tx1 << 16, ty0 | ty1 << 16) the tiles its bounding box touches
+    (tx1 < tx0: the range wraps around the azimuth seam, equirect), depth_out[s] float64 = depth, gid[s] int32 =
+    the Gaussian's index. Slots past counts[c] are left unwritten (never read). Slots increase with the Gaussian
+    index, so sorting slots is sorting indices."""
+    model = int(model)
+
+    @njit(cache=True, parallel=True, nogil=True)
+    def project_kernel_model(means, quats, log_scales, opacity_logits, sh, campos, cam, ptab, antialiased,
+                             opacity_mode, pre, base, rows, trange, depth_out, gid, counts):
+        nch = (means.shape[0] + PROJ_CHUNK - 1) // PROJ_CHUNK
+        ntx = (cam[11] + TILE - 1) // TILE
+        for k in prange(SPREAD * ((nch + SPREAD - 1) // SPREAD)):
+            ch = _spread(k, nch)
+            if ch < 0:
+                continue
+            counts[ch] = 0
+            if pre[ch] > 0:
+                counts[ch] = _project_chunk_call(model, means, quats, log_scales, opacity_logits, sh, campos, cam,
+                                                 ptab, antialiased, opacity_mode, rows, trange, depth_out, gid, ch,
+                                                 base[ch], ntx)
+
+    return project_kernel_model
 
 
 @njit(inline="always")

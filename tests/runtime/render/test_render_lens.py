@@ -458,7 +458,7 @@ def _footprints_reaching_the_image(g: Gaussians, cam: Camera, opts: RenderOption
     (lensmap.opencv_plane_box) widened by pad px (the bound the fast path's tiles lie in)."""
     from xyzcyl.runtime.rotations import quat_to_rotmat
 
-    Rw, tw, model, lp, fx, fy, cx, cy, _, _, _, _, ptab = core._camera_args(cam)
+    model, (Rw, tw, lp, fx, fy, cx, cy, _, _, _, _, ptab) = core._camera_args(cam)
     ucols, urows = ptab[0], ptab[1]
     p = g.means.astype(np.float64) @ Rw.T + tw
     depth = p[:, 2] if model == lensmap.OPENCV else np.linalg.norm(p, axis=1)
