@@ -157,21 +157,13 @@ def test_cli_errors_exit_2(tmp_path, tiny_synth_data, capsys):
     rc, err = _train_cli(["--data", str(tiny_synth_data), "--stage", "occ", "--out", str(tmp_path / "r"),
                          "--resume"], capsys)
     assert rc == 2 and "resume" in err
-    rc, err = _train_cli(["--data", str(tiny_synth_data), "--stage", "occ", "--out", str(tmp_path / "r"),
-                         "--targets", "0"], capsys)
-    assert rc == 2 and "num_targets" in err
-    rc, err = _train_cli(["--data", str(tiny_synth_data), "--stage", "occ", "--out", str(tmp_path / "r"),
-                         "--camera-drop", "2"], capsys)
-    assert rc == 2 and "camera_drop" in err and "Traceback" not in err
-    rc, err = _train_cli(["--data", str(tiny_synth_data), "--stage", "occ", "--out", str(tmp_path / "r"),
-                         "--depth-focal-ref", "wide"], capsys)
-    assert rc == 2 and "depth_focal_ref" in err and "Traceback" not in err
-    rc, err = _train_cli(["--data", str(tiny_synth_data), "--stage", "occ", "--out", str(tmp_path / "r"),
-                         "--lens-zoom", "-1"], capsys)
-    assert rc == 2 and "lens_zoom" in err and "Traceback" not in err
-    rc, err = _train_cli(["--data", str(tiny_synth_data), "--stage", "occ", "--out", str(tmp_path / "r"),
-                         "--lidar-input", "1.5"], capsys)
-    assert rc == 2 and "lidar_input" in err and "Traceback" not in err
+    # each bad value exits 2 naming its config field, without a traceback
+    for flag, value, field in (("--targets", "0", "num_targets"), ("--camera-drop", "2", "camera_drop"),
+                               ("--depth-focal-ref", "wide", "depth_focal_ref"), ("--lens-zoom", "-1", "lens_zoom"),
+                               ("--lidar-input", "1.5", "lidar_input")):
+        rc, err = _train_cli(["--data", str(tiny_synth_data), "--stage", "occ", "--out", str(tmp_path / "r"),
+                             flag, value], capsys)
+        assert rc == 2 and field in err and "Traceback" not in err, (flag, err)
     rc, err = _train_cli(["--data", str(tiny_synth_data), "--data", str(tmp_path / "nope"), "--stage", "occ",
                          "--out", str(tmp_path / "r")], capsys)
     assert rc == 2 and "nope" in err
