@@ -1,23 +1,32 @@
-"""One line on stderr when numba compiles an xyzcyl kernel, so a cold start is never silent.
+"""Lines on stderr when numba compiles xyzcyl kernels, so a cold start is never silent, and never exaggerated.
 
-The numba kernels (runtime/render/kernels.py, runtime/scene.py, runtime/detail.py) use ``cache=True``: the first
-process after an install (or after a kernel's source changed, or on another CPU model) compiles them, which takes
-about a minute on 2 busy cores; later processes load them from the cache in well under a second. ``install()``
-registers a listener for numba's ``numba:compile`` event (numba.core.event), which numba fires only when it
-really compiles (numba/core/dispatcher.py: a signature loaded from the cache returns before the event), and on
-the first compile of an xyzcyl function in this process says so once::
+The numba kernels (runtime/render/kernels.py, runtime/scene.py, runtime/detail.py, ...) are cached on disk
+(runtime/numba_cache.py): the first process after an install (or after a kernel's source changed, or on another
+CPU model) compiles the kernels its work needs, later processes load them from the cache in well under a second.
+How long a compile takes depends on what is compiled (a pinhole render's kernels about 20-40 s on 2 busy cores, a
+reconstruction's more, one small kernel a second or two), so the notice promises no duration; it measures it.
+``install()`` registers a listener for numba's ``numba:compile`` event (numba.core.event), which numba fires only
+when it really compiles (numba/core/dispatcher.py: a signature loaded from the cache returns before the event).
+On the first compile of an xyzcyl function in this process it says::
 
-    xyzcyl: compiling numba kernels once (a minute or two; cached in <folder> for later runs)
+    xyzcyl: compiling numba kernels (first use after an install or an update; cached in <folder> for later runs)
 
+and when the process exits (stderr only), with the seconds it spent compiling xyzcyl kernels::
+
+    xyzcyl: numba compile took 23.4 s (cached: later runs load the kernels in under a second)
+
+``compile_seconds()`` is that total so far (the server puts it in its warm-up log lines).
 runtime/render/__init__.py installs it, so every kernel user (the renderer, runtime.scene, runtime.detail) has it
-without torch or a server. The server passes a logging function instead (``install(log.info)``): the line then goes
-through its log. docs/renderer.md, "numba compile cache".
+without torch or a server. The server passes a logging function instead (``install(log.info)``): the first line
+then goes through its log and the exit line is not printed. docs/renderer.md, "numba compile cache".
 """
 
 from __future__ import annotations
 
+import atexit
 import sys
 import threading
+import time
 from collections.abc import Callable
 
 PREFIX = "xyzcyl."             # the functions announced: those defined in the xyzcyl package's modules
@@ -25,6 +34,9 @@ _lock = threading.Lock()
 _listener = None               # the registered numba Listener (None: not installed)
 _sink: Callable[[str], None] | None = None
 _said = False
+_depth = 0                     # nesting of xyzcyl compiles in progress (a kernel compiles the kernels it calls)
+_started = 0.0                 # perf_counter at the outermost compile's start
+_seconds = 0.0                 # the seconds spent in outermost xyzcyl compiles so far
 
 
 def _stderr(message: str) -> None:
@@ -55,8 +67,12 @@ def cache_dir(dispatcher=None) -> str:
 
 
 def message(dispatcher=None) -> str:
-    return (f"xyzcyl: compiling numba kernels once (a minute or two; cached in {cache_dir(dispatcher)} for later "
-            "runs)")
+    return (f"xyzcyl: compiling numba kernels (first use after an install or an update; cached in "
+            f"{cache_dir(dispatcher)} for later runs)")
+
+
+def done_message(seconds: float) -> str:
+    return f"xyzcyl: numba compile took {seconds:.1f} s (cached: later runs load the kernels in under a second)"
 
 
 def _is_ours(dispatcher) -> bool:
@@ -64,11 +80,24 @@ def _is_ours(dispatcher) -> bool:
     return module.startswith(PREFIX)
 
 
-def _on_compile(dispatcher) -> None:
-    global _said
-    if _said or not _is_ours(dispatcher):
+def _on_end(dispatcher) -> None:
+    global _depth, _seconds
+    if not _is_ours(dispatcher):
         return
     with _lock:
+        _depth = max(0, _depth - 1)
+        if _depth == 0:
+            _seconds += time.perf_counter() - _started
+
+
+def _on_compile(dispatcher) -> None:
+    global _said, _depth, _started
+    if not _is_ours(dispatcher):
+        return
+    with _lock:
+        if _depth == 0:
+            _started = time.perf_counter()
+        _depth += 1
         if _said:
             return
         _said = True
@@ -104,10 +133,27 @@ def install(sink: Callable[[str], None] | None = None) -> None:
                     pass
 
             def on_end(self, ev):
-                pass
+                try:
+                    data = ev.data if isinstance(ev.data, dict) else {}
+                    _on_end(data.get("dispatcher"))
+                except Exception:       # noqa: BLE001, S110 - never fail numba's compile over a notice
+                    pass
 
         _listener = _CompileListener()
         event.register("numba:compile", _listener)
+        atexit.register(_say_total)
+
+
+def _say_total() -> None:
+    """At exit, when this process compiled and prints to stderr (no sink): the measured compile time."""
+    if _said and _sink is None and _seconds > 0:
+        _stderr(done_message(_seconds))
+
+
+def compile_seconds() -> float:
+    """Seconds this process has spent compiling xyzcyl kernels (outermost compiles; 0.0 when all were loaded)."""
+    with _lock:
+        return _seconds + (time.perf_counter() - _started if _depth else 0.0)
 
 
 def said() -> bool:
@@ -115,4 +161,4 @@ def said() -> bool:
     return _said
 
 
-__all__ = ["cache_dir", "install", "message", "said"]
+__all__ = ["cache_dir", "compile_seconds", "done_message", "install", "message", "said"]

@@ -98,38 +98,49 @@ def tiny_scene():
     return Scene(gaussians=g, background=bg, rig=Rig.from_dict(rig_doc(), check_images=False))
 
 
-def view_requests(scene) -> list:
-    """The warm-up views (runtime.views.ViewRequest): a pinhole pose in every output and format, an input camera of
-    the rig, an equirectangular view, and one view through each lens model (opencv, opencv_fisheye, ftheta): the
-    projection kernels are compiled per camera model (runtime.render.kernels.project_kernel)."""
+LENS_MODELS = ("equirectangular", "opencv", "opencv_fisheye", "ftheta")   # view_requests(scene, models=...)
+
+
+def view_requests(scene, models: str = "all") -> list:
+    """The warm-up views (runtime.views.ViewRequest). models="pinhole": a pinhole pose in every output and format
+    and an input camera of the rig (what most requests use: ``xyzcyl serve`` renders these before it reports
+    ready); "lenses": an equirectangular view and one view through each lens model (opencv, opencv_fisheye,
+    ftheta; LENS_MODELS), each compiling its own projection kernel (runtime.render.kernels.project_kernel), which
+    ``xyzcyl serve`` renders after it is ready; "all": both."""
     from .camera import Camera
     from .lenses import Lens
     from .views import ViewRequest, camera_from_opencv, camera_from_rig
 
+    if models not in ("pinhole", "lenses", "all"):
+        raise ValueError(f"models: one of pinhole, lenses, all (got {models!r})")
     pin = camera_from_opencv(_FRONT, VIEW_W, VIEW_H, fov=70.0)
-    T = np.eye(4)
-    T[2, 3] = 1.5
-    reqs = [ViewRequest(pin, out, fmt) for out, fmt in (("rgb", "png"), ("rgb", "jpeg"), ("rgb", "exr"),
-                                                        ("depth", "png"), ("depth", "exr"), ("alpha", "png"))]
-    reqs.append(ViewRequest(camera_from_rig(scene.rig, "WARM_LEFT", width=VIEW_W)))
-    reqs.append(ViewRequest(Camera(model="equirectangular", cam_to_ego=T, width=2 * VIEW_W, height=VIEW_W)))
-    for lens in (Lens("opencv", (-0.28, 0.07, 0.001, -0.001, 0.0)),
-                 Lens("opencv_fisheye", (0.02, -0.01, 0.002, -0.0003), max_angle_deg=95.0),
-                 Lens("ftheta", max_angle_deg=80.0, angle_to_pixeldist_poly=(0.0, 40.0, 0.0, -1.0))):
-        reqs.append(ViewRequest(pin.replace(distortion=lens)))
+    reqs = []
+    if models in ("pinhole", "all"):
+        reqs += [ViewRequest(pin, out, fmt) for out, fmt in (("rgb", "png"), ("rgb", "jpeg"), ("rgb", "exr"),
+                                                             ("depth", "png"), ("depth", "exr"), ("alpha", "png"))]
+        reqs.append(ViewRequest(camera_from_rig(scene.rig, "WARM_LEFT", width=VIEW_W)))
+    if models in ("lenses", "all"):
+        T = np.eye(4)
+        T[2, 3] = 1.5
+        reqs.append(ViewRequest(Camera(model="equirectangular", cam_to_ego=T, width=2 * VIEW_W, height=VIEW_W)))
+        for lens in (Lens("opencv", (-0.28, 0.07, 0.001, -0.001, 0.0)),
+                     Lens("opencv_fisheye", (0.02, -0.01, 0.002, -0.0003), max_angle_deg=95.0),
+                     Lens("ftheta", max_angle_deg=80.0, angle_to_pixeldist_poly=(0.0, 40.0, 0.0, -1.0))):
+            reqs.append(ViewRequest(pin.replace(distortion=lens)))
     return reqs
 
 
-def warm_render(folder: str | Path) -> float:
+def warm_render(folder: str | Path, models: str = "all") -> float:
     """Save the tiny scene into ``folder`` / "scene", load it back (Scene.load, as the server's scene cache does)
-    and render and encode every view_requests() view with runtime.views.render_request. Returns the seconds."""
+    and render and encode every view_requests(scene, models) view with runtime.views.render_request. Returns the
+    seconds. A failing render raises (the caller must not report ready over a renderer that fails)."""
     from .scene import Scene
     from .views import render_request
 
     t0 = time.perf_counter()
     path = tiny_scene().save(Path(folder) / "scene")
     scene = Scene.load(path)
-    for req in view_requests(scene):
+    for req in view_requests(scene, models):
         data = render_request(scene, req)
         if not data:
             raise RuntimeError(f"warm-up: an empty {req.output} {req.format} view")
@@ -174,7 +185,7 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
-__all__ = ["lidar_sweep", "main", "rig_doc", "tiny_scene", "view_requests", "warm_reconstruct", "warm_render",
+__all__ = ["LENS_MODELS", "lidar_sweep", "main", "rig_doc", "tiny_scene", "view_requests", "warm_reconstruct", "warm_render",
            "write_rig"]
 
 if __name__ == "__main__":

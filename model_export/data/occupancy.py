@@ -21,7 +21,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from numba import njit
+from xyzcyl.runtime.numba_cache import njit
 
 from . import classes as C
 from .scene import BOX, CYL, GROUND_THICKNESS, Scene

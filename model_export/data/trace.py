@@ -21,8 +21,9 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-from numba import njit, prange
+from numba import prange
 from xyzcyl.runtime.camera import Camera
+from xyzcyl.runtime.numba_cache import njit
 
 from . import classes as C
 from .photos import NO_PHOTOS, photo_bank

@@ -16,9 +16,10 @@ import functools
 import math
 
 import numpy as np
-from numba import njit, prange, types
+from numba import prange, types
 from numba.extending import overload
 
+from ..numba_cache import njit
 from .lensmap import lens_project, opencv_plane_box, opencv_plane_footprint, opencv_plane_reach, plane_weights
 
 TILE = 16

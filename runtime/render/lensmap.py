@@ -37,9 +37,10 @@ import math
 from typing import NamedTuple
 
 import numpy as np
-from numba import njit, prange
+from numba import prange
 
 from ..lenses import _opencv_with_jacobian, opencv_distortion_terms
+from ..numba_cache import njit
 
 PINHOLE, EQUIRECT, OPENCV, FISHEYE, FTHETA = 0, 1, 2, 3, 4
 MODEL_CODES = {"opencv": OPENCV, "opencv_fisheye": FISHEYE, "ftheta": FTHETA}

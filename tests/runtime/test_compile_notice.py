@@ -6,10 +6,12 @@ must compile), so the test does not depend on the tree's __pycache__ state. The 
 from __future__ import annotations
 
 import os
+import re
 import subprocess
 import sys
 
-NOTICE = "xyzcyl: compiling numba kernels once"
+NOTICE = "xyzcyl: compiling numba kernels ("
+DONE = re.compile(r"^xyzcyl: numba compile took (\d+\.\d) s \(cached", re.M)
 
 # imports the kernel's module the way every user does (through xyzcyl.runtime.render, which installs the notice),
 # compiles it twice with two signatures (two compiles, one line), and checks the result
@@ -40,11 +42,14 @@ def test_compile_notice_once_when_compiling_silent_when_cached(tmp_path):
     assert len(lines) == 1, cold.stderr
     assert str(cache) in lines[0], lines[0]
     assert "said True" in cold.stdout
+    took = DONE.findall(cold.stderr)                     # the measured total, once, at exit
+    assert len(took) == 1 and 0.0 < float(took[0]) < 120.0, cold.stderr
+    assert cold.stderr.index(NOTICE) < cold.stderr.index("numba compile took")
     assert any(cache.rglob("*.nbi")), "numba wrote no cache index"
 
     warm = _run(cache)
     assert warm.returncode == 0, warm.stderr
-    assert NOTICE not in warm.stderr, warm.stderr
+    assert NOTICE not in warm.stderr and not DONE.search(warm.stderr), warm.stderr
     assert "said False" in warm.stdout
 
 
@@ -61,5 +66,5 @@ from xyzcyl.runtime.detail import _quat""") + "print('sink', len(got), got[0] if
     r = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True, timeout=120,
                        check=False)
     assert r.returncode == 0, r.stderr
-    assert NOTICE not in r.stderr, r.stderr
+    assert NOTICE not in r.stderr and not DONE.search(r.stderr), r.stderr     # a sink: no exit line on stderr
     assert f"sink 1 {NOTICE}" in r.stdout, r.stdout
