@@ -7,9 +7,12 @@ The rig.json `lidar` block (the format of ../shared/data/real/README.md, kept in
 
     "lidar": {"file": "sweep.pcd.bin", "lidar_to_ego": 4x4, "columns": 5}
 
-- `file` (relative to the rig.json): `.npy` (float [N, C], C >= 3) or raw little-endian float32 `.bin`
-  ([N, C] row-major: nuScenes `.pcd.bin` has C = 5, a KITTI `.bin` has C = 4). The first three columns are
-  x, y, z in metres in the LiDAR frame.
+- `file` (relative to the rig.json): `.npy` (real numbers [N, C], C >= 3) or raw little-endian float32 `.bin`
+  ([N, C] row-major: nuScenes `.pcd.bin` has C = 5, a KITTI `.bin` has C = 4; a `.bin` whose bytes start with the
+  .npy magic is read as .npy). The first three columns are x, y, z in metres in the LiDAR frame. `read_points` is
+  the one check of the file, for the command line and the HTTP upload: an empty file, a `.npy` name on bytes that
+  are not .npy, no rows, or no row with a finite x, y and z is refused, naming the file as the user gave it; rows
+  with a non-finite coordinate are left out and counted (`LidarPoints.nonfinite`).
 - `lidar_to_ego` (optional, default identity): maps LiDAR points to the ego frame.
 - `columns` (optional, `.bin` only): C. Without it, a name ending in `.pcd.bin` means 5, any other `.bin` 4.
 
@@ -49,6 +52,7 @@ OCCLUSION_RADIUS = 2   # pixels at the evaluation size: the window (2r+1)^2 in w
 ALPHA_MIN = 0.5   # rendered alpha below this: the reconstruction has no surface at that pixel (not covered)
 RANGE_BINS = (0.0, 10.0, 20.0, 40.0, 80.0)  # m, LiDAR depth bins of the per-range table
 MAX_POINTS = 20_000_000  # refuse larger sweeps (a 128-beam sweep has ~0.3 M points; this guards memory)
+NPY_MAGIC = b"\x93NUMPY"  # the first 6 bytes of every .npy file (numpy.lib.format)
 
 
 class LidarError(FieldError):
@@ -62,41 +66,97 @@ class LidarPoints:
     nonfinite: int       # points of the file with a non-finite x, y or z, left out (reported, never silent)
     source: str          # the file they came from
 
+    def counts(self) -> dict[str, int]:
+        """What a scene's counts record of its sweep: lidar_points (used), lidar_nonfinite (left out)."""
+        return {"lidar_points": int(len(self.points)), "lidar_nonfinite": int(self.nonfinite)}
 
-def read_points(path: str | os.PathLike, columns: int | None = None) -> tuple[np.ndarray, int]:
-    """[N, 3] float64 x, y, z (the file's frame) and the count of rows left out for a non-finite coordinate.
 
-    path: `.npy` (float [N, C], C >= 3) or raw float32 `.bin` (C columns: `columns`, else 5 for `*.pcd.bin`,
-    else 4)."""
+def lidar_format(name: str, head: bytes, sniff: bool = False) -> str | None:
+    """The format of a LiDAR file called ``name`` (the user's name for it) whose first bytes are ``head``: "npy",
+    "pcd.bin" (raw float32, 5 columns by default) or "bin" (4), None for a name of neither kind.
+
+    A name ending in .npy is read as .npy (refused later when the bytes are not one). A .bin name whose bytes start
+    with the .npy magic is a .npy array: the Python client sends a sweep given as bytes as 'lidar.bin'
+    (docs/client.md); raw float32 rows cannot start so (x would be 2.2e8 m). ``sniff``: a name of neither kind is
+    read by its bytes too (the HTTP part's file name is optional) instead of being None."""
+    n = name.lower()
+    if n.endswith(".npy"):
+        return "npy"
+    if not (n.endswith(".bin") or sniff):
+        return None
+    if head.startswith(NPY_MAGIC):
+        return "npy"
+    return "pcd.bin" if n.endswith(".pcd.bin") else "bin"
+
+
+def _check_rows(shape: tuple[int, int], label: str) -> None:
+    """Refuse a sweep of ``shape`` [N, C] with no rows or more than MAX_POINTS."""
+    if shape[0] == 0:
+        raise LidarError("lidar", f"{label} holds no points (shape {list(shape)})")
+    if shape[0] > MAX_POINTS:
+        raise LidarError("lidar", f"{label} has {shape[0]} points, more than {MAX_POINTS}")
+
+
+def _read_npy(p: Path, head: bytes, columns: int | None, label: str) -> np.ndarray:
+    """[N, C] real numbers (memory-mapped) of the .npy file ``p`` whose first bytes are ``head``."""
+    if columns is not None:
+        raise LidarError("columns", "applies to .bin files only (a .npy file has its own shape)", "lidar")
+    if not head.startswith(NPY_MAGIC):
+        raise LidarError("lidar", f"{label} is not a .npy array (it does not start with the .npy magic bytes)")
+    try:
+        a = np.load(p, allow_pickle=False, mmap_mode="r")
+    except (ValueError, OSError, EOFError) as exc:
+        raise LidarError("lidar", f"{label} is not a readable .npy array ({exc})") from None
+    real = np.issubdtype(a.dtype, np.integer) or np.issubdtype(a.dtype, np.floating)
+    if a.ndim != 2 or a.shape[1] < 3 or not real:
+        raise LidarError("lidar", f"{label} must hold real numbers of shape [N, C >= 3] (got {a.dtype} "
+                                  f"{list(a.shape)})")
+    _check_rows(a.shape, label)
+    return a
+
+
+def _read_bin(p: Path, fmt: str, columns: int | None, label: str) -> np.ndarray:
+    """[N, C] float32 rows of the raw little-endian float32 file ``p`` (C: ``columns``, else 5 for "pcd.bin",
+    else 4); the file is not empty."""
+    c = columns if columns is not None else (5 if fmt == "pcd.bin" else 4)
+    if not isinstance(c, int) or isinstance(c, bool) or c < 3:
+        raise LidarError("columns", f"must be an integer >= 3 (got {plain(c)!r})", "lidar")
+    size = p.stat().st_size
+    if size % (4 * c):
+        raise LidarError("lidar", f"{label} has {size} bytes, not a whole number of {c}-column float32 rows "
+                                  f"(set columns)")
+    _check_rows((size // (4 * c), c), label)
+    return np.fromfile(p, dtype="<f4").reshape(-1, c)
+
+
+def read_points(path: str | os.PathLike, columns: int | None = None,
+                label: str | None = None) -> tuple[np.ndarray, int]:
+    """[N, 3] float64 x, y, z (the file's frame; N >= 1) and the count of rows left out for a non-finite
+    coordinate. The one check of a LiDAR file's bytes, for the command line and the HTTP upload.
+
+    path: `.npy` (real numbers [N, C], C >= 3) or raw float32 `.bin` (C columns: `columns`, else 5 for
+    `*.pcd.bin`, else 4), as its name says (lidar_format). ``label``: how messages name the file (default: the
+    path, quoted), e.g. the upload's part and file name. Refused (LidarError, field "lidar"):
+    a missing, empty, unreadable or misshaped file, a file named .npy that is not one, no rows, no row with a finite
+    x, y and z, more than MAX_POINTS rows."""
     p = Path(path)
+    label = label or repr(str(p))
     if not p.is_file():
-        raise LidarError("lidar", f"file {str(p)!r} does not exist")
-    name = p.name.lower()
-    if name.endswith(".npy"):
-        if columns is not None:
-            raise LidarError("columns", "applies to .bin files only (a .npy file has its own shape)", "lidar")
-        try:
-            a = np.load(p, allow_pickle=False, mmap_mode="r")
-        except (ValueError, OSError) as exc:
-            raise LidarError("lidar", f"{str(p)!r} is not a readable .npy array ({exc})") from None
-        if a.ndim != 2 or a.shape[1] < 3 or not np.issubdtype(a.dtype, np.number):
-            raise LidarError("lidar", f"{str(p)!r} must hold numbers of shape [N, C >= 3] (got {a.dtype} "
-                                      f"{list(a.shape)})")
-    elif name.endswith(".bin"):
-        c = columns if columns is not None else (5 if name.endswith(".pcd.bin") else 4)
-        if not isinstance(c, int) or isinstance(c, bool) or c < 3:
-            raise LidarError("columns", f"must be an integer >= 3 (got {plain(c)!r})", "lidar")
-        size = p.stat().st_size
-        if size % (4 * c):
-            raise LidarError("lidar", f"{str(p)!r} has {size} bytes, not a whole number of {c}-column float32 "
-                                      f"rows (set columns)")
-        a = np.fromfile(p, dtype="<f4").reshape(-1, c)
-    else:
-        raise LidarError("lidar", f"{str(p)!r}: unknown format (use .npy or a float32 .bin)")
-    if a.shape[0] > MAX_POINTS:
-        raise LidarError("lidar", f"{str(p)!r} has {a.shape[0]} points, more than {MAX_POINTS}")
+        raise LidarError("lidar", f"{label} does not exist")
+    with open(p, "rb") as f:
+        head = f.read(len(NPY_MAGIC))
+    fmt = lidar_format(p.name, head)
+    if fmt is None:
+        raise LidarError("lidar", f"{label}: unknown format (use .npy or a float32 .bin)")
+    if not head:
+        raise LidarError("lidar", f"{label} is empty (0 bytes)")
+    a = _read_npy(p, head, columns, label) if fmt == "npy" else _read_bin(p, fmt, columns, label)
     xyz = np.asarray(a[:, :3], dtype=np.float64)
     ok = np.all(np.isfinite(xyz), axis=1)
+    if not ok.any():
+        rows = f"{ok.size} rows" if ok.size > 1 else "1 row"
+        raise LidarError("lidar", f"{label} holds no point with a finite x, y and z (a non-finite coordinate in "
+                                  f"every one of its {rows})")
     return np.ascontiguousarray(xyz[ok]), int((~ok).sum())
 
 
@@ -106,9 +166,11 @@ def has_lidar(rig: Rig) -> bool:
     return isinstance(block, dict) and block.get("file") is not None
 
 
-def load_lidar(rig: Rig, file: str | os.PathLike | None = None, columns: int | None = None) -> LidarPoints:
+def load_lidar(rig: Rig, file: str | os.PathLike | None = None, columns: int | None = None,
+               label: str | None = None) -> LidarPoints:
     """The LiDAR points of a rig in its ego frame, from the rig's `lidar` block, or from `file` (then in the ego
-    frame already unless the rig's block gives lidar_to_ego). `columns` overrides the block's."""
+    frame already unless the rig's block gives lidar_to_ego). `columns` overrides the block's; ``label`` names the
+    file in messages (read_points)."""
     block = rig.extra.get("lidar")
     if block is not None and not isinstance(block, dict):
         raise LidarError("lidar", f"must be an object (got {type(block).__name__})", "rig")
@@ -129,7 +191,7 @@ def load_lidar(rig: Rig, file: str | os.PathLike | None = None, columns: int | N
             T = check_pose(block["lidar_to_ego"], "rig", "lidar.lidar_to_ego")
         except RigError as exc:
             raise LidarError(exc.field, exc.message, exc.where) from None
-    xyz, bad = read_points(path, columns)
+    xyz, bad = read_points(path, columns, label)
     ego = xyz @ T[:3, :3].T + T[:3, 3]
     return LidarPoints(points=ego, nonfinite=bad, source=str(path))
 
@@ -248,7 +310,7 @@ def camera_depths(scene: Any, points: np.ndarray, width: int = 400, min_depth: f
         if ec.is_ideal:
             _, depth, alpha = render_view(scene, rig_camera(ec))
         else:
-            depth, alpha = render_ray_depth(scene.gaussians, ec)
+            depth, alpha = render_ray_depth(scene.gaussians_for(ec), ec)
         out.append(CameraDepth(ec, lid, depth, alpha, occluded))
     return out
 
@@ -347,6 +409,7 @@ __all__ = [
     "DELTA",
     "MAX_DEPTH",
     "MIN_DEPTH",
+    "NPY_MAGIC",
     "OCCLUSION_RADIUS",
     "RANGE_BINS",
     "CameraDepth",
@@ -360,6 +423,7 @@ __all__ = [
     "has_lidar",
     "lidar_depth_map",
     "lidar_depth_map_reference",
+    "lidar_format",
     "load_lidar",
     "occlusion_filter",
     "occlusion_filter_reference",

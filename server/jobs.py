@@ -168,8 +168,10 @@ def _worker_reconstruct(rig_json: str, out_dir: str, detail_stride: int | None) 
     try:
         detail = None if detail_stride is None else replace(DEFAULT_DETAIL, stride=detail_stride)
         rig = load_rig(rig_json)
-        lidar = load_lidar(rig).points if has_lidar(rig) else None
-        scene = _RECONSTRUCTOR.reconstruct(rig, lidar=lidar, detail=detail)
+        pts = load_lidar(rig) if has_lidar(rig) else None
+        scene = _RECONSTRUCTOR.reconstruct(rig, lidar=None if pts is None else pts.points, detail=detail)
+        if pts is not None:     # the points left out (a non-finite coordinate) are counted, never silent
+            scene.counts.update(pts.counts())
         scene.save(out_dir)
         meta = scene.to_json()
         return Reconstructed(model=meta["model"], counts=meta["counts"], timings=meta["timings"], bbox=meta["bbox"],

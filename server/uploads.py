@@ -74,12 +74,21 @@ def _ingest_ego_mask(part, cam, dest_stem: Path, max_pixels: int) -> str:
     return path.name
 
 
+def _lidar_label(part: UploadFile) -> str:
+    """How messages name the 'lidar' part: by the client's file name (its last component, at most 100 characters),
+    never by the store's path."""
+    name = Path(part.filename or "").name[:100]
+    return f"part 'lidar' (file {name!r})" if name else "part 'lidar'"
+
+
 def _ingest_lidar(form, rig: Rig, work: Path) -> dict | None:
     """The optional 'lidar' part (a sweep of the same timestamp: .npy [N, >=3] or raw float32 .bin, in the frame
-    of the rig's lidar block's lidar_to_ego, else ego) written to ``work`` and read once to validate it. Returns
-    the rig's lidar block for the saved file, or without a file when there is no part (the client's file name
-    means nothing here), or None when the rig has neither."""
-    from xyzcyl.runtime.lidar import LidarError, load_lidar
+    of the rig's lidar block's lidar_to_ego, else ego) written to ``work`` and read once to validate it
+    (runtime.lidar.read_points, the command line's check). Its format is the client's file name's
+    (runtime.lidar.lidar_format: .npy must be one; .bin / .pcd.bin raw float32 unless the bytes start with the .npy
+    magic; any other name or none: by the bytes); the saved file's name is ours. Returns the rig's lidar block for
+    the saved file, or without a file when there is no part, or None when the rig has neither."""
+    from xyzcyl.runtime.lidar import NPY_MAGIC, LidarError, lidar_format, load_lidar
 
     block = rig.extra.get("lidar")
     if block is not None and not isinstance(block, dict):
@@ -95,18 +104,18 @@ def _ingest_lidar(form, rig: Rig, work: Path) -> dict | None:
         raise UnsupportedMedia(f"part 'lidar': media type {ctype!r} is not application/octet-stream or "
                                "application/x-npy", "lidar")
     part.file.seek(0)
-    head = part.file.read(6)
-    client_name = (part.filename or "").lower()
-    name = ("lidar.npy" if head == b"\x93NUMPY" else "lidar.pcd.bin" if client_name.endswith(".pcd.bin")
-            else "lidar.bin")
+    name = "lidar." + lidar_format(part.filename or "", part.file.read(len(NPY_MAGIC)), sniff=True)
     part.file.seek(0)
     with open(work / name, "wb") as f:
         shutil.copyfileobj(part.file, f, _CHUNK)
     block["file"] = name
+    label = _lidar_label(part)
     try:
-        load_lidar(Rig(cameras=rig.cameras, root=work, extra={"lidar": block}))
+        load_lidar(Rig(cameras=rig.cameras, root=work, extra={"lidar": block}), label=label)
     except LidarError as e:
-        raise Invalid(f"part 'lidar': {e}", "lidar") from None
+        # the file as a whole (field "lidar", no ``where``): the message names it by ``label`` already
+        whole_file = e.field == "lidar" and e.where is None
+        raise Invalid(e.message if whole_file else f"part 'lidar': {e}", "lidar") from None
     return block
 
 

@@ -75,7 +75,7 @@ def run(args: argparse.Namespace) -> int:
         say(f"read rig {args.rig}")
         rig = load_rig(args.rig)
         depths = [None] * len(rig.cameras) if args.no_depth else None
-        lidar = None
+        lidar, pts = None, None
         if not args.no_lidar and (args.lidar_file is not None or has_lidar(rig)):
             pts = load_lidar(rig, args.lidar_file, args.lidar_columns)
             say(f"{len(pts.points)} LiDAR points from {pts.source}"
@@ -86,6 +86,8 @@ def run(args: argparse.Namespace) -> int:
         rec = Reconstructor.load(model_dir, threads=args.threads)
         t_load = time.perf_counter() - t0
         scene = rec.reconstruct(rig, depths=depths, progress=say, lidar=lidar, detail=detail)
+        if pts is not None:
+            scene.counts.update(pts.counts())
         say(f"write {out}")
         t1 = time.perf_counter()
         scene.save(out, overwrite=True)
