@@ -6,6 +6,7 @@ Every check raises `RigError` (runtime.errors) with ``where`` naming the camera 
 
 from __future__ import annotations
 
+import difflib
 import json
 import math
 import os
@@ -17,10 +18,55 @@ from typing import Any
 
 import numpy as np
 
-from .camera import Camera, look_rotation
+from .camera import CAMERA_KEYS, Camera, look_rotation, where_camera
 from .errors import RigError
 
 MAX_CAMERAS = 16
+
+# Keys of rig.json (docs/conventions.md "rig.json"). A key a reader does not know is kept (Rig.extra /
+# Camera.extra) and written back, unless it looks like a misspelling of one it reads (misspelt_key): "camras"
+# would otherwise answer "cameras: must be a list", and "ego_to_wrld" would silently leave the scene unplaced.
+RIG_KEYS = ("cameras", "lidar", "ego_to_world", "ego_to_global")        # read by runtime.lidar, the simulators
+RIG_CAMERA_KEYS = (*CAMERA_KEYS, "ego_mask")                           # ego_mask: runtime.detail
+# keys that real and generated rigs carry on purpose (../shared/data/real, the synthetic generator, the
+# converters' records): never taken for a misspelling, whatever they resemble
+KEPT_RIG_KEYS = ("source", "license", "frame", "dataset", "timestamp_s", "sample_token", "seed", "scene_index",
+                 "generator_version", "depth_sky_value")
+KEPT_CAMERA_KEYS = ("timestamp_s", "cam_to_world", "virtual", "sky", "semantic")
+CLOSE = 0.8             # difflib ratio from which an unknown key is a misspelling of a known one
+CLOSE_MISSING = 0.6     # ... of a required key that is missing (the rig is refused anyway: name the likely cause)
+
+
+def misspelt_key(d: Mapping[str, Any], known: Sequence[str], required: Sequence[str] = (),
+                 kept: Sequence[str] = ()) -> tuple[str, str] | None:
+    """The first key of ``d`` that is unknown (not in ``known`` nor ``kept``) and a likely misspelling of a known
+    key, as (the key, the known key); None when there is none.
+
+    Likely: a difflib similarity >= CLOSE to a known key, or >= CLOSE_MISSING to a ``required`` key that ``d``
+    lacks. Compared case-insensitively ("k" is K). Keys that are neither are extras, kept as they are."""
+    unknown = [k for k in d if isinstance(k, str) and k not in known and k not in kept]
+    if not unknown:
+        return None
+    missing = [k for k in required if k not in d]
+    for candidates, cutoff in ((known, CLOSE), (missing, CLOSE_MISSING)):
+        lower = {k.lower(): k for k in candidates}
+        for key in unknown:
+            match = difflib.get_close_matches(key.lower(), list(lower), n=1, cutoff=cutoff)
+            if match:
+                return key, lower[match[0]]
+    return None
+
+
+def check_keys(d: Any, known: Sequence[str], required: Sequence[str], kept: Sequence[str], path: str,
+               where: str | None) -> None:
+    """RigError naming the field ``path`` + key when ``d`` (a rig.json object; anything else is left to its
+    parser) has a misspelt key (misspelt_key): "camras: unknown key (did you mean 'cameras'?)"."""
+    if not isinstance(d, Mapping):
+        return
+    hit = misspelt_key(d, known, required, kept)
+    if hit is not None:
+        key, meant = hit
+        raise RigError(f"{path}{key}", f"unknown key (did you mean {meant!r}?)", where)
 
 
 @dataclass(frozen=True, eq=False)
@@ -80,13 +126,23 @@ class Rig:
     @classmethod
     def from_dict(cls, d: Mapping[str, Any], root: str | os.PathLike | None = None,
                   check_images: bool = False) -> Rig:
+        """A rig from a rig.json object (docs/conventions.md "rig.json"); ``root``: the folder its files are relative
+        to. RigError naming the field: a misspelt key first (check_keys: "camras", "cameras[0].cam_to_eg"), then
+        the cameras (Camera.from_dict). Other unknown keys are kept (``extra``)."""
         if not isinstance(d, Mapping):
             raise RigError("rig", f"top level must be an object (got {type(d).__name__})")
+        check_keys(d, RIG_KEYS, ("cameras",), KEPT_RIG_KEYS, "", "rig")
         cams = d.get("cameras")
         if not isinstance(cams, list):
             raise RigError("cameras", "must be a list", "rig")
         if not 1 <= len(cams) <= MAX_CAMERAS:
             raise RigError("cameras", f"must have 1..{MAX_CAMERAS} entries (got {len(cams)})", "rig")
+        for i, c in enumerate(cams):
+            if isinstance(c, Mapping):
+                required = ("name", "width", "height", "cam_to_ego", *(("K",) if c.get("model", "pinhole") ==
+                                                                        "pinhole" else ()))
+                check_keys(c, RIG_CAMERA_KEYS, required, KEPT_CAMERA_KEYS, f"cameras[{i}].",
+                           where_camera(c.get("name"), i))
         rig = cls(
             cameras=tuple(Camera.from_dict(c, i) for i, c in enumerate(cams)),
             root=None if root is None else Path(root),
