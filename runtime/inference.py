@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 
 from .camera import Camera
-from .detail import DetailOptions
+from .detail import DetailOptions, OwnViews
 from .errors import FieldError, RigError
 from .files import read_json_doc
 from .lifting import LiftingParams, background_grid, build_lifting_inputs, spec_from_array
@@ -372,9 +372,10 @@ class Reconstructor:
                         {"images": imgs, "depth": depth, "depth_mask": mask, **lift})
             gauss, counts = self._gaussians(enc, lift, t, say)
             counts["lidar_cameras"] = int(sum(s is not None for s in scales))
+        own_views = None
         if detail is not None:
             say(f"detail Gaussians (stride {detail.stride})")
-            gauss = timed("detail", self.add_detail, rig, images, gauss, lidar, detail, counts)
+            gauss, own_views = timed("detail", self.add_detail, rig, images, gauss, lidar, detail, counts)
 
         background = None
         app_plane = enc.get("app_plane")
@@ -387,7 +388,8 @@ class Reconstructor:
         meta = {"name": self.info.name, "version": self.info.version,
                 "model_json_sha256": _sha256((self.info.path / "model.json").read_bytes())}
         return Scene(gaussians=gauss, background=background, rig=rig, model=meta, counts=counts,
-                     timings={k: round(v, 6) for k, v in t.items()}, lifting_cached=cached, app_plane=app_plane)
+                     timings={k: round(v, 6) for k, v in t.items()}, lifting_cached=cached, app_plane=app_plane,
+                     own_views=own_views)
 
     def _gaussians(self, enc: Mapping[str, np.ndarray], lift: Mapping[str, np.ndarray], t: dict[str, float],
                    say: Callable[[str], None]) -> tuple[Gaussians, dict[str, int]]:
@@ -423,45 +425,45 @@ class Reconstructor:
         return gauss, counts
 
     def add_detail(self, rig: Rig, images: Sequence[np.ndarray], coarse: Gaussians, lidar: np.ndarray | None,
-                   opts: DetailOptions, counts: dict[str, int]) -> Gaussians:
-        """The scene's Gaussians with the detail layer (runtime.detail): the coarse model Gaussians that a detail cell
-        covers culled, then each K camera's detail Gaussians (any lens: on its cells' true rays). images: the full-resolution inputs in rig order;
-        lidar [P, 3] metres, ego frame, or None. Adds to ``counts``: detail (Gaussians), detail_lidar /
-        detail_ground / detail_model / detail_far (cells placed by LiDAR, the LiDAR's ground plane, the model's
-        depth, at the far depth), detail_edge (cells dropped at depth edges), carved (cells another camera
-        contradicts or resolves more finely: runtime.detail.carve_details), coarse (model Gaussians kept), culled
-        (model Gaussians culled); total becomes the scene's count."""
+                   opts: DetailOptions, counts: dict[str, int]) -> tuple[Gaussians, OwnViews | None]:
+        """(the scene's Gaussians with the detail layer, its runtime.detail.OwnViews): each K camera's detail
+        Gaussians (any lens: on its cells' true rays) fused with the model's (``coarse``) by
+        runtime.detail.fuse_details, the cells the fusion drops kept hidden for their camera's own view. images: the
+        full-resolution inputs in rig order; lidar [P, 3] metres, ego frame, or None. Adds to ``counts``: detail
+        (cells shown), detail_lidar / detail_ground / detail_model / detail_far (cells placed by LiDAR, by the
+        ground plane (the LiDAR's; camera only, the model's), by the model's depth, at the far depth), detail_edge
+        (cells dropped at depth edges), carved (cells another camera contradicts or resolves more finely; hidden),
+        coarse (model Gaussians kept), culled (model Gaussians culled), total (coarse + detail + carved)."""
         from .detail import (
             camera_detail,
-            carve_details,
-            concat_gaussians,
-            cull_covered,
             fit_ground,
+            fuse_details,
+            model_ground,
             read_ego_mask,
         )
 
-        parts, details = [], []
+        parts, details, owners = [], [], []
         c = {f"detail_{k}": 0 for k in ("lidar", "ground", "model", "far", "edge")}
-        plane = fit_ground(lidar) if lidar is not None and opts.ground else None
+        plane = None
+        if opts.ground:       # the LiDAR's ground, else (camera only) the model's
+            plane = fit_ground(lidar) if lidar is not None else model_ground(coarse)
         for img, cam in zip(images, rig.cameras):
             if cam.model != "pinhole":
                 continue
             mask_file = cam.extra.get("ego_mask")
             mask = None if mask_file is None else read_ego_mask(rig.path(mask_file), cam)
-            g, d, n = camera_detail(cam, as_rgb(img, cam), coarse, opts, lidar, mask, plane)
+            g, d, n = camera_detail(cam, as_rgb(img, cam), coarse, opts, lidar, mask, plane,
+                                    ground_measured=lidar is not None)
             parts.append(g)
             details.append(d)
+            owners.append(rig.names.index(cam.name))
             for k, v in n.items():
                 c[f"detail_{k}"] += v
         if not parts:
-            return coarse
-        keep = cull_covered(coarse, details, opts.cull_tolerance)
-        carved = carve_details(details, opts.cull_tolerance, opts.dedupe)
-        counts.update(c, detail=int(sum(k.sum() for k in carved)), coarse=int(keep.sum()),
-                      culled=int(keep.size - keep.sum()), carved=int(sum(k.size - k.sum() for k in carved)))
-        out = concat_gaussians([coarse, *parts], [keep, *carved])
-        counts["total"] = len(out)
-        return out
+            return coarse, None
+        out, own, fused = fuse_details(coarse, parts, details, owners, tuple(rig.names), opts)
+        counts.update(c, **fused)
+        return out, own
 
     def lidar_depths(self, rig: Rig, gauss: Gaussians, lidar: np.ndarray, depth: np.ndarray, mask: np.ndarray
                      ) -> tuple[np.ndarray, np.ndarray, list[float | None]]:

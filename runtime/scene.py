@@ -34,14 +34,19 @@ from xyzcyl.common.files import atomic_folder
 
 from .camera import Camera
 from .cylinder import CylinderSpec
+from .detail import DetailError, OwnViews
 from .errors import FieldError
 from .files import read_json_doc
+from .numba_cache import njit
 from .render import Gaussians, render
 from .rig import Rig
 
 SCENE_FORMAT = "xyzcyl-scene"
 SCENE_VERSION = 1
 PLY_NAME, EXR_NAME, PNG_NAME, JSON_NAME = "scene.ply", "background.exr", "background.png", "scene.json"
+OWN_VIEWS_NAME = "own_views.npz"   # runtime.detail.OwnViews (scenes with the detail layer)
+OWN_POSE_TOL = (1e-3, 1e-4)        # (metres, rotation matrix entries): a view this close to an input camera's pose is
+#                                    that camera's own view (a gRPC pose composed in float32 lands within 1e-5)
 
 
 class SceneError(FieldError):
@@ -149,7 +154,7 @@ class Background:
         return out
 
 
-@numba.njit(cache=True, inline="always")
+@njit(cache=True, inline="always")
 def _sample(pano, v0, v1, ox, oy, oz, dx, dy, dz, cx, cy, cz, R, Zu, out, y, x):
     H, W = pano.shape[0], pano.shape[1]
     px, py = ox - cx, oy - cy
@@ -179,7 +184,7 @@ def _sample(pano, v0, v1, ox, oy, oz, dx, dy, dz, cx, cy, cz, R, Zu, out, y, x):
         out[y, x, k] = top * (1.0 - fr) + bot * fr
 
 
-@numba.njit(parallel=True, cache=True, nogil=True)
+@njit(parallel=True, cache=True, nogil=True)
 def _bg_pinhole(pano, v0, v1, cx, cy, cz, R, Zu, fx, fy, ppx, ppy, T, out):
     H, W = out.shape[0], out.shape[1]
     for y in numba.prange(H):
@@ -191,7 +196,7 @@ def _bg_pinhole(pano, v0, v1, cx, cy, cz, R, Zu, fx, fy, ppx, ppy, T, out):
             _sample(pano, v0, v1, T[0, 3], T[1, 3], T[2, 3], dx, dy, dz, cx, cy, cz, R, Zu, out, y, x)
 
 
-@numba.njit(parallel=True, cache=True, nogil=True)
+@njit(parallel=True, cache=True, nogil=True)
 def _bg_dirs(pano, v0, v1, cx, cy, cz, R, Zu, T, d, out):
     H, W = out.shape[0], out.shape[1]
     for y in numba.prange(H):
@@ -226,6 +231,28 @@ class Scene:
     app_plane: np.ndarray | None = field(default=None, repr=False)   # in memory only (not saved)
     created: str = field(default_factory=lambda: _dt.datetime.now(_dt.UTC).replace(microsecond=0)
                          .isoformat())
+    own_views: OwnViews | None = field(default=None, repr=False)    # the input cameras' own views (detail layer)
+
+    def own_camera(self, camera) -> int | None:
+        """The index of the input camera whose pose ``camera`` (runtime.camera.Camera) has (OWN_POSE_TOL), when
+        the scene has own views; else None."""
+        if self.own_views is None:
+            return None
+        T = np.asarray(camera.cam_to_ego, np.float64)
+        for k, cam in enumerate(self.rig.cameras):
+            R = np.asarray(cam.cam_to_ego, np.float64)
+            if (np.abs(T[:3, 3] - R[:3, 3]).max() <= OWN_POSE_TOL[0]
+                    and np.abs(T[:3, :3] - R[:3, :3]).max() <= OWN_POSE_TOL[1]):
+                return k
+        return None
+
+    def gaussians_for(self, camera) -> Gaussians:
+        """The Gaussians as ``camera`` sees them: at an input camera's own pose its own view (runtime.detail.OwnViews:
+        its cells wherever it has them), elsewhere the scene's."""
+        k = self.own_camera(camera)
+        if k is None:
+            return self.gaussians
+        return self.gaussians.with_opacity_logits(self.own_views.opacity_logits(self.gaussians.opacity_logits, k))
 
     def bbox(self) -> dict[str, list[float]] | None:
         """Axis-aligned box (ego metres) of the Gaussians' centres whose opacity is at least 1/255."""
@@ -248,7 +275,10 @@ class Scene:
                 "bbox": self.bbox(),
                 "gaussians": {"file": PLY_NAME, "count": len(g), "sh_degree": g.sh_degree,
                               "layout": "3DGS PLY: logit opacity, log scale, quaternion wxyz, f_rest channel-major"},
-                "background": None if self.background is None else self.background.to_dict()}
+                "background": None if self.background is None else self.background.to_dict(),
+                "own_views": None if self.own_views is None else {
+                    "file": OWN_VIEWS_NAME, "hidden": len(self.own_views.index),
+                    "about": "cells hidden (opacity logit -30) except in their camera's own view"}}
 
     def save(self, folder: str | os.PathLike, overwrite: bool = True) -> Path:
         """Write the scene folder atomically: into a temporary sibling folder, then renamed to ``folder`` (an
@@ -258,6 +288,8 @@ class Scene:
             raise SceneError("scene", f"{str(out)!r} exists")
         with atomic_folder(out) as tmp:
             self.gaussians.save_ply(tmp / PLY_NAME)
+            if self.own_views is not None:
+                self.own_views.save(tmp / OWN_VIEWS_NAME)
             if self.background is not None:
                 from xyzcyl.common.media import write_exr
 
@@ -292,6 +324,18 @@ class Scene:
             g = Gaussians.load_ply(pp, max_points=max_points or DEFAULT_MAX_POINTS)
         except GaussianError as e:      # its where names the file by its name alone: here, by its path
             raise SceneError(e.field, e.message, f"scene PLY {str(pp)!r}") from None
+        own = None
+        if meta.get("own_views"):
+            op = d / meta["own_views"].get("file", OWN_VIEWS_NAME)
+            if not op.is_file():
+                raise SceneError("scene", f"{str(op)!r} is missing")
+            try:
+                own = OwnViews.load(op, len(g))
+            except DetailError as e:
+                raise SceneError(e.field, e.message, e.where) from None
+            if own.cameras != tuple(rig.names):
+                raise SceneError("own_views.cameras", f"{list(own.cameras)} are not the rig's {rig.names}",
+                                 f"scene {str(op)!r}")
         bg = None
         b = meta.get("background")
         if b:
@@ -307,7 +351,8 @@ class Scene:
             bg = Background(image=img[..., :3], cylinder=spec, v_range=tuple(b["v_range"]))
         return cls(gaussians=g, background=bg, rig=rig, model=meta.get("model") or {},
                    counts=meta.get("counts") or {}, timings=meta.get("timings") or {},
-                   lifting_cached=bool(meta.get("lifting_cached", False)), created=meta.get("created", ""))
+                   lifting_cached=bool(meta.get("lifting_cached", False)), created=meta.get("created", ""),
+                   own_views=own)
 
 
 # ------------------------------------------------------------------------------------------- views
@@ -327,11 +372,12 @@ def rig_camera(cam: Camera, forward: float = 0.0, width: int | None = None, heig
 
 def render_view(scene: Scene, camera, **options) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(rgb [H, W, 3], depth [H, W], alpha [H, W]) float32 of ``scene`` seen by a runtime.camera.Camera
-    (pinhole, with or without a lens, or equirectangular; docs/renderer.md): the Gaussians composited over the background panorama (I = I_fg + (1 - A_fg) I_bg; black
+    (pinhole, with or without a lens, or equirectangular; docs/renderer.md): the Gaussians (Scene.gaussians_for: at
+    an input camera's pose, its own view) composited over the background panorama (I = I_fg + (1 - A_fg) I_bg; black
     without a background). Depth and alpha are the Gaussians' (depth 0 where alpha is 0). ``options``: the
     renderer's (RenderOptions)."""
     bg = scene.background.render(camera) if scene.background is not None else None
-    r = render(scene.gaussians, camera, background=bg, **options)
+    r = render(scene.gaussians_for(camera), camera, background=bg, **options)
     return r.rgb, r.depth, r.alpha
 
 

@@ -109,6 +109,22 @@ class Gaussians:
         return cls(np.zeros((0, 3), dtype), np.zeros((0, 4), dtype), np.zeros((0, 3), dtype),
                    np.zeros((0,), dtype), np.zeros((0, k, 3), dtype))
 
+    def with_opacity_logits(self, logits: np.ndarray) -> Gaussians:
+        """The same Gaussians with other opacity logits [N] (the other fields shared, not copied or checked again:
+        runtime.detail.OwnViews builds an input camera's own view this way, per render)."""
+        a = np.asarray(logits, self.opacity_logits.dtype)
+        if a.shape != self.opacity_logits.shape:
+            raise GaussianError("opacity_logits", f"expected shape {list(self.opacity_logits.shape)}, got "
+                                                  f"{list(a.shape)}")
+        bad = int(np.count_nonzero(~np.isfinite(a)))
+        if bad:
+            raise GaussianError("opacity_logits", f"{bad} non-finite values")
+        out = object.__new__(Gaussians)
+        for name in ("means", "quats", "log_scales", "sh"):
+            object.__setattr__(out, name, getattr(self, name))
+        object.__setattr__(out, "opacity_logits", a)
+        return out
+
     def astype(self, dtype) -> Gaussians:
         return Gaussians(*(np.asarray(getattr(self, f), dtype=dtype) for f in
                            ("means", "quats", "log_scales", "opacity_logits", "sh")))

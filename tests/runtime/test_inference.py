@@ -100,8 +100,11 @@ def test_counts_and_metadata(rec):
         assert s.timings[k] >= 0
     assert s.background is not None and s.background.image.shape[1] == 4 * 64
     # the default adds the detail layer (runtime.detail): its counts partition the scene's Gaussians
-    d = rec.reconstruct(rig, _images(rig)).counts
-    assert d["total"] == d["coarse"] + d["detail"] and d["coarse"] + d["culled"] == c["total"]
+    ds = rec.reconstruct(rig, _images(rig))
+    d = ds.counts
+    # the cells the fusion drops stay in the scene, hidden, for their camera's own view (runtime.detail.OwnViews)
+    assert d["total"] == len(ds.gaussians) == d["coarse"] + d["detail"] + d["carved"]
+    assert d["coarse"] + d["culled"] == c["total"] and len(ds.own_views.index) == d["carved"]
     assert d["detail"] + d["carved"] == sum(d[f"detail_{k}"] for k in ("lidar", "ground", "model", "far")) > 0
 
 
