@@ -34,7 +34,10 @@ class Parser(argparse.ArgumentParser):
     - an option whose action has ``numbers = N`` (a matrix flag, common/poses.py) takes N numbers
       in a row, or one value that is not a number (a JSON list, a file), as its one value and nothing after it,
       so positional arguments may follow as they could with ``nargs=N`` (fewer numbers are all given to the
-      action, which names the count in its error).
+      action, which names the count in its error);
+    - the parsers of its sub-commands (``xyzcyl client render``) refuse an argument they do not know themselves,
+      with their own usage, exit status 2 (argparse hands it to the parent, whose usage,
+      ``xyzcyl client [-h] ACTION``, said nothing about the action's flags).
     """
 
     def __init__(self, *args, **kwargs):
@@ -44,6 +47,10 @@ class Parser(argparse.ArgumentParser):
     def parse_known_args(self, args=None, namespace=None):
         args = list(sys.argv[1:] if args is None else args)
         return super().parse_known_args(self._prepare(args), namespace)
+
+    def add_subparsers(self, **kwargs):
+        kwargs.setdefault("parser_class", SubParser)
+        return super().add_subparsers(**kwargs)
 
     def _prepare(self, args: list[str]) -> list[str]:
         out: list[str] = []
@@ -73,6 +80,17 @@ class Parser(argparse.ArgumentParser):
         return out
 
 
+class SubParser(Parser):
+    """The parser of a sub-command (an action of ``xyzcyl client``): an argument it does not know is its error, with
+    its usage, not its parent's."""
+
+    def parse_known_args(self, args=None, namespace=None):
+        namespace, extras = super().parse_known_args(args, namespace)
+        if extras:
+            self.error(f"unrecognized arguments: {' '.join(extras)}")
+        return namespace, extras
+
+
 def _several(action: argparse.Action) -> bool:
     return action.nargs in ("+", "*") or (isinstance(action.nargs, int) and action.nargs > 1)
 
@@ -86,6 +104,36 @@ def version() -> str:
         return dist_version("xyzcyl")
     except PackageNotFoundError:
         return "unknown"
+
+
+def model_version() -> str:
+    """One line on the default model (runtime.inference.default_model_dir: $XYZCYL_MODEL, else
+    models/xyzcyl-cpu-v1 in the working folder, else in the source checkout): ``model: NAME VERSION (FOLDER)``
+    from its model.json, ``model: not found (FOLDER)`` without one, ``model: unreadable (...)`` when model.json is
+    not a model's. Reads model.json only (no ONNX session, no torch); never raises."""
+    try:
+        from xyzcyl.runtime.inference import ModelError, default_model_dir, read_model_info
+    except ImportError as e:      # a broken install: still print the package's version
+        return f"model: unknown (the runtime does not import: {e})"
+    folder = default_model_dir()
+    if not (folder / "model.json").is_file():
+        return f"model: not found ({folder})"
+    try:
+        info = read_model_info(folder)
+        return f"model: {info.name} {info.version} ({folder})"
+    except (ModelError, OSError, ValueError) as e:
+        return f"model: unreadable ({e})"
+
+
+class _Version(argparse.Action):
+    """--version: the package's version and the default model's (model_version), read only when asked."""
+
+    def __init__(self, option_strings, dest=argparse.SUPPRESS, default=argparse.SUPPRESS, help=None):
+        super().__init__(option_strings=option_strings, dest=dest, default=default, nargs=0, help=help)
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        print(f"xyzcyl {version()}\n{model_version()}")
+        parser.exit()
 
 
 @dataclass(frozen=True)
@@ -123,8 +171,9 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict[str, Command]]:
         prog="xyzcyl",
         description="XYZCylinder: feed-forward 3D Gaussian Splatting for any surround-camera rig.",
     )
-    parser.add_argument("--version", action="version", version=f"xyzcyl {version()}",
-                        help="print the version of xyzcyl and exit")
+    parser.add_argument("--version", action=_Version,
+                        help="print the version of xyzcyl and of the default model (models/xyzcyl-cpu-v1 or "
+                             "$XYZCYL_MODEL), and exit")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     table = {}
     for cmd in COMMANDS:

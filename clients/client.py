@@ -46,7 +46,7 @@ from pydantic import BaseModel, ValidationError
 from xyzcyl.common import wire
 from xyzcyl.common.files import atomic_file
 from xyzcyl.common.media import EXR, SNIFF_BYTES, exr_bytes, media_of_suffix, sniff
-from xyzcyl.common.poses import CARLA_POSE
+from xyzcyl.common.poses import CARLA_POSE, MOVE_NAMES, CameraMove, MoveError
 
 DEFAULT_SERVER = "http://127.0.0.1:8000"
 USER_AGENT = "xyzcyl-client/0.1"
@@ -505,7 +505,24 @@ def _flat(v: Any, n: int, fld: str) -> list[float]:
     return a.tolist()
 
 
-def view_params(camera: Any, width: int | None = None, height: int | None = None) -> dict[str, str]:
+def _move(move: Any, where: str = "move") -> CameraMove:
+    """``move`` (None, a CameraMove or a mapping {forward, left, up, yaw}) as a CameraMove; InvalidRequestError
+    naming "<where>.<field>" otherwise."""
+    if move is None or isinstance(move, CameraMove):
+        return move or CameraMove()
+    if not isinstance(move, Mapping):
+        raise _invalid(f"must be a CameraMove or a mapping {{{', '.join(MOVE_NAMES)}}} (got {move!r:.60})", where)
+    unknown = [k for k in move if k not in MOVE_NAMES]
+    if unknown:
+        raise _invalid(f"unknown field (a move takes {', '.join(MOVE_NAMES)})", f"{where}.{unknown[0]}")
+    try:
+        return CameraMove.from_values(move)
+    except MoveError as e:
+        raise _invalid(e.message, f"{where}.{e.field}") from None
+
+
+def view_params(camera: Any, width: int | None = None, height: int | None = None, move: Any = None
+                ) -> dict[str, str]:
     """The query parameters of GET /v1/scenes/{id}/render for a camera (docs/api.md):
 
     - a str: an input camera of the scene (``width``/``height`` resize it; the server scales K);
@@ -516,7 +533,15 @@ def view_params(camera: Any, width: int | None = None, height: int | None = None
     - CARLA: {x, y, z, pitch, yaw, roll, fov, width, height} (a sensor's transform relative to the vehicle), or
       a CARLA sensor dict {"transform": {"location": {x, y, z}, "rotation": {pitch, yaw, roll}}, "fov",
       "image_size_x", "image_size_y"};
-    - {"camera": NAME[, "width", "height"]}, as the batch endpoint takes it."""
+    - {"camera": NAME[, "width", "height", "distortion"]}, as the batch endpoint takes it (with ``distortion``: the
+      input camera's pose and K through that lens).
+
+    ``move``: a camera move (common.poses.CameraMove, or a mapping {forward, left, up (metres along ego x, y, z),
+    yaw (degrees to the left)}), sent as the query's forward, left, up, yaw for an input camera or an explicit pose
+    (the server moves it: runtime.views.move_camera); on a CARLA pose it is folded into the transform
+    (CameraMove.apply_carla), as the query's yaw is the transform's there. An input-camera or OpenCV dict may hold
+    the move's keys itself, as a batch item does (then no ``move`` argument)."""
+    mv = _move(move)
     if isinstance(camera, str):
         p = {"camera": camera}
     else:
@@ -528,12 +553,24 @@ def view_params(camera: Any, width: int | None = None, height: int | None = None
                 raise _invalid('must be {"location": {x, y, z}, "rotation": {pitch, yaw, roll}}', "camera.transform")
             c = {**tf["location"], **tf["rotation"], "fov": c.get("fov"),
                  "width": c.get("image_size_x", c.get("width")), "height": c.get("image_size_y", c.get("height"))}
-        if any(k in c for k in CARLA_POSE):
+        explicit = any(k in c for k in ("camera", "cam_to_ego", "cam_to_world"))   # then "yaw" is the move's
+        carla = [k for k in CARLA_POSE if k in c and not (explicit and k == "yaw")]
+        if explicit and carla:
+            raise _invalid("give one pose: an input camera, cam_to_ego or a CARLA transform", f"camera.{carla[0]}")
+        if carla:
             missing = [k for k in (*CARLA_POSE, "fov") if c.get(k) is None]
             if missing:
                 raise _invalid(f"a CARLA pose needs x, y, z, pitch, yaw, roll and fov; missing {', '.join(missing)}",
                                f"camera.{missing[0]}")
+            inline = [k for k in MOVE_NAMES if k != "yaw" and k in c]
+            if inline:
+                raise _invalid("a CARLA pose takes its move as the move argument (its yaw is the transform's)",
+                               f"camera.{inline[0]}")
             p = {k: _num(c[k], f"camera.{k}") for k in (*CARLA_POSE, "fov")}
+            if mv:           # folded into the transform; the query's yaw is the transform's
+                pose = mv.apply_carla(*(float(p[k]) for k in CARLA_POSE))
+                p.update({k: repr(v) for k, v in zip(CARLA_POSE, pose, strict=True)})
+                mv = CameraMove()
         elif "cam_to_ego" in c or "cam_to_world" in c:
             pose = c.get("cam_to_ego", c.get("cam_to_world"))
             p = {"cam_to_ego": ",".join(repr(x) for x in _flat(pose, 16, "camera.cam_to_ego"))}
@@ -546,18 +583,26 @@ def view_params(camera: Any, width: int | None = None, height: int | None = None
                 p["fov"] = _num(c["fov"], "camera.fov")
             else:
                 raise _invalid("an OpenCV camera needs K (pixels) or fov (horizontal degrees)", "camera.K")
-            lens = c.get("distortion")
-            if lens is not None:
-                lens = lens.to_json() if hasattr(lens, "to_json") else lens
-                if not isinstance(lens, (list, tuple, Mapping)):
-                    raise _invalid("must be a list of OpenCV coefficients or an object {\"model\": ..., ...}",
-                                   "camera.distortion")
-                p["distortion"] = json.dumps(lens if isinstance(lens, Mapping) else list(lens), separators=(",", ":"))
         elif "camera" in c:
             p = {"camera": str(c["camera"])}
         else:
             raise _invalid("a camera is an input camera name, {K or fov, cam_to_ego, width, height} (OpenCV) or "
                            "{x, y, z, pitch, yaw, roll, fov, width, height} (CARLA)", "camera")
+        inline = {k: c[k] for k in MOVE_NAMES if k in c} if "cam_to_ego" in p or "camera" in p else {}
+        if inline:
+            if mv:
+                raise _invalid("give the move in the camera or as the move argument, not both", "move")
+            mv = _move(inline, "camera")
+        lens = c.get("distortion")
+        if lens is not None:
+            if "cam_to_ego" not in p and "camera" not in p:
+                raise _invalid("a lens goes with cam_to_ego or an input camera; a CARLA camera has none",
+                               "camera.distortion")
+            lens = lens.to_json() if hasattr(lens, "to_json") else lens
+            if not isinstance(lens, (list, tuple, Mapping)):
+                raise _invalid("must be a list of OpenCV coefficients or an object {\"model\": ..., ...}",
+                               "camera.distortion")
+            p["distortion"] = json.dumps(lens if isinstance(lens, Mapping) else list(lens), separators=(",", ":"))
         width = c.get("width") if width is None else width
         height = c.get("height") if height is None else height
         if "camera" not in p and (width is None or height is None):
@@ -567,6 +612,7 @@ def view_params(camera: Any, width: int | None = None, height: int | None = None
         p["width"] = str(int(width))
     if height is not None:
         p["height"] = str(int(height))
+    p.update({k: repr(v) for k, v in mv.values().items()})
     return p
 
 
@@ -1017,20 +1063,25 @@ class Client:
     # -- views ------------------------------------------------------------------------------------------------
 
     def render_bytes(self, scene_id: str, camera: Any, output: str = "rgb", format: str = "png",
-                     width: int | None = None, height: int | None = None, quality: int | None = None) -> bytes:
+                     width: int | None = None, height: int | None = None, quality: int | None = None,
+                     move: Any = None) -> bytes:
         """GET /v1/scenes/{id}/render: the encoded view as the server sends it (PNG, JPEG or EXR bytes). camera:
-        as view_params() describes (an input camera name, OpenCV K + cam_to_ego, or a CARLA pose + fov)."""
-        params = view_params(camera, width, height)
+        as view_params() describes (an input camera name, OpenCV K + cam_to_ego, or a CARLA pose + fov); move: a
+        camera move (a CameraMove or {forward, left, up, yaw}; view_params)."""
+        params = view_params(camera, width, height, move)
         params.update(output=output, format=format)
         if quality is not None:
             params["quality"] = str(int(quality))
         return self._send("GET", f"/v1/scenes/{_seg(scene_id)}/render", params=params).content
 
     def render(self, scene_id: str, camera: Any, output: str = "rgb", format: str = "png",
-               width: int | None = None, height: int | None = None, quality: int | None = None) -> np.ndarray:
+               width: int | None = None, height: int | None = None, quality: int | None = None,
+               move: Any = None) -> np.ndarray:
         """One view as a float32 array (decode_image): rgb [H, W, 3] 0..1 RGB; depth [H, W] metres (0 = no
-        surface; png saturates at 65.535 m, use format="exr" for float depth); alpha [H, W] 0..1."""
-        return decode_image(self.render_bytes(scene_id, camera, output, format, width, height, quality), output)
+        surface; png saturates at 65.535 m, use format="exr" for float depth); alpha [H, W] 0..1. Arguments as
+        render_bytes."""
+        return decode_image(self.render_bytes(scene_id, camera, output, format, width, height, quality, move),
+                            output)
 
     def render_path(self, scene_id: str, camera_path: Any, output: str | None = None, format: str | None = None,
                     quality: int | None = None, decode: bool = True, progress: Progress | None = None) -> FrameBatch:

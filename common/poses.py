@@ -1,5 +1,5 @@
-"""Camera-pose flags shared by `xyzcyl render` and `xyzcyl client render`: one definition of the flags and of
-their arithmetic, so both commands read a pose and move a camera the same way.
+"""View flags shared by `xyzcyl render` and `xyzcyl client render`: one definition of the flags and of their
+arithmetic, so both commands read a pose, move a camera and pick a file's encoding the same way.
 
 - a 4x4 matrix flag (``--cam-to-world``) takes 16 numbers in any float notation (``-1e-05`` too; the dispatcher's
   parser accepts negative numbers in scientific notation, clients/cli.py), or one value: a JSON list (flat 16 or
@@ -8,7 +8,10 @@ their arithmetic, so both commands read a pose and move a camera the same way.
 - the camera moves ``--forward M``, ``--left M``, ``--up M`` (metres along ego x, y, z: x forward, y left, z up)
   and ``--yaw DEG`` (turn left, counter-clockwise seen from above, about the vertical through the camera's
   centre; applied before the shift) -- add_move_arguments, move_from_args, CameraMove.apply (a 4x4 pose) and
-  CameraMove.apply_carla (a CARLA transform; the same move in CARLA's left-handed axes).
+  CameraMove.apply_carla (a CARLA transform; the same move in CARLA's left-handed axes). CameraMove is the one
+  definition of the move fields (names, units, bounds: MOVE_FIELDS) for every front end: the two commands' flags,
+  the HTTP query and batch items, the Python client; runtime.views.move_camera applies it;
+- the output file's encoding: ``--out FILE`` and ``--format png|jpeg|exr`` -- add_format_argument, out_format.
 
 - CARLA_POSE: the names of a CARLA transform's six numbers, as the render endpoint's query and the client take
   them.
@@ -23,13 +26,14 @@ from __future__ import annotations
 import argparse
 import json
 import math
-from dataclasses import dataclass
+import numbers
+from collections.abc import Mapping
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
 from .errors import FieldError
 
-MOVE_FLAGS = ("--forward", "--left", "--up", "--yaw")
 CARLA_POSE = ("x", "y", "z", "pitch", "yaw", "roll")   # location (metres) and rotation (degrees), in this order
 MATRIX_KEYS = ("cam_to_ego", "cam_to_world")     # the pose's key in a .json object
 
@@ -178,22 +182,68 @@ def parse_lens(value: str, flag: str = "--distortion") -> list | dict:
     return lens
 
 
+MOVE_MAX_M = 1000.0      # the largest shift along one ego axis, metres (beyond any scene's extent)
+MOVE_MAX_DEG = 360.0     # the largest turn, degrees (either way)
+
+
+class MoveError(FieldError):
+    """A camera move's field that cannot be used. ``field``: the CameraMove field ("forward", "yaw")."""
+
+
+def _move_field(unit: str, limit: float, help: str):
+    """A CameraMove field: 0 by default, with its unit ("metres" or "degrees"), its bound (|value| <= limit) and
+    what it does (help)."""
+    return field(default=0.0, metadata={"unit": unit, "limit": limit, "help": help})
+
+
 @dataclass(frozen=True)
 class CameraMove:
-    """A camera move in the ego frame: turn ``yaw`` degrees to the left (counter-clockwise seen from above) about
-    the vertical through the camera's centre, then shift ``forward``, ``left``, ``up`` metres along ego x, y, z."""
+    """A camera move in the ego frame (x forward, y left, z up): turn ``yaw`` degrees to the left (counter-clockwise
+    seen from above) about the vertical through the camera's centre, then shift ``forward``, ``left``, ``up`` metres
+    along ego x, y, z. The one definition of the move fields (names, units, bounds, help; MOVE_FIELDS) that every
+    front end reads: the flags of `xyzcyl render` and `xyzcyl client render` (add_move_arguments), the GET render
+    query and the batch items (server/routes/render.py, runtime.views.spec_from_item), the Python client
+    (clients.client.view_params); runtime.views.move_camera applies it to a render camera.
 
-    forward: float = 0.0
-    left: float = 0.0
-    up: float = 0.0
-    yaw: float = 0.0
+    Construction checks every field (a real number, finite, |value| <= its bound; ints become floats) and raises
+    MoveError naming the field ("forward"); callers rename it to their own name of that field (a flag, a query
+    parameter, a JSON path)."""
+
+    forward: float = _move_field("metres", MOVE_MAX_M, "along ego x (forward; negative: back)")
+    left: float = _move_field("metres", MOVE_MAX_M, "along ego y (left; negative: right)")
+    up: float = _move_field("metres", MOVE_MAX_M, "along ego z (up; negative: down)")
+    yaw: float = _move_field("degrees", MOVE_MAX_DEG, "to the left (counter-clockwise seen from above; negative: "
+                                                      "right) about the vertical through the camera's centre, "
+                                                      "before the shift")
+
+    def __post_init__(self) -> None:
+        for f in fields(self):
+            v, unit, limit = getattr(self, f.name), f.metadata["unit"], f.metadata["limit"]
+            if isinstance(v, bool) or not isinstance(v, numbers.Real):
+                raise MoveError(f.name, f"must be a number of {unit} (got {v!r:.60})")
+            x = float(v)
+            if not math.isfinite(x):
+                raise MoveError(f.name, f"must be finite, got {x}")
+            if abs(x) > limit:
+                raise MoveError(f.name, f"must be within -{limit:g}..{limit:g} {unit}, got {x:g}")
+            object.__setattr__(self, f.name, x)
+
+    @classmethod
+    def from_values(cls, values: Mapping[str, Any]) -> CameraMove:
+        """The move of a mapping {name: value} holding some of MOVE_NAMES (None or absent: 0); MoveError naming the
+        field. Other keys are ignored (the caller refuses those it does not know)."""
+        return cls(**{k: values[k] for k in MOVE_NAMES if values.get(k) is not None})
 
     def __bool__(self) -> bool:
-        return any((self.forward, self.left, self.up, self.yaw))
+        return any(getattr(self, k) for k in MOVE_NAMES)
+
+    def values(self) -> dict[str, float]:
+        """The fields that are set (non-zero), in MOVE_NAMES order: what a request needs to carry."""
+        return {k: getattr(self, k) for k in MOVE_NAMES if getattr(self, k)}
 
     def flags(self) -> list[str]:
         """The move flags that are set (for messages)."""
-        return [f for f, v in zip(MOVE_FLAGS, (self.forward, self.left, self.up, self.yaw)) if v]
+        return [f"--{k}" for k in self.values()]
 
     def apply(self, pose):
         """The moved copy of a 4x4 camera-to-ego pose (OpenCV camera axes; [4, 4] float64)."""
@@ -215,28 +265,81 @@ class CameraMove:
         return (x + self.forward, y - self.left, z + self.up, pitch, yaw - self.yaw, roll)
 
 
+@dataclass(frozen=True)
+class MoveField:
+    """One field of CameraMove as the front ends declare it: ``name`` ("forward"), ``unit`` ("metres" or
+    "degrees"), ``limit`` (|value| <= limit) and ``help`` (the direction)."""
+
+    name: str
+    unit: str
+    limit: float
+    help: str
+
+    @property
+    def metavar(self) -> str:
+        return "M" if self.unit == "metres" else "DEG"
+
+    def describe(self) -> str:
+        """One line for a query parameter or a JSON key: what it does, its unit and range."""
+        verb = "shift" if self.unit == "metres" else "turn"
+        return f"camera move: {verb} the camera this many {self.unit} {self.help}; -{self.limit:g}..{self.limit:g}"
+
+
+MOVE_FIELDS: tuple[MoveField, ...] = tuple(MoveField(f.name, f.metadata["unit"], f.metadata["limit"],
+                                                     f.metadata["help"]) for f in fields(CameraMove))
+MOVE_NAMES: tuple[str, ...] = tuple(f.name for f in MOVE_FIELDS)          # forward, left, up, yaw
+MOVE_FLAGS: tuple[str, ...] = tuple(f"--{n}" for n in MOVE_NAMES)
+
+
 def add_move_arguments(parser) -> None:
-    """--forward, --left, --up (metres along ego x, y, z) and --yaw (degrees, turning left)."""
-    g = parser.add_argument_group("camera moves (ego frame: x forward, y left, z up; applied to the pose)")
-    g.add_argument("--forward", type=float, default=0.0, metavar="M",
-                   help="move the camera M metres along ego x (forward; negative: back)")
-    g.add_argument("--left", type=float, default=0.0, metavar="M",
-                   help="move the camera M metres along ego y (left; negative: right)")
-    g.add_argument("--up", type=float, default=0.0, metavar="M",
-                   help="move the camera M metres along ego z (up; negative: down)")
-    g.add_argument("--yaw", type=float, default=0.0, metavar="DEG",
-                   help="turn the camera DEG degrees to the left (counter-clockwise seen from above; negative: "
-                        "right) about the vertical through its centre, before the shift")
+    """--forward, --left, --up (metres along ego x, y, z) and --yaw (degrees, turning left): MOVE_FIELDS as flags."""
+    g = parser.add_argument_group("camera moves (ego frame: x forward, y left, z up; applied to the pose, or to "
+                                  "the input camera's pose)")
+    for f in MOVE_FIELDS:
+        verb = "move" if f.unit == "metres" else "turn"
+        g.add_argument(f"--{f.name}", type=float, default=0.0, metavar=f.metavar,
+                       help=f"{verb} the camera {f.metavar} {f.unit} {f.help}; -{f.limit:g}..{f.limit:g}")
+
+
+OUT_FORMATS = {".png": "png", ".jpg": "jpeg", ".jpeg": "jpeg", ".exr": "exr"}   # --out's extension -> format
+FORMATS = ("png", "jpeg", "exr")
+EXTENSIONS = {"png": ".png", "jpeg": ".jpg", "exr": ".exr"}                      # format -> the extension to use
+
+
+def add_format_argument(parser) -> None:
+    """--format png|jpeg|exr: the encoding of --out (default: its extension's)."""
+    parser.add_argument("--format", choices=FORMATS, default=None,
+                        help="the encoding: png, jpeg or exr (default: --out's extension; when both are given they "
+                             "must agree, and --out may then have no extension)")
+
+
+def out_format(out: str | Path, fmt: str | None = None) -> str:
+    """The encoding of a view written to ``out``: its extension's (.png, .jpg / .jpeg, .exr), or ``fmt`` (the
+    --format flag) when given, which must agree with the extension (a file without an extension takes it as it
+    is). PoseArgError naming --out (an unknown extension) or --format (a disagreement)."""
+    suffix = Path(out).suffix.lower()
+    by_name = OUT_FORMATS.get(suffix)
+    if fmt is not None and fmt not in FORMATS:
+        raise PoseArgError("--format", f"must be one of {', '.join(FORMATS)}, got {fmt!r}")
+    if by_name is None and not (fmt is not None and not suffix):
+        raise PoseArgError("--out", f"extension must be .png, .jpg, .jpeg or .exr (got {suffix or 'none'!r})"
+                                    + ("" if fmt is None else f"; with --format {fmt}, use {EXTENSIONS[fmt]} or no "
+                                                              "extension"))
+    if fmt is not None and by_name is not None and fmt != by_name:
+        raise PoseArgError("--format", f"{fmt} does not match --out's extension {suffix!r} ({by_name}); use "
+                                       f"{EXTENSIONS[fmt]} or leave --format out")
+    return fmt or by_name
 
 
 def move_from_args(args: argparse.Namespace) -> CameraMove:
-    """The CameraMove of the flags; PoseArgError naming a flag whose value is not finite."""
-    values = {f: float(getattr(args, f[2:])) for f in MOVE_FLAGS}
-    for flag, v in values.items():
-        if not math.isfinite(v):
-            raise PoseArgError(flag, f"must be finite, got {v}")
-    return CameraMove(*values.values())
+    """The CameraMove of the flags; PoseArgError naming the flag whose value cannot be used."""
+    try:
+        return CameraMove.from_values({n: getattr(args, n) for n in MOVE_NAMES})
+    except MoveError as e:
+        raise PoseArgError(f"--{e.field}", e.message) from None
 
 
-__all__ = ["CARLA_POSE", "MOVE_FLAGS", "CameraMove", "PoseArgError", "add_matrix_argument", "add_move_arguments",
-           "is_number", "move_from_args", "parse_matrix"]
+__all__ = ["CARLA_POSE", "FORMATS", "MOVE_FIELDS", "MOVE_FLAGS", "MOVE_MAX_DEG", "MOVE_MAX_M", "MOVE_NAMES",
+           "OUT_FORMATS", "CameraMove", "MoveError", "MoveField", "PoseArgError", "add_format_argument",
+           "add_matrix_argument", "add_move_arguments", "is_number", "move_from_args", "out_format", "parse_lens",
+           "parse_matrix"]

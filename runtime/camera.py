@@ -31,6 +31,11 @@ from .lenses import IN_FRONT_EPS, Lens, project, unproject
 from .rotations import ORTHO_TOL  # max |R^T R - I| entry accepted for a pose's rotation
 
 MAX_SIZE = 16384  # pixels: the largest width or height of any camera, input or render
+# pixels of one rendered view (4096 x 4096, the service's limit since it began): a render holds ~40 bytes a pixel
+# (colour, alpha, depth, the background and the raster's per-pixel state), ~0.7 GB at this cap; 16384 x 16384 (what
+# the side limit alone allowed the CLI) died in numpy's allocator. check_render_size applies both, before anything
+# is allocated.
+MAX_RENDER_PIXELS = 4096 * 4096
 # K's structural zeros and ones and cam_to_ego's bottom row are compared with this absolute tolerance: JSON
 # written by float code can carry 1e-16-level round-off, anything larger is a real (refused) parameter.
 STRUCT_TOL = 1e-9
@@ -325,6 +330,20 @@ class Camera:
 
 # -- validators (the one place for each check) -------------------------------------------------------------------
 
+def check_render_size(width: int, height: int, field: str = "width", max_side: int = MAX_SIZE,
+                      max_pixels: int = MAX_RENDER_PIXELS) -> None:
+    """Refuse a rendered view of width x height pixels over the render limit (CameraError naming ``field``): one
+    rule and one message for every front end (CLI, HTTP GET and batch, gRPC, the library's render); a server may
+    lower ``max_side`` (its max_render_side)."""
+    if max(width, height) > max_side or width * height > max_pixels:
+        raise CameraError(field, f"a view of {width}x{height} is over {render_limit(max_side, max_pixels)}")
+
+
+def render_limit(max_side: int = MAX_SIZE, max_pixels: int = MAX_RENDER_PIXELS) -> str:
+    """The render limit in words (every refusal of a too large view says it)."""
+    return f"the render limit ({max_side} pixels a side, {max_pixels} pixels in all)"
+
+
 def check_size(v: Any, key: str, where: str | None = None) -> int:
     """An image dimension ``key`` ("width" / "height"): an integer (2.0 accepted, 2.5 and True not) in
     1..MAX_SIZE."""
@@ -429,6 +448,7 @@ def pinhole_K(fx: float, fy: float, cx: float, cy: float) -> np.ndarray:
 __all__ = [
     "CAMERA_KEYS",
     "IN_FRONT_EPS",
+    "MAX_RENDER_PIXELS",
     "MAX_SIZE",
     "MODELS",
     "STRUCT_TOL",
@@ -437,6 +457,8 @@ __all__ = [
     "CameraModel",
     "check_K",
     "check_pose",
+    "check_render_size",
+    "render_limit",
     "check_size",
     "look_rotation",
     "numbers",

@@ -9,10 +9,12 @@ A ViewRequest holds a runtime.render camera in the ego frame (x forward, y left,
 x right, y down, z forward; docs/conventions.md), the output (rgb | depth | alpha) and its encoding
 (png | jpeg | exr). The camera constructors accept the project's OpenCV convention (camera_from_opencv), CARLA
 sensor poses (camera_from_carla_pose, through runtime.convert.camera_from_carla), an input camera of the scene's
-rig (camera_from_rig) and batches: a {"cameras": [...]} list mixing those, or a nerfstudio camera_path.json
-(cameras_from_batch, through runtime.convert.cameras_from_nerfstudio_path). encode_view turns the renderer's
-float32 arrays into file bytes; render_request = runtime.scene.render_view + encode_view. docs/inference.md
-("Render requests") states the conventions and encodings.
+rig (camera_from_rig; optionally through another lens) and batches: a {"cameras": [...]} list mixing those, or a
+nerfstudio camera_path.json (cameras_from_batch, through runtime.convert.cameras_from_nerfstudio_path). A camera
+move (common.poses.CameraMove: forward, left, up metres along ego x, y, z, yaw degrees to the left) is applied to
+an input camera's or an explicit pose by move_camera, the one place every front end's move goes through.
+encode_view turns the renderer's float32 arrays into file bytes; render_request = runtime.scene.render_view +
+encode_view. docs/inference.md ("Render requests") states the conventions and encodings.
 """
 
 from __future__ import annotations
@@ -25,12 +27,22 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from numba import njit
 from xyzcyl.common.media import exr_bytes
+from xyzcyl.common.poses import MOVE_NAMES, CameraMove, MoveError
 
 from . import convert
-from .camera import STRUCT_TOL, Camera, CameraError, check_size, pinhole_K
+from .camera import (
+    MAX_SIZE,
+    STRUCT_TOL,
+    Camera,
+    CameraError,
+    check_render_size,
+    check_size,
+    pinhole_K,
+    render_limit,
+)
 from .errors import FieldError
+from .numba_cache import njit
 from .rig import Rig
 from .scene import Scene, render_view, rig_camera
 
@@ -77,10 +89,13 @@ def _number(v: Any, field: str) -> float:
 
 
 def _size(v: Any, field: str) -> int:
-    """An image dimension (runtime.camera.check_size: an integer, 2.0 accepted, 2.5 not, in 1..16384)."""
+    """A rendered view's dimension (runtime.camera.check_size: an integer, 2.0 accepted, 2.5 not, in 1..16384; over
+    that, the render limit's message, as for too many pixels: resolve_camera)."""
     try:
         return check_size(v, field)
     except CameraError as e:
+        if _is_number(v) and math.isfinite(float(v)) and float(v) == int(v) and int(v) > MAX_SIZE:
+            raise ViewError(field, f"{int(v)} pixels is over {render_limit()}") from None
         raise ViewError(field, e.message) from None
 
 
@@ -125,6 +140,16 @@ CARLA_KEYS = ("x", "y", "z", "pitch", "yaw", "roll")
 _POSES = ('camera=NAME, cam_to_ego=16 numbers (+ fx/fy/cx/cy or fov), or CARLA x,y,z,pitch,yaw,roll (+ fov)')
 
 
+def move_camera(camera: Camera, move: CameraMove) -> Camera:
+    """``camera`` (a render camera, ego frame) moved by ``move``: its cam_to_ego turned ``move.yaw`` degrees to the
+    left about the vertical through the camera's centre, then shifted (forward, left, up) metres along ego x, y, z
+    (CameraMove.apply); K, size and lens are kept. No move: the camera itself. The one place a move is applied:
+    `xyzcyl render`, the GET render query and the batch items all come here through ViewSpec."""
+    if not move:
+        return camera
+    return camera.replace(cam_to_ego=move.apply(camera.cam_to_ego))
+
+
 @dataclass(frozen=True, kw_only=True)
 class ViewSpec:
     """One view as a user states it -- a GET query, an item of a batch, the flags of ``xyzcyl render`` -- before it
@@ -132,8 +157,10 @@ class ViewSpec:
     of checks and messages.
 
     Exactly one pose:
-    - ``camera``: an input camera of the scene's rig (its K, size and pose; width / height optional: the camera
-      resized, one side given -> the other follows its aspect ratio);
+    - ``camera``: an input camera of the scene's rig (its K, size, lens and pose; width / height optional: the
+      camera resized, one side given -> the other follows its aspect ratio), optionally with ``distortion``: the
+      camera's pose and (resized) K through that lens instead of its own (the lens as given, at the rendered size;
+      ``[0, 0, 0, 0]``: an ideal pinhole);
     - ``cam_to_ego`` (16 numbers row-major or [4, 4], OpenCV camera -> ego, metres) with width, height and either
       ``K`` ([3, 3] or 9 numbers, no skew), ``fx`` (``fy`` defaults to fx, ``cx``, ``cy`` to the image centre
       ((W-1)/2, (H-1)/2), OpenCV pixel centres) or ``fov`` (HORIZONTAL degrees in (0, 180), square pixels,
@@ -143,10 +170,15 @@ class ViewSpec:
       panorama);
     - ``carla``: a CARLA sensor pose {x, y, z (metres), pitch, yaw, roll (degrees)} relative to the vehicle,
       with ``fov`` and width, height (runtime.convert.camera_from_carla).
+    ``move``: a camera move applied to the ``camera`` or ``cam_to_ego`` pose (move_camera): a CameraMove, or a
+    mapping {forward, left, up (metres along ego x, y, z), yaw (degrees to the left)} of values as the user gave
+    them, checked here (common.poses.CameraMove: finite numbers, |shift| <= 1000 m, |yaw| <= 360 degrees). A
+    CARLA pose takes no move (its own x, y, z and yaw say where it is): refused naming the move's first field.
     ``output`` / ``format`` / ``quality``: as ViewRequest.
     ``names``: the name each attribute has in the transport, for errors -- the query parameter, the JSON path
-    ("cameras[2].fov", "cameras[0].transform.location.x"), the CLI flag ("--cam-to-world"); an attribute not
-    listed keeps its own name. Every refusal is a ViewError naming the field by that name."""
+    ("cameras[2].fov", "cameras[0].transform.location.x"), the CLI flag ("--cam-to-world"), and for the move's
+    fields under "move.<key>" ("move.yaw": "--yaw"); an attribute not listed keeps its own name. Every refusal is
+    a ViewError naming the field by that name."""
 
     camera: str | None = None
     cam_to_ego: Any = None
@@ -158,6 +190,7 @@ class ViewSpec:
     fov: Any = None
     distortion: Any = None
     carla: Mapping[str, Any] | None = None
+    move: CameraMove | Mapping[str, Any] | None = None
     model: str = "pinhole"
     width: Any = None
     height: Any = None
@@ -170,8 +203,22 @@ class ViewSpec:
         """The transport's name of attribute ``attr`` (for errors)."""
         return self.names.get(attr, attr)
 
+    def move_name(self, key: str) -> str:
+        """The transport's name of the move's field ``key`` ("forward", "yaw"): ``names["move.<key>"]``, else the
+        key itself (a CARLA item's "yaw" in ``names`` is its transform's, not the move's)."""
+        return self.names.get(f"move.{key}", key)
+
     def resolve_camera(self, rig: Rig | None = None) -> Camera:
-        """The render camera (ego frame) the spec describes; ``rig``: the scene's rig (needed for ``camera``)."""
+        """The render camera (ego frame) the spec describes; ``rig``: the scene's rig (needed for ``camera``). A view
+        over the render limit (runtime.camera.check_render_size) is refused here, before anything is rendered."""
+        cam = self._resolve(rig)
+        try:
+            check_render_size(cam.width, cam.height)
+        except CameraError as e:
+            raise ViewError(self.name("width" if cam.width >= cam.height else "height"), e.message) from None
+        return cam
+
+    def _resolve(self, rig: Rig | None) -> Camera:
         carla = dict(self.carla) if self.carla else {}
         modes = [m for m, on in (("camera", self.camera is not None), ("cam_to_ego", self.cam_to_ego is not None),
                                  ("carla", bool(carla))) if on]
@@ -179,14 +226,21 @@ class ViewSpec:
             second = modes[1] if len(modes) > 1 else "camera"
             raise ViewError(self.name(next(iter(carla), "x")) if second == "carla" else self.name(second),
                             f"give exactly one pose: {_POSES}; got {' and '.join(modes) or 'none'}")
-        if self.distortion is not None and self.cam_to_ego is None:
-            raise ViewError(self.name("distortion"), "a lens goes with cam_to_ego and K / fx / fov (an input "
-                                                     "camera has its own lens; a CARLA camera has none)")
-        if self.camera is not None:
-            return self._rig_camera(rig)
-        if self.cam_to_ego is not None:
-            return self._opencv()
-        return self._carla(carla)
+        if self.distortion is not None and self.cam_to_ego is None and self.camera is None:
+            raise ViewError(self.name("distortion"), "a lens goes with cam_to_ego (and K / fx / fov) or an input "
+                                                     "camera; a CARLA camera has none")
+        move = self._move()
+        if modes[0] == "carla":
+            if move:
+                first = next(iter(move.values()))       # the first field that is set
+                raise ViewError(self.move_name(first), "a CARLA pose takes no camera move: change its x, y, z and "
+                                                       "yaw (moves go with camera or cam_to_ego)")
+            return self._carla(carla)
+        cam = self._rig_camera(rig) if modes[0] == "camera" else self._opencv()
+        try:
+            return move_camera(cam, move)
+        except CameraError as e:         # not expected: a turn about the vertical keeps the pose a rotation
+            raise ViewError(self.move_name(next(iter(move.values()))), e.message) from None
 
     def request(self, rig: Rig | None = None) -> ViewRequest:
         """The ViewRequest: the resolved camera with output, format and quality (errors named by ``names``)."""
@@ -199,6 +253,18 @@ class ViewSpec:
     # -- the three poses ----------------------------------------------------------------------------------------
     def _size(self, attr: str) -> int:
         return _size(getattr(self, attr), self.name(attr))
+
+    def _move(self) -> CameraMove:
+        """The CameraMove of ``move`` (ViewError naming the transport's name of a field that cannot be used)."""
+        if self.move is None or isinstance(self.move, CameraMove):
+            return self.move or CameraMove()
+        if not isinstance(self.move, Mapping):
+            raise ViewError(self.name("move"), f"must be an object {{{', '.join(MOVE_NAMES)}}} (got "
+                                               f"{_short(self.move)})")
+        try:
+            return CameraMove.from_values(self.move)
+        except MoveError as e:
+            raise ViewError(self.move_name(e.field), e.message) from None
 
     def _rig_camera(self, rig: Rig | None) -> Camera:
         if rig is None:
@@ -214,8 +280,14 @@ class ViewSpec:
             h = _size(max(1, round(w * cam.height / cam.width)), self.name("width"))
         elif h is not None and w is None:
             w = _size(max(1, round(h * cam.width / cam.height)), self.name("height"))
-        return _camera(lambda: rig_camera(cam, width=w, height=h),
-                       {"width": self.name("width"), "height": self.name("height"), "*": self.name("camera")})
+        lens = self.distortion
+
+        def build() -> Camera:    # with a lens: the input camera's pose and (resized) K through that lens
+            c = rig_camera(cam, width=w, height=h)
+            return c if lens is None else c.replace(distortion=lens)
+
+        return _camera(build, {"width": self.name("width"), "height": self.name("height"),
+                               "distortion": self.name("distortion"), "*": self.name("camera")})
 
     def _opencv(self) -> Camera:
         for attr in ("width", "height"):
@@ -323,10 +395,11 @@ def camera_from_rig(rig: Rig, name: str, width: int | None = None, height: int |
 
 _ITEM_KINDS = ('{"K", "cam_to_ego", "width", "height"[, "distortion"]} (OpenCV), {"fov", "cam_to_ego", "width", "height"} '
                '(OpenCV, horizontal degrees), {"transform", "fov", "image_size_x", "image_size_y"} (CARLA sensor) '
-               'or {"camera"[, "width", "height"]} (an input camera of the scene)')
-_OPENCV_K_KEYS = ("K", "cam_to_ego", "width", "height", "distortion", "name")
-_OPENCV_FOV_KEYS = ("fov", "cam_to_ego", "width", "height", "distortion", "name")
-_RIG_KEYS = ("camera", "width", "height", "name")
+               'or {"camera"[, "width", "height", "distortion"]} (an input camera of the scene); the OpenCV and '
+               'input-camera items also take a move: "forward", "left", "up" (metres), "yaw" (degrees to the left)')
+_OPENCV_K_KEYS = ("K", "cam_to_ego", "width", "height", "distortion", "name", *MOVE_NAMES)
+_OPENCV_FOV_KEYS = ("fov", "cam_to_ego", "width", "height", "distortion", "name", *MOVE_NAMES)
+_RIG_KEYS = ("camera", "width", "height", "distortion", "name", *MOVE_NAMES)
 
 
 def _get(item: Mapping[str, Any], key: str, where: str) -> Any:
@@ -341,15 +414,23 @@ def _only(item: Mapping[str, Any], allowed: tuple[str, ...], where: str, kind: s
             raise ViewError(f"{where}.{key}", f"unknown field ({kind} takes {', '.join(allowed)})")
 
 
+def _move_names(where: str) -> dict[str, str]:
+    """ViewSpec.names of an item's move keys: "move.forward" -> "cameras[2].forward"."""
+    return {f"move.{k}": f"{where}.{k}" for k in MOVE_NAMES}
+
+
 def spec_from_item(item: Any, where: str) -> ViewSpec:
     """The ViewSpec of one batch item (cameras_from_batch states the item kinds); ``where`` is its JSON path
     ("cameras[2]"), the prefix of every error's field."""
     if not isinstance(item, Mapping):
         raise ViewError(where, f"must be an object: {_ITEM_KINDS}")
+    move = {k: item[k] for k in MOVE_NAMES if k in item}
     if "camera" in item:
         _only(item, _RIG_KEYS, where, "an input camera")
         return ViewSpec(camera=item["camera"], width=item.get("width"), height=item.get("height"),
-                        names={k: f"{where}.{k}" for k in ("camera", "width", "height")})
+                        distortion=item.get("distortion"), move=move,
+                        names={**{k: f"{where}.{k}" for k in ("camera", "width", "height", "distortion")},
+                               **_move_names(where)})
     if "transform" in item:   # a CARLA sensor; its other blueprint attributes (sensor_tick, ...) are ignored
         tf = item["transform"]
         if not isinstance(tf, Mapping):
@@ -362,20 +443,23 @@ def spec_from_item(item: Any, where: str) -> ViewSpec:
         names = {k: f"{where}.transform.location.{k}" for k in ("x", "y", "z")}
         names.update({k: f"{where}.transform.rotation.{k}" for k in ("pitch", "yaw", "roll")})
         names.update(fov=f"{where}.fov", width=f"{where}.image_size_x", height=f"{where}.image_size_y")
+        names.update(_move_names(where))
         carla = {k: _get(loc, k, f"{where}.transform.location") for k in ("x", "y", "z")}
         carla.update({k: _get(rot, k, f"{where}.transform.rotation") for k in ("pitch", "yaw", "roll")})
         return ViewSpec(carla=carla, fov=_get(item, "fov", where), width=_get(item, "image_size_x", where),
-                        height=_get(item, "image_size_y", where), names=names)
-    names = {k: f"{where}.{k}" for k in ("cam_to_ego", "width", "height", "fov", "K", "distortion")}
+                        height=_get(item, "image_size_y", where), move=move, names=names)
+    names = {**{k: f"{where}.{k}" for k in ("cam_to_ego", "width", "height", "fov", "K", "distortion")},
+             **_move_names(where)}
     if "K" in item:
         _only(item, _OPENCV_K_KEYS, where, "an OpenCV camera with K")
         return ViewSpec(cam_to_ego=_get(item, "cam_to_ego", where), K=item["K"], width=_get(item, "width", where),
-                        height=_get(item, "height", where), distortion=item.get("distortion"), names=names)
+                        height=_get(item, "height", where), distortion=item.get("distortion"), move=move,
+                        names=names)
     if "fov" in item:
         _only(item, _OPENCV_FOV_KEYS, where, "an OpenCV camera with fov")
         return ViewSpec(cam_to_ego=_get(item, "cam_to_ego", where), fov=item["fov"],
                         width=_get(item, "width", where), height=_get(item, "height", where),
-                        distortion=item.get("distortion"), names=names)
+                        distortion=item.get("distortion"), move=move, names=names)
     raise ViewError(where, f"expected one of {_ITEM_KINDS}")
 
 
@@ -393,9 +477,12 @@ def cameras_from_batch(doc: Mapping[str, Any], rig: Rig | None = None, max_frame
         {"fov": degrees, "cam_to_ego", "width", "height"}      OpenCV, HORIZONTAL fov, centred principal point
         {"transform": {"location": {x, y, z}, "rotation": {pitch, yaw, roll}}, "fov", "image_size_x",
          "image_size_y"}                                       a CARLA sensor (runtime.convert.camera_from_carla)
-        {"camera": "CAM_FRONT"[, "width", "height"]}           an input camera of ``rig`` (camera_from_rig)
-      (an optional "name" is allowed in the OpenCV and input-camera items; CARLA items may carry CARLA's other
-      sensor attributes; other keys are refused, so a misspelt field is not silently dropped); or
+        {"camera": "CAM_FRONT"[, "width", "height", "distortion"]}   an input camera of ``rig`` (camera_from_rig;
+                                                               with "distortion": its pose and K through that lens)
+      (an optional "name" is allowed in the OpenCV and input-camera items, and a camera move "forward", "left",
+      "up" (metres along ego x, y, z), "yaw" (degrees to the left), applied by move_camera; CARLA items may carry
+      CARLA's other sensor attributes but no move; other keys are refused, so a misspelt field is not silently
+      dropped); or
     (b) a nerfstudio camera_path.json: {"render_width", "render_height", ["camera_type"], "camera_path":
         [{"camera_to_world": 16 numbers row-major, OpenGL camera axes, world = ego; "fov": VERTICAL degrees;
         "aspect" (ignored)}, ...]} (runtime.convert.cameras_from_nerfstudio_path states what nerfstudio's
@@ -724,6 +811,7 @@ __all__ = [
     "depth_to_mm16",
     "encode_png",
     "encode_view",
+    "move_camera",
     "render_request",
     "spec_from_item",
 ]

@@ -8,7 +8,7 @@ import datetime as dt
 from dataclasses import dataclass
 from typing import Any
 
-from xyzcyl.common.poses import CARLA_POSE
+from xyzcyl.common.poses import CARLA_POSE, MOVE_NAMES
 from xyzcyl.common.wire import ErrorBody
 
 from .store import SceneRecord
@@ -35,7 +35,12 @@ RENDER_BATCH = {"requestBody": {"required": True, "content": {"application/json"
 @dataclass(frozen=True)
 class RenderQuery:
     """GET /v1/scenes/{id}/render's query, as FastAPI checked it (routes/render.py declares it): one pose (an
-    input camera; cam_to_ego with fx/fy/cx/cy or fov; a CARLA transform with fov), the size, the output."""
+    input camera, optionally with a lens; cam_to_ego with fx/fy/cx/cy or fov and a lens; a CARLA transform with
+    fov), a camera move (forward, left, up, yaw: common.poses.CameraMove), the size, the output.
+
+    ``yaw`` is two parameters in one name: with ``camera`` or ``cam_to_ego`` it is the move's turn (degrees to
+    the left), otherwise the CARLA transform's yaw (degrees, CARLA's: turning right). carla() and move() split
+    it; a CARLA pose takes no move (runtime.views.ViewSpec refuses it)."""
 
     camera: str | None = None
     cam_to_ego: str | None = None
@@ -51,15 +56,28 @@ class RenderQuery:
     pitch: float | None = None
     yaw: float | None = None
     roll: float | None = None
+    forward: float | None = None
+    left: float | None = None
+    up: float | None = None
     width: int | None = None
     height: int | None = None
     output: str = "rgb"
     format: str = "png"
     quality: int = 90
 
+    def _yaw_is_the_moves(self) -> bool:
+        return self.camera is not None or self.cam_to_ego is not None
+
     def carla(self) -> dict[str, float]:
-        """The CARLA transform's values that were given, in CARLA_POSE's order."""
-        return {k: getattr(self, k) for k in CARLA_POSE if getattr(self, k) is not None}
+        """The CARLA transform's values that were given, in CARLA_POSE's order (yaw only without camera and
+        cam_to_ego)."""
+        skip = ("yaw",) if self._yaw_is_the_moves() else ()
+        return {k: getattr(self, k) for k in CARLA_POSE if k not in skip and getattr(self, k) is not None}
+
+    def move(self) -> dict[str, float]:
+        """The camera move's values that were given, by MOVE_NAMES (yaw only with camera or cam_to_ego)."""
+        skip = () if self._yaw_is_the_moves() else ("yaw",)
+        return {k: getattr(self, k) for k in MOVE_NAMES if k not in skip and getattr(self, k) is not None}
 
 
 def _iso(ts: float | None) -> str:

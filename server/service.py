@@ -33,8 +33,11 @@ from typing import IO, Any
 
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from xyzcyl.common.wire import BatchIndex, FrameInfo
+from xyzcyl.runtime import compile_notice
+from xyzcyl.runtime.camera import CameraError, check_render_size
 from xyzcyl.runtime.inference import ModelInfo, verify_model
 from xyzcyl.runtime.views import ViewError, ViewRequest, ViewSpec, cameras_from_batch, render_request
+from xyzcyl.runtime.warmup import LENS_MODELS
 
 from .cache import BytesCache, SceneCache
 from .errors import Busy, Conflict, Invalid, NotFound, StorageFull
@@ -122,38 +125,60 @@ class Service:
             return self.startup_error or "loading the model"
         return await asyncio.to_thread(self.store.health)
 
-    async def _warm_up_renders(self) -> float | None:
-        """The render warm-up in the render pool (its threads run ``compute_nice`` nicer, and numba's worker
-        threads, started by the first parallel kernel, inherit that); the seconds, or None when it failed (logged:
-        renders then compile or load the kernels on the first request)."""
-        try:
-            return await asyncio.get_running_loop().run_in_executor(self.renders.pool, _warm_renders)
-        except asyncio.CancelledError:
-            raise
-        except Exception:
-            log.exception("the render warm-up failed; the first render compiles or loads the kernels instead")
-            return None
+    async def _warm_up_renders(self, models: str) -> float:
+        """The render warm-up (runtime.warmup.warm_render: "pinhole" or "lenses") in the render pool (its threads
+        run ``compute_nice`` nicer, and numba's worker threads, started by the first parallel kernel, inherit
+        that); the seconds. A failed warm-up render raises: the caller does not report ready over it."""
+        return await asyncio.get_running_loop().run_in_executor(self.renders.pool, _warm_renders, models)
+
+    def _fail_start(self, what: str, exc: BaseException) -> None:
+        self.ready = False
+        self.startup_error = f"{what}: {type(exc).__name__}: {exc}"
+        log.error("%s; not ready", what, exc_info=exc)
 
     async def _start_workers(self) -> None:
+        t0 = time.perf_counter()
+        renders = None
+        if self.settings.warm_up:
+            # before the workers start: on a cold numba cache this compiles the pinhole render kernels once, and
+            # the workers then load them from the cache (compiling in both at once would take both cores twice as
+            # long)
+            try:
+                renders = await self._warm_up_renders("pinhole")
+            except asyncio.CancelledError:
+                raise
+            except Exception as e:
+                self._fail_start("the render warm-up failed", e)
+                return
         try:
-            t0 = time.perf_counter()
-            renders = None
-            if self.settings.warm_up:
-                # before the workers start: on a cold numba cache this compiles the render kernels once, and the
-                # workers then load them from the cache (compiling in both at once would take both cores twice as
-                # long)
-                renders = await self._warm_up_renders()
             workers = await self.reconstructions.start()
-            if self.settings.warm_up:
-                log.info("warm-up took %.1f s (renders %s, reconstruction workers %.1f s)", time.perf_counter() - t0,
-                         "failed" if renders is None else f"{renders:.1f} s", workers)
-            self.ready = True
-            log.info("model %s %s loaded; ready", self.info.name, self.info.version)
         except asyncio.CancelledError:
             raise
         except Exception as e:
-            self.startup_error = f"{type(e).__name__}: {e}"
-            log.exception("the reconstruction workers did not start")
+            self._fail_start("the reconstruction workers did not start", e)
+            return
+        if self.settings.warm_up:
+            log.info("warm-up took %.1f s (pinhole renders %.1f s, reconstruction workers %.1f s; numba compile "
+                     "in the server process %.1f s)", time.perf_counter() - t0, renders, workers,
+                     compile_notice.compile_seconds())
+        self.ready = True
+        log.info("model %s %s loaded; ready", self.info.name, self.info.version)
+        if self.settings.warm_up:
+            await self._warm_up_lenses()
+
+    async def _warm_up_lenses(self) -> None:
+        """After ready: the equirectangular and lens views (runtime.warmup.LENS_MODELS), whose projection kernels
+        are compiled per camera model (a cold cache: about a minute on 2 cores, which no longer delays ready; a
+        request for one of them meanwhile waits for its compile). A failure is the renderer's: not ready."""
+        try:
+            seconds = await self._warm_up_renders("lenses")
+        except asyncio.CancelledError:
+            raise
+        except Exception as e:
+            self._fail_start("the lens render warm-up failed", e)
+            return
+        log.info("lens warm-up took %.1f s (%s; numba compile in the server process %.1f s so far)", seconds,
+                 ", ".join(LENS_MODELS), compile_notice.compile_seconds())
 
     async def _sweep(self) -> None:
         ttl = self.settings.scene_ttl_s
@@ -325,15 +350,16 @@ class Service:
 
     # ------------------------------------------------------------------------------------------- renders
     def check_size(self, camera, field: str = "width") -> None:
-        """Invalid when a view is over the render limits (its longer side, its pixels)."""
+        """Invalid when a view is over the render limit (runtime.camera.check_render_size with this server's
+        max_render_side / max_render_pixels: the runtime's limit unless lowered)."""
         st = self.settings
         w, h = camera.width, camera.height
-        if max(w, h) > st.max_render_side:
-            raise Invalid(f"{field}: a view of {w}x{h} has a side over the limit of {st.max_render_side} pixels",
-                          ("width" if w >= h else "height") if field == "width" else field)
-        if w * h > st.max_render_pixels:
-            raise Invalid(f"{field}: a view of {w}x{h} = {w * h} pixels is over the limit of "
-                          f"{st.max_render_pixels}", field)
+        if field == "width":
+            field = "width" if w >= h else "height"
+        try:
+            check_render_size(w, h, field, st.max_render_side, st.max_render_pixels)
+        except CameraError as e:
+            raise Invalid(str(e), e.field) from None
 
     def view_key(self, sid: str, req: ViewRequest) -> str:
         """The view's ETag: the scene, the model and the request."""
@@ -342,13 +368,15 @@ class Service:
 
     async def view_request(self, sid: str, q: RenderQuery) -> tuple[ViewRequest, str]:
         """GET /v1/scenes/{id}/render's query as a ViewRequest of a ready scene, and its ETag. Exactly one pose:
-        an input camera, cam_to_ego with fx/fy/cx/cy or fov, or a CARLA transform with fov (Invalid otherwise,
-        naming the field)."""
+        an input camera (optionally with a lens), cam_to_ego with fx/fy/cx/cy or fov (and a lens), or a CARLA
+        transform with fov; the first two optionally moved (forward, left, up, yaw; runtime.views.move_camera).
+        Invalid otherwise, naming the field."""
         await self.ready_record(sid)
         spec = ViewSpec(camera=q.camera, cam_to_ego=None if q.cam_to_ego is None else _numbers(q.cam_to_ego,
                                                                                                 "cam_to_ego", 16),
                         fx=q.fx, fy=q.fy, cx=q.cx, cy=q.cy, fov=q.fov,
-                        distortion=_json_value(q.distortion, "distortion"), carla=q.carla() or None, width=q.width, height=q.height, output=q.output, format=q.format,
+                        distortion=_json_value(q.distortion, "distortion"), carla=q.carla() or None,
+                        move=q.move(), width=q.width, height=q.height, output=q.output, format=q.format,
                         quality=q.quality)
         rig = await self.renders.run(self._rig, sid) if q.camera is not None else None
         try:
@@ -483,12 +511,13 @@ def _json_value(text: str | None, field: str) -> Any:
     return value
 
 
-def _warm_renders() -> float:
-    """runtime.warmup.warm_render in a temporary folder: the render path's kernels and encoders, in this process."""
+def _warm_renders(models: str) -> float:
+    """runtime.warmup.warm_render(models) in a temporary folder: the render path's kernels and encoders, in this
+    process."""
     from xyzcyl.runtime.warmup import warm_render
 
     with tempfile.TemporaryDirectory(prefix="xyzcyl-warmup-") as tmp:
-        return warm_render(tmp)
+        return warm_render(tmp, models)
 
 
 class _Sink:

@@ -10,6 +10,7 @@ from typing import Annotated, Literal
 
 from pydantic import Field, field_validator, model_validator
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
+from xyzcyl.runtime.camera import MAX_RENDER_PIXELS, MAX_SIZE
 
 MiB = 1 << 20
 
@@ -47,8 +48,10 @@ class Settings(BaseSettings):
     max_body_bytes: int = Field(256 * MiB, ge=1024, description="largest request body; 413 beyond, before it is read")
     max_cameras: int = Field(16, ge=1, le=64, description="most cameras in one rig")
     max_image_pixels: int = Field(4096 * 4096, ge=1, description="most pixels of one uploaded image (from its header)")
-    max_render_pixels: int = Field(4096 * 4096, ge=1, description="most pixels of one rendered view")
-    max_render_side: int = Field(8192, ge=1, le=32768, description="longest side of one rendered view")
+    max_render_pixels: int = Field(MAX_RENDER_PIXELS, ge=1, le=MAX_RENDER_PIXELS,
+                                   description="most pixels of one rendered view (at most the runtime's limit)")
+    max_render_side: int = Field(MAX_SIZE, ge=1, le=MAX_SIZE,
+                                 description="longest side of one rendered view (at most the runtime's limit)")
     max_batch_frames: int = Field(2000, ge=1, description="most frames in one POST .../render batch")
     wait_max_s: float = Field(120.0, ge=0, description="longest ?wait= a POST /v1/scenes may hold")
 

@@ -2,8 +2,9 @@
 
     xyzcyl client reconstruct RIG_JSON [--wait [S]] [--detail-stride N | --no-detail] [--json]
     xyzcyl client render SCENE_ID (--camera NAME | --K FX FY CX CY --cam-to-world M*16 | --cam-to-world M*16 --fov F
-                         | --carla X Y Z PITCH YAW ROLL --fov F) [--width W --height H] --out FILE
-                         [--output rgb|depth|alpha] [--quality Q] [--forward M] [--left M] [--up M] [--yaw DEG]
+                         | --carla X Y Z PITCH YAW ROLL --fov F) [--distortion JSON|FILE] [--width W --height H]
+                         --out FILE [--format png|jpeg|exr] [--output rgb|depth|alpha] [--quality Q]
+                         [--forward M] [--left M] [--up M] [--yaw DEG]
     xyzcyl client path SCENE_ID CAMERA_PATH_JSON --out DIR [--video OUT.mp4] [--fps N] [--output ...] [--format ...]
     xyzcyl client gaussians SCENE_ID --out scene.ply|scene.splat
     xyzcyl client scene SCENE_ID [--wait [S]]
@@ -24,7 +25,6 @@ import sys
 from pathlib import Path
 
 _SCENE_HELP = "the scene's id (printed by `xyzcyl client reconstruct`)"
-_FORMATS = {".png": "png", ".jpg": "jpeg", ".jpeg": "jpeg", ".exr": "exr"}
 
 
 class _UsageError(Exception):
@@ -45,7 +45,7 @@ def _common() -> argparse.ArgumentParser:
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     # the pose flags of `xyzcyl render` (one definition; a light module: argparse at import, numpy when run)
-    from xyzcyl.common.poses import add_matrix_argument, add_move_arguments
+    from xyzcyl.common.poses import add_format_argument, add_matrix_argument, add_move_arguments
 
     parser.description = ("Talk to a running `xyzcyl serve` (docs/client.md): reconstruct a rig, render views and "
                           "camera paths, download Gaussians, list and delete scenes.")
@@ -70,8 +70,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
     p = sub.add_parser("render", parents=[common], help="render one view to a file (png, jpg or exr)",
                        description="Render one view and write the server's bytes to --out as they are; the "
-                                   "extension picks the format (.png, .jpg/.jpeg, .exr). Poses are in the scene's "
-                                   "ego frame (x forward, y left, z up, metres; docs/api.md).")
+                                   "extension picks the format (.png, .jpg/.jpeg, .exr), or --format (which must "
+                                   "agree with it). Poses are in the scene's ego frame (x forward, y left, z up, "
+                                   "metres; docs/api.md); the moves apply to any pose, the input camera's too.")
     p.add_argument("scene", metavar="SCENE_ID", help=_SCENE_HELP)
     pose = p.add_argument_group("pose (exactly one of --camera, --cam-to-world, --carla)")
     pose.add_argument("--camera", metavar="NAME", help="an input camera of the scene's rig")
@@ -87,13 +88,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     pose.add_argument("--distortion", metavar="JSON|FILE",
                       help="the camera's lens as rig.json writes it (an OpenCV coefficient list or {\"model\": "
                            "\"opencv\" | \"opencv_fisheye\" | \"ftheta\", ...}), or a .json file holding it; with "
-                           "--cam-to-world")
+                           "--cam-to-world, or with --camera: that camera's pose and K through this lens")
     p.add_argument("--width", type=int, metavar="W", help="pixels (required unless --camera; with --camera: resize)")
     p.add_argument("--height", type=int, metavar="H", help="pixels (as --width)")
     p.add_argument("--output", choices=("rgb", "depth", "alpha"), default="rgb",
                    help="rgb (default), depth (png: 16-bit millimetres; exr: float metres) or alpha")
     p.add_argument("--quality", type=int, metavar="Q", help="JPEG quality 1..100 (default 90)")
     p.add_argument("--out", required=True, metavar="FILE", help="output .png, .jpg or .exr")
+    add_format_argument(p)
     add_move_arguments(p)
 
     p = sub.add_parser("path", parents=[common], help="render a camera path (nerfstudio camera_path.json or "
@@ -207,7 +209,10 @@ def _reconstruct(c, args) -> int:
     return 0
 
 
-def _pose(args) -> object:
+def _pose(args) -> tuple[object, object]:
+    """The camera (as Client.render takes it) and the move of the pose flags; the move goes to the server, which
+    applies it (runtime.views.move_camera) to the input camera's or the given pose (on a --carla pose the client
+    folds it into the transform: view_params)."""
     from xyzcyl.common.poses import CARLA_POSE, PoseArgError, move_from_args, parse_lens, parse_matrix
 
     try:
@@ -222,18 +227,13 @@ def _pose(args) -> object:
         raise _UsageError(modes[1] if len(modes) > 1 else "--camera",
                           "give exactly one pose: --camera NAME, --cam-to-world M*16 (with --K or --fov), or "
                           "--carla X Y Z PITCH YAW ROLL (with --fov)")
-    if lens is not None and args.cam_to_world is None:
-        raise _UsageError("--distortion", "goes with --cam-to-world (an input camera has its own lens; a CARLA "
-                                          "camera has none)")
+    if lens is not None and args.carla is not None:
+        raise _UsageError("--distortion", "goes with --cam-to-world or --camera (a CARLA camera has none)")
     if args.camera is not None:
         for flag, v in (("--K", args.K), ("--fov", args.fov)):
             if v is not None:
                 raise _UsageError(flag, "cannot be combined with --camera (the camera has its intrinsics)")
-        if move:
-            # the service answers an input camera's size but not its pose, so the client cannot move it
-            raise _UsageError(move.flags()[0], "moves an explicit pose only: pass the camera's cam_to_ego from "
-                                               "the rig.json with --cam-to-world (and its --K) instead of --camera")
-        return args.camera
+        return (args.camera if lens is None else {"camera": args.camera, "distortion": lens}), move
     if args.width is None or args.height is None:
         raise _UsageError("--width" if args.width is None else "--height", "required unless --camera")
     if args.carla is not None:
@@ -241,24 +241,28 @@ def _pose(args) -> object:
             raise _UsageError("--K", "a CARLA camera takes --fov (square pixels, centred principal point)")
         if args.fov is None:
             raise _UsageError("--fov", "required with --carla")
-        return dict(zip(CARLA_POSE, move.apply_carla(*args.carla)), fov=args.fov)
+        return dict(zip(CARLA_POSE, args.carla, strict=True), fov=args.fov), move
     if (args.K is None) == (args.fov is None):
         raise _UsageError("--K", "give exactly one of --K FX FY CX CY and --fov DEG with --cam-to-world")
-    pose = move.apply(c2w).reshape(-1).tolist()
-    cam = {"cam_to_ego": pose} if lens is None else {"cam_to_ego": pose, "distortion": lens}
+    cam = {"cam_to_ego": c2w.reshape(-1).tolist()} if lens is None else {"cam_to_ego": c2w.reshape(-1).tolist(),
+                                                                          "distortion": lens}
     if args.K is not None:
         fx, fy, cx, cy = args.K
-        return {"K": [[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]], **cam}
-    return {"fov": args.fov, **cam}
+        return {"K": [[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]], **cam}, move
+    return {"fov": args.fov, **cam}, move
 
 
 def _render(c, args) -> int:
+    from xyzcyl.common.poses import PoseArgError, out_format
+
     out = _out_file(args.out)
-    fmt = _FORMATS.get(out.suffix.lower())
-    if fmt is None:
-        raise _UsageError("--out", f"extension must be .png, .jpg, .jpeg or .exr (got {out.suffix or 'none'!r})")
-    data = c.render_bytes(args.scene, _pose(args), output=args.output, format=fmt, width=args.width,
-                          height=args.height, quality=args.quality)
+    try:
+        fmt = out_format(out, args.format)
+    except PoseArgError as e:
+        raise _UsageError(e.field, e.message) from None
+    camera, move = _pose(args)
+    data = c.render_bytes(args.scene, camera, output=args.output, format=fmt, width=args.width,
+                          height=args.height, quality=args.quality, move=move)
     _write_atomic(out, data)
     _say(args, f"wrote {out} ({len(data)} bytes, {args.output} {fmt})")
     return 0

@@ -2,11 +2,13 @@
 Gaussians composited over the scene's background panorama) from one camera pose. The view is stated as a
 runtime.views.ViewSpec and encoded by runtime.views.encode_view, exactly as the HTTP service does: --out .png /
 .jpg / .exr, --output rgb | depth | alpha (PNG depth: 16-bit millimetres; EXR: float32 metres), or for an .exr the
-default "all" (float32 channels R G B A Z; Z = expected depth in metres, 0 where A == 0). The pose: --K or --fov with
---cam-to-world, --equirect with --cam-to-world, or --camera NAME (an input camera of the scene's rig), optionally
-moved (--forward/--left/--up metres along ego x/y/z, --yaw degrees
-to the left; common/poses.py, shared with `xyzcyl client render`). See docs/renderer.md and
-docs/inference.md."""
+default "all" (float32 channels R G B A Z; Z = expected depth in metres, 0 where A == 0); --format png|jpeg|exr
+must agree with --out's extension. The pose: --K or --fov with --cam-to-world (and a --distortion lens),
+--equirect with --cam-to-world, or --camera NAME (an input camera of the scene's rig; with --distortion: its pose
+and K through that lens), optionally moved (--forward/--left/--up metres along ego x/y/z, --yaw degrees to the
+left; common.poses.CameraMove, applied by runtime.views.move_camera as the service applies the same query
+parameters; the flags are shared with `xyzcyl client render`). --quiet: nothing on stdout or stderr but errors
+(no summary line, no numba compile notice). See docs/renderer.md and docs/inference.md."""
 
 from __future__ import annotations
 
@@ -16,10 +18,13 @@ from pathlib import Path
 
 import numpy as np
 from xyzcyl.common.poses import (
+    MOVE_NAMES,
     PoseArgError,
+    add_format_argument,
     add_matrix_argument,
     add_move_arguments,
     move_from_args,
+    out_format,
     parse_lens,
     parse_matrix,
 )
@@ -38,7 +43,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--distortion", default=None, metavar="JSON|FILE",
                         help="the camera's lens, as rig.json writes it: an OpenCV coefficient list or {\"model\": "
                              "\"opencv\" | \"opencv_fisheye\" | \"ftheta\", ...} (docs/conventions.md, Lens models), "
-                             "or a .json file holding it (or a rig camera entry); with --K or --fov")
+                             "or a .json file holding it (or a rig camera entry); with --K or --fov, or with "
+                             "--camera: that camera's pose and K through this lens")
     parser.add_argument("--fov", type=float, default=None, metavar="DEG",
                         help="horizontal field of view in degrees, instead of --K (square pixels, centred "
                              "principal point)")
@@ -46,10 +52,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="4x4 camera-to-ego matrix, the scene's frame (OpenCV camera: x right, y down, "
                              "z forward; --cam-to-ego is the same flag); required unless --camera")
     parser.add_argument("--camera", default=None, metavar="NAME",
-                        help="SCENE_DIR only: render from this input camera of the scene's rig (its K, size, pose)")
+                        help="SCENE_DIR only: render from this input camera of the scene's rig (its K, size, "
+                             "lens, pose)")
     parser.add_argument("--out", required=True, metavar="PATH",
                         help="output file: .png, .jpg or .exr, encoded as the service encodes (docs/inference.md "
                              "'Encodings')")
+    add_format_argument(parser)
     parser.add_argument("--output", choices=("rgb", "depth", "alpha", "all"), default=None,
                         help="what to write: rgb (default for .png/.jpg), depth (PNG: 16-bit millimetres; EXR: "
                              "float32 metres), alpha, or all (.exr only, the default there: R G B A Z)")
@@ -62,6 +70,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--antialiased", action="store_true", help="gsplat's antialiased opacity compensation")
     parser.add_argument("--max-points", type=int, default=None, help="refuse PLYs with more Gaussians")
     parser.add_argument("--threads", type=int, default=None, help="renderer threads (default: all cores)")
+    parser.add_argument("--quiet", "-q", action="store_true",
+                        help="print nothing but errors (no summary line, no numba compile notice)")
     add_move_arguments(parser)
 
 
@@ -72,24 +82,28 @@ def _fail(msg: str) -> int:
 
 # where each ViewSpec attribute comes from on this command line (its errors name the flag)
 FLAGS = {"camera": "--camera", "cam_to_ego": "--cam-to-world", "fx": "--K", "fy": "--K", "cx": "--K", "cy": "--K",
-         "K": "--K", "fov": "--fov", "distortion": "--distortion", "model": "--equirect", "width": "--width", "height": "--height",
-         "output": "--output", "format": "--out", "quality": "--quality"}
-FORMATS = {".png": "png", ".jpg": "jpeg", ".jpeg": "jpeg", ".exr": "exr"}
+         "K": "--K", "fov": "--fov", "distortion": "--distortion", "model": "--equirect", "width": "--width",
+         "height": "--height", "output": "--output", "format": "--out", "quality": "--quality",
+         **{f"move.{k}": f"--{k}" for k in MOVE_NAMES}}
 
 
 def run(args: argparse.Namespace) -> int:
     from xyzcyl.common.files import atomic_file
 
-    from ..camera import CameraError
     from ..render import GaussianError, Gaussians, render
     from ..render.gaussians import DEFAULT_MAX_POINTS
     from ..scene import JSON_NAME, Scene, SceneError
-    from ..views import ViewError, ViewRequest, ViewSpec, encode_view
+    from ..views import ViewError, ViewSpec, encode_view
 
+    if args.quiet:       # the numba compile notice (runtime.compile_notice) goes nowhere
+        from ..compile_notice import install
+
+        install(lambda line: None)
     out = Path(args.out)
-    fmt = FORMATS.get(out.suffix.lower())
-    if fmt is None:
-        return _fail(f"--out: extension must be .png, .jpg or .exr, got {out.suffix or 'none'!r}")
+    try:
+        fmt = out_format(out, args.format)
+    except PoseArgError as exc:
+        return _fail(str(exc))
     if not out.parent.is_dir():
         return _fail(f"--out: folder {str(out.parent)!r} does not exist")
     if args.background is not None and not all(np.isfinite(args.background)):
@@ -117,10 +131,9 @@ def run(args: argparse.Namespace) -> int:
     if args.camera is not None:
         if not is_scene:
             return _fail("--camera: needs a SCENE_DIR (a PLY has no rig); pass --K and --cam-to-world instead")
-        if args.cam_to_world is not None or args.K is not None or args.fov is not None or args.equirect \
-                or args.distortion is not None:
-            return _fail("--camera: give either --camera or --K/--fov/--distortion/--cam-to-world/--equirect, not "
-                         "both (an input camera has its own lens)")
+        if args.cam_to_world is not None or args.K is not None or args.fov is not None or args.equirect:
+            return _fail("--camera: give either --camera or --K/--fov/--cam-to-world/--equirect, not both (an "
+                         "input camera has its own K and pose; --distortion gives it another lens)")
     else:
         if args.cam_to_world is None:
             return _fail("--cam-to-world: required (or --camera NAME with a SCENE_DIR)")
@@ -146,18 +159,14 @@ def run(args: argparse.Namespace) -> int:
         return _fail(str(exc))
     fx, fy, cx, cy = args.K if args.K is not None else (None,) * 4
     output = args.output or ("all" if fmt == "exr" else "rgb")
-    spec = ViewSpec(camera=args.camera, cam_to_ego=None if c2w is None else move.apply(c2w), fx=fx, fy=fy, cx=cx,
-                    cy=cy, fov=args.fov, distortion=lens, model="equirectangular" if args.equirect else "pinhole",
-                    width=args.width, height=args.height, output=output, format=fmt, quality=args.quality, names=FLAGS)
+    spec = ViewSpec(camera=args.camera, cam_to_ego=c2w, fx=fx, fy=fy, cx=cx, cy=cy, fov=args.fov, distortion=lens,
+                    move=move, model="equirectangular" if args.equirect else "pinhole", width=args.width,
+                    height=args.height, output=output, format=fmt, quality=args.quality,
+                    names=FLAGS if args.format is None else {**FLAGS, "format": "--format"})
     try:
         req = spec.request(None if scene is None else scene.rig)
-        if args.camera is not None and move:
-            req = ViewRequest(req.camera.replace(cam_to_ego=move.apply(req.camera.cam_to_ego)), req.output,
-                              req.format, req.quality)
     except ViewError as exc:
         return _fail(str(exc))
-    except CameraError as exc:       # a moved input camera: the camera's field as the flag that set it
-        return _fail(f"{FLAGS.get(exc.root_field, '--' + exc.root_field)}: {exc.message}")
     cam = req.camera
     if args.background is not None:
         bg = args.background
@@ -165,6 +174,8 @@ def run(args: argparse.Namespace) -> int:
         bg = scene.background.render(cam)
     else:
         bg = None
+    if scene is not None:    # the Gaussians the service renders for this camera (runtime.scene.render_view)
+        g = scene.gaussians_for(cam)
     res = render(g, cam, background=bg, antialiased=args.antialiased)
     data = encode_view(res.rgb, res.depth, res.alpha, req)
     try:
@@ -172,6 +183,7 @@ def run(args: argparse.Namespace) -> int:
             f.write(data)
     except OSError as exc:
         return _fail(f"--out: {exc}")
-    print(f"rendered {len(g)} Gaussians -> {out} ({cam.width}x{cam.height}, "
-          f"coverage {float((res.alpha > 0).mean()):.3f}{', with background' if bg is not None else ''})")
+    if not args.quiet:
+        print(f"rendered {len(g)} Gaussians -> {out} ({cam.width}x{cam.height}, "
+              f"coverage {float((res.alpha > 0).mean()):.3f}{', with background' if bg is not None else ''})")
     return 0

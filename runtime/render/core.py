@@ -10,7 +10,7 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
-from ..camera import Camera
+from ..camera import Camera, check_render_size
 from . import kernels as K
 from . import lensmap
 from .gaussians import Gaussians
@@ -206,6 +206,7 @@ def render(gaussians: Gaussians, camera, background=None, **options) -> RenderRe
     background alone (alpha 0, depth 0)."""
     opts = RenderOptions.from_kwargs(options)
     W, H = camera.width, camera.height
+    check_render_size(W, H)                   # before any allocation (a clear error, not numpy's MemoryError)
     bg = background_image(background, H, W)
     ntx, start, ids, rows, gid, timings = _prepare(gaussians, camera, opts)
     t0 = time.perf_counter()

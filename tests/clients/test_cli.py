@@ -66,7 +66,8 @@ def test_version(capsys):
     with pytest.raises(SystemExit) as e:
         cli.main(["--version"])
     assert e.value.code == 0
-    assert capsys.readouterr().out.strip() == f"xyzcyl {version('xyzcyl')}"
+    out = capsys.readouterr().out.splitlines()
+    assert out[0] == f"xyzcyl {version('xyzcyl')}" and out[1].startswith("model: ")   # issue 35: the model's too
 
 
 # -- help ------------------------------------------------------------------------------------------------------

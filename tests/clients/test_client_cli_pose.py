@@ -1,6 +1,6 @@
 """`xyzcyl client render` poses (issue 27): --cam-to-world and --carla take negative numbers in scientific notation
 and the other matrix forms (defect 2), and the camera moves of `xyzcyl render` (--forward/--left/--up/--yaw, one
-definition: runtime/commands/pose_flags.py; defect 7). The request the client sends is captured with
+definition: common/poses.py; defect 7), sent to the server as the query's move (issue 35). The request the client sends is captured with
 httpx.MockTransport (no server)."""
 
 from __future__ import annotations
@@ -9,27 +9,12 @@ import json
 
 import numpy as np
 import pytest
+from client_helpers import PNG
 
 httpx = pytest.importorskip("httpx")
 
 POSE = np.array([[0, 0, 1, 5], [-1, 0, 0, -1e-05], [0, -1, 0, 1.6], [0, 0, 0, 1.0]])
 SCI = ["0", "0", "1", "5", "-1", "0", "0", "-1e-05", "0", "-1", "0", "1.6", "0", "0", "0", "1"]
-PNG = b"\x89PNG\r\n\x1a\n" + b"\0" * 32
-
-
-@pytest.fixture
-def sent(monkeypatch):
-    """The query parameters of each render request, answered with a few PNG bytes."""
-    calls: list[dict[str, str]] = []
-    real = httpx.Client
-
-    def handler(request: httpx.Request) -> httpx.Response:
-        calls.append(dict(request.url.params))
-        return httpx.Response(200, content=PNG, headers={"content-type": "image/png"})
-
-    monkeypatch.setattr(httpx, "Client", lambda **kw: real(transport=httpx.MockTransport(handler), **kw))
-    monkeypatch.delenv("XYZCYL_API_KEY", raising=False)
-    return calls
 
 
 def _client(capsys, *args):
@@ -61,18 +46,21 @@ def test_matrix_forms(sent, tmp_path, capsys):
 
 
 def test_moves_on_cam_to_world_are_the_render_commands(sent, tmp_path, capsys):
+    """The pose and the move go to the server as they are (issue 35: the server moves a pose with
+    runtime.views.move_camera, as `xyzcyl render` does); the moved pose is CameraMove.apply's."""
     from xyzcyl.common.poses import CameraMove
 
     rc, err = _client(capsys, "--cam-to-world", *SCI, "--fov", "90", "--width", "80", "--height", "45",
                       "--forward", "-2e0", "--left", "0.5", "--up", "1e-1", "--yaw", "-1.5e1",
                       "--out", str(tmp_path / "v.png"))
     assert rc == 0, err
-    expected = CameraMove(forward=-2.0, left=0.5, up=0.1, yaw=-15.0).apply(POSE)
-    assert np.allclose(_pose(sent[-1]), expected, atol=1e-12)
+    assert np.array_equal(_pose(sent[-1]), POSE)
+    move = {k: float(sent[-1][k]) for k in ("forward", "left", "up", "yaw")}
+    assert move == {"forward": -2.0, "left": 0.5, "up": 0.1, "yaw": -15.0}
+    moved = CameraMove(**move).apply(POSE)
     # by hand: 15 degrees to the right, the camera that looked along ego +x looks right of it (-y)
-    axis = _pose(sent[-1])[:3, 2]
-    assert np.allclose(axis, [np.cos(np.radians(15)), -np.sin(np.radians(15)), 0])
-    assert np.allclose(_pose(sent[-1])[:3, 3], [3.0, 0.5 - 1e-05, 1.7])
+    assert np.allclose(moved[:3, 2], [np.cos(np.radians(15)), -np.sin(np.radians(15)), 0])
+    assert np.allclose(moved[:3, 3], [3.0, 0.5 - 1e-05, 1.7])
 
 
 def test_moves_on_a_carla_pose(sent, tmp_path, capsys):
@@ -85,11 +73,11 @@ def test_moves_on_a_carla_pose(sent, tmp_path, capsys):
     assert p == pytest.approx({"x": 6.0, "y": -2.00001, "z": 1.1, "pitch": -2.5, "yaw": -30.0, "roll": 0.0})
 
 
-def test_moves_with_an_input_camera_are_refused(sent, tmp_path, capsys):
+def test_moves_with_an_input_camera_go_to_the_server(sent, tmp_path, capsys):
+    """Issue 35: the server moves the input camera's pose (it was refused here, the client not knowing it)."""
     rc, err = _client(capsys, "--camera", "CAM_FRONT", "--up", "1", "--out", str(tmp_path / "v.png"))
-    assert rc == 2 and not sent
-    lines = err.strip().splitlines()
-    assert len(lines) == 1 and lines[0].startswith("xyzcyl client: --up: moves an explicit pose only"), err
+    assert rc == 0, err
+    assert sent[-1]["camera"] == "CAM_FRONT" and float(sent[-1]["up"]) == 1.0 and "forward" not in sent[-1]
 
 
 @pytest.mark.parametrize("value, message", [

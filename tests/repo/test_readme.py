@@ -53,3 +53,19 @@ def test_the_quick_start_prints_the_id_or_the_error_body():
         r = _run(nothing)
         assert r.returncode == 1 and r.stdout == "" and "Traceback" not in r.stderr
         assert "POST /v1/scenes failed" in r.stderr
+
+
+def test_the_readme_commands_write_nothing_git_tracks():
+    """Issue 35 item 11: the quick start wrote v.png and eval-real/ into the repository root. Every output of a
+    README command (--out, --picture, curl -o) lies under /tmp or a path git ignores (out/, runs/, data/)."""
+    outputs = []
+    for line in README.splitlines():
+        if ".venv/bin/xyzcyl" in line or line.startswith("curl") or "curl -s" in line:
+            outputs += re.findall(r"(?:--out|--picture|\s-o)\s+(\S+)", line.split("  #")[0])
+    assert len(outputs) >= 10, outputs
+    for path in outputs:
+        if path.startswith("/tmp/") or path.isupper():      # /tmp, or a placeholder (SCENE_DIR)
+            continue
+        probe = path.rstrip("/") + ("/x" if path.endswith("/") else "")
+        ignored = subprocess.run(["git", "check-ignore", "-q", probe], cwd=REPO, check=False).returncode == 0
+        assert ignored, f"README writes {path!r}, which git does not ignore"

@@ -30,7 +30,7 @@ def test_spec_with_a_lens_makes_a_lens_camera():
     (dict(cam_to_ego=AHEAD, fov=90, width=64, height=48, distortion=dict(FISHEYE, max_angle_deg=200)),
      "distortion.max_angle_deg"),
     (dict(cam_to_ego=AHEAD, fov=90, width=64, height=48, distortion=[0.1, float("nan"), 0, 0]), "distortion[1]"),
-    (dict(camera="CAM_FRONT", distortion=FISHEYE), "distortion"),            # an input camera has its own lens
+    (dict(camera="CAM_FRONT", distortion=FISHEYE), "camera"),   # an input camera takes a lens (issue 35): needs a rig
     (dict(carla={"x": 0, "y": 0, "z": 1, "pitch": 0, "yaw": 0, "roll": 0}, fov=90, width=64, height=48,
           distortion=FISHEYE), "distortion"),
     (dict(cam_to_ego=AHEAD, model="equirectangular", width=64, height=32, distortion=FISHEYE), "distortion"),

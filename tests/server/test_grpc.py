@@ -223,7 +223,7 @@ BAD = {
     "no pose": (lambda r: r.ClearField("sensor_pose"), Code.INVALID_ARGUMENT, "sensor_pose"),
     "video format": (lambda r: setattr(r, "image_format", pb.AV1), Code.INVALID_ARGUMENT, "image_format"),
     "quality": (lambda r: setattr(r, "image_quality", 500.0), Code.INVALID_ARGUMENT, "image_quality"),
-    "over the render limit": (lambda r: setattr(r, "resolution_w", 9000), Code.INVALID_ARGUMENT, "resolution_w"),
+    "over the render limit": (lambda r: setattr(r, "resolution_w", 17000), Code.INVALID_ARGUMENT, "resolution_w"),
     "ego mask": (lambda r: setattr(r, "insert_ego_mask", True), Code.INVALID_ARGUMENT, "insert_ego_mask"),
 }
 

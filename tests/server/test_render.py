@@ -136,7 +136,7 @@ _C2E = "0,0,1,1.5,-1,0,0,0,0,-1,0,1.6,0,0,0,1"
 
 RENDER_ERRORS = {
     "two poses": (f"camera=CAM_FRONT&cam_to_ego={_C2E}&fov=60&width=64&height=64", "cam_to_ego"),
-    "camera and CARLA": ("camera=CAM_FRONT&yaw=1", "yaw"),
+    "camera and CARLA": ("camera=CAM_FRONT&pitch=1", "pitch"),     # (with camera, yaw is the move's: issue 35)
     "no pose": ("width=64&height=64", "camera"),
     "15 numbers": (f"cam_to_ego={_C2E.rsplit(',', 1)[0]}&fov=60&width=64&height=64", "cam_to_ego"),
     "not numbers": ("cam_to_ego=a,b,c&fov=60&width=64&height=64", "cam_to_ego"),
@@ -148,8 +148,8 @@ RENDER_ERRORS = {
     "fov and cy": (f"cam_to_ego={_C2E}&fov=60&cy=3&width=64&height=64", "cy"),
     "negative fx": (f"cam_to_ego={_C2E}&fx=-100&width=64&height=64", "fx"),
     "fov 180": (f"cam_to_ego={_C2E}&fov=180&width=64&height=64", "fov"),
-    "side over max_render_side": (f"cam_to_ego={_C2E}&fov=60&width=9000&height=100", "width"),
-    "height over max_render_side": (f"cam_to_ego={_C2E}&fov=60&width=100&height=9000", "height"),
+    "side over max_render_side": (f"cam_to_ego={_C2E}&fov=60&width=17000&height=100", "width"),
+    "height over max_render_side": (f"cam_to_ego={_C2E}&fov=60&width=100&height=17000", "height"),
     "pixels over max_render_pixels": (f"cam_to_ego={_C2E}&fov=60&width=5000&height=5000", "width"),
     "input camera too big": ("camera=CAM_FRONT&width=8000", "width"),
     "jpeg depth": ("camera=CAM_FRONT&output=depth&format=jpeg", "format"),
@@ -163,7 +163,7 @@ RENDER_ERRORS = {
     "lens max angle": (f"cam_to_ego={_C2E}&fov=60&width=64&height=64&distortion="
                        + quote('{"model": "ftheta", "pixeldist_to_angle_poly": [0, 0.02], "max_angle_deg": 181}'),
                        "distortion.max_angle_deg"),
-    "lens on an input camera": ("camera=CAM_FRONT&distortion=" + quote("[0.1, 0, 0, 0]"), "distortion"),
+    "bad lens on an input camera": ("camera=CAM_FRONT&distortion=" + quote("[0.1, 0, 0]"), "distortion"),
 }
 
 
