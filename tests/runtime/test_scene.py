@@ -100,10 +100,13 @@ def scene(tiny_export):
 def test_save_load_round_trip(scene, tmp_path):
     _, s = scene
     out = s.save(tmp_path / "scene")
-    assert sorted(p.name for p in out.iterdir()) == ["background.exr", "background.png", "scene.json", "scene.ply"]
+    assert sorted(p.name for p in out.iterdir()) == ["background.exr", "background.png", "own_views.npz", "scene.json",
+                                                     "scene.ply"]
     t = Scene.load(out)
     for k in ("means", "quats", "log_scales", "opacity_logits", "sh"):
         np.testing.assert_array_equal(getattr(t.gaussians, k), getattr(s.gaussians, k))
+    for k in ("index", "logit", "owner", "hide", "hide_offsets"):      # the input cameras' own views
+        np.testing.assert_array_equal(getattr(t.own_views, k), getattr(s.own_views, k))
     np.testing.assert_array_equal(t.background.image, s.background.image)   # float32 EXR: exact
     assert t.background.v_range == s.background.v_range
     np.testing.assert_allclose(t.background.cylinder.centre, s.background.cylinder.centre)
@@ -137,7 +140,8 @@ def test_render_view_composites_the_background(scene):
     _, s = scene
     cam = rig_camera(s.rig.cameras[1], width=96, height=48)
     rgb, depth, alpha = render_view(s, cam)
-    fg = render(s.gaussians, cam)
+    assert s.own_camera(cam) == 1 and s.gaussians_for(cam) is not s.gaussians    # an input pose: its own view
+    fg = render(s.gaussians_for(cam), cam)
     bg = s.background.render(cam)
     np.testing.assert_allclose(rgb, fg.rgb + (1 - fg.alpha[..., None]) * bg, atol=1e-5)
     np.testing.assert_array_equal(alpha, fg.alpha)

@@ -245,7 +245,7 @@ BATCH_ERRORS = {
     "empty": ({"cameras": []}, "cameras"),
     "no cameras": ({"frames": []}, "cameras"),
     "not an object": ([1, 2], "body"),
-    "too big": ({"cameras": [{"camera": "CAM_FRONT"}, {"camera": "CAM_FRONT", "width": 9000}]}, "cameras[1]"),
+    "too big": ({"cameras": [{"camera": "CAM_FRONT"}, {"camera": "CAM_FRONT", "width": 9000}]}, "cameras[1].width"),
     "jpeg depth": ({"cameras": [{"camera": "CAM_FRONT"}], "output": "depth", "format": "jpeg"}, "format"),
     "bad output": ({"cameras": [{"camera": "CAM_FRONT"}], "output": "normals"}, "output"),
     "bad quality": ({"cameras": [{"camera": "CAM_FRONT"}], "quality": "high"}, "quality"),
