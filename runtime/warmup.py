@@ -172,9 +172,11 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="python -m xyzcyl.runtime.warmup", description=main.__doc__)
     ap.add_argument("--model", default=None, help="model folder (default: $XYZCYL_MODEL or the shipped one)")
     ap.add_argument("--render-only", action="store_true", help="the render path only (no model needed)")
+    ap.add_argument("--models", choices=("pinhole", "lenses", "all"), default="all",
+                    help="the render views: pinhole, the equirectangular and lens models, or all (default)")
     args = ap.parse_args(argv)
     with tempfile.TemporaryDirectory(prefix="xyzcyl-warmup-") as tmp:
-        r = warm_render(Path(tmp) / "render")
+        r = warm_render(Path(tmp) / "render", args.models)
         line = f"render path {r:.1f} s"
         if not args.render_only:
             from .inference import Reconstructor, default_model_dir

@@ -24,6 +24,7 @@ def test_a_failing_warm_up_render_is_not_ready(tmp_path, monkeypatch, caplog, wh
         return 0.0
 
     monkeypatch.setattr(service, "_warm_renders", warm)
+    monkeypatch.setattr(service.Service, "_compile_lenses", _no_child)        # no lens compile process here
     started = []
     monkeypatch.setattr(service.Reconstructions, "start", lambda self: _started(started))
     caplog.set_level(logging.ERROR, logger="xyzcyl")
@@ -37,6 +38,10 @@ def test_a_failing_warm_up_render_is_not_ready(tmp_path, monkeypatch, caplog, wh
         assert "warm-up failed" in r.text and "IndexError" in r.text, r.text
     assert any("warm-up failed" in rec.getMessage() and rec.exc_info for rec in caplog.records)
     assert started == ([] if which == "pinhole" else [1])       # a failed pinhole warm-up starts no worker
+
+
+async def _no_child(self) -> tuple[float, str]:
+    return 0.0, "not run"
 
 
 async def _started(started: list) -> float:
