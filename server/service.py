@@ -22,7 +22,6 @@ import errno
 import hashlib
 import json
 import logging
-import os
 import shutil
 import sys
 import tempfile
