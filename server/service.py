@@ -50,6 +50,7 @@ from .store import SceneFailure, SceneRecord, Store, StoreFull, StoreUnavailable
 from .store.record import valid_id
 from .uploads import RIG_PART_BYTES, ingest
 
+_FAILED = object()   # Service._step: the step failed (its reason is the service's startup_error)
 LENS_NICE = 5     # the lens compile process runs this much nicer than the renders (after ready: requests first)
 log = logging.getLogger("xyzcyl.server")
 
@@ -133,10 +134,16 @@ class Service:
         that); the seconds. A failed warm-up render raises: the caller does not report ready over it."""
         return await asyncio.get_running_loop().run_in_executor(self.renders.pool, _warm_renders, models)
 
-    def _fail_start(self, what: str, exc: BaseException) -> None:
-        self.ready = False
-        self.startup_error = f"{what}: {type(exc).__name__}: {exc}"
-        log.error("%s; not ready", what, exc_info=exc)
+    async def _step(self, what: str, work: Awaitable):
+        """``work``'s result, or _FAILED when it raised: the service is then not ready, ``what`` and the error its
+        reason (logged at ERROR with the traceback)."""
+        try:
+            return await work
+        except Exception as e:
+            self.ready = False
+            self.startup_error = f"{what}: {type(e).__name__}: {e}"
+            log.error("%s; not ready", what, exc_info=e)
+            return _FAILED
 
     async def _start_workers(self) -> None:
         t0 = time.perf_counter()
@@ -145,19 +152,11 @@ class Service:
             # before the workers start: on a cold numba cache this compiles the pinhole render kernels once, and
             # the workers then load them from the cache (compiling in both at once would take both cores twice as
             # long)
-            try:
-                renders = await self._warm_up_renders("pinhole")
-            except asyncio.CancelledError:
-                raise
-            except Exception as e:
-                self._fail_start("the render warm-up failed", e)
+            renders = await self._step("the render warm-up failed", self._warm_up_renders("pinhole"))
+            if renders is _FAILED:
                 return
-        try:
-            workers = await self.reconstructions.start()
-        except asyncio.CancelledError:
-            raise
-        except Exception as e:
-            self._fail_start("the reconstruction workers did not start", e)
+        workers = await self._step("the reconstruction workers did not start", self.reconstructions.start())
+        if workers is _FAILED:
             return
         if self.settings.warm_up:
             log.info("warm-up took %.1f s (pinhole renders %.1f s, reconstruction workers %.1f s; numba compile "
@@ -176,17 +175,13 @@ class Service:
         pinhole renders after ready took 2.8 s instead of 0.4 s. Then this process loads them (well under a second)
         through the same warm-up views; a request for one of them meanwhile compiles or loads it itself. A failure
         of that last step is the renderer's: not ready."""
-        compiled = await self._compile_lenses()
-        try:
-            seconds = await self._warm_up_renders("lenses")
-        except asyncio.CancelledError:
-            raise
-        except Exception as e:
-            self._fail_start("the lens render warm-up failed", e)
+        compiled, how = await self._compile_lenses()
+        seconds = await self._step("the lens render warm-up failed", self._warm_up_renders("lenses"))
+        if seconds is _FAILED:
             return
         log.info("lens warm-up took %.1f s (%s: compiled in a child process in %s, loaded here in %.1f s; numba "
-                 "compile in the server process %.1f s)", compiled[0] + seconds, ", ".join(LENS_MODELS),
-                 compiled[1], seconds, compile_notice.compile_seconds())
+                 "compile in the server process %.1f s)", compiled + seconds, ", ".join(LENS_MODELS), how, seconds,
+                 compile_notice.compile_seconds())
 
     async def _compile_lenses(self) -> tuple[float, str]:
         """Run the lens warm-up in a nice child process (numba's cache is shared through NUMBA_CACHE_DIR or the
