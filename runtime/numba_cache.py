@@ -24,6 +24,11 @@ read-modify-write of the index, writes the data file before the index names it, 
 stamp inside the data; a reader accepts data only when both match (anything else, a stale or foreign file, is a
 miss: the kernel compiles again and overwrites it). Readers take no lock, so a read-only cache still loads.
 
+What the cache cannot tell apart is two functions of one qualified name: numba names machine code by the qualified
+name and a per-process counter, so closures specialised per configuration must carry the configuration in their
+name (runtime.render.kernels.per_model), or two of them compiled in two processes share a symbol and one process
+that loads both runs one's code for the other.
+
 The source stamp is also wider than numba's (which is the defining file's mtime and size only, so a kernel whose
 callee in another file changed loaded stale code): it covers the kernel's module and what it imports from the
 package, following the modules that define numba code themselves (``source_files``).

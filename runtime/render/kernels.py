@@ -222,13 +222,24 @@ def _plane_span(table, a, b):
 # nested in a tuple does not pass into a prange loop): the opencv plane tables (core._camera_args).
 
 
+def per_model(fn, model: int):
+    """``fn`` (a closure specialised to one camera model) renamed for that model: ``<name>_m<model>``. numba names a
+    compiled function's machine code by its qualified name and a per-process counter, so two closures of one
+    qualified name compiled in two processes (a server's warm-up, its workers, another command) can carry the same
+    symbol; loaded from the cache into one process, a kernel of one model then linked to the chunk function of the
+    other (an f-theta render ran the pinhole's pre-count and wrote past its outputs). One name per model, also one
+    cache index per model."""
+    fn.__name__ = f"{fn.__name__}_m{int(model)}"
+    fn.__qualname__ = f"{fn.__qualname__}_m{int(model)}"
+    return fn
+
+
 @functools.cache
 def _chunk_functions(model: int):
     """(precull_chunk, project_chunk): one chunk of precull_counts / project_kernel, compiled for one camera
     model (the closure's `model`)."""
     model = int(model)
 
-    @njit(cache=True, nogil=True)
     def precull_chunk(means, log_scales, cam, ptab, planes, ch):
         """How many Gaussians of chunk ch survive _precull (0 when the chunk's box lies outside one of planes)."""
         Rw, tw, lp, fx, fy, cx, cy, lxn, lxp, lyn, lyp, width, height, near, far, low_pass = cam
@@ -243,7 +254,6 @@ def _chunk_functions(model: int):
             c += keep
         return c
 
-    @njit(cache=True, nogil=True)
     def project_chunk(means, quats, log_scales, opacity_logits, sh, campos, cam, ptab, antialiased, opacity_mode,
                       rows, trange, depth_out, gid, ch, slot0, ntx):
         """One chunk of project_kernel, writing from slot slot0 on; returns the number of visible Gaussians
@@ -440,7 +450,8 @@ def _chunk_functions(model: int):
             s += 1
         return s - slot0
 
-    return precull_chunk, project_chunk
+    chunk_fn = njit(cache=True, nogil=True)
+    return chunk_fn(per_model(precull_chunk, model)), chunk_fn(per_model(project_chunk, model))
 
 
 def _precull_chunk_call(model, means, log_scales, cam, ptab, planes, ch):
@@ -456,7 +467,7 @@ def _ol_precull_chunk_call(model, means, log_scales, cam, ptab, planes, ch):
 
     def impl(model, means, log_scales, cam, ptab, planes, ch):
         return fn(means, log_scales, cam, ptab, planes, ch)
-    return impl
+    return per_model(impl, model.literal_value)
 
 
 def _project_chunk_call(model, means, quats, log_scales, opacity_logits, sh, campos, cam, ptab, antialiased,
@@ -476,7 +487,7 @@ def _ol_project_chunk_call(model, means, quats, log_scales, opacity_logits, sh, 
              rows, trange, depth_out, gid, ch, slot0, ntx):
         return fn(means, quats, log_scales, opacity_logits, sh, campos, cam, ptab, antialiased, opacity_mode, rows,
                   trange, depth_out, gid, ch, slot0, ntx)
-    return impl
+    return per_model(impl, model.literal_value)
 
 
 @functools.cache
@@ -487,7 +498,6 @@ def precull_counts(model: int):
     bound of what project_kernel keeps, so its outputs can be allocated to fit."""
     model = int(model)
 
-    @njit(cache=True, parallel=True, nogil=True)
     def precull_counts_kernel(means, log_scales, cam, ptab, planes, counts):
         nch = (means.shape[0] + PROJ_CHUNK - 1) // PROJ_CHUNK
         for k in prange(SPREAD * ((nch + SPREAD - 1) // SPREAD)):
@@ -496,7 +506,7 @@ def precull_counts(model: int):
                 continue
             counts[ch] = _precull_chunk_call(model, means, log_scales, cam, ptab, planes, ch)
 
-    return precull_counts_kernel
+    return njit(cache=True, parallel=True, nogil=True)(per_model(precull_counts_kernel, model))
 
 
 @functools.cache
@@ -512,7 +522,6 @@ def project_kernel(model: int):
     index, so sorting slots is sorting indices."""
     model = int(model)
 
-    @njit(cache=True, parallel=True, nogil=True)
     def project_kernel_model(means, quats, log_scales, opacity_logits, sh, campos, cam, ptab, antialiased,
                              opacity_mode, pre, base, rows, trange, depth_out, gid, counts):
         nch = (means.shape[0] + PROJ_CHUNK - 1) // PROJ_CHUNK
@@ -527,7 +536,7 @@ def project_kernel(model: int):
                                                  ptab, antialiased, opacity_mode, rows, trange, depth_out, gid, ch,
                                                  base[ch], ntx)
 
-    return project_kernel_model
+    return njit(cache=True, parallel=True, nogil=True)(per_model(project_kernel_model, model))
 
 
 @njit(inline="always")

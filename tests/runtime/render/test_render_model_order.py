@@ -110,3 +110,58 @@ def test_the_precull_bounds_the_projection_of_every_model_in_any_order():
                                       base, rows, trange, dep, gid, counts)
         assert np.all(counts <= pre), MODELS[k]
         assert counts.sum() > 0, MODELS[k]
+
+
+# One camera model's projection per process, then both in one process, all through one on-disk numba cache: the
+# closures specialised per model (kernels._chunk_functions, precull_counts, project_kernel) were named alike, and
+# numba names machine code by the qualified name and a per-process counter, so the pinhole's chunk function and
+# the f-theta's, each compiled first in its own process, carried one symbol; loaded together, the f-theta kernel ran
+# the pinhole's pre-count (IndexError in core._prepare, or heap corruption). Only the projection is run (core
+# ._prepare): the raster kernels are not specialised per model.
+_PREPARE = r"""
+import sys
+import numpy as np
+from xyzcyl.runtime.camera import Camera
+from xyzcyl.runtime.lenses import Lens
+from xyzcyl.runtime.render import Gaussians
+from xyzcyl.runtime.render.core import _prepare
+from xyzcyl.runtime.render.projection import RenderOptions
+
+rng = np.random.default_rng(3)
+n = 3000
+d = rng.normal(size=(n, 3))
+d /= np.linalg.norm(d, axis=1, keepdims=True)
+g = Gaussians((d * rng.uniform(2.0, 8.0, (n, 1))).astype(np.float32), np.tile([1.0, 0, 0, 0], (n, 1)),
+              np.full((n, 3), -2.5), np.zeros(n), rng.random((n, 1, 3)))
+K = np.array([[70.0, 0, 79.7], [0, 70.0, 60.2], [0, 0, 1.0]])
+lens = {"pinhole": None, "ftheta": Lens("ftheta", max_angle_deg=100.0,
+                                        angle_to_pixeldist_poly=(0.0, 52.0, 0.0, -1.5, 0.1))}
+out = {}
+for name in sys.argv[2:]:
+    cam = Camera(K=K, cam_to_ego=np.eye(4), width=160, height=120, distortion=lens[name])
+    ntx, start, ids, rows, gid, _ = _prepare(g, cam, RenderOptions())
+    out[name] = np.sort(gid[ids]) if len(ids) else np.zeros(0, np.int32)
+np.savez(sys.argv[1], **out)
+"""
+
+
+def test_models_compiled_in_different_processes_load_together(tmp_path):
+    import os
+    import subprocess
+    import sys
+
+    env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path / "cache"))
+    script = tmp_path / "prepare.py"
+    script.write_text(_PREPARE)
+
+    def run(out: str, *models: str) -> dict:
+        r = subprocess.run([sys.executable, str(script), str(tmp_path / out), *models], env=env,
+                           capture_output=True, text=True, timeout=600)
+        assert r.returncode == 0, r.stderr[-3000:]
+        return dict(np.load(tmp_path / out))
+
+    alone = {**run("p.npz", "pinhole"), **run("f.npz", "ftheta")}     # each compiled first in its own process
+    together = run("both.npz", "pinhole", "ftheta")                   # both loaded from the cache into one
+    for name in ("pinhole", "ftheta"):
+        np.testing.assert_array_equal(together[name], alone[name])
+    assert len(alone["ftheta"]) > len(alone["pinhole"]) > 0          # the models see different Gaussians
