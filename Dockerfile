@@ -17,6 +17,8 @@ RUN python3 -m venv /opt/venv
 ENV PATH=/opt/venv/bin:$PATH
 WORKDIR /src
 COPY pyproject.toml README.md ./
+# the `xyzcyl` console script (xyzcyl.cli) and `python -m xyzcyl`: the package's modules at the top
+COPY cli.py __main__.py ./
 COPY common ./common
 COPY runtime ./runtime
 COPY server ./server

@@ -35,8 +35,6 @@ from pathlib import Path
 import numba
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
 W, H = 1920, 1080
 FTHETA_POLY = (0.0, 1.0 / 900.0, 0.0, -2.2e-11)
 FISHEYE_K = (0.02, -0.01, 0.002, -0.0003)
@@ -81,6 +79,7 @@ def main() -> int:
         print("lens_bench: --repeats and --threads must be >= 1", file=sys.stderr)
         return 2
     numba.set_num_threads(min(args.threads, numba.config.NUMBA_NUM_THREADS))
+    # render_scenes_bench: a sibling script, importable as its folder is on the path (run as a script)
     from render_scenes_bench import build_scene
     from xyzcyl.runtime.rig import load_rig
     from xyzcyl.testing.rigs import make_rig

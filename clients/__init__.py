@@ -1,6 +1,6 @@
 """xyzcyl.clients: the Python client of the HTTP service (``from xyzcyl.clients import Client``; docs/client.md)
-and the ``xyzcyl`` command dispatcher (clients/cli.py). The client is imported lazily, so ``xyzcyl --help`` does
-not import httpx or numpy."""
+and the `xyzcyl client` command (clients/commands). The client is imported lazily, so ``xyzcyl --help`` does not
+import httpx or numpy."""
 
 from __future__ import annotations
 

@@ -28,7 +28,6 @@ from __future__ import annotations
 
 import email.utils
 import json
-import numbers
 import os
 import re
 import secrets
@@ -36,7 +35,7 @@ import tempfile
 import time
 import zipfile
 from collections.abc import Callable, Iterable, Iterator, Mapping
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass
 from pathlib import Path
 from typing import IO, Any, Self
 
@@ -47,6 +46,7 @@ from xyzcyl.common import wire
 from xyzcyl.common.files import atomic_file
 from xyzcyl.common.media import EXR, SNIFF_BYTES, exr_bytes, media_of_suffix, sniff
 from xyzcyl.common.poses import CARLA_POSE, MOVE_NAMES, CameraMove, MoveError
+from xyzcyl.common.wire import ViewError, validated
 
 DEFAULT_SERVER = "http://127.0.0.1:8000"
 USER_AGENT = "xyzcyl-client/0.1"
@@ -174,13 +174,9 @@ def _detail_params(detail_stride: int | None, detail: bool) -> dict[str, str]:
         raise InvalidArgumentError(None, "invalid", f"detail: must be True or False (got {detail!r:.60})", "detail")
     if detail_stride is None:
         return {} if detail else {"detail": "false"}
-    if not detail:
-        raise InvalidArgumentError(None, "invalid", "detail_stride: cannot be combined with detail=False (the detail "
-                                   "layer is off)", "detail_stride")
-    if (isinstance(detail_stride, bool) or not isinstance(detail_stride, numbers.Integral)
-            or not 1 <= detail_stride <= 16):
-        raise InvalidArgumentError(None, "invalid", f"detail_stride: must be an integer in 1..16 (got "
-                                   f"{detail_stride!r:.60})", "detail_stride")
+    why = wire.detail_stride_error(detail_stride, detail, off="detail=False")
+    if why is not None:
+        raise InvalidArgumentError(None, "invalid", f"detail_stride: {why}", "detail_stride")
     return {"detail_stride": str(int(detail_stride))}
 
 
@@ -221,59 +217,16 @@ def _error_from(resp: httpx.Response) -> XyzcylError:
 
 # ----------------------------------------------------------------------------------------------- scenes
 
-@dataclass(frozen=True)
-class SceneInfo:
-    """A scene as the server describes it (GET /v1/scenes/{id}; docs/api.md; its fields are those of
-    xyzcyl.common.wire.SceneInfo, the JSON the server answers with). ``raw`` is the whole JSON."""
-
-    id: str
-    state: str                                 # queued | running | ready | failed
-    name: str | None = None                    # the name it was posted with (?name=), e.g. a simulator's scene id
-    created: str | None = None                 # ISO 8601, UTC
-    updated: str | None = None
-    error: dict[str, Any] | None = None        # {"code", "message"} of a failed scene
-    cameras: tuple[dict[str, Any], ...] = ()   # [{"name", "width", "height", "model"}]
-    model: dict[str, Any] | None = None        # {"name", "version", "model_json_sha256"}
-    counts: dict[str, int] | None = None       # Gaussians per source (volume, pixel, pruned, total, voxels)
-    gaussians: int | None = None
-    background: bool | None = None
-    bbox: dict[str, list[float]] | None = None  # {"min": [x, y, z], "max": [x, y, z]}, ego frame, metres
-    timings: dict[str, float] | None = None    # seconds per stage
-    bytes: int | None = None                   # the scene folder's size in the store
-    detail: dict[str, Any] | None = None       # {"enabled", "stride"}: the detail layer asked for (None: older server)
-    links: dict[str, str] = field(default_factory=dict)
-    raw: dict[str, Any] = field(default_factory=dict, repr=False, compare=False)
-
-    @classmethod
-    def from_json(cls, d: Mapping[str, Any]) -> SceneInfo:
-        """The scene of its JSON (``id`` and ``state`` required, the others None or empty when absent; the client
-        checks a server's answer against wire.SceneInfo before)."""
-        known = {f.name: d.get(f.name) for f in fields(cls) if f.name not in _SCENE_CONVERTED}
-        return cls(id=str(d["id"]), state=str(d["state"]), cameras=tuple(d.get("cameras") or ()),
-                   links=dict(d.get("links") or {}), raw=dict(d), **known)
-
-    @property
-    def ready(self) -> bool:
-        return self.state == "ready"
-
-    @property
-    def failed(self) -> bool:
-        return self.state == "failed"
-
-    @property
-    def camera_names(self) -> list[str]:
-        return [c["name"] for c in self.cameras]
-
-
-_SCENE_CONVERTED = ("id", "state", "cameras", "links", "raw")
+# a scene as the server describes it (GET /v1/scenes/{id}; docs/api.md): the wire type itself
+SceneInfo = wire.SceneInfo
 
 
 def _failure(info: SceneInfo) -> XyzcylError:
     """A failed scene as the error POST /v1/scenes?wait= would have answered (same status for the same code)."""
-    err = info.error or {}
-    code = str(err.get("code") or "failed")
+    code = info.error.code if info.error is not None else "failed"
+    message = info.error.message if info.error is not None else "failed"
     status, fld = wire.failure_answer(code)
-    return error_for(status, code, f"scene {info.id}: {err.get('message', 'failed')}", fld, scene_id=info.id)
+    return error_for(status, code, f"scene {info.id}: {message}", fld, scene_id=info.id)
 
 
 # ----------------------------------------------------------------------------------------------- uploads
@@ -613,7 +566,11 @@ def view_params(camera: Any, width: int | None = None, height: int | None = None
     if height is not None:
         p["height"] = str(int(height))
     p.update({k: repr(v) for k, v in mv.values().items()})
-    return p
+    try:     # the query the server takes (common.wire.ViewQuery), checked here as the server checks it
+        query = validated(p, {k: f"camera.{k}" for k in p if k not in ("width", "height", *MOVE_NAMES)})
+    except ViewError as e:
+        raise _invalid(e.message, e.field) from None
+    return query.params()
 
 
 def _read_float_image(data: bytes) -> np.ndarray:

@@ -2,7 +2,7 @@
 arithmetic, so both commands read a pose, move a camera and pick a file's encoding the same way.
 
 - a 4x4 matrix flag (``--cam-to-world``) takes 16 numbers in any float notation (``-1e-05`` too; the dispatcher's
-  parser accepts negative numbers in scientific notation, clients/cli.py), or one value: a JSON list (flat 16 or
+  parser accepts negative numbers in scientific notation, common/command.py), or one value: a JSON list (flat 16 or
   4x4; numpy's printed form, brackets without commas, too), or a file: ``.npy`` (16 or 4x4 numbers) or
   ``.json`` / text (a list as above, or an object with ``cam_to_ego`` or ``cam_to_world``) -- parse_matrix;
 - the camera moves ``--forward M``, ``--left M``, ``--up M`` (metres along ego x, y, z: x forward, y left, z up)
@@ -36,6 +36,9 @@ from .errors import FieldError
 
 CARLA_POSE = ("x", "y", "z", "pitch", "yaw", "roll")   # location (metres) and rotation (degrees), in this order
 MATRIX_KEYS = ("cam_to_ego", "cam_to_world")     # the pose's key in a .json object
+# K's structural zeros and ones and a pose's bottom row are compared with this absolute tolerance: JSON written by
+# float code can carry 1e-16-level round-off, anything larger is a real (refused) parameter.
+STRUCT_TOL = 1e-9
 
 
 class PoseArgError(FieldError):
@@ -49,7 +52,7 @@ def add_matrix_argument(parser, *flags: str, help: str) -> None:
     action = parser.add_argument(*flags, nargs="+", default=None, metavar="M",
                                  help=f"{help}; 16 numbers row-major, or one JSON list (16 or 4x4) or a .npy/.json "
                                       "file")
-    action.numbers = 16     # xyzcyl's parser (clients/cli.py) takes 16 numbers in a row as one value, no more
+    action.numbers = 16     # xyzcyl's parser (common/command.py) takes 16 numbers in a row as one value, no more
 
 
 def _numbers_in(text: str) -> list[str]:
@@ -61,18 +64,72 @@ def _in(what: str) -> str:
     return f"{what}: " if what else ""
 
 
-def _to_matrix(v: Any, flag: str, what: str):
+class PoseError(FieldError):
+    """A 4x4 pose that cannot be read (pose_matrix). ``field``: the caller's name of the pose ("cam_to_ego",
+    "cameras[2].cam_to_ego", "--cam-to-world")."""
+
+
+def _short(v: Any) -> str:
+    r = repr(v)
+    return r if len(r) <= 60 else r[:57] + "..."
+
+
+def pose_matrix(value: Any, field: str = "cam_to_ego"):
+    """[4, 4] float64 of a 4x4 pose matrix (row-major) as any front end states one -- the project's one reader of a
+    pose's numbers (the GET render query, batch items, camera paths, rig.json cameras, the CLI's flags, the gRPC
+    front end's poses once composed):
+
+    - 16 numbers, or a nested [4][4] list / tuple / numpy array of numbers (JSON; booleans are not numbers);
+    - text: 16 numbers separated by commas and/or white space, brackets ignored (the GET query's
+      ``cam_to_ego=0,0,1,...``; a JSON list or numpy's printed form as text);
+    - a one-element list of such text (a query parameter read as a list).
+
+    Every entry must be finite. PoseError naming ``field`` otherwise (the message names the first non-finite
+    entry, [row][column]). Only the numbers are read here: the pose's structure (bottom row, an orthonormal rotation with det +1)
+    is checked where a camera is made (runtime.camera.check_pose)."""
     import numpy as np
 
+    if isinstance(value, (list, tuple)) and len(value) == 1 and isinstance(value[0], str):
+        value = value[0]
+    if isinstance(value, str):
+        try:
+            m = np.array([float(t) for t in _numbers_in(value)], dtype=np.float64)
+        except ValueError:
+            raise PoseError(field, "16 comma-separated numbers expected") from None
+        if m.size != 16:
+            raise PoseError(field, f"16 comma-separated numbers expected, got {m.size}")
+    else:
+        a = value
+        ok = isinstance(a, np.ndarray) and a.dtype.kind in "iuf" and a.size == 16 and a.shape in ((16,), (4, 4))
+        if not ok and isinstance(a, (list, tuple)):
+            flat = len(a) == 16 and all(_is_real(x) for x in a)
+            nested = len(a) == 4 and all(isinstance(r, (list, tuple)) and len(r) == 4 and all(_is_real(x) for x in r)
+                                         for r in a)
+            ok = flat or nested
+        if not ok:
+            got = f"shape {list(a.shape)}" if isinstance(a, np.ndarray) else _short(a)
+            raise PoseError(field, f"must be 16 numbers (row-major) or a [4, 4] array (got {got})")
+        m = np.array(a, dtype=np.float64)
+    m = m.reshape(4, 4)
+    bad = np.argwhere(~np.isfinite(m))
+    if len(bad):
+        r, c = (int(i) for i in bad[0])
+        raise PoseError(field, f"entry [{r}][{c}] is not finite")
+    return m
+
+
+def _is_real(x: Any) -> bool:
+    import numpy as np
+
+    return isinstance(x, (int, float, np.integer, np.floating)) and not isinstance(x, (bool, np.bool_))
+
+
+def _to_matrix(v: Any, flag: str, what: str):
+    """pose_matrix for a CLI flag's value (``what``: where in the flag's value, e.g. a file's name)."""
     try:
-        m = np.asarray(v, dtype=np.float64)
-    except (TypeError, ValueError):
-        raise PoseArgError(flag, f"{_in(what)}expected 16 numbers or a 4x4 list of numbers") from None
-    if m.shape not in ((16,), (4, 4)):
-        raise PoseArgError(flag, f"{_in(what)}expected 16 numbers or 4x4, got shape {list(m.shape)}")
-    if not np.isfinite(m).all():
-        raise PoseArgError(flag, f"{_in(what)}values must be finite")
-    return m.reshape(4, 4)
+        return pose_matrix(v, flag)
+    except PoseError as e:
+        raise PoseArgError(e.field, f"{_in(what)}{e.message}") from None
 
 
 def _from_text(text: str, flag: str, what: str):
@@ -107,7 +164,7 @@ def _is_file(path: Path) -> bool:
 
 def is_number(text: str) -> bool:
     """Whether ``text`` is a number in any float notation (``-1e-05``, ``inf``); the dispatcher's parser
-    (clients/cli.py) asks it too."""
+    (common/command.py) asks it too."""
     try:
         float(text)
     except ValueError:
@@ -202,7 +259,7 @@ class CameraMove:
     seen from above) about the vertical through the camera's centre, then shift ``forward``, ``left``, ``up`` metres
     along ego x, y, z. The one definition of the move fields (names, units, bounds, help; MOVE_FIELDS) that every
     front end reads: the flags of `xyzcyl render` and `xyzcyl client render` (add_move_arguments), the GET render
-    query and the batch items (server/routes/render.py, runtime.views.spec_from_item), the Python client
+    query and the batch items (common.wire.ViewQuery), the Python client
     (clients.client.view_params); runtime.views.move_camera applies it to a render camera.
 
     Construction checks every field (a real number, finite, |value| <= its bound; ints become floats) and raises
@@ -249,7 +306,7 @@ class CameraMove:
         """The moved copy of a 4x4 camera-to-ego pose (OpenCV camera axes; [4, 4] float64)."""
         import numpy as np
 
-        T = np.array(pose, dtype=np.float64).reshape(4, 4)
+        T = pose_matrix(pose, "cam_to_ego")
         if self.yaw:
             a = math.radians(self.yaw)
             c, s = math.cos(a), math.sin(a)
@@ -302,12 +359,12 @@ def add_move_arguments(parser) -> None:
 
 
 OUT_FORMATS = {".png": "png", ".jpg": "jpeg", ".jpeg": "jpeg", ".exr": "exr"}   # --out's extension -> format
-FORMATS = ("png", "jpeg", "exr")
 EXTENSIONS = {"png": ".png", "jpeg": ".jpg", "exr": ".exr"}                      # format -> the extension to use
 
 
 def add_format_argument(parser) -> None:
     """--format png|jpeg|exr: the encoding of --out (default: its extension's)."""
+    from .wire import FORMATS
     parser.add_argument("--format", choices=FORMATS, default=None,
                         help="the encoding: png, jpeg or exr (default: --out's extension; when both are given they "
                              "must agree, and --out may then have no extension)")
@@ -317,6 +374,8 @@ def out_format(out: str | Path, fmt: str | None = None) -> str:
     """The encoding of a view written to ``out``: its extension's (.png, .jpg / .jpeg, .exr), or ``fmt`` (the
     --format flag) when given, which must agree with the extension (a file without an extension takes it as it
     is). PoseArgError naming --out (an unknown extension) or --format (a disagreement)."""
+    from .wire import FORMATS
+
     suffix = Path(out).suffix.lower()
     by_name = OUT_FORMATS.get(suffix)
     if fmt is not None and fmt not in FORMATS:
@@ -339,7 +398,7 @@ def move_from_args(args: argparse.Namespace) -> CameraMove:
         raise PoseArgError(f"--{e.field}", e.message) from None
 
 
-__all__ = ["CARLA_POSE", "FORMATS", "MOVE_FIELDS", "MOVE_FLAGS", "MOVE_MAX_DEG", "MOVE_MAX_M", "MOVE_NAMES",
+__all__ = ["CARLA_POSE", "STRUCT_TOL", "PoseError", "pose_matrix", "MOVE_FIELDS", "MOVE_FLAGS", "MOVE_MAX_DEG", "MOVE_MAX_M", "MOVE_NAMES",
            "OUT_FORMATS", "CameraMove", "MoveError", "MoveField", "PoseArgError", "add_format_argument",
            "add_matrix_argument", "add_move_arguments", "is_number", "move_from_args", "out_format", "parse_lens",
            "parse_matrix"]

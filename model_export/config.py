@@ -86,7 +86,7 @@ def _pos_ints(name: str, v: Any) -> None:
 
 
 # sqrt(fx/W * fy/H) of the synthetic nuScenes front camera (65 deg across 16:9), the depth_focal_ref the
-# focal-aware depth is measured with (docs/results.md "Focal-aware depth")
+# focal-aware depth is measured with (CHANGELOG.md "Focal-aware depth")
 NUSCENES_FRONT_FOCAL = 1.0553
 # BackboneConfig.input_norm = "standardize": the per-channel (R, G, B) mean over input images of each image's mean
 # and of each image's standard deviation (0..1 RGB), measured on the 720 input images of `xyzcyl data synth
@@ -280,7 +280,7 @@ class PixelConfig(_Frozen):
     unet: UNetConfig = field(default_factory=lambda: UNetConfig(attention="mha"))
     k_in: int = 1                    # k_i: upsampling before YNet_pix
     k_out: int = 4                   # k_o: upsampling after (4: 112x1024 at the cpu cylinder; k_o = 2 measured
-                                     # 0.54 dB worse ego-forward, 0.11 dB better ego-inward: docs/results.md)
+                                     # 0.54 dB worse ego-forward, 0.11 dB better ego-inward: CHANGELOG.md, model 1.0.0)
     out_dim: int = 32                # YNet_pix "out dims"
     d_pix: int = 16                  # "Upsample output dim D_pix"
     gn_groups: int = 4
@@ -289,7 +289,7 @@ class PixelConfig(_Frozen):
     g_p: int = 1
     # camera_ray: the anchor is the point X the camera sees (the colour path samples X's colour); cylinder_ray
     # puts it at X's radius on the cylinder ray, measured 5.4 px median / 16 px p90 off X at 400 px wide
-    # (docs/runs/cpu_2026-11-23/parallax.py)
+    # (benchmarks/anchor_parallax.py)
     placement: Literal["cylinder_ray", "camera_ray"] = "camera_ray"
     offset_scale: float = 0.5        # metres: offsets bounded to +-offset_scale (tanh)
     # colour path (ablation.rgb_path): the input image is area-pooled by this factor before its colour is sampled
@@ -385,7 +385,7 @@ class ModelConfig(_Frozen):
 
 def _cpu() -> ModelConfig:
     """The CPU model: the dataclass defaults, with the focal-aware depth head (measured better on every rig,
-    docs/results.md "Focal-aware depth"; the dataclass default stays None so older configs load focal-blind)."""
+    CHANGELOG.md "Focal-aware depth"; the dataclass default stays None so older configs load focal-blind)."""
     return ModelConfig(name="cpu", backbone=BackboneConfig(depth_focal_ref=NUSCENES_FRONT_FOCAL))
 
 

@@ -54,7 +54,7 @@ def _key(name: str) -> str:
 
 def recover_state(model_dir: str | Path, verify: bool = True, progress=None) -> dict[str, Any]:
     """{"state": state dict, "model_cfg": dict, "meta": model.json, "not_in_graphs": [keys]} of a model folder
-    written by `xyzcyl export` (same torch version: the exporter's anonymous names must match; ``verify``
+    written by `xyzcyl export-model` (same torch version: the exporter's anonymous names must match; ``verify``
     proves it)."""
     from .export import export_graphs
     from .train import build_model

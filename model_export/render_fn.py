@@ -9,8 +9,6 @@ All views of one call must share width and height. The renderer runs on the host
 the Gaussians: they are copied to numpy (float32, or float64 when the inputs are float64 -- used by the
 finite-difference test), the images come back on the Gaussians' device and dtype, and each gradient on its
 input's device and dtype (so a network on CUDA trains through the CPU renderer; `xyzcyl train --device`).
-``render_views_gsplat`` is an optional CUDA rasteriser (gsplat) that training does not use: it is untested
-here (no GPU in CI) and cuts footprints differently from the runtime renderer that evaluation uses.
 """
 
 from __future__ import annotations
@@ -69,35 +67,4 @@ def render_views(gaussians: dict[str, torch.Tensor], cameras: Sequence[Camera], 
         raise ValueError(f"cameras: all target views of one call must share a size (got {sorted(sizes)})")
     rgb, alpha, depth = RenderViews.apply(*(gaussians[k] for k in KEYS), tuple(cameras), dict(options))
     return rgb.permute(0, 3, 1, 2), alpha.unsqueeze(1), depth.unsqueeze(1)
-
-
-def gsplat_available() -> bool:
-    if not torch.cuda.is_available():
-        return False
-    try:
-        import gsplat  # noqa: F401
-    except ImportError:
-        return False
-    return True
-
-
-def render_views_gsplat(gaussians: dict[str, torch.Tensor], cameras: Sequence[Camera]):
-    """CUDA path with gsplat.rasterization (the outputs of render_views). Requires CUDA and gsplat; not
-    exercised by the CPU test-suite (no GPU in CI). gsplat samples pixel (u, v) at (u + 0.5, v + 0.5), the
-    runtime renderer at (u, v) (OpenCV), so the principal point is shifted by half a pixel to match."""
-    import gsplat
-
-    dev = torch.device("cuda")
-    g = {k: v.to(dev) for k, v in gaussians.items()}
-    viewmats = torch.stack([torch.as_tensor(np.linalg.inv(c.cam_to_ego), dtype=torch.float32) for c in cameras])
-    Ks = torch.stack([torch.as_tensor(c.K, dtype=torch.float32) for c in cameras])
-    Ks[:, 0, 2] += 0.5
-    Ks[:, 1, 2] += 0.5
-    W, H = cameras[0].width, cameras[0].height
-    S = g["sh"].shape[1]
-    colors, alphas, _ = gsplat.rasterization(
-        g["means"], g["quats"], torch.exp(g["log_scales"]), torch.sigmoid(g["opacity_logits"]), g["sh"],
-        viewmats.to(dev), Ks.to(dev), W, H, sh_degree=round(S ** 0.5) - 1, render_mode="RGB+ED")
-    # gsplat's SH evaluation adds 0.5 and clamps at 0 like the runtime renderer
-    return colors[..., :3].permute(0, 3, 1, 2), alphas.permute(0, 3, 1, 2), colors[..., 3:].permute(0, 3, 1, 2)
 

@@ -25,20 +25,13 @@ from types import MappingProxyType
 from typing import Any, Literal
 
 import numpy as np
+from xyzcyl.common.poses import STRUCT_TOL, PoseError, pose_matrix
+from xyzcyl.common.wire import MAX_RENDER_PIXELS, MAX_SIZE, render_limit
 
 from .errors import CameraError, plain
 from .lenses import IN_FRONT_EPS, Lens, project, unproject
 from .rotations import ORTHO_TOL  # max |R^T R - I| entry accepted for a pose's rotation
 
-MAX_SIZE = 16384  # pixels: the largest width or height of any camera, input or render
-# pixels of one rendered view (4096 x 4096, the service's limit since it began): a render holds ~40 bytes a pixel
-# (colour, alpha, depth, the background and the raster's per-pixel state), ~0.7 GB at this cap; 16384 x 16384 (what
-# the side limit alone allowed the CLI) died in numpy's allocator. check_render_size applies both, before anything
-# is allocated.
-MAX_RENDER_PIXELS = 4096 * 4096
-# K's structural zeros and ones and cam_to_ego's bottom row are compared with this absolute tolerance: JSON
-# written by float code can carry 1e-16-level round-off, anything larger is a real (refused) parameter.
-STRUCT_TOL = 1e-9
 CAMERA_KEYS = ("name", "image", "width", "height", "K", "cam_to_ego", "distortion", "model", "depth")
 MODELS = ("pinhole", "equirectangular")
 
@@ -303,7 +296,7 @@ class Camera:
             width=d["width"],
             height=d["height"],
             K=None if K is None else numbers(K, "K", where),
-            cam_to_ego=numbers(d["cam_to_ego"], "cam_to_ego", where),
+            cam_to_ego=d["cam_to_ego"],
             model=model,
             distortion=d.get("distortion"),
             image=d.get("image"),
@@ -337,11 +330,6 @@ def check_render_size(width: int, height: int, field: str = "width", max_side: i
     lower ``max_side`` (its max_render_side)."""
     if max(width, height) > max_side or width * height > max_pixels:
         raise CameraError(field, f"a view of {width}x{height} is over {render_limit(max_side, max_pixels)}")
-
-
-def render_limit(max_side: int = MAX_SIZE, max_pixels: int = MAX_RENDER_PIXELS) -> str:
-    """The render limit in words (every refusal of a too large view says it)."""
-    return f"the render limit ({max_side} pixels a side, {max_pixels} pixels in all)"
 
 
 def check_size(v: Any, key: str, where: str | None = None) -> int:
@@ -389,9 +377,10 @@ def check_K(K: Any, where: str | None = None) -> np.ndarray:
 def check_pose(T: Any, where: str | None = None, key: str = "cam_to_ego") -> np.ndarray:
     """A validated rigid 4x4 transform (``key`` names the field in errors: cam_to_ego, lidar_to_ego): finite,
     bottom row [0, 0, 0, 1] (to STRUCT_TOL, then exact), rotation orthonormal to ORTHO_TOL with det +1."""
-    T = numbers(T, key, where)
-    if T.shape != (4, 4):
-        raise CameraError(key, f"must be 4x4 (got shape {list(T.shape)})", where)
+    try:
+        T = pose_matrix(T, key)
+    except PoseError as e:
+        raise CameraError(e.field, e.message, where) from None
     if np.max(np.abs(T[3] - [0.0, 0.0, 0.0, 1.0])) > STRUCT_TOL:
         raise CameraError(key, f"bottom row must be [0, 0, 0, 1] (got {T[3].tolist()})", where)
     R = T[:3, :3]
@@ -445,7 +434,20 @@ def pinhole_K(fx: float, fy: float, cx: float, cy: float) -> np.ndarray:
     return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
 
 
+
+def rig_camera(cam: Camera, forward: float = 0.0, width: int | None = None, height: int | None = None):
+    """A render camera for a rig camera (pinhole: K, size and its lens, which the renderer draws (issue 28);
+    equirectangular), moved ``forward`` metres along ego x, optionally at another size (K and an f-theta lens
+    scaled with Camera.resized). Name and files are dropped."""
+    if width is not None or height is not None:
+        cam = cam.resized(cam.width if width is None else width, cam.height if height is None else height)
+    T = np.array(cam.cam_to_ego, dtype=np.float64)
+    T[0, 3] += float(forward)
+    return Camera(width=cam.width, height=cam.height, cam_to_ego=T, K=cam.K, model=cam.model,
+                  distortion=cam.distortion)
+
 __all__ = [
+    "rig_camera",
     "CAMERA_KEYS",
     "IN_FRONT_EPS",
     "MAX_RENDER_PIXELS",

@@ -20,6 +20,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from xyzcyl.common.poses import PoseError, pose_matrix
 
 from .camera import MAX_SIZE, Camera
 from .errors import RigError, plain
@@ -213,17 +214,12 @@ def _path_size(doc: Mapping[str, Any], key: str) -> int:
 
 
 def _path_pose(v: Any, field: str) -> np.ndarray:
-    """16 numbers row-major (nerfstudio's form: torch.tensor(c2w).view(4, 4)) or a nested [4, 4] list."""
-    ok = isinstance(v, (list, tuple)) and (
-        (len(v) == 16 and all(_is_num(x) for x in v))
-        or (len(v) == 4 and all(isinstance(r, (list, tuple)) and len(r) == 4 and all(_is_num(x) for x in r)
-                                for r in v)))
-    if not ok:
-        raise _path_error(field, "must be 16 numbers (row-major [4, 4]) or a [4, 4] list")
-    m = np.array(v, dtype=np.float64).reshape(4, 4)
-    if not np.all(np.isfinite(m)):
-        raise _path_error(field, "entries must be finite")
-    return m
+    """16 numbers row-major (nerfstudio's form: torch.tensor(c2w).view(4, 4)) or a nested [4, 4] list
+    (common.poses.pose_matrix, the one reader of a pose's numbers)."""
+    try:
+        return pose_matrix(v, field)
+    except PoseError as e:
+        raise _path_error(e.field, e.message) from None
 
 
 def _is_num(x: Any) -> bool:

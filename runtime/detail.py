@@ -40,6 +40,7 @@ from dataclasses import dataclass, fields
 
 import numba
 import numpy as np
+from xyzcyl.common.wire import detail_stride_error
 
 from .camera import Camera
 from .errors import FieldError, plain
@@ -92,8 +93,9 @@ class DetailOptions:
         def bad(name: str, why: str) -> DetailError:
             return DetailError(f"detail.{name}", f"{why} (got {plain(getattr(self, name))!r})")
 
-        if isinstance(self.stride, bool) or not isinstance(self.stride, int) or not 1 <= self.stride <= 16:
-            raise bad("stride", "must be an integer in 1..16")
+        why = detail_stride_error(self.stride)
+        if why is not None:
+            raise bad("stride", why)
         for name in ("model_depth", "ground"):
             if not isinstance(getattr(self, name), bool):
                 raise bad(name, "must be true or false")
@@ -891,6 +893,23 @@ def carve_details(details: list[CameraDetail], tolerance: float, dedupe: float =
     return out
 
 
+def carve_against(dj: CameraDetail, others: list[CameraDetail], keep: np.ndarray, tolerance: float) -> None:
+    """Clear keep[k] ([M_j] bool, camera j's cells) where one of ``others``' cameras saw through cell k (carve_details'
+    free-space rule alone: a surface is never handed over here). runtime.drive carves a keyframe's cells with the
+    cameras of the neighbouring keyframes so."""
+    if not len(dj.means):
+        return
+    conf_j = np.ascontiguousarray(dj.cell_conf())
+    for di in others:
+        if not di.grid.is_ideal:
+            _carve_lens(dj.means, conf_j, dj.rank, di, float(tolerance), 0.0, keep)
+            continue
+        K = di.grid.K
+        _carve_kernel(dj.means, conf_j, dj.rank, np.ascontiguousarray(di.grid.rotation.T),
+                      np.ascontiguousarray(di.grid.position), float(K[0, 0]), float(K[1, 1]), float(K[0, 2]),
+                      float(K[1, 2]), di.depth, di.conf, float(tolerance), 0.0, keep)
+
+
 def _carve_lens(means: np.ndarray, conf: np.ndarray, rank: np.ndarray, di: CameraDetail, tolerance: float,
                 dedupe: float, keep: np.ndarray) -> None:
     """_carve_kernel's rule for a camera i with a lens (numpy; its cells found through Camera.project_depth)."""
@@ -949,8 +968,8 @@ def model_grid_depth(coarse: Gaussians, grid: Camera, max_width: int = 480) -> t
 
         return render_ray_depth(coarse, grid)
 
+    from .camera import rig_camera
     from .render import render
-    from .scene import rig_camera
 
     if grid.width > max_width:
         w = max_width

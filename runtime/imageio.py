@@ -1,5 +1,5 @@
 """Image files the runtime reads and writes: EXR read back (runtime.rig.read_image) and 8-bit PNG
-(runtime.views.encode_png, the service's encoder). The EXR writer is xyzcyl.common.media.write_exr (one for the
+(runtime.png.encode_png, the service's encoder). The EXR writer is xyzcyl.common.media.write_exr (one for the
 runtime, the server and the client)."""
 
 from __future__ import annotations
@@ -22,14 +22,14 @@ def read_exr(path: str | os.PathLike) -> np.ndarray:
 
 def write_png(path: str | os.PathLike, rgb: np.ndarray) -> None:
     """[H, W, 3] float RGB in 0..1 -> 8-bit RGB PNG: round(255 x) clipped, NaN 0 (exact, float64), encoded by
-    runtime.views.encode_png as the service encodes an rgb view (PNG_FILTERS["rgb"], ISA-L deflate). OSError
+    runtime.png.encode_png as the service encodes an rgb view (PNG_FILTERS["rgb"], ISA-L deflate). OSError
     when the file cannot be written."""
-    from .views import PNG_FILTERS, _u8, encode_png
+    from .png import PNG_FILTERS, encode_png, to_u8
 
     a = np.asarray(rgb)
     if a.ndim != 3 or a.shape[2] != 3:
         raise ValueError(f"write_png: expected [H, W, 3] RGB, got {list(a.shape)}")
-    data = encode_png(_u8(a), PNG_FILTERS["rgb"])
+    data = encode_png(to_u8(a), PNG_FILTERS["rgb"])
     try:
         Path(path).write_bytes(data)
     except OSError as e:

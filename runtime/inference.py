@@ -23,21 +23,28 @@ import time
 from collections import OrderedDict
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from .camera import Camera
-from .detail import DetailOptions, OwnViews
+from .detail import CameraDetail, DetailOptions, fuse_details
 from .errors import FieldError, RigError
-from .files import read_json_doc
-from .lifting import LiftingParams, background_grid, build_lifting_inputs, spec_from_array
+from .lifting import background_grid, build_lifting_inputs, spec_from_array
+from .model_folder import (  # re-exported: part of runtime.inference's API before runtime/model_folder.py
+    MODEL_FORMAT,
+    ModelError,
+    ModelInfo,
+    _sha256,
+    default_model_dir,
+    read_model_file,
+    read_model_info,
+    verify_model,
+)
 from .render import Gaussians
 from .rig import Rig
 from .scene import Background, Scene, bake_grid
 
-MODEL_FORMAT = "xyzcyl-model"
 GAUSSIAN_KEYS = ("means", "quats", "log_scales", "opacity_logits", "sh")
 # a Gaussian whose opacity is below this never contributes (the renderer skips alpha < 1/255 and alpha <= o);
 # 0.99: margin for float rounding between numpy's and the kernel's sigmoid
@@ -46,97 +53,8 @@ DEFAULT_BAKE_SCALE = 4
 DEFAULT_DETAIL = DetailOptions()   # the detail layer is on by default (docs/inference.md, "Detail Gaussians")
 
 
-class ModelError(FieldError):
-    """The model folder is missing, incomplete or altered: ``field`` the model.json key at fault ("name",
-    "files", "graphs.encode.file"; ``where`` "model"), or "model" (the folder or a file of it as a whole)."""
-
-
 class InferenceError(FieldError):
     """An input cannot be reconstructed: ``field`` the input at fault ("lidar", "background")."""
-
-
-# ------------------------------------------------------------------------------------------- model folder
-
-
-def _sha256(data: bytes) -> str:
-    return hashlib.sha256(data).hexdigest()
-
-
-@dataclass(frozen=True)
-class ModelInfo:
-    """model.json of a model folder, parsed."""
-
-    path: Path
-    meta: dict[str, Any]
-
-    @property
-    def name(self) -> str:
-        return str(self.meta["name"])
-
-    @property
-    def version(self) -> str:
-        return str(self.meta["version"])
-
-    @property
-    def config(self) -> dict[str, Any]:
-        return self.meta["config"]
-
-    @property
-    def input_size(self) -> tuple[int, int]:
-        """(height, width) of the images the encode graph takes."""
-        return int(self.meta["input"]["height"]), int(self.meta["input"]["width"])
-
-    @property
-    def depth_size(self) -> tuple[int, int]:
-        d = self.meta["input"]["depth"]
-        return int(d["height"]), int(d["width"])
-
-    @property
-    def lifting(self) -> LiftingParams:
-        return LiftingParams.from_config_dict(self.config)
-
-    @property
-    def max_voxels(self) -> int:
-        return int(self.meta["selection"]["max_voxels"])
-
-    def graph_inputs(self, graph: str) -> list[str]:
-        return [i["name"] for i in self.meta["graphs"][graph]["inputs"]]
-
-
-def read_model_info(model_dir: str | os.PathLike) -> ModelInfo:
-    """Parse ``model_dir/model.json`` (ModelError naming the file when absent or invalid)."""
-    d = Path(model_dir)
-    if not d.is_dir():
-        raise ModelError("model", f"{str(d)!r} is not a folder")
-    p = d / "model.json"
-    meta = read_json_doc(p, MODEL_FORMAT, ModelError, "model")
-    for key in ("name", "version", "config", "input", "graphs", "files", "selection"):
-        if key not in meta:
-            raise ModelError(key, f"is missing from {str(p)!r}", "model")
-    return ModelInfo(d, meta)
-
-
-def read_model_file(info: ModelInfo, name: str, verify: bool = True) -> bytes:
-    """The bytes of a file of the model folder, checked against model.json's sha256 (ModelError naming it)."""
-    entry = info.meta["files"].get(name)
-    if entry is None:
-        raise ModelError("files", f"{name!r} is not listed in {info.path / 'model.json'}", "model")
-    p = info.path / name
-    if not p.is_file():
-        raise ModelError("model", f"file {name!r} is missing from {str(info.path)!r}")
-    data = p.read_bytes()
-    if verify and _sha256(data) != entry["sha256"]:
-        raise ModelError("model", f"file {name!r} in {str(info.path)!r} is altered: sha256 {_sha256(data)[:16]}… "
-                                  f"differs from model.json's {str(entry['sha256'])[:16]}…")
-    return data
-
-
-def verify_model(model_dir: str | os.PathLike) -> ModelInfo:
-    """Check every file model.json lists (presence and sha256); returns the parsed model.json."""
-    info = read_model_info(model_dir)
-    for name in info.meta["files"]:
-        read_model_file(info, name)
-    return info
 
 
 # ------------------------------------------------------------------------------------------- inputs
@@ -247,6 +165,25 @@ def _session(data: bytes, threads: int | None, name: str, spin: bool = False):
         raise ModelError("model", f"file {name!r}: onnxruntime cannot load it ({e})") from None
 
 
+@dataclass
+class Keyframe:
+    """One timestamp reconstructed up to the fusion of its cameras' detail layers (Reconstructor.keyframe), in its
+    rig's ego frame: the model's Gaussians (``coarse``), per pinhole camera its detail Gaussians (``parts``), cell
+    maps (``details``, runtime.detail.CameraDetail) and rig index (``owners``); counts and stage seconds so far; the
+    background panorama (or None); ``started``: time.perf_counter() when it began."""
+
+    coarse: Gaussians
+    parts: list[Gaussians]
+    details: list[CameraDetail]
+    owners: list[int]
+    counts: dict[str, int]
+    timings: dict[str, float]
+    background: Background | None
+    app_plane: np.ndarray | None
+    lifting_cached: bool
+    started: float
+
+
 class Reconstructor:
     """One model folder's onnxruntime sessions and a cache of lifting inputs per rig calibration."""
 
@@ -340,6 +277,31 @@ class Reconstructor:
         without a depth map then gets one made from it (``lidar_depths``: two encode passes). detail: the detail
         layer's settings (runtime.detail; None = the model's Gaussians only). Errors name the camera (RigError)
         or the model file (ModelError)."""
+        kf = self.keyframe(rig, images, depths, progress, lidar, detail)
+        gauss, own_views = kf.coarse, None
+        if kf.details:
+            t0 = time.perf_counter()
+            gauss, own_views, fused = fuse_details(kf.coarse, kf.parts, kf.details, kf.owners, tuple(rig.names),
+                                                   detail)
+            kf.counts.update(fused)
+            kf.timings["detail"] += time.perf_counter() - t0
+        kf.timings["total"] = time.perf_counter() - kf.started
+        return Scene(gaussians=gauss, background=kf.background, rig=rig, model=self.scene_model(),
+                     counts=kf.counts, timings={k: round(v, 6) for k, v in kf.timings.items()},
+                     lifting_cached=kf.lifting_cached, app_plane=kf.app_plane, own_views=own_views)
+
+    def scene_model(self) -> dict[str, str]:
+        """What a scene records of the model that made it: name, version, model.json's sha256."""
+        return {"name": self.info.name, "version": self.info.version,
+                "model_json_sha256": _sha256((self.info.path / "model.json").read_bytes())}
+
+    def keyframe(self, rig: Rig, images: Sequence[np.ndarray] | None = None,
+                 depths: Sequence[np.ndarray | None] | None = None,
+                 progress: Callable[[str], None] | None = None,
+                 lidar: np.ndarray | None = None, detail: DetailOptions | None = DEFAULT_DETAIL) -> Keyframe:
+        """One timestamp of ``rig`` up to, not including, the fusion of its cameras' detail layers (reconstruct's
+        arguments): the model's Gaussians, each pinhole camera's detail Gaussians and cell maps, the background.
+        reconstruct fuses one; runtime.drive fuses the keyframes of a drive."""
         say = progress or (lambda msg: None)
         t: dict[str, float] = {}
         t_all = time.perf_counter()
@@ -372,10 +334,12 @@ class Reconstructor:
                         {"images": imgs, "depth": depth, "depth_mask": mask, **lift})
             gauss, counts = self._gaussians(enc, lift, t, say)
             counts["lidar_cameras"] = int(sum(s is not None for s in scales))
-        own_views = None
+        parts: list[Gaussians] = []
+        details: list = []
+        owners: list[int] = []
         if detail is not None:
             say(f"detail Gaussians (stride {detail.stride})")
-            gauss, own_views = timed("detail", self.add_detail, rig, images, gauss, lidar, detail, counts)
+            parts, details, owners = timed("detail", self.camera_details, rig, images, gauss, lidar, detail, counts)
 
         background = None
         app_plane = enc.get("app_plane")
@@ -384,12 +348,8 @@ class Reconstructor:
             t0 = time.perf_counter()
             background = self.bake_background(rig, app_plane)
             t["background"] = time.perf_counter() - t0
-        t["total"] = time.perf_counter() - t_all
-        meta = {"name": self.info.name, "version": self.info.version,
-                "model_json_sha256": _sha256((self.info.path / "model.json").read_bytes())}
-        return Scene(gaussians=gauss, background=background, rig=rig, model=meta, counts=counts,
-                     timings={k: round(v, 6) for k, v in t.items()}, lifting_cached=cached, app_plane=app_plane,
-                     own_views=own_views)
+        return Keyframe(coarse=gauss, parts=parts, details=details, owners=owners, counts=counts, timings=t,
+                        background=background, app_plane=app_plane, lifting_cached=cached, started=t_all)
 
     def _gaussians(self, enc: Mapping[str, np.ndarray], lift: Mapping[str, np.ndarray], t: dict[str, float],
                    say: Callable[[str], None]) -> tuple[Gaussians, dict[str, int]]:
@@ -424,23 +384,15 @@ class Reconstructor:
         t["gaussians"] = time.perf_counter() - t0
         return gauss, counts
 
-    def add_detail(self, rig: Rig, images: Sequence[np.ndarray], coarse: Gaussians, lidar: np.ndarray | None,
-                   opts: DetailOptions, counts: dict[str, int]) -> tuple[Gaussians, OwnViews | None]:
-        """(the scene's Gaussians with the detail layer, its runtime.detail.OwnViews): each K camera's detail
-        Gaussians (any lens: on its cells' true rays) fused with the model's (``coarse``) by
-        runtime.detail.fuse_details, the cells the fusion drops kept hidden for their camera's own view. images: the
-        full-resolution inputs in rig order; lidar [P, 3] metres, ego frame, or None. Adds to ``counts``: detail
-        (cells shown), detail_lidar / detail_ground / detail_model / detail_far (cells placed by LiDAR, by the
-        ground plane (the LiDAR's; camera only, the model's), by the model's depth, at the far depth), detail_edge
-        (cells dropped at depth edges), carved (cells another camera contradicts or resolves more finely; hidden),
-        coarse (model Gaussians kept), culled (model Gaussians culled), total (coarse + detail + carved)."""
-        from .detail import (
-            camera_detail,
-            fit_ground,
-            fuse_details,
-            model_ground,
-            read_ego_mask,
-        )
+    def camera_details(self, rig: Rig, images: Sequence[np.ndarray], coarse: Gaussians, lidar: np.ndarray | None,
+                       opts: DetailOptions, counts: dict[str, int]) -> tuple[list[Gaussians], list, list[int]]:
+        """Each pinhole camera's detail layer (any lens: on its cells' true rays), not fused: (its Gaussians, its
+        runtime.detail.CameraDetail, its index in the rig) per camera. images: the full-resolution inputs in rig
+        order; coarse: the model's Gaussians; lidar [P, 3] metres, ego frame, or None. Adds to ``counts``:
+        detail_lidar / detail_ground / detail_model / detail_far (cells placed by LiDAR, by the ground plane (the
+        LiDAR's; camera only, the model's), by the model's depth, at the far depth), detail_edge (cells dropped at
+        depth edges). runtime.detail.fuse_details fuses them with ``coarse`` (reconstruct)."""
+        from .detail import camera_detail, fit_ground, model_ground, read_ego_mask
 
         parts, details, owners = [], [], []
         c = {f"detail_{k}": 0 for k in ("lidar", "ground", "model", "far", "edge")}
@@ -459,11 +411,9 @@ class Reconstructor:
             owners.append(rig.names.index(cam.name))
             for k, v in n.items():
                 c[f"detail_{k}"] += v
-        if not parts:
-            return coarse, None
-        out, own, fused = fuse_details(coarse, parts, details, owners, tuple(rig.names), opts)
-        counts.update(c, **fused)
-        return out, own
+        if parts:
+            counts.update(c)
+        return parts, details, owners
 
     def lidar_depths(self, rig: Rig, gauss: Gaussians, lidar: np.ndarray, depth: np.ndarray, mask: np.ndarray
                      ) -> tuple[np.ndarray, np.ndarray, list[float | None]]:
@@ -527,16 +477,5 @@ class Reconstructor:
         return np.ascontiguousarray(out.transpose(1, 2, 0))
 
 
-def default_model_dir() -> Path:
-    """$XYZCYL_MODEL, else models/xyzcyl-cpu-v1 in the working folder, else in the source checkout."""
-    env = os.environ.get("XYZCYL_MODEL")
-    if env:
-        return Path(env)
-    local = Path("models") / "xyzcyl-cpu-v1"
-    if local.is_dir():
-        return local
-    return Path(__file__).resolve().parents[1] / "models" / "xyzcyl-cpu-v1"
-
-
-__all__ = ["InferenceError", "ModelError", "ModelInfo", "Reconstructor", "calibration_key", "default_model_dir",
-           "read_model_info", "select_voxels", "verify_model"]
+__all__ = ["MODEL_FORMAT", "InferenceError", "ModelError", "ModelInfo", "Reconstructor", "calibration_key",
+           "default_model_dir", "read_model_file", "read_model_info", "select_voxels", "verify_model"]

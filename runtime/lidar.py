@@ -3,7 +3,7 @@
 Input-view PSNR cannot show whether a reconstruction put its surfaces at the right distance: a model that
 paints each input image onto a sphere scores well at the input cameras. A LiDAR sweep of the same timestamp can.
 
-The rig.json `lidar` block (the format of ../shared/data/real/README.md, kept in `Rig.extra`):
+The rig.json `lidar` block (docs/conventions.md "rig.json", kept in `Rig.extra`):
 
     "lidar": {"file": "sweep.pcd.bin", "lidar_to_ego": 4x4, "columns": 5}
 
@@ -297,8 +297,8 @@ def camera_depths(scene: Any, points: np.ndarray, width: int = 400, min_depth: f
                   max_depth: float = MAX_DEPTH, occlusion_radius: int = OCCLUSION_RADIUS) -> list[CameraDepth]:
     """Render ``scene`` (runtime.scene.Scene) at each camera of its rig and project ``points`` ([N, 3] metres, ego
     frame) there. With occlusion_radius 0 no point is dropped."""
+    from .camera import rig_camera
     from .raydepth import render_ray_depth
-    from .scene import render_view, rig_camera
 
     out = []
     for cam in scene.rig.cameras:
@@ -308,7 +308,7 @@ def camera_depths(scene: Any, points: np.ndarray, width: int = 400, min_depth: f
         occluded = int((lid > 0).sum() - keep.sum())
         lid = np.where(keep, lid, 0).astype(np.float32)
         if ec.is_ideal:
-            _, depth, alpha = render_view(scene, rig_camera(ec))
+            _, depth, alpha = scene.render(rig_camera(ec))
         else:
             depth, alpha = render_ray_depth(scene.gaussians_for(ec), ec)
         out.append(CameraDepth(ec, lid, depth, alpha, occluded))

@@ -22,9 +22,8 @@ from typing import Any
 
 import numpy as np
 
-from .rig import Rig, RigError, load_rig
+from .rig import EGO_POSE_KEYS, Rig, RigError, load_rig
 
-EGO_POSE_KEYS = ("ego_to_world", "ego_to_global")   # PandaSet conversions write the first, nuScenes the second
 LUMA = np.array([0.299, 0.587, 0.114], np.float32)  # ITU-R BT.601 luminance weights
 
 
@@ -108,14 +107,11 @@ def image_metrics(pred: np.ndarray, gt: np.ndarray) -> dict[str, float]:
 
 
 def ego_to_world(rig: Rig, where: str) -> np.ndarray:
-    """[4, 4] the rig's ego pose (rig.json ``ego_to_world`` or ``ego_to_global``), RigError naming ``where``."""
-    from .camera import check_pose
-
-    for key in EGO_POSE_KEYS:
-        if key in rig.extra:
-            return check_pose(rig.extra[key], where, key)
-    raise RigError(EGO_POSE_KEYS[0], f"is missing (or {' or '.join(EGO_POSE_KEYS[1:])}): needed to place another frame's "
-                   "cameras", where)
+    """[4, 4] the rig's ego pose (Rig.ego_to_world), RigError naming ``where`` when it has none."""
+    if rig.ego_to_world is None:
+        raise RigError(EGO_POSE_KEYS[0], f"is missing (or {' or '.join(EGO_POSE_KEYS[1:])}): needed to place "
+                       "another frame's cameras", where)
+    return rig.ego_to_world
 
 
 @dataclass(frozen=True)

@@ -18,15 +18,16 @@ from typing import Any
 
 import numpy as np
 
-from .camera import CAMERA_KEYS, Camera, look_rotation, where_camera
-from .errors import RigError
+from .camera import CAMERA_KEYS, Camera, check_pose, look_rotation, where_camera
+from .errors import CameraError, RigError
 
 MAX_CAMERAS = 16
 
 # Keys of rig.json (docs/conventions.md "rig.json"). A key a reader does not know is kept (Rig.extra /
 # Camera.extra) and written back, unless it looks like a misspelling of one it reads (misspelt_key): "camras"
 # would otherwise answer "cameras: must be a list", and "ego_to_wrld" would silently leave the scene unplaced.
-RIG_KEYS = ("cameras", "lidar", "ego_to_world", "ego_to_global")        # read by runtime.lidar, the simulators
+RIG_KEYS = ("cameras", "lidar", "ego_to_world", "ego_to_global")        # read by runtime.lidar, Rig.ego_to_world
+EGO_POSE_KEYS = ("ego_to_world", "ego_to_global")   # the ego pose: PandaSet conversions write the first, nuScenes the 2nd
 RIG_CAMERA_KEYS = (*CAMERA_KEYS, "ego_mask")                           # ego_mask: runtime.detail
 # keys that real and generated rigs carry on purpose (../shared/data/real, the synthetic generator, the
 # converters' records): never taken for a misspelling, whatever they resemble
@@ -76,6 +77,9 @@ class Rig:
     cameras: tuple[Camera, ...]
     root: Path | None = None
     extra: Mapping[str, Any] = field(default_factory=dict)  # top-level keys, kept for the round trip
+    # [4, 4] ego -> world, metres (rig.json "ego_to_world", or nuScenes' "ego_to_global"): where the ego stood (a
+    # drive's world frame, a simulator's local frame: docs/simulators.md); None when the rig.json has none
+    ego_to_world: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         cams = tuple(self.cameras)
@@ -93,6 +97,10 @@ class Rig:
         object.__setattr__(self, "cameras", cams)
         object.__setattr__(self, "root", None if self.root is None else Path(self.root))
         object.__setattr__(self, "extra", MappingProxyType(dict(self.extra)))
+        if self.ego_to_world is not None:
+            pose = check_pose(self.ego_to_world, "rig", "ego_to_world")
+            pose.setflags(write=False)
+            object.__setattr__(self, "ego_to_world", pose)
 
     def __len__(self) -> int:
         return len(self.cameras)
@@ -115,7 +123,8 @@ class Rig:
         """The same rig with its cameras in `order` (a permutation of camera indices)."""
         if sorted(order) != list(range(len(self.cameras))):
             raise RigError("order", f"must be a permutation of 0..{len(self.cameras) - 1} (got {list(order)})", "rig")
-        return Rig(cameras=tuple(self.cameras[k] for k in order), root=self.root, extra=self.extra)
+        return Rig(cameras=tuple(self.cameras[k] for k in order), root=self.root, extra=self.extra,
+                   ego_to_world=self.ego_to_world)
 
     def camera(self, name: str) -> Camera:
         for c in self.cameras:
@@ -143,10 +152,18 @@ class Rig:
                                                                         "pinhole" else ()))
                 check_keys(c, RIG_CAMERA_KEYS, required, KEPT_CAMERA_KEYS, f"cameras[{i}].",
                            where_camera(c.get("name"), i))
+        poses = [k for k in EGO_POSE_KEYS if k in d]
+        ego = None
+        if poses:
+            try:
+                ego = check_pose(d[poses[0]], "rig", poses[0])
+            except CameraError as e:
+                raise RigError(e.field, e.message, "rig") from None
         rig = cls(
             cameras=tuple(Camera.from_dict(c, i) for i, c in enumerate(cams)),
             root=None if root is None else Path(root),
             extra={k: v for k, v in d.items() if k != "cameras"},
+            ego_to_world=ego,
         )
         if check_images:
             rig.check_images()

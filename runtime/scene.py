@@ -32,7 +32,7 @@ import numba
 import numpy as np
 from xyzcyl.common.files import atomic_folder
 
-from .camera import Camera
+from .camera import Camera, rig_camera
 from .cylinder import CylinderSpec
 from .detail import DetailError, OwnViews
 from .errors import FieldError
@@ -232,6 +232,7 @@ class Scene:
     created: str = field(default_factory=lambda: _dt.datetime.now(_dt.UTC).replace(microsecond=0)
                          .isoformat())
     own_views: OwnViews | None = field(default=None, repr=False)    # the input cameras' own views (detail layer)
+    drive: dict[str, Any] | None = None     # a drive's frames, keyframes, times and ego poses (runtime.drive)
 
     def own_camera(self, camera) -> int | None:
         """The index of the input camera whose pose ``camera`` (runtime.camera.Camera) has (OWN_POSE_TOL), when
@@ -245,6 +246,12 @@ class Scene:
                     and np.abs(T[:3, :3] - R[:3, :3]).max() <= OWN_POSE_TOL[1]):
                 return k
         return None
+
+    def render(self, camera: Camera, **options) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(rgb [H, W, 3], depth [H, W], alpha [H, W]) float32 of this scene seen by ``camera`` (render_view)."""
+        bg = self.background.render(camera) if self.background is not None else None
+        r = render(self.gaussians_for(camera), camera, background=bg, **options)
+        return r.rgb, r.depth, r.alpha
 
     def gaussians_for(self, camera) -> Gaussians:
         """The Gaussians as ``camera`` sees them: at an input camera's own pose its own view (runtime.detail.OwnViews:
@@ -268,7 +275,7 @@ class Scene:
 
     def to_json(self) -> dict[str, Any]:
         g = self.gaussians
-        return {"format": SCENE_FORMAT, "format_version": SCENE_VERSION, "created": self.created,
+        out = {"format": SCENE_FORMAT, "format_version": SCENE_VERSION, "created": self.created,
                 "frame": "ego: x forward, y left, z up, metres",
                 "model": self.model, "rig": _calibration_rig(self.rig).to_dict(),
                 "counts": self.counts, "timings": self.timings, "lifting_cached": self.lifting_cached,
@@ -279,6 +286,9 @@ class Scene:
                 "own_views": None if self.own_views is None else {
                     "file": OWN_VIEWS_NAME, "hidden": len(self.own_views.index),
                     "about": "cells hidden (opacity logit -30) except in their camera's own view"}}
+        if self.drive is not None:           # a drive's scene (runtime.drive); a one-rig scene has no such key
+            out["drive"] = self.drive
+        return out
 
     def save(self, folder: str | os.PathLike, overwrite: bool = True) -> Path:
         """Write the scene folder atomically: into a temporary sibling folder, then renamed to ``folder`` (an
@@ -352,22 +362,10 @@ class Scene:
         return cls(gaussians=g, background=bg, rig=rig, model=meta.get("model") or {},
                    counts=meta.get("counts") or {}, timings=meta.get("timings") or {},
                    lifting_cached=bool(meta.get("lifting_cached", False)), created=meta.get("created", ""),
-                   own_views=own)
+                   own_views=own, drive=meta.get("drive"))
 
 
 # ------------------------------------------------------------------------------------------- views
-
-
-def rig_camera(cam: Camera, forward: float = 0.0, width: int | None = None, height: int | None = None):
-    """A render camera for a rig camera (pinhole: K, size and its lens, which the renderer draws (issue 28);
-    equirectangular), moved ``forward`` metres along ego x, optionally at another size (K and an f-theta lens
-    scaled with Camera.resized). Name and files are dropped."""
-    if width is not None or height is not None:
-        cam = cam.resized(cam.width if width is None else width, cam.height if height is None else height)
-    T = np.array(cam.cam_to_ego, dtype=np.float64)
-    T[0, 3] += float(forward)
-    return Camera(width=cam.width, height=cam.height, cam_to_ego=T, K=cam.K, model=cam.model,
-                  distortion=cam.distortion)
 
 
 def render_view(scene: Scene, camera, **options) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -376,9 +374,7 @@ def render_view(scene: Scene, camera, **options) -> tuple[np.ndarray, np.ndarray
     an input camera's pose, its own view) composited over the background panorama (I = I_fg + (1 - A_fg) I_bg; black
     without a background). Depth and alpha are the Gaussians' (depth 0 where alpha is 0). ``options``: the
     renderer's (RenderOptions)."""
-    bg = scene.background.render(camera) if scene.background is not None else None
-    r = render(scene.gaussians_for(camera), camera, background=bg, **options)
-    return r.rgb, r.depth, r.alpha
+    return scene.render(camera, **options)
 
 
 __all__ = ["Background", "Scene", "SceneError", "bake_grid", "render_view", "rig_camera"]

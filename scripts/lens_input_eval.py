@@ -24,7 +24,7 @@ sharpness = variance of the Laplacian of the luminance, render / ground truth, a
 luminance gradient, render / ground truth (runtime.realeval.sharpness_ratio). Differences lens - pinhole are
 paired per view; the summary gives their mean over scenes with a 95 % t interval over the scene means.
 
-    .venv/bin/python scripts/lens_input_eval.py --scenes 4 --out docs/runs/lens_inputs_2026-11-26.json \
+    .venv/bin/python scripts/lens_input_eval.py --scenes 4 --out benchmarks/records/lens_inputs_2026-11-26.json \
         --picture docs/pictures/lens_inputs.png
 
 Deterministic: fixed seeds; the tracer traces each pixel alone and the runtime's results do not depend on its

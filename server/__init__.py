@@ -4,12 +4,7 @@ the API; docs/design.md the modules (app.py the shell, routes/ parse and answer,
 
 from __future__ import annotations
 
-from importlib.metadata import PackageNotFoundError, version
-
-try:
-    __version__ = version("xyzcyl")
-except PackageNotFoundError:  # pragma: no cover - running from a source tree without an install
-    __version__ = "0.0.0"
+from xyzcyl.common.version import __version__
 
 
 def __getattr__(name: str):

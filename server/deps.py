@@ -20,6 +20,7 @@ import hmac
 
 from fastapi import Request
 from fastapi.security import APIKeyHeader, HTTPBearer
+from pydantic import BaseModel
 
 from .errors import Invalid, Unauthorized, UnsupportedMedia
 from .service import Service
@@ -85,7 +86,11 @@ def declared_query(route) -> tuple[str, ...]:
 def _declared(route) -> tuple[str, ...]:
     def walk(dependant):
         for p in dependant.query_params:
-            yield getattr(p, "alias", None) or p.name
+            model = getattr(p.field_info, "annotation", None)
+            if isinstance(model, type) and issubclass(model, BaseModel):    # a query model: its fields
+                yield from (f.alias or name for name, f in model.model_fields.items())
+            else:
+                yield getattr(p, "alias", None) or p.name
         for sub in dependant.dependencies:
             yield from walk(sub)
 

@@ -1,14 +1,12 @@
 """What the routes declare and answer besides the wire types (xyzcyl.common.wire, the JSON bodies shared with the
-client): the OpenAPI error responses and request bodies, the typed render query, and the API's scene JSON made
+client): the OpenAPI error responses and request bodies, and the API's scene JSON made
 from a store record."""
 
 from __future__ import annotations
 
 import datetime as dt
-from dataclasses import dataclass
 from typing import Any
 
-from xyzcyl.common.poses import CARLA_POSE, MOVE_NAMES
 from xyzcyl.common.wire import ErrorBody
 
 from .store import SceneRecord
@@ -32,54 +30,6 @@ RENDER_BATCH = {"requestBody": {"required": True, "content": {"application/json"
     "names) or a nerfstudio camera_path.json; optional output, format, quality"}}}}}
 
 
-@dataclass(frozen=True)
-class RenderQuery:
-    """GET /v1/scenes/{id}/render's query, as FastAPI checked it (routes/render.py declares it): one pose (an
-    input camera, optionally with a lens; cam_to_ego with fx/fy/cx/cy or fov and a lens; a CARLA transform with
-    fov), a camera move (forward, left, up, yaw: common.poses.CameraMove), the size, the output.
-
-    ``yaw`` is two parameters in one name: with ``camera`` or ``cam_to_ego`` it is the move's turn (degrees to
-    the left), otherwise the CARLA transform's yaw (degrees, CARLA's: turning right). carla() and move() split
-    it; a CARLA pose takes no move (runtime.views.ViewSpec refuses it)."""
-
-    camera: str | None = None
-    cam_to_ego: str | None = None
-    fx: float | None = None
-    fy: float | None = None
-    cx: float | None = None
-    cy: float | None = None
-    fov: float | None = None
-    distortion: str | None = None       # JSON text (a list or an object), parsed by Service.view_request
-    x: float | None = None
-    y: float | None = None
-    z: float | None = None
-    pitch: float | None = None
-    yaw: float | None = None
-    roll: float | None = None
-    forward: float | None = None
-    left: float | None = None
-    up: float | None = None
-    width: int | None = None
-    height: int | None = None
-    output: str = "rgb"
-    format: str = "png"
-    quality: int = 90
-
-    def _yaw_is_the_moves(self) -> bool:
-        return self.camera is not None or self.cam_to_ego is not None
-
-    def carla(self) -> dict[str, float]:
-        """The CARLA transform's values that were given, in CARLA_POSE's order (yaw only without camera and
-        cam_to_ego)."""
-        skip = ("yaw",) if self._yaw_is_the_moves() else ()
-        return {k: getattr(self, k) for k in CARLA_POSE if k not in skip and getattr(self, k) is not None}
-
-    def move(self) -> dict[str, float]:
-        """The camera move's values that were given, by MOVE_NAMES (yaw only with camera or cam_to_ego)."""
-        skip = () if self._yaw_is_the_moves() else ("yaw",)
-        return {k: getattr(self, k) for k in MOVE_NAMES if k not in skip and getattr(self, k) is not None}
-
-
 def _iso(ts: float | None) -> str:
     return dt.datetime.fromtimestamp(ts or 0.0, dt.UTC).replace(microsecond=0).isoformat()
 
@@ -94,9 +44,10 @@ def scene_info(rec: SceneRecord) -> dict[str, Any]:
         if rec.background:
             links["background"] = f"{base}/background"
     return {"id": sid, "name": rec.name, "state": rec.state, "created": _iso(rec.created_ts),
-            "updated": _iso(rec.updated_ts), "error": None if rec.error is None else rec.error.model_dump(), "cameras": rec.cameras,
-            "detail": rec.detail, "model": rec.model, "counts": rec.counts, "gaussians": rec.gaussians,
-            "background": rec.background, "bbox": rec.bbox, "timings": rec.timings, "bytes": rec.bytes,
+            "updated": _iso(rec.updated_ts), "error": None if rec.error is None else rec.error.model_dump(),
+            "cameras": [c.model_dump() for c in rec.cameras],
+            "detail": None if rec.detail is None else rec.detail.model_dump(), "model": rec.model,
+            "counts": rec.counts, "gaussians": rec.gaussians, "background": rec.background, "bbox": rec.bbox, "timings": rec.timings, "bytes": rec.bytes,
             "links": links}
 
 
@@ -106,4 +57,4 @@ def scene_list(page: list[SceneRecord], total: int, offset: int, limit: int) -> 
     return {"scenes": [scene_info(r) for r in page], "total": total, "offset": offset, "limit": limit, "next": nxt}
 
 
-__all__ = ["ERRORS", "NO_MODEL", "RENDER_BATCH", "SCENE_UPLOAD", "RenderQuery", "scene_info", "scene_list"]
+__all__ = ["ERRORS", "NO_MODEL", "RENDER_BATCH", "SCENE_UPLOAD", "scene_info", "scene_list"]

@@ -33,18 +33,18 @@ from pathlib import Path
 from typing import IO, Any
 
 from starlette.exceptions import HTTPException as StarletteHTTPException
-from xyzcyl.common.wire import BatchIndex, FrameInfo
+from xyzcyl.common.wire import FORMATS, OUTPUTS, BatchIndex, FrameInfo, ViewError, ViewQuery
 from xyzcyl.runtime import compile_notice
 from xyzcyl.runtime.camera import CameraError, check_render_size
 from xyzcyl.runtime.inference import ModelInfo, verify_model
-from xyzcyl.runtime.views import ViewError, ViewRequest, ViewSpec, cameras_from_batch, render_request
+from xyzcyl.runtime.views import ViewRequest, cameras_from_batch, render_request
+from xyzcyl.runtime.views import request as request_of
 from xyzcyl.runtime.warmup import LENS_MODELS
 
 from .cache import BytesCache, SceneCache
 from .errors import Busy, Conflict, Invalid, NotFound, StorageFull
 from .jobs import Job, Reconstructions, Renders
 from .metrics import Metrics
-from .schemas import RenderQuery
 from .settings import Settings
 from .store import SceneFailure, SceneRecord, Store, StoreFull, StoreUnavailable, new_scene_id, open_store
 from .store.record import valid_id
@@ -396,21 +396,13 @@ class Service:
         h = hashlib.sha256(f"{sid}|{self.info.name}|{self.info.version}|{req.key()}".encode()).hexdigest()
         return f'"{h[:40]}"'
 
-    async def view_request(self, sid: str, q: RenderQuery) -> tuple[ViewRequest, str]:
-        """GET /v1/scenes/{id}/render's query as a ViewRequest of a ready scene, and its ETag. Exactly one pose:
-        an input camera (optionally with a lens), cam_to_ego with fx/fy/cx/cy or fov (and a lens), or a CARLA
-        transform with fov; the first two optionally moved (forward, left, up, yaw; runtime.views.move_camera).
-        Invalid otherwise, naming the field."""
+    async def view_request(self, sid: str, query: ViewQuery) -> tuple[ViewRequest, str]:
+        """GET /v1/scenes/{id}/render's query as a ViewRequest of a ready scene (runtime.views.request: exactly one
+        pose, optionally moved), and its ETag. Invalid naming the field otherwise."""
         await self.ready_record(sid)
-        spec = ViewSpec(camera=q.camera, cam_to_ego=None if q.cam_to_ego is None else _numbers(q.cam_to_ego,
-                                                                                                "cam_to_ego", 16),
-                        fx=q.fx, fy=q.fy, cx=q.cx, cy=q.cy, fov=q.fov,
-                        distortion=_json_value(q.distortion, "distortion"), carla=q.carla() or None,
-                        move=q.move(), width=q.width, height=q.height, output=q.output, format=q.format,
-                        quality=q.quality)
-        rig = await self.renders.run(self._rig, sid) if q.camera is not None else None
+        rig = await self.renders.run(self._rig, sid) if query.camera is not None else None
         try:
-            req = spec.request(rig)
+            req = request_of(query, rig)
             self.check_size(req.camera)
         except ViewError as e:
             raise Invalid(str(e), e.field) from None
@@ -442,8 +434,7 @@ class Service:
         query's, which win over the body's. Everything is checked, and Busy raised when the render pool is full,
         before the first byte."""
         opts = {}
-        for k, v, allowed in (("output", output, ("rgb", "depth", "alpha")),
-                              ("format", format, ("png", "jpeg", "exr"))):
+        for k, v, allowed in (("output", output, OUTPUTS), ("format", format, FORMATS)):
             val = v if v is not None else doc.get(k, "rgb" if k == "output" else "png")
             if val not in allowed:
                 raise Invalid(f"{k}: one of {', '.join(allowed)}", k)
@@ -516,29 +507,6 @@ def _tensors(entries) -> list[dict]:
         out.append({"name": e["name"], "datatype": _DTYPES.get(str(e.get("dtype")), str(e.get("dtype")).upper()),
                     "shape": shape})
     return out
-
-
-def _numbers(text: str, field: str, n: int) -> list[float]:
-    try:
-        vals = [float(v) for v in text.replace(" ", "").split(",") if v != ""]
-    except ValueError:
-        raise Invalid(f"{field}: {n} comma-separated numbers expected", field) from None
-    if len(vals) != n:
-        raise Invalid(f"{field}: {n} comma-separated numbers expected, got {len(vals)}", field)
-    return vals
-
-
-def _json_value(text: str | None, field: str) -> Any:
-    """A query parameter holding JSON (a list or an object), None when absent; Invalid naming the field."""
-    if text is None:
-        return None
-    try:
-        value = json.loads(text)
-    except ValueError as e:
-        raise Invalid(f"{field}: not valid JSON ({e})", field) from None
-    if not isinstance(value, (list, dict)):
-        raise Invalid(f"{field}: a JSON list or object expected", field)
-    return value
 
 
 def _warm_renders(models: str) -> float:

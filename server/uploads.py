@@ -11,9 +11,7 @@ from pathlib import Path
 from typing import Any
 
 from starlette.datastructures import UploadFile
-from xyzcyl.common.errors import FieldError
 from xyzcyl.common.media import SNIFF_BYTES, sniff
-from xyzcyl.runtime.realeval import EGO_POSE_KEYS, ego_to_world
 from xyzcyl.runtime.rig import Rig, RigError, image_size, save_rig, verify_image
 
 from .errors import Invalid, UnsupportedMedia
@@ -145,13 +143,8 @@ def ingest(form, work: Path, st: Settings, model_input: dict[str, Any]) -> Rig:
         raise Invalid(str(e), "rig") from None          # its message names the rig or the camera, and the field
     except (TypeError, ValueError, AttributeError, KeyError) as e:
         raise Invalid(f"rig: {type(e).__name__}: {e}", "rig") from None
-    if any(k in rig.extra for k in EGO_POSE_KEYS):
-        # the ego's pose in the world (a simulator's local frame: docs/simulators.md), kept in rig.extra and in the
-        # scene; checked here so a bad one is refused at the upload, not at the first simulator render
-        try:
-            ego_to_world(rig, "rig")
-        except FieldError as e:
-            raise Invalid(str(e), "rig") from None
+    # the ego's pose in the world (a simulator's local frame: docs/simulators.md), Rig.ego_to_world: checked by
+    # Rig.from_dict above, so a bad one is refused at the upload, not at the first simulator render
     limit = min(st.max_cameras, int(model_input.get("max_cameras", st.max_cameras)))
     if len(rig.cameras) > limit:
         raise Invalid(f"rig: {len(rig.cameras)} cameras, more than the limit of {limit}", "rig.cameras")

@@ -13,16 +13,80 @@ POST /v1/scenes.
 
 Nothing here imports torch at import time (``xyzcyl.testing.model`` builds its configs without it), so the
 package imports in the serving install; httpx (the ``server`` and ``client`` extras) is imported where it is used.
-The paths below point into the source checkout this package was installed from (``pip install -e .``).
+
+The package ships in the wheel, the data it points at does not: the example rig and the shipped model are files of
+the source checkout. ``REPO`` is that checkout, found on first use (``checkout``): the folder the installed
+distribution was installed from (``pip install -e .`` or ``pip install .``: its direct_url.json, PEP 610), else the
+working folder or the nearest folder above it that holds xyzcyl's pyproject.toml (a wheel installed elsewhere, the
+tests run from a checkout). ``REPO``, ``EXAMPLE``, ``EXAMPLE_RIG`` and ``SHIPPED_MODEL`` raise NoCheckout, which
+says so, where there is none; the serve harness needs none.
 """
 
 from __future__ import annotations
 
+import functools
+import json
+import tomllib
 from pathlib import Path
+from urllib.parse import unquote, urlparse
 
-REPO = Path(__file__).resolve().parents[1]
-EXAMPLE = REPO / "examples" / "synth_nuscenes"
-EXAMPLE_RIG = EXAMPLE / "rig.json"
-SHIPPED_MODEL = REPO / "models" / "xyzcyl-cpu-v1"
+PROJECT = "xyzcyl"
 
-__all__ = ["EXAMPLE", "EXAMPLE_RIG", "REPO", "SHIPPED_MODEL"]
+
+class NoCheckout(LookupError):
+    """No source checkout of xyzcyl is found (see the package's docstring), so its files cannot be named."""
+
+
+def _is_checkout(folder: Path) -> bool:
+    try:
+        return tomllib.loads((folder / "pyproject.toml").read_text())["project"]["name"] == PROJECT
+    except (OSError, KeyError, TypeError, tomllib.TOMLDecodeError):
+        return False
+
+
+def _installed_from() -> Path | None:
+    """The local folder the installed distribution was built from (PEP 610 ``dir_info``), or None (installed from
+    a wheel file or an index, or not installed)."""
+    from importlib.metadata import PackageNotFoundError, distribution
+
+    try:
+        text = distribution(PROJECT).read_text("direct_url.json")
+    except PackageNotFoundError:
+        return None
+    try:
+        doc = json.loads(text) if text else {}
+    except json.JSONDecodeError:
+        return None
+    url = urlparse(str(doc.get("url", "")))
+    return Path(unquote(url.path)) if "dir_info" in doc and url.scheme == "file" else None
+
+
+@functools.cache
+def checkout() -> Path | None:
+    """The source checkout of xyzcyl (absolute), or None where there is none (see the package's docstring)."""
+    cwd = Path.cwd().resolve()
+    for folder in (_installed_from(), cwd, *cwd.parents):
+        if folder is not None and _is_checkout(folder):
+            return folder.resolve()
+    return None
+
+
+_PATHS = {
+    "REPO": (),
+    "EXAMPLE": ("examples", "synth_nuscenes"),
+    "EXAMPLE_RIG": ("examples", "synth_nuscenes", "rig.json"),
+    "SHIPPED_MODEL": ("models", "xyzcyl-cpu-v1"),
+}
+
+
+def __getattr__(name: str) -> Path:
+    if name not in _PATHS:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    root = checkout()
+    if root is None:
+        raise NoCheckout(f"xyzcyl.testing.{name}: no source checkout of xyzcyl here (the example rig and the shipped "
+                         f"model are files of it): run from a checkout, or install from one (pip install -e .)")
+    return root.joinpath(*_PATHS[name])
+
+
+__all__ = ["EXAMPLE", "EXAMPLE_RIG", "REPO", "SHIPPED_MODEL", "NoCheckout", "checkout"]

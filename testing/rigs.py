@@ -11,44 +11,45 @@ import zlib
 from pathlib import Path
 from typing import Any
 
-from xyzcyl.testing import EXAMPLE_RIG
+import xyzcyl.testing as _testing  # its EXAMPLE_RIG is found on first use (the source checkout's)
 
 MEDIA_TYPES = {".png": "image/png", ".jpg": "image/jpeg", ".jpeg": "image/jpeg"}
 
 
 @functools.cache
-def read_rig(rig_json: Path = EXAMPLE_RIG) -> dict:
-    """The rig JSON as a dict (cached: copy it before changing it)."""
-    return json.loads(Path(rig_json).read_text())
+def read_rig(rig_json: Path | None = None) -> dict:
+    """The rig JSON (None: the example rig) as a dict (cached: copy it before changing it)."""
+    return json.loads(Path(rig_json or _testing.EXAMPLE_RIG).read_text())
 
 
 @functools.cache
-def rig_images(rig_json: Path = EXAMPLE_RIG) -> dict[str, bytes]:
-    """{camera name: the bytes of its image file} (cached)."""
-    return {c["name"]: (Path(rig_json).parent / c["image"]).read_bytes() for c in read_rig(rig_json)["cameras"]}
+def rig_images(rig_json: Path | None = None) -> dict[str, bytes]:
+    """{camera name: the bytes of its image file} of a rig (None: the example rig) (cached)."""
+    rig_json = Path(rig_json or _testing.EXAMPLE_RIG)
+    return {c["name"]: (rig_json.parent / c["image"]).read_bytes() for c in read_rig(rig_json)["cameras"]}
 
 
 def example_rig() -> dict:
     """examples/synth_nuscenes/rig.json (6 cameras, 800x450 PNGs) as a dict (cached: copy it before changing it)."""
-    return read_rig(EXAMPLE_RIG)
+    return read_rig(_testing.EXAMPLE_RIG)
 
 
 def example_images() -> dict[str, bytes]:
     """{camera name: PNG bytes} of the example rig (cached)."""
-    return rig_images(EXAMPLE_RIG)
+    return rig_images(_testing.EXAMPLE_RIG)
 
 
 def rig_files(rig: dict | None = None, images: dict[str, Any] | None = None, rig_bytes: bytes | None = None,
-              drop: tuple[str, ...] = (), extra: list | None = None, *, rig_json: Path = EXAMPLE_RIG) -> list:
+              drop: tuple[str, ...] = (), extra: list | None = None, *, rig_json: Path | None = None) -> list:
     """The multipart parts of POST /v1/scenes (``files=`` of httpx or a TestClient): ("rig", rig.json) + one image
     part per camera of ``rig``, then ``extra``.
 
-    ``rig_json`` is where the rig and its images come from (the example rig by default); ``rig`` replaces its
+    ``rig_json`` is where the rig and its images come from (None: the example rig); ``rig`` replaces its
     JSON (``rig_bytes`` replaces the part's bytes as they are). A camera's part is its image file (named by the
     file, typed by its suffix) unless ``images`` gives its bytes (sent as ``<camera>.png``, image/png) or a whole
     (filename, bytes, media type) tuple; a camera the source rig does not have gets its first camera's image.
     ``drop`` leaves out parts by name ("rig" or a camera)."""
-    rig_json = Path(rig_json)
+    rig_json = Path(rig_json or _testing.EXAMPLE_RIG)
     source = read_rig(rig_json)
     if rig_bytes is None:
         rig_bytes = rig_json.read_bytes() if rig is None else json.dumps(rig).encode()
@@ -98,7 +99,7 @@ def make_rig(work: Path, width: int = 1600, height: int = 900) -> Path:
     if (out / "rig.json").is_file():
         return out / "rig.json"
     out.mkdir(parents=True, exist_ok=True)
-    rig = load_rig(EXAMPLE_RIG)
+    rig = load_rig(_testing.EXAMPLE_RIG)
     cams = []
     for c in rig.cameras:
         img = cv2.imread(str(rig.path(c.image)), cv2.IMREAD_COLOR)

@@ -52,8 +52,8 @@ def rgb_request(cam, start: np.ndarray, end: np.ndarray | None = None, scene: st
 
 def view_query(req: pb.RGBRenderRequest, ego_to_world: np.ndarray) -> dict:
     """The GET /v1/scenes/{id}/render query of the view the server makes of ``req`` for a scene at
-    ``ego_to_world`` (frames.view_spec, the server's one conversion; numbers written exactly)."""
-    cam = frames.view_spec(req, ego_to_world)[0].request().camera
+    ``ego_to_world`` (frames.view_request, the server's one conversion; numbers written exactly)."""
+    cam = frames.view_request(req, ego_to_world).camera
     K = cam.K
     return {"cam_to_ego": ",".join(repr(float(v)) for v in cam.cam_to_ego.ravel()), "fx": repr(float(K[0, 0])),
             "fy": repr(float(K[1, 1])), "cx": repr(float(K[0, 2])), "cy": repr(float(K[1, 2])),

@@ -20,7 +20,7 @@ from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Self
 
-from xyzcyl.testing import REPO
+from xyzcyl.testing import checkout
 
 HOST = "127.0.0.1"
 XYZCYL = Path(sys.executable).parent / "xyzcyl"     # the console script of the running interpreter's install
@@ -41,7 +41,7 @@ def free_port(host: str = HOST) -> int:
 
 class Server:
     """A started `xyzcyl serve --host 127.0.0.1 --port <free port> --store STORE ARGS...` (not waited for: see
-    ``wait_ready``), run in ``cwd`` (default: the source checkout, as the harness's users always did).
+    ``wait_ready``), run in ``cwd`` (default: the source checkout, xyzcyl.testing.checkout, if there is one).
     ``proc`` is the process, ``url`` its base URL, ``ready_s`` the seconds from the start to ready (once
     ``wait_ready`` returned), ``stop_info`` how ``stop`` ended it."""
 
@@ -56,7 +56,7 @@ class Server:
         self.started = time.perf_counter()
         with open(self.log, "ab") as out:
             self.proc = subprocess.Popen(self.argv, stdout=out, stderr=subprocess.STDOUT,
-                                         cwd=cwd if cwd is not None else REPO if REPO.is_dir() else None,
+                                         cwd=cwd if cwd is not None else checkout(),
                                          env=None if env is None else dict(env))
 
     @property

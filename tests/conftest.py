@@ -72,11 +72,11 @@ class TinyExport:
 @pytest.fixture(scope="session")
 def tiny_export(tmp_path_factory) -> TinyExport:
     """One ONNX export of the tiny test config (xyzcyl.testing.model.tiny_export_config) per pytest session,
-    through `xyzcyl export` (which is thereby tested), shared by the tests of the exported graphs
+    through `xyzcyl export-model` (which is thereby tested), shared by the tests of the exported graphs
     (tests/model_export) and of the runtime that runs them (tests/runtime): the export takes about a minute
     whatever the config's size."""
     import torch
-    from xyzcyl.clients import cli
+    from xyzcyl import cli
     from xyzcyl.model_export.model import XYZCylinder
     from xyzcyl.testing.model import tiny_export_config
 
@@ -108,7 +108,7 @@ def tiny_export(tmp_path_factory) -> TinyExport:
             return TinyExport(model=model, dir=out, checkpoint=ck)
         torch.save({"model": model.state_dict(), "model_cfg": cfg.to_dict(), "step": 0,
                     "train_cfg": {"stage": "render", "steps": 0}}, ck)
-        rc = cli.main(["export", "--checkpoint", str(ck), "--out", str(out), "--name", "tiny-test",
+        rc = cli.main(["export-model", "--checkpoint", str(ck), "--out", str(out), "--name", "tiny-test",
                        "--version", "0.0.1", "--threads", "1", "--quiet"])
         assert rc == 0
     finally:

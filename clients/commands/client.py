@@ -24,6 +24,8 @@ import os
 import sys
 from pathlib import Path
 
+from xyzcyl.common.wire import FORMATS, OUTPUTS, detail_stride_error
+
 _SCENE_HELP = "the scene's id (printed by `xyzcyl client reconstruct`)"
 
 
@@ -91,7 +93,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                            "--cam-to-world, or with --camera: that camera's pose and K through this lens")
     p.add_argument("--width", type=int, metavar="W", help="pixels (required unless --camera; with --camera: resize)")
     p.add_argument("--height", type=int, metavar="H", help="pixels (as --width)")
-    p.add_argument("--output", choices=("rgb", "depth", "alpha"), default="rgb",
+    p.add_argument("--output", choices=OUTPUTS, default="rgb",
                    help="rgb (default), depth (png: 16-bit millimetres; exr: float metres) or alpha")
     p.add_argument("--quality", type=int, metavar="Q", help="JPEG quality 1..100 (default 90)")
     p.add_argument("--out", required=True, metavar="FILE", help="output .png, .jpg or .exr")
@@ -108,8 +110,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     p.add_argument("--out", required=True, metavar="DIR", help="folder for the frames (created)")
     p.add_argument("--video", metavar="OUT.mp4", help="also write the frames as an mp4 video (OpenCV, mp4v)")
     p.add_argument("--fps", type=float, default=None, help="video frame rate (default: the camera path's fps, else 24)")
-    p.add_argument("--output", choices=("rgb", "depth", "alpha"), default=None, help="default: the file's, else rgb")
-    p.add_argument("--format", choices=("png", "jpeg", "exr"), default=None, help="default: the file's, else png")
+    p.add_argument("--output", choices=OUTPUTS, default=None, help="default: the file's, else rgb")
+    p.add_argument("--format", choices=FORMATS, default=None, help="default: the file's, else png")
     p.add_argument("--quality", type=int, metavar="Q", help="JPEG quality 1..100")
 
     p = sub.add_parser("gaussians", parents=[common], help="download the Gaussians (.ply or .splat)")
@@ -173,7 +175,7 @@ def _summary(info) -> str:
     total = (info.timings or {}).get("total")
     took = f" in {total:.1f} s" if total is not None else ""
     n_detail = (info.counts or {}).get("detail")
-    stride = (info.detail or {}).get("stride")
+    stride = None if info.detail is None else info.detail.stride
     detail = "" if n_detail is None else f" ({n_detail} detail" + (f", stride {stride})" if stride else ")")
     return f"scene {info.id} {info.state}: {info.gaussians or 0} Gaussians{detail}, {len(info.cameras)} cameras{took}"
 
@@ -183,8 +185,8 @@ def _summary(info) -> str:
 def _reconstruct(c, args) -> int:
     if args.no_detail and args.detail_stride is not None:
         raise _UsageError("--no-detail", "cannot be combined with --detail-stride")
-    if args.detail_stride is not None and not 1 <= args.detail_stride <= 16:
-        raise _UsageError("--detail-stride", f"must be an integer in 1..16, got {args.detail_stride}")
+    if (why := detail_stride_error(args.detail_stride)) is not None:
+        raise _UsageError("--detail-stride", why)
     depths = {} if args.no_depth else None
     update, close = _bar(args, None, "B", "upload")
     try:

@@ -1,4 +1,4 @@
-"""`xyzcyl import-model MODEL_DIR --out CKPT.pt`: a model folder (`xyzcyl export`) back to a training checkpoint
+"""`xyzcyl import-model MODEL_DIR --out CKPT.pt`: a model folder (`xyzcyl export-model`) back to a training checkpoint
 with the exact weights of every module its graphs use, for `xyzcyl train --init CKPT.pt` when the original
 checkpoint is gone (model_export/recover.py, docs/inference.md)."""
 
@@ -11,7 +11,7 @@ from pathlib import Path
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("model", type=Path, metavar="MODEL_DIR", help="model folder written by `xyzcyl export`")
+    parser.add_argument("model", type=Path, metavar="MODEL_DIR", help="model folder written by `xyzcyl export-model`")
     parser.add_argument("--out", required=True, type=Path, metavar="CKPT", help="checkpoint file to write (.pt)")
     parser.add_argument("--force", action="store_true", help="replace an existing --out file")
     parser.add_argument("--no-verify", action="store_true",

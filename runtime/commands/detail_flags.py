@@ -6,12 +6,14 @@ from __future__ import annotations
 
 import argparse
 
+from xyzcyl.common.wire import DETAIL_STRIDE_MAX, DETAIL_STRIDE_MIN
+
 
 def add_detail_arguments(parser: argparse.ArgumentParser) -> None:
     group = parser.add_mutually_exclusive_group()
     group.add_argument("--detail-stride", type=int, default=None, metavar="N",
                        help="detail layer: one pixel-aligned Gaussian per N x N block of each input camera's pixels, "
-                            "1..16 (default: the runtime's default, 2; docs/inference.md, \"Detail Gaussians\"). "
+                            f"{DETAIL_STRIDE_MIN}..{DETAIL_STRIDE_MAX} (default: the runtime's default, 2; docs/inference.md, \"Detail Gaussians\"). "
                             "Smaller = sharper renders, more Gaussians, slower")
     group.add_argument("--no-detail", action="store_true",
                        help="no detail layer: the model's Gaussians only (the cylinder's resolution)")

@@ -1,6 +1,6 @@
-"""`xyzcyl reconstruct RIG_JSON --out SCENE_DIR`: one timestamp of a rig (rig.json + its images, optional depth
-maps) -> a scene folder (scene.ply, background.exr/png, scene.json) with the onnxruntime model (no torch).
-See docs/inference.md."""
+"""`xyzcyl reconstruct RIG_JSON|DRIVE_JSON --out SCENE_DIR`: one timestamp of a rig (rig.json + its images, optional
+depth maps), or a recorded drive (a drive file: frames of rigs with their ego poses; runtime.drive) -> a scene
+folder (scene.ply, background.exr/png, scene.json) with the onnxruntime model (no torch). See docs/inference.md."""
 
 from __future__ import annotations
 
@@ -14,7 +14,9 @@ from .detail_flags import add_detail_arguments, detail_options
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("rig", metavar="RIG_JSON", help="rig.json (cameras, calibrations, image files relative to it)")
+    parser.add_argument("rig", metavar="RIG_JSON|DRIVE_JSON",
+                        help="rig.json (cameras, calibrations, image files relative to it), or a drive file "
+                             "({\"frames\": [{\"rig\": \"frame_00/rig.json\"}, ...]}: a recorded drive, one scene)")
     parser.add_argument("--out", required=True, metavar="SCENE_DIR", help="scene folder to write (replaced if it "
                         "exists and --force is given)")
     parser.add_argument("--model", default=None, metavar="DIR",
@@ -32,6 +34,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="columns of a .bin LiDAR file (default: the rig's lidar.columns, else 5 for *.pcd.bin, "
                              "4 otherwise)")
     add_detail_arguments(parser)
+    g = parser.add_argument_group("drives (a DRIVE_JSON)")
+    g.add_argument("--keyframe-spacing", type=float, default=None, metavar="M",
+                   help="a keyframe each M metres the ego moves (default 1.5: a drive posted at ~2 m spacing is "
+                        "used whole)")
+    g.add_argument("--keyframe-gap", type=float, default=None, metavar="S",
+                   help="a keyframe at least every S seconds, moving or not (default 2)")
+    g.add_argument("--keyframes", default=None, metavar="I,J,...",
+                   help="these frames (indices into the drive's frames) as the keyframes instead")
     parser.add_argument("--force", action="store_true", help="replace an existing SCENE_DIR")
     parser.add_argument("--quiet", action="store_true", help="no progress lines")
 
@@ -63,12 +73,20 @@ def run(args: argparse.Namespace) -> int:
         if args.model:
             return _fail(f"--model: no model folder at {str(model_dir)!r}")
         return _fail(f"no shipped model is present yet at {str(model_dir)!r} (the trained model has not been "
-                     "exported into models/ yet); pass --model DIR (a folder written by `xyzcyl export`)")
+                     "exported into models/ yet); pass --model DIR (a folder written by `xyzcyl export-model`)")
     say = (lambda msg: None) if args.quiet else (lambda msg: print(f"  {msg}", file=sys.stderr, flush=True))
     if args.threads is not None:
         import numba
 
         numba.set_num_threads(min(args.threads, numba.config.NUMBA_NUM_THREADS))
+    from ..drive import is_drive_file
+
+    if is_drive_file(args.rig):
+        return _drive(args, detail, out, model_dir, say)
+    drive_flags = [f for f, v in (("--keyframe-spacing", args.keyframe_spacing), ("--keyframe-gap", args.keyframe_gap),
+                                  ("--keyframes", args.keyframes)) if v is not None]
+    if drive_flags:
+        return _fail(f"{drive_flags[0]}: goes with a drive file (a rig.json is one timestamp)")
     try:
         # the inputs first (the rig, its files' presence and sizes, the LiDAR sweep): a bad rig is refused at
         # once, not after the model's load (~1 s)
@@ -104,4 +122,60 @@ def run(args: argparse.Namespace) -> int:
     print(f"{out}: {c['total']} Gaussians ({layers}), model {rec.info.name} {rec.info.version}")
     stages = ", ".join(f"{k} {v * 1000:.0f} ms" for k, v in t.items() if k != "total")
     print(f"reconstruct {t['total']:.2f} s ({stages}); model load {t_load:.2f} s, save {t_save:.2f} s")
+    return 0
+
+
+def _drive(args: argparse.Namespace, detail, out: Path, model_dir: Path, say) -> int:
+    """A drive file: its keyframes reconstructed and fused into one scene (runtime.drive.reconstruct_drive)."""
+    from ..drive import (
+        DEFAULT_MAX_GAP_S,
+        DEFAULT_SPACING_M,
+        DriveError,
+        load_drive,
+        pick_keyframes,
+        reconstruct_drive,
+    )
+    from ..inference import InferenceError, ModelError, Reconstructor
+    from ..lidar import LidarError
+    from ..rig import RigError
+    from ..scene import SceneError
+
+    if args.lidar_file is not None or args.lidar_columns is not None or args.no_depth:
+        flag = "--lidar-file" if args.lidar_file is not None else "--lidar-columns" if args.lidar_columns else \
+            "--no-depth"
+        return _fail(f"{flag}: goes with a rig.json (a drive's frames name their own sweeps)")
+    for flag, v in (("--keyframe-spacing", args.keyframe_spacing), ("--keyframe-gap", args.keyframe_gap)):
+        if v is not None and not v > 0:
+            return _fail(f"{flag}: must be > 0, got {v}")
+    try:
+        say(f"read drive {args.rig}")
+        drive = load_drive(args.rig)
+        if args.keyframes is not None:
+            try:
+                keys = [int(x) for x in args.keyframes.split(",") if x.strip()]
+            except ValueError:
+                return _fail(f"--keyframes: frame indices separated by commas (got {args.keyframes!r})")
+            if not keys or keys != sorted(set(keys)) or not all(0 <= k < len(drive) for k in keys):
+                return _fail(f"--keyframes: increasing frame indices in 0..{len(drive) - 1} (got {args.keyframes!r})")
+        else:
+            keys = pick_keyframes(drive, args.keyframe_spacing or DEFAULT_SPACING_M,
+                                  args.keyframe_gap or DEFAULT_MAX_GAP_S)
+        say(f"{len(drive)} frames, {len(keys)} keyframes: {', '.join(map(str, keys))}")
+        t0 = time.perf_counter()
+        say(f"load model {model_dir}")
+        rec = Reconstructor.load(model_dir, threads=args.threads)
+        t_load = time.perf_counter() - t0
+        scene = reconstruct_drive(rec, drive, keys, lidar=not args.no_lidar, detail=detail, progress=say)
+        say(f"write {out}")
+        t1 = time.perf_counter()
+        scene.save(out, overwrite=True)
+        t_save = time.perf_counter() - t1
+    except (DriveError, ModelError, RigError, InferenceError, SceneError, LidarError) as exc:
+        return _fail(str(exc))
+    except OSError as exc:
+        return _fail(f"--out: {exc}")
+    c, t = scene.counts, scene.timings
+    print(f"{out}: {c['total']} Gaussians from {len(keys)} keyframes of {len(drive)} frames, model {rec.info.name} "
+          f"{rec.info.version}")
+    print(f"reconstruct {t['total']:.2f} s; model load {t_load:.2f} s, save {t_save:.2f} s")
     return 0

@@ -1,6 +1,6 @@
 """`xyzcyl render PLY|SCENE_DIR ...`: render a 3DGS PLY (INRIA layout) or a scene folder (`xyzcyl reconstruct`:
 Gaussians composited over the scene's background panorama) from one camera pose. The view is stated as a
-runtime.views.ViewSpec and encoded by runtime.views.encode_view, exactly as the HTTP service does: --out .png /
+common.wire.ViewQuery (runtime.views.request) and encoded by runtime.views.encode_view, exactly as the HTTP service does: --out .png /
 .jpg / .exr, --output rgb | depth | alpha (PNG depth: 16-bit millimetres; EXR: float32 metres), or for an .exr the
 default "all" (float32 channels R G B A Z; Z = expected depth in metres, 0 where A == 0); --format png|jpeg|exr
 must agree with --out's extension. The pose: --K or --fov with --cam-to-world (and a --distortion lens),
@@ -28,6 +28,7 @@ from xyzcyl.common.poses import (
     parse_lens,
     parse_matrix,
 )
+from xyzcyl.common.wire import LOCAL_OUTPUTS
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -58,7 +59,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="output file: .png, .jpg or .exr, encoded as the service encodes (docs/inference.md "
                              "'Encodings')")
     add_format_argument(parser)
-    parser.add_argument("--output", choices=("rgb", "depth", "alpha", "all"), default=None,
+    parser.add_argument("--output", choices=LOCAL_OUTPUTS, default=None,
                         help="what to write: rgb (default for .png/.jpg), depth (PNG: 16-bit millimetres; EXR: "
                              "float32 metres), alpha, or all (.exr only, the default there: R G B A Z)")
     parser.add_argument("--quality", type=int, default=90, help="JPEG quality 1..100 (default 90)")
@@ -80,20 +81,20 @@ def _fail(msg: str) -> int:
     return 2
 
 
-# where each ViewSpec attribute comes from on this command line (its errors name the flag)
+# where each ViewQuery field comes from on this command line (its errors name the flag)
 FLAGS = {"camera": "--camera", "cam_to_ego": "--cam-to-world", "fx": "--K", "fy": "--K", "cx": "--K", "cy": "--K",
-         "K": "--K", "fov": "--fov", "distortion": "--distortion", "model": "--equirect", "width": "--width",
-         "height": "--height", "output": "--output", "format": "--out", "quality": "--quality",
-         **{f"move.{k}": f"--{k}" for k in MOVE_NAMES}}
+         "fov": "--fov", "distortion": "--distortion", "width": "--width", "height": "--height", "output": "--output",
+         "format": "--out", "quality": "--quality", **{k: f"--{k}" for k in MOVE_NAMES}}
 
 
 def run(args: argparse.Namespace) -> int:
     from xyzcyl.common.files import atomic_file
+    from xyzcyl.common.wire import ViewError, validated
 
     from ..render import GaussianError, Gaussians, render
     from ..render.gaussians import DEFAULT_MAX_POINTS
     from ..scene import JSON_NAME, Scene, SceneError
-    from ..views import ViewError, ViewSpec, encode_view
+    from ..views import ViewRequest, encode_view, equirect_camera, request
 
     if args.quiet:       # the numba compile notice (runtime.compile_notice) goes nowhere
         from ..compile_notice import install
@@ -159,12 +160,19 @@ def run(args: argparse.Namespace) -> int:
         return _fail(str(exc))
     fx, fy, cx, cy = args.K if args.K is not None else (None,) * 4
     output = args.output or ("all" if fmt == "exr" else "rgb")
-    spec = ViewSpec(camera=args.camera, cam_to_ego=c2w, fx=fx, fy=fy, cx=cx, cy=cy, fov=args.fov, distortion=lens,
-                    move=move, model="equirectangular" if args.equirect else "pinhole", width=args.width,
-                    height=args.height, output=output, format=fmt, quality=args.quality,
-                    names=FLAGS if args.format is None else {**FLAGS, "format": "--format"})
+    names = FLAGS if args.format is None else {**FLAGS, "format": "--format"}
+    wire = {"output": "rgb"} if output == "all" else {"output": output}    # "all" (R G B A Z) is local: no wire value
     try:
-        req = spec.request(None if scene is None else scene.rig)
+        if args.equirect:        # a 360x180 panorama: a pose and a size, no intrinsics (not a wire view)
+            given = [f for f, v in (("--K", args.K), ("--fov", args.fov), ("--distortion", lens)) if v is not None]
+            if given:
+                raise ViewError(given[0], "an equirectangular panorama takes no intrinsics")
+            req = ViewRequest(equirect_camera(c2w, args.width, args.height, move, names), output, fmt, args.quality)
+        else:
+            query = validated({"camera": args.camera, "cam_to_ego": c2w, "fx": fx, "fy": fy, "cx": cx, "cy": cy,
+                               "fov": args.fov, "distortion": lens, **move.values(), "width": args.width,
+                               "height": args.height, **wire, "format": fmt, "quality": args.quality}, names)
+            req = request(query, None if scene is None else scene.rig, names, output=output)
     except ViewError as exc:
         return _fail(str(exc))
     cam = req.camera

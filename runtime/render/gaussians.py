@@ -125,6 +125,11 @@ class Gaussians:
         object.__setattr__(out, "opacity_logits", a)
         return out
 
+    def subset(self, keep: np.ndarray) -> Gaussians:
+        """The Gaussians where ``keep`` ([N] bool, or indices) selects, in order."""
+        return Gaussians(self.means[keep], self.quats[keep], self.log_scales[keep], self.opacity_logits[keep],
+                         self.sh[keep])
+
     def astype(self, dtype) -> Gaussians:
         return Gaussians(*(np.asarray(getattr(self, f), dtype=dtype) for f in
                            ("means", "quats", "log_scales", "opacity_logits", "sh")))

@@ -7,7 +7,7 @@ from typing import Literal
 
 from fastapi import APIRouter, Depends, Query, Request
 from fastapi.responses import JSONResponse, Response, StreamingResponse
-from xyzcyl.common.wire import SceneInfo, SceneList
+from xyzcyl.common.wire import DETAIL_STRIDE_MAX, DETAIL_STRIDE_MIN, SceneInfo, SceneList, detail_stride_error
 from xyzcyl.runtime.inference import DEFAULT_DETAIL
 
 from ..deps import known_query, require_content_type, require_key, service_of
@@ -28,10 +28,10 @@ def _detail_stride(request: Request, detail: bool, detail_stride: int | None) ->
     for name in ("detail", "detail_stride"):
         if len(request.query_params.getlist(name)) > 1:
             raise Invalid(f"{name}: given more than once", name)
+    why = detail_stride_error(detail_stride, detail)
+    if why is not None:
+        raise Invalid(f"detail_stride: {why}", "detail_stride")
     if not detail:
-        if detail_stride is not None:
-            raise Invalid("detail_stride: cannot be combined with detail=false (the detail layer is off)",
-                          "detail_stride")
         return None
     return DEFAULT_DETAIL.stride if detail_stride is None else detail_stride
 
@@ -42,7 +42,7 @@ def _detail_stride(request: Request, detail: bool, detail_stride: int | None) ->
 async def create_scene(request: Request,
                        wait: float | None = Query(None, ge=0, le=3600,
                                                   description="hold up to this many seconds for the result"),
-                       detail_stride: int | None = Query(None, ge=1, le=16,
+                       detail_stride: int | None = Query(None, ge=DETAIL_STRIDE_MIN, le=DETAIL_STRIDE_MAX,
                                                          description="detail layer: input pixels per detail "
                                                                      "Gaussian along each axis (default "
                                                                      f"{DEFAULT_DETAIL.stride})"),

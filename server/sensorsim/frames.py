@@ -1,6 +1,6 @@
 """The SensorsimService's messages to and from the runtime's terms: poses, cameras, render requests. No gRPC here
 (only the generated message classes), no I/O: every function is a pure conversion, and every refusal is a
-runtime.views.ViewError naming the protocol field at fault (``camera_intrinsics.opencv_pinhole_param
+common.wire.ViewError naming the protocol field at fault (``camera_intrinsics.opencv_pinhole_param
 .focal_length_x``, ``sensor_pose.start_pose.quat``, ``items[2].request.resolution_w``), which the servicer answers
 as INVALID_ARGUMENT.
 
@@ -16,7 +16,7 @@ The frame chain (docs/simulators.md states it for users):
 - A = CAMERA_AXES: the protocol's camera frame -> ours. Both are OpenCV's (x right, y down, z forward; NuRec and
   AlpaSim's renderers take the sensor pose as an OpenCV camera-to-world), so A is the identity, kept in the formula
   so that the chain reads whole;
-- cam_to_ego: our camera -> ego (docs/conventions.md "Frames and cameras"), the pose a ViewSpec takes.
+- cam_to_ego: our camera -> ego (docs/conventions.md "Frames and cameras"), the pose of a render camera.
 
 get_available_cameras answers each rig camera's cam_to_ego @ inv(A) as the camera -> rig pose (the protocol's
 ``rig_to_camera``, named the other way round): AlpaSim's rig frame (x forward, y left, z up) has our ego frame's
@@ -37,12 +37,12 @@ from typing import Any
 
 import numpy as np
 from xyzcyl.common.errors import FieldError
-from xyzcyl.runtime.camera import Camera, pinhole_K
+from xyzcyl.common.wire import ViewError
+from xyzcyl.runtime.camera import Camera, check_render_size, pinhole_K
 from xyzcyl.runtime.lenses import FISHEYE_NAMES, OPENCV_NAMES, fisheye_max_angle_deg
-from xyzcyl.runtime.realeval import EGO_POSE_KEYS, ego_to_world
 from xyzcyl.runtime.rig import Rig
 from xyzcyl.runtime.rotations import quat_to_rotmat, rotmat_to_quat
-from xyzcyl.runtime.views import ViewError, ViewSpec
+from xyzcyl.runtime.views import ViewRequest
 
 from . import common_pb2, sensorsim_pb2
 
@@ -109,9 +109,7 @@ def pose_message(T: np.ndarray) -> common_pb2.Pose:
 def scene_ego_to_world(rig: Rig) -> np.ndarray:
     """[4, 4] the scene's ego pose in the simulator's local frame: the rig's ``ego_to_world`` (or
     ``ego_to_global``), identity when it has none (POST /v1/scenes checked it: server/uploads.py)."""
-    if any(k in rig.extra for k in EGO_POSE_KEYS):
-        return ego_to_world(rig, "the scene's rig")
-    return np.eye(4)
+    return np.eye(4) if rig.ego_to_world is None else rig.ego_to_world
 
 
 def cam_to_ego(sensor_pose: np.ndarray, ego_pose: np.ndarray) -> np.ndarray:
@@ -260,11 +258,11 @@ def quality(value: float, field: str) -> int:
     return max(1, min(100, round(q * 100 if q <= 1.0 else q)))
 
 
-def view_spec(req: sensorsim_pb2.RGBRenderRequest, ego_pose: np.ndarray, prefix: str = "") -> tuple[ViewSpec, str]:
-    """The runtime ViewSpec of an RGBRenderRequest (resolved with ``spec.request()``: no rig needed) and the name
-    of its lens field (``camera_intrinsics.<param>``: the protocol field a lens's errors are named by).
-    ``ego_pose``: the scene's ego_to_world; ``prefix``: the request's path in the call ("items[2].request.").
-    Refusals (ViewError) name the protocol field."""
+def view_request(req: sensorsim_pb2.RGBRenderRequest, ego_pose: np.ndarray, prefix: str = "") -> ViewRequest:
+    """The runtime ViewRequest of an RGBRenderRequest: its camera (made here, in the ego frame, from the protocol's
+    intrinsics and mid-exposure pose; no rig needed), PNG or JPEG and the quality. ``ego_pose``: the scene's
+    ego_to_world; ``prefix``: the request's path in the call ("items[2].request."). Refusals (ViewError) name the
+    protocol field; a view over the render limit names resolution_w / resolution_h."""
     p = prefix
     ci = req.camera_intrinsics
     which = ci.WhichOneof("camera_param")
@@ -278,8 +276,9 @@ def view_spec(req: sensorsim_pb2.RGBRenderRequest, ego_pose: np.ndarray, prefix:
         raise ViewError(f"{p}insert_ego_mask", "this renderer has no ego masks (get_available_ego_masks lists none)")
     fmt = FORMATS.get(req.image_format)
     if fmt is None:
-        raise ViewError(f"{p}image_format", f"{sensorsim_pb2.ImageFormat.Name(req.image_format)} is not "
-                                            "supported: PNG or JPEG")
+        known = sensorsim_pb2.ImageFormat.values()
+        what = sensorsim_pb2.ImageFormat.Name(req.image_format) if req.image_format in known else req.image_format
+        raise ViewError(f"{p}image_format", f"{what} is not supported: PNG or JPEG")
     q = quality(req.image_quality, f"{p}image_quality")
     if not req.HasField("sensor_pose"):
         raise ViewError(f"{p}sensor_pose", "is not set (the camera's pose at the exposure's start and end)")
@@ -304,13 +303,11 @@ def view_spec(req: sensorsim_pb2.RGBRenderRequest, ego_pose: np.ndarray, prefix:
             cam = cam.resized(w, h)
         except FieldError as e:
             raise ViewError(f"{p}resolution_{'h' if e.root_field == 'height' else 'w'}", e.message) from None
-    spec = ViewSpec(cam_to_ego=cam.cam_to_ego, K=cam.K, width=cam.width, height=cam.height,
-                    distortion=None if cam.distortion is None else cam.distortion.to_json(), format=fmt, quality=q,
-                    names={"cam_to_ego": f"{p}sensor_pose", "K": param, "width": f"{p}resolution_w",
-                           "height": f"{p}resolution_h", "distortion": param, "format": f"{p}image_format",
-                           "quality": f"{p}image_quality"})
-    return spec, param
-
+    try:
+        check_render_size(cam.width, cam.height)
+    except FieldError as e:
+        raise ViewError(f"{p}resolution_{'w' if cam.width >= cam.height else 'h'}", e.message) from None
+    return ViewRequest(cam, "rgb", fmt, q)
 
 __all__ = ["CAMERA_AXES", "available_cameras", "cam_to_ego", "camera_spec", "mid_exposure", "pose_matrix",
-           "pose_message", "quality", "scene_ego_to_world", "view_spec"]
+           "pose_message", "quality", "scene_ego_to_world", "view_request"]

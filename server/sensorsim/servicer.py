@@ -3,8 +3,8 @@ render cache, limits, metrics) and the same API keys. `xyzcyl serve --grpc-port 
 (app.py); docs/simulators.md says what AlpaSim and CARLA's NuRec integration call and what they get.
 
 Like a route, each method parses its request and answers in a few lines: frames.py turns the protocol's messages
-into a runtime ViewSpec (the HTTP routes' one render path: ViewSpec.request -> Service.render -> runtime.views
-.render_request), the Service does the work. Errors become status codes, the message naming the field:
+into a runtime ViewRequest (its camera made directly from the protocol's intrinsics and pose), rendered by the
+HTTP routes' one render path (Service.render -> runtime.views.render_request). Errors become status codes, the message naming the field:
 
     UNAUTHENTICATED      API keys set and no valid ``authorization: Bearer KEY`` or ``x-api-key: KEY`` metadata
     INVALID_ARGUMENT     a bad request field (frames.py's ViewError, the render limits), a lens the renderer cannot
@@ -35,7 +35,7 @@ from typing import Any
 
 import grpc
 from xyzcyl.common.errors import FieldError
-from xyzcyl.runtime.views import ViewError
+from xyzcyl.common.wire import ViewError
 
 from ..deps import key_matches
 from ..errors import ApiError, Busy, Conflict, Invalid, NotFound
@@ -74,7 +74,7 @@ def failure(e: BaseException) -> Failure:
         named = e.field is None or e.message.startswith(f"{e.field}:")
         return Failure(_BY_STATUS.get(e.status, StatusCode.INTERNAL),
                        e.message if named else f"{e.field}: {e.message}", e.field)
-    if isinstance(e, FieldError):           # ViewError (frames.py, ViewSpec), a runtime camera or lens refusal
+    if isinstance(e, FieldError):           # ViewError (frames.py), a runtime camera or lens refusal
         return Failure(StatusCode.INVALID_ARGUMENT, str(e), e.field)
     if isinstance(e, StoreUnavailable):
         return Failure(StatusCode.UNAVAILABLE, str(e))
@@ -160,7 +160,7 @@ class SensorsimServicer(sensorsim_pb2_grpc.SensorsimServiceServicer):
     async def _render(self, req: sensorsim_pb2.RGBRenderRequest, prefix: str, rigs: dict[str, Any],
                       force: bool) -> bytes:
         """One RGBRenderRequest through the one render path: the scene (``rigs`` caches each scene's id and rig
-        for the call), frames.view_spec -> ViewSpec.request -> Service.render (render cache, render pool)."""
+        for the call), frames.view_request -> Service.render (render cache, render pool)."""
         field = f"{prefix}scene_id"
         if not req.scene_id:
             raise ViewError(field, "is empty: give a scene's name or id (get_available_scenes)")
@@ -168,8 +168,7 @@ class SensorsimServicer(sensorsim_pb2_grpc.SensorsimServiceServicer):
             rec = await self.service.resolve_scene(req.scene_id, field)
             rigs[req.scene_id] = (rec.id, await self.service.scene_rig(rec.id))
         sid, rig = rigs[req.scene_id]
-        spec, _ = frames.view_spec(req, frames.scene_ego_to_world(rig), prefix)
-        view = spec.request()
+        view = frames.view_request(req, frames.scene_ego_to_world(rig), prefix)
         self.service.check_size(view.camera, f"{prefix}resolution_w")
         return await self.service.render(sid, view, self.service.view_key(sid, view), force=force)
 

@@ -14,10 +14,7 @@ explicit fields, in the order the stores have always written them. ``to_json`` w
 were read or set (a key that was absent stays absent: older records have no ``detail``, test records no
 ``cameras``), and keys it does not know are kept as they are, so records written before this class load and
 round-trip unchanged. Changes make a new record (``replace`` and the state changes below): the stores keep
-theirs unchanged and hand out copies.
-
-``rec[key]`` and ``rec.get(key)`` read the record's JSON by key, and ``rec[key] = value`` sets a field (checked),
-for code written when records were dicts."""
+theirs unchanged and hand out copies."""
 
 from __future__ import annotations
 
@@ -27,7 +24,7 @@ from collections.abc import Mapping
 from typing import Any
 
 from pydantic import BaseModel, ConfigDict
-from xyzcyl.common.wire import STATES, SceneState
+from xyzcyl.common.wire import STATES, CameraInfo, DetailInfo, SceneState
 
 SCENE_ID = re.compile(r"^[A-Za-z0-9_-]{22}$")
 # a scene's optional name (POST /v1/scenes?name=): a simulator's scene id such as AlpaSim's "clipgt-<uuid>"
@@ -75,8 +72,8 @@ class SceneRecord(BaseModel):
     model_config = ConfigDict(extra="allow", validate_assignment=True)
 
     # the fields in the order today's stores write them (the JSON keeps it)
-    cameras: list[dict[str, Any]] = []          # the rig's cameras as posted: {"name", "width", "height", "model"}
-    detail: dict[str, Any] | None = None        # {"enabled", "stride"}; absent for scenes posted before the layer
+    cameras: list[CameraInfo] = []              # the rig's cameras as posted (name, width, height, model)
+    detail: DetailInfo | None = None            # the detail layer asked for; absent for scenes posted before it
     name: str | None = None                     # POST /v1/scenes?name= (e.g. a simulator's scene id); absent: none
     id: str
     state: SceneState
@@ -144,22 +141,6 @@ class SceneRecord(BaseModel):
     def last_use(self) -> float:
         """When it was last used: ``last_used``, else its last change."""
         return self.last_used if self.last_used is not None else self.updated_ts
-
-    # -- the record's JSON by key (what records were before: dicts) --------------------------------------------
-    def __getitem__(self, key: str) -> Any:
-        return self.to_json()[key]
-
-    def __setitem__(self, key: str, value: Any) -> None:
-        setattr(self, key, value)
-
-    def __contains__(self, key: object) -> bool:
-        return key in self.to_json()
-
-    def get(self, key: str, default: Any = None) -> Any:
-        return self.to_json().get(key, default)
-
-    def keys(self):
-        return self.to_json().keys()
 
 
 __all__ = ["SCENE_ID", "SCENE_NAME", "STATES", "SceneFailure", "SceneRecord", "check_id", "name_error", "new_scene_id",

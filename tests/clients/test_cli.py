@@ -1,6 +1,8 @@
-"""The `xyzcyl` dispatcher (clients/cli.py), issue 27: negative numbers in scientific notation for every command
-(defect 2), the extra to install when a command's dependency is missing (defect 3), --version, and help that
-covers every flag and names only flags that exist (defect 7)."""
+"""The `xyzcyl` console script (cli.py; its parser common/command.py), issue 27: negative numbers in scientific
+notation for every command (defect 2), the extra to install when a command's dependency is missing (defect 3),
+--version, and help that covers every flag and names only flags that exist (defect 7); issue 36: `xyzcyl export` is
+the export of scenes (not available yet), the model's export `xyzcyl export-model` (the old spelling still runs it,
+with a notice)."""
 
 from __future__ import annotations
 
@@ -12,7 +14,7 @@ import sys
 from importlib.metadata import version
 
 import pytest
-from xyzcyl.clients import cli
+from xyzcyl import cli
 
 
 def _all_parsers() -> dict[str, argparse.ArgumentParser]:
@@ -115,13 +117,36 @@ def test_train_help_names_every_stage(capsys):
     assert all(s in description for s in stages), description
 
 
+# -- export: scenes (not yet), export-model: the model ---------------------------------------------------------
+
+def test_export_of_scenes_is_not_available_yet(capsys):
+    from xyzcyl.runtime.commands.export import NOT_YET
+
+    assert cli.main(["export"]) == 2
+    assert capsys.readouterr().err == NOT_YET + "\n"
+    with pytest.raises(SystemExit) as e:                           # arguments, flags: the same line
+        cli.main(["export", "scene", "--format", "usdz"])
+    assert e.value.code == 2 and capsys.readouterr().err == NOT_YET + "\n"
+    assert "USDZ, glTF, SPZ" in NOT_YET and "`xyzcyl export-model`" in NOT_YET
+
+
+def test_old_export_spelling_runs_export_model_with_a_notice(tmp_path, capsys):
+    pytest.importorskip("torch")
+    assert cli.main(["export", "--checkpoint", str(tmp_path / "none.pt"), "--out", str(tmp_path / "m")]) == 2
+    err = capsys.readouterr().err.splitlines()
+    assert err[0] == cli.OLD_EXPORT_NOTICE == ("xyzcyl export --checkpoint is now `xyzcyl export-model`; "
+                                               "the old spelling goes in the next release")
+    assert err[1].startswith("xyzcyl export-model: checkpoint: ") and len(err) == 2
+    assert not (tmp_path / "m").exists()
+
+
 # -- missing optional dependencies -----------------------------------------------------------------------------
 
 SCRIPT = """
 import contextlib, io, json, sys
 for m in sys.argv[1].split(","):
     sys.modules[m] = None                     # as if not installed: import raises ModuleNotFoundError
-from xyzcyl.clients import cli
+from xyzcyl import cli
 out = []
 for argv in json.loads(sys.argv[2]):
     err = io.StringIO()
@@ -146,10 +171,15 @@ def test_torch_commands_without_torch_name_the_extra(tmp_path):
     data.mkdir()
     commands = [["train", "--data", str(data), "--stage", "occ", "--out", str(tmp_path / "run")],
                 ["eval", "--data", str(data), "--setting", "ego-forward"],
-                ["export", "--checkpoint", str(tmp_path / "c.pt"), "--out", str(tmp_path / "model")],
-                ["import-model", str(cli.__file__), "--out", str(tmp_path / "c.pt")]]
-    for argv, (rc, err) in zip(commands, _without("torch", commands)):
+                ["export-model", "--checkpoint", str(tmp_path / "c.pt"), "--out", str(tmp_path / "model")],
+                ["import-model", str(cli.__file__), "--out", str(tmp_path / "c.pt")],
+                ["export", f"--checkpoint={tmp_path / 'c.pt'}", "--out", str(tmp_path / "model")]]   # old spelling
+    results = _without("torch", commands)
+    for argv, (rc, err) in zip(commands[:-1], results):
         assert (rc, err) == (2, f"xyzcyl {argv[0]}: missing dependency 'torch' (pip install 'xyzcyl[train]')\n")
+    # `xyzcyl export --checkpoint` runs export-model, after one line saying so
+    assert results[-1] == [2, f"{cli.OLD_EXPORT_NOTICE}\n"
+                              "xyzcyl export-model: missing dependency 'torch' (pip install 'xyzcyl[train]')\n"]
 
 
 def test_server_and_client_without_their_extras_name_them(tmp_path):

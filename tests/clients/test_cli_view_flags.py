@@ -12,7 +12,7 @@ from importlib.metadata import version
 import numpy as np
 import pytest
 from client_helpers import PNG
-from xyzcyl.clients import cli
+from xyzcyl import cli
 
 httpx = pytest.importorskip("httpx")
 
@@ -116,7 +116,7 @@ def test_move_fields_are_defined_once():
     import argparse
 
     from xyzcyl.common.poses import MOVE_FIELDS, MOVE_NAMES, CameraMove, MoveError, add_move_arguments
-    from xyzcyl.runtime.views import _OPENCV_FOV_KEYS, _OPENCV_K_KEYS, _RIG_KEYS
+    from xyzcyl.common.wire import _OPENCV_FOV_KEYS, _OPENCV_K_KEYS, _RIG_KEYS
 
     assert MOVE_NAMES == ("forward", "left", "up", "yaw")
     assert [(f.unit, f.limit) for f in MOVE_FIELDS] == [("metres", 1000.0)] * 3 + [("degrees", 360.0)]
@@ -157,11 +157,12 @@ def test_version_without_a_model(capsys, monkeypatch, tmp_path):
 
 
 def test_version_imports_no_torch():
+    """--version reads model.json only (runtime.model_folder): no torch, and no numba or onnxruntime either."""
     import subprocess
     import sys
 
-    code = ("import sys\nfrom xyzcyl.clients import cli\ntry:\n    cli.main(['--version'])\nexcept SystemExit:\n"
-            "    pass\nassert 'torch' not in sys.modules, 'torch imported'\n")
+    code = ("import sys\nfrom xyzcyl import cli\ntry:\n    cli.main(['--version'])\nexcept SystemExit:\n"
+            "    pass\nfor m in ('torch', 'numba', 'onnxruntime'):\n    assert m not in sys.modules, m + ' imported'\n")
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=False)
     assert done.returncode == 0, done.stderr
     assert done.stdout.splitlines()[1].startswith("model: ")

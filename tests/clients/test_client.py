@@ -289,9 +289,9 @@ def test_client_side_refusals_name_the_field(client, tmp_path):
 
 def test_reconstruct_without_the_detail_layer(client, scene):
     """detail=False reaches the server: no detail Gaussians, and the scene says so (the default scene has them)."""
-    assert scene.detail == {"enabled": True, "stride": 2} and scene.counts["detail"] > 0
+    assert scene.detail.model_dump() == {"enabled": True, "stride": 2} and scene.counts["detail"] > 0
     off = client.reconstruct(RIG, detail=False)
-    assert off.ready and off.detail == {"enabled": False, "stride": None} and "detail" not in off.counts
+    assert off.ready and off.detail.model_dump() == {"enabled": False, "stride": None} and "detail" not in off.counts
     assert off.gaussians < scene.gaussians
     client.delete(off.id)
 
@@ -328,7 +328,7 @@ def test_reconstruct_sends_the_detail_query(sleeps):
 
     c = _mock(handler)
     assert c.reconstruct(RIG, wait=False).state == "queued"
-    assert c.reconstruct(RIG, wait=False, detail_stride=4).detail == {"enabled": True, "stride": 4}
+    assert c.reconstruct(RIG, wait=False, detail_stride=4).detail.model_dump() == {"enabled": True, "stride": 4}
     c.reconstruct(RIG, wait=False, detail=False)
     c.reconstruct(RIG, wait=False, detail_stride=np.int64(16), detail=True)
     assert seen == [{}, {"detail_stride": "4"}, {"detail": "false"}, {"detail_stride": "16"}]

@@ -29,7 +29,7 @@ def server(tmp_path_factory):
 
 
 def xyzcyl(*args: str, capsys) -> tuple[int, str, str]:
-    from xyzcyl.clients import cli
+    from xyzcyl import cli
 
     capsys.readouterr()
     rc = cli.main(list(args))
@@ -121,7 +121,9 @@ def test_client_reconstruct_passes_the_detail_flags(monkeypatch, capsys):
         calls.append(kw)
         stride = kw["detail_stride"] if kw["detail"] else None
         return SceneInfo.from_json({"id": "s" * 22, "state": "ready", "gaussians": 10, "counts": {"detail": 7},
-                                    "detail": {"enabled": kw["detail"], "stride": stride}, "timings": {"total": 1.0}})
+                                    "detail": {"enabled": kw["detail"], "stride": stride}, "timings": {"total": 1.0},
+                                    "created": "2026-01-01T00:00:00+00:00", "updated": "2026-01-01T00:00:01+00:00",
+                                    "cameras": [], "links": {}})
 
     monkeypatch.setattr(Client, "reconstruct", fake)
     rig = str(EXAMPLE / "rig.json")

@@ -18,7 +18,7 @@ SCI = ["0", "0", "1", "5", "-1", "0", "0", "-1e-05", "0", "-1", "0", "1.6", "0",
 
 
 def _client(capsys, *args):
-    from xyzcyl.clients import cli
+    from xyzcyl import cli
 
     capsys.readouterr()
     rc = cli.main(["client", "render", "SID", "--server", "http://test", "--quiet", *args])

@@ -8,7 +8,7 @@ import cv2
 import numpy as np
 import pytest
 import torch
-from xyzcyl.clients.cli import main
+from xyzcyl.cli import main
 from xyzcyl.model_export import metrics as M
 from xyzcyl.model_export.dataset import DatasetConfig, SceneDataset
 from xyzcyl.model_export.evaluate import (

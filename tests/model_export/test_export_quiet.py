@@ -1,4 +1,4 @@
-"""`xyzcyl export` prints none of torch's exporter messages that say nothing about our graphs, and only those are
+"""`xyzcyl export-model` prints none of torch's exporter messages that say nothing about our graphs, and only those are
 silenced (export._EXPORTER_NOISE)."""
 
 import logging

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import pytest
 import torch
-from xyzcyl.clients import cli
+from xyzcyl import cli
 
 pytestmark = pytest.mark.slow   # the session's ONNX export (tests/conftest.py) and one pattern export
 

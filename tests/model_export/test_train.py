@@ -32,7 +32,7 @@ def _train_cli(args, capsys) -> tuple[int, str]:
     (exit status, stderr). The thread counts that --threads sets are restored after (later tests' results depend
     on them)."""
     import numba
-    from xyzcyl.clients import cli
+    from xyzcyl import cli
 
     n_torch, n_numba = torch.get_num_threads(), numba.get_num_threads()
     try:
@@ -149,7 +149,7 @@ def test_render_stage_from_occ(tiny_synth_data, tmp_path):
 
 
 def test_cli_errors_exit_2(tmp_path, tiny_synth_data, capsys):
-    exe = [sys.executable, "-m", "xyzcyl.clients.cli", "train"]
+    exe = [sys.executable, "-m", "xyzcyl", "train"]
     r = subprocess.run(exe + ["--data", str(tmp_path / "nope"), "--stage", "occ", "--out", str(tmp_path / "r")],
                        check=False, capture_output=True, text=True)
     assert r.returncode == 2 and "data" in r.stderr and "Traceback" not in r.stderr

@@ -10,7 +10,7 @@ import json
 import numpy as np
 import pytest
 import torch
-from xyzcyl.clients.cli import main
+from xyzcyl.cli import main
 from xyzcyl.model_export.dataset import DatasetConfig, SceneDataset
 from xyzcyl.model_export.losses import OptimConfig, TrainLossConfig
 from xyzcyl.model_export.render_fn import KEYS, render_views

@@ -77,5 +77,9 @@ def test_every_copied_path_is_in_the_build_context(src):
 
 
 def test_the_build_stage_copies_every_package_folder():
+    """Every folder pyproject.toml maps, and for the package mapped to the top of the repository ("xyzcyl" = ".":
+    cli.py, __main__.py) its modules, not the whole context."""
     folders = set(tomllib.loads((REPO / "pyproject.toml").read_text())["tool"]["setuptools"]["package-dir"].values())
-    assert folders - set(_context_copies()) == set(), "the Dockerfile's build stage must COPY these (pip install)"
+    wanted = (folders - {"."}) | ({p.name for p in REPO.glob("*.py")} if "." in folders else set())
+    assert wanted - set(_context_copies()) == set(), "the Dockerfile's build stage must COPY these (pip install)"
+    assert "." not in _context_copies()

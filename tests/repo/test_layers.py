@@ -86,15 +86,20 @@ def test_common_imports_nothing_else_of_xyzcyl():
         assert bad == [], f"{path.relative_to(REPO)} imports {bad}"
 
 
-def test_the_clients_scene_has_the_wire_fields():
-    """The client's SceneInfo dataclass (its public type) has the fields of the wire model the server answers with,
-    plus ``raw``: a field added to one is added to the other."""
-    import dataclasses
-
+def test_the_clients_scene_is_the_wire_type():
+    """The client's SceneInfo (its public type) is the wire model the server answers with, not a copy to keep in
+    step, and a scene answer round-trips through it."""
     from xyzcyl.clients.client import SceneInfo
     from xyzcyl.common import wire
 
-    assert {f.name for f in dataclasses.fields(SceneInfo)} == {*wire.SceneInfo.model_fields, "raw"}
+    assert SceneInfo is wire.SceneInfo
+    doc = {"id": "s" * 22, "name": None, "state": "failed", "created": "2026-01-01T00:00:00+00:00",
+           "updated": "2026-01-01T00:00:01+00:00", "error": {"code": "timeout", "message": "took too long"},
+           "cameras": [{"name": "CAM_FRONT", "width": 800, "height": 450, "model": "pinhole"}],
+           "detail": {"enabled": True, "stride": 2}, "links": {"self": "/v1/scenes/" + "s" * 22}}
+    info = SceneInfo.from_json(doc)
+    assert info.raw == doc and info.failed and not info.ready and info.camera_names == ["CAM_FRONT"]
+    assert info.detail.stride == 2 and info.error.code == "timeout"
 
 
 def test_common_is_packaged():
@@ -120,3 +125,18 @@ def test_routes_never_import_the_app():
     _run("import sys\n"
          "from xyzcyl.server.routes import health, render, scenes\n"
          "assert 'xyzcyl.server.app' not in sys.modules\n")
+
+
+def test_no_layer_imports_the_console_script():
+    """xyzcyl.cli (cli.py at the top) gathers the commands the layers declare; no layer imports it, and a layer's
+    ``commands`` package loads only its own modules (the server's no HTTP client, the runtime's no torch)."""
+    for dotted, folder in FOLDERS.items():
+        for path in (REPO / folder).rglob("*.py"):
+            bad = sorted(m for m in imports_of(path) if m in ("xyzcyl.cli", "xyzcyl.__main__")
+                         or m.startswith("xyzcyl.cli."))
+            assert bad == [], f"{path.relative_to(REPO)} imports {bad}"
+        init = REPO / folder / "commands" / "__init__.py"
+        if init.is_file():
+            others = sorted(m for m in imports_of(init) if m.startswith("xyzcyl.")
+                            and not m.startswith((f"{dotted}.commands", "xyzcyl.common")))
+            assert others == [], f"{init.relative_to(REPO)} imports {others}"

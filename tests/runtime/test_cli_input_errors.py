@@ -11,7 +11,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-from xyzcyl.clients import cli
+from xyzcyl import cli
 
 REPO = Path(__file__).resolve().parents[2]
 EXAMPLE_RIG = REPO / "examples" / "synth_nuscenes" / "rig.json"

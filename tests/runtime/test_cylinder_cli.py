@@ -8,7 +8,7 @@ import re
 import cv2
 import numpy as np
 import pytest
-from xyzcyl.clients.cli import main
+from xyzcyl.cli import main
 
 
 @pytest.mark.parametrize("folder", ["nuscenes_ca9a282c", "pandaset_002_00"])

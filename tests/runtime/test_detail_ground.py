@@ -8,7 +8,14 @@ from __future__ import annotations
 
 import numpy as np
 from xyzcyl.runtime.camera import Camera
-from xyzcyl.runtime.detail import DetailOptions, camera_detail, grid_camera, ground_depth, model_ground
+from xyzcyl.runtime.detail import (
+    DetailOptions,
+    camera_detail,
+    fuse_details,
+    grid_camera,
+    ground_depth,
+    model_ground,
+)
 from xyzcyl.runtime.inference import Reconstructor
 from xyzcyl.runtime.render import Gaussians
 from xyzcyl.runtime.rig import Rig
@@ -60,11 +67,14 @@ def test_camera_only_road_cells_beside_the_car_sit_on_the_ground():
 
 
 def test_add_detail_uses_the_model_ground_without_lidar():
-    """Reconstructor.add_detail camera only: the same road cells on the ground (it passed no plane: far sphere)."""
+    """Reconstructor.camera_details camera only (then fused as reconstruct fuses them): the same road cells on the
+    ground (it passed no plane: far sphere)."""
     cam, coarse, opts = _camera(), _road_gaussians(), DetailOptions()
     img = np.full((cam.height, cam.width, 3), 0.4, np.float32)
     counts: dict = {}
-    scene_g, own = Reconstructor.add_detail(None, Rig(cameras=(cam,)), [img], coarse, None, opts, counts)
+    parts, details, owners = Reconstructor.camera_details(None, Rig(cameras=(cam,)), [img], coarse, None, opts, counts)
+    scene_g, own, fused = fuse_details(coarse, parts, details, owners, (cam.name,), opts)
+    counts.update(fused)
     assert counts["detail_ground"] > 200 and own is not None
     grid = grid_camera(cam, opts.stride)
     uv, z, front = grid.project_depth(scene_g.means[-counts["detail"] - counts["carved"]:].astype(np.float64))

@@ -9,7 +9,7 @@ import math
 import cv2
 import numpy as np
 import pytest
-from xyzcyl.clients.cli import main
+from xyzcyl.cli import main
 from xyzcyl.runtime.cylinder import CylinderSpec, camera_sampling_grid, overlay, project_rig
 from xyzcyl.runtime.lidar import camera_depths, lidar_depth_map, lidar_depth_map_reference, summarise
 from xyzcyl.runtime.lifting import depth_rays, focal_n

@@ -9,7 +9,7 @@ import math
 
 import numpy as np
 import pytest
-from xyzcyl.clients import cli
+from xyzcyl import cli
 from xyzcyl.runtime.lidar import (
     LidarError,
     camera_depths,
@@ -93,7 +93,7 @@ def test_load_lidar_applies_lidar_to_ego(tmp_path):
     with pytest.raises(LidarError, match="no lidar.file"):
         load_lidar(bare)
     bad = Rig(cameras=(_camera(),), root=tmp_path, extra={"lidar": {"file": "p.npy", "lidar_to_ego": [[1, 0], [0, 1]]}})
-    with pytest.raises(LidarError, match="lidar_to_ego: must be 4x4"):
+    with pytest.raises(LidarError, match="lidar_to_ego: must be 16 numbers"):
         load_lidar(bad)
     with pytest.raises(LidarError, match="lidar: must be an object"):
         load_lidar(Rig(cameras=(_camera(),), root=tmp_path, extra={"lidar": "p.npy"}))

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from xyzcyl.clients import cli
+from xyzcyl import cli
 from xyzcyl.runtime.lidar import LidarError, read_points
 
 REPO = Path(__file__).resolve().parents[2]

@@ -40,11 +40,11 @@ def test_parse_matrix_files(tmp_path):
 @pytest.mark.parametrize("values, message", [
     (["1", "2", "3"], "expected 16 numbers, got 3 values"),
     ([*TOKENS, "1"], "expected 16 numbers, got 17 values"),
-    (["[1, 2, 3]"], "got shape [3]"),
+    (["[1, 2, 3]"], "got [1, 2, 3]"),
     (["[[1, 2, 3, 4]] * 4"], "'*' is not a number"),
     (["nope.npy"], "no such file 'nope.npy'"),
     (["nope.json"], "no such file 'nope.json'"),
-    ([*TOKENS[:-1], "nan"], "values must be finite"),
+    ([*TOKENS[:-1], "nan"], "entry [3][3] is not finite"),
     (['{"K": [1]}'], "must hold one of cam_to_ego, cam_to_world"),
 ])
 def test_parse_matrix_errors_name_the_flag(values, message):

@@ -12,7 +12,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-from xyzcyl.clients import cli
+from xyzcyl import cli
 from xyzcyl.runtime import realeval
 from xyzcyl.runtime.commands.eval_real import parse_pairs, spread
 from xyzcyl.runtime.realeval import Frame

@@ -8,7 +8,7 @@ import shutil
 
 import numpy as np
 import pytest
-from xyzcyl.clients import cli
+from xyzcyl import cli
 from xyzcyl.testing import EXAMPLE_RIG, REPO
 
 pytestmark = pytest.mark.slow   # the session's ONNX export (tests/conftest.py)
@@ -127,12 +127,12 @@ def test_existing_out_needs_force(scene_dir, tiny_export, capsys):
 def test_export_refuses_existing_folder_and_stage1(tiny_export, tmp_path, capsys):
     import torch
 
-    assert cli.main(["export", "--checkpoint", str(tiny_export.checkpoint), "--out", str(tiny_export.dir)]) == 2
+    assert cli.main(["export-model", "--checkpoint", str(tiny_export.checkpoint), "--out", str(tiny_export.dir)]) == 2
     assert "exists" in _err(capsys)[0]
     ck = torch.load(tiny_export.checkpoint, weights_only=False)
     ck["train_cfg"]["stage"] = "occ"
     torch.save(ck, tmp_path / "occ.pt")
-    assert cli.main(["export", "--checkpoint", str(tmp_path / "occ.pt"), "--out", str(tmp_path / "m")]) == 2
+    assert cli.main(["export-model", "--checkpoint", str(tmp_path / "occ.pt"), "--out", str(tmp_path / "m")]) == 2
     assert "stage" in _err(capsys)[0] and not (tmp_path / "m").exists()
 
 

@@ -41,7 +41,7 @@ def _set(d, path, value):
 _BAD = {
     "K_nan": (lambda d: _set(d, ["cameras", 0, "K", 0, 2], float("nan")), ["CAM_0", "K[0][2]", "finite"]),
     "pose_inf": (lambda d: _set(d, ["cameras", 1, "cam_to_ego", 0, 3], float("inf")),
-                 ["CAM_1", "cam_to_ego[0][3]", "finite"]),
+                 ["CAM_1", "cam_to_ego: entry [0][3]", "finite"]),
     "K_skew": (lambda d: _set(d, ["cameras", 0, "K", 0, 1], 0.5), ["CAM_0", "K[0][1]"]),
     "K_10": (lambda d: _set(d, ["cameras", 0, "K", 1, 0], 1.0), ["CAM_0", "K[1][0]"]),
     "K_row2": (lambda d: _set(d, ["cameras", 0, "K", 2, 0], 1e-3), ["CAM_0", "K[2][0]"]),
@@ -54,7 +54,7 @@ _BAD = {
     "not_ortho": (lambda d: _set(d, ["cameras", 0, "cam_to_ego", 0, 2], 1.01), ["CAM_0", "cam_to_ego", "orthonormal"]),
     "reflection": (lambda d: _set(d, ["cameras", 0, "cam_to_ego", 1, 0], 1.0), ["CAM_0", "cam_to_ego", "det"]),
     "bottom_row": (lambda d: _set(d, ["cameras", 0, "cam_to_ego", 3, 0], 0.1), ["CAM_0", "cam_to_ego", "bottom row"]),
-    "pose_shape": (lambda d: _set(d, ["cameras", 0, "cam_to_ego"], np.eye(3).tolist()), ["CAM_0", "cam_to_ego", "4x4"]),
+    "pose_shape": (lambda d: _set(d, ["cameras", 0, "cam_to_ego"], np.eye(3).tolist()), ["CAM_0", "cam_to_ego", "[4, 4]"]),
     "width_zero": (lambda d: _set(d, ["cameras", 0, "width"], 0), ["CAM_0", "width"]),
     "height_big": (lambda d: _set(d, ["cameras", 1, "height"], 16385), ["CAM_1", "height"]),
     "width_float": (lambda d: _set(d, ["cameras", 0, "width"], 64.5), ["CAM_0", "width", "integer"]),

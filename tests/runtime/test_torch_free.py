@@ -30,7 +30,7 @@ from xyzcyl.runtime.scene import Scene, render_view, rig_camera
 scene = Reconstructor.load(model, threads=1).reconstruct(load_rig(rig_json))
 scene.save(out)
 rgb, depth, alpha = render_view(Scene.load(out), rig_camera(scene.rig.cameras[0], width=80, height=45))
-from xyzcyl.clients import cli
+from xyzcyl import cli
 assert cli.main(["reconstruct", rig_json, "--out", out + "_cli", "--model", model, "--quiet"]) == 0
 assert cli.main(["render", out + "_cli", "--camera", "CAM_FRONT", "--width", "80", "--height", "45",
                  "--out", out + ".png"]) == 0

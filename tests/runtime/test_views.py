@@ -11,19 +11,19 @@ import numpy as np
 import pytest
 from xyzcyl.runtime import convert
 from xyzcyl.runtime.camera import Camera
+from xyzcyl.runtime.png import encode_png
+from xyzcyl.runtime.png import to_u8 as _u8
 from xyzcyl.runtime.render import Gaussians
 from xyzcyl.runtime.rig import Rig, look_rotation
 from xyzcyl.runtime.scene import Scene, render_view, rig_camera
 from xyzcyl.runtime.views import (
     ViewError,
     ViewRequest,
-    _u8,
     camera_from_carla_pose,
     camera_from_opencv,
     camera_from_rig,
     cameras_from_batch,
     depth_to_mm16,
-    encode_png,
     encode_view,
     render_request,
 )
@@ -93,7 +93,7 @@ def test_opencv_errors_name_the_field():
         ({"cam_to_ego": T, "width": 0, "height": 48, "fov": 60}, "width"),
         ({"cam_to_ego": T, "width": 64.5, "height": 48, "fov": 60}, "width"),
         ({"cam_to_ego": T, "width": 64, "height": True, "fov": 60}, "height"),
-        ({"cam_to_ego": T, "width": 64, "height": "48", "fov": 60}, "height"),
+        ({"cam_to_ego": T, "width": 64, "height": [48], "fov": 60}, "height"),
     ]
     for kwargs, field in cases:
         with pytest.raises(ViewError) as ei:

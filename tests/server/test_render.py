@@ -76,7 +76,8 @@ def test_render_pose_with_fov_and_carla(client, env):
 def test_render_fisheye_equals_the_runtime_render(client, env):
     """A lens in the GET query (issue 28): the answer is the runtime's render of the same lens camera, byte for
     byte, and its ETag differs from the ideal pinhole's at the same pose."""
-    from xyzcyl.runtime.views import ViewRequest, ViewSpec, render_request
+    from xyzcyl.common.wire import validated
+    from xyzcyl.runtime.views import ViewRequest, render_request, resolve
 
     c2e = "0,0,1,1.5,-1,0,0,0,0,-1,0,1.6,0,0,0,1"
     lens = {"model": "opencv_fisheye", "k1": 0.02, "k2": -0.005, "k3": 0.0, "k4": 0.0, "max_angle_deg": 95.0}
@@ -85,8 +86,8 @@ def test_render_fisheye_equals_the_runtime_render(client, env):
     assert r.status_code == 200, r.text
     pinhole = client.get(url(env, f"/render?cam_to_ego={c2e}&fx=60&width=240&height=180"))
     assert pinhole.status_code == 200 and pinhole.headers["etag"] != r.headers["etag"]
-    cam = ViewSpec(cam_to_ego=[float(v) for v in c2e.split(",")], fx=60, width=240, height=180,
-                   distortion=lens).resolve_camera()
+    cam = resolve(validated(dict(cam_to_ego=[float(v) for v in c2e.split(",")], fx=60, width=240, height=180,
+                                 distortion=lens)))
     assert r.content == render_request(env.service.load_scene(env.sid), ViewRequest(cam))
     img = decode(r.content)
     assert img.shape == (180, 240, 3) and img[0, 0].max() == 0          # outside the 190-degree image circle: black

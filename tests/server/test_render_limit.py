@@ -10,10 +10,11 @@ import time
 import numpy as np
 import pytest
 from api_helpers import err, url
-from xyzcyl.clients import cli
+from xyzcyl import cli
+from xyzcyl.common.wire import ViewError, validated
 from xyzcyl.runtime.camera import Camera, CameraError, render_limit
 from xyzcyl.runtime.render import Gaussians, render
-from xyzcyl.runtime.views import ViewError, ViewSpec
+from xyzcyl.runtime.views import request
 
 LIMIT = render_limit()        # "the render limit (16384 pixels a side, 16777216 pixels in all)"
 _C2E = "0,0,1,1.5,-1,0,0,0,0,-1,0,1.6,0,0,0,1"
@@ -31,7 +32,7 @@ def test_the_library_render_refuses_before_allocating():
 @pytest.mark.parametrize("w, h, field", [(20000, 100, "width"), (100, 20000, "height"), (8000, 8000, "width")])
 def test_a_view_spec_names_the_limit(w, h, field):
     with pytest.raises(ViewError) as e:
-        ViewSpec(cam_to_ego=np.eye(4), fov=60, width=w, height=h).request()
+        request(validated(dict(cam_to_ego=np.eye(4), fov=60, width=w, height=h)))
     assert e.value.field == field and LIMIT in str(e.value)
 
 

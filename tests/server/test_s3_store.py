@@ -89,7 +89,7 @@ def ready_scene(store: S3Store, nbytes: int = 100) -> str:
     sid = new_scene_id()
     store.create(sid, {"cameras": []})
     store.update(sid, state="running")
-    assert store.commit(sid, scene_folder(store, nbytes), gaussians=7)["state"] == "ready"
+    assert store.commit(sid, scene_folder(store, nbytes), gaussians=7).state == "ready"
     return sid
 
 
@@ -106,21 +106,21 @@ def test_parse_url():
 def test_records_files_and_a_second_replica(bucket, tmp_path):
     a = make(bucket, tmp_path, "a")
     sid = new_scene_id()
-    rec = a.create(sid, {"cameras": [{"name": "CAM_FRONT"}]})
-    assert rec["state"] == "queued" and rec["owner"] == "a"
+    rec = a.create(sid, {"cameras": [{"name": "CAM_FRONT", "width": 1600, "height": 900, "model": "pinhole"}]})
+    assert rec.state == "queued" and rec.owner == "a"
     with pytest.raises(ValueError):
         a.create(sid, {})
     assert keys(bucket) == [f"pfx/records/{sid}.json"]
-    assert a.update(sid, state="running")["state"] == "running"
+    assert a.update(sid, state="running").state == "running"
     src = scene_folder(a, 123)
     rec = a.commit(sid, src, gaussians=5, background=False)
-    assert rec["state"] == "ready" and rec["bytes"] == 123 and rec["files"] == ["scene.json", "scene.ply"]
+    assert rec.state == "ready" and rec.bytes == 123 and rec.files == ["scene.json", "scene.ply"]
     assert keys(bucket, "pfx/scenes/") == [f"pfx/scenes/{sid}/scene.json", f"pfx/scenes/{sid}/scene.ply"]
     # the finished folder became replica a's local copy: no download on a
     assert not src.exists() and a.scene_dir(sid) == tmp_path / "cache-a" / "scenes" / sid
 
     b = make(bucket, tmp_path, "b")
-    assert b.get(sid)["state"] == "ready" and b.list()[1] == 1
+    assert b.get(sid).state == "ready" and b.list()[1] == 1
     local = b.scene_dir(sid)                               # downloaded once, into b's cache
     assert local == tmp_path / "cache-b" / "scenes" / sid
     assert (local / "scene.ply").read_bytes() == (a.scene_dir(sid) / "scene.ply").read_bytes()
@@ -146,10 +146,11 @@ def test_list_newest_first_and_a_failed_job(bucket, tmp_path):
         ids.append(sid)
         time.sleep(0.002)
     page, total = st.list(0, 2)
-    assert total == 3 and [r["id"] for r in page] == ids[::-1][:2]
+    assert total == 3 and [r.id for r in page] == ids[::-1][:2]
     failed = st.fail(ids[0], "invalid_input", "bad rig")
-    assert failed["state"] == "failed" and failed["error"] == {"code": "invalid_input", "message": "bad rig"}
-    assert st.list(2, 5)[0][0]["state"] == "failed"        # the listing re-read the record whose ETag changed
+    assert failed.state == "failed"
+    assert failed.error.model_dump() == {"code": "invalid_input", "message": "bad rig"}
+    assert st.list(2, 5)[0][0].state == "failed"           # the listing re-read the record whose ETag changed
 
 
 def test_malformed_ids_are_unknown(bucket, tmp_path):
@@ -208,16 +209,16 @@ def test_open_recovers_own_and_dead_replicas_jobs(bucket, tmp_path, monkeypatch)
     b = S3Store(f"s3://{bucket}/pfx", cache_dir=tmp_path / "cache-b", replica_id="b", stale_running_s=600,
                 stale_queued_s=1200)
     assert b.open() == {"ready": 1, "interrupted": 0, "files_missing": 1, "orphans": 1}
-    assert b.get(queued)["state"] == "queued" and b.get(running)["state"] == "running"
-    assert b.get(lost)["error"]["code"] == "files_missing"
+    assert b.get(queued).state == "queued" and b.get(running).state == "running"
+    assert b.get(lost).error.code == "files_missing"
     assert keys(bucket, f"pfx/scenes/{orphan}") == [] and "pfx/records/notes.json" in keys(bucket)
 
     # replica a restarted (same replica id): its own queued/running jobs were interrupted
     a2 = S3Store(f"s3://{bucket}/pfx", cache_dir=tmp_path / "cache-a", replica_id="a")
     assert a2.open()["interrupted"] == 2
     for sid in (queued, running):
-        assert b.get(sid)["state"] == "failed" and b.get(sid)["error"]["code"] == "interrupted"
-    assert a2.get(ok)["state"] == "ready" and (a2.scene_dir(ok) / "scene.json").is_file()
+        assert b.get(sid).state == "failed" and b.get(sid).error.code == "interrupted"
+    assert a2.get(ok).state == "ready" and (a2.scene_dir(ok) / "scene.json").is_file()
 
     # replica c's jobs, c dead: stale after the windows (running: 600 s; queued: 1200 s), seen by anyone
     c = make(bucket, tmp_path, "c")
@@ -227,11 +228,11 @@ def test_open_recovers_own_and_dead_replicas_jobs(bucket, tmp_path, monkeypatch)
     c.update(r2, state="running")
     t = time.time()
     monkeypatch.setattr(s3_mod, "_now", lambda: t + 900)
-    assert b.get(r2)["state"] == "failed" and b.get(q2)["state"] == "queued"
+    assert b.get(r2).state == "failed" and b.get(q2).state == "queued"
     monkeypatch.setattr(s3_mod, "_now", lambda: t + 1300)
     d = S3Store(f"s3://{bucket}/pfx", cache_dir=tmp_path / "cache-d", replica_id="d", stale_running_s=600,
                 stale_queued_s=1200)
-    assert d.open()["interrupted"] == 1 and d.get(q2)["error"]["code"] == "interrupted"
+    assert d.open()["interrupted"] == 1 and d.get(q2).error.code == "interrupted"
 
 
 # ----------------------------------------------------------------------------------------------- quota
@@ -245,7 +246,7 @@ def test_count_quota_evicts_the_least_recently_used(bucket, tmp_path):
     st.touch(a)                                        # a was rendered: b is now the least recently used
     c = new_scene_id()
     st.create(c, {})
-    assert st.get(b) is None and st.get(a)["state"] == "ready" and st.get(c)["state"] == "queued"
+    assert st.get(b) is None and st.get(a).state == "ready" and st.get(c).state == "queued"
     assert st.usage()["evicted"] == 1 and keys(bucket, f"pfx/scenes/{b}") == []
     # only ready scenes are evicted (queued ones are work in progress); failed records do not count
     st.delete(a)
@@ -257,7 +258,7 @@ def test_count_quota_evicts_the_least_recently_used(bucket, tmp_path):
     st.fail(c, "timeout", "slow")
     d = new_scene_id()
     st.create(d, {})
-    assert st.get(d)["state"] == "queued"
+    assert st.get(d).state == "queued"
 
 
 def test_count_quota_reject_and_byte_quota(bucket, tmp_path):
@@ -265,7 +266,7 @@ def test_count_quota_reject_and_byte_quota(bucket, tmp_path):
     a = ready_scene(st)
     with pytest.raises(StoreFull):
         st.create(new_scene_id(), {})
-    assert st.get(a)["state"] == "ready" and st.usage()["evicted"] == 0
+    assert st.get(a).state == "ready" and st.usage()["evicted"] == 0
 
     by = make(bucket, tmp_path, "b", prefix="other", max_bytes=250, when_full="evict")
     x = ready_scene(by, 100)
@@ -273,14 +274,14 @@ def test_count_quota_reject_and_byte_quota(bucket, tmp_path):
     time.sleep(0.01)
     by.touch(x)
     z = ready_scene(by, 100)                          # 300 > 250: y (least recently used) goes
-    assert by.get(y) is None and by.get(x)["state"] == "ready" and by.get(z)["state"] == "ready"
+    assert by.get(y) is None and by.get(x).state == "ready" and by.get(z).state == "ready"
     assert by.usage()["bytes"] == 200
     big = new_scene_id()
     by.create(big, {})
     src = scene_folder(by, 300)                       # over the whole quota: refused, nothing evicted
     with pytest.raises(StoreFull):
         by.commit(big, src)
-    assert not src.exists() and by.get(big)["state"] == "queued" and by.usage()["bytes"] == 200
+    assert not src.exists() and by.get(big).state == "queued" and by.usage()["bytes"] == 200
 
 
 def test_ttl_sweep_and_litter(bucket, tmp_path):
@@ -292,7 +293,7 @@ def test_ttl_sweep_and_litter(bucket, tmp_path):
     boto3.client("s3").put_object(Bucket=bucket, Key=f"pfx/used/{new_scene_id()}", Body=b"")   # a deleted one's
     assert st.sweep(now=time.time() + 50) == []
     assert st.sweep(now=time.time() + 200) == [old]
-    assert st.get(old) is None and st.get(queued)["state"] == "queued"
+    assert st.get(old) is None and st.get(queued).state == "queued"
     assert keys(bucket, "pfx/used/") == [] and keys(bucket, f"pfx/scenes/{old}") == []
     assert keys(bucket, "pfx/deleted/") == [f"pfx/deleted/{old}"]       # kept while a late writer could come
     st.sweep(now=time.time() + st.stale_queued_s + 3700)

@@ -421,7 +421,7 @@ def test_post_store_full_is_507(client, env, monkeypatch):
     before = records(env)
     monkeypatch.setattr(store, "max_scenes", live)
     err(client.post("/v1/scenes", files=rig_files()), 507, None, "storage_full")
-    assert records(env) == before and store.get(env.sid)["state"] == "ready" and tmp_left(env) == []
+    assert records(env) == before and store.get(env.sid).state == "ready" and tmp_left(env) == []
 
 
 # ----------------------------------------------------------------------------------------------- GET / DELETE
@@ -443,7 +443,7 @@ def test_list_scenes_paging_and_delete(client, env):
     from xyzcyl.server.store import new_scene_id
 
     store = env.service.store
-    before = {r["id"] for r in store.list(0, 1000)[0]}
+    before = {r.id for r in store.list(0, 1000)[0]}
     extra = []
     for _ in range(4):
         sid = new_scene_id()

@@ -74,24 +74,20 @@ def test_mid_exposure_is_halfway_in_translation_and_rotation():
 
 def test_pinhole_rescaled_as_camera_resized_with_the_ego_pose():
     E = rigid(0.3, [50.0, -7.0, 0.0])
-    spec, lens_field = frames.view_spec(request(E @ CAM), E)
-    assert lens_field == "camera_intrinsics.opencv_pinhole_param"
-    view = spec.request()
+    view = frames.view_request(request(E @ CAM), E)
     native = Camera(K=pinhole_K(633.2, 633.4, 407.9, 245.5), cam_to_ego=CAM, width=800, height=450)
     want = native.resized(512, 320)
     assert np.allclose(view.camera.K, want.K, atol=1e-12) and view.camera.distortion is None
     assert np.allclose(view.camera.cam_to_ego, CAM, atol=1e-6)
     assert (view.camera.width, view.camera.height, view.format) == (512, 320, "png")
     # one side asked: the other follows the native aspect; none: the native size
-    assert frames.view_spec(request(w=400, h=0), np.eye(4))[0].request().camera.height == 225
-    assert frames.view_spec(request(w=0, h=0), np.eye(4))[0].request().camera.width == 800
+    assert frames.view_request(request(w=400, h=0), np.eye(4)).camera.height == 225
+    assert frames.view_request(request(w=0, h=0), np.eye(4)).camera.width == 800
 
 
 @pytest.mark.parametrize("param, model", [("opencv_fisheye_param", "opencv_fisheye"), ("ftheta_param", "ftheta")])
 def test_lens_models_become_rig_json_lenses_and_back(param, model):
-    spec, lens_field = frames.view_spec(request(param=param, w=800, h=450), np.eye(4))
-    assert lens_field == f"camera_intrinsics.{param}"
-    cam = spec.request().camera
+    cam = frames.view_request(request(param=param, w=800, h=450), np.eye(4)).camera
     assert cam.distortion is not None and cam.distortion.model == model
     assert cam.distortion.max_angle_deg == pytest.approx(95.0 if model == "opencv_fisheye" else 80.0)
     # the rig camera of that lens, as get_available_cameras describes it, comes back as the same camera
@@ -100,10 +96,10 @@ def test_lens_models_become_rig_json_lenses_and_back(param, model):
     assert again.WhichOneof("camera_param") == param
     req = request(param=param, w=800, h=450)
     req.camera_intrinsics.CopyFrom(again)
-    back = frames.view_spec(req, np.eye(4))[0].request().camera
+    back = frames.view_request(req, np.eye(4)).camera
     assert back.distortion == cam.distortion and np.allclose(back.K, cam.K)
     if model == "ftheta":     # rescaled as ncore does (Lens.resized)
-        half = frames.view_spec(request(param=param, w=400, h=225), np.eye(4))[0].request().camera
+        half = frames.view_request(request(param=param, w=400, h=225), np.eye(4)).camera
         assert half.distortion == cam.distortion.resized(0.5, 0.5)
 
 
@@ -112,7 +108,7 @@ def test_opencv_coefficients_and_available_cameras():
     p = req.camera_intrinsics.opencv_pinhole_param
     p.radial_coeffs.extend([0.1, -0.02])
     p.tangential_coeffs.extend([0.001, 0.0])
-    cam = frames.view_spec(req, np.eye(4))[0].request().camera
+    cam = frames.view_request(req, np.eye(4)).camera
     assert cam.distortion.model == "opencv" and cam.distortion.coeffs[:4] == (0.1, -0.02, 0.001, 0.0)
     rig = Rig(cameras=(Camera(name="F", K=pinhole_K(600, 600, 399.5, 224.5), cam_to_ego=CAM, width=800, height=450),
                        Camera(name="P", model="equirectangular", cam_to_ego=CAM, width=64, height=32)))
@@ -165,7 +161,7 @@ BAD = {
 def test_refusals_name_the_protocol_field(case):
     change, field = BAD[case]
     with pytest.raises(ViewError) as e:
-        frames.view_spec(_broken(change), np.eye(4), "items[3].request.")[0].request()
+        frames.view_request(_broken(change), np.eye(4), "items[3].request.")
     assert e.value.field == f"items[3].request.{field}", str(e.value)
 
 
@@ -173,16 +169,16 @@ def test_lens_errors_name_the_lens_field():
     req = request(param="opencv_fisheye_param", w=800, h=450)
     req.camera_intrinsics.opencv_fisheye_param.radial_coeffs[1] = math.inf
     with pytest.raises(ViewError) as e:
-        frames.view_spec(req, np.eye(4))
+        frames.view_request(req, np.eye(4))
     assert e.value.field == "camera_intrinsics.opencv_fisheye_param.radial_coeffs"
     req = request(param="ftheta_param", w=800, h=450)
     req.camera_intrinsics.ftheta_param.max_angle = 0.0
     with pytest.raises(ViewError) as e:
-        frames.view_spec(req, np.eye(4))
+        frames.view_request(req, np.eye(4))
     assert e.value.field.startswith("camera_intrinsics.ftheta_param.max_angle"), str(e.value)
     req = request(param="opencv_fisheye_param", w=800, h=450)
     req.camera_intrinsics.opencv_fisheye_param.radial_coeffs[:] = [-0.5, 0.0, 0.0, 0.0]
     with pytest.raises(ViewError) as e:                        # theta_d turns before 95 degrees
-        frames.view_spec(req, np.eye(4))
+        frames.view_request(req, np.eye(4))
     assert e.value.field == "camera_intrinsics.opencv_fisheye_param.max_angle", str(e.value)
 

@@ -65,7 +65,7 @@ def test_print_settings_shows_the_resolved_model(tmp_path, monkeypatch, capsys):
     """--print-settings names the model folder the server would load, not `null` (issue 27, defect 7): the shipped
     one by default, $XYZCYL_MODEL or --model (absolute) when given."""
     pytest.importorskip("pydantic_settings")
-    from xyzcyl.clients import cli
+    from xyzcyl import cli
     from xyzcyl.runtime.inference import default_model_dir
 
     monkeypatch.delenv("XYZCYL_MODEL", raising=False)
@@ -87,7 +87,7 @@ def test_grpc_port_setting_is_typed_and_checked(monkeypatch, capsys):
     """--grpc-port (issue 29): off by default, an int, in 0..65535, not the HTTP port; refusals exit 2 naming
     the flag; --help says what it is."""
     pytest.importorskip("pydantic_settings")
-    from xyzcyl.clients import cli
+    from xyzcyl import cli
 
     monkeypatch.delenv("XYZCYL_GRPC_PORT", raising=False)
     for argv, want in (((), None), (("--grpc-port", "50051"), 50051), (("--grpc-port", "0"), 0)):

@@ -14,6 +14,8 @@ import pytest
 from xyzcyl.server.store import folder as folder_mod
 from xyzcyl.server.store.folder import SCENE_ID, FolderStore, StoreFull, new_scene_id
 
+CAM = {"name": "CAM_FRONT", "width": 1600, "height": 900, "model": "pinhole"}   # a complete camera of a rig
+
 
 class Clock:
     """A controllable replacement of folder._now (LRU and TTL decisions compare these times)."""
@@ -56,7 +58,7 @@ def ready_scene(store: FolderStore, nbytes: int = 100, **fields) -> str:
     sid = new_scene_id()
     store.create(sid, {"cameras": []})
     store.update(sid, state="running")
-    assert store.commit(sid, scene_folder(store, nbytes), gaussians=7, **fields)["state"] == "ready"
+    assert store.commit(sid, scene_folder(store, nbytes), gaussians=7, **fields).state == "ready"
     return sid
 
 
@@ -70,21 +72,22 @@ def disk_record(store: FolderStore, sid: str) -> dict:
 def test_create_update_fail_delete_persist(tmp_path):
     store = make_store(tmp_path / "st")
     sid = new_scene_id()
-    rec = store.create(sid, {"cameras": [{"name": "CAM_FRONT"}]})
-    assert rec["state"] == "queued" and rec["id"] == sid and rec["error"] is None
+    rec = store.create(sid, {"cameras": [CAM]})
+    assert rec.state == "queued" and rec.id == sid and rec.error is None
     assert disk_record(store, sid)["state"] == "queued"
     with pytest.raises(ValueError):
         store.create(sid, {})
 
-    assert store.update(sid, state="running")["state"] == "running"
+    assert store.update(sid, state="running").state == "running"
     assert disk_record(store, sid)["state"] == "running"
     # get() hands out a copy: changing it does not change the store
     got = store.get(sid)
-    got["state"] = "ready"
-    assert store.get(sid)["state"] == "running"
+    got.state = "ready"
+    assert store.get(sid).state == "running"
 
     failed = store.fail(sid, "invalid_input", "bad rig")
-    assert failed["state"] == "failed" and failed["error"] == {"code": "invalid_input", "message": "bad rig"}
+    assert failed.state == "failed"
+    assert failed.error.model_dump() == {"code": "invalid_input", "message": "bad rig"}
     assert disk_record(store, sid)["error"]["code"] == "invalid_input"
 
     seen = []
@@ -103,7 +106,7 @@ def test_commit_moves_the_folder_and_marks_ready(tmp_path):
     src = scene_folder(store, 123)
     assert not (store.root / "scenes" / sid).exists()
     rec = store.commit(sid, src, gaussians=5, background=True)
-    assert rec["state"] == "ready" and rec["bytes"] == 123 and rec["gaussians"] == 5 and rec["background"]
+    assert rec.state == "ready" and rec.bytes == 123 and rec.gaussians == 5 and rec.background
     assert not src.exists()
     assert (store.root / "scenes" / sid / "scene.json").is_file()
     assert store.scene_dir(sid) == store.root / "scenes" / sid
@@ -142,14 +145,14 @@ def test_commit_is_atomic_a_crash_before_the_rename_leaves_no_ready_record(tmp_p
     with pytest.raises(OSError):
         store.commit(sid, src)
     monkeypatch.setattr(folder_mod.os, "replace", real_replace)
-    assert store.get(sid)["state"] == "running"
+    assert store.get(sid).state == "running"
     assert disk_record(store, sid)["state"] == "running"
     assert not (root / "scenes" / sid).exists()
     # the process "dies" here; the next one sees an interrupted job, never a half-written ready scene
     again = FolderStore(root)
     report = again.open()
     assert report["interrupted"] == 1 and report["ready"] == 0
-    assert again.get(sid)["state"] == "failed" and again.get(sid)["error"]["code"] == "interrupted"
+    assert again.get(sid).state == "failed" and again.get(sid).error.code == "interrupted"
 
 
 def test_create_that_cannot_be_written_leaves_no_record(tmp_path, monkeypatch):
@@ -176,9 +179,9 @@ def test_list_newest_first_with_paging(tmp_path, clock):
         store.create(sid, {})
         ids.append(sid)
     page, total = store.list(0, 2)
-    assert total == 5 and [r["id"] for r in page] == ids[::-1][:2]
+    assert total == 5 and [r.id for r in page] == ids[::-1][:2]
     page, total = store.list(4, 2)
-    assert [r["id"] for r in page] == [ids[0]]
+    assert [r.id for r in page] == [ids[0]]
 
 
 # ----------------------------------------------------------------------------------------------- recovery
@@ -221,13 +224,13 @@ def test_open_recovers_from_a_crash(tmp_path, clock):
     report = again.open()
     assert report == {"ready": 1, "interrupted": 2, "files_missing": 1, "orphans": 7}
 
-    assert again.get(ok)["state"] == "ready" and (root / "scenes" / ok / "scene.json").is_file()
+    assert again.get(ok).state == "ready" and (root / "scenes" / ok / "scene.json").is_file()
     for sid in (queued, running):
         rec = again.get(sid)
-        assert rec["state"] == "failed" and rec["error"]["code"] == "interrupted"
+        assert rec.state == "failed" and rec.error.code == "interrupted"
         assert disk_record(again, sid)["state"] == "failed"
-    assert again.get(lost)["state"] == "failed" and again.get(lost)["error"]["code"] == "files_missing"
-    assert again.get(failed)["error"]["code"] == "invalid_input"
+    assert again.get(lost).state == "failed" and again.get(lost).error.code == "files_missing"
+    assert again.get(failed).error.code == "invalid_input"
     assert sorted(p.name for p in (root / "scenes").iterdir()) == [ok]
     assert sorted(p.name for p in (root / "records").iterdir()) == sorted(
         f"{s}.json" for s in (ok, queued, running, lost, failed))
@@ -253,7 +256,7 @@ def test_count_quota_evicts_the_least_recently_used(tmp_path, clock):
     c = new_scene_id()
     store.create(c, {})                                  # a is the least recently used: evicted
     assert store.get(a) is None and not (store.root / "scenes" / a).exists()
-    assert store.get(b)["state"] == "ready" and store.usage()["evicted"] == 1
+    assert store.get(b).state == "ready" and store.usage()["evicted"] == 1
 
 
 def test_touch_changes_the_eviction_victim(tmp_path, clock):
@@ -267,7 +270,7 @@ def test_touch_changes_the_eviction_victim(tmp_path, clock):
     c = new_scene_id()
     store.create(c, {})
     assert store.get(b) is None and not (store.root / "scenes" / b).exists()
-    assert store.get(a)["state"] == "ready" and store.get(c)["state"] == "queued"
+    assert store.get(a).state == "ready" and store.get(c).state == "queued"
 
 
 def test_count_quota_only_evicts_ready_scenes(tmp_path, clock):
@@ -282,7 +285,7 @@ def test_count_quota_only_evicts_ready_scenes(tmp_path, clock):
     store.fail(q1, "timeout", "slow")
     c = new_scene_id()
     store.create(c, {})
-    assert store.get(c)["state"] == "queued"
+    assert store.get(c).state == "queued"
 
 
 def test_count_quota_reject(tmp_path, clock):
@@ -290,7 +293,7 @@ def test_count_quota_reject(tmp_path, clock):
     a = ready_scene(store)
     with pytest.raises(StoreFull):
         store.create(new_scene_id(), {})
-    assert store.get(a)["state"] == "ready" and store.list()[1] == 1 and store.usage()["evicted"] == 0
+    assert store.get(a).state == "ready" and store.list()[1] == 1 and store.usage()["evicted"] == 0
 
 
 def test_byte_quota_on_commit_evicts(tmp_path, clock):
@@ -302,7 +305,7 @@ def test_byte_quota_on_commit_evicts(tmp_path, clock):
     store.touch(a)
     clock.tick()
     c = ready_scene(store, 100)                          # 300 > 250: b (least recently used) goes
-    assert store.get(b) is None and store.get(a)["state"] == "ready" and store.get(c)["state"] == "ready"
+    assert store.get(b) is None and store.get(a).state == "ready" and store.get(c).state == "ready"
     assert store.usage()["bytes"] == 200
 
 
@@ -316,7 +319,7 @@ def test_byte_quota_on_commit_reject_and_too_big(tmp_path, clock):
     with pytest.raises(StoreFull):
         store.commit(c, src)
     assert not src.exists() and not (store.root / "scenes" / c).exists()
-    assert store.get(c)["state"] == "queued"
+    assert store.get(c).state == "queued"
     assert store.get(a) and store.get(b) and store.usage()["bytes"] == 200
 
     # a scene over the whole quota is refused even when eviction could make room
@@ -328,7 +331,7 @@ def test_byte_quota_on_commit_reject_and_too_big(tmp_path, clock):
     src = scene_folder(big, 300)
     with pytest.raises(StoreFull):
         big.commit(d, src)
-    assert not src.exists() and big.get(keep)["state"] == "ready"
+    assert not src.exists() and big.get(keep).state == "ready"
 
 
 def test_ttl_sweep(tmp_path, clock):
@@ -344,13 +347,13 @@ def test_ttl_sweep(tmp_path, clock):
     removed = store.sweep(now=clock.t + 60)              # old: 110 s unused, young / failed: 60 s
     assert removed == [old]
     assert store.get(old) is None and not (store.root / "scenes" / old).exists()
-    assert store.get(young)["state"] == "ready"
+    assert store.get(young).state == "ready"
     clock.tick(60)
     store.touch(young)                                   # used again: its clock restarts
     assert store.sweep(now=clock.t + 50) == [stale_failed]          # failed: 110 s since it failed
-    assert store.get(young)["state"] == "ready"
+    assert store.get(young).state == "ready"
     assert store.sweep(now=clock.t + 150) == [young]
-    assert store.get(queued)["state"] == "queued"        # work in progress is never swept
+    assert store.get(queued).state == "queued"           # work in progress is never swept
     assert FolderStore(tmp_path / "st3").sweep(now=1e12) == []   # no TTL: nothing expires
 
 

@@ -62,8 +62,8 @@ def test_record_json_round_trip_is_exact():
     assert "detail" not in ready.to_json()                     # absent stays absent (a scene from before the layer)
     # a change makes a new record with the fields checked; the old one is unchanged
     failed = ready.failed("files_missing", "gone", 5.0)
-    assert (failed.state, failed["error"], ready.state) == ("failed", {"code": "files_missing", "message": "gone"},
-                                                            "ready")
+    assert (failed.state, failed.error.model_dump(), ready.state) == (
+        "failed", {"code": "files_missing", "message": "gone"}, "ready")
     with pytest.raises(TypeError, match="bogus"):
         ready.replace(bogus=1)
     with pytest.raises(ValueError):

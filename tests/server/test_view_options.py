@@ -91,7 +91,7 @@ def test_a_moved_input_camera_is_the_same_view_everywhere(client, env, scene, tm
     """GET ?camera=CAM_FRONT&forward=..&left=..&up=..&yaw=.., a batch item with the same keys, `xyzcyl render
     SCENE_DIR --camera CAM_FRONT --forward ..`, `xyzcyl client render SID --camera CAM_FRONT --forward ..` and
     Client.render_bytes(sid, "CAM_FRONT", move=...) all give the runtime's render of the moved camera."""
-    from xyzcyl.clients import cli
+    from xyzcyl import cli
     from xyzcyl.clients.client import Client
 
     expected = runtime_bytes(scene, moved(front(scene)))
@@ -140,7 +140,7 @@ def test_a_lens_on_an_input_camera_is_its_pose_pasted(client, env, scene, tmp_pa
     """?camera=CAM_FRONT&distortion=FISHEYE: CAM_FRONT's pose and K through the fisheye, byte for byte the view
     with its 4x4 and K pasted (cam_to_ego + fx/fy/cx/cy + distortion), in GET, a batch item, `xyzcyl render` and
     `xyzcyl client render`; moved too."""
-    from xyzcyl.clients import cli
+    from xyzcyl import cli
 
     cam = front(scene, distortion=FISHEYE)
     expected = runtime_bytes(scene, cam)

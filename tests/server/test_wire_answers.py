@@ -6,8 +6,13 @@ to 1e-9, lens, size, output, format, quality; the ETag hashes exactly this), the
 index.json. The description pins the pixels without depending on this machine's floating point: the renderer is a
 function of it (tests/runtime/render covers that function).
 
-The corpus was recorded from the code before the render query became one typed ViewQuery (common.wire), so a
-refactoring of the view path that changes any answer fails here. Re-record deliberately with
+The corpus was recorded from the code before the render query became one typed ViewQuery (common.wire), then
+re-recorded once, deliberately, by that change: every rendered view (its description, media type, batch index),
+every status and every error's code and field stayed as they were; 15 error messages read differently because one
+type now states each refusal once (a batch item's value errors read as the GET query's, pydantic's wording; a
+non-finite pose entry is named by its [row][column]; a nerfstudio pose's errors read as every other pose's), and a
+gRPC image_format outside the protocol's enum is now refused naming the field (it raised a ValueError: INTERNAL).
+A refactoring of the view path that changes any answer fails here. Re-record deliberately with
 XYZCYL_RECORD_WIRE=1 (and say why in the commit).
 
 The app and its scene are conftest.py's ``env`` (the example rig, cameras 800x450); the gRPC requests go through
@@ -260,18 +265,20 @@ def answers(env):
     got["grpc"] = _grpc_answers()
     if REC:
         RECORD.write_text(json.dumps(got, indent=1, sort_keys=True) + "\n")
+    elif os.environ.get("XYZCYL_WIRE_OUT"):     # the answers of this run, to compare by hand
+        Path(os.environ["XYZCYL_WIRE_OUT"]).write_text(json.dumps(got, indent=1, sort_keys=True) + "\n")
     return got
 
 
 def _grpc_cases():
     """(label, RGBRenderRequest) pairs: the example scene's cameras as AlpaSim asks for them, and bad fields."""
-    from xyzcyl.runtime.rig import load_rig
+    from xyzcyl.runtime.rig import Rig
     from xyzcyl.server.sensorsim import frames
     from xyzcyl.server.sensorsim import sensorsim_pb2 as pb
-    from xyzcyl.testing.rigs import EXAMPLE_RIG
+    from xyzcyl.testing.rigs import example_rig
     from xyzcyl.testing.sensorsim import ego_pose, rgb_request
 
-    rig = load_rig(EXAMPLE_RIG)
+    rig = Rig.from_dict(example_rig())
     E = ego_pose()
     cams = list(frames.available_cameras(rig))
     c0 = cams[0]
@@ -316,9 +323,7 @@ def _grpc_cases():
 def _grpc_view(req, E, prefix: str):
     from xyzcyl.server.sensorsim import frames
 
-    if hasattr(frames, "view_request"):
-        return frames.view_request(req, E, prefix)
-    return frames.view_spec(req, E, prefix)[0].request()
+    return frames.view_request(req, E, prefix)
 
 
 def _grpc_answers() -> list:

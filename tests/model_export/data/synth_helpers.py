@@ -8,7 +8,7 @@ import pytest
 def check_probability_field(tmp_path, capsys, field: str) -> None:
     """A probability field of SceneConfig and SynthConfig (near_cars, photo_textures): out of [0, 1] it is refused
     naming it, by both configs and by `xyzcyl data synth --field-name` (exit 2); then check_index_field."""
-    from xyzcyl.clients.cli import main
+    from xyzcyl.cli import main
     from xyzcyl.model_export.data.scene import SceneConfig
     from xyzcyl.model_export.data.synth import SynthConfig
 

@@ -8,7 +8,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-from xyzcyl.clients.cli import main
+from xyzcyl.cli import main
 from xyzcyl.model_export.data.synth import SynthConfig, read_exr, synth
 from xyzcyl.runtime.rig import Rig, load_rig
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import shutil
 from pathlib import Path
 
-from xyzcyl.clients.cli import main
+from xyzcyl.cli import main
 from xyzcyl.model_export.data.synth import SynthConfig, synth
 
 ARGS = ["--scenes", "2", "--height", "24", "--width", "40", "--inward-views", "2", "--no-shadows",

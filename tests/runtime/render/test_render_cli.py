@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from render_scenes import random_gaussians
-from xyzcyl.clients import cli
+from xyzcyl import cli
 from xyzcyl.runtime.camera import Camera
 from xyzcyl.runtime.render import Gaussians, render
 
@@ -57,7 +57,7 @@ def test_every_output_is_the_services_encoding(ply, tmp_path, out, output):
 
 
 def test_fov_flag_is_the_services_fov(ply, tmp_path):
-    """--fov resolves through the same ViewSpec as the query's fov (horizontal degrees, centred principal point)."""
+    """--fov resolves through the same ViewQuery as the query's fov (horizontal degrees, centred principal point)."""
     from xyzcyl.runtime.views import camera_from_opencv
 
     argv = ["render", str(ply), "--width", "48", "--height", "32", "--fov", "62", "--cam-to-world", *EYE,
@@ -78,7 +78,8 @@ def test_distortion_flag_renders_the_lens(ply, tmp_path):
     import json
 
     import OpenImageIO as oiio
-    from xyzcyl.runtime.views import ViewSpec
+    from xyzcyl.common.wire import validated
+    from xyzcyl.runtime.views import resolve
 
     lens = {"model": "opencv_fisheye", "k1": 0.03, "k2": 0.0, "k3": 0.0, "k4": 0.0, "max_angle_deg": 95.0}
     (tmp_path / "lens.json").write_text(json.dumps({"name": "CAM", "distortion": lens}))
@@ -89,8 +90,8 @@ def test_distortion_flag_renders_the_lens(ply, tmp_path):
         inp = oiio.ImageInput.open(str(tmp_path / "l.exr"))
         exr = inp.read_image(oiio.FLOAT)
         inp.close()
-        cam = ViewSpec(cam_to_ego=np.eye(4), fx=20, fy=20, cx=23.5, cy=15.5, width=48, height=32,
-                       distortion=lens).resolve_camera()
+        cam = resolve(validated(dict(cam_to_ego=np.eye(4), fx=20, fy=20, cx=23.5, cy=15.5, width=48, height=32,
+                                     distortion=lens)))
         ref = render(Gaussians.load_ply(ply), cam)
         assert np.array_equal(exr[..., :3], ref.rgb)
     bad = ["render", str(ply), "--width", "48", "--height", "32", "--fov", "90", "--distortion",

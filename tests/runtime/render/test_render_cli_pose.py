@@ -9,7 +9,7 @@ import json
 import numpy as np
 import pytest
 from render_scenes import random_gaussians
-from xyzcyl.clients import cli
+from xyzcyl import cli
 
 K = ["40", "40", "23.5", "15.5"]
 # identity rotation, a -1e-05 m shift (how numpy prints a tiny number): the Gaussians lie ahead along +z
@@ -66,7 +66,7 @@ def test_scientific_notation_and_matrix_forms(ply, tmp_path, capsys):
 @pytest.mark.parametrize("value, message", [
     (["1", "2", "3"], "expected 16 numbers, got 3 values"),
     (["pose.npy"], "no such file 'pose.npy'"),
-    (["[[1, 0], [0, 1]]"], "got shape [2, 2]"),
+    (["[[1, 0], [0, 1]]"], "must be 16 numbers (row-major) or a [4, 4] array"),
 ])
 def test_matrix_errors_exit_2_naming_the_flag(ply, tmp_path, capsys, value, message):
     argv = ["render", str(ply), "--width", "48", "--height", "32", "--K", *K, "--cam-to-world", *value,

@@ -1,0 +1,549 @@
+"""Drives: a recorded clip of rigs (one per timestamp, each with the ego's pose) reconstructed into one scene.
+
+A drive file (docs/inference.md "Drives"):
+
+    {"frames": [{"rig": "frame_00/rig.json", "timestamp_s": 1557539956.5}, ...], "tracks": "tracks.json"}
+
+paths relative to the drive file, frames in time order. Each rig holds its cameras in its own ego frame and the
+ego's pose ``ego_to_world`` (Rig.ego_to_world); ``timestamp_s`` comes from the frame entry or, else, the rig's
+top-level ``timestamp_s``. ``tracks`` (optional): annotated objects, each with an id, a label, a box size and
+per-frame ``object_to_world`` poses (the format of the PandaSet drive's tracks.json; ``stationary`` when given).
+A rig.json alone is a drive of one frame.
+
+The scene's frame is the first frame's ego frame (scene.json records its ``ego_to_world``), so every pose API of a
+one-rig scene applies to a drive's scene unchanged.
+
+Reconstruction (reconstruct_drive):
+1. keyframes (pick_keyframes): the first frame, then every frame at least ``spacing_m`` metres (the ego's
+   position) or ``max_gap_s`` seconds after the last keyframe; the last frame when it adds ground;
+2. each keyframe reconstructed as one rig up to its cameras' detail layers (Reconstructor.keyframe), in its own
+   ego frame, then moved into the scene's frame (``relative`` = ego_to_world(first)^-1 ego_to_world(k));
+   the Gaussians inside the boxes of tracked objects that move (``stationary`` false) are left out: they belong to
+   the actors, not to the static scene (runtime.drive draws no moving object yet);
+3. fusion: every camera's detail cells are carved as in one frame (runtime.detail.carve_details) against the
+   cameras of its own keyframe (a finer copy of the same surface or a view through it) and against the cameras of
+   the neighbouring keyframes (a view through it only: the road a later frame saw behind a car that has left);
+   the surface seen by several keyframes is then kept once, from its finest observation (dedupe_frames: on voxels
+   of the cells' own footprint, the keyframe with the finest cell in a voxel keeps it; ties: the earlier); the
+   model's Gaussians of every keyframe fill what no cell covers (runtime.detail.cull_covered), kept once per
+   voxel the same way. Cells another keyframe drops are removed, not hidden: the scene has no own views.
+
+What is not done yet (docs/inference.md "Drives" lists it): time (renders show the static scene at every time),
+exposure harmonisation across keyframes, a sky dome, the ego's own body found over frames, stereo depth between
+keyframes, spatial chunks.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .camera import check_pose
+from .errors import FieldError, RigError
+from .render import Gaussians
+from .rig import Rig, load_rig
+from .rotations import rotmats_to_quats
+
+MAX_SPEED_MPS = 100.0          # an ego faster than this between two frames is a pose error (360 km/h)
+DEFAULT_SPACING_M = 1.5        # keyframe spacing: a drive posted at ~2 m spacing is used whole
+DEFAULT_MAX_GAP_S = 2.0        # a keyframe at least this often, moving or not
+CARVE_WINDOW = 2               # keyframes before and after whose cameras may carve a keyframe's cells
+VOXEL_BASE_M = 0.02            # dedupe_frames: the finest voxel (2 cm); a cell's voxel is the power of two above
+VOXEL_LEVELS = 12              # its footprint, up to 2 cm x 2^11 = 41 m
+TRACK_GROW = 1.1               # a moving object's box, grown by this factor, holds its Gaussians
+
+
+class DriveError(FieldError):
+    """A drive that cannot be used: ``field`` is the drive file's field ("frames[3].timestamp_s",
+    "tracks[2].poses[0].frame"), ``where`` the drive file."""
+
+
+@dataclass(frozen=True)
+class DriveFrame:
+    index: int                 # its place in the drive's frames
+    rig_path: Path             # its rig.json
+    rig: Rig                   # its cameras, in its ego frame
+    timestamp_s: float         # seconds on the rigs' clock
+    ego_to_world: np.ndarray   # [4, 4] ego -> world, metres
+
+
+@dataclass(frozen=True)
+class Track:
+    id: str
+    label: str
+    size: tuple[float, float, float]      # length, width, height, metres (box along the object's x, y, z)
+    stationary: bool
+    poses: dict[int, np.ndarray]          # frame index -> [4, 4] object -> world (box centre, x along its length)
+
+
+@dataclass(frozen=True)
+class Drive:
+    path: Path | None
+    frames: tuple[DriveFrame, ...]
+    tracks: tuple[Track, ...] = ()
+
+    def __len__(self) -> int:
+        return len(self.frames)
+
+    def relative(self, k: int) -> np.ndarray:
+        """[4, 4] frame k's ego -> the scene's frame (the first frame's ego frame)."""
+        return np.linalg.inv(self.frames[0].ego_to_world) @ self.frames[k].ego_to_world
+
+    def trajectory(self) -> np.ndarray:
+        """[F, 4, 4] every frame's ego pose in the scene's frame."""
+        return np.stack([self.relative(k) for k in range(len(self.frames))])
+
+
+def is_drive_file(path: str | os.PathLike) -> bool:
+    """Whether ``path`` is a drive file (a JSON object with ``frames``), not a rig.json."""
+    try:
+        with open(path, "rb") as f:
+            doc = json.loads(f.read())
+    except (OSError, ValueError):
+        return False
+    return isinstance(doc, dict) and "frames" in doc and "cameras" not in doc
+
+
+def _where(path: Path) -> str:
+    return f"drive {str(path)!r}"
+
+
+def _read_json(path: Path, field: str, where: str) -> Any:
+    """The JSON document of ``path``; DriveError naming ``field`` when it cannot be read or is not JSON."""
+    try:
+        return json.loads(path.read_text())
+    except OSError as e:
+        raise DriveError(field, f"cannot read {str(path)!r}: {e.strerror or e}") from None
+    except ValueError as e:
+        raise DriveError(field, f"not JSON ({e})", where) from None
+
+
+def load_drive(path: str | os.PathLike, check_images: bool = True) -> Drive:
+    """The drive of a drive file, every frame's rig read and checked (module docstring); DriveError naming the
+    frame and the field: a frame without ego_to_world or timestamp_s (when there are several frames), frames out of
+    time order or at one time, a jump faster than MAX_SPEED_MPS, a frame whose cameras are not the first frame's,
+    tracks that name a frame the drive lacks. Frames with and without LiDAR may mix (each keyframe uses its own
+    sweep when it has one)."""
+    p = Path(path)
+    where = _where(p)
+    doc = _read_json(p, "drive", where)
+    if not isinstance(doc, dict):
+        raise DriveError("drive", "must be a JSON object with \"frames\"", where)
+    items = doc.get("frames")
+    if not isinstance(items, list) or not items:
+        raise DriveError("frames", "must be a non-empty list of {\"rig\": \"frame/rig.json\"}", where)
+    frames: list[DriveFrame] = []
+    for i, item in enumerate(items):
+        f = f"frames[{i}]"
+        if not isinstance(item, dict) or not isinstance(item.get("rig"), str):
+            raise DriveError(f"{f}.rig", "must name the frame's rig.json (a path relative to the drive file)", where)
+        rig_path = p.parent / item["rig"]
+        try:
+            rig = load_rig(rig_path, check_images=check_images)
+        except RigError as e:
+            raise DriveError(f"{f}.rig", str(e), where) from None
+        except OSError as e:
+            raise DriveError(f"{f}.rig", f"cannot read {str(rig_path)!r}: {e.strerror or e}", where) from None
+        ts = item.get("timestamp_s", rig.extra.get("timestamp_s"))
+        if ts is not None and (isinstance(ts, bool) or not isinstance(ts, (int, float)) or not math.isfinite(ts)):
+            raise DriveError(f"{f}.timestamp_s", f"must be a finite number of seconds (got {ts!r:.60})", where)
+        if len(items) > 1:
+            if rig.ego_to_world is None:
+                raise DriveError(f"{f}.rig", f"{item['rig']} has no ego_to_world: a drive needs each frame's ego "
+                                             "pose", where)
+            if ts is None:
+                raise DriveError(f"{f}.timestamp_s", "is missing (in the frame entry or its rig.json)", where)
+        pose = np.eye(4) if rig.ego_to_world is None else rig.ego_to_world
+        frames.append(DriveFrame(i, rig_path, rig, 0.0 if ts is None else float(ts), pose))
+        if i:
+            prev, cur = frames[i - 1], frames[i]
+            if not cur.timestamp_s > prev.timestamp_s:
+                raise DriveError(f"{f}.timestamp_s", f"{cur.timestamp_s!r} is not after frames[{i - 1}]'s "
+                                                     f"{prev.timestamp_s!r} (frames in time order, each at its "
+                                                     "own time)", where)
+            step = float(np.linalg.norm(cur.ego_to_world[:3, 3] - prev.ego_to_world[:3, 3]))
+            speed = step / (cur.timestamp_s - prev.timestamp_s)
+            if speed > MAX_SPEED_MPS:
+                raise DriveError(f"{f}.rig", f"the ego moved {step:.1f} m in {cur.timestamp_s - prev.timestamp_s:.3g} "
+                                             f"s since frames[{i - 1}] ({speed:.0f} m/s, more than "
+                                             f"{MAX_SPEED_MPS:g}): a pose in another world frame?", where)
+            if rig.names != frames[0].rig.names:
+                raise DriveError(f"{f}.rig", f"cameras {rig.names} are not frames[0]'s {frames[0].rig.names} (a "
+                                             "drive keeps one rig)", where)
+    tracks: tuple[Track, ...] = ()
+    if doc.get("tracks") is not None:
+        if not isinstance(doc["tracks"], str):
+            raise DriveError("tracks", "must name a tracks file (a path relative to the drive file)", where)
+        tracks = load_tracks(p.parent / doc["tracks"], len(frames))
+    return Drive(p, tuple(frames), tracks)
+
+
+def drive_of_rig(rig: Rig, rig_path: Path | None = None) -> Drive:
+    """A one-frame drive of ``rig``."""
+    pose = np.eye(4) if rig.ego_to_world is None else rig.ego_to_world
+    ts = rig.extra.get("timestamp_s")
+    return Drive(None, (DriveFrame(0, rig_path or Path("rig.json"), rig, float(ts) if ts is not None else 0.0,
+                                   pose),))
+
+
+def load_tracks(path: Path, n_frames: int) -> tuple[Track, ...]:
+    """The tracks of a tracks file ({"tracks": [...]} or a list); DriveError naming the track's field."""
+    where = f"tracks {str(path)!r}"
+    doc = _read_json(path, "tracks", where)
+    items = doc.get("tracks") if isinstance(doc, dict) else doc
+    if not isinstance(items, list):
+        raise DriveError("tracks", "must be a list of objects (or {\"tracks\": [...]})", where)
+    out = []
+    for i, t in enumerate(items):
+        f = f"tracks[{i}]"
+        if not isinstance(t, dict):
+            raise DriveError(f, "must be an object", where)
+        size = t.get("size")
+        if not (isinstance(size, list) and len(size) == 3 and all(isinstance(x, (int, float)) and not
+                                                                   isinstance(x, bool) and x > 0 for x in size)):
+            raise DriveError(f"{f}.size", f"must be [length, width, height] metres > 0 (got {size!r:.60})", where)
+        poses: dict[int, np.ndarray] = {}
+        for j, pose in enumerate(t.get("poses") or []):
+            fr = pose.get("frame") if isinstance(pose, dict) else None
+            if isinstance(fr, bool) or not isinstance(fr, int) or not 0 <= fr < n_frames:
+                raise DriveError(f"{f}.poses[{j}].frame", f"must be a frame of the drive, 0..{n_frames - 1} "
+                                                          f"(got {fr!r:.60})", where)
+            try:
+                poses[fr] = check_pose(pose.get("object_to_world"), where, f"{f}.poses[{j}].object_to_world")
+            except RigError as e:
+                raise DriveError(e.field, e.message, where) from None
+        out.append(Track(id=str(t.get("id", i)), label=str(t.get("label", "")), size=tuple(float(x) for x in size),
+                         stationary=bool(t.get("stationary", False)), poses=poses))
+    return tuple(out)
+
+
+# ------------------------------------------------------------------------------------------- keyframes
+
+
+def pick_keyframes(drive: Drive, spacing_m: float = DEFAULT_SPACING_M, max_gap_s: float = DEFAULT_MAX_GAP_S,
+                   every: int | None = None) -> list[int]:
+    """The frames to reconstruct: the first, then each frame at least ``spacing_m`` metres (the ego's position)
+    or ``max_gap_s`` seconds after the last keyframe, and the last frame when it is at least half a spacing away
+    from the last keyframe. ``every``: every Nth frame instead (evaluation)."""
+    n = len(drive.frames)
+    if every is not None:
+        if every < 1:
+            raise DriveError("every", f"must be >= 1 (got {every})")
+        return list(range(0, n, every))
+    if not spacing_m > 0 or not max_gap_s > 0:
+        raise DriveError("spacing_m" if not spacing_m > 0 else "max_gap_s", "must be > 0")
+    keys = [0]
+    for k in range(1, n):
+        last = drive.frames[keys[-1]]
+        cur = drive.frames[k]
+        far = np.linalg.norm(cur.ego_to_world[:3, 3] - last.ego_to_world[:3, 3])
+        if far >= spacing_m or cur.timestamp_s - last.timestamp_s >= max_gap_s:
+            keys.append(k)
+    if keys[-1] != n - 1:
+        far = np.linalg.norm(drive.frames[-1].ego_to_world[:3, 3] - drive.frames[keys[-1]].ego_to_world[:3, 3])
+        if far >= 0.5 * spacing_m:
+            keys.append(n - 1)
+    return keys
+
+
+# ------------------------------------------------------------------------------------------- moving things
+
+
+def transform_gaussians(g: Gaussians, T: np.ndarray) -> Gaussians:
+    """``g`` moved by the rigid [4, 4] ``T``: means and rotations; SH of degree 0 (colour) is unchanged by a
+    rotation (higher degrees: DriveError, not implemented)."""
+    if g.sh_degree > 0:
+        raise DriveError("sh", f"a drive's keyframes need SH degree 0 Gaussians (got degree {g.sh_degree}): "
+                               "rotating higher SH bands is not implemented")
+    R = np.asarray(T[:3, :3], np.float64)
+    means = (g.means.astype(np.float64) @ R.T + T[:3, 3]).astype(g.means.dtype)
+    qT = rotmats_to_quats(R[None])[0]
+    q = g.quats.astype(np.float64)
+    w1, x1, y1, z1 = qT
+    w2, x2, y2, z2 = q[:, 0], q[:, 1], q[:, 2], q[:, 3]
+    quats = np.stack([w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2, w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
+                      w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2, w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2], axis=1)
+    return Gaussians(means, quats.astype(g.quats.dtype), g.log_scales, g.opacity_logits, g.sh)
+
+
+def transform_detail(d, T: np.ndarray):
+    """A runtime.detail.CameraDetail moved by the rigid [4, 4] ``T`` (its grid camera's pose and its cells'
+    centres; depths and footprints are the camera's own and stay)."""
+    R = np.asarray(T[:3, :3], np.float64)
+    return replace(d, grid=d.grid.replace(cam_to_ego=T @ d.grid.cam_to_ego), means=d.means @ R.T + T[:3, 3])
+
+
+def inside_boxes(points: np.ndarray, boxes: Sequence[tuple[np.ndarray, np.ndarray]]) -> np.ndarray:
+    """[N] bool: whether each point ([N, 3] metres) lies in one of ``boxes`` ((world -> box [4, 4], half-sizes
+    [3]) in the points' frame)."""
+    out = np.zeros(len(points), bool)
+    p = np.asarray(points, np.float64)
+    for inv, half in boxes:
+        q = p @ inv[:3, :3].T + inv[:3, 3]
+        out |= np.all(np.abs(q) <= half, axis=1)
+    return out
+
+
+def moving_boxes(drive: Drive, k: int) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The boxes (scene frame -> box, half-sizes grown by TRACK_GROW) of the tracked objects that move, at frame
+    k (the tracks annotated at that frame)."""
+    E0 = drive.frames[0].ego_to_world
+    out = []
+    for t in drive.tracks:
+        if t.stationary or k not in t.poses:
+            continue
+        box_to_scene = np.linalg.inv(E0) @ t.poses[k]
+        out.append((np.linalg.inv(box_to_scene), 0.5 * TRACK_GROW * np.asarray(t.size)))
+    return out
+
+
+# ------------------------------------------------------------------------------------------- fusion
+
+
+def voxel_levels(footprint: np.ndarray) -> np.ndarray:
+    """[N] int8: each footprint's voxel level, the smallest L with VOXEL_BASE_M 2^L >= the footprint (metres),
+    clipped to 0..VOXEL_LEVELS - 1."""
+    f = np.maximum(np.asarray(footprint, np.float64), 1e-9)
+    return np.clip(np.ceil(np.log2(f / VOXEL_BASE_M)), 0, VOXEL_LEVELS - 1).astype(np.int8)
+
+
+def _keys(points: np.ndarray, size: float) -> np.ndarray:
+    """[N] int64 voxel keys of ``points`` [N, 3] at voxel ``size`` (21 bits an axis, about +-1e6 voxels)."""
+    v = np.floor(np.asarray(points, np.float64) / size).astype(np.int64) + (1 << 20)
+    v = np.clip(v, 0, (1 << 21) - 1)
+    return (v[:, 0] << 42) | (v[:, 1] << 21) | v[:, 2]
+
+
+def dedupe_frames(points: np.ndarray, level: np.ndarray, frame: np.ndarray) -> np.ndarray:
+    """[N] bool, what to keep of cells from several keyframes (points [N, 3] metres in one frame, level [N] their
+    voxel_levels, frame [N] their keyframe): a cell at level L looks at its voxel of size VOXEL_BASE_M 2^L and the
+    cells in it at level L or finer; the keyframe of the finest of them (the lowest level; ties: the earliest
+    keyframe) owns the voxel, and the cell is kept only when that is its own keyframe. So a keyframe's surface is
+    replaced where another keyframe resolved it more finely, and cells of one keyframe never drop each other (that
+    is its own fusion's work). Voxels nest (each level's grid halves the next) and the owner of a voxel is never
+    dropped, so the result does not depend on the order cells arrive in: adding keyframes one at a time and
+    deduping each time keeps what deduping them all at once keeps. dedupe_frames_reference is its definition."""
+    n = len(points)
+    keep = np.ones(n, bool)
+    if n == 0:
+        return keep
+    level = np.asarray(level, np.int64)
+    frame = np.asarray(frame, np.int64)
+    rank = level * (int(frame.max()) + 1) + frame           # lexicographic (level, frame)
+    for L in np.unique(level):
+        here = np.flatnonzero(level == L)
+        pool = np.flatnonzero(level <= L)
+        keys = _keys(points[pool], VOXEL_BASE_M * 2.0 ** int(L))
+        order = np.lexsort((rank[pool], keys))
+        k_sorted = keys[order]
+        first = np.concatenate([[True], k_sorted[1:] != k_sorted[:-1]])
+        best_key = k_sorted[first]
+        best_frame = frame[pool][order][first]
+        mine = _keys(points[here], VOXEL_BASE_M * 2.0 ** int(L))
+        at = np.searchsorted(best_key, mine)
+        keep[here] = best_frame[at] == frame[here]
+    return keep
+
+
+def dedupe_frames_reference(points: np.ndarray, level: np.ndarray, frame: np.ndarray) -> np.ndarray:
+    """dedupe_frames cell by cell (slow, obviously correct; for the tests)."""
+    n = len(points)
+    keep = np.ones(n, bool)
+    for i in range(n):
+        size = VOXEL_BASE_M * 2.0 ** int(level[i])
+        vi = np.floor(points[i] / size)
+        owner = (int(level[i]), int(frame[i]))
+        for j in range(n):
+            if level[j] <= level[i] and np.array_equal(np.floor(points[j] / size), vi):
+                owner = min(owner, (int(level[j]), int(frame[j])))
+        keep[i] = owner[1] == frame[i]
+    return keep
+
+
+def _coarse_footprint(g: Gaussians) -> np.ndarray:
+    """[N] metres: a model Gaussian's footprint for dedupe_frames (twice its largest standard deviation)."""
+    return 2.0 * np.exp(g.log_scales.astype(np.float64).max(axis=1))
+
+
+@dataclass
+class _Kept:
+    """The cells (or model Gaussians) of the keyframes so far that the fusion keeps, in the scene's frame."""
+
+    gaussians: list[Gaussians]
+    level: list[np.ndarray]
+    frame: list[np.ndarray]
+
+    def dedupe(self) -> None:
+        if not self.gaussians:
+            return
+        pts = np.concatenate([g.means for g in self.gaussians])
+        keep = dedupe_frames(pts, np.concatenate(self.level), np.concatenate(self.frame))
+        start = 0
+        for i, g in enumerate(self.gaussians):
+            m = keep[start:start + len(g)]
+            start += len(g)
+            self.gaussians[i] = g.subset(m) if not m.all() else g
+            self.level[i] = self.level[i][m]
+            self.frame[i] = self.frame[i][m]
+
+    def count(self) -> int:
+        return sum(len(g) for g in self.gaussians)
+
+
+_DEFAULT = object()
+
+
+def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None, lidar: bool = True,
+                      detail: Any = _DEFAULT, progress: Callable[[str], None] | None = None):
+    """One runtime.scene.Scene of ``drive`` (module docstring) with runtime.inference.Reconstructor ``rec``:
+    ``keyframes`` (default pick_keyframes), each keyframe's LiDAR sweep when ``lidar`` and it has one, the detail
+    layer's settings ``detail`` (default runtime.inference.DEFAULT_DETAIL; None: the model's Gaussians only). A
+    one-frame drive is exactly Reconstructor.reconstruct of its rig."""
+    from .detail import carve_details, cull_covered
+    from .inference import DEFAULT_DETAIL
+    from .lidar import has_lidar, load_lidar
+    from .scene import Scene
+
+    say = progress or (lambda msg: None)
+    detail = DEFAULT_DETAIL if detail is _DEFAULT else detail
+    tol = detail.cull_tolerance if detail is not None else 0.0
+    keys = pick_keyframes(drive) if keyframes is None else list(keyframes)
+    if not keys or any(not 0 <= k < len(drive) for k in keys) or keys != sorted(set(keys)):
+        raise DriveError("keyframes", f"must be increasing frame indices in 0..{len(drive) - 1} (got {keys})")
+    t0 = time.perf_counter()
+
+    def sweep(k: int):
+        rig = drive.frames[k].rig
+        return load_lidar(rig).points if lidar and has_lidar(rig) else None
+
+    if len(keys) == 1 and not drive.tracks:
+        fr = drive.frames[keys[0]]
+        scene = rec.reconstruct(fr.rig, progress=say, lidar=sweep(keys[0]), detail=detail)
+        scene.drive = _drive_meta(drive, keys)
+        return scene
+    counts: dict[str, Any] = {"keyframes": len(keys), "frames": len(drive)}
+    timings: dict[str, float] = {}
+    detail_kept = _Kept([], [], [])
+    coarse_kept = _Kept([], [], [])
+    window: list[tuple[int, list, list[Gaussians], list[np.ndarray]]] = []     # (keyframe, details, parts, keep)
+    background = None
+    moved_out = 0
+
+    def commit(entry) -> None:
+        """A keyframe leaves the carving window: its kept cells join the scene (deduped across keyframes), and the
+        model's Gaussians so far that would veil one of its cameras' surfaces go (as in one frame)."""
+        n, details, parts, keep = entry
+        for i, g in enumerate(coarse_kept.gaussians):
+            if details and len(g):
+                m = cull_covered(g, details, tol)
+                coarse_kept.gaussians[i] = g.subset(m)
+                coarse_kept.level[i] = coarse_kept.level[i][m]
+                coarse_kept.frame[i] = coarse_kept.frame[i][m]
+        for g, k in zip(parts, keep):
+            g = g.subset(k)
+            detail_kept.gaussians.append(g)
+            detail_kept.level.append(voxel_levels(_cell_footprint_of(g)))
+            detail_kept.frame.append(np.full(len(g), n, np.int32))
+        detail_kept.dedupe()
+
+    for n, k in enumerate(keys):
+        fr = drive.frames[k]
+        say(f"keyframe {n + 1}/{len(keys)}: frame {k} ({fr.timestamp_s - drive.frames[0].timestamp_s:.2f} s)")
+        kf = rec.keyframe(fr.rig, progress=say, lidar=sweep(k), detail=detail)
+        for key, v in kf.timings.items():
+            timings[key] = timings.get(key, 0.0) + v
+        if background is None:
+            background = kf.background
+        T = drive.relative(k)
+        coarse = transform_gaussians(kf.coarse, T)
+        parts = [transform_gaussians(g, T) for g in kf.parts]
+        details = [transform_detail(d, T) for d in kf.details]
+        boxes = moving_boxes(drive, k)
+        if boxes:                       # what moves is not the static scene's (the actors' layer: later)
+            m = ~inside_boxes(coarse.means, boxes)
+            moved_out += int((~m).sum())
+            coarse = coarse.subset(m)
+        # this keyframe's cells against its own cameras (as one rig), then against its neighbours' (see-through)
+        own = carve_details(details, tol, detail.dedupe) if details else []
+        coarse_kept.gaussians.append(coarse)
+        coarse_kept.level.append(voxel_levels(_coarse_footprint(coarse)))
+        coarse_kept.frame.append(np.full(len(coarse), n, np.int32))
+        if boxes and parts:
+            for i, g in enumerate(parts):
+                inside = inside_boxes(g.means, boxes)
+                moved_out += int((own[i] & inside).sum())
+                own[i] &= ~inside
+        entry = (n, details, parts, own)
+        for prev in window:
+            _carve_pair(entry, prev, tol)
+            _carve_pair(prev, entry, tol)
+        window.append(entry)
+        while len(window) > CARVE_WINDOW:
+            commit(window.pop(0))
+        say(f"fused: {detail_kept.count()} detail Gaussians so far")
+    t1 = time.perf_counter()
+    while window:
+        commit(window.pop(0))
+    coarse_kept.dedupe()
+    coarse = _concat(coarse_kept.gaussians)
+    details_g = _concat(detail_kept.gaussians)
+    gauss = _concat([coarse, details_g])
+    timings["fusion"] = time.perf_counter() - t1
+    timings["total"] = time.perf_counter() - t0
+    counts.update({"coarse": len(coarse), "detail": len(details_g), "moving_removed": moved_out,
+                   "total": len(gauss)})
+    scene = Scene(gaussians=gauss, background=background, rig=drive.frames[0].rig, model=rec.scene_model(),
+                  counts=counts, timings={key: round(v, 6) for key, v in timings.items()})
+    scene.drive = _drive_meta(drive, keys)
+    return scene
+
+
+def _cell_footprint_of(g: Gaussians) -> np.ndarray:
+    """[N] metres: a detail cell's footprint from its disc (the disc's standard deviation is DetailOptions.footprint
+    = 0.5 cell footprints across: twice its larger in-plane deviation)."""
+    s = np.sort(np.exp(g.log_scales.astype(np.float64)), axis=1)
+    return 2.0 * s[:, 2]
+
+
+def _carve_pair(a, b, tolerance: float) -> None:
+    """Clear a's keep masks for the cells that b's cameras see through (runtime.detail.carve_details' free-space
+    rule, dedupe 0: another keyframe never takes over a surface here; dedupe_frames does, on voxels)."""
+    from .detail import carve_against
+
+    _, details_a, _, keep_a = a
+    _, details_b, _, _ = b
+    for d, keep in zip(details_a, keep_a):
+        carve_against(d, details_b, keep, tolerance)
+
+
+def _concat(parts: list[Gaussians]) -> Gaussians:
+    from .detail import concat_gaussians
+
+    parts = [g for g in parts if len(g)] or parts[:1]
+    return concat_gaussians(parts)
+
+
+def _drive_meta(drive: Drive, keys: Sequence[int]) -> dict[str, Any]:
+    """What scene.json records of the drive: its frames' times (seconds after the first) and ego poses in the
+    scene's frame, the keyframes, the first frame's ego_to_world, the tracks' count."""
+    t0 = drive.frames[0].timestamp_s
+    return {"frames": len(drive), "keyframes": list(map(int, keys)),
+            "timestamp_s": drive.frames[0].timestamp_s,
+            "times_s": [round(f.timestamp_s - t0, 6) for f in drive.frames],
+            "ego_to_world": drive.frames[0].ego_to_world.tolist(),
+            "trajectory": [np.round(T, 9).tolist() for T in drive.trajectory()],
+            "tracks": len(drive.tracks)}
+
+
+__all__ = ["DEFAULT_MAX_GAP_S", "DEFAULT_SPACING_M", "Drive", "DriveError", "DriveFrame", "Track", "dedupe_frames",
+           "dedupe_frames_reference", "drive_of_rig", "inside_boxes", "is_drive_file", "load_drive", "load_tracks",
+           "moving_boxes", "pick_keyframes", "reconstruct_drive", "transform_detail", "transform_gaussians",
+           "voxel_levels"]

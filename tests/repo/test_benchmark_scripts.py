@@ -1,0 +1,127 @@
+"""The benchmark scripts that reproduce figures the documentation quotes run, with small arguments, as a user runs
+them (a subprocess from the repository root), and print JSON lines: benchmarks/eval_compare.py (paired intervals
+and rig gaps of `xyzcyl eval` reports), anchor_parallax.py, synth_lidar.py, compile_time.py and exposure_probe.py. The records the documentation cites lie in benchmarks/records and parse."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from xyzcyl.testing import EXAMPLE_RIG, REPO
+
+BENCH = REPO / "benchmarks"
+
+
+def _run(script: str, *args: str, timeout: float = 120) -> list[dict]:
+    r = subprocess.run([sys.executable, str(BENCH / script), *args], cwd=REPO, capture_output=True, text=True,
+                       timeout=timeout, env={**os.environ, "PYTHONWARNINGS": "ignore"}, check=False)
+    assert r.returncode == 0, r.stderr[-3000:]
+    return [json.loads(line) for line in r.stdout.splitlines() if line.strip()]
+
+
+def _report(path: Path, rig: str, scenes: int, psnr, settings=("ego-forward", "ego-inward"), views: int = 3) -> Path:
+    """A report JSON shaped as `xyzcyl eval --out` writes it: per-view rows of data, rig, setting, scene, view."""
+    rows = [{"data": f"data/{rig}", "rig": rig, "setting": s, "scene": f"scene_{i:06d}", "view": v,
+             "psnr": psnr(s, i, v)}
+            for s in settings for i in range(scenes) for v in range(views)]
+    path.mkdir(parents=True)
+    (path / "model_ego-forward+ego-inward.json").write_text(json.dumps({"views": rows}))
+    return path
+
+
+def test_eval_compare_paired(tmp_path):
+    a = _report(tmp_path / "a", "nuscenes", 6, lambda s, i, v: 20.0 + 0.1 * i + (1.0 if s == "ego-forward" else 0))
+    b = _report(tmp_path / "b", "nuscenes", 6, lambda s, i, v: None if (s, i, v) == ("ego-inward", 0, 0) else 19.5)
+    rows = _run("eval_compare.py", "paired", str(a), str(b), "--resamples", "200")
+    by = {r["setting"]: r for r in rows}
+    assert set(by) == {"ego-forward", "ego-inward"}
+    fwd, inw = by["ego-forward"], by["ego-inward"]
+    assert fwd["mean_diff"] == pytest.approx(1.75) and fwd["scenes"] == 6 and fwd["views"] == 18
+    assert fwd["ci95"][0] <= fwd["mean_diff"] <= fwd["ci95"][1] and fwd["scenes_a_better"] == 6
+    assert inw["undefined"] == 1 and inw["views"] == 17
+
+
+def test_eval_compare_rig_gap(tmp_path):
+    six = _report(tmp_path / "six", "nuscenes", 8, lambda s, i, v: 22.0 if i < 3 else 30.0)
+    five = _report(tmp_path / "five", "waymo", 3, lambda s, i, v: 20.5)
+    (row,) = _run("eval_compare.py", "rig-gap", f"m={six},{five}")
+    assert row["rig"] == "waymo" and row["scenes"] == 3
+    assert row["ego-forward"] == {"six_cameras": 22.0, "rig": 20.5, "difference": -1.5}
+
+
+@pytest.fixture
+def depth_scene(tmp_path) -> Path:
+    """A data set of one scene: the example rig's geometry and images with a depth file per camera (a plane 10 m
+    along each optical axis), as `xyzcyl data synth` lays a scene out (docs/data.md)."""
+    from xyzcyl.common.media import write_exr
+
+    scene = tmp_path / "data" / "scene_000000"
+    scene.mkdir(parents=True)
+    rig = json.loads(EXAMPLE_RIG.read_text())
+    for cam in rig["cameras"]:
+        shutil.copy(EXAMPLE_RIG.parent / cam["image"], scene / Path(cam["image"]).name)
+        cam["image"] = Path(cam["image"]).name
+        cam["depth"] = f"{cam['name']}_depth.exr"
+        write_exr(scene / cam["depth"], np.full((cam["height"], cam["width"], 1), 10.0, np.float32), ("Z",))
+    (scene / "rig.json").write_text(json.dumps(rig))
+    return scene
+
+
+def test_anchor_parallax(depth_scene):
+    (row,) = _run("anchor_parallax.py", "--data", str(depth_scene.parent), "--scenes", "1")
+    assert row["scenes"] == 1 and row["pixels"] > 1000
+    assert 0 < row["reprojection_px_at_400"]["median"] <= row["reprojection_px_at_400"]["p90"]
+    assert 0 < row["distance_m"]["median"] < 10
+
+
+def test_synth_lidar(depth_scene):
+    from xyzcyl.runtime.lidar import load_lidar
+    from xyzcyl.runtime.rig import load_rig
+
+    (row,) = _run("synth_lidar.py", str(depth_scene.parent), "--step", "16")
+    rig = load_rig(depth_scene / "rig_lidar.json")
+    points = load_lidar(rig).points
+    assert row["points"] == len(points) == 6 * 29 * 50
+    # every point lies 10 m along the optical axis of the camera it came from
+    cam = rig.cameras[0]
+    z = (np.c_[points, np.ones(len(points))] @ np.linalg.inv(cam.cam_to_ego).T)[:, 2]
+    assert np.isclose(z, 10.0, atol=1e-3).sum() >= 29 * 50
+
+
+def test_compile_time_pinhole():
+    """With numba's cache as the test run has it (filled: the kernels load; empty: they compile, ~20 s)."""
+    rows = _run("compile_time.py", "pinhole", timeout=300)
+    assert list(rows[0]) == ["pinhole"] and rows[0]["pinhole"]["rgb_sum"] > 0
+    assert rows[-1]["total_wall_s"] >= 0
+
+
+def test_exposure_probe(depth_scene):
+    """On the pseudo-LiDAR of synth_lidar.py (the real rigs of docs/results.md need real data): the flat depth
+    planes the model cannot know, so only the figures' form is checked."""
+    _run("synth_lidar.py", str(depth_scene.parent), "--step", "16")
+    (row,) = _run("exposure_probe.py", str(depth_scene / "rig_lidar.json"), "--kinds", "exposure_1.5",
+                  "--width", "160", "--threads", "2", timeout=300)
+    assert row["inputs"] == "exposure_1.5" and row["detail"] is False and row["model"].startswith("xyzcyl-cpu-v1")
+    assert row["abs_rel"] > 0 and 0 <= row["delta1"] <= 1
+
+
+@pytest.mark.parametrize("name", sorted(p.name for p in (BENCH / "records").rglob("*.json*")))
+def test_the_records_parse(name):
+    (path,) = (BENCH / "records").rglob(name)
+    text = path.read_text()
+    if path.suffix == ".jsonl":
+        assert [json.loads(line) for line in text.splitlines() if line.strip()]
+    else:
+        assert json.loads(text)
+
+
+def test_the_eight_camera_rig_loads():
+    from xyzcyl.runtime.rig import load_rig
+
+    assert len(load_rig(BENCH / "rigs" / "ring8.json", check_images=False)) == 8

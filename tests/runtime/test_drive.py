@@ -1,0 +1,221 @@
+"""Drives (runtime.drive): the drive file and its refusals, keyframes, moving Gaussians into the scene's frame, the
+cross-keyframe dedupe against its cell-by-cell reference, and a drive reconstructed end to end with the shipped
+model: a still ego posted twice is kept once, a moving one grows the scene with the new ground only."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+from xyzcyl.runtime.drive import (
+    DriveError,
+    dedupe_frames,
+    dedupe_frames_reference,
+    inside_boxes,
+    is_drive_file,
+    load_drive,
+    pick_keyframes,
+    transform_gaussians,
+    voxel_levels,
+)
+from xyzcyl.testing import EXAMPLE_RIG
+
+
+def _pose(x: float = 0.0, y: float = 0.0, yaw_deg: float = 0.0) -> list[list[float]]:
+    c, s = math.cos(math.radians(yaw_deg)), math.sin(math.radians(yaw_deg))
+    return [[c, -s, 0, x], [s, c, 0, y], [0, 0, 1, 0.0], [0, 0, 0, 1]]
+
+
+def write_drive(tmp: Path, poses: list, times: list, edit=None, tracks=None) -> Path:
+    """A drive of the example rig (its images, by absolute path) at ``poses`` (ego_to_world) and ``times``;
+    ``edit(i, rig_dict)`` may change a frame's rig; ``tracks``: a tracks file's content."""
+    base = json.loads(Path(EXAMPLE_RIG).read_text())
+    frames = []
+    for i, (pose, ts) in enumerate(zip(poses, times)):
+        rig = json.loads(json.dumps(base))
+        for c in rig["cameras"]:
+            c["image"] = str(Path(EXAMPLE_RIG).parent / c["image"])
+        if pose is not None:
+            rig["ego_to_world"] = pose
+        if edit is not None:
+            edit(i, rig)
+        (tmp / f"frame_{i:02d}").mkdir(parents=True, exist_ok=True)
+        (tmp / f"frame_{i:02d}" / "rig.json").write_text(json.dumps(rig))
+        entry = {"rig": f"frame_{i:02d}/rig.json"}
+        if ts is not None:
+            entry["timestamp_s"] = ts
+        frames.append(entry)
+    doc = {"frames": frames}
+    if tracks is not None:
+        (tmp / "tracks.json").write_text(json.dumps(tracks))
+        doc["tracks"] = "tracks.json"
+    (tmp / "drive.json").write_text(json.dumps(doc))
+    return tmp / "drive.json"
+
+
+def test_a_drive_file_loads_in_the_first_frames_frame(tmp_path):
+    p = write_drive(tmp_path, [_pose(100, 50, 30), _pose(101, 50.5, 30), _pose(103, 51, 32)], [10.0, 10.1, 10.3])
+    assert is_drive_file(p) and not is_drive_file(EXAMPLE_RIG)
+    d = load_drive(p)
+    assert len(d) == 3 and [f.timestamp_s for f in d.frames] == [10.0, 10.1, 10.3]
+    traj = d.trajectory()
+    np.testing.assert_allclose(traj[0], np.eye(4), atol=1e-12)
+    # frame 1 in frame 0's ego frame: 1 m east and 0.5 m north of a car facing 30 degrees (ego x forward, y left)
+    c, s = math.cos(math.radians(30)), math.sin(math.radians(30))
+    np.testing.assert_allclose(traj[1][:2, 3], [c * 1 + s * 0.5, -s * 1 + c * 0.5], atol=1e-9)
+
+
+@pytest.mark.parametrize("case, field", [
+    ("no_pose", "frames[1].rig"),
+    ("no_time", "frames[1].timestamp_s"),
+    ("same_time", "frames[2].timestamp_s"),
+    ("backwards", "frames[2].timestamp_s"),
+    ("jump", "frames[2].rig"),
+    ("cameras", "frames[1].rig"),
+    ("bad_rig", "frames[1].rig"),
+    ("track_frame", "tracks[0].poses[1].frame"),
+    ("track_size", "tracks[0].size"),
+])
+def test_bad_drives_are_refused_naming_the_frame_and_field(tmp_path, case, field):
+    poses = [_pose(0), _pose(1), _pose(2)]
+    times = [0.0, 0.1, 0.2]
+    edit, tracks = None, None
+    if case == "no_pose":
+        poses[1] = None
+    elif case == "no_time":
+        times[1] = None
+    elif case == "same_time":
+        times[2] = 0.1
+    elif case == "backwards":
+        times[2] = 0.05
+    elif case == "jump":
+        poses[2] = _pose(5000.0)                     # 5 km in 0.1 s
+
+    if case == "cameras":
+        def edit(i, rig):
+            if i == 1:
+                rig["cameras"] = rig["cameras"][:5]
+    elif case == "bad_rig":
+        def edit(i, rig):
+            if i == 1:
+                rig["cameras"][0]["K"][0][0] = -1.0
+    track = {"id": "a", "label": "Car", "size": [4.5, 1.9, 1.6], "stationary": False,
+             "poses": [{"frame": 0, "object_to_world": _pose(10)}, {"frame": 1, "object_to_world": _pose(11)}]}
+    if case == "track_frame":
+        track["poses"][1]["frame"] = 7
+        tracks = {"tracks": [track]}
+    elif case == "track_size":
+        track["size"] = [4.5, 0, 1.6]
+        tracks = {"tracks": [track]}
+    p = write_drive(tmp_path, poses, times, edit, tracks)
+    with pytest.raises(DriveError) as e:
+        load_drive(p)
+    assert e.value.field == field, str(e.value)
+    assert str(tmp_path / ("tracks.json" if field.startswith("tracks") else "drive.json")) in str(e.value)
+
+
+def test_keyframes_by_distance_and_time(tmp_path):
+    # 0.5 m a frame for 10 frames, then still for 30 frames at 10 Hz
+    xs = [0.5 * i for i in range(10)] + [4.5] * 30
+    p = write_drive(tmp_path, [_pose(x) for x in xs], [0.1 * i for i in range(40)])
+    d = load_drive(p, check_images=False)
+    keys = pick_keyframes(d, spacing_m=1.5, max_gap_s=2.0)
+    assert keys[:4] == [0, 3, 6, 9]                    # every 1.5 m while moving
+    assert keys[4:] == [29]                            # then one for the 2 s standing still (9 + 20 frames)
+    assert pick_keyframes(d, every=8) == [0, 8, 16, 24, 32]
+    # a drive posted at ~2 m spacing is used whole
+    p2 = write_drive(tmp_path / "b", [_pose(2.0 * i) for i in range(6)], [0.4 * i for i in range(6)])
+    assert pick_keyframes(load_drive(p2, check_images=False)) == list(range(6))
+
+
+def test_moved_gaussians_render_as_the_moved_camera_sees_the_original():
+    """A rigid move of the Gaussians and of the camera together changes nothing in the picture (means, rotations;
+    SH degree 0)."""
+    from xyzcyl.runtime.camera import Camera, pinhole_K
+    from xyzcyl.runtime.render import Gaussians, render
+
+    rng = np.random.default_rng(1)
+    n = 400
+    f32 = np.float32
+    g = Gaussians(rng.normal([8, 0, 1], [2, 2, 1], (n, 3)).astype(f32), rng.normal(size=(n, 4)).astype(f32),
+                  rng.uniform(-2.5, -1.0, (n, 3)).astype(f32), rng.normal(size=n).astype(f32),
+                  rng.random((n, 1, 3)).astype(f32))
+    cam = Camera(K=pinhole_K(60, 60, 39.5, 29.5), cam_to_ego=np.array(
+        [[0, 0, 1, 0], [-1, 0, 0, 0], [0, -1, 0, 1.2], [0, 0, 0, 1]], float), width=80, height=60)
+    T = np.array(_pose(3.0, -2.0, 40.0))
+    T[2, 3] = 0.5
+    a = render(g, cam)
+    b = render(transform_gaussians(g, T), cam.replace(cam_to_ego=T @ cam.cam_to_ego))
+    # float32 means moved in float64 and rounded back: the pictures agree to float32 rounding of the projections
+    np.testing.assert_allclose(b.rgb, a.rgb, atol=2e-4)
+    np.testing.assert_allclose(b.alpha, a.alpha, atol=2e-4)
+
+
+def test_dedupe_frames_matches_its_reference_and_does_not_depend_on_the_order():
+    rng = np.random.default_rng(5)
+    n = 400
+    pts = rng.uniform(0, 1.0, (n, 3))                  # dense: many shared voxels at every level
+    level = rng.integers(0, 6, n).astype(np.int8)
+    frame = rng.integers(0, 4, n)
+    keep = dedupe_frames(pts, level, frame)
+    np.testing.assert_array_equal(keep, dedupe_frames_reference(pts, level, frame))
+    assert 0 < keep.sum() < n
+    # keyframes added one at a time, deduping each time, keep what deduping them all at once keeps
+    alive = np.zeros(n, bool)
+    for f in range(4):
+        alive |= frame == f
+        idx = np.flatnonzero(alive)
+        k = dedupe_frames(pts[idx], level[idx], frame[idx])
+        alive[idx[~k]] = False
+    np.testing.assert_array_equal(alive, keep)
+    # one keyframe alone keeps everything; a finer cell of another keyframe takes a voxel over
+    assert dedupe_frames(pts, level, np.zeros(n, int)).all()
+    two = np.array([[0.001, 0.001, 0.001], [0.002, 0.002, 0.002]])
+    assert dedupe_frames(two, np.array([3, 1]), np.array([0, 1])).tolist() == [False, True]
+    assert dedupe_frames(two, np.array([2, 2]), np.array([1, 0])).tolist() == [False, True]
+
+
+def test_voxel_levels_and_boxes():
+    assert voxel_levels(np.array([0.01, 0.02, 0.021, 0.04, 100.0])).tolist() == [0, 0, 1, 1, 11]
+    box = (np.linalg.inv(np.array(_pose(10, 0, 90))), np.array([2.0, 1.0, 1.0]))
+    pts = np.array([[10, 1.9, 0], [10, 2.1, 0], [11.5, 0, 0], [10, 0, 1.5]])
+    assert inside_boxes(pts, [box]).tolist() == [True, False, False, False]
+
+
+@pytest.fixture(scope="module")
+def shipped():
+    from xyzcyl.runtime.inference import Reconstructor
+    from xyzcyl.testing import SHIPPED_MODEL
+
+    return Reconstructor.load(SHIPPED_MODEL, threads=2)
+
+
+def test_a_still_ego_posted_twice_is_kept_once(tmp_path, shipped):
+    """Two keyframes of one place (the example rig twice, 2.5 s apart, the ego still): the second adds nothing
+    (every surface it sees, the first saw as finely); a one-frame drive is the rig's own reconstruction."""
+    from xyzcyl.runtime.detail import DetailOptions
+    from xyzcyl.runtime.drive import drive_of_rig, reconstruct_drive
+    from xyzcyl.runtime.rig import load_rig
+
+    opts = DetailOptions(stride=4)
+    p = write_drive(tmp_path, [_pose(7, 3, 20)] * 2, [0.0, 2.5])
+    drive = load_drive(p)
+    assert pick_keyframes(drive) == [0, 1]
+    two = reconstruct_drive(shipped, drive, detail=opts)
+    one = shipped.reconstruct(load_rig(EXAMPLE_RIG), detail=opts)
+    shown = int((one.gaussians.opacity_logits > -20).sum())         # the one-rig scene keeps hidden cells
+    assert two.counts["keyframes"] == 2 and two.drive["keyframes"] == [0, 1]
+    assert len(two.gaussians) <= 1.02 * shown, (len(two.gaussians), shown)
+    assert len(two.gaussians) >= 0.9 * shown
+    single = reconstruct_drive(shipped, drive_of_rig(load_rig(EXAMPLE_RIG)), detail=opts)
+    np.testing.assert_array_equal(single.gaussians.means, one.gaussians.means)
+    # the scene folder records the drive, and reads it back
+    two.save(tmp_path / "scene")
+    from xyzcyl.runtime.scene import Scene
+
+    back = Scene.load(tmp_path / "scene")
+    assert back.drive["keyframes"] == [0, 1] and len(back.drive["trajectory"]) == 2
+    np.testing.assert_allclose(back.drive["ego_to_world"], _pose(7, 3, 20))
