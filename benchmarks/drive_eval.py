@@ -6,7 +6,8 @@
 Keyframes every ``--every``th frame of ``--frames``; the drive of those keyframes is reconstructed once
 (runtime.drive.reconstruct_drive) and each keyframe alone once (Reconstructor.reconstruct). Every frame between
 keyframes is scored, with all its cameras at ``--width`` pixels (aspect kept), three ways against its own images:
-- drive: the drive's scene rendered at the frame's cameras (placed in the first frame's ego frame);
+- drive: the drive's scene rendered at the frame's cameras (placed in the first frame's ego frame) and time (its
+  moving objects where the tracks put them then);
 - one: the nearest keyframe reconstructed alone, rendered at the frame's cameras (in that keyframe's frame);
 - still: "not moving", the nearest keyframe's own image of that camera.
 Prints one JSON line per method (PSNR, SSIM, sharpness ratio means, per camera too) plus the scene sizes and times,
@@ -81,8 +82,8 @@ def main(argv: list[str] | None = None) -> int:
             c = c.resized(width, round(c.height * width / c.width))
         return c
 
-    def shot(scene, cam) -> np.ndarray:
-        rgb, _, _ = render_view(scene, cam)
+    def shot(scene, cam, time_s=None) -> np.ndarray:
+        rgb, _, _ = render_view(scene, cam, time_s=time_s)
         return np.clip(rgb, 0, 1)
 
     rows = []
@@ -97,7 +98,7 @@ def main(argv: list[str] | None = None) -> int:
             size = (c_drive.width, c_drive.height)
             gt_s = cv2.resize(gt, size, interpolation=cv2.INTER_AREA) if gt.shape[1] != size[0] else gt
             st_s = cv2.resize(still, size, interpolation=cv2.INTER_AREA) if still.shape[1] != size[0] else still
-            r_drive, r_one = shot(whole, c_drive), shot(singles[near], c_one)
+            r_drive, r_one = shot(whole, c_drive, fb.timestamp_s), shot(singles[near], c_one)
             row = {"frame": b, "keyframe": near, "camera": cam.name}
             for name, img in (("drive", r_drive), ("one", r_one), ("still", st_s)):
                 row.update({f"{name}_{k}": v for k, v in image_metrics(img, gt_s).items()})
@@ -116,7 +117,8 @@ def main(argv: list[str] | None = None) -> int:
               "gaussians": {"drive": len(whole.gaussians),
                             "one_frame": {str(k): int((s.gaussians.opacity_logits > -20).sum())
                                           for k, s in singles.items()}},
-              "seconds": {"drive": round(t_drive, 2), "one_frame_each": [round(t, 2) for t in t_single]},
+              "seconds": {"drive": round(t_drive, 2), "one_frame_each": [round(t, 2) for t in t_single],
+                          "drive_stages": whole.timings},
               "drive_counts": whole.counts, "methods": {}}
     for m in ("drive", "one", "still"):
         report["methods"][m] = {k: mean(f"{m}_{k}") for k in ("psnr", "ssim", "sharpness")}

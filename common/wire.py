@@ -308,6 +308,9 @@ class ViewQuery(BaseModel):
     output: Output = "rgb"
     format: Format = "png"
     quality: int = Field(90, ge=1, le=100, description="JPEG quality")
+    time: float | None = Field(None, allow_inf_nan=False, description=(
+        "seconds on the rigs' clock: a drive's scene draws its moving objects where they were then (default: its "
+        "first frame); a one-rig scene is the same at every time"))
 
     def _yaw_is_the_moves(self) -> bool:
         return self.camera is not None or self.cam_to_ego is not None

@@ -50,7 +50,6 @@ from .camera import check_pose
 from .errors import FieldError, RigError
 from .render import Gaussians
 from .rig import Rig, load_rig
-from .rotations import rotmats_to_quats
 
 MAX_SPEED_MPS = 100.0          # an ego faster than this between two frames is a pose error (360 km/h)
 DEFAULT_SPACING_M = 1.5        # keyframe spacing: a drive posted at ~2 m spacing is used whole
@@ -258,20 +257,13 @@ def pick_keyframes(drive: Drive, spacing_m: float = DEFAULT_SPACING_M, max_gap_s
 
 
 def transform_gaussians(g: Gaussians, T: np.ndarray) -> Gaussians:
-    """``g`` moved by the rigid [4, 4] ``T``: means and rotations; SH of degree 0 (colour) is unchanged by a
-    rotation (higher degrees: DriveError, not implemented)."""
-    if g.sh_degree > 0:
-        raise DriveError("sh", f"a drive's keyframes need SH degree 0 Gaussians (got degree {g.sh_degree}): "
-                               "rotating higher SH bands is not implemented")
-    R = np.asarray(T[:3, :3], np.float64)
-    means = (g.means.astype(np.float64) @ R.T + T[:3, 3]).astype(g.means.dtype)
-    qT = rotmats_to_quats(R[None])[0]
-    q = g.quats.astype(np.float64)
-    w1, x1, y1, z1 = qT
-    w2, x2, y2, z2 = q[:, 0], q[:, 1], q[:, 2], q[:, 3]
-    quats = np.stack([w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2, w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
-                      w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2, w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2], axis=1)
-    return Gaussians(means, quats.astype(g.quats.dtype), g.log_scales, g.opacity_logits, g.sh)
+    """``g`` moved by the rigid [4, 4] ``T`` (Gaussians.transformed); DriveError for SH above degree 0."""
+    from .render import GaussianError
+
+    try:
+        return g.transformed(T)
+    except GaussianError as e:
+        raise DriveError("sh", f"a drive's keyframes: {e.message}") from None
 
 
 def transform_detail(d, T: np.ndarray):
@@ -281,28 +273,89 @@ def transform_detail(d, T: np.ndarray):
     return replace(d, grid=d.grid.replace(cam_to_ego=T @ d.grid.cam_to_ego), means=d.means @ R.T + T[:3, 3])
 
 
-def inside_boxes(points: np.ndarray, boxes: Sequence[tuple[np.ndarray, np.ndarray]]) -> np.ndarray:
-    """[N] bool: whether each point ([N, 3] metres) lies in one of ``boxes`` ((world -> box [4, 4], half-sizes
-    [3]) in the points' frame)."""
-    out = np.zeros(len(points), bool)
-    p = np.asarray(points, np.float64)
-    for inv, half in boxes:
-        q = p @ inv[:3, :3].T + inv[:3, 3]
-        out |= np.all(np.abs(q) <= half, axis=1)
+def inside_box(points: np.ndarray, inv: np.ndarray, half: np.ndarray) -> np.ndarray:
+    """[N] bool: whether each point ([N, 3] metres) lies in the box (points' frame -> box ``inv`` [4, 4],
+    half-sizes ``half`` [3])."""
+    return box_members(points, [(inv, half)]) == 0
+
+
+def inside_boxes(points: np.ndarray, boxes: Sequence[tuple]) -> np.ndarray:
+    """[N] bool: whether each point lies in one of ``boxes`` (each ending with (frame -> box [4, 4], half-sizes
+    [3]), as moving_boxes gives them)."""
+    return box_members(points, [b[-2:] for b in boxes]) >= 0
+
+
+def box_members(points: np.ndarray, boxes: Sequence[tuple[np.ndarray, np.ndarray]]) -> np.ndarray:
+    """[N] int: the index of the (first) box each point lies in, -1 for none (boxes: (frame -> box [4, 4],
+    half-sizes [3])). Only the points within a box's reach along x are tested against it (the points sorted by x
+    once): a drive's keyframe holds millions of cells and dozens of boxes."""
+    p = np.asarray(points)
+    out = np.full(len(p), -1, np.int32)
+    if not len(p) or not boxes:
+        return out
+    x = p[:, 0].astype(np.float64)
+    order = np.argsort(x, kind="stable")
+    xs = x[order]
+    for b, (inv, half) in enumerate(boxes):
+        centre = -inv[:3, :3].T @ inv[:3, 3]                 # the box centre in the points' frame
+        reach = float(np.linalg.norm(half))
+        lo, hi = np.searchsorted(xs, [centre[0] - reach, centre[0] + reach], side="left")
+        idx = order[lo:hi]
+        if not len(idx):
+            continue
+        q = p[idx].astype(np.float64) @ inv[:3, :3].T + inv[:3, 3]
+        hit = idx[np.all(np.abs(q) <= half, axis=1)]
+        hit = hit[out[hit] < 0]
+        out[hit] = b
     return out
 
 
-def moving_boxes(drive: Drive, k: int) -> list[tuple[np.ndarray, np.ndarray]]:
-    """The boxes (scene frame -> box, half-sizes grown by TRACK_GROW) of the tracked objects that move, at frame
-    k (the tracks annotated at that frame)."""
+def moving_tracks(drive: Drive) -> list[int]:
+    """The indices of the tracks that move (``stationary`` false) and have an annotated pose."""
+    return [i for i, t in enumerate(drive.tracks) if not t.stationary and t.poses]
+
+
+def moving_boxes(drive: Drive, k: int) -> list[tuple[int, np.ndarray, np.ndarray]]:
+    """(track index, scene frame -> box [4, 4], half-sizes grown by TRACK_GROW) of the tracked objects that move,
+    at frame k (the tracks annotated at that frame)."""
     E0 = drive.frames[0].ego_to_world
     out = []
-    for t in drive.tracks:
-        if t.stationary or k not in t.poses:
+    for i in moving_tracks(drive):
+        t = drive.tracks[i]
+        if k not in t.poses:
             continue
         box_to_scene = np.linalg.inv(E0) @ t.poses[k]
-        out.append((np.linalg.inv(box_to_scene), 0.5 * TRACK_GROW * np.asarray(t.size)))
+        out.append((i, np.linalg.inv(box_to_scene), 0.5 * TRACK_GROW * np.asarray(t.size)))
     return out
+
+
+def actors_of(drive: Drive, copies: list[tuple[int, float, Gaussians]]):
+    """runtime.actors.Actors of the drive's moving tracks (every annotated pose, box -> scene frame, at its frame's
+    time) and ``copies`` (track index, keyframe time, Gaussians in the box frame); None without moving tracks."""
+    from .actors import Actors
+
+    moving = moving_tracks(drive)
+    if not moving:
+        return None
+    index = {t: a for a, t in enumerate(moving)}
+    E0inv = np.linalg.inv(drive.frames[0].ego_to_world)
+    pt, ptime, pose = [], [], []
+    for t in moving:
+        for fr, m in sorted(drive.tracks[t].poses.items()):
+            pt.append(index[t])
+            ptime.append(drive.frames[fr].timestamp_s)
+            pose.append(E0inv @ m)
+    kept = [(index[t], ts, g) for t, ts, g in copies if len(g)]
+    sizes = np.cumsum([0] + [len(g) for _, _, g in kept])
+    g = _concat([g for _, _, g in kept]) if kept else Gaussians.empty(0)
+    return Actors(track_id=tuple(drive.tracks[t].id for t in moving),
+                  track_label=tuple(drive.tracks[t].label for t in moving),
+                  track_size=np.array([drive.tracks[t].size for t in moving], np.float64),
+                  pose_track=np.array(pt, np.int32), pose_time=np.array(ptime, np.float64),
+                  pose=np.array(pose, np.float64).reshape(-1, 4, 4),
+                  copy_track=np.array([a for a, _, _ in kept], np.int32),
+                  copy_time=np.array([ts for _, ts, _ in kept], np.float64),
+                  copy_start=sizes.astype(np.int64), gaussians=g)
 
 
 # ------------------------------------------------------------------------------------------- fusion
@@ -313,13 +366,6 @@ def voxel_levels(footprint: np.ndarray) -> np.ndarray:
     clipped to 0..VOXEL_LEVELS - 1."""
     f = np.maximum(np.asarray(footprint, np.float64), 1e-9)
     return np.clip(np.ceil(np.log2(f / VOXEL_BASE_M)), 0, VOXEL_LEVELS - 1).astype(np.int8)
-
-
-def _keys(points: np.ndarray, size: float) -> np.ndarray:
-    """[N] int64 voxel keys of ``points`` [N, 3] at voxel ``size`` (21 bits an axis, about +-1e6 voxels)."""
-    v = np.floor(np.asarray(points, np.float64) / size).astype(np.int64) + (1 << 20)
-    v = np.clip(v, 0, (1 << 21) - 1)
-    return (v[:, 0] << 42) | (v[:, 1] << 21) | v[:, 2]
 
 
 def dedupe_frames(points: np.ndarray, level: np.ndarray, frame: np.ndarray) -> np.ndarray:
@@ -338,19 +384,38 @@ def dedupe_frames(points: np.ndarray, level: np.ndarray, frame: np.ndarray) -> n
     level = np.asarray(level, np.int64)
     frame = np.asarray(frame, np.int64)
     rank = level * (int(frame.max()) + 1) + frame           # lexicographic (level, frame)
-    for L in np.unique(level):
+    # level by level, fine to coarse: a voxel's owner is the best of its cells at this level and the owners of its
+    # eight children (the voxels of the level below: their coordinates halved), so each step sorts the owners so
+    # far and this level's cells, not every finer cell again
+    oc = np.zeros((0, 3), np.int64)            # owners: voxel coordinates, rank, frame
+    orank = np.zeros(0, np.int64)
+    oframe = np.zeros(0, np.int64)
+    for L in range(int(level.max()) + 1):
+        if L:
+            oc = np.floor_divide(oc, 2)
         here = np.flatnonzero(level == L)
-        pool = np.flatnonzero(level <= L)
-        keys = _keys(points[pool], VOXEL_BASE_M * 2.0 ** int(L))
-        order = np.lexsort((rank[pool], keys))
+        cc = np.floor(np.asarray(points[here], np.float64) / (VOXEL_BASE_M * 2.0 ** L)).astype(np.int64)
+        coords = np.concatenate([oc, cc])
+        ranks = np.concatenate([orank, rank[here]])
+        frames = np.concatenate([oframe, frame[here]])
+        keys = _pack(coords)
+        if not len(keys):
+            continue
+        order = np.lexsort((ranks, keys))
         k_sorted = keys[order]
         first = np.concatenate([[True], k_sorted[1:] != k_sorted[:-1]])
-        best_key = k_sorted[first]
-        best_frame = frame[pool][order][first]
-        mine = _keys(points[here], VOXEL_BASE_M * 2.0 ** int(L))
-        at = np.searchsorted(best_key, mine)
-        keep[here] = best_frame[at] == frame[here]
+        win = order[first]
+        oc, orank, oframe = coords[win], ranks[win], frames[win]
+        if len(here):
+            at = np.searchsorted(k_sorted[first], keys[len(keys) - len(here):])
+            keep[here] = oframe[at] == frame[here]
     return keep
+
+
+def _pack(coords: np.ndarray) -> np.ndarray:
+    """[N] int64 keys of integer voxel coordinates [N, 3] (21 bits an axis, offset: +-1e6 voxels)."""
+    v = np.clip(coords + (1 << 20), 0, (1 << 21) - 1)
+    return (v[:, 0] << 42) | (v[:, 1] << 21) | v[:, 2]
 
 
 def dedupe_frames_reference(points: np.ndarray, level: np.ndarray, frame: np.ndarray) -> np.ndarray:
@@ -436,6 +501,7 @@ def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None,
     window: list[tuple[int, list, list[Gaussians], list[np.ndarray]]] = []     # (keyframe, details, parts, keep)
     background = None
     moved_out = 0
+    copies: list[tuple[int, float, Gaussians]] = []
 
     def commit(entry) -> None:
         """A keyframe leaves the carving window: its kept cells join the scene (deduped across keyframes), and the
@@ -466,21 +532,28 @@ def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None,
         coarse = transform_gaussians(kf.coarse, T)
         parts = [transform_gaussians(g, T) for g in kf.parts]
         details = [transform_detail(d, T) for d in kf.details]
-        boxes = moving_boxes(drive, k)
-        if boxes:                       # what moves is not the static scene's (the actors' layer: later)
-            m = ~inside_boxes(coarse.means, boxes)
-            moved_out += int((~m).sum())
-            coarse = coarse.subset(m)
-        # this keyframe's cells against its own cameras (as one rig), then against its neighbours' (see-through)
+        # this keyframe as one rig: its model Gaussians under its cells culled, its cells carved against its own
+        # cameras; later against its neighbours' (see-through)
+        if details and len(coarse):
+            coarse = coarse.subset(cull_covered(coarse, details, tol))
         own = carve_details(details, tol, detail.dedupe) if details else []
+        boxes = moving_boxes(drive, k)
+        if boxes:                       # what moves is not the static scene's: each object's copy, in its box
+            geo = [(inv, half) for _, inv, half in boxes]
+            c_mem = box_members(coarse.means, geo)
+            p_mem = [box_members(g.means, geo) for g in parts]
+            for b, (t, inv, _) in enumerate(boxes):
+                pieces = [coarse.subset(c_mem == b)]
+                pieces += [g.subset(keep & (m == b)) for g, keep, m in zip(parts, own, p_mem)]
+                copies.append((t, fr.timestamp_s, transform_gaussians(_concat(pieces), inv)))
+            moved_out += int((c_mem >= 0).sum())
+            coarse = coarse.subset(c_mem < 0)
+            for i, m in enumerate(p_mem):
+                moved_out += int((own[i] & (m >= 0)).sum())
+                own[i] &= m < 0
         coarse_kept.gaussians.append(coarse)
         coarse_kept.level.append(voxel_levels(_coarse_footprint(coarse)))
         coarse_kept.frame.append(np.full(len(coarse), n, np.int32))
-        if boxes and parts:
-            for i, g in enumerate(parts):
-                inside = inside_boxes(g.means, boxes)
-                moved_out += int((own[i] & inside).sum())
-                own[i] &= ~inside
         entry = (n, details, parts, own)
         for prev in window:
             _carve_pair(entry, prev, tol)
@@ -500,8 +573,12 @@ def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None,
     timings["total"] = time.perf_counter() - t0
     counts.update({"coarse": len(coarse), "detail": len(details_g), "moving_removed": moved_out,
                    "total": len(gauss)})
+    actors = actors_of(drive, copies)
+    if actors is not None:
+        counts.update({"actors": len(actors), "actor_copies": len(actors.copy_track),
+                       "actor_gaussians": len(actors.gaussians)})
     scene = Scene(gaussians=gauss, background=background, rig=drive.frames[0].rig, model=rec.scene_model(),
-                  counts=counts, timings={key: round(v, 6) for key, v in timings.items()})
+                  counts=counts, timings={key: round(v, 6) for key, v in timings.items()}, actors=actors)
     scene.drive = _drive_meta(drive, keys)
     return scene
 

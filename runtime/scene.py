@@ -32,6 +32,7 @@ import numba
 import numpy as np
 from xyzcyl.common.files import atomic_folder
 
+from .actors import Actors
 from .camera import Camera, rig_camera
 from .cylinder import CylinderSpec
 from .detail import DetailError, OwnViews
@@ -44,6 +45,7 @@ from .rig import Rig
 SCENE_FORMAT = "xyzcyl-scene"
 SCENE_VERSION = 1
 PLY_NAME, EXR_NAME, PNG_NAME, JSON_NAME = "scene.ply", "background.exr", "background.png", "scene.json"
+ACTORS_NAME = "actors.npz"         # runtime.actors.Actors (a drive's moving objects)
 OWN_VIEWS_NAME = "own_views.npz"   # runtime.detail.OwnViews (scenes with the detail layer)
 OWN_POSE_TOL = (1e-3, 1e-4)        # (metres, rotation matrix entries): a view this close to an input camera's pose is
 #                                    that camera's own view (a gRPC pose composed in float32 lands within 1e-5)
@@ -233,6 +235,7 @@ class Scene:
                          .isoformat())
     own_views: OwnViews | None = field(default=None, repr=False)    # the input cameras' own views (detail layer)
     drive: dict[str, Any] | None = None     # a drive's frames, keyframes, times and ego poses (runtime.drive)
+    actors: Actors | None = field(default=None, repr=False)     # a drive's moving objects (runtime.actors)
 
     def own_camera(self, camera) -> int | None:
         """The index of the input camera whose pose ``camera`` (runtime.camera.Camera) has (OWN_POSE_TOL), when
@@ -247,11 +250,37 @@ class Scene:
                 return k
         return None
 
-    def render(self, camera: Camera, **options) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(rgb [H, W, 3], depth [H, W], alpha [H, W]) float32 of this scene seen by ``camera`` (render_view)."""
+    def render(self, camera: Camera, time_s: float | None = None, **options
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(rgb [H, W, 3], depth [H, W], alpha [H, W]) float32 of this scene seen by ``camera`` at ``time_s``
+        (render_view)."""
         bg = self.background.render(camera) if self.background is not None else None
-        r = render(self.gaussians_for(camera), camera, background=bg, **options)
+        r = render(self.gaussians_at(camera, time_s), camera, background=bg, **options)
         return r.rgb, r.depth, r.alpha
+
+    def start_time(self) -> float | None:
+        """A drive's first frame's time (seconds, the rigs' clock), None for a one-rig scene."""
+        return None if not self.drive else float(self.drive["timestamp_s"])
+
+    def frame_interval(self) -> float:
+        """A drive's median time between frames (seconds; 0.1 without frames)."""
+        times = np.diff(self.drive.get("times_s", [])) if self.drive else []
+        return float(np.median(times)) if len(times) else 0.1
+
+    def gaussians_at(self, camera, time_s: float | None = None) -> Gaussians:
+        """The Gaussians ``camera`` sees at ``time_s`` (seconds on the rigs' clock; default the drive's first frame):
+        the static scene (gaussians_for) and the moving objects drawn at that time (runtime.actors). A scene without
+        actors is the same at every time."""
+        g = self.gaussians_for(camera)
+        if self.actors is None:
+            return g
+        t = self.start_time() if time_s is None else float(time_s)
+        moving, _ = self.actors.at(t, 0.5 * self.frame_interval())
+        if not len(moving):
+            return g
+        from .detail import concat_gaussians
+
+        return concat_gaussians([g, moving])
 
     def gaussians_for(self, camera) -> Gaussians:
         """The Gaussians as ``camera`` sees them: at an input camera's own pose its own view (runtime.detail.OwnViews:
@@ -288,6 +317,10 @@ class Scene:
                     "about": "cells hidden (opacity logit -30) except in their camera's own view"}}
         if self.drive is not None:           # a drive's scene (runtime.drive); a one-rig scene has no such key
             out["drive"] = self.drive
+        if self.actors is not None:
+            out["actors"] = {"file": ACTORS_NAME, "objects": len(self.actors), "copies": len(self.actors.copy_track),
+                             "gaussians": len(self.actors.gaussians),
+                             "about": "moving objects: per keyframe a copy in its box frame, drawn at a time"}
         return out
 
     def save(self, folder: str | os.PathLike, overwrite: bool = True) -> Path:
@@ -300,6 +333,8 @@ class Scene:
             self.gaussians.save_ply(tmp / PLY_NAME)
             if self.own_views is not None:
                 self.own_views.save(tmp / OWN_VIEWS_NAME)
+            if self.actors is not None:
+                self.actors.save(tmp / ACTORS_NAME)
             if self.background is not None:
                 from xyzcyl.common.media import write_exr
 
@@ -346,6 +381,17 @@ class Scene:
             if own.cameras != tuple(rig.names):
                 raise SceneError("own_views.cameras", f"{list(own.cameras)} are not the rig's {rig.names}",
                                  f"scene {str(op)!r}")
+        actors = None
+        if meta.get("actors"):
+            from .actors import ActorsError
+
+            ap = d / meta["actors"].get("file", ACTORS_NAME)
+            if not ap.is_file():
+                raise SceneError("scene", f"{str(ap)!r} is missing")
+            try:
+                actors = Actors.load(ap)
+            except ActorsError as e:
+                raise SceneError(e.field, e.message, f"scene {str(ap)!r}") from None
         bg = None
         b = meta.get("background")
         if b:
@@ -362,7 +408,7 @@ class Scene:
         return cls(gaussians=g, background=bg, rig=rig, model=meta.get("model") or {},
                    counts=meta.get("counts") or {}, timings=meta.get("timings") or {},
                    lifting_cached=bool(meta.get("lifting_cached", False)), created=meta.get("created", ""),
-                   own_views=own, drive=meta.get("drive"))
+                   own_views=own, drive=meta.get("drive"), actors=actors)
 
 
 # ------------------------------------------------------------------------------------------- views

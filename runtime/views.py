@@ -146,7 +146,7 @@ def request(query: ViewQuery, rig: Rig | None = None, names: Mapping[str, str] |
     "all"), format and quality (errors named by ``names``)."""
     cam = resolve(query, rig, names)
     try:
-        return ViewRequest(cam, output or query.output, query.format, query.quality)
+        return ViewRequest(cam, output or query.output, query.format, query.quality, query.time)
     except ViewError as e:
         raise ViewError((names or {}).get(e.field, e.field), e.message) from None
 
@@ -361,6 +361,7 @@ class ViewRequest:
     output: str = "rgb"      # rgb | depth | alpha
     format: str = "png"      # png | jpeg | exr (jpeg cannot hold depth)
     quality: int = 90        # JPEG quality 1..100 (kept, and part of key(), for every format)
+    time_s: float | None = None   # seconds on the rigs' clock (a drive's moving objects; None: the scene's start)
 
     def __post_init__(self) -> None:
         if not isinstance(self.camera, Camera):
@@ -402,11 +403,14 @@ class ViewRequest:
             return [float(x) + 0.0 for x in np.round(np.asarray(a, np.float64), KEY_DECIMALS).ravel()]
 
         pinhole = not c.is_equirect
-        return {"v": KEY_VERSION, "camera": c.model,
-                "K": rounded(c.K) if pinhole else None, "cam_to_ego": rounded(c.cam_to_ego),
-                "distortion": None if c.distortion is None else c.distortion.to_json(),
-                "width": c.width, "height": c.height, "output": self.output, "format": self.format,
-                "quality": self.quality}
+        out = {"v": KEY_VERSION, "camera": c.model,
+               "K": rounded(c.K) if pinhole else None, "cam_to_ego": rounded(c.cam_to_ego),
+               "distortion": None if c.distortion is None else c.distortion.to_json(),
+               "width": c.width, "height": c.height, "output": self.output, "format": self.format,
+               "quality": self.quality}
+        if self.time_s is not None:       # only when given: a request without a time keeps its key
+            out["time_s"] = round(float(self.time_s), 6)
+        return out
 
     def key(self) -> str:
         """sha256 hex of description() as compact sorted JSON: equal requests give equal keys, any difference
@@ -496,7 +500,7 @@ def encode_view(rgb, depth, alpha, request: ViewRequest) -> bytes:
 def render_request(scene: Scene, request: ViewRequest, **options) -> bytes:
     """Render ``request.camera`` with runtime.scene.render_view (Gaussians over the background panorama;
     ``options`` are the renderer's RenderOptions) and encode it with encode_view."""
-    rgb, depth, alpha = render_view(scene, request.camera, **options)
+    rgb, depth, alpha = render_view(scene, request.camera, time_s=request.time_s, **options)
     return encode_view(rgb, depth, alpha, request)
 
 

@@ -63,6 +63,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="what to write: rgb (default for .png/.jpg), depth (PNG: 16-bit millimetres; EXR: "
                              "float32 metres), alpha, or all (.exr only, the default there: R G B A Z)")
     parser.add_argument("--quality", type=int, default=90, help="JPEG quality 1..100 (default 90)")
+    parser.add_argument("--time", type=float, default=None, metavar="T",
+                        help="seconds on the rigs' clock: a drive's scene draws its moving objects where they were "
+                             "then (default: its first frame)")
     parser.add_argument("--background", type=float, nargs=3, default=None, metavar=("R", "G", "B"),
                         help="background colour in 0..1 (default: the scene's background panorama for a "
                              "SCENE_DIR, black for a PLY)")
@@ -84,7 +87,7 @@ def _fail(msg: str) -> int:
 # where each ViewQuery field comes from on this command line (its errors name the flag)
 FLAGS = {"camera": "--camera", "cam_to_ego": "--cam-to-world", "fx": "--K", "fy": "--K", "cx": "--K", "cy": "--K",
          "fov": "--fov", "distortion": "--distortion", "width": "--width", "height": "--height", "output": "--output",
-         "format": "--out", "quality": "--quality", **{k: f"--{k}" for k in MOVE_NAMES}}
+         "format": "--out", "quality": "--quality", "time": "--time", **{k: f"--{k}" for k in MOVE_NAMES}}
 
 
 def run(args: argparse.Namespace) -> int:
@@ -167,11 +170,13 @@ def run(args: argparse.Namespace) -> int:
             given = [f for f, v in (("--K", args.K), ("--fov", args.fov), ("--distortion", lens)) if v is not None]
             if given:
                 raise ViewError(given[0], "an equirectangular panorama takes no intrinsics")
-            req = ViewRequest(equirect_camera(c2w, args.width, args.height, move, names), output, fmt, args.quality)
+            req = ViewRequest(equirect_camera(c2w, args.width, args.height, move, names), output, fmt, args.quality,
+                              args.time)
         else:
             query = validated({"camera": args.camera, "cam_to_ego": c2w, "fx": fx, "fy": fy, "cx": cx, "cy": cy,
                                "fov": args.fov, "distortion": lens, **move.values(), "width": args.width,
-                               "height": args.height, **wire, "format": fmt, "quality": args.quality}, names)
+                               "height": args.height, **wire, "format": fmt, "quality": args.quality,
+                               "time": args.time}, names)
             req = request(query, None if scene is None else scene.rig, names, output=output)
     except ViewError as exc:
         return _fail(str(exc))
@@ -183,7 +188,7 @@ def run(args: argparse.Namespace) -> int:
     else:
         bg = None
     if scene is not None:    # the Gaussians the service renders for this camera (runtime.scene.render_view)
-        g = scene.gaussians_for(cam)
+        g = scene.gaussians_at(cam, req.time_s)
     res = render(g, cam, background=bg, antialiased=args.antialiased)
     data = encode_view(res.rgb, res.depth, res.alpha, req)
     try:

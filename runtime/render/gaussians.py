@@ -125,6 +125,24 @@ class Gaussians:
         object.__setattr__(out, "opacity_logits", a)
         return out
 
+    def transformed(self, T: np.ndarray) -> Gaussians:
+        """The Gaussians moved by the rigid [4, 4] ``T`` (frame -> another frame, metres): means and rotations. SH
+        of degree 0 (a colour) does not turn with the Gaussian; higher degrees would (GaussianError: not
+        implemented)."""
+        if self.sh_degree > 0:
+            raise GaussianError("sh", f"moving Gaussians needs SH degree 0 (got degree {self.sh_degree}): rotating "
+                                      "higher SH bands is not implemented")
+        R = np.asarray(T, np.float64)[:3, :3]
+        means = (self.means.astype(np.float64) @ R.T + np.asarray(T, np.float64)[:3, 3]).astype(self.means.dtype)
+        from ..rotations import rotmats_to_quats
+
+        w1, x1, y1, z1 = rotmats_to_quats(R[None])[0]
+        q = self.quats.astype(np.float64)
+        w2, x2, y2, z2 = q[:, 0], q[:, 1], q[:, 2], q[:, 3]
+        quats = np.stack([w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2, w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
+                          w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2, w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2], axis=1)
+        return Gaussians(means, quats.astype(self.quats.dtype), self.log_scales, self.opacity_logits, self.sh)
+
     def subset(self, keep: np.ndarray) -> Gaussians:
         """The Gaussians where ``keep`` ([N] bool, or indices) selects, in order."""
         return Gaussians(self.means[keep], self.quats[keep], self.log_scales[keep], self.opacity_logits[keep],

@@ -183,6 +183,19 @@ def test_voxel_levels_and_boxes():
     box = (np.linalg.inv(np.array(_pose(10, 0, 90))), np.array([2.0, 1.0, 1.0]))
     pts = np.array([[10, 1.9, 0], [10, 2.1, 0], [11.5, 0, 0], [10, 0, 1.5]])
     assert inside_boxes(pts, [box]).tolist() == [True, False, False, False]
+    # box_members (points sorted along x, only those within a box's reach tested) against the direct test
+    from xyzcyl.runtime.drive import box_members
+
+    rng = np.random.default_rng(2)
+    many = rng.uniform([-20, -20, -3], [20, 20, 3], (5000, 3))
+    boxes = [(np.linalg.inv(np.array(_pose(*rng.uniform(-15, 15, 2), rng.uniform(0, 360)))), rng.uniform(0.5, 4, 3))
+             for _ in range(12)]
+    direct = np.full(len(many), -1)
+    for b, (inv, half) in reversed(list(enumerate(boxes))):      # the first box wins
+        q = many @ inv[:3, :3].T + inv[:3, 3]
+        direct[np.all(np.abs(q) <= half, axis=1)] = b
+    np.testing.assert_array_equal(box_members(many, boxes), direct)
+    assert (direct >= 0).sum() > 100
 
 
 @pytest.fixture(scope="module")
@@ -219,3 +232,68 @@ def test_a_still_ego_posted_twice_is_kept_once(tmp_path, shipped):
     back = Scene.load(tmp_path / "scene")
     assert back.drive["keyframes"] == [0, 1] and len(back.drive["trajectory"]) == 2
     np.testing.assert_allclose(back.drive["ego_to_world"], _pose(7, 3, 20))
+
+
+def _actors(copy_times=(0.0, 1.0)):
+    """One object annotated at t = 0, 1, 2 s moving +2 m/s along x and turning 90 degrees over 2 s, with a copy
+    (two Gaussians: its centre and 1 m ahead along its length) at each of ``copy_times``."""
+    from xyzcyl.runtime.actors import Actors
+    from xyzcyl.runtime.render import Gaussians
+
+    poses = np.array([_pose(2.0 * t, 0.0, 45.0 * t) for t in (0.0, 1.0, 2.0)], float)
+    n = len(copy_times)
+    one = Gaussians(np.array([[0, 0, 0], [1, 0, 0]], np.float32), np.tile(np.float32([1, 0, 0, 0]), (2, 1)),
+                    np.full((2, 3), -2.0, np.float32), np.zeros(2, np.float32), np.full((2, 1, 3), 0.5, np.float32))
+    from xyzcyl.runtime.detail import concat_gaussians
+
+    return Actors(track_id=("car",), track_label=("Car",), track_size=np.array([[4.0, 2.0, 1.5]]),
+                  pose_track=np.zeros(3, np.int32), pose_time=np.array([0.0, 1.0, 2.0]), pose=poses,
+                  copy_track=np.zeros(n, np.int32), copy_time=np.array(copy_times, float),
+                  copy_start=np.arange(0, 2 * n + 1, 2), gaussians=concat_gaussians([one] * n))
+
+
+def test_actors_are_drawn_at_their_pose_at_a_time_and_not_outside_their_span(tmp_path):
+    a = _actors()
+    g, drawn = a.at(0.5, slack_s=0.05)                # halfway between t = 0 and 1: x = 1 m, turned 22.5 degrees
+    assert drawn == [0] and len(g) == 2
+    c, s = math.cos(math.radians(22.5)), math.sin(math.radians(22.5))
+    np.testing.assert_allclose(g.means, [[1.0, 0, 0], [1.0 + c, s, 0]], atol=1e-6)
+    assert len(a.at(2.04, 0.05)[0]) == 2 and len(a.at(2.2, 0.05)[0]) == 0      # within the slack, then gone
+    assert len(a.at(-0.2, 0.05)[0]) == 0
+    np.testing.assert_allclose(a.at(2.0, 0.05)[0].means[1], [4.0, 1.0, 0.0], atol=1e-6)   # turned 90 degrees
+    a.save(tmp_path / "actors.npz")
+    from xyzcyl.runtime.actors import Actors
+
+    b = Actors.load(tmp_path / "actors.npz")
+    np.testing.assert_array_equal(b.at(1.3, 0.05)[0].means, a.at(1.3, 0.05)[0].means)
+    assert b.track_id == ("car",) and b.track_label == ("Car",)
+
+
+def test_a_drive_with_a_moving_track_draws_it_at_the_render_time(tmp_path, shipped):
+    """A tracked object that moves leaves the static scene and is drawn where it is at the render's time."""
+    from xyzcyl.runtime.camera import Camera, pinhole_K
+    from xyzcyl.runtime.detail import DetailOptions
+    from xyzcyl.runtime.drive import reconstruct_drive
+    from xyzcyl.runtime.scene import Scene
+
+    E = _pose(7, 3, 20)
+    box_at = lambda dx: (np.array(E) @ np.array(_pose(12.0 + dx, 0.0))).tolist()    # 12 m ahead of the ego
+    tracks = {"tracks": [{"id": "car-1", "label": "Car", "size": [5.0, 6.0, 4.0], "stationary": False,
+                          "poses": [{"frame": 0, "object_to_world": box_at(0.0)},
+                                    {"frame": 1, "object_to_world": box_at(3.0)}]}]}
+    p = write_drive(tmp_path, [E, E], [0.0, 2.5], tracks=tracks)
+    scene = reconstruct_drive(shipped, load_drive(p), detail=DetailOptions(stride=4))
+    assert scene.actors is not None and scene.counts["actors"] == 1 and scene.counts["actor_gaussians"] > 0
+    assert scene.counts["moving_removed"] > 0
+    scene.save(tmp_path / "scene")
+    back = Scene.load(tmp_path / "scene")
+    cam = Camera(K=pinhole_K(200, 200, 159.5, 89.5), cam_to_ego=np.array(
+        [[0, 0, 1, 0], [-1, 0, 0, 0], [0, -1, 0, 1.5], [0, 0, 0, 1]], float), width=320, height=180)
+    at0 = back.gaussians_at(cam, 0.0)
+    at1 = back.gaussians_at(cam, 1.0)        # still the first keyframe's copy (the nearer), its box 1.2 m on
+    n_static = len(back.gaussians)
+    assert len(at0) > n_static and len(at1) == len(at0)
+    moved = at1.means[n_static:] - at0.means[n_static:]
+    np.testing.assert_allclose(moved[:, :2], np.tile([1.2, 0.0], (len(moved), 1)), atol=1e-3)
+    assert len(back.gaussians_at(cam, 2.5)) > n_static                       # the second keyframe's copy
+    assert len(back.gaussians_at(cam, 10.0)) == n_static                     # after its last pose: not drawn
