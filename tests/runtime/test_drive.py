@@ -297,3 +297,37 @@ def test_a_drive_with_a_moving_track_draws_it_at_the_render_time(tmp_path, shipp
     np.testing.assert_allclose(moved[:, :2], np.tile([1.2, 0.0], (len(moved), 1)), atol=1e-3)
     assert len(back.gaussians_at(cam, 2.5)) > n_static                       # the second keyframe's copy
     assert len(back.gaussians_at(cam, 10.0)) == n_static                     # after its last pose: not drawn
+
+
+def test_render_time_flag_draws_the_objects_of_that_time(tmp_path, shipped):
+    """`xyzcyl render --time T` on a drive's scene renders what Scene.render draws at T; another time moves the
+    tracked object; the time is refused when it is not a number."""
+    from xyzcyl import cli
+    from xyzcyl.runtime.detail import DetailOptions
+    from xyzcyl.runtime.drive import reconstruct_drive
+    from xyzcyl.runtime.scene import Scene
+
+    E = _pose(0, 0, 0)
+    tracks = {"tracks": [{"id": "c", "label": "Car", "size": [6.0, 6.0, 4.0], "stationary": False,
+                          "poses": [{"frame": 0, "object_to_world": _pose(10.0, 0.0)},
+                                    {"frame": 1, "object_to_world": _pose(16.0, 0.0)}]}]}
+    p = write_drive(tmp_path, [E, E], [0.0, 2.5], tracks=tracks)
+    reconstruct_drive(shipped, load_drive(p), detail=DetailOptions(stride=8)).save(tmp_path / "scene")
+    outs = {}
+    for t in ("0.0", "1.0"):
+        out = tmp_path / f"t{t}.exr"
+        assert cli.main(["render", str(tmp_path / "scene"), "--camera", "CAM_FRONT", "--width", "160", "--time", t,
+                         "--out", str(out), "--quiet"]) == 0
+        outs[t] = out.read_bytes()
+    assert outs["0.0"] != outs["1.0"]
+    scene = Scene.load(tmp_path / "scene")
+    from xyzcyl.runtime.scene import rig_camera
+    from xyzcyl.runtime.views import ViewRequest, encode_view
+
+    cam = rig_camera(scene.rig.camera("CAM_FRONT"), width=160, height=90)
+    rgb, depth, alpha = scene.render(cam, time_s=1.0)
+    assert encode_view(rgb, depth, alpha, ViewRequest(cam, "all", "exr", time_s=1.0)) == outs["1.0"]
+    with pytest.raises(SystemExit) as e:          # argparse: usage and exit status 2
+        cli.main(["render", str(tmp_path / "scene"), "--camera", "CAM_FRONT", "--time", "soon",
+                  "--out", str(tmp_path / "x.png")])
+    assert e.value.code == 2
