@@ -18,19 +18,19 @@ Reconstruction (reconstruct_drive):
    position) or ``max_gap_s`` seconds after the last keyframe; the last frame when it adds ground;
 2. each keyframe reconstructed as one rig up to its cameras' detail layers (Reconstructor.keyframe), in its own
    ego frame, then moved into the scene's frame (``relative`` = ego_to_world(first)^-1 ego_to_world(k));
-   the Gaussians inside the boxes of tracked objects that move (``stationary`` false) are left out: they belong to
-   the actors, not to the static scene (runtime.drive draws no moving object yet);
+   the Gaussians inside the boxes of tracked objects that move (``stationary`` false) leave the static scene: each
+   object keeps them as its copy for that keyframe, in its box frame (runtime.actors: drawn at a render's time);
 3. fusion: every camera's detail cells are carved as in one frame (runtime.detail.carve_details) against the
    cameras of its own keyframe (a finer copy of the same surface or a view through it) and against the cameras of
    the neighbouring keyframes (a view through it only: the road a later frame saw behind a car that has left);
    the surface seen by several keyframes is then kept once, from its finest observation (dedupe_frames: on voxels
-   of the cells' own footprint, the keyframe with the finest cell in a voxel keeps it; ties: the earlier); the
+   of about VOXEL_CELLS of the cells' footprints, the keyframe with the finest cell in a voxel keeps it; ties: the earlier); the
    model's Gaussians of every keyframe fill what no cell covers (runtime.detail.cull_covered), kept once per
    voxel the same way. Cells another keyframe drops are removed, not hidden: the scene has no own views.
 
-What is not done yet (docs/inference.md "Drives" lists it): time (renders show the static scene at every time),
-exposure harmonisation across keyframes, a sky dome, the ego's own body found over frames, stereo depth between
-keyframes, spatial chunks.
+What is not done yet (docs/inference.md "Drives" lists it): time in batches and over gRPC, moving objects found
+without tracks, exposure harmonisation across keyframes, a sky dome, the ego's own body found over frames, stereo
+depth between keyframes, spatial chunks.
 """
 
 from __future__ import annotations
@@ -56,7 +56,10 @@ DEFAULT_SPACING_M = 1.5        # keyframe spacing: a drive posted at ~2 m spacin
 DEFAULT_MAX_GAP_S = 2.0        # a keyframe at least this often, moving or not
 CARVE_WINDOW = 2               # keyframes before and after whose cameras may carve a keyframe's cells
 VOXEL_BASE_M = 0.02            # dedupe_frames: the finest voxel (2 cm); a cell's voxel is the power of two above
-VOXEL_LEVELS = 12              # its footprint, up to 2 cm x 2^11 = 41 m
+VOXEL_LEVELS = 12              # VOXEL_CELLS x its footprint, up to 2 cm x 2^11 = 41 m
+VOXEL_CELLS = 4                # a voxel spans ~4 cells across: one keyframe owns each patch of a surface (at 1
+#                                cell a voxel, two keyframes' cells of one surface fell in different voxels and
+#                                both stayed, interleaved: the PandaSet drive kept 2.0x one frame's Gaussians)
 TRACK_GROW = 1.1               # a moving object's box, grown by this factor, holds its Gaussians
 
 
@@ -362,9 +365,9 @@ def actors_of(drive: Drive, copies: list[tuple[int, float, Gaussians]]):
 
 
 def voxel_levels(footprint: np.ndarray) -> np.ndarray:
-    """[N] int8: each footprint's voxel level, the smallest L with VOXEL_BASE_M 2^L >= the footprint (metres),
-    clipped to 0..VOXEL_LEVELS - 1."""
-    f = np.maximum(np.asarray(footprint, np.float64), 1e-9)
+    """[N] int8: each footprint's voxel level, the smallest L with VOXEL_BASE_M 2^L >= VOXEL_CELLS x the footprint
+    (metres), clipped to 0..VOXEL_LEVELS - 1."""
+    f = np.maximum(VOXEL_CELLS * np.asarray(footprint, np.float64), 1e-9)
     return np.clip(np.ceil(np.log2(f / VOXEL_BASE_M)), 0, VOXEL_LEVELS - 1).astype(np.int8)
 
 

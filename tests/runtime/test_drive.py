@@ -179,7 +179,10 @@ def test_dedupe_frames_matches_its_reference_and_does_not_depend_on_the_order():
 
 
 def test_voxel_levels_and_boxes():
-    assert voxel_levels(np.array([0.01, 0.02, 0.021, 0.04, 100.0])).tolist() == [0, 0, 1, 1, 11]
+    from xyzcyl.runtime.drive import VOXEL_CELLS
+
+    f = np.array([0.01, 0.02, 0.021, 0.04, 100.0]) / VOXEL_CELLS       # footprints: VOXEL_CELLS of them a voxel
+    assert voxel_levels(f).tolist() == [0, 0, 1, 1, 11]
     box = (np.linalg.inv(np.array(_pose(10, 0, 90))), np.array([2.0, 1.0, 1.0]))
     pts = np.array([[10, 1.9, 0], [10, 2.1, 0], [11.5, 0, 0], [10, 0, 1.5]])
     assert inside_boxes(pts, [box]).tolist() == [True, False, False, False]
