@@ -390,6 +390,9 @@ class ViewQuery(BaseModel):
         if "distortion" in item and "transform" not in item:
             flat["distortion"] = item["distortion"]
         flat.update(move)
+        if "time" in item:              # any kind of item (a CARLA sensor's too)
+            flat["time"] = item["time"]
+            names["time"] = f"{where}.time"
         for k, v in flat.items():      # JSON's true and "70" are not numbers (pydantic's lax mode would take them)
             if k not in ("camera", "cam_to_ego", "distortion") and (isinstance(v, (bool, str))):
                 what = f"an integer in 1..{MAX_SIZE}" if k in ("width", "height") else "a finite number"
@@ -403,9 +406,9 @@ ITEM_KINDS = ('{"K", "cam_to_ego", "width", "height"[, "distortion"]} (OpenCV), 
               'sensor) or {"camera"[, "width", "height", "distortion"]} (an input camera of the scene); the OpenCV '
               'and input-camera items also take a move: "forward", "left", "up" (metres), "yaw" (degrees to the '
               'left)')
-_OPENCV_K_KEYS = ("K", "cam_to_ego", "width", "height", "distortion", "name", *MOVE_NAMES)
-_OPENCV_FOV_KEYS = ("fov", "cam_to_ego", "width", "height", "distortion", "name", *MOVE_NAMES)
-_RIG_KEYS = ("camera", "width", "height", "distortion", "name", *MOVE_NAMES)
+_OPENCV_K_KEYS = ("K", "cam_to_ego", "width", "height", "distortion", "name", *MOVE_NAMES, "time")
+_OPENCV_FOV_KEYS = ("fov", "cam_to_ego", "width", "height", "distortion", "name", *MOVE_NAMES, "time")
+_RIG_KEYS = ("camera", "width", "height", "distortion", "name", *MOVE_NAMES, "time")
 
 
 def validated(values: Mapping[str, Any], names: Mapping[str, str] | None = None) -> ViewQuery:

@@ -28,7 +28,7 @@ Reconstruction (reconstruct_drive):
    model's Gaussians of every keyframe fill what no cell covers (runtime.detail.cull_covered), kept once per
    voxel the same way. Cells another keyframe drops are removed, not hidden: the scene has no own views.
 
-What is not done yet (docs/inference.md "Drives" lists it): time in batches and over gRPC, moving objects found
+What is not done yet (docs/inference.md "Drives" lists it): time over gRPC, moving objects found
 without tracks, exposure harmonisation across keyframes, a sky dome, the ego's own body found over frames, stereo
 depth between keyframes, spatial chunks.
 """

@@ -302,6 +302,12 @@ def _check_count(field: str, n: int, max_frames: int | None) -> None:
 
 def cameras_from_batch(doc: Mapping[str, Any], rig: Rig | None = None, max_frames: int | None = None
                        ) -> list[Camera]:
+    """The cameras of views_from_batch (their times left out)."""
+    return [c for c, _ in views_from_batch(doc, rig, max_frames)]
+
+
+def views_from_batch(doc: Mapping[str, Any], rig: Rig | None = None, max_frames: int | None = None
+                     ) -> list[tuple[Camera, float | None]]:
     """The cameras of a batch request (all in the ego frame), in order. ``doc`` is either
 
     (a) {"cameras": [item, ...]}, each item one of
@@ -312,9 +318,9 @@ def cameras_from_batch(doc: Mapping[str, Any], rig: Rig | None = None, max_frame
         {"camera": "CAM_FRONT"[, "width", "height", "distortion"]}   an input camera of ``rig`` (with
                                                                "distortion": its pose and K through that lens)
       (an optional "name" is allowed in the OpenCV and input-camera items, and a camera move "forward", "left",
-      "up" (metres along ego x, y, z), "yaw" (degrees to the left), applied by move_camera; CARLA items may carry
-      CARLA's other sensor attributes but no move; other keys are refused, so a misspelt field is not silently
-      dropped). Each item is a common.wire.ViewQuery (ViewQuery.from_item), resolved by resolve; or
+      "up" (metres along ego x, y, z), "yaw" (degrees to the left), applied by move_camera, and every item a "time"
+      (seconds on the rigs' clock: a drive's moving objects then); CARLA items may carry CARLA's other sensor
+      attributes but no move; other keys are refused, so a misspelt field is not silently dropped). Each item is a common.wire.ViewQuery (ViewQuery.from_item), resolved by resolve; or
     (b) a nerfstudio camera_path.json: {"render_width", "render_height", ["camera_type"], "camera_path":
         [{"camera_to_world": 16 numbers row-major, OpenGL camera axes, world = ego; "fov": VERTICAL degrees;
         "aspect" (ignored)}, ...]} (runtime.convert.cameras_from_nerfstudio_path states what nerfstudio's
@@ -335,19 +341,18 @@ def cameras_from_batch(doc: Mapping[str, Any], rig: Rig | None = None, max_frame
             cams = convert.cameras_from_nerfstudio_path(doc)
         except convert.ConversionError as e:
             raise _from_conversion(e) from None
-        return [rig_camera(c) for c in cams]
+        return [(rig_camera(c), None) for c in cams]
     if "cameras" not in doc:
         raise ViewError("cameras", "is missing")
     items = doc["cameras"]
     if not isinstance(items, (list, tuple)) or not items:
         raise ViewError("cameras", f"must be a non-empty list (got {_short(items)})")
     _check_count("cameras", len(items), max_frames)
-    return [resolve(*_item(item, f"cameras[{i}]", rig)) for i, item in enumerate(items)]
-
-
-def _item(item: Any, where: str, rig: Rig | None) -> tuple[ViewQuery, Rig | None, dict[str, str]]:
-    query, names = ViewQuery.from_item(item, where)
-    return query, rig, names
+    out = []
+    for i, item in enumerate(items):
+        query, names = ViewQuery.from_item(item, f"cameras[{i}]")
+        out.append((resolve(query, rig, names), query.time))
+    return out
 
 
 # ------------------------------------------------------------------------------------------- requests
@@ -516,6 +521,7 @@ __all__ = [
     "camera_from_opencv",
     "camera_from_rig",
     "cameras_from_batch",
+    "views_from_batch",
     "depth_to_mm16",
         "encode_view",
     "equirect_camera",

@@ -37,7 +37,7 @@ from xyzcyl.common.wire import FORMATS, OUTPUTS, BatchIndex, FrameInfo, ViewErro
 from xyzcyl.runtime import compile_notice
 from xyzcyl.runtime.camera import CameraError, check_render_size
 from xyzcyl.runtime.inference import ModelInfo, verify_model
-from xyzcyl.runtime.views import ViewRequest, cameras_from_batch, render_request
+from xyzcyl.runtime.views import ViewRequest, render_request, views_from_batch
 from xyzcyl.runtime.views import request as request_of
 from xyzcyl.runtime.warmup import LENS_MODELS
 
@@ -444,10 +444,11 @@ class Service:
             raise Invalid("quality: an integer in 1..100", "quality")
         rig = await self.renders.run(self._rig, sid)
         try:
-            cams = cameras_from_batch(doc, rig=rig, max_frames=self.settings.max_batch_frames)
-            for i, c in enumerate(cams):
+            views = views_from_batch(doc, rig=rig, max_frames=self.settings.max_batch_frames)
+            for i, (c, _) in enumerate(views):
                 self.check_size(c, f"cameras[{i}]")
-            reqs = [ViewRequest(camera=c, output=opts["output"], format=opts["format"], quality=q) for c in cams]
+            reqs = [ViewRequest(camera=c, output=opts["output"], format=opts["format"], quality=q, time_s=t)
+                    for c, t in views]
         except ViewError as e:
             raise Invalid(str(e), e.field) from None
         if self.renders.busy():

@@ -334,3 +334,21 @@ def test_render_time_flag_draws_the_objects_of_that_time(tmp_path, shipped):
         cli.main(["render", str(tmp_path / "scene"), "--camera", "CAM_FRONT", "--time", "soon",
                   "--out", str(tmp_path / "x.png")])
     assert e.value.code == 2
+
+
+def test_batch_items_carry_a_time():
+    """Each item of a batch may carry its time (every kind of item); a bad one is refused naming its JSON path."""
+    from xyzcyl.common.wire import ViewError
+    from xyzcyl.runtime.views import views_from_batch
+
+    c2e = [[0, 0, 1, 0], [-1, 0, 0, 0], [0, -1, 0, 1.5], [0, 0, 0, 1]]
+    carla = {"transform": {"location": {"x": 1, "y": 0, "z": 2}, "rotation": {"pitch": 0, "yaw": 0, "roll": 0}},
+             "fov": 90, "image_size_x": 64, "image_size_y": 36, "time": 3.5}
+    doc = {"cameras": [{"fov": 60, "cam_to_ego": c2e, "width": 64, "height": 36, "time": 1.25},
+                       {"fov": 60, "cam_to_ego": c2e, "width": 64, "height": 36}, carla]}
+    assert [t for _, t in views_from_batch(doc)] == [1.25, None, 3.5]
+    for bad in ("soon", float("nan"), True):
+        doc["cameras"][0]["time"] = bad
+        with pytest.raises(ViewError) as e:
+            views_from_batch(doc)
+        assert e.value.field == "cameras[0].time", str(e.value)
