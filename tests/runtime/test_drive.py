@@ -216,7 +216,7 @@ def test_a_still_ego_posted_twice_is_kept_once(tmp_path, shipped):
     from xyzcyl.runtime.drive import drive_of_rig, reconstruct_drive
     from xyzcyl.runtime.rig import load_rig
 
-    opts = DetailOptions(stride=4)
+    opts = DetailOptions(stride=8)
     p = write_drive(tmp_path, [_pose(7, 3, 20)] * 2, [0.0, 2.5])
     drive = load_drive(p)
     assert pick_keyframes(drive) == [0, 1]
@@ -285,7 +285,7 @@ def test_a_drive_with_a_moving_track_draws_it_at_the_render_time(tmp_path, shipp
                           "poses": [{"frame": 0, "object_to_world": box_at(0.0)},
                                     {"frame": 1, "object_to_world": box_at(3.0)}]}]}
     p = write_drive(tmp_path, [E, E], [0.0, 2.5], tracks=tracks)
-    scene = reconstruct_drive(shipped, load_drive(p), detail=DetailOptions(stride=4))
+    scene = reconstruct_drive(shipped, load_drive(p), detail=DetailOptions(stride=8))
     assert scene.actors is not None and scene.counts["actors"] == 1 and scene.counts["actor_gaussians"] > 0
     assert scene.counts["moving_removed"] > 0
     scene.save(tmp_path / "scene")

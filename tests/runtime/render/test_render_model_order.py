@@ -149,19 +149,26 @@ def test_models_compiled_in_different_processes_load_together(tmp_path):
     import os
     import subprocess
     import sys
+    from pathlib import Path
 
     env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path / "cache"))
     script = tmp_path / "prepare.py"
     script.write_text(_PREPARE)
 
-    def run(out: str, *models: str) -> dict:
-        r = subprocess.run([sys.executable, str(script), str(tmp_path / out), *models], env=env,
-                           capture_output=True, text=True, timeout=600)
-        assert r.returncode == 0, r.stderr[-3000:]
-        return dict(np.load(tmp_path / out))
+    def start(out: str, *models: str) -> tuple[subprocess.Popen, Path]:
+        return subprocess.Popen([sys.executable, str(script), str(tmp_path / out), *models], env=env, text=True,
+                                stdout=subprocess.PIPE, stderr=subprocess.PIPE), tmp_path / out
 
-    alone = {**run("p.npz", "pinhole"), **run("f.npz", "ftheta")}     # each compiled first in its own process
-    together = run("both.npz", "pinhole", "ftheta")                   # both loaded from the cache into one
+    def result(job: tuple[subprocess.Popen, Path]) -> dict:
+        proc, out = job
+        _, err = proc.communicate(timeout=600)
+        assert proc.returncode == 0, err[-3000:]
+        return dict(np.load(out))
+
+    # each model compiled first in its own process (both at once: a core each), then both loaded into a third
+    first = [start("p.npz", "pinhole"), start("f.npz", "ftheta")]
+    alone = {k: v for job in first for k, v in result(job).items()}
+    together = result(start("both.npz", "pinhole", "ftheta"))
     for name in ("pinhole", "ftheta"):
         np.testing.assert_array_equal(together[name], alone[name])
     assert len(alone["ftheta"]) > len(alone["pinhole"]) > 0          # the models see different Gaussians
