@@ -28,9 +28,10 @@ steps and settings; docs/results.md "Detail Gaussians" the measurements behind t
    definition): on the cell's ray at its depth, a disc covering the cell's footprint, in the surface's tangent plane
    where the neighbouring cells give one (``surface_discs``), else facing the camera (parallel to the image plane;
    a lens: across the cell's ray, sized by its angular footprint); the cell's colour.
-5. Fusion (called by ``Reconstructor.add_detail``): ``cull_covered`` drops the model's Gaussians that would veil a
-   detail surface; ``carve_details`` drops the cells that another camera contradicts (it saw through them) or
-   resolves more finely on the same surface. Each has a slow reference the tests compare it with.
+5. Fusion (``fuse_details``, called by ``Reconstructor.reconstruct``; runtime.drive fuses keyframes with the same
+   parts): ``cull_covered`` drops the model's Gaussians that would veil a detail surface; ``carve_details`` drops
+   the cells that another camera contradicts (it saw through them) or resolves more finely on the same surface.
+   Each has a slow reference the tests compare it with.
 """
 
 from __future__ import annotations
