@@ -102,8 +102,8 @@ def pose_matrix(value: Any, field: str = "cam_to_ego"):
         a = value
         ok = isinstance(a, np.ndarray) and a.dtype.kind in "iuf" and a.size == 16 and a.shape in ((16,), (4, 4))
         if not ok and isinstance(a, (list, tuple)):
-            flat = len(a) == 16 and all(_is_real(x) for x in a)
-            nested = len(a) == 4 and all(isinstance(r, (list, tuple)) and len(r) == 4 and all(_is_real(x) for x in r)
+            flat = len(a) == 16 and all(is_real(x) for x in a)
+            nested = len(a) == 4 and all(isinstance(r, (list, tuple)) and len(r) == 4 and all(is_real(x) for x in r)
                                          for r in a)
             ok = flat or nested
         if not ok:
@@ -118,7 +118,8 @@ def pose_matrix(value: Any, field: str = "cam_to_ego"):
     return m
 
 
-def _is_real(x: Any) -> bool:
+def is_real(x: Any) -> bool:
+    """Whether ``x`` is a real number (int, float, numpy scalar; a bool is not: JSON's true is no coordinate)."""
     import numpy as np
 
     return isinstance(x, (int, float, np.integer, np.floating)) and not isinstance(x, (bool, np.bool_))
@@ -398,7 +399,7 @@ def move_from_args(args: argparse.Namespace) -> CameraMove:
         raise PoseArgError(f"--{e.field}", e.message) from None
 
 
-__all__ = ["CARLA_POSE", "STRUCT_TOL", "PoseError", "pose_matrix", "MOVE_FIELDS", "MOVE_FLAGS", "MOVE_MAX_DEG", "MOVE_MAX_M", "MOVE_NAMES",
+__all__ = ["is_real", "CARLA_POSE", "STRUCT_TOL", "PoseError", "pose_matrix", "MOVE_FIELDS", "MOVE_FLAGS", "MOVE_MAX_DEG", "MOVE_MAX_M", "MOVE_NAMES",
            "OUT_FORMATS", "CameraMove", "MoveError", "MoveField", "PoseArgError", "add_format_argument",
            "add_matrix_argument", "add_move_arguments", "is_number", "move_from_args", "out_format", "parse_lens",
            "parse_matrix"]

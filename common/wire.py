@@ -23,6 +23,7 @@ from .poses import (
     CameraMove,
     MoveError,
     PoseError,
+    is_real,
     pose_matrix,
 )
 
@@ -240,16 +241,13 @@ def _lens(v: Any) -> Any:
         return None
     if not isinstance(v, (list, dict)):
         raise PydanticCustomError("lens", "a JSON list or object expected")
-    if isinstance(v, list) and not all(_real(x) for x in v):
+    if isinstance(v, list) and not all(is_real(x) for x in v):
         raise PydanticCustomError("lens", "OpenCV's coefficients must be numbers")
-    if isinstance(v, dict) and not all(isinstance(x, str) or _real(x) or (isinstance(x, list) and all(map(_real, x)))
+    if isinstance(v, dict) and not all(isinstance(x, str) or is_real(x) or (isinstance(x, list)
+                                                                          and all(map(is_real, x)))
                                        for x in v.values()):
         raise PydanticCustomError("lens", "a lens's parameters are numbers, lists of numbers or names")
     return v
-
-
-def _real(x: Any) -> bool:
-    return isinstance(x, (int, float)) and not isinstance(x, bool)
 
 
 def _not_bool(v: Any) -> Any:
@@ -439,7 +437,7 @@ def _intrinsics(K: Any, field: str) -> dict[str, float]:
     flat = K if isinstance(K, (list, tuple)) and len(K) == 9 else None
     if isinstance(K, (list, tuple)) and len(K) == 3 and all(isinstance(r, (list, tuple)) and len(r) == 3 for r in K):
         flat = [x for r in K for x in r]
-    if flat is None or not all(_real(x) for x in flat):
+    if flat is None or not all(is_real(x) for x in flat):
         raise ViewError(field, f"must be 9 numbers (row-major) or a [3, 3] array (got {K!r:.60})")
     k = [float(x) for x in flat]
     if any(abs(k[i] - want) > STRUCT_TOL for i, want in ((1, 0.0), (3, 0.0), (6, 0.0), (7, 0.0), (8, 1.0))):

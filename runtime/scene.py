@@ -32,7 +32,7 @@ import numba
 import numpy as np
 from xyzcyl.common.files import atomic_folder
 
-from .actors import Actors
+from .actors import Actors, ActorsError
 from .camera import Camera, rig_camera
 from .cylinder import CylinderSpec
 from .detail import DetailError, OwnViews
@@ -371,9 +371,7 @@ class Scene:
             raise SceneError(e.field, e.message, f"scene PLY {str(pp)!r}") from None
         own = None
         if meta.get("own_views"):
-            op = d / meta["own_views"].get("file", OWN_VIEWS_NAME)
-            if not op.is_file():
-                raise SceneError("scene", f"{str(op)!r} is missing")
+            op = _scene_file(d, meta["own_views"], OWN_VIEWS_NAME)
             try:
                 own = OwnViews.load(op, len(g))
             except DetailError as e:
@@ -383,11 +381,7 @@ class Scene:
                                  f"scene {str(op)!r}")
         actors = None
         if meta.get("actors"):
-            from .actors import ActorsError
-
-            ap = d / meta["actors"].get("file", ACTORS_NAME)
-            if not ap.is_file():
-                raise SceneError("scene", f"{str(ap)!r} is missing")
+            ap = _scene_file(d, meta["actors"], ACTORS_NAME)
             try:
                 actors = Actors.load(ap)
             except ActorsError as e:
@@ -397,9 +391,7 @@ class Scene:
         if b:
             from .imageio import read_exr
 
-            ep = d / b.get("file", EXR_NAME)
-            if not ep.is_file():
-                raise SceneError("scene", f"{str(ep)!r} is missing")
+            ep = _scene_file(d, b, EXR_NAME)
             img = read_exr(ep)
             c = b["cylinder"]
             spec = CylinderSpec(centre=c["centre"], radius=c["radius"], z_min=c["z_min"], z_max=c["z_max"],
@@ -412,6 +404,14 @@ class Scene:
 
 
 # ------------------------------------------------------------------------------------------- views
+
+
+def _scene_file(folder: Path, entry: Any, default: str) -> Path:
+    """The file a scene.json entry ({"file": name}) names in ``folder``; SceneError when it is missing."""
+    p = folder / (entry.get("file", default) if isinstance(entry, dict) else default)
+    if not p.is_file():
+        raise SceneError("scene", f"{str(p)!r} is missing")
+    return p
 
 
 def render_view(scene: Scene, camera, **options) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
