@@ -16,6 +16,21 @@ from xyzcyl.testing import REPO
 os.environ.setdefault("XYZCYL_WARM_UP", "false")
 
 
+# The README's test command runs the suite on two processes (pytest-xdist, ``-n 2 --dist loadgroup``: CI's machine
+# has two cores and much of the suite waits on one: exports, compiles, servers). A session fixture is built once per
+# process that uses it, so the tests of each expensive one run in one process: an ONNX export or a rendered dataset
+# is made once, not twice side by side. The groups follow from the fixtures a test uses (its whole closure).
+_GROUPS = {"tiny_export": "tiny-export", "tiny_synth_data": "tiny-synth", "tiny_scenes": "tiny-synth"}
+
+
+def pytest_collection_modifyitems(config, items):
+    for item in items:
+        names = getattr(item, "fixturenames", ())
+        group = next((g for fx, g in _GROUPS.items() if fx in names), None)
+        if group is not None:
+            item.add_marker(pytest.mark.xdist_group(group))
+
+
 @pytest.fixture(scope="session")
 def _default_numba_threads() -> int:
     """numba's thread count as the test session found it."""
