@@ -4,9 +4,10 @@ import httpx or numpy."""
 
 from __future__ import annotations
 
-_CLIENT_NAMES = ("AuthError", "BusyError", "Client", "ConnectionFailed", "FrameBatch", "InvalidArgumentError",
-                 "InvalidRequestError", "NotFoundError", "NotReadyError", "SceneInfo", "ServerError",
-                 "StorageFullError", "WaitTimeout", "XyzcylError", "decode_image", "encode_png", "error_for", "view_params")
+_CLIENT_NAMES = ("AuthError", "BusyError", "Client", "ConnectionFailed", "DriveUpload", "FrameBatch",
+                 "InvalidArgumentError", "InvalidRequestError", "NotFoundError", "NotReadyError", "SceneInfo",
+                 "ServerError", "StorageFullError", "WaitTimeout", "XyzcylError", "decode_image", "encode_png",
+                 "error_for", "is_drive_file", "read_drive", "view_params")
 
 
 def __getattr__(name: str):

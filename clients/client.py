@@ -4,6 +4,7 @@
 
     with Client("http://127.0.0.1:8000") as c:
         scene = c.reconstruct("examples/synth_nuscenes/rig.json")          # uploads, waits until ready
+        drive = c.reconstruct("recording/drive.json")                      # a recorded drive: one scene
         rgb = c.render(scene.id, "CAM_FRONT")                              # [H, W, 3] float32 0..1, RGB
         depth = c.render(scene.id, {"x": 5, "y": 0, "z": 1.6, "pitch": 0, "yaw": 0, "roll": 0, "fov": 90,
                                     "width": 800, "height": 600}, output="depth")   # [H, W] metres
@@ -178,6 +179,16 @@ def _detail_params(detail_stride: int | None, detail: bool) -> dict[str, str]:
     if why is not None:
         raise InvalidArgumentError(None, "invalid", f"detail_stride: {why}", "detail_stride")
     return {"detail_stride": str(int(detail_stride))}
+
+
+def _scene_params(detail_stride: int | None, detail: bool, name: str | None) -> dict[str, str]:
+    """POST /v1/scenes' query parameters of the detail layer and the scene's name."""
+    query = _detail_params(detail_stride, detail)
+    if name is not None:
+        if not isinstance(name, str):
+            raise InvalidArgumentError(None, "invalid", f"name: must be a string (got {name!r:.60})", "name")
+        query["name"] = name
+    return query
 
 
 def _retry_after(resp: httpx.Response) -> float | None:
@@ -364,9 +375,9 @@ def _part(name: str, src: Any, root: Path | None, depth: bool) -> _Part:
     raise TypeError(f"{name}: an image is a file path, bytes or a numpy array, not {type(src).__name__}")
 
 
-def _lidar_part(doc: dict[str, Any], root: Path | None, lidar: Any) -> _Part | None:
-    """The 'lidar' part: ``lidar`` (a path relative to the working folder, or bytes), or with None the file the
-    rig's lidar block names (relative to rig.json's folder); False or nothing named: None."""
+def _lidar_part(doc: dict[str, Any], root: Path | None, lidar: Any, part: str = "lidar") -> _Part | None:
+    """The 'lidar' part (named ``part``): ``lidar`` (a path relative to the working folder, or bytes), or with None
+    the file the rig's lidar block names (relative to rig.json's folder); False or nothing named: None."""
     if lidar is False:
         return None
     if lidar is None:
@@ -378,14 +389,14 @@ def _lidar_part(doc: dict[str, Any], root: Path | None, lidar: Any) -> _Part | N
         if root is not None and not path.is_absolute():
             path = root / path
     elif isinstance(lidar, (bytes, bytearray, memoryview)):
-        return _Part("lidar", "lidar.bin", "application/octet-stream", data=bytes(lidar))
+        return _Part(part, "lidar.bin", "application/octet-stream", data=bytes(lidar))
     elif isinstance(lidar, (str, os.PathLike)):
         path = Path(lidar)
     else:
         raise TypeError(f"lidar: a file path, bytes, None or False, not {type(lidar).__name__}")
     if not path.is_file():
-        raise InvalidRequestError(None, "file_missing", f"cannot read {str(path)!r}: no such file", "lidar")
-    return _Part("lidar", path.name, "application/octet-stream", path=path)
+        raise InvalidRequestError(None, "file_missing", f"cannot read {str(path)!r}: no such file", part)
+    return _Part(part, path.name, "application/octet-stream", path=path)
 
 
 def _rig_document(rig: Any) -> tuple[dict[str, Any], Path | None]:
@@ -428,6 +439,139 @@ def _by_camera(values: Any, names: list[str], what: str) -> dict[str, Any] | Non
         raise _invalid(f"{what}: {len(values)} given for {len(names)} cameras (give them in rig order, or a dict "
                        "by camera name)", what)
     return dict(zip(names, values))
+
+
+def _rig_parts(doc: dict[str, Any], root: Path | None, imgs: dict | None, dps: dict | None, masks: dict | None,
+               lidar: Any, prefix: str = "", where: str = "") -> list[_Part]:
+    """One rig's file parts (Client.reconstruct's arguments: None = the files the rig names, relative to ``root``;
+    a dict by camera = those given, relative to the working folder): an image per camera, its depth and ego mask
+    when there is one, then the LiDAR sweep. ``prefix``: the parts' names start with it (a drive's
+    ``frames/<frame>/``); ``where``: the words before a message about a camera ("frame 3: ")."""
+    names = [c["name"] for c in doc["cameras"]]
+    parts = []
+    for cam in doc["cameras"]:
+        name = cam["name"]
+        if imgs is None:
+            src = cam.get("image")
+            if not src:
+                hint = "" if prefix else "; pass images={...}"
+                raise _invalid(f"{where}camera {name!r} names no image file{hint}", prefix + name)
+            parts.append(_part(prefix + name, src, root, depth=False))
+        elif name in imgs:
+            parts.append(_part(prefix + name, imgs[name], None, depth=False))      # given paths: relative to the cwd
+        else:
+            raise _invalid(f"no image for camera {name!r} (cameras: {', '.join(names)})", prefix + name)
+        dsrc = cam.get("depth") if dps is None else dps.get(name)
+        if dsrc is not None:
+            parts.append(_part(f"{prefix}depth:{name}", dsrc, root if dps is None else None, depth=True))
+        msrc = cam.get("ego_mask") if masks is None else masks.get(name)
+        if msrc is not None:
+            try:
+                parts.append(_part(f"{prefix}ego_mask:{name}", msrc, root if masks is None else None, depth=False))
+            except InvalidRequestError as e:
+                raise type(e)(None, e.code, f"{where}camera {name!r}: ego_mask: {e.message}", e.field) from None
+    lidar_part = _lidar_part(doc, root, lidar, prefix + "lidar")
+    if lidar_part is not None:
+        parts.append(lidar_part)
+    return parts
+
+
+def _json_file(path: Path, field: str) -> Any:
+    try:
+        return json.loads(path.read_text())
+    except OSError as e:
+        raise InvalidRequestError(None, "file_missing", f"cannot read {str(path)!r}: {e.strerror or e}",
+                                  field) from None
+    except ValueError as e:
+        raise _invalid(f"{str(path)!r} is not valid JSON ({e})", field) from None
+
+
+def is_drive_file(path: str | os.PathLike) -> bool:
+    """Whether ``path`` is a drive file ({"frames": [...]}; docs/inference.md "Drives"), not a rig.json
+    (common.wire.is_drive_document, the server's rule too); False when it cannot be read as JSON."""
+    try:
+        return wire.is_drive_document(json.loads(Path(path).read_text()))
+    except (OSError, ValueError):
+        return False
+
+
+@dataclass
+class DriveUpload:
+    """A drive file as POST /v1/scenes takes it (read_drive; docs/api.md "Drives"): ``parts``, the 'drive' part (the
+    drive document with each frame's rig and the tracks inline) then every frame's file parts; ``frames``, the
+    number of frames; ``cameras``, the first frame's camera names; ``lidar_frames``, the frames with a sweep."""
+
+    path: Path
+    parts: list[_Part]
+    frames: int
+    cameras: list[str]
+    lidar_frames: int
+
+    @property
+    def size(self) -> int:
+        """The bytes of the parts (the body is a little more)."""
+        return sum(p.size() for p in self.parts)
+
+
+def read_drive(path: str | os.PathLike, depths: bool = True, lidar: bool = True,
+               ego_masks: bool = True) -> DriveUpload:
+    """A drive file read for POST /v1/scenes (docs/api.md "Drives"): each frame's rig.json (relative to the drive
+    file; or inline, its files then relative to the drive file) put inline in the 'drive' part with the frame
+    entry's other keys (timestamp_s), the tracks file (relative to the drive file) put inline, and each frame's
+    files (images, depth maps, ego masks, the LiDAR sweep its lidar block names; relative to its rig.json) as parts
+    named ``frames/<frame>/<name>``. ``depths``, ``lidar``, ``ego_masks`` False leave those files out. The client's
+    own small reader (the client speaks HTTP and imports no runtime): the server checks the drive
+    (runtime.drive.load_drive), the client only what it needs to find the files. Refusals raise InvalidRequestError
+    (``status`` None) naming the drive file's field ("frames[2].rig", "tracks") or the part
+    ("frames/2/CAM_FRONT")."""
+    p = Path(path)
+    doc = _json_file(p, "drive")
+    items = doc.get("frames") if wire.is_drive_document(doc) else None
+    if not isinstance(items, list) or not items:
+        raise _invalid(f"{str(p)!r} is not a drive file: it must be a JSON object with a non-empty \"frames\" list "
+                       "({\"rig\": \"frame_00/rig.json\", \"timestamp_s\": ...})", "frames")
+    parts: list[_Part] = []
+    frames, cameras, with_lidar = [], None, 0
+    for i, item in enumerate(items):
+        fld = f"frames[{i}].rig"
+        src = item.get("rig") if isinstance(item, Mapping) else None
+        if not isinstance(src, (str, Mapping)):
+            raise _invalid(f"{fld}: must name the frame's rig.json (relative to the drive file)", fld)
+        try:
+            rig, root = _rig_document(p.parent / src if isinstance(src, str) else src)
+        except InvalidRequestError as e:
+            raise type(e)(None, e.code, f"{fld}: {e.message}", fld) from None
+        rig_parts = _rig_parts(rig, p.parent if root is None else root, None, None if depths else {},
+                               None if ego_masks else {}, None if lidar else False, wire.frame_part(i, ""),
+                               f"frame {i}: ")
+        with_lidar += any(x.name.endswith("/lidar") for x in rig_parts)
+        parts += rig_parts
+        frames.append({**item, "rig": rig})
+        cameras = cameras or [c["name"] for c in rig["cameras"]]
+    out: dict[str, Any] = {"frames": frames}
+    tracks = doc.get("tracks")
+    if isinstance(tracks, str):
+        tracks = _json_file(p.parent / tracks, "tracks")
+    if tracks is not None:
+        out["tracks"] = tracks
+    try:
+        data = json.dumps(out, allow_nan=False).encode()
+    except ValueError as e:
+        raise _invalid(f"{str(p)!r}: {e} (NaN or infinity in a rig or the tracks)", "drive") from None
+    parts.insert(0, _Part(wire.DRIVE_PART, "drive.json", "application/json", data=data))
+    return DriveUpload(p, parts, len(items), cameras or [], with_lidar)
+
+
+def _keyframe_params(keyframe_spacing: Any, keyframe_gap: Any) -> dict[str, str]:
+    """POST /v1/scenes' keyframe query parameters of a drive (none for the server's defaults);
+    InvalidArgumentError naming the argument for a value that is not a finite number > 0."""
+    out = {}
+    for k, v in zip(wire.KEYFRAME_PARAMS, (keyframe_spacing, keyframe_gap), strict=True):
+        if (why := wire.keyframe_error(v)) is not None:
+            raise InvalidArgumentError(None, "invalid", f"{k}: {why}", k)
+        if v is not None:
+            out[k] = repr(float(v))
+    return out
 
 
 # ----------------------------------------------------------------------------------------------- views
@@ -874,10 +1018,13 @@ class Client:
     def reconstruct(self, rig: Any, images: Any = None, depths: Any = None, wait: bool = True,
                     timeout: float = 600.0, progress: Progress | None = None, lidar: Any = None,
                     detail_stride: int | None = None, detail: bool = True, ego_masks: Any = None,
-                    name: str | None = None) -> SceneInfo:
+                    name: str | None = None, keyframe_spacing: float | None = None,
+                    keyframe_gap: float | None = None) -> SceneInfo:
         """POST /v1/scenes: upload a rig and its images; returns the scene.
 
-        rig: a rig.json path, an xyzcyl.runtime.rig.Rig, or the rig's JSON as a dict.
+        rig: a rig.json path, an xyzcyl.runtime.rig.Rig, or the rig's JSON as a dict; or a drive file's path
+        (is_drive_file: a recorded drive, posted by reconstruct_drive with the files its frames name; images and
+        ego_masks are then refused, depths={} and lidar=False leave those files out).
         images: None = the files the rig names (``image``), relative to rig.json's folder (a Rig: its root);
         else {camera name: file path (relative to the working folder) | encoded bytes | numpy array} (or a list in
         rig order). Arrays are sent as
@@ -899,41 +1046,60 @@ class Client:
         server's default, 2); detail=False: no detail layer (the model's Gaussians only; no detail_stride then).
         name: the scene's name (?name=, e.g. a simulator's scene id: the gRPC SensorsimService lists and resolves
         it; docs/simulators.md); the server checks it.
+        keyframe_spacing, keyframe_gap: a drive's keyframes (reconstruct_drive); refused for a rig.
         Bad values raise InvalidArgumentError (a ValueError) naming the argument, before anything is sent."""
-        query = _detail_params(detail_stride, detail)
-        if name is not None:
-            if not isinstance(name, str):
-                raise InvalidArgumentError(None, "invalid", f"name: must be a string (got {name!r:.60})", "name")
-            query["name"] = name
+        if isinstance(rig, (str, os.PathLike)) and is_drive_file(rig):
+            for arg, v in (("images", images), ("ego_masks", ego_masks)):
+                if v is not None:
+                    raise InvalidArgumentError(None, "invalid", f"{arg}: goes with a rig (a drive's frames name "
+                                               "their files)", arg)
+            if depths is not None and not (isinstance(depths, Mapping) and not depths):
+                raise InvalidArgumentError(None, "invalid", "depths: a drive takes None (the files its frames "
+                                           "name) or {} (none)", "depths")
+            if lidar is not None and lidar is not False:
+                raise InvalidArgumentError(None, "invalid", "lidar: a drive takes None (the sweeps its frames "
+                                           "name) or False (none)", "lidar")
+            return self.reconstruct_drive(rig, wait=wait, timeout=timeout, progress=progress, depths=depths is None,
+                                          lidar=lidar is None, detail_stride=detail_stride, detail=detail,
+                                          name=name, keyframe_spacing=keyframe_spacing, keyframe_gap=keyframe_gap)
+        for arg, v in zip(wire.KEYFRAME_PARAMS, (keyframe_spacing, keyframe_gap), strict=True):
+            if v is not None:
+                raise InvalidArgumentError(None, "invalid", f"{arg}: goes with a drive file (a rig is one "
+                                           "timestamp)", arg)
+        query = _scene_params(detail_stride, detail, name)
         doc, root = _rig_document(rig)
         names = [c["name"] for c in doc["cameras"]]
         imgs = _by_camera(images, names, "images")
         dps = _by_camera(depths, names, "depths")
         masks = _by_camera(ego_masks, names, "ego_masks")
         parts = [_Part("rig", "rig.json", "application/json", data=json.dumps(doc, allow_nan=False).encode())]
-        for cam in doc["cameras"]:
-            name = cam["name"]
-            if imgs is None:
-                src = cam.get("image")
-                if not src:
-                    raise _invalid(f"camera {name!r} names no image file; pass images={{...}}", name)
-                parts.append(_part(name, src, root, depth=False))
-            elif name in imgs:
-                parts.append(_part(name, imgs[name], None, depth=False))      # given paths: relative to the cwd
-            else:
-                raise _invalid(f"no image for camera {name!r} (cameras: {', '.join(names)})", name)
-            dsrc = cam.get("depth") if dps is None else dps.get(name)
-            if dsrc is not None:
-                parts.append(_part(f"depth:{name}", dsrc, root if dps is None else None, depth=True))
-            msrc = cam.get("ego_mask") if masks is None else masks.get(name)
-            if msrc is not None:
-                try:
-                    parts.append(_part(f"ego_mask:{name}", msrc, root if masks is None else None, depth=False))
-                except InvalidRequestError as e:
-                    raise type(e)(None, e.code, f"camera {name!r}: ego_mask: {e.message}", e.field) from None
-        lidar_part = _lidar_part(doc, root, lidar)
-        if lidar_part is not None:
-            parts.append(lidar_part)
+        parts += _rig_parts(doc, root, imgs, dps, masks, lidar)
+        return self._post_scene(parts, query, wait, timeout, progress)
+
+    def reconstruct_drive(self, drive: str | os.PathLike | DriveUpload, wait: bool = True, timeout: float = 600.0,
+                          progress: Progress | None = None, depths: bool = True, lidar: bool = True,
+                          ego_masks: bool = True, detail_stride: int | None = None, detail: bool = True,
+                          name: str | None = None, keyframe_spacing: float | None = None,
+                          keyframe_gap: float | None = None) -> SceneInfo:
+        """POST /v1/scenes with a recorded drive (docs/api.md "Drives"); returns the scene, whose ``drive`` says its
+        frames and keyframes.
+
+        drive: a drive file's path (docs/inference.md "Drives": {"frames": [{"rig": "frame_00/rig.json",
+        "timestamp_s": ...}, ...], "tracks": "tracks.json"}), read by read_drive (its rigs and tracks sent inline,
+        each frame's files as ``frames/<frame>/<name>`` parts), or what read_drive returned.
+        depths, lidar, ego_masks: False leaves the frames' depth maps, LiDAR sweeps, ego masks out.
+        keyframe_spacing (metres), keyframe_gap (seconds): the keyframes' spacing and longest gap (None: the
+        server's defaults, 1.5 m and 2 s; `xyzcyl reconstruct --keyframe-spacing/--keyframe-gap`).
+        wait, timeout, progress, detail_stride, detail, name: as reconstruct. The upload is one request: a failed or
+        cut one is posted again whole."""
+        query = _scene_params(detail_stride, detail, name) | _keyframe_params(keyframe_spacing, keyframe_gap)
+        upload = drive if isinstance(drive, DriveUpload) else read_drive(drive, depths, lidar, ego_masks)
+        return self._post_scene(upload.parts, query, wait, timeout, progress)
+
+    def _post_scene(self, parts: list[_Part], query: dict[str, str], wait: bool, timeout: float,
+                    progress: Progress | None) -> SceneInfo:
+        """POST /v1/scenes with ``parts`` (streamed) and ``query``; then, with ``wait``, the scene once ready
+        (reconstruct's docstring)."""
         body = _Multipart(parts)
         params = {"wait": f"{min(max(timeout, 0.0), _MAX_WAIT_QUERY):g}"} if wait else {}
         t0 = _monotonic()
@@ -1096,6 +1262,7 @@ def _seg(scene_id: str) -> str:
     return quote(str(scene_id), safe="")
 
 
-__all__ = ["AuthError", "BusyError", "Client", "ConnectionFailed", "FrameBatch", "InvalidArgumentError",
-           "InvalidRequestError", "NotFoundError", "NotReadyError", "SceneInfo", "ServerError", "StorageFullError",
-           "WaitTimeout", "XyzcylError", "decode_image", "encode_png", "error_for", "view_params"]
+__all__ = ["AuthError", "BusyError", "Client", "ConnectionFailed", "DriveUpload", "FrameBatch",
+           "InvalidArgumentError", "InvalidRequestError", "NotFoundError", "NotReadyError", "SceneInfo", "ServerError",
+           "StorageFullError", "WaitTimeout", "XyzcylError", "decode_image", "encode_png", "error_for",
+           "is_drive_file", "read_drive", "view_params"]

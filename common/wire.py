@@ -94,6 +94,50 @@ class DetailInfo(BaseModel):
     stride: int | None = Field(None, description="input pixels per detail Gaussian along each axis (null when off)")
 
 
+# ------------------------------------------------------------------------------------------- drives
+
+# A recorded drive posted to POST /v1/scenes (docs/api.md "Drives"): a 'drive' part (the drive document, each
+# frame's rig inline, the tracks inline) and each frame's files as parts named frames/<frame>/<name>
+DRIVE_PART = "drive"
+FRAME_PARTS = "frames/"
+KEYFRAME_PARAMS = ("keyframe_spacing", "keyframe_gap")     # POST /v1/scenes' keyframe knobs (metres, seconds)
+
+
+def frame_part(frame: int, name: str) -> str:
+    """The multipart name of a drive frame's part: ``frames/<frame>/<name>``, ``name`` a camera, ``depth:<camera>``,
+    ``ego_mask:<camera>`` or ``lidar`` (what a one-rig upload names the part)."""
+    return f"{FRAME_PARTS}{int(frame)}/{name}"
+
+
+def is_drive_document(doc: Any) -> bool:
+    """Whether a JSON document is a drive ({"frames": [...]}), not a rig.json ({"cameras": [...]})."""
+    return isinstance(doc, Mapping) and "frames" in doc and "cameras" not in doc
+
+
+def keyframe_error(value: Any) -> str | None:
+    """Why a keyframe knob (keyframe_spacing metres, keyframe_gap seconds) cannot be used (the message, without
+    the field), or None: a finite number > 0, as `xyzcyl reconstruct --keyframe-spacing/--keyframe-gap` take it."""
+    if value is None:
+        return None
+    if isinstance(value, bool) or not isinstance(value, numbers.Real) or not 0 < value < float("inf"):
+        return f"must be a finite number > 0 (got {value!r:.60})"
+    return None
+
+
+# a scene posted as a recorded drive: its frames and the keyframes reconstructed (docs/api.md "Drives")
+class DriveInfo(BaseModel):
+    frames: int = Field(description="the drive's frames (rigs) as posted")
+    keyframes: list[int] = Field(description="the frames reconstructed (indices into the frames)")
+    keyframe_spacing: float = Field(description="metres: a keyframe each time the ego moved this far (the "
+                                                "query's keyframe_spacing or the default)")
+    keyframe_gap: float = Field(description="seconds: a keyframe at least this often (the query's keyframe_gap "
+                                            "or the default)")
+    timestamp_s: float = Field(description="the first frame's time, seconds on the rigs' clock (a render's "
+                                           "default time)")
+    duration_s: float = Field(description="seconds from the first frame to the last")
+    tracks: int = Field(0, description="annotated objects posted with the drive")
+
+
 # a scene as POST /v1/scenes, GET /v1/scenes/{id} and the list answer it
 class SceneInfo(BaseModel):
     id: str = Field(examples=["q3R1x9Z2bC7dE5fG8hJ0kA"])
@@ -111,6 +155,7 @@ class SceneInfo(BaseModel):
     bbox: dict[str, list[float]] | None = None
     timings: dict[str, float] | None = None
     bytes: int | None = None
+    drive: DriveInfo | None = None         # a recorded drive's frames and keyframes; null for one rig
     links: dict[str, str]
 
     @classmethod
@@ -454,5 +499,7 @@ def move_of(query: ViewQuery, names: Mapping[str, str] | None = None) -> CameraM
 
 __all__ = ["LOCAL_OUTPUTS", "MAX_RENDER_PIXELS", "MAX_SIZE", "render_limit", "DETAIL_STRIDE_MAX", "DETAIL_STRIDE_MIN", "FORMATS", "ITEM_KINDS", "MEDIA_TYPES",
            "OUTPUTS", "Format", "LensJSON", "Output", "Pose16", "ViewError", "ViewQuery", "detail_stride_error",
-           "move_of", "validated", "STATES", "BatchIndex", "CameraInfo", "DetailInfo", "ErrorBody", "ErrorDetail", "FrameInfo",
+           "move_of", "validated", "STATES", "BatchIndex", "CameraInfo", "DetailInfo", "DRIVE_PART", "DriveInfo",
+           "ErrorBody", "FRAME_PARTS", "KEYFRAME_PARAMS", "frame_part", "is_drive_document", "keyframe_error",
+           "ErrorDetail", "FrameInfo",
            "ModelReadiness", "Readiness", "SceneInfo", "SceneList", "SceneState", "error_body", "failure_answer"]

@@ -4,7 +4,8 @@
   once (runtime.inference.Reconstructor) and turns an upload folder into a scene folder. Jobs wait in a queue of
   ``reconstruct_queue``; beyond it ``submit`` refuses (the endpoint answers 503 + Retry-After at once). A worker
   that dies (a crash, the out-of-memory killer) or runs past ``reconstruct_timeout_s`` fails its job only: its
-  process is replaced and the server goes on.
+  process is replaced and the server goes on. A job is one rig, or a recorded drive (its keyframes reconstructed
+  and fused in the one worker, under the same timeout).
 - ``Renders``: a thread pool of ``render_threads`` (the numba kernels release the GIL) with at most
   ``render_queue`` renders waiting; beyond it ``run`` raises Busy (503 + Retry-After).
 
@@ -153,13 +154,17 @@ def _worker_ping() -> WorkerStarted:
     return WorkerStarted(os.getpid(), *_WARMED)
 
 
-def _worker_reconstruct(rig_json: str, out_dir: str, detail_stride: int | None) -> Reconstructed | ReconstructFailed:
+def _worker_reconstruct(rig_json: str, out_dir: str, detail_stride: int | None,
+                        keyframes: list[int] | None = None) -> Reconstructed | ReconstructFailed:
     """The scene of ``rig_json`` written to ``out_dir``, or why not. detail_stride: the detail layer's stride (the
-    runtime's other detail settings stay at their defaults), None for no detail layer."""
+    runtime's other detail settings stay at their defaults), None for no detail layer. ``keyframes``: ``rig_json``
+    is an uploaded drive's drive.json and these are its keyframes (the scene folder `xyzcyl reconstruct DRIVE_JSON`
+    writes: runtime.drive.save_drive_scene)."""
     import errno
     from dataclasses import replace
 
     from xyzcyl.runtime.detail import DetailError
+    from xyzcyl.runtime.drive import DriveError, load_drive, save_drive_scene
     from xyzcyl.runtime.inference import DEFAULT_DETAIL, InferenceError
     from xyzcyl.runtime.lidar import LidarError, has_lidar, load_lidar
     from xyzcyl.runtime.rig import RigError, load_rig
@@ -167,16 +172,21 @@ def _worker_reconstruct(rig_json: str, out_dir: str, detail_stride: int | None) 
 
     try:
         detail = None if detail_stride is None else replace(DEFAULT_DETAIL, stride=detail_stride)
-        rig = load_rig(rig_json)
-        pts = load_lidar(rig) if has_lidar(rig) else None
-        scene = _RECONSTRUCTOR.reconstruct(rig, lidar=None if pts is None else pts.points, detail=detail)
-        if pts is not None:     # the points left out (a non-finite coordinate) are counted, never silent
-            scene.counts.update(pts.counts())
-        scene.save(out_dir)
+        if keyframes is not None:
+            scene, _ = save_drive_scene(_RECONSTRUCTOR, load_drive(rig_json), keyframes, out_dir, detail=detail)
+        else:
+            rig = load_rig(rig_json)
+            pts = load_lidar(rig) if has_lidar(rig) else None
+            scene = _RECONSTRUCTOR.reconstruct(rig, lidar=None if pts is None else pts.points, detail=detail)
+            if pts is not None:     # the points left out (a non-finite coordinate) are counted, never silent
+                scene.counts.update(pts.counts())
+            scene.save(out_dir)
         meta = scene.to_json()
         return Reconstructed(model=meta["model"], counts=meta["counts"], timings=meta["timings"], bbox=meta["bbox"],
                              gaussians=meta["gaussians"]["count"], background=meta["background"] is not None,
                              lifting_cached=meta["lifting_cached"], pid=os.getpid())
+    except DriveError as e:         # its ``where`` names the work folder: the field and the message only
+        return ReconstructFailed("invalid_input", f"drive: {e.field}: {e.message}")
     except (RigError, InferenceError, SceneError, LidarError, DetailError) as e:
         return ReconstructFailed("invalid_input", str(e))
     except OSError as e:
@@ -197,6 +207,8 @@ class Job:
     sid: str
     work: Path                         # upload folder: rig.json + images (removed when the job ends)
     detail_stride: int | None          # the detail layer's stride (POST ?detail_stride=), None: no detail layer
+    input: str = "rig.json"            # the file of ``work`` to reconstruct: rig.json, or a drive's drive.json
+    keyframes: list[int] | None = None     # a drive's keyframes (None: one rig)
     submitted: float = field(default_factory=time.perf_counter)
     done: asyncio.Event = field(default_factory=asyncio.Event)
 
@@ -348,8 +360,8 @@ class Reconstructions:
             return                      # deleted while queued
         out = job.work / "scene"
         t0 = time.perf_counter()
-        fut = loop.run_in_executor(worker.pool, _worker_reconstruct, str(job.work / "rig.json"), str(out),
-                                   job.detail_stride)
+        fut = loop.run_in_executor(worker.pool, _worker_reconstruct, str(job.work / job.input), str(out),
+                                   job.detail_stride, job.keyframes)
         try:
             result = await asyncio.wait_for(fut, self.settings.reconstruct_timeout_s)
         except TimeoutError:

@@ -17,12 +17,17 @@ NO_MODEL = {404: {"model": ErrorBody, "description": "no such model"}}
 
 # POST /v1/scenes reads its multipart body itself (uploads.py); the schema for the OpenAPI document
 SCENE_UPLOAD = {"requestBody": {"required": True, "content": {"multipart/form-data": {"schema": {
-    "type": "object", "required": ["rig"],
-    "properties": {"rig": {"type": "string", "format": "binary", "description": "rig.json (cameras, calibrations)"}},
+    "type": "object",
+    "properties": {"rig": {"type": "string", "format": "binary", "description": "rig.json (cameras, calibrations)"},
+                   "drive": {"type": "string", "format": "binary",
+                             "description": "instead of 'rig', a recorded drive: {\"frames\": [{\"rig\": {... "
+                                            "rig.json ...}, \"timestamp_s\": ...}, ...], \"tracks\": [...]} "
+                                            "(docs/api.md \"Drives\")"}},
     "additionalProperties": {"type": "string", "format": "binary",
                              "description": "one image part per camera, named by the camera; optional "
                                             "'depth:<camera>' and 'ego_mask:<camera>' parts and an optional 'lidar' "
-                                            "part (a LiDAR sweep: .npy or float32 .bin)"}}}}}}
+                                            "part (a LiDAR sweep: .npy or float32 .bin); a drive's parts are "
+                                            "named the same way under 'frames/<frame>/'"}}}}}}
 
 # POST /v1/scenes/{id}/render reads its JSON body itself (runtime.views.cameras_from_batch)
 RENDER_BATCH = {"requestBody": {"required": True, "content": {"application/json": {"schema": {
@@ -47,7 +52,8 @@ def scene_info(rec: SceneRecord) -> dict[str, Any]:
             "updated": _iso(rec.updated_ts), "error": None if rec.error is None else rec.error.model_dump(),
             "cameras": [c.model_dump() for c in rec.cameras],
             "detail": None if rec.detail is None else rec.detail.model_dump(), "model": rec.model,
-            "counts": rec.counts, "gaussians": rec.gaussians, "background": rec.background, "bbox": rec.bbox, "timings": rec.timings, "bytes": rec.bytes,
+            "counts": rec.counts, "gaussians": rec.gaussians, "background": rec.background, "bbox": rec.bbox,
+            "timings": rec.timings, "bytes": rec.bytes, "drive": None if rec.drive is None else rec.drive.model_dump(),
             "links": links}
 
 

@@ -33,7 +33,7 @@ from pathlib import Path
 from typing import IO, Any
 
 from starlette.exceptions import HTTPException as StarletteHTTPException
-from xyzcyl.common.wire import FORMATS, OUTPUTS, BatchIndex, FrameInfo, ViewError, ViewQuery
+from xyzcyl.common.wire import FORMATS, OUTPUTS, BatchIndex, DriveInfo, FrameInfo, ViewError, ViewQuery
 from xyzcyl.runtime import compile_notice
 from xyzcyl.runtime.camera import CameraError, check_render_size
 from xyzcyl.runtime.inference import ModelInfo, verify_model
@@ -266,12 +266,15 @@ class Service:
         return page
 
     async def create_scene(self, read_form: Callable[..., Awaitable[Any]], detail_stride: int | None,
-                           wait: float | None, name: str | None = None) -> SceneRecord:
+                           wait: float | None, name: str | None = None,
+                           keyframes: dict[str, float | None] | None = None) -> SceneRecord:
         """POST /v1/scenes: admit (Busy while loading or with the queue full), read the multipart form with
-        ``read_form`` (the request's ``form``) into a work folder (uploads.ingest), create the record (with its
-        ``name``, checked by the route: store.name_error) and queue the job (detail_stride None: no detail layer);
-        with ``wait``, hold up to that many seconds (at most ``wait_max_s``) for the job to end. Returns the
-        scene's record then (a failed one when it was deleted meanwhile)."""
+        ``read_form`` (the request's ``form``) into a work folder (uploads.ingest: a rig, or a recorded drive), create
+        the record (with its ``name``, checked by the route: store.name_error; a drive's frames and keyframes) and
+        queue the job (detail_stride None: no detail layer); ``keyframes``: the query's keyframe_spacing and
+        keyframe_gap (None: not given; Invalid naming the first given for a rig); with ``wait``, hold up to that many
+        seconds (at most ``wait_max_s``) for the job to end. Returns the scene's record then (a failed one when it
+        was deleted meanwhile)."""
         st = self.settings
         if not self.ready:
             raise Busy("the model is still loading; retry shortly", st.retry_after_s)
@@ -279,25 +282,35 @@ class Service:
             self.metrics.rejected.labels("reconstruct").inc()
             raise Busy(f"{self.reconstructions.pending} reconstructions are running or queued; retry later",
                        st.retry_after_s)
-        n = st.max_cameras
+        n = 3 * st.max_cameras + 1                  # the parts of one rig: images, depth maps, ego masks, a sweep
+        parts = max(n, st.max_drive_frames * n) + 8
         work = await asyncio.to_thread(self.store.work_dir)
         form = None
         try:
             try:
-                form = await read_form(max_files=3 * n + 8, max_fields=3 * n + 8, max_part_size=RIG_PART_BYTES)
+                form = await read_form(max_files=parts, max_fields=parts, max_part_size=RIG_PART_BYTES)
             except StarletteHTTPException as e:
                 raise Invalid(f"the multipart body cannot be parsed: {e.detail}", "body") from None
-            rig = await asyncio.to_thread(ingest, form, work, st, self.info.meta.get("input") or {})
+            upload = await asyncio.to_thread(ingest, form, work, st, self.info.meta.get("input") or {})
+            knobs = {k: v for k, v in (keyframes or {}).items() if v is not None}
+            if upload.drive is None and knobs:
+                first = next(iter(knobs))
+                raise Invalid(f"{first}: goes with a drive upload (a 'drive' part; a rig is one timestamp)", first)
             sid = new_scene_id()
+            rig = upload.rig
             cameras = [{"name": c.name, "width": c.width, "height": c.height, "model": c.model} for c in rig.cameras]
             fields = {"cameras": cameras, "detail": {"enabled": detail_stride is not None, "stride": detail_stride}}
             if name is not None:
                 fields["name"] = name
+            keys = None
+            if upload.drive is not None:
+                fields["drive"] = _drive_info(upload.drive, knobs)
+                keys = fields["drive"]["keyframes"]
             try:
                 await asyncio.to_thread(self.store.create, sid, fields)
             except StoreFull as e:
                 raise StorageFull(str(e)) from None
-            job = Job(sid=sid, work=work, detail_stride=detail_stride)
+            job = Job(sid=sid, work=work, detail_stride=detail_stride, input=upload.path, keyframes=keys)
             try:
                 self.reconstructions.submit(job)
             except Busy:
@@ -487,6 +500,19 @@ class Service:
                 "inputs": _tensors(enc.get("inputs", [])), "outputs": _tensors(enc.get("outputs", [])),
                 "parameters": {"graphs": sorted(graphs), "input": info.meta.get("input"),
                                "counts": info.meta.get("counts")}}
+
+
+def _drive_info(drive, knobs: dict[str, float]) -> dict[str, Any]:
+    """The record's ``drive`` (wire.DriveInfo) of an uploaded runtime.drive.Drive: its keyframes as `xyzcyl
+    reconstruct` picks them with the query's keyframe_spacing / keyframe_gap (``knobs``; the defaults else)."""
+    from xyzcyl.runtime.drive import DEFAULT_MAX_GAP_S, DEFAULT_SPACING_M, pick_keyframes
+
+    spacing = knobs.get("keyframe_spacing", DEFAULT_SPACING_M)
+    gap = knobs.get("keyframe_gap", DEFAULT_MAX_GAP_S)
+    t0 = drive.frames[0].timestamp_s
+    return DriveInfo(frames=len(drive), keyframes=pick_keyframes(drive, spacing, gap), keyframe_spacing=spacing,
+                     keyframe_gap=gap, timestamp_s=t0, duration_s=round(drive.frames[-1].timestamp_s - t0, 6),
+                     tracks=len(drive.tracks)).model_dump()
 
 
 def _ready(rec: SceneRecord, field: str) -> SceneRecord:

@@ -47,6 +47,8 @@ class Settings(BaseSettings):
     # request limits (422/413 beyond them)
     max_body_bytes: int = Field(256 * MiB, ge=1024, description="largest request body; 413 beyond, before it is read")
     max_cameras: int = Field(16, ge=1, le=64, description="most cameras in one rig")
+    max_drive_frames: int = Field(200, ge=1, le=10000, description="most frames (rigs) in one posted drive "
+                                                                  "(docs/api.md \"Drives\")")
     max_image_pixels: int = Field(4096 * 4096, ge=1, description="most pixels of one uploaded image (from its header)")
     max_render_pixels: int = Field(MAX_RENDER_PIXELS, ge=1, le=MAX_RENDER_PIXELS,
                                    description="most pixels of one rendered view (at most the runtime's limit)")
@@ -58,7 +60,8 @@ class Settings(BaseSettings):
     # work and backpressure (503 + Retry-After when full)
     reconstruct_workers: int = Field(1, ge=1, le=16, description="reconstruction worker processes")
     reconstruct_queue: int = Field(4, ge=0, description="reconstructions waiting beyond the running ones")
-    reconstruct_timeout_s: float = Field(300.0, gt=0, description="a reconstruction running longer fails")
+    reconstruct_timeout_s: float = Field(300.0, gt=0, description="a reconstruction running longer fails (a "
+                                                                   "drive's too: raise it for long drives)")
     render_threads: int = Field(default_factory=_cores, ge=1, le=256, description="renders at once (default: cores)")
     render_queue: int = Field(8, ge=0, description="renders waiting beyond the running ones")
     ort_threads: int | None = Field(None, ge=1, description="onnxruntime threads per worker (default: all cores)")

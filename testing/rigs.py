@@ -1,6 +1,6 @@
 """Rigs for tests and benchmarks, and the multipart body of POST /v1/scenes (docs/api.md): a ``rig`` part (the rig
 JSON) and one image part per camera, named by the camera, plus whatever extra parts (``depth:<camera>``,
-``ego_mask:<camera>``, ``lidar``) a caller adds."""
+``ego_mask:<camera>``, ``lidar``) a caller adds; or a recorded drive's (``drive_files``)."""
 
 from __future__ import annotations
 
@@ -69,6 +69,36 @@ def rig_files(rig: dict | None = None, images: dict[str, Any] | None = None, rig
         img = imgs.get(c["name"], first)
         parts.append((c["name"], img if isinstance(img, tuple) else (f"{c['name']}.png", img, "image/png")))
     return parts + list(extra or [])
+
+
+def drive_files(drive_json: Path, edit=None, drop: tuple[str, ...] = (), extra: list | None = None) -> list:
+    """The multipart parts of POST /v1/scenes for a drive file (docs/api.md "Drives"; ``files=`` of httpx or a
+    TestClient): the 'drive' part (each frame's rig and the tracks read and put inline; ``edit(doc)`` may change
+    it), then each frame's image, depth and ego mask files and LiDAR sweep, as the frame's rig names them, in parts
+    named ``frames/<frame>/<camera>``, ``.../depth:<camera>``, ``.../ego_mask:<camera>``, ``.../lidar``; then
+    ``extra``. ``drop`` leaves out parts by name."""
+    drive_json = Path(drive_json)
+    doc = json.loads(drive_json.read_text())
+    parts = []
+    for i, entry in enumerate(doc["frames"]):
+        rig_path = drive_json.parent / entry["rig"]
+        rig = entry["rig"] = json.loads(rig_path.read_text())
+        files = [(f"{prefix}{c['name']}", c.get(key)) for c in rig["cameras"]
+                 for key, prefix in (("image", ""), ("depth", "depth:"), ("ego_mask", "ego_mask:"))]
+        lidar = rig.get("lidar")
+        files.append(("lidar", lidar.get("file") if isinstance(lidar, dict) else None))
+        for name, file in files:
+            if file:
+                f = rig_path.parent / file
+                media = "application/octet-stream" if name == "lidar" else MEDIA_TYPES.get(f.suffix.lower(),
+                                                                                           "image/png")
+                parts.append((f"frames/{i}/{name}", (f.name, f.read_bytes(), media)))
+    if isinstance(doc.get("tracks"), str):
+        doc["tracks"] = json.loads((drive_json.parent / doc["tracks"]).read_text())
+    if edit is not None:
+        edit(doc)
+    parts.insert(0, ("drive", ("drive.json", json.dumps(doc).encode(), "application/json")))
+    return [p for p in parts if p[0] not in drop] + list(extra or [])
 
 
 def multipart_body(files: list) -> tuple[bytes, str]:

@@ -1,6 +1,7 @@
 """`xyzcyl client ACTION ...`: drive a running `xyzcyl serve` over HTTP (clients/client.py; docs/client.md).
 
-    xyzcyl client reconstruct RIG_JSON [--wait [S]] [--detail-stride N | --no-detail] [--json]
+    xyzcyl client reconstruct RIG_JSON|DRIVE_JSON [--wait [S]] [--detail-stride N | --no-detail]
+                         [--keyframe-spacing M] [--keyframe-gap S] [--json]
     xyzcyl client render SCENE_ID (--camera NAME | --K FX FY CX CY --cam-to-world M*16 | --cam-to-world M*16 --fov F
                          | --carla X Y Z PITCH YAW ROLL --fov F) [--distortion JSON|FILE] [--width W --height H]
                          --out FILE [--format png|jpeg|exr] [--output rgb|depth|alpha] [--quality Q]
@@ -24,7 +25,7 @@ import os
 import sys
 from pathlib import Path
 
-from xyzcyl.common.wire import FORMATS, OUTPUTS, detail_stride_error
+from xyzcyl.common.wire import FORMATS, OUTPUTS, detail_stride_error, keyframe_error
 
 _SCENE_HELP = "the scene's id (printed by `xyzcyl client reconstruct`)"
 
@@ -54,11 +55,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     common = _common()
     sub = parser.add_subparsers(dest="action", metavar="ACTION", required=True)
 
-    p = sub.add_parser("reconstruct", parents=[common], help="upload a rig.json and its images; print the scene id",
+    p = sub.add_parser("reconstruct", parents=[common], help="upload a rig.json and its images, or a recorded drive; "
+                       "print the scene id",
                        description="Upload RIG_JSON with the images (and depth and ego mask files) it names, "
-                                   "relative to its folder. Prints the scene id on stdout (the scene JSON with "
-                                   "--json).")
-    p.add_argument("rig", metavar="RIG_JSON", help="the rig.json; the files it names are read relative to its folder")
+                                   "relative to its folder; or a drive file (DRIVE_JSON: frames of rigs with the "
+                                   "ego's poses and times; docs/inference.md \"Drives\") with every frame's files, "
+                                   "as one scene. Prints the scene id on stdout (the scene JSON with --json).")
+    p.add_argument("rig", metavar="RIG_JSON|DRIVE_JSON",
+                   help="the rig.json (the files it names are read relative to its folder), or a drive file (its "
+                        "rigs relative to it, each rig's files relative to the rig)")
     p.add_argument("--wait", nargs="?", type=float, const=600.0, default=None, metavar="S",
                    help="wait until the scene is ready or failed, up to S seconds (default 600)")
     p.add_argument("--no-depth", action="store_true", help="do not upload the depth files the rig names")
@@ -68,6 +73,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                    help="detail layer: one Gaussian per N x N block of each input camera's pixels, 1..16 (default: "
                         "the server's, 2)")
     p.add_argument("--no-detail", action="store_true", help="no detail layer (the model's Gaussians only)")
+    p.add_argument("--keyframe-spacing", type=float, default=None, metavar="M",
+                   help="a drive: a keyframe each M metres the ego moves (default: the server's, 1.5)")
+    p.add_argument("--keyframe-gap", type=float, default=None, metavar="S",
+                   help="a drive: a keyframe at least every S seconds, moving or not (default: the server's, 2)")
     p.add_argument("--json", action="store_true", help="print the scene JSON instead of its id")
 
     p = sub.add_parser("render", parents=[common], help="render one view to a file (png, jpg or exr)",
@@ -177,16 +186,32 @@ def _summary(info) -> str:
     n_detail = (info.counts or {}).get("detail")
     stride = None if info.detail is None else info.detail.stride
     detail = "" if n_detail is None else f" ({n_detail} detail" + (f", stride {stride})" if stride else ")")
-    return f"scene {info.id} {info.state}: {info.gaussians or 0} Gaussians{detail}, {len(info.cameras)} cameras{took}"
+    drive = "" if info.drive is None else f", {info.drive.frames} frames ({len(info.drive.keyframes)} keyframes)"
+    return (f"scene {info.id} {info.state}: {info.gaussians or 0} Gaussians{detail}, {len(info.cameras)} "
+            f"cameras{drive}{took}")
 
 
 # ----------------------------------------------------------------------------------------------- actions
 
 def _reconstruct(c, args) -> int:
+    from xyzcyl.clients.client import is_drive_file, read_drive
+
     if args.no_detail and args.detail_stride is not None:
         raise _UsageError("--no-detail", "cannot be combined with --detail-stride")
     if (why := detail_stride_error(args.detail_stride)) is not None:
         raise _UsageError("--detail-stride", why)
+    knobs = {"--keyframe-spacing": args.keyframe_spacing, "--keyframe-gap": args.keyframe_gap}
+    drive = is_drive_file(args.rig)
+    for flag, v in knobs.items():
+        if v is not None and not drive:
+            raise _UsageError(flag, f"goes with a drive file ({args.rig} is a rig.json: one timestamp)")
+        if (why := keyframe_error(v)) is not None:
+            raise _UsageError(flag, why)
+    if drive:                   # the drive read first: a missing file is refused before anything is sent
+        drive = read_drive(args.rig, depths=not args.no_depth, lidar=not args.no_lidar)
+        with_lidar = f", LiDAR in {drive.lidar_frames}" if drive.lidar_frames else ""
+        _say(args, f"drive {args.rig}: {drive.frames} frames of {len(drive.cameras)} cameras{with_lidar}, "
+                   f"{drive.size / 1e6:.1f} MB to upload")
     depths = {} if args.no_depth else None
     update, close = _bar(args, None, "B", "upload")
     try:
@@ -200,9 +225,14 @@ def _reconstruct(c, args) -> int:
                     print(f"uploaded {total / 1e6:.1f} MB; waiting for the reconstruction ...", file=sys.stderr)
         else:
             progress = update
-        info = c.reconstruct(args.rig, depths=depths, wait=wait, timeout=args.wait or 600.0, progress=progress,
-                             lidar=False if args.no_lidar else None, detail_stride=args.detail_stride,
-                             detail=not args.no_detail)
+        if drive:
+            info = c.reconstruct_drive(drive, wait=wait, timeout=args.wait or 600.0, progress=progress,
+                                       detail_stride=args.detail_stride, detail=not args.no_detail,
+                                       keyframe_spacing=args.keyframe_spacing, keyframe_gap=args.keyframe_gap)
+        else:
+            info = c.reconstruct(args.rig, depths=depths, wait=wait, timeout=args.wait or 600.0, progress=progress,
+                                 lidar=False if args.no_lidar else None, detail_stride=args.detail_stride,
+                                 detail=not args.no_detail)
     finally:
         close()
     _say(args, _summary(info) if info.ready else f"scene {info.id} {info.state}; `xyzcyl client scene {info.id} "

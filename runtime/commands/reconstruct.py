@@ -127,14 +127,9 @@ def run(args: argparse.Namespace) -> int:
 
 def _drive(args: argparse.Namespace, detail, out: Path, model_dir: Path, say) -> int:
     """A drive file: its keyframes reconstructed and fused into one scene (runtime.drive.reconstruct_drive)."""
-    from ..drive import (
-        DEFAULT_MAX_GAP_S,
-        DEFAULT_SPACING_M,
-        DriveError,
-        load_drive,
-        pick_keyframes,
-        reconstruct_drive,
-    )
+    from xyzcyl.common.wire import keyframe_error
+
+    from ..drive import DriveError, load_drive, pick_keyframes, save_drive_scene
     from ..inference import InferenceError, ModelError, Reconstructor
     from ..lidar import LidarError
     from ..rig import RigError
@@ -145,8 +140,8 @@ def _drive(args: argparse.Namespace, detail, out: Path, model_dir: Path, say) ->
             "--no-depth"
         return _fail(f"{flag}: goes with a rig.json (a drive's frames name their own sweeps)")
     for flag, v in (("--keyframe-spacing", args.keyframe_spacing), ("--keyframe-gap", args.keyframe_gap)):
-        if v is not None and not v > 0:
-            return _fail(f"{flag}: must be > 0, got {v}")
+        if (why := keyframe_error(v)) is not None:
+            return _fail(f"{flag}: {why}")
     try:
         say(f"read drive {args.rig}")
         drive = load_drive(args.rig)
@@ -158,18 +153,13 @@ def _drive(args: argparse.Namespace, detail, out: Path, model_dir: Path, say) ->
             if not keys or keys != sorted(set(keys)) or not all(0 <= k < len(drive) for k in keys):
                 return _fail(f"--keyframes: increasing frame indices in 0..{len(drive) - 1} (got {args.keyframes!r})")
         else:
-            keys = pick_keyframes(drive, args.keyframe_spacing or DEFAULT_SPACING_M,
-                                  args.keyframe_gap or DEFAULT_MAX_GAP_S)
+            keys = pick_keyframes(drive, args.keyframe_spacing, args.keyframe_gap)
         say(f"{len(drive)} frames, {len(keys)} keyframes: {', '.join(map(str, keys))}")
         t0 = time.perf_counter()
         say(f"load model {model_dir}")
         rec = Reconstructor.load(model_dir, threads=args.threads)
         t_load = time.perf_counter() - t0
-        scene = reconstruct_drive(rec, drive, keys, lidar=not args.no_lidar, detail=detail, progress=say)
-        say(f"write {out}")
-        t1 = time.perf_counter()
-        scene.save(out, overwrite=True)
-        t_save = time.perf_counter() - t1
+        scene, t_save = save_drive_scene(rec, drive, keys, out, lidar=not args.no_lidar, detail=detail, say=say)
     except (DriveError, ModelError, RigError, InferenceError, SceneError, LidarError) as exc:
         return _fail(str(exc))
     except OSError as exc:

@@ -1,5 +1,5 @@
-"""/v1/scenes: post a rig (multipart), list, inspect, delete; download the Gaussians and the background. Each route
-parses its request and answers; the Service (service.py) does the work."""
+"""/v1/scenes: post a rig or a recorded drive (multipart), list, inspect, delete; download the Gaussians and the
+background. Each route parses its request and answers; the Service (service.py) does the work."""
 
 from __future__ import annotations
 
@@ -7,7 +7,15 @@ from typing import Literal
 
 from fastapi import APIRouter, Depends, Query, Request
 from fastapi.responses import JSONResponse, Response, StreamingResponse
-from xyzcyl.common.wire import DETAIL_STRIDE_MAX, DETAIL_STRIDE_MIN, SceneInfo, SceneList, detail_stride_error
+from xyzcyl.common.wire import (
+    DETAIL_STRIDE_MAX,
+    DETAIL_STRIDE_MIN,
+    SceneInfo,
+    SceneList,
+    detail_stride_error,
+    keyframe_error,
+)
+from xyzcyl.runtime.drive import DEFAULT_MAX_GAP_S, DEFAULT_SPACING_M
 from xyzcyl.runtime.inference import DEFAULT_DETAIL
 
 from ..deps import known_query, require_content_type, require_key, service_of
@@ -36,7 +44,7 @@ def _detail_stride(request: Request, detail: bool, detail_stride: int | None) ->
     return DEFAULT_DETAIL.stride if detail_stride is None else detail_stride
 
 
-@router.post("/scenes", status_code=202, response_model=SceneInfo, summary="reconstruct a rig",
+@router.post("/scenes", status_code=202, response_model=SceneInfo, summary="reconstruct a rig or a recorded drive",
              responses={201: {"model": SceneInfo, "description": "ready (with ?wait)"}, **ERRORS},
              openapi_extra=SCENE_UPLOAD)
 async def create_scene(request: Request,
@@ -51,12 +59,23 @@ async def create_scene(request: Request,
                        name: str | None = Query(None, max_length=200,
                                                 description="the scene's name, e.g. a simulator's scene id (AlpaSim's "
                                                             "clipgt-...): the gRPC SensorsimService lists and "
-                                                            "resolves it (docs/simulators.md)")):
+                                                            "resolves it (docs/simulators.md)"),
+                       keyframe_spacing: float | None = Query(None, description="a drive: a keyframe each time the "
+                                                              f"ego moved this many metres (default "
+                                                              f"{DEFAULT_SPACING_M:g})"),
+                       keyframe_gap: float | None = Query(None, description="a drive: a keyframe at least every this "
+                                                          f"many seconds (default {DEFAULT_MAX_GAP_S:g})")):
     stride = _detail_stride(request, detail, detail_stride)
     if name is not None and (why := name_error(name)):
         raise Invalid(f"name: {why}", "name")
+    knobs = {"keyframe_spacing": keyframe_spacing, "keyframe_gap": keyframe_gap}
+    for k, v in knobs.items():
+        if len(request.query_params.getlist(k)) > 1:
+            raise Invalid(f"{k}: given more than once", k)
+        if (why := keyframe_error(v)) is not None:
+            raise Invalid(f"{k}: {why}", k)
     require_content_type(request, "multipart/form-data", "POST /v1/scenes")
-    rec = await service_of(request).create_scene(request.form, stride, wait, name=name)
+    rec = await service_of(request).create_scene(request.form, stride, wait, name=name, keyframes=knobs)
     headers = {"Location": f"/v1/scenes/{rec.id}"}
     if rec.state == "failed" and wait:
         err = rec.error

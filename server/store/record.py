@@ -24,7 +24,7 @@ from collections.abc import Mapping
 from typing import Any
 
 from pydantic import BaseModel, ConfigDict
-from xyzcyl.common.wire import STATES, CameraInfo, DetailInfo, SceneState
+from xyzcyl.common.wire import STATES, CameraInfo, DetailInfo, DriveInfo, SceneState
 
 SCENE_ID = re.compile(r"^[A-Za-z0-9_-]{22}$")
 # a scene's optional name (POST /v1/scenes?name=): a simulator's scene id such as AlpaSim's "clipgt-<uuid>"
@@ -90,6 +90,7 @@ class SceneRecord(BaseModel):
     bytes: int | None = None                    # the scene folder's size
     last_used: float | None = None              # created, rendered or downloaded (LRU eviction, TTL)
     files: list[str] | None = None              # the S3 store: the scene's files under prefix/scenes/<id>/
+    drive: DriveInfo | None = None              # a posted drive's frames and keyframes; absent for one rig
 
     # -- JSON ---------------------------------------------------------------------------------------------------
     @classmethod

@@ -15,6 +15,7 @@ import pytest
 httpx = pytest.importorskip("httpx")
 pytest.importorskip("fastapi")
 
+from client_helpers import multipart_parts
 from xyzcyl.clients import (
     AuthError,
     BusyError,
@@ -334,17 +335,6 @@ def test_reconstruct_sends_the_detail_query(sleeps):
     assert seen == [{}, {"detail_stride": "4"}, {"detail": "false"}, {"detail_stride": "16"}]
 
 
-def _parts(request: httpx.Request) -> dict[str, tuple[str, bytes]]:
-    """{part name: (content type, bytes)} of a multipart request."""
-    from email.parser import BytesParser
-    from email.policy import HTTP
-
-    head = f"Content-Type: {request.headers['content-type']}\r\n\r\n".encode()
-    msg = BytesParser(policy=HTTP).parsebytes(head + request.read())
-    return {m.get_param("name", header="content-disposition"): (m.get_content_type(), m.get_payload(decode=True))
-            for m in msg.iter_parts()}
-
-
 def test_reconstruct_sends_the_rigs_ego_masks(sleeps, tmp_path):
     """A camera's ego_mask (relative to rig.json) goes up as the 'ego_mask:<camera>' part, like depth files;
     ego_masks={} sends none, ego_masks={camera: array} sends a PNG; a missing file is refused before any request,
@@ -365,7 +355,7 @@ def test_reconstruct_sends_the_rigs_ego_masks(sleeps, tmp_path):
     sent = []
 
     def handler(request):
-        sent.append(_parts(request))
+        sent.append(multipart_parts(request))
         return httpx.Response(202, json={**SCENE_JSON, "state": "queued"})
 
     c = _mock(handler)
