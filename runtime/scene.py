@@ -35,7 +35,7 @@ from xyzcyl.common.files import atomic_folder
 from .actors import Actors, ActorsError
 from .camera import Camera, rig_camera
 from .cylinder import CylinderSpec
-from .detail import DetailError, OwnViews
+from .detail import HIDDEN_LOGIT, DetailError, OwnViews
 from .errors import FieldError
 from .files import read_json_doc
 from .numba_cache import njit
@@ -47,6 +47,9 @@ SCENE_VERSION = 1
 PLY_NAME, EXR_NAME, PNG_NAME, JSON_NAME = "scene.ply", "background.exr", "background.png", "scene.json"
 ACTORS_NAME = "actors.npz"         # runtime.actors.Actors (a drive's moving objects)
 OWN_VIEWS_NAME = "own_views.npz"   # runtime.detail.OwnViews (scenes with the detail layer)
+KEYFRAME_OF_NAME = "keyframe_of.npy"   # Scene.keyframe_of (drives of several keyframes)
+PRIMARY_SLACK_M = 0.25             # keyframes whose cameras stood within this of the nearest one's: the view's time
+#                                    picks among them (a still ego's keyframes stand in one place)
 OWN_POSE_TOL = (1e-3, 1e-4)        # (metres, rotation matrix entries): a view this close to an input camera's pose is
 #                                    that camera's own view (a gRPC pose composed in float32 lands within 1e-5)
 
@@ -236,6 +239,9 @@ class Scene:
     own_views: OwnViews | None = field(default=None, repr=False)    # the input cameras' own views (detail layer)
     drive: dict[str, Any] | None = None     # a drive's frames, keyframes, times and ego poses (runtime.drive)
     actors: Actors | None = field(default=None, repr=False)     # a drive's moving objects (runtime.actors)
+    # [N] int16: the keyframe (an index into drive["keyframes"]) each Gaussian came from, for drives of several
+    # keyframes (runtime.drive); a view draws its primary keyframe's first (Scene.render)
+    keyframe_of: np.ndarray | None = field(default=None, repr=False)
 
     def own_camera(self, camera) -> int | None:
         """The index of the input camera whose pose ``camera`` (runtime.camera.Camera) has (OWN_POSE_TOL), when
@@ -250,13 +256,52 @@ class Scene:
                 return k
         return None
 
-    def render(self, camera: Camera, time_s: float | None = None, **options
+    def render(self, camera: Camera, time_s: float | None = None, background: Any = "scene", **options
                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(rgb [H, W, 3], depth [H, W], alpha [H, W]) float32 of this scene seen by ``camera`` at ``time_s``
-        (render_view)."""
-        bg = self.background.render(camera) if self.background is not None else None
-        r = render(self.gaussians_at(camera, time_s), camera, background=bg, **options)
-        return r.rgb, r.depth, r.alpha
+        (render_view), over ``background`` ("scene": the scene's panorama; else the renderer's: None, an RGB or an
+        image). A drive's scene of several keyframes is drawn in two layers: the Gaussians of the view's primary
+        keyframe (primary_keyframe) and the moving objects first, the other keyframes' behind them, where the first
+        layer leaves the view open (I = I_1 + (1 - A_1) I_2): each keyframe's cells agree with its own images, and
+        another keyframe's copy of the same wall a few centimetres off (its depth, its exposure) would otherwise
+        show through in patches. The other keyframes fill what the primary one did not see: behind parked cars,
+        the road it had not reached."""
+        if isinstance(background, str) and background == "scene":
+            bg = self.background.render(camera) if self.background is not None else None
+        else:
+            bg = background
+        g = self.gaussians_at(camera, time_s)
+        k = self.primary_keyframe(camera, time_s)
+        if k is None:
+            r = render(g, camera, background=bg, **options)
+            return r.rgb, r.depth, r.alpha
+        first = np.ones(len(g), bool)               # the moving objects (after the static Gaussians) draw first
+        first[:len(self.keyframe_of)] = self.keyframe_of == k
+        a = render(g.with_opacity_logits(np.where(first, g.opacity_logits, HIDDEN_LOGIT)), camera, background=None,
+                   **options)
+        b = render(g.with_opacity_logits(np.where(first, HIDDEN_LOGIT, g.opacity_logits)), camera, background=bg,
+                   **options)
+        return composite_layers(a, b)
+
+    def primary_keyframe(self, camera, time_s: float | None = None) -> int | None:
+        """The keyframe a view of ``camera`` draws first (Scene.render): of a drive's scene with keyframe_of, the
+        keyframe one of whose cameras stood nearest ``camera``'s centre (the scene's frame); among keyframes within
+        PRIMARY_SLACK_M of that distance, the one nearest ``time_s`` (default the drive's start). None for any other
+        scene (one layer)."""
+        if self.keyframe_of is None or not self.drive or len(self.drive.get("keyframes", ())) < 2:
+            return None
+        keys = np.asarray(self.drive["keyframes"], np.int64)
+        poses = np.asarray(self.drive["trajectory"], np.float64).reshape(-1, 4, 4)[keys]          # [K, 4, 4]
+        centres = np.array([np.asarray(c.cam_to_ego, np.float64)[:3, 3] for c in self.rig.cameras])  # [C, 3]
+        seen_from = np.einsum("kij,cj->kci", poses[:, :3, :3], centres) + poses[:, None, :3, 3]      # [K, C, 3]
+        at = np.asarray(camera.cam_to_ego, np.float64)[:3, 3]
+        dist = np.linalg.norm(seen_from - at, axis=2).min(axis=1)                                 # [K]
+        near = np.flatnonzero(dist <= dist.min() + PRIMARY_SLACK_M)
+        if len(near) == 1:
+            return int(near[0])
+        t = self.start_time() if time_s is None else float(time_s)
+        times = float(self.drive["timestamp_s"]) + np.asarray(self.drive["times_s"], np.float64)[keys]
+        return int(near[np.argmin(np.abs(times[near] - t))])
 
     def start_time(self) -> float | None:
         """A drive's first frame's time (seconds, the rigs' clock), None for a one-rig scene."""
@@ -266,6 +311,21 @@ class Scene:
         """A drive's median time between frames (seconds; 0.1 without frames)."""
         times = np.diff(self.drive.get("times_s", [])) if self.drive else []
         return float(np.median(times)) if len(times) else 0.1
+
+    def timeline(self) -> tuple[np.ndarray, np.ndarray]:
+        """(times_s [F] float64 seconds on the rigs' clock, ego_to_world [F, 4, 4]) of the scene's frames: a drive's
+        every frame (scene.json's drive block: its first frame's ego_to_world composed with the trajectory in the
+        scene's frame), a one-rig scene its one frame (the rig's ``timestamp_s``, 0 without; its ego_to_world,
+        identity without). The poses are in the frame of the rigs' ``ego_to_world`` (the world)."""
+        if self.drive:
+            E0 = np.asarray(self.drive["ego_to_world"], np.float64)
+            poses = E0 @ np.asarray(self.drive["trajectory"], np.float64).reshape(-1, 4, 4)
+            times = float(self.drive["timestamp_s"]) + np.asarray(self.drive["times_s"], np.float64)
+            return times, poses
+        ts = self.rig.extra.get("timestamp_s")
+        t = float(ts) if isinstance(ts, (int, float)) and not isinstance(ts, bool) and np.isfinite(ts) else 0.0
+        pose = np.eye(4) if self.rig.ego_to_world is None else np.asarray(self.rig.ego_to_world, np.float64)
+        return np.array([t]), pose[None].copy()
 
     def gaussians_at(self, camera, time_s: float | None = None) -> Gaussians:
         """The Gaussians ``camera`` sees at ``time_s`` (seconds on the rigs' clock; default the drive's first frame):
@@ -321,6 +381,10 @@ class Scene:
             out["actors"] = {"file": ACTORS_NAME, "objects": len(self.actors), "copies": len(self.actors.copy_track),
                              "gaussians": len(self.actors.gaussians),
                              "about": "moving objects: per keyframe a copy in its box frame, drawn at a time"}
+        if self.keyframe_of is not None:
+            out["keyframe_of"] = {"file": KEYFRAME_OF_NAME, "keyframes": len(self.drive["keyframes"]),
+                                  "about": "each Gaussian's keyframe (int16, an index into drive.keyframes): a "
+                                           "view draws its primary keyframe's first"}
         return out
 
     def save(self, folder: str | os.PathLike, overwrite: bool = True) -> Path:
@@ -335,6 +399,8 @@ class Scene:
                 self.own_views.save(tmp / OWN_VIEWS_NAME)
             if self.actors is not None:
                 self.actors.save(tmp / ACTORS_NAME)
+            if self.keyframe_of is not None:
+                np.save(tmp / KEYFRAME_OF_NAME, np.asarray(self.keyframe_of, np.int16))
             if self.background is not None:
                 from xyzcyl.common.media import write_exr
 
@@ -386,6 +452,10 @@ class Scene:
                 actors = Actors.load(ap)
             except ActorsError as e:
                 raise SceneError(e.field, e.message, f"scene {str(ap)!r}") from None
+        keyframe_of = None
+        if meta.get("keyframe_of"):
+            keyframe_of = _keyframe_of(_scene_file(d, meta["keyframe_of"], KEYFRAME_OF_NAME), len(g),
+                                       len((meta.get("drive") or {}).get("keyframes") or ()))
         bg = None
         b = meta.get("background")
         if b:
@@ -400,10 +470,25 @@ class Scene:
         return cls(gaussians=g, background=bg, rig=rig, model=meta.get("model") or {},
                    counts=meta.get("counts") or {}, timings=meta.get("timings") or {},
                    lifting_cached=bool(meta.get("lifting_cached", False)), created=meta.get("created", ""),
-                   own_views=own, drive=meta.get("drive"), actors=actors)
+                   own_views=own, drive=meta.get("drive"), actors=actors, keyframe_of=keyframe_of)
 
 
 # ------------------------------------------------------------------------------------------- views
+
+
+def _keyframe_of(path: Path, n: int, keyframes: int) -> np.ndarray:
+    """A scene folder's keyframe_of.npy: [n] integers in 0..keyframes - 1 (SceneError naming the file else)."""
+    where = f"scene {str(path)!r}"
+    try:
+        a = np.load(path, allow_pickle=False)
+    except (OSError, ValueError) as e:
+        raise SceneError("keyframe_of", f"not a .npy array ({e})", where) from None
+    if a.shape != (n,) or a.dtype.kind not in "iu":
+        raise SceneError("keyframe_of", f"must be [{n}] integers, one per Gaussian (got {a.dtype} {a.shape})", where)
+    if n and (int(a.min()) < 0 or int(a.max()) >= keyframes):
+        raise SceneError("keyframe_of", f"must index the drive's {keyframes} keyframes (got {int(a.min())}.."
+                                        f"{int(a.max())})", where)
+    return a.astype(np.int16)
 
 
 def _scene_file(folder: Path, entry: Any, default: str) -> Path:
@@ -412,6 +497,18 @@ def _scene_file(folder: Path, entry: Any, default: str) -> Path:
     if not p.is_file():
         raise SceneError("scene", f"{str(p)!r} is missing")
     return p
+
+
+def composite_layers(a, b) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(rgb, depth, alpha) of render result ``a`` drawn over ``b`` (runtime.render.RenderResult; ``b`` over the
+    background if any): I = I_a + (1 - A_a) I_b, A = A_a + (1 - A_a) A_b, depth the alpha-weighted mean of the
+    two (each result's depth is its own sum(w z) / alpha; 0 where A is 0)."""
+    ta = 1.0 - a.alpha
+    rgb = a.rgb + ta[..., None] * b.rgb
+    alpha = a.alpha + ta * b.alpha
+    wsum = a.alpha * a.depth + ta * b.alpha * b.depth
+    depth = np.divide(wsum, alpha, out=np.zeros_like(wsum), where=alpha > 0)
+    return rgb.astype(np.float32), depth.astype(np.float32), alpha.astype(np.float32)
 
 
 def render_view(scene: Scene, camera, **options) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -423,4 +520,4 @@ def render_view(scene: Scene, camera, **options) -> tuple[np.ndarray, np.ndarray
     return scene.render(camera, **options)
 
 
-__all__ = ["Background", "Scene", "SceneError", "bake_grid", "render_view", "rig_camera"]
+__all__ = ["Background", "Scene", "SceneError", "bake_grid", "composite_layers", "render_view", "rig_camera"]

@@ -3,11 +3,13 @@ model configuration and small rigs, a harness that runs `xyzcyl serve` on loopba
 POST /v1/scenes.
 
 - ``xyzcyl.testing.rigs``: the example rig (``example_rig``, ``example_images``), ``rig_files`` (the multipart
-  parts of POST /v1/scenes) and ``multipart_body``, ``make_rig`` (the example rig as JPEGs at another size),
-  ``png_header_only`` (a PNG whose header claims a size its data does not have);
+  parts of POST /v1/scenes), ``drive_files`` (those of a recorded drive) and ``multipart_body``, ``make_rig`` (the
+  example rig as JPEGs at another size), ``png_header_only`` (a PNG whose header claims a size its data does not have);
 - ``xyzcyl.testing.serve``: ``Server`` / ``serve`` (`xyzcyl serve` in a subprocess on 127.0.0.1 and a free port,
   a bounded wait for /v2/health/ready, SIGTERM or kill), ``free_port``, ``XYZCYL`` (the console script);
 - ``xyzcyl.testing.model``: ``tiny_config``, ``synth_test_config`` (the network at test size) and ``overlap_rig``;
+- ``xyzcyl.testing.drives``: ``write_drive`` (the example rig as a small drive file, optionally with tracks),
+  ``moving_car`` (a tracks file with one moving box), ``pose``;
 - ``xyzcyl.testing.sensorsim``: the gRPC SensorsimService's (grpc and protobuf needed): ``ego_pose``,
   ``rig_with_pose``, AlpaSim's ``rgb_request``, the HTTP ``view_query`` of the same view, ``grpc_port``.
 

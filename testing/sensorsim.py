@@ -38,26 +38,33 @@ def grpc_port(log_text: str) -> int:
 
 
 def rgb_request(cam, start: np.ndarray, end: np.ndarray | None = None, scene: str = "", width: int = 512,
-                height: int = 320, image_format: int = pb.PNG) -> pb.RGBRenderRequest:
+                height: int = 320, image_format: int = pb.PNG, time_us: int = 1_000_000,
+                exposure_us: int = 30_000) -> pb.RGBRenderRequest:
     """AlpaSim's RGBRenderRequest for ``cam`` (an AvailableCamera of get_available_cameras) with the ego at
     ``start`` when the exposure starts and ``end`` when it ends (ego -> local frame; default: still): the sensor
-    pose is the ego pose composed with the camera -> rig pose, as AlpaSim composes it."""
+    pose is the ego pose composed with the camera -> rig pose, as AlpaSim composes it. The exposure starts at
+    ``time_us`` (microseconds on the rigs' clock) and lasts ``exposure_us``."""
     rig_cam = frames.pose_matrix(cam.rig_to_camera, "rig_to_camera")
     end = start if end is None else end
     pair = pb.PosePair(start_pose=frames.pose_message(start @ rig_cam), end_pose=frames.pose_message(end @ rig_cam))
     return pb.RGBRenderRequest(scene_id=scene, resolution_w=width, resolution_h=height,
-                               camera_intrinsics=cam.intrinsics, frame_start_us=1_000_000, frame_end_us=1_030_000,
+                               camera_intrinsics=cam.intrinsics, frame_start_us=time_us,
+                               frame_end_us=time_us + exposure_us,
                                sensor_pose=pair, image_format=image_format, image_quality=95)
 
 
 def view_query(req: pb.RGBRenderRequest, ego_to_world: np.ndarray) -> dict:
     """The GET /v1/scenes/{id}/render query of the view the server makes of ``req`` for a scene at
     ``ego_to_world`` (frames.view_request, the server's one conversion; numbers written exactly)."""
-    cam = frames.view_request(req, ego_to_world).camera
+    view = frames.view_request(req, ego_to_world)
+    cam = view.camera
     K = cam.K
-    return {"cam_to_ego": ",".join(repr(float(v)) for v in cam.cam_to_ego.ravel()), "fx": repr(float(K[0, 0])),
-            "fy": repr(float(K[1, 1])), "cx": repr(float(K[0, 2])), "cy": repr(float(K[1, 2])),
-            "width": cam.width, "height": cam.height}
+    out = {"cam_to_ego": ",".join(repr(float(v)) for v in cam.cam_to_ego.ravel()), "fx": repr(float(K[0, 0])),
+           "fy": repr(float(K[1, 1])), "cx": repr(float(K[0, 2])), "cy": repr(float(K[1, 2])),
+           "width": cam.width, "height": cam.height}
+    if view.time_s is not None:         # the middle of the exposure (frames.exposure_time)
+        out["time"] = repr(float(view.time_s))
+    return out
 
 
 __all__ = ["ego_pose", "grpc_port", "rgb_request", "rig_with_pose", "view_query"]

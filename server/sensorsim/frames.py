@@ -22,6 +22,14 @@ get_available_cameras answers each rig camera's cam_to_ego @ inv(A) as the camer
 ``rig_to_camera``, named the other way round): AlpaSim's rig frame (x forward, y left, z up) has our ego frame's
 axes, and its origin is then ours (the rig's, e.g. the rear axle on the ground for nuScenes-style rigs).
 
+Time (docs/simulators.md "Time"): a request's exposure [frame_start_us, frame_end_us] (microseconds on the rigs'
+clock, the clock of a drive's frames' ``timestamp_s``) is rendered at its middle, (start + end) / 2 / 1e6 seconds,
+passed on as the view's time as GET's ``time=`` is; both unset (0): no time (the scene's start). The scene decides
+what a time changes (runtime.scene.Scene.gaussians_at: a drive's moving objects; a static scene ignores it).
+get_available_trajectories answers the scene's frames (runtime.scene.Scene.timeline) as the rig's poses in the
+local frame at their times: the same frame chain read the other way, so a trajectory pose composed with a camera's
+``rig_to_camera`` is a sensor pose that renders that frame's camera.
+
 Intrinsics: a CameraSpec holds the camera at its native resolution (camera_intrinsics.resolution_w x _h); the
 request's resolution_w x resolution_h is the image asked for, and the camera is rescaled to it with
 runtime.camera.Camera.resized (pixel centres: cx' = sx (cx + 1/2) - 1/2, fx' = sx fx; the f-theta polynomials as
@@ -97,6 +105,28 @@ def mid_exposure(pair: sensorsim_pb2.PosePair, field: str) -> np.ndarray:
     T[:3, :3] = quat_to_rotmat(q0 + q1)
     T[:3, 3] = 0.5 * (start[:3, 3] + end[:3, 3])
     return T
+
+
+def exposure_time(start_us: int, end_us: int, prefix: str = "") -> float | None:
+    """Seconds on the rigs' clock of an exposure [start_us, end_us] (microseconds; the protocol's frame_start_us,
+    frame_end_us): its middle. Both 0 (unset): None (no time); end 0: the start. ViewError naming
+    ``frame_end_us`` when the exposure ends before it starts."""
+    start, end = int(start_us), int(end_us)
+    if start == 0 and end == 0:
+        return None
+    if end == 0:
+        return start / 1e6
+    if end < start:
+        raise ViewError(f"{prefix}frame_end_us", f"{end} is before frame_start_us {start} (microseconds)")
+    return (start + end) / 2e6       # integers added exactly; one rounding to float64 (0.2 us at 1.6e9 s)
+
+
+def trajectory_message(times_s: np.ndarray, poses: np.ndarray) -> common_pb2.Trajectory:
+    """A common.Trajectory of rig -> local frame poses ([F, 4, 4]) at ``times_s`` ([F], seconds on the rigs' clock;
+    written as whole microseconds)."""
+    return common_pb2.Trajectory(poses=[
+        common_pb2.PoseAtTime(pose=pose_message(T), timestamp_us=max(0, round(float(t) * 1e6)))
+        for t, T in zip(np.asarray(times_s, np.float64), np.asarray(poses, np.float64))])
 
 
 def pose_message(T: np.ndarray) -> common_pb2.Pose:
@@ -260,7 +290,8 @@ def quality(value: float, field: str) -> int:
 
 def view_request(req: sensorsim_pb2.RGBRenderRequest, ego_pose: np.ndarray, prefix: str = "") -> ViewRequest:
     """The runtime ViewRequest of an RGBRenderRequest: its camera (made here, in the ego frame, from the protocol's
-    intrinsics and mid-exposure pose; no rig needed), PNG or JPEG and the quality. ``ego_pose``: the scene's
+    intrinsics and mid-exposure pose; no rig needed), PNG or JPEG, the quality and the mid-exposure time
+    (exposure_time). ``ego_pose``: the scene's
     ego_to_world; ``prefix``: the request's path in the call ("items[2].request."). Refusals (ViewError) name the
     protocol field; a view over the render limit names resolution_w / resolution_h."""
     p = prefix
@@ -283,6 +314,7 @@ def view_request(req: sensorsim_pb2.RGBRenderRequest, ego_pose: np.ndarray, pref
     if not req.HasField("sensor_pose"):
         raise ViewError(f"{p}sensor_pose", "is not set (the camera's pose at the exposure's start and end)")
     T = cam_to_ego(mid_exposure(req.sensor_pose, f"{p}sensor_pose"), ego_pose)
+    time_s = exposure_time(req.frame_start_us, req.frame_end_us, p)
     nw, nh, w, h = _size(req, ci, p)
     (fx, fy, cx, cy), lens, back = _lens(which, getattr(ci, which), param)
     names = {"fx": f"{param}.focal_length_x", "fy": f"{param}.focal_length_y", "cx": f"{param}.principal_point_x",
@@ -307,7 +339,7 @@ def view_request(req: sensorsim_pb2.RGBRenderRequest, ego_pose: np.ndarray, pref
         check_render_size(cam.width, cam.height)
     except FieldError as e:
         raise ViewError(f"{p}resolution_{'w' if cam.width >= cam.height else 'h'}", e.message) from None
-    return ViewRequest(cam, "rgb", fmt, q)
+    return ViewRequest(cam, "rgb", fmt, q, time_s)
 
-__all__ = ["CAMERA_AXES", "available_cameras", "cam_to_ego", "camera_spec", "mid_exposure", "pose_matrix",
-           "pose_message", "quality", "scene_ego_to_world", "view_request"]
+__all__ = ["CAMERA_AXES", "available_cameras", "cam_to_ego", "camera_spec", "exposure_time", "mid_exposure",
+           "pose_matrix", "pose_message", "quality", "scene_ego_to_world", "trajectory_message", "view_request"]

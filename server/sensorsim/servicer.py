@@ -3,8 +3,10 @@ render cache, limits, metrics) and the same API keys. `xyzcyl serve --grpc-port 
 (app.py); docs/simulators.md says what AlpaSim and CARLA's NuRec integration call and what they get.
 
 Like a route, each method parses its request and answers in a few lines: frames.py turns the protocol's messages
-into a runtime ViewRequest (its camera made directly from the protocol's intrinsics and pose), rendered by the
-HTTP routes' one render path (Service.render -> runtime.views.render_request). Errors become status codes, the message naming the field:
+into a runtime ViewRequest (its camera made directly from the protocol's intrinsics and pose, its time the middle of
+the exposure), rendered by the HTTP routes' one render path (Service.render -> runtime.views.render_request);
+get_available_trajectories answers the scene's frames (runtime.scene.Scene.timeline: a drive's every frame, a
+one-rig scene its one). Errors become status codes, the message naming the field:
 
     UNAUTHENTICATED      API keys set and no valid ``authorization: Bearer KEY`` or ``x-api-key: KEY`` metadata
     INVALID_ARGUMENT     a bad request field (frames.py's ViewError, the render limits), a lens the renderer cannot
@@ -13,7 +15,7 @@ HTTP routes' one render path (Service.render -> runtime.views.render_request). E
     FAILED_PRECONDITION  a scene that is queued, running or failed
     RESOURCE_EXHAUSTED   the render pool and its queue are full (HTTP's 503), the store is full
     UNAVAILABLE          the server is draining, or the store cannot be reached
-    UNIMPLEMENTED        render_lidar, render_aggregated, get_available_trajectories
+    UNIMPLEMENTED        render_lidar, render_aggregated
     INTERNAL             anything else (logged)
 
 The field is also sent as the trailing metadata ``xyzcyl-field``. batch_render_rgb answers every item once, in
@@ -54,7 +56,6 @@ _BY_STATUS = {401: StatusCode.UNAUTHENTICATED, 404: StatusCode.NOT_FOUND, 409: S
 _UNIMPLEMENTED = {
     "render_lidar": "xyzcyl renders cameras only: no LiDAR simulation",
     "render_aggregated": "call batch_render_rgb (cameras) instead; LiDAR is not simulated",
-    "get_available_trajectories": "a scene is one reconstructed rig snapshot: it holds no recorded trajectory",
 }
 
 
@@ -151,6 +152,16 @@ class SensorsimServicer(sensorsim_pb2_grpc.SensorsimServiceServicer):
             return sensorsim_pb2.AvailableCamerasReturn(available_cameras=frames.available_cameras(rig))
         return await self._answer("get_available_cameras", context, work)
 
+    async def get_available_trajectories(self, request, context):
+        async def work():
+            rec = await self.service.resolve_scene(request.scene_id)
+            scene = await self.service.renders.run(self.service.load_scene, rec.id)
+            times, poses = scene.timeline()
+            return sensorsim_pb2.AvailableTrajectoriesReturn(available_trajectories=[
+                sensorsim_pb2.AvailableTrajectoriesReturn.AvailableTrajectory(
+                    trajectory=frames.trajectory_message(times, poses))])
+        return await self._answer("get_available_trajectories", context, work)
+
     async def get_available_ego_masks(self, request, context):
         async def work():
             return sensorsim_pb2.AvailableEgoMasksReturn()      # none: an empty answer is a valid one
@@ -226,9 +237,6 @@ class SensorsimServicer(sensorsim_pb2_grpc.SensorsimServiceServicer):
 
     async def render_aggregated(self, request, context):
         return await self._unimplemented("render_aggregated", context)
-
-    async def get_available_trajectories(self, request, context):
-        return await self._unimplemented("get_available_trajectories", context)
 
 
 async def start(service: Service) -> tuple[grpc.aio.Server, int]:

@@ -5,7 +5,9 @@ the message and in the ``xyzcyl-field`` trailing metadata); API keys from metada
 RESOURCE_EXHAUSTED; gRPC and HTTP under load together with nothing lost.
 
 One server for the module (render_threads 1, render_queue 0 so the pool fills deterministically; render cache off
-so every render is rendered; an API key), the example rig posted once with a name and an ego_to_world."""
+so every render is rendered; an API key), the example rig posted once with a name and an ego_to_world, and a small
+drive's scene (two frames of the example rig with a moving car, reconstructed at detail stride 8) put in its store
+before it starts: time over gRPC (the middle of the exposure) and the drive's trajectory."""
 
 from __future__ import annotations
 
@@ -34,6 +36,9 @@ AUTH = (("x-api-key", KEY),)
 NAME = "clipgt-026d6a39-bd8f-4175-bc61-fe50ed0403a3"
 TIMEOUT = 60.0
 Code = grpc.StatusCode
+DRIVE = "drive-scene-1"
+T0 = 1557539956.5                       # the drive's first frame (seconds on the rigs' clock, PandaSet's)
+DRIVE_DT = 2.5                          # its second frame, this much later
 
 
 @dataclass
@@ -45,12 +50,42 @@ class Live:
     E: np.ndarray
     cameras: list
     log: Path
+    drive_sid: str
+
+
+def _store_drive_scene(tmp: Path, store_dir: Path, E: np.ndarray) -> str:
+    """A drive's scene (the example rig at ``E`` at T0 and T0 + DRIVE_DT, a car 12 m ahead moving 3 m) written into
+    the folder store through its own API before the server opens it; its id."""
+    from xyzcyl.runtime.detail import DetailOptions
+    from xyzcyl.runtime.drive import load_drive, reconstruct_drive
+    from xyzcyl.runtime.inference import Reconstructor
+    from xyzcyl.server.store import FolderStore, new_scene_id
+    from xyzcyl.testing import SHIPPED_MODEL
+    from xyzcyl.testing.drives import moving_car, write_drive
+
+    path = write_drive(tmp / "drive", [E, E], [T0, T0 + DRIVE_DT], tracks=moving_car(E, 12.0, 3.0))
+    scene = reconstruct_drive(Reconstructor.load(SHIPPED_MODEL, threads=2), load_drive(path),
+                              detail=DetailOptions(stride=8))
+    assert scene.actors is not None
+    store = FolderStore(store_dir)
+    store.open()
+    sid = new_scene_id()
+    work = store.work_dir()
+    scene.save(work / "scene")
+    store.create(sid, {"name": DRIVE, "cameras": [{"name": c.name, "width": c.width, "height": c.height,
+                                                   "model": c.model} for c in scene.rig.cameras]})
+    meta = scene.to_json()
+    store.commit(sid, work / "scene", model=meta["model"], counts=meta["counts"], timings=meta["timings"],
+                 bbox=meta["bbox"], gaussians=meta["gaussians"]["count"], background=True)
+    work.rmdir()
+    return sid
 
 
 @pytest.fixture(scope="module")
 def live(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("grpc")
     log = tmp / "serve.log"
+    drive_sid = _store_drive_scene(tmp, tmp / "store", ego_pose())
     args = ["--grpc-port", "0", "--api-keys", KEY, "--render-threads", "1", "--render-queue", "0",
             "--render-cache-bytes", "0"]
     with serve(tmp / "store", log, args) as server:
@@ -65,7 +100,7 @@ def live(tmp_path_factory):
             stub = SensorsimServiceStub(channel)
             cams = stub.get_available_cameras(pb.AvailableCamerasRequest(scene_id=NAME), metadata=AUTH,
                                               timeout=TIMEOUT).available_cameras
-            yield Live(server.url, http, stub, r.json()["id"], E, list(cams), log)
+            yield Live(server.url, http, stub, r.json()["id"], E, list(cams), log, drive_sid)
         server.stop(check=False)
 
 
@@ -78,8 +113,8 @@ def render_request(live: Live, cam, w=512, h=320, fmt=pb.PNG, move: float = 0.0,
     return rgb_request(cam, live.E, end, scene=scene, width=w, height=h, image_format=fmt)
 
 
-def http_render(live: Live, params: dict) -> bytes:
-    r = live.http.get(f"/v1/scenes/{live.sid}/render", params=params)
+def http_render(live: Live, params: dict, sid: str | None = None) -> bytes:
+    r = live.http.get(f"/v1/scenes/{sid or live.sid}/render", params=params)
     assert r.status_code == 200, r.text
     return r.content
 
@@ -123,7 +158,6 @@ def test_version_scenes_cameras_ego_masks(live):
 def test_unimplemented(live):
     fails(live.stub.render_lidar, pb.LidarRenderRequest(scene_id=NAME), Code.UNIMPLEMENTED)
     fails(live.stub.render_aggregated, pb.AggregatedRenderRequest(), Code.UNIMPLEMENTED)
-    fails(live.stub.get_available_trajectories, pb.AvailableTrajectoriesRequest(scene_id=NAME), Code.UNIMPLEMENTED)
 
 
 def test_api_key_from_metadata(live):
@@ -135,7 +169,63 @@ def test_api_key_from_metadata(live):
     assert NAME in ok.scene_ids
 
 
+def test_trajectories_of_a_drive_and_of_a_one_rig_scene(live):
+    """get_available_trajectories: a drive's every frame (rig -> the local frame, at its time in microseconds on
+    the rigs' clock); a one-rig scene its one frame (its ego_to_world; no timestamp_s: 0)."""
+    def trajectory(scene):
+        got = live.stub.get_available_trajectories(pb.AvailableTrajectoriesRequest(scene_id=scene), metadata=AUTH,
+                                                   timeout=TIMEOUT).available_trajectories
+        assert len(got) == 1
+        return [(p.timestamp_us, frames.pose_matrix(p.pose, "pose")) for p in got[0].trajectory.poses]
+
+    drive = trajectory(DRIVE)
+    assert [t for t, _ in drive] == [round(T0 * 1e6), round((T0 + DRIVE_DT) * 1e6)]
+    for _, pose in drive:
+        np.testing.assert_allclose(pose, live.E, atol=2e-5)                   # float32 on the wire
+    (t, pose), = trajectory(NAME)
+    assert t == 0
+    np.testing.assert_allclose(pose, live.E, atol=2e-5)
+    fails(live.stub.get_available_trajectories, pb.AvailableTrajectoriesRequest(scene_id="clipgt-nope"),
+          Code.NOT_FOUND, "scene_id")
+
+
 # ----------------------------------------------------------------------------------------------- renders
+
+
+def test_a_drive_renders_at_the_middle_of_the_exposure(live):
+    """A drive's scene over gRPC at the request's time (the middle of frame_start_us..frame_end_us, the rigs'
+    clock): the moving car is elsewhere at another time; the image equals GET ?time= of the same pose and time;
+    outside the car's annotated span it is not drawn (the static scene alone, either side); a one-rig scene
+    looks the same at every time."""
+    front = live.cameras[0]
+    exposure = 30_000
+
+    def render(t_s: float, scene=DRIVE) -> tuple[pb.RGBRenderRequest, bytes]:
+        start = round(t_s * 1e6) - exposure // 2           # the exposure centred on t_s
+        req = rgb_request(front, live.E, scene=scene, width=160, height=100, time_us=start, exposure_us=exposure)
+        return req, live.stub.render_rgb(req, metadata=AUTH, timeout=TIMEOUT).image_bytes
+
+    req0, at0 = render(T0)
+    req1, at1 = render(T0 + 1.0)
+    a0, a1 = decode(at0).astype(float), decode(at1).astype(float)
+    moved = np.abs(a0 - a1).max(axis=2) > 8
+    assert moved.mean() > 0.01, moved.mean()                    # the car moved 1.2 m between the two times
+    params = view_query(req1, live.E)
+    assert float(params["time"]) == pytest.approx(T0 + 1.0, abs=1e-6)
+    assert http_render(live, params, live.drive_sid) == at1     # GET ?time= of the same pose and time
+    _, before = render(T0 - 100.0)
+    _, after = render(T0 + 100.0)
+    assert before != at0 and after != at1                       # no car outside its span: the static scene alone,
+    # whichever side; the two keyframes (the ego stood still) are drawn in the order of the view's time (the nearer
+    # first, Scene.primary_keyframe), the same street either way: far less change than the car's
+    still = np.abs(decode(before).astype(float) - decode(after).astype(float)).max(axis=2) > 8
+    assert still.mean() < 0.25 * moved.mean(), (still.mean(), moved.mean())
+    _, static0 = render(T0, NAME)
+    _, static1 = render(T0 + 1.0, NAME)
+    assert static0 == static1
+    bad = rgb_request(front, live.E, scene=DRIVE, width=160, height=100, time_us=2_000_000)
+    bad.frame_end_us = 1_000_000
+    fails(live.stub.render_rgb, bad, Code.INVALID_ARGUMENT, "frame_end_us")
 
 
 def test_render_equals_the_http_render_byte_for_byte(live):

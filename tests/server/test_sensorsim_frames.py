@@ -1,6 +1,7 @@
 """server/sensorsim/frames.py without a server (issue 29): poses and the frame chain, mid-exposure, intrinsics
 rescaled as Camera.resized does, the lens objects of each camera model both ways, the JPEG quality, and every
-refusal naming the protocol field. The live gRPC calls are tests/server/test_grpc.py."""
+refusal naming the protocol field, the time of an exposure and a trajectory. The live gRPC calls are
+tests/server/test_grpc.py."""
 
 from __future__ import annotations
 
@@ -70,6 +71,23 @@ def test_mid_exposure_is_halfway_in_translation_and_rotation():
     assert np.allclose(frames.mid_exposure(pair, "sensor_pose"), mid, atol=1e-6)
     only_start = pb.PosePair(start_pose=frames.pose_message(a))
     assert np.allclose(frames.mid_exposure(only_start, "sensor_pose"), a, atol=1e-6)
+
+
+def test_the_time_is_the_middle_of_the_exposure():
+    """Seconds on the rigs' clock: (start + end) / 2 microseconds; unset (both 0): none; end 0: the start; an end
+    before the start is refused naming frame_end_us. Microseconds of Unix time survive the float64 seconds."""
+    t0 = 1557539956500022                       # the PandaSet drive's first frame, microseconds
+    assert frames.exposure_time(t0 - 15_000, t0 + 15_000) == pytest.approx(1557539956.500022, abs=1e-6)
+    assert frames.exposure_time(0, 0) is None and frames.exposure_time(2_000_000, 0) == 2.0
+    assert frames.exposure_time(0, 30_000) == 0.015
+    with pytest.raises(ViewError) as e:
+        frames.exposure_time(10, 5, "items[3].request.")
+    assert e.value.field == "items[3].request.frame_end_us"
+    assert frames.view_request(request(frame_start_us=4_000_000, frame_end_us=4_030_000), np.eye(4)).time_s == 4.015
+    assert frames.view_request(request(), np.eye(4)).time_s is None
+    traj = frames.trajectory_message([1557539956.500022, 1557539956.600022], [np.eye(4), rigid(0.3, [1.0, 2.0, 0])])
+    assert [p.timestamp_us for p in traj.poses] == [1557539956500022, 1557539956600022]
+    assert np.allclose(frames.pose_matrix(traj.poses[1].pose, "p"), rigid(0.3, [1.0, 2.0, 0]), atol=1e-6)
 
 
 def test_pinhole_rescaled_as_camera_resized_with_the_ego_pose():

@@ -312,6 +312,7 @@ def _grpc_cases():
         which = r.camera_intrinsics.WhichOneof("camera_param")
         setattr(getattr(r.camera_intrinsics, which), name, value)
 
+    bad("exposure ends before it starts", lambda r: setattr(r, "frame_end_us", r.frame_start_us - 1))
     bad("fx 0", lambda r: intrinsics(r, "focal_length_x", 0.0))
     bad("cx nan", lambda r: intrinsics(r, "principal_point_x", float("nan")))
     bad("camera size 0", lambda r: (setattr(r, "resolution_w", 0), setattr(r, "resolution_h", 0),
