@@ -8,7 +8,12 @@
 Metrics (full resolution, RGB in 0..1): PSNR; SSIM (Wang et al. 2004: 11x11 Gaussian window of sigma 1.5,
 C1 = 0.01^2, C2 = 0.03^2, per channel then averaged); sharpness ratio = mean |gradient| of the luminance of the
 image over that of the ground truth (central differences; 1 = as much fine detail as the camera, a smear < 1).
-PSNR rewards blur; SSIM and the sharpness ratio do not.
+PSNR rewards blur; SSIM and the sharpness ratio do not. Each takes an optional ``mask`` ([H, W] bool, True = the
+pixels scored; e.g. not the ego's own body): the means run over those pixels only (image_metrics also gives the
+image the ground truth's values outside the mask, so that SSIM's windows and the gradients at the mask's edge see
+no difference there).
+
+Drives (`xyzcyl eval-real --drive`) are scored by runtime/drive_eval.py with these metrics and ``sheet``.
 """
 
 from __future__ import annotations
@@ -30,15 +35,26 @@ LUMA = np.array([0.299, 0.587, 0.114], np.float32)  # ITU-R BT.601 luminance wei
 # ------------------------------------------------------------------------------------------- metrics
 
 
-def psnr(pred: np.ndarray, gt: np.ndarray) -> float:
-    """dB, images [H, W, 3] in 0..1 (inf when equal)."""
-    mse = float(np.mean((np.asarray(pred, np.float64) - np.asarray(gt, np.float64)) ** 2))
+def _masked_mean(a: np.ndarray, mask: np.ndarray | None) -> float:
+    """Mean of [H, W] or [H, W, C] ``a`` over the pixels where ``mask`` ([H, W] bool) is True (all without a mask;
+    NaN when none is)."""
+    if mask is None:
+        return float(np.mean(a))
+    m = np.asarray(mask, bool)
+    return float(np.mean(a[m])) if m.any() else math.nan
+
+
+def psnr(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray | None = None) -> float:
+    """dB, images [H, W, 3] in 0..1 (inf when equal), over the pixels of ``mask`` when given."""
+    mse = _masked_mean((np.asarray(pred, np.float64) - np.asarray(gt, np.float64)) ** 2, mask)
+    if math.isnan(mse):
+        return mse
     return math.inf if mse == 0 else -10.0 * math.log10(mse)
 
 
-def ssim(pred: np.ndarray, gt: np.ndarray) -> float:
+def ssim(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray | None = None) -> float:
     """Mean SSIM of [H, W, 3] images in 0..1 (Wang et al. 2004 constants, Gaussian window 11 / sigma 1.5,
-    'same' borders reflected, the per-channel maps averaged)."""
+    'same' borders reflected, the per-channel maps averaged), over the pixels of ``mask`` when given."""
     import cv2
 
     x = np.asarray(pred, np.float64)
@@ -53,7 +69,7 @@ def ssim(pred: np.ndarray, gt: np.ndarray) -> float:
     syy = blur(y * y) - my * my
     sxy = blur(x * y) - mx * my
     m = ((2 * mx * my + c1) * (2 * sxy + c2)) / ((mx * mx + my * my + c1) * (sxx + syy + c2))
-    return float(m.mean())
+    return _masked_mean(m, mask)
 
 
 def ssim_reference(pred: np.ndarray, gt: np.ndarray) -> float:
@@ -85,22 +101,28 @@ def ssim_reference(pred: np.ndarray, gt: np.ndarray) -> float:
     return total / (H * W * C)
 
 
-def gradient_energy(img: np.ndarray) -> float:
-    """Mean |gradient| of the luminance of [H, W, 3] (0..1), central differences in the interior."""
+def gradient_energy(img: np.ndarray, mask: np.ndarray | None = None) -> float:
+    """Mean |gradient| of the luminance of [H, W, 3] (0..1), central differences in the interior (over the interior
+    pixels of ``mask`` when given)."""
     lum = np.asarray(img, np.float32) @ LUMA
     gx = 0.5 * (lum[1:-1, 2:] - lum[1:-1, :-2])
     gy = 0.5 * (lum[2:, 1:-1] - lum[:-2, 1:-1])
-    return float(np.mean(np.sqrt(gx * gx + gy * gy)))
+    return _masked_mean(np.sqrt(gx * gx + gy * gy), None if mask is None else np.asarray(mask, bool)[1:-1, 1:-1])
 
 
-def sharpness_ratio(pred: np.ndarray, gt: np.ndarray) -> float:
-    """gradient_energy(pred) / gradient_energy(gt) (NaN for a flat ground truth)."""
-    e = gradient_energy(gt)
-    return gradient_energy(pred) / e if e > 0 else float("nan")
+def sharpness_ratio(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray | None = None) -> float:
+    """gradient_energy(pred) / gradient_energy(gt) (NaN for a flat ground truth), over ``mask`` when given."""
+    e = gradient_energy(gt, mask)
+    return gradient_energy(pred, mask) / e if e > 0 else float("nan")
 
 
-def image_metrics(pred: np.ndarray, gt: np.ndarray) -> dict[str, float]:
-    return {"psnr": psnr(pred, gt), "ssim": ssim(pred, gt), "sharpness": sharpness_ratio(pred, gt)}
+def image_metrics(pred: np.ndarray, gt: np.ndarray, mask: np.ndarray | None = None) -> dict[str, float]:
+    """PSNR, SSIM and the sharpness ratio of ``pred`` against ``gt``; with ``mask`` ([H, W] bool, True = scored)
+    over its pixels, ``pred`` taking ``gt``'s values outside it (the module docstring)."""
+    if mask is not None:
+        m = np.asarray(mask, bool)
+        pred = np.where(m[..., None], np.asarray(pred, np.float32), np.asarray(gt, np.float32))
+    return {"psnr": psnr(pred, gt, mask), "ssim": ssim(pred, gt, mask), "sharpness": sharpness_ratio(pred, gt, mask)}
 
 
 # ------------------------------------------------------------------------------------------- frames and pairs

@@ -6,6 +6,11 @@
   "not moving" (A's own image of that camera). Pairs: ``--pairs A:B,...`` or every ordered pair whose ego origins
   are --min-distance..--max-distance metres apart; ``--max-pairs K`` keeps K of them, evenly spread.
 - PATH a rig.json: input views (each camera rendered at its own pose against its image).
+- ``--drive DRIVE.json`` (a drive file, runtime.drive): the drive reconstructed whole against one frame alone and
+  against not moving on the frames between its keyframes (runtime/drive_eval.py: keyframes every ``--every``th frame
+  of ``--frames A:B``, ``--max-views K`` scored frames, ``--width W``, ``--stride S`` the detail stride, ``--lidar
+  on|off``). Writes report.json and a picture sheet per scored frame, draws a progress bar over the scored frames
+  (on a terminal) and prints one JSON line per method (drive, one, still) and one with the sizes and times.
 
 Each frame A is reconstructed once per LiDAR mode (``--lidar off``: the depth head; ``on``: the rig's LiDAR sweep
 as the depth input) with all of its cameras; ``--cameras`` only picks the cameras that are rendered and compared.
@@ -19,6 +24,7 @@ import json
 import math
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -31,9 +37,22 @@ REPORT_FORMAT = "xyzcyl-eval-real"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("path", metavar="PATH",
+    parser.add_argument("path", metavar="PATH", nargs="?", default=None,
                         help="a folder of frames of one drive (sub-folders with a rig.json carrying ego_to_world): "
-                             "novel views; or one rig.json: input views")
+                             "novel views; or one rig.json: input views (or --drive instead)")
+    parser.add_argument("--drive", default=None, metavar="DRIVE_JSON",
+                        help="a drive file: the drive reconstructed whole against one frame alone and not moving, "
+                             "scored on the frames between its keyframes (docs/cli.md)")
+    parser.add_argument("--every", type=int, default=None, metavar="N",
+                        help="--drive: a keyframe every N frames (default 8)")
+    parser.add_argument("--frames", default=None, metavar="A:B",
+                        help="--drive: use frames A..B-1 of the drive (default all)")
+    parser.add_argument("--width", type=int, default=None, metavar="W",
+                        help="--drive: score at W pixels wide, aspect kept (default the cameras' own)")
+    parser.add_argument("--max-views", type=int, default=None, metavar="K",
+                        help="--drive: score K of the frames between keyframes, evenly spread (a quick run)")
+    parser.add_argument("--stride", type=int, default=None, metavar="S",
+                        help="the detail stride: --detail-stride's short form")
     parser.add_argument("--out", required=True, metavar="DIR",
                         help="folder for report.json and the pictures (created; files in it are replaced)")
     parser.add_argument("--pairs", default=None, metavar="A:B,...",
@@ -46,9 +65,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="default pairs: ego origins at most M metres apart (default 2.1)")
     parser.add_argument("--max-pairs", type=int, default=None, metavar="K",
                         help="keep K of the pairs, evenly spread over their sorted list (a quick run)")
-    parser.add_argument("--lidar", choices=tuple(MODES), default="both",
+    parser.add_argument("--lidar", choices=tuple(MODES), default=None,
                         help="reconstruct without LiDAR (off), with the rig's LiDAR sweep as the depth input (on), "
-                             "or both, side by side (default both)")
+                             "or both, side by side (default both; --drive: on or off, default on)")
     parser.add_argument("--cameras", default=None, metavar="A,B",
                         help="evaluate these cameras only (names; default: all). Reconstruction uses every camera")
     parser.add_argument("--model", default=None, metavar="DIR",
@@ -66,6 +85,33 @@ def _fail(msg: str) -> int:
 
 class _Usage(FieldError):
     """A user error found while planning: ``field`` the flag or argument ("--pairs", "PATH")."""
+
+
+def _start(out: Path, threads: int | None) -> None:
+    """Make --out and set numba's threads (--threads), once the arguments are checked (both modes)."""
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise _Usage("--out", str(exc)) from None
+    if threads is not None:
+        import numba
+
+        numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
+
+
+def _outputs(args: argparse.Namespace) -> tuple[Path, Path, Callable[[str], None]]:
+    """--out (a folder or nothing yet), the model folder (--model or the default) and the progress printer
+    (--quiet: none), both modes'."""
+    from ..inference import default_model_dir
+
+    out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        raise _Usage("--out", f"{str(out)!r} exists and is not a folder")
+    model_dir = Path(args.model) if args.model else default_model_dir()
+    if not model_dir.exists():
+        raise _Usage("--model", f"no model folder at {str(model_dir)!r}")
+    say = (lambda msg: None) if args.quiet else (lambda msg: print(f"  {msg}", file=sys.stderr, flush=True))
+    return out, model_dir, say
 
 
 def _finite(x: Any) -> Any:
@@ -157,14 +203,130 @@ def _write_jpeg(path: Path, rgb) -> None:
 
 def run(args: argparse.Namespace) -> int:
     try:
+        if args.stride is not None:
+            if args.detail_stride is not None or args.no_detail:
+                raise _Usage("--stride", "is --detail-stride's short form: give one of --stride, --detail-stride, "
+                                         "--no-detail")
+            args.detail_stride = args.stride
+        if args.drive is not None:
+            return _run_drive(args)
+        drive_only = [f for f, v in (("--every", args.every), ("--frames", args.frames), ("--width", args.width),
+                                     ("--max-views", args.max_views)) if v is not None]
+        if drive_only:
+            raise _Usage(drive_only[0], "goes with --drive DRIVE_JSON")
+        if args.path is None:
+            raise _Usage("PATH", "is missing: a folder of frames, a rig.json, or --drive DRIVE_JSON")
+        if args.lidar is None:
+            args.lidar = "both"
         return _run(args)
     except _Usage as exc:
         return _fail(str(exc))
 
 
+def parse_frames(text: str, n: int) -> tuple[int, int]:
+    """``A:B`` -> (A, B), frames A..B-1 of a drive of ``n`` frames (A empty: 0, B empty: n); _Usage naming
+    --frames when it is not that or not within the drive."""
+    a, sep, b = text.partition(":")
+    try:
+        start = int(a) if a.strip() else 0
+        stop = int(b) if b.strip() else n
+    except ValueError:
+        start = stop = None
+    if not sep or start is None:
+        raise _Usage("--frames", f"{text!r} is not A:B (frames A..B-1, e.g. 0:17)")
+    if not 0 <= start < stop <= n:
+        raise _Usage("--frames", f"{text} is out of range: the drive has {n} frames (A:B with 0 <= A < B <= {n})")
+    return start, stop
+
+
+def _run_drive(args: argparse.Namespace) -> int:
+    """`eval-real --drive DRIVE.json` (runtime/drive_eval.py does the work)."""
+    from xyzcyl.common.progress import progress_bar
+
+    from .. import drive_eval
+    from ..drive import DriveError, load_drive
+    from ..inference import InferenceError, ModelError, Reconstructor
+    from ..lidar import LidarError
+    from ..rig import RigError
+    from ..scene import SceneError
+
+    t_start = time.perf_counter()
+    if args.path is not None:
+        raise _Usage("PATH", f"{args.path!r} and --drive: give one of them")
+    for flag, v in (("--pairs", args.pairs), ("--min-distance", args.min_distance),
+                    ("--max-distance", args.max_distance), ("--max-pairs", args.max_pairs)):
+        if v is not None:
+            raise _Usage(flag, "is for a folder of frames (novel-view pairs), not --drive")
+    every = 8 if args.every is None else args.every
+    if every < 1:
+        raise _Usage("--every", f"must be >= 1 (got {every})")
+    if args.max_views is not None and args.max_views < 1:
+        raise _Usage("--max-views", f"must be >= 1 (got {args.max_views})")
+    if args.width is not None and args.width < 1:
+        raise _Usage("--width", f"must be >= 1 (got {args.width})")
+    if args.threads is not None and args.threads < 1:
+        raise _Usage("--threads", f"must be >= 1, got {args.threads}")
+    lidar = args.lidar or "on"
+    if lidar == "both":
+        raise _Usage("--lidar", "on or off with --drive (both: run it twice)")
+    try:
+        detail = detail_options(args)
+    except FieldError as exc:
+        raise _Usage("--stride" if args.stride is not None else exc.field, exc.message) from None
+    out, model_dir, say = _outputs(args)
+
+    path = Path(args.drive)
+    if not path.is_file():
+        raise _Usage("--drive", f"{str(path)!r} is not a file")
+    try:
+        whole = load_drive(path)
+    except DriveError as exc:
+        raise _Usage("--drive", str(exc)) from None
+    start, stop = (0, len(whole)) if args.frames is None else parse_frames(args.frames, len(whole))
+    drive = drive_eval.sub_drive(whole, start, stop)
+    keys, scored = drive_eval.plan(len(drive), every, args.max_views)
+    if not scored:
+        raise _Usage("--every", f"every frame of {start}:{stop} is a keyframe at --every {every}: no frame between "
+                                "keyframes to score")
+    cameras = _camera_names(args.cameras, list(drive.frames[0].rig.names))
+    if lidar == "on" and not any(drive_eval.frame_has_lidar(drive, k) for k in keys):
+        raise _Usage("--lidar", "no keyframe's rig has a LiDAR sweep (a lidar block with a file); use --lidar off")
+    _start(out, args.threads)
+
+    bar = progress_bar(total=len(scored), desc="eval-real: frames scored", unit="frame", enabled=not args.quiet)
+    if not args.quiet and not bar.disable:       # progress lines above the bar, not through it
+        say = lambda msg: bar.write(f"  {msg}", file=sys.stderr)     # noqa: E731
+    try:
+        say(f"load model {model_dir}")
+        rec = Reconstructor.load(model_dir, threads=args.threads)
+        report = drive_eval.evaluate_drive(rec, drive, keys, scored, out, lidar=lidar == "on", detail=detail,
+                                           width=args.width, cameras=cameras, first=start, say=say, bar=bar)
+    except (ModelError, RigError, InferenceError, SceneError, LidarError, DriveError) as exc:
+        bar.close()
+        return _fail(str(exc))
+    except OSError as exc:
+        bar.close()
+        return _fail(f"--out: {exc}")
+    report = {"format": REPORT_FORMAT, "format_version": 1, "kind": "drive", "drive": str(path),
+              "frames_range": [start, stop], "every": every, "max_views": args.max_views, "lidar": lidar,
+              "stride": None if detail is None else detail.stride,
+              "settings": {"model": {"name": rec.info.name, "version": rec.info.version, "dir": str(model_dir)},
+                           "detail": None if detail is None else dataclasses.asdict(detail),
+                           "threads": args.threads},
+              **report, "elapsed_s": round(time.perf_counter() - t_start, 3)}
+    try:
+        (out / "report.json").write_text(json.dumps(_finite(report), indent=1, allow_nan=False) + "\n")
+    except OSError as exc:
+        return _fail(f"--out: {exc}")
+    say(f"wrote {out / 'report.json'} and {len(report['pictures'])} pictures")
+    for line in drive_eval.method_lines(report):
+        print(json.dumps(_finite(line)))
+    return 0
+
+
 def _run(args: argparse.Namespace) -> int:
     from .. import realeval
-    from ..inference import InferenceError, ModelError, Reconstructor, as_rgb, default_model_dir
+    from ..inference import InferenceError, ModelError, Reconstructor, as_rgb
     from ..lidar import LidarError, has_lidar, load_lidar
     from ..rig import RigError, load_rig
     from ..scene import SceneError
@@ -190,13 +352,7 @@ def _run(args: argparse.Namespace) -> int:
     except FieldError as exc:
         raise _Usage(exc.field, exc.message) from None
     modes = MODES[args.lidar]
-    out = Path(args.out)
-    if out.exists() and not out.is_dir():
-        raise _Usage("--out", f"{str(out)!r} exists and is not a folder")
-    model_dir = Path(args.model) if args.model else default_model_dir()
-    if not model_dir.exists():
-        raise _Usage("--model", f"no model folder at {str(model_dir)!r}")
-    say = (lambda msg: None) if args.quiet else (lambda msg: print(f"  {msg}", file=sys.stderr, flush=True))
+    out, model_dir, say = _outputs(args)
 
     # ------------------------------------------------------------------ what to evaluate
     path = Path(args.path)
@@ -243,15 +399,7 @@ def _run(args: argparse.Namespace) -> int:
                                         f"with a file), needed by --lidar {args.lidar}; use --lidar off")
     except RigError as exc:
         raise _Usage("PATH", str(exc)) from None
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise _Usage("--out", str(exc)) from None
-
-    if args.threads is not None:
-        import numba
-
-        numba.set_num_threads(min(args.threads, numba.config.NUMBA_NUM_THREADS))
+    _start(out, args.threads)
 
     # ------------------------------------------------------------------ reconstruct and evaluate
     rows: list[dict[str, Any]] = []

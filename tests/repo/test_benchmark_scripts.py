@@ -1,6 +1,7 @@
 """The benchmark scripts that reproduce figures the documentation quotes run, with small arguments, as a user runs
 them (a subprocess from the repository root), and print JSON lines: benchmarks/eval_compare.py (paired intervals
-and rig gaps of `xyzcyl eval` reports), anchor_parallax.py, synth_lidar.py, compile_time.py and exposure_probe.py. The records the documentation cites lie in benchmarks/records and parse."""
+and rig gaps of `xyzcyl eval` reports), anchor_parallax.py, synth_lidar.py, compile_time.py and exposure_probe.py;
+drive_eval.py reaches `xyzcyl eval-real --drive`. The records the documentation cites lie in benchmarks/records and parse."""
 
 from __future__ import annotations
 
@@ -109,6 +110,15 @@ def test_exposure_probe(depth_scene):
                   "--width", "160", "--threads", "2", timeout=300)
     assert row["inputs"] == "exposure_1.5" and row["detail"] is False and row["model"].startswith("xyzcyl-cpu-v1")
     assert row["abs_rel"] > 0 and 0 <= row["delta1"] <= 1
+
+
+def test_drive_eval_is_eval_real_drive(tmp_path):
+    """benchmarks/drive_eval.py (docs/results.md "Drives") passes its flags to `xyzcyl eval-real --drive`: a bad one
+    comes back as the command's error, naming the flag (the evaluation itself: tests/runtime/test_drive_eval.py)."""
+    r = subprocess.run([sys.executable, str(BENCH / "drive_eval.py"), str(tmp_path / "drive.json"), "--every", "0",
+                        "--out", str(tmp_path / "out")], cwd=REPO, capture_output=True, text=True, timeout=120,
+                       check=False)
+    assert r.returncode == 2 and r.stderr.startswith("xyzcyl eval-real: --every"), r.stderr[-2000:]
 
 
 @pytest.mark.parametrize("name", sorted(p.name for p in (BENCH / "records").rglob("*.json*")))
