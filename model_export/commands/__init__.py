@@ -32,7 +32,7 @@ def _import_model():
 
 
 COMMANDS: tuple[Command, ...] = (
-    Command("data", "synthetic training data: synth, gallery", _data, "train"),
+    Command("data", "synthetic training data: synth, gallery, synth-drive", _data, "train"),
     Command("train", "train one stage (occ | render | depth) of the network", _train, "train"),
     Command("eval", "novel-view metrics of a model or a baseline", _eval, "train"),
     Command("export-model", "export a training checkpoint to an ONNX model folder", _export_model, "train"),

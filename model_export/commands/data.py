@@ -4,6 +4,8 @@
         --targets ego-forward,ego-inward --seed S [--inward-views V] [--supersample 2] [--voxels 0.4,0.8] \
         [--near-cars P] [--workers N]
     xyzcyl data gallery DIR --out sheet.png [--scenes 8]
+    xyzcyl data synth-drive OUT [--seed S] [--frames 40] [--hz 10] [--speed 5] [--rig pandaset] [--width 1920] \
+        [--movers 3] [--workers N]
 """
 
 from __future__ import annotations
@@ -40,6 +42,25 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                    help="scenes rendered at once, each in its own process with cores/N numba threads (default 1: "
                         "one process, all cores per scene); the files are identical for any N")
     s.add_argument("--quiet", action="store_true", help="no progress bar")
+    d = sub.add_parser("synth-drive", help="render a synthetic drive at speed with exact ground truth (resumable)")
+    d.add_argument("out", type=Path, help="drive folder (created; finished frames are kept)")
+    d.add_argument("--seed", type=int, default=7, help="the street: scene --scene of this seed (default 7)")
+    d.add_argument("--scene", type=int, default=None,
+                   help="scene index of the seed (default: its first scene with parking on both sides)")
+    d.add_argument("--frames", type=int, default=40, help="frames (default 40)")
+    d.add_argument("--hz", type=float, default=10.0, help="frames per second (default 10)")
+    d.add_argument("--speed", type=float, default=5.0, help="the ego's speed, m/s (default 5)")
+    d.add_argument("--rig", default="pandaset",
+                   help="nuscenes, carla-centric, pandaset, waymo, once, argoverse, or a rig.json path "
+                        "(default pandaset)")
+    d.add_argument("--width", type=int, default=1920,
+                   help="image width, pixels; the height keeps the rig's real aspect (default 1920: 1920x1080)")
+    d.add_argument("--movers", type=int, default=3, help="cars driving along the road, both ways (default 3)")
+    d.add_argument("--supersample", type=int, default=2, help="ss: ss x ss RGB samples per pixel")
+    d.add_argument("--no-shadows", action="store_true", help="no sun shadows (faster)")
+    d.add_argument("--workers", type=int, default=1,
+                   help="frames rendered at once, each in its own process with cores/N numba threads (default 1)")
+    d.add_argument("--quiet", action="store_true", help="no progress bar")
     g = sub.add_parser("gallery", help="contact sheet of a data set")
     g.add_argument("dataset", type=Path, help="data set folder (`xyzcyl data synth` output)")
     g.add_argument("--out", required=True, type=Path, help="output PNG")
@@ -68,6 +89,15 @@ def run(args: argparse.Namespace) -> int:
                               near_cars=args.near_cars, photo_textures=args.photo_textures)
             n = synth(args.out, args.scenes, cfg, progress=not args.quiet, workers=args.workers)
             print(f"{n} scenes rendered into {args.out}")
+            return 0
+        if args.action == "synth-drive":
+            from xyzcyl.model_export.data.drive import DriveConfig, synth_drive
+
+            cfg = DriveConfig(seed=args.seed, frames=args.frames, hz=args.hz, speed=args.speed, rig=args.rig,
+                              width=args.width, movers=args.movers, supersample=args.supersample,
+                              shadows=not args.no_shadows, scene_index=args.scene)
+            n = synth_drive(args.out, cfg, progress=not args.quiet, workers=args.workers)
+            print(f"{n} frames rendered into {args.out} ({cfg.width}x{cfg.height}); drive: {args.out / 'drive.json'}")
             return 0
         import cv2
         from xyzcyl.model_export.data.gallery import contact_sheet

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import json
 import os
 import shutil
@@ -246,6 +247,48 @@ def _render_and_write(cfg: SynthConfig, index: int, out: Path) -> int:
     return index
 
 
+def open_output(out: str | Path, workers: int, cfg) -> Path:
+    """The output folder (made) of a generator run with ``cfg`` (its validate() raises for a bad config) and
+    ``workers`` (ValueError unless an integer >= 1): synth and the synthetic drive (drive.py)."""
+    if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
+        raise ValueError(f"workers: must be an integer >= 1, got {workers!r}")
+    cfg.validate()
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    return out
+
+
+def produce(todo: list[int], workers: int, render, write, task, done) -> None:
+    """Render and write each item of ``todo``: with one worker in this process (``render(i)`` -> data, then
+    ``write(data)`` in a thread while the next item renders), else in ``workers`` spawned processes each running
+    ``task(i)`` (picklable: render and write one item) with its share of the cores. ``done()`` after each item is
+    written. synth and the synthetic drive (drive.py) both write so."""
+    if workers <= 1:
+        pending: Future | None = None
+        with ThreadPoolExecutor(1) as pool:
+            for i in todo:
+                data = render(i)
+                if pending is not None:
+                    pending.result()
+                    done()
+                pending = pool.submit(write, data)
+            if pending is not None:
+                pending.result()
+                done()
+        return
+    # spawn, not fork: numba's omp threading layer (GNU OpenMP) is not fork-safe once its pool has started
+    import multiprocessing
+
+    pool = ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"),
+                               initializer=_worker_init, initargs=(max(1, cores() // workers),))
+    try:
+        for f in as_completed([pool.submit(task, i) for i in todo]):
+            f.result()
+            done()
+    finally:
+        pool.shutdown(wait=True, cancel_futures=True)
+
+
 def synth(out: Path, n: int, cfg: SynthConfig, progress: bool = True, workers: int = 1) -> int:
     """Render scenes 0..n-1 into `out`, skipping finished ones; returns the number rendered now.
 
@@ -258,11 +301,7 @@ def synth(out: Path, n: int, cfg: SynthConfig, progress: bool = True, workers: i
     """
     from xyzcyl.common.progress import progress_bar
 
-    if isinstance(workers, bool) or not isinstance(workers, int) or workers < 1:
-        raise ValueError(f"workers: must be an integer >= 1, got {workers!r}")
-    cfg.validate()
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
+    out = open_output(out, workers, cfg)
     idx_path = out / "index.json"
     if idx_path.exists():
         old = json.loads(idx_path.read_text())
@@ -280,30 +319,8 @@ def synth(out: Path, n: int, cfg: SynthConfig, progress: bool = True, workers: i
     todo = [i for i in range(n) if not (out / scene_name(i)).is_dir()]
     workers = min(workers, len(todo))
     with progress_bar(total=len(todo), desc="synth", unit="scene", enabled=progress) as bar:
-        if workers <= 1:
-            pending: Future | None = None
-            with ThreadPoolExecutor(1) as pool:
-                for i in todo:
-                    data = render_scene(cfg, i)
-                    if pending is not None:
-                        pending.result()
-                        bar.update()
-                    pending = pool.submit(_write_atomic, data, out, cfg)
-                if pending is not None:
-                    pending.result()
-                    bar.update()
-        else:
-            # spawn, not fork: numba's omp threading layer (GNU OpenMP) is not fork-safe once its pool has started
-            import multiprocessing
-
-            pool = ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"),
-                                       initializer=_worker_init, initargs=(max(1, cores() // workers),))
-            try:
-                for f in as_completed([pool.submit(_render_and_write, cfg, i, out) for i in todo]):
-                    f.result()
-                    bar.update()
-            finally:
-                pool.shutdown(wait=True, cancel_futures=True)
+        produce(todo, workers, lambda i: render_scene(cfg, i), lambda data: _write_atomic(data, out, cfg),
+                functools.partial(_render_and_write, cfg, out=out), bar.update)
     idx_path.write_text(json.dumps(index_doc(cfg, n_total), indent=1) + "\n")
     shutil.rmtree(tmp, ignore_errors=True)
     return len(todo)
