@@ -24,13 +24,14 @@ Reconstruction (reconstruct_drive):
    cameras of its own keyframe (a finer copy of the same surface or a view through it) and against the cameras of
    the neighbouring keyframes (a view through it only: the road a later frame saw behind a car that has left);
    the surface seen by several keyframes is then kept once, from its finest observation (dedupe_frames: on voxels
-   of about VOXEL_CELLS of the cells' footprints, the keyframe with the finest cell in a voxel keeps it; ties: the earlier); the
+   of about VOXEL_CELLS of the cells' footprints, the keyframe with the finest cell in a voxel keeps it; among
+   equally fine ones the keyframe that saw it from nearest, keyframes of a still ego being one viewpoint); the
    model's Gaussians of every keyframe fill what no cell covers (runtime.detail.cull_covered), kept once per
    voxel the same way. Cells another keyframe drops are removed, not hidden: the scene has no own views.
 
-What is not done yet (docs/inference.md "Drives" lists it): time over gRPC, moving objects found
-without tracks, exposure harmonisation across keyframes, a sky dome, the ego's own body found over frames, stereo
-depth between keyframes, spatial chunks.
+What is not done yet (docs/inference.md "Drives" lists it): moving objects found without tracks, exposure
+harmonisation across keyframes, a sky dome, the ego's own body found over frames, stereo depth between keyframes,
+spatial chunks, parallel keyframe workers.
 """
 
 from __future__ import annotations
@@ -60,6 +61,7 @@ VOXEL_LEVELS = 12              # VOXEL_CELLS x its footprint, up to 2 cm x 2^11 
 VOXEL_CELLS = 4                # a voxel spans ~4 cells across: one keyframe owns each patch of a surface (at 1
 #                                cell a voxel, two keyframes' cells of one surface fell in different voxels and
 #                                both stayed, interleaved: the PandaSet drive kept 2.0x one frame's Gaussians)
+VIEWPOINT_RADIUS_M = 0.5       # keyframes whose ego stood within this of a group's first see from one viewpoint
 TRACK_GROW = 1.1               # a moving object's box, grown by this factor, holds its Gaussians
 
 
@@ -230,11 +232,15 @@ def load_tracks(path: Path, n_frames: int) -> tuple[Track, ...]:
 # ------------------------------------------------------------------------------------------- keyframes
 
 
-def pick_keyframes(drive: Drive, spacing_m: float = DEFAULT_SPACING_M, max_gap_s: float = DEFAULT_MAX_GAP_S,
+def pick_keyframes(drive: Drive, spacing_m: float | None = None, max_gap_s: float | None = None,
                    every: int | None = None) -> list[int]:
-    """The frames to reconstruct: the first, then each frame at least ``spacing_m`` metres (the ego's position)
-    or ``max_gap_s`` seconds after the last keyframe, and the last frame when it is at least half a spacing away
-    from the last keyframe. ``every``: every Nth frame instead (evaluation)."""
+    """The frames to reconstruct: the first, then each frame at least ``spacing_m`` metres (the ego's position;
+    None: DEFAULT_SPACING_M) or ``max_gap_s`` seconds (None: DEFAULT_MAX_GAP_S) after the last keyframe, and the
+    last frame when it is at least half a spacing away from the last keyframe. ``every``: every Nth frame instead
+    (evaluation). `xyzcyl reconstruct DRIVE.json` and the service (POST /v1/scenes' keyframe_spacing /
+    keyframe_gap) pick them so."""
+    spacing_m = DEFAULT_SPACING_M if spacing_m is None else spacing_m
+    max_gap_s = DEFAULT_MAX_GAP_S if max_gap_s is None else max_gap_s
     n = len(drive.frames)
     if every is not None:
         if every < 1:
@@ -371,48 +377,81 @@ def voxel_levels(footprint: np.ndarray) -> np.ndarray:
     return np.clip(np.ceil(np.log2(f / VOXEL_BASE_M)), 0, VOXEL_LEVELS - 1).astype(np.int8)
 
 
-def dedupe_frames(points: np.ndarray, level: np.ndarray, frame: np.ndarray) -> np.ndarray:
+def dedupe_frames(points: np.ndarray, level: np.ndarray, frame: np.ndarray,
+                  origins: np.ndarray | None = None) -> np.ndarray:
     """[N] bool, what to keep of cells from several keyframes (points [N, 3] metres in one frame, level [N] their
-    voxel_levels, frame [N] their keyframe): a cell at level L looks at its voxel of size VOXEL_BASE_M 2^L and the
-    cells in it at level L or finer; the keyframe of the finest of them (the lowest level; ties: the earliest
-    keyframe) owns the voxel, and the cell is kept only when that is its own keyframe. So a keyframe's surface is
-    replaced where another keyframe resolved it more finely, and cells of one keyframe never drop each other (that
-    is its own fusion's work). Voxels nest (each level's grid halves the next) and the owner of a voxel is never
-    dropped, so the result does not depend on the order cells arrive in: adding keyframes one at a time and
-    deduping each time keeps what deduping them all at once keeps. dedupe_frames_reference is its definition."""
+    voxel_levels, frame [N] their keyframe; origins [K, 3] metres, where each keyframe saw from: the ego position of
+    its viewpoint group, viewpoint_origins): a cell at level L looks at its voxel of size VOXEL_BASE_M 2^L and the
+    cells in it at level L or finer; the best of them owns the voxel, and the cell is kept only when that is its own
+    keyframe. Best: the finest (the lowest level); among equally fine ones, the keyframe that saw the voxel from
+    nearest (the distance from the voxel's centre to its origin; without origins, all equally near); then the
+    earliest keyframe. So a keyframe's surface is replaced where another keyframe resolved it more finely or, as
+    finely, from closer by, and cells of one keyframe never drop each other (that is its own fusion's work).
+    Voxels nest (each level's grid halves the next) and the owner of a voxel is never dropped, so the result does
+    not depend on the order cells arrive in: adding keyframes one at a time and deduping each time keeps what
+    deduping them all at once keeps. dedupe_frames_reference is its definition."""
     n = len(points)
     keep = np.ones(n, bool)
     if n == 0:
         return keep
     level = np.asarray(level, np.int64)
     frame = np.asarray(frame, np.int64)
-    rank = level * (int(frame.max()) + 1) + frame           # lexicographic (level, frame)
     # level by level, fine to coarse: a voxel's owner is the best of its cells at this level and the owners of its
     # eight children (the voxels of the level below: their coordinates halved), so each step sorts the owners so
-    # far and this level's cells, not every finer cell again
-    oc = np.zeros((0, 3), np.int64)            # owners: voxel coordinates, rank, frame
-    orank = np.zeros(0, np.int64)
+    # far and this level's cells, not every finer cell again; an owner keeps its (level, distance, keyframe)
+    oc = np.zeros((0, 3), np.int64)            # owners: voxel coordinates, level, distance, keyframe
+    olev = np.zeros(0, np.int64)
+    odist = np.zeros(0, np.float64)
     oframe = np.zeros(0, np.int64)
     for L in range(int(level.max()) + 1):
         if L:
             oc = np.floor_divide(oc, 2)
         here = np.flatnonzero(level == L)
-        cc = np.floor(np.asarray(points[here], np.float64) / (VOXEL_BASE_M * 2.0 ** L)).astype(np.int64)
+        size = VOXEL_BASE_M * 2.0 ** L
+        cc = np.floor(np.asarray(points[here], np.float64) / size).astype(np.int64)
         coords = np.concatenate([oc, cc])
-        ranks = np.concatenate([orank, rank[here]])
+        levs = np.concatenate([olev, level[here]])
+        dists = np.concatenate([odist, _voxel_distance(cc, size, frame[here], origins)])
         frames = np.concatenate([oframe, frame[here]])
         keys = _pack(coords)
         if not len(keys):
             continue
-        order = np.lexsort((ranks, keys))
+        order = np.lexsort((frames, dists, levs, keys))
         k_sorted = keys[order]
         first = np.concatenate([[True], k_sorted[1:] != k_sorted[:-1]])
         win = order[first]
-        oc, orank, oframe = coords[win], ranks[win], frames[win]
+        oc, olev, odist, oframe = coords[win], levs[win], dists[win], frames[win]
         if len(here):
             at = np.searchsorted(k_sorted[first], keys[len(keys) - len(here):])
             keep[here] = oframe[at] == frame[here]
     return keep
+
+
+def _voxel_distance(coords: np.ndarray, size: float, frame: np.ndarray, origins: np.ndarray | None) -> np.ndarray:
+    """[N] metres from the centres of voxels ``coords`` [N, 3] (integer, of edge ``size`` metres) to the origins of
+    keyframes ``frame`` [N] (0 without origins). Cells of one viewpoint group in one voxel get the same value
+    exactly (the same centre, the same origin): their tie goes to the earliest keyframe."""
+    if origins is None:
+        return np.zeros(len(coords), np.float64)
+    centre = (coords.astype(np.float64) + 0.5) * size
+    return np.linalg.norm(centre - np.asarray(origins, np.float64)[frame], axis=1)
+
+
+def viewpoint_origins(positions: np.ndarray, radius_m: float | None = None) -> np.ndarray:
+    """[K, 3] metres: each keyframe's viewpoint for dedupe_frames, from the ego positions [K, 3] (scene frame, in
+    keyframe order): a keyframe within ``radius_m`` (default VIEWPOINT_RADIUS_M) of the first keyframe of the
+    current group joins it and sees from that keyframe's position, else it starts a group of its own. An ego that
+    stands still (the PandaSet drive's first 2 s) is one viewpoint: its keyframes tie and the earliest keeps the
+    surface whole, rather than a patchwork decided by centimetres of pose noise."""
+    radius = VIEWPOINT_RADIUS_M if radius_m is None else radius_m
+    positions = np.asarray(positions, np.float64).reshape(-1, 3)
+    out = positions.copy()
+    anchor = None
+    for k, p in enumerate(positions):
+        if anchor is None or np.linalg.norm(p - anchor) > radius:
+            anchor = p
+        out[k] = anchor
+    return out
 
 
 def _pack(coords: np.ndarray) -> np.ndarray:
@@ -421,18 +460,29 @@ def _pack(coords: np.ndarray) -> np.ndarray:
     return (v[:, 0] << 42) | (v[:, 1] << 21) | v[:, 2]
 
 
-def dedupe_frames_reference(points: np.ndarray, level: np.ndarray, frame: np.ndarray) -> np.ndarray:
-    """dedupe_frames cell by cell (slow, obviously correct; for the tests)."""
+def dedupe_frames_reference(points: np.ndarray, level: np.ndarray, frame: np.ndarray,
+                            origins: np.ndarray | None = None) -> np.ndarray:
+    """dedupe_frames cell by cell (slow, obviously correct; for the tests): each cell's rank is (its level, the
+    distance from its own voxel's centre to its keyframe's origin, its keyframe); a cell is kept when no cell of
+    another keyframe at its level or finer, in its voxel, ranks lower."""
     n = len(points)
     keep = np.ones(n, bool)
+    pts = np.asarray(points, np.float64)
+
+    def rank(j: int) -> tuple[int, float, int]:
+        size = VOXEL_BASE_M * 2.0 ** int(level[j])
+        centre = (np.floor(pts[j] / size) + 0.5) * size
+        d = 0.0 if origins is None else float(np.linalg.norm(centre - np.asarray(origins[int(frame[j])], np.float64)))
+        return int(level[j]), d, int(frame[j])
+
     for i in range(n):
         size = VOXEL_BASE_M * 2.0 ** int(level[i])
-        vi = np.floor(points[i] / size)
-        owner = (int(level[i]), int(frame[i]))
+        vi = np.floor(pts[i] / size)
+        owner = rank(i)
         for j in range(n):
-            if level[j] <= level[i] and np.array_equal(np.floor(points[j] / size), vi):
-                owner = min(owner, (int(level[j]), int(frame[j])))
-        keep[i] = owner[1] == frame[i]
+            if level[j] <= level[i] and np.array_equal(np.floor(pts[j] / size), vi):
+                owner = min(owner, rank(j))
+        keep[i] = owner[2] == frame[i]
     return keep
 
 
@@ -448,12 +498,13 @@ class _Kept:
     gaussians: list[Gaussians]
     level: list[np.ndarray]
     frame: list[np.ndarray]
+    origins: np.ndarray             # [K, 3] metres: each keyframe's viewpoint (viewpoint_origins)
 
     def dedupe(self) -> None:
         if not self.gaussians:
             return
         pts = np.concatenate([g.means for g in self.gaussians])
-        keep = dedupe_frames(pts, np.concatenate(self.level), np.concatenate(self.frame))
+        keep = dedupe_frames(pts, np.concatenate(self.level), np.concatenate(self.frame), self.origins)
         start = 0
         for i, g in enumerate(self.gaussians):
             m = keep[start:start + len(g)]
@@ -492,15 +543,16 @@ def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None,
         rig = drive.frames[k].rig
         return load_lidar(rig).points if lidar and has_lidar(rig) else None
 
-    if len(keys) == 1 and not drive.tracks:
+    if keys == [0] and not drive.tracks:          # the scene's frame is frame 0's: only then is it one rig's scene
         fr = drive.frames[keys[0]]
         scene = rec.reconstruct(fr.rig, progress=say, lidar=sweep(keys[0]), detail=detail)
         scene.drive = _drive_meta(drive, keys)
         return scene
     counts: dict[str, Any] = {"keyframes": len(keys), "frames": len(drive)}
     timings: dict[str, float] = {}
-    detail_kept = _Kept([], [], [])
-    coarse_kept = _Kept([], [], [])
+    origins = viewpoint_origins(np.array([drive.relative(k)[:3, 3] for k in keys]))
+    detail_kept = _Kept([], [], [], origins)
+    coarse_kept = _Kept([], [], [], origins)
     window: list[tuple[int, list, list[Gaussians], list[np.ndarray]]] = []     # (keyframe, details, parts, keep)
     background = None
     moved_out = 0
@@ -580,10 +632,26 @@ def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None,
     if actors is not None:
         counts.update({"actors": len(actors), "actor_copies": len(actors.copy_track),
                        "actor_gaussians": len(actors.gaussians)})
+    keyframe_of = np.concatenate([*coarse_kept.frame, *detail_kept.frame]).astype(np.int16)
     scene = Scene(gaussians=gauss, background=background, rig=drive.frames[0].rig, model=rec.scene_model(),
-                  counts=counts, timings={key: round(v, 6) for key, v in timings.items()}, actors=actors)
+                  counts=counts, timings={key: round(v, 6) for key, v in timings.items()}, actors=actors,
+                  keyframe_of=keyframe_of if len(keyframe_of) == len(gauss) else None)
     scene.drive = _drive_meta(drive, keys)
     return scene
+
+
+def save_drive_scene(rec, drive: Drive, keys: Sequence[int], out: str | os.PathLike, *, detail,
+                     lidar: bool = True, say: Callable[[str], None] | None = None):
+    """A drive's scene folder, the one path of `xyzcyl reconstruct DRIVE_JSON` and of the service's worker for a
+    posted drive: reconstruct_drive of the keyframes ``keys`` with the Reconstructor ``rec`` and the detail layer's
+    settings ``detail`` (None: none), written to ``out`` (replaced). Returns the scene and the seconds the save
+    took."""
+    say = say or (lambda msg: None)
+    scene = reconstruct_drive(rec, drive, keys, lidar=lidar, detail=detail, progress=say)
+    say(f"write {out}")
+    t1 = time.perf_counter()
+    scene.save(out, overwrite=True)
+    return scene, time.perf_counter() - t1
 
 
 def _cell_footprint_of(g: Gaussians) -> np.ndarray:
@@ -608,7 +676,7 @@ def _concat(parts: list[Gaussians]) -> Gaussians:
     from .detail import concat_gaussians
 
     parts = [g for g in parts if len(g)] or parts[:1]
-    return concat_gaussians(parts)
+    return concat_gaussians(parts) if parts else Gaussians.empty()      # no parts: detail off
 
 
 def _drive_meta(drive: Drive, keys: Sequence[int]) -> dict[str, Any]:
@@ -625,5 +693,5 @@ def _drive_meta(drive: Drive, keys: Sequence[int]) -> dict[str, Any]:
 
 __all__ = ["DEFAULT_MAX_GAP_S", "DEFAULT_SPACING_M", "Drive", "DriveError", "DriveFrame", "Track", "dedupe_frames",
            "dedupe_frames_reference", "drive_of_rig", "inside_boxes", "is_drive_file", "load_drive", "load_tracks",
-           "moving_boxes", "pick_keyframes", "reconstruct_drive", "transform_detail", "transform_gaussians",
-           "voxel_levels"]
+           "moving_boxes", "pick_keyframes", "reconstruct_drive", "save_drive_scene", "transform_detail", "transform_gaussians",
+           "viewpoint_origins", "voxel_levels"]

@@ -187,10 +187,13 @@ def run(args: argparse.Namespace) -> int:
         bg = scene.background.render(cam)
     else:
         bg = None
-    if scene is not None:    # the Gaussians the service renders for this camera (runtime.scene.render_view)
+    if scene is not None:    # what the service renders for this camera (runtime.scene.render_view)
         g = scene.gaussians_at(cam, req.time_s)
-    res = render(g, cam, background=bg, antialiased=args.antialiased)
-    data = encode_view(res.rgb, res.depth, res.alpha, req)
+        rgb, depth, alpha = scene.render(cam, req.time_s, background=bg, antialiased=args.antialiased)
+    else:
+        res = render(g, cam, background=bg, antialiased=args.antialiased)
+        rgb, depth, alpha = res.rgb, res.depth, res.alpha
+    data = encode_view(rgb, depth, alpha, req)
     try:
         with atomic_file(out) as f:
             f.write(data)
@@ -198,5 +201,5 @@ def run(args: argparse.Namespace) -> int:
         return _fail(f"--out: {exc}")
     if not args.quiet:
         print(f"rendered {len(g)} Gaussians -> {out} ({cam.width}x{cam.height}, "
-              f"coverage {float((res.alpha > 0).mean()):.3f}{', with background' if bg is not None else ''})")
+              f"coverage {float((alpha > 0).mean()):.3f}{', with background' if bg is not None else ''})")
     return 0

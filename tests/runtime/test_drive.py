@@ -4,9 +4,7 @@ model: a still ego posted twice is kept once, a moving one grows the scene with 
 
 from __future__ import annotations
 
-import json
 import math
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -19,41 +17,12 @@ from xyzcyl.runtime.drive import (
     load_drive,
     pick_keyframes,
     transform_gaussians,
+    viewpoint_origins,
     voxel_levels,
 )
 from xyzcyl.testing import EXAMPLE_RIG
-
-
-def _pose(x: float = 0.0, y: float = 0.0, yaw_deg: float = 0.0) -> list[list[float]]:
-    c, s = math.cos(math.radians(yaw_deg)), math.sin(math.radians(yaw_deg))
-    return [[c, -s, 0, x], [s, c, 0, y], [0, 0, 1, 0.0], [0, 0, 0, 1]]
-
-
-def write_drive(tmp: Path, poses: list, times: list, edit=None, tracks=None) -> Path:
-    """A drive of the example rig (its images, by absolute path) at ``poses`` (ego_to_world) and ``times``;
-    ``edit(i, rig_dict)`` may change a frame's rig; ``tracks``: a tracks file's content."""
-    base = json.loads(Path(EXAMPLE_RIG).read_text())
-    frames = []
-    for i, (pose, ts) in enumerate(zip(poses, times)):
-        rig = json.loads(json.dumps(base))
-        for c in rig["cameras"]:
-            c["image"] = str(Path(EXAMPLE_RIG).parent / c["image"])
-        if pose is not None:
-            rig["ego_to_world"] = pose
-        if edit is not None:
-            edit(i, rig)
-        (tmp / f"frame_{i:02d}").mkdir(parents=True, exist_ok=True)
-        (tmp / f"frame_{i:02d}" / "rig.json").write_text(json.dumps(rig))
-        entry = {"rig": f"frame_{i:02d}/rig.json"}
-        if ts is not None:
-            entry["timestamp_s"] = ts
-        frames.append(entry)
-    doc = {"frames": frames}
-    if tracks is not None:
-        (tmp / "tracks.json").write_text(json.dumps(tracks))
-        doc["tracks"] = "tracks.json"
-    (tmp / "drive.json").write_text(json.dumps(doc))
-    return tmp / "drive.json"
+from xyzcyl.testing.drives import pose as _pose
+from xyzcyl.testing.drives import write_drive
 
 
 def test_a_drive_file_loads_in_the_first_frames_frame(tmp_path):
@@ -154,21 +123,25 @@ def test_moved_gaussians_render_as_the_moved_camera_sees_the_original():
     np.testing.assert_allclose(b.alpha, a.alpha, atol=2e-4)
 
 
-def test_dedupe_frames_matches_its_reference_and_does_not_depend_on_the_order():
+@pytest.mark.parametrize("with_origins", [False, True])
+def test_dedupe_frames_matches_its_reference_and_does_not_depend_on_the_order(with_origins):
     rng = np.random.default_rng(5)
     n = 400
     pts = rng.uniform(0, 1.0, (n, 3))                  # dense: many shared voxels at every level
     level = rng.integers(0, 6, n).astype(np.int8)
     frame = rng.integers(0, 4, n)
-    keep = dedupe_frames(pts, level, frame)
-    np.testing.assert_array_equal(keep, dedupe_frames_reference(pts, level, frame))
+    # keyframes 0 and 1 one viewpoint (their tie: the earlier), 2 and 3 elsewhere
+    origins = viewpoint_origins(np.array([[0, 0, 0], [0.1, 0, 0], [3, 1, 0], [0.5, 4, 0.0]])) if with_origins \
+        else None
+    keep = dedupe_frames(pts, level, frame, origins)
+    np.testing.assert_array_equal(keep, dedupe_frames_reference(pts, level, frame, origins))
     assert 0 < keep.sum() < n
     # keyframes added one at a time, deduping each time, keep what deduping them all at once keeps
     alive = np.zeros(n, bool)
     for f in range(4):
         alive |= frame == f
         idx = np.flatnonzero(alive)
-        k = dedupe_frames(pts[idx], level[idx], frame[idx])
+        k = dedupe_frames(pts[idx], level[idx], frame[idx], origins)
         alive[idx[~k]] = False
     np.testing.assert_array_equal(alive, keep)
     # one keyframe alone keeps everything; a finer cell of another keyframe takes a voxel over
@@ -176,6 +149,19 @@ def test_dedupe_frames_matches_its_reference_and_does_not_depend_on_the_order():
     two = np.array([[0.001, 0.001, 0.001], [0.002, 0.002, 0.002]])
     assert dedupe_frames(two, np.array([3, 1]), np.array([0, 1])).tolist() == [False, True]
     assert dedupe_frames(two, np.array([2, 2]), np.array([1, 0])).tolist() == [False, True]
+
+
+def test_dedupe_frames_prefers_the_nearer_viewpoint_among_equally_fine_cells():
+    # one voxel seen as finely by three keyframes: the ones at the origin stood still (one viewpoint: the earlier
+    # keeps it), the third drove 10 m on, next to the voxel, and takes it over; a coarser cell never does
+    origins = viewpoint_origins(np.array([[0.0, 0, 0], [0.2, 0, 0], [10.0, 0, 0]]))
+    np.testing.assert_array_equal(origins[1], [0, 0, 0])
+    pts = np.array([[9.0, 2.0, 0.5]] * 3) + 0.001
+    lv = np.array([5, 5, 5])
+    assert dedupe_frames(pts[:2], lv[:2], np.array([1, 0]), origins).tolist() == [False, True]
+    assert dedupe_frames(pts, lv, np.array([0, 1, 2]), origins).tolist() == [False, False, True]
+    assert dedupe_frames(pts, np.array([4, 5, 5]), np.array([0, 1, 2]), origins).tolist() == [True, False, False]
+    assert dedupe_frames(pts, lv, np.array([0, 1, 2])).tolist() == [True, False, False]     # no origins: earliest
 
 
 def test_voxel_levels_and_boxes():
@@ -230,10 +216,13 @@ def test_a_still_ego_posted_twice_is_kept_once(tmp_path, shipped):
     np.testing.assert_array_equal(single.gaussians.means, one.gaussians.means)
     # the scene folder records the drive, and reads it back
     two.save(tmp_path / "scene")
-    from xyzcyl.runtime.scene import Scene
+    from xyzcyl.runtime.scene import Scene, rig_camera
 
     back = Scene.load(tmp_path / "scene")
     assert back.drive["keyframes"] == [0, 1] and len(back.drive["trajectory"]) == 2
+    # each Gaussian's keyframe (a view draws its primary keyframe's first: the first's, at a camera of frame 0)
+    assert back.keyframe_of.shape == (len(two.gaussians),) and set(np.unique(back.keyframe_of)) <= {0, 1}
+    assert back.primary_keyframe(rig_camera(back.rig.cameras[0])) == 0
     np.testing.assert_allclose(back.drive["ego_to_world"], _pose(7, 3, 20))
 
 

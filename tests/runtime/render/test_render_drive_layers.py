@@ -1,0 +1,87 @@
+"""A drive's scene of several keyframes draws in two layers (runtime.scene.Scene.render): the view's primary keyframe
+(Scene.primary_keyframe: the keyframe whose cameras stood nearest, a still ego's by time) over the others; the
+layers' composite against one pass of the renderer; keyframe_of through the scene folder and its refusals."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from render_scenes import concat, look_at, pinhole, random_gaussians
+from xyzcyl.runtime.render import render
+from xyzcyl.runtime.rig import load_rig
+from xyzcyl.runtime.scene import Scene, SceneError, composite_layers
+from xyzcyl.testing import EXAMPLE_RIG
+from xyzcyl.testing.drives import pose
+
+
+def _drive(xs, times, keyframes) -> dict:
+    """scene.json's drive block of frames with the ego at x = ``xs`` (scene frame) and ``times`` (seconds)."""
+    return {"frames": len(xs), "keyframes": list(keyframes), "timestamp_s": 100.0,
+            "times_s": list(times), "ego_to_world": np.eye(4).tolist(),
+            "trajectory": [pose(x, 0.0) for x in xs], "tracks": 0}
+
+
+def _scene(g, keyframe_of, drive) -> Scene:
+    return Scene(gaussians=g, background=None, rig=load_rig(EXAMPLE_RIG), drive=drive,
+                 keyframe_of=np.asarray(keyframe_of, np.int16))
+
+
+def test_the_primary_layer_drawn_first_over_the_rest():
+    rng = np.random.default_rng(3)
+    near = random_gaussians(rng, 150, lo=(-2, -1.5, 2), hi=(2, 1.5, 4))      # camera frame: 2-4 m ahead
+    far = random_gaussians(rng, 150, lo=(-3, -2, 6), hi=(3, 2, 10))          # 6-10 m: wholly behind them
+    g = concat(near, far)
+    cam = pinhole(c2w=np.eye(4))
+    whole = render(g, cam)
+    # the near layer first is what one pass draws (front-to-back compositing of two depth-separated sets);
+    # atol: the one pass stops a pixel once its transmittance is ~1e-4, the layered one draws the far layer under
+    # that remainder, a difference below 1e-3 of the colour
+    a = render(g.subset(np.arange(len(g)) < 150), cam)
+    b = render(g.subset(np.arange(len(g)) >= 150), cam)
+    rgb, depth, alpha = composite_layers(a, b)
+    np.testing.assert_allclose(rgb, whole.rgb, atol=1e-3)
+    np.testing.assert_allclose(alpha, whole.alpha, atol=1e-3)
+    np.testing.assert_allclose(depth, whole.depth, atol=1e-2)    # metres: the same remainder times ~8 m
+    # through Scene.render: the camera stands nearest keyframe 0's cameras (ego at x = 0; keyframe 1's at 30 m)
+    keyframe_of = np.r_[np.zeros(150), np.ones(150)]
+    scene = _scene(g, keyframe_of, _drive([0.0, 30.0], [0.0, 1.0], [0, 1]))
+    assert scene.primary_keyframe(cam) == 0
+    s_rgb, s_depth, s_alpha = scene.render(cam)
+    np.testing.assert_allclose(s_rgb, rgb, atol=1e-6)
+    np.testing.assert_allclose(s_alpha, alpha, atol=1e-6)
+    # the far keyframe primary: its Gaussians cover the near ones where they are opaque (not what one pass draws)
+    flipped = _scene(g, 1 - keyframe_of, _drive([0.0, 30.0], [0.0, 1.0], [0, 1]))
+    f_rgb, _, _ = flipped.render(cam)
+    b_rgb, _, _ = composite_layers(b, a)
+    np.testing.assert_allclose(f_rgb, b_rgb, atol=1e-6)
+    assert np.abs(f_rgb - whole.rgb).max() > 0.1
+
+
+def test_the_primary_keyframe_is_the_nearest_and_a_still_egos_by_time():
+    g = random_gaussians(np.random.default_rng(0), 4)
+    moving = _scene(g, [0, 1, 2, 2], _drive([0.0, 5.0, 10.0], [0.0, 0.5, 1.0], [0, 1, 2]))
+    cam = pinhole(c2w=look_at([6.0, 0.0, 1.5], [20.0, 0.0, 1.5]))
+    assert moving.primary_keyframe(cam) == 1                 # its cameras stood at 5 m + their offsets
+    assert moving.primary_keyframe(pinhole(c2w=look_at([11.0, 0, 1.5], [20, 0, 1.5]))) == 2
+    # a still ego: three keyframes in one place; the view's time picks (default: the drive's start)
+    still = _scene(g, [0, 1, 2, 2], _drive([0.0, 0.01, 0.02], [0.0, 1.0, 2.0], [0, 1, 2]))
+    assert still.primary_keyframe(cam) == 0
+    assert still.primary_keyframe(cam, 100.0 + 1.9) == 2
+    assert still.primary_keyframe(cam, 100.0 + 0.8) == 1
+    # one keyframe, or no keyframe_of: one layer
+    assert _scene(g, [0, 0, 0, 0], _drive([0.0], [0.0], [0])).primary_keyframe(cam) is None
+    assert Scene(gaussians=g, background=None, rig=load_rig(EXAMPLE_RIG)).primary_keyframe(cam) is None
+
+
+def test_keyframe_of_through_the_scene_folder_and_its_refusals(tmp_path):
+    g = random_gaussians(np.random.default_rng(1), 6)
+    scene = _scene(g, [0, 0, 1, 1, 2, 2], _drive([0.0, 5.0, 10.0], [0.0, 0.5, 1.0], [0, 1, 2]))
+    scene.save(tmp_path / "s")
+    back = Scene.load(tmp_path / "s")
+    np.testing.assert_array_equal(back.keyframe_of, [0, 0, 1, 1, 2, 2])
+    for bad, why in ((np.zeros(5, np.int16), "one per Gaussian"), (np.full(6, 3, np.int16), "3 keyframes"),
+                     (np.zeros(6, np.float32), "integers")):
+        np.save(tmp_path / "s" / "keyframe_of.npy", bad)
+        with pytest.raises(SceneError, match=why) as e:
+            Scene.load(tmp_path / "s")
+        assert e.value.field == "keyframe_of"
