@@ -319,46 +319,6 @@ def box_members(points: np.ndarray, boxes: Sequence[tuple[np.ndarray, np.ndarray
     return out
 
 
-def behind_boxes(points: np.ndarray, eye: np.ndarray, boxes: Sequence[tuple[np.ndarray, np.ndarray]]) -> np.ndarray:
-    """[N] bool: whether the segment from ``eye`` ([3] metres, a camera's centre) to each point ([N, 3], the same
-    frame) passes through one of ``boxes`` ((frame -> box [4, 4], half-sizes [3]); a point inside a box too): what
-    the camera saw through the box (the slab test in each box's frame). behind_boxes_reference is its definition."""
-    p = np.asarray(points, np.float64)
-    out = np.zeros(len(p), bool)
-    if not len(p) or not boxes:
-        return out
-    for inv, half in boxes:
-        R, t = np.asarray(inv, np.float64)[:3, :3], np.asarray(inv, np.float64)[:3, 3]
-        e = R @ np.asarray(eye, np.float64) + t                  # [3] the eye in the box frame
-        d = p @ R.T + t - e                                      # [N, 3] eye -> point, box frame
-        lo = np.zeros(len(p))
-        hi = np.ones(len(p))
-        for a in range(3):
-            with np.errstate(divide="ignore", invalid="ignore"):
-                t1 = (-half[a] - e[a]) / d[:, a]
-                t2 = (half[a] - e[a]) / d[:, a]
-            flat = d[:, a] == 0                                  # parallel to the slab: in it or never
-            inside = abs(e[a]) <= half[a]
-            t1 = np.where(flat, -np.inf if inside else np.inf, t1)        # outside: both +inf, lo = inf, no hit
-            t2 = np.where(flat, np.inf, t2)
-            lo = np.maximum(lo, np.minimum(t1, t2))
-            hi = np.minimum(hi, np.maximum(t1, t2))
-        out |= lo <= hi
-    return out
-
-
-def behind_boxes_reference(points: np.ndarray, eye: np.ndarray, boxes, samples: int = 4001) -> np.ndarray:
-    """behind_boxes by sampling each segment at ``samples`` points (slow, obviously correct up to the sampling:
-    for the tests, on segments that do not graze a box)."""
-    t = np.linspace(0.0, 1.0, samples)[:, None]
-    out = np.zeros(len(points), bool)
-    for i, q in enumerate(np.asarray(points, np.float64)):
-        seg = np.asarray(eye, np.float64) + t * (q - np.asarray(eye, np.float64))
-        out[i] = any(np.all(np.abs(seg @ np.asarray(inv)[:3, :3].T + np.asarray(inv)[:3, 3]) <= half, axis=1).any()
-                     for inv, half in boxes)
-    return out
-
-
 def moving_tracks(drive: Drive) -> list[int]:
     """The indices of the tracks that move (``stationary`` false) and have an annotated pose."""
     return [i for i, t in enumerate(drive.tracks) if not t.stationary and t.poses]
@@ -596,7 +556,6 @@ def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None,
     window: list[tuple[int, list, list[Gaussians], list[np.ndarray]]] = []     # (keyframe, details, parts, keep)
     background = None
     moved_out = 0
-    shadowed = 0
     copies: list[tuple[int, float, Gaussians]] = []
 
     def commit(entry) -> None:
@@ -642,20 +601,11 @@ def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None,
                 pieces = [coarse.subset(c_mem == b)]
                 pieces += [g.subset(keep & (m == b)) for g, keep, m in zip(parts, own, p_mem)]
                 copies.append((t, fr.timestamp_s, transform_gaussians(_concat(pieces), inv)))
-            # what a keyframe's camera saw through a moving box is not the static scene's either: the edge cells
-            # between the object and what is behind it (their depth in between), its shadow's ragged rim; left
-            # in, they stay where the object was when it has gone (specks along its path). Other keyframes fill
-            # what they covered.
-            eyes = [d.grid.cam_to_ego[:3, 3] for d in details]
-            c_shadow = behind_boxes(coarse.means, np.mean(eyes, axis=0), geo) if eyes else np.zeros(len(coarse), bool)
             moved_out += int((c_mem >= 0).sum())
-            shadowed += int((c_shadow & (c_mem < 0)).sum())
-            coarse = coarse.subset((c_mem < 0) & ~c_shadow)
+            coarse = coarse.subset(c_mem < 0)
             for i, m in enumerate(p_mem):
                 moved_out += int((own[i] & (m >= 0)).sum())
-                shade = behind_boxes(parts[i].means, eyes[i], geo) & (m < 0) & own[i]
-                shadowed += int(shade.sum())
-                own[i] &= (m < 0) & ~shade
+                own[i] &= m < 0
         coarse_kept.gaussians.append(coarse)
         coarse_kept.level.append(voxel_levels(_coarse_footprint(coarse)))
         coarse_kept.frame.append(np.full(len(coarse), n, np.int32))
@@ -677,7 +627,6 @@ def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None,
     timings["fusion"] = time.perf_counter() - t1
     timings["total"] = time.perf_counter() - t0
     counts.update({"coarse": len(coarse), "detail": len(details_g), "moving_removed": moved_out,
-                   "moving_shadowed": shadowed,
                    "total": len(gauss)})
     actors = actors_of(drive, copies)
     if actors is not None:
@@ -742,8 +691,7 @@ def _drive_meta(drive: Drive, keys: Sequence[int]) -> dict[str, Any]:
             "tracks": len(drive.tracks)}
 
 
-__all__ = ["DEFAULT_MAX_GAP_S", "DEFAULT_SPACING_M", "Drive", "DriveError", "DriveFrame", "Track", "behind_boxes", "behind_boxes_reference",
-           "dedupe_frames",
+__all__ = ["DEFAULT_MAX_GAP_S", "DEFAULT_SPACING_M", "Drive", "DriveError", "DriveFrame", "Track", "dedupe_frames",
            "dedupe_frames_reference", "drive_of_rig", "inside_boxes", "is_drive_file", "load_drive", "load_tracks",
            "moving_boxes", "pick_keyframes", "reconstruct_drive", "save_drive_scene", "transform_detail", "transform_gaussians",
            "viewpoint_origins", "voxel_levels"]

@@ -341,33 +341,3 @@ def test_batch_items_carry_a_time():
         with pytest.raises(ViewError) as e:
             views_from_batch(doc)
         assert e.value.field == "cameras[0].time", str(e.value)
-
-
-def test_behind_boxes_matches_its_sampled_reference():
-    from xyzcyl.runtime.drive import behind_boxes, behind_boxes_reference
-
-    rng = np.random.default_rng(11)
-    eye = np.array([0.0, 0.0, 1.5])
-    pts = rng.uniform([-20, -20, -1], [20, 20, 4], (400, 3))
-    boxes = []
-    for x, y, yaw in ((8.0, 1.0, 20.0), (-6.0, -5.0, -70.0), (3.0, 9.0, 0.0)):
-        box_to_frame = np.asarray(_pose(x, y, yaw))
-        box_to_frame[2, 3] = 0.8
-        boxes.append((np.linalg.inv(box_to_frame), np.array([2.2, 1.0, 0.8])))
-    fast = behind_boxes(pts, eye, boxes)
-    assert 10 < fast.sum() < 390
-    samples = 4001
-    # a sample inside a box is a hit (the reference's hits are hits); a hit is a segment point inside a box, and a
-    # sample lies within half a sample spacing of it: inside the box grown by that much (longest segment here 30 m)
-    spacing = float(np.linalg.norm(pts - eye, axis=1).max()) / (samples - 1)
-    ref = behind_boxes_reference(pts, eye, boxes, samples)
-    grown = behind_boxes_reference(pts, eye, [(inv, half + spacing) for inv, half in boxes], samples)
-    assert np.all(fast[ref]) and np.all(grown[fast])
-    assert behind_boxes(pts[:0], eye, boxes).shape == (0,) and not behind_boxes(pts, eye, []).any()
-    # a point inside a box, and one straight behind it along an axis (a zero direction component)
-    inv0, half0 = boxes[2]
-    centre = -inv0[:3, :3].T @ inv0[:3, 3]
-    assert behind_boxes(centre[None], eye, boxes[2:]).all()
-    e2 = centre + np.array([0.0, -10.0, 0.0])
-    assert behind_boxes((centre + [0.0, 10.0, 0.0])[None], e2, boxes[2:]).all()
-    assert not behind_boxes((e2 + [5.0, 0.0, 0.0])[None], e2, boxes[2:]).any()
