@@ -47,7 +47,7 @@ from xyzcyl.common import wire
 from xyzcyl.common.files import atomic_file
 from xyzcyl.common.media import EXR, SNIFF_BYTES, exr_bytes, media_of_suffix, sniff
 from xyzcyl.common.poses import CARLA_POSE, MOVE_NAMES, CameraMove, MoveError
-from xyzcyl.common.wire import ViewError, validated
+from xyzcyl.common.wire import ViewError, is_drive_file, validated
 
 DEFAULT_SERVER = "http://127.0.0.1:8000"
 USER_AGENT = "xyzcyl-client/0.1"
@@ -484,15 +484,6 @@ def _json_file(path: Path, field: str) -> Any:
                                   field) from None
     except ValueError as e:
         raise _invalid(f"{str(path)!r} is not valid JSON ({e})", field) from None
-
-
-def is_drive_file(path: str | os.PathLike) -> bool:
-    """Whether ``path`` is a drive file ({"frames": [...]}; docs/inference.md "Drives"), not a rig.json
-    (common.wire.is_drive_document, the server's rule too); False when it cannot be read as JSON."""
-    try:
-        return wire.is_drive_document(json.loads(Path(path).read_text()))
-    except (OSError, ValueError):
-        return False
 
 
 @dataclass

@@ -114,6 +114,16 @@ def is_drive_document(doc: Any) -> bool:
     return isinstance(doc, Mapping) and "frames" in doc and "cameras" not in doc
 
 
+def is_drive_file(path: Any) -> bool:
+    """Whether the file ``path`` is a drive file (is_drive_document; docs/inference.md "Drives"), not a rig.json;
+    False when it cannot be read as JSON. `xyzcyl reconstruct` and the client tell a drive from a rig so."""
+    try:
+        with open(path, "rb") as f:
+            return is_drive_document(json.loads(f.read()))
+    except (OSError, ValueError):
+        return False
+
+
 def keyframe_error(value: Any) -> str | None:
     """Why a keyframe knob (keyframe_spacing metres, keyframe_gap seconds) cannot be used (the message, without
     the field), or None: a finite number > 0, as `xyzcyl reconstruct --keyframe-spacing/--keyframe-gap` take it."""
@@ -500,6 +510,6 @@ def move_of(query: ViewQuery, names: Mapping[str, str] | None = None) -> CameraM
 __all__ = ["LOCAL_OUTPUTS", "MAX_RENDER_PIXELS", "MAX_SIZE", "render_limit", "DETAIL_STRIDE_MAX", "DETAIL_STRIDE_MIN", "FORMATS", "ITEM_KINDS", "MEDIA_TYPES",
            "OUTPUTS", "Format", "LensJSON", "Output", "Pose16", "ViewError", "ViewQuery", "detail_stride_error",
            "move_of", "validated", "STATES", "BatchIndex", "CameraInfo", "DetailInfo", "DRIVE_PART", "DriveInfo",
-           "ErrorBody", "FRAME_PARTS", "KEYFRAME_PARAMS", "frame_part", "is_drive_document", "keyframe_error",
+           "ErrorBody", "FRAME_PARTS", "KEYFRAME_PARAMS", "frame_part", "is_drive_document", "is_drive_file", "keyframe_error",
            "ErrorDetail", "FrameInfo",
            "ModelReadiness", "Readiness", "SceneInfo", "SceneList", "SceneState", "error_body", "failure_answer"]

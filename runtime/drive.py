@@ -46,6 +46,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from xyzcyl.common.wire import is_drive_file
 
 from .camera import check_pose
 from .errors import FieldError, RigError
@@ -104,16 +105,6 @@ class Drive:
     def trajectory(self) -> np.ndarray:
         """[F, 4, 4] every frame's ego pose in the scene's frame."""
         return np.stack([self.relative(k) for k in range(len(self.frames))])
-
-
-def is_drive_file(path: str | os.PathLike) -> bool:
-    """Whether ``path`` is a drive file (a JSON object with ``frames``), not a rig.json."""
-    try:
-        with open(path, "rb") as f:
-            doc = json.loads(f.read())
-    except (OSError, ValueError):
-        return False
-    return isinstance(doc, dict) and "frames" in doc and "cameras" not in doc
 
 
 def _where(path: Path) -> str:
