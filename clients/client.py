@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import email.utils
 import json
+import math
 import os
 import re
 import secrets
@@ -1178,23 +1179,29 @@ class Client:
 
     def render_bytes(self, scene_id: str, camera: Any, output: str = "rgb", format: str = "png",
                      width: int | None = None, height: int | None = None, quality: int | None = None,
-                     move: Any = None) -> bytes:
+                     move: Any = None, time: float | None = None) -> bytes:
         """GET /v1/scenes/{id}/render: the encoded view as the server sends it (PNG, JPEG or EXR bytes). camera:
         as view_params() describes (an input camera name, OpenCV K + cam_to_ego, or a CARLA pose + fov); move: a
-        camera move (a CameraMove or {forward, left, up, yaw}; view_params)."""
+        camera move (a CameraMove or {forward, left, up, yaw}; view_params); time: seconds on the rigs' clock (a
+        drive's scene draws its moving objects then; None: the drive's first frame)."""
         params = view_params(camera, width, height, move)
         params.update(output=output, format=format)
         if quality is not None:
             params["quality"] = str(int(quality))
+        if time is not None:
+            if isinstance(time, bool) or not isinstance(time, (int, float)) or not math.isfinite(time):
+                raise InvalidArgumentError(None, "invalid", f"time: must be a finite number of seconds (got "
+                                                            f"{time!r:.60})", "time")
+            params["time"] = repr(float(time))
         return self._send("GET", f"/v1/scenes/{_seg(scene_id)}/render", params=params).content
 
     def render(self, scene_id: str, camera: Any, output: str = "rgb", format: str = "png",
                width: int | None = None, height: int | None = None, quality: int | None = None,
-               move: Any = None) -> np.ndarray:
+               move: Any = None, time: float | None = None) -> np.ndarray:
         """One view as a float32 array (decode_image): rgb [H, W, 3] 0..1 RGB; depth [H, W] metres (0 = no
         surface; png saturates at 65.535 m, use format="exr" for float depth); alpha [H, W] 0..1. Arguments as
         render_bytes."""
-        return decode_image(self.render_bytes(scene_id, camera, output, format, width, height, quality, move),
+        return decode_image(self.render_bytes(scene_id, camera, output, format, width, height, quality, move, time),
                             output)
 
     def render_path(self, scene_id: str, camera_path: Any, output: str | None = None, format: str | None = None,

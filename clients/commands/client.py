@@ -100,6 +100,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                       help="the camera's lens as rig.json writes it (an OpenCV coefficient list or {\"model\": "
                            "\"opencv\" | \"opencv_fisheye\" | \"ftheta\", ...}), or a .json file holding it; with "
                            "--cam-to-world, or with --camera: that camera's pose and K through this lens")
+    p.add_argument("--time", type=float, default=None, metavar="T",
+                   help="seconds on the rigs' clock: a drive's scene draws its moving objects then (default the "
+                        "drive's first frame)")
     p.add_argument("--width", type=int, metavar="W", help="pixels (required unless --camera; with --camera: resize)")
     p.add_argument("--height", type=int, metavar="H", help="pixels (as --width)")
     p.add_argument("--output", choices=OUTPUTS, default="rgb",
@@ -294,7 +297,7 @@ def _render(c, args) -> int:
         raise _UsageError(e.field, e.message) from None
     camera, move = _pose(args)
     data = c.render_bytes(args.scene, camera, output=args.output, format=fmt, width=args.width,
-                          height=args.height, quality=args.quality, move=move)
+                          height=args.height, quality=args.quality, move=move, time=args.time)
     _write_atomic(out, data)
     _say(args, f"wrote {out} ({len(data)} bytes, {args.output} {fmt})")
     return 0

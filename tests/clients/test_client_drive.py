@@ -143,3 +143,29 @@ def test_cli_reconstructs_a_drive_with_a_line_per_stage(drive, monkeypatch, caps
     assert rc == 2 and "--keyframe-spacing: goes with a drive file" in err and len(sent) == 1, err
     rc, out, err = _cli(["client", "reconstruct", str(drive), "--keyframe-gap", "0"], capsys)
     assert rc == 2 and "--keyframe-gap: must be a finite number > 0" in err and len(sent) == 1, err
+
+
+def test_a_render_at_a_time_sends_it_and_a_bad_time_is_refused_before(monkeypatch, capsys, tmp_path):
+    png = cv2.imencode(".png", np.zeros((4, 6, 3), np.uint8))[1].tobytes()
+    sent = []
+
+    def handler(request):
+        sent.append(dict(request.url.params))
+        return httpx.Response(200, content=png, headers={"content-type": "image/png"})
+
+    with _mock(handler) as c:
+        assert c.render("d" * 22, "CAM_FRONT", time=T0 + 0.25).shape == (4, 6, 3)
+        assert float(sent[-1]["time"]) == T0 + 0.25
+        c.render_bytes("d" * 22, "CAM_FRONT")
+        assert "time" not in sent[-1]                        # no time: the drive's first frame (the server's rule)
+        for bad in (float("nan"), "10", True):
+            with pytest.raises(InvalidArgumentError, match="time: must be a finite number") as e:
+                c.render_bytes("d" * 22, "CAM_FRONT", time=bad)
+            assert e.value.field == "time"
+    assert len(sent) == 2
+    # `xyzcyl client render --time T` (once taken as an abbreviation of --timeout, silently)
+    real = httpx.Client
+    monkeypatch.setattr(httpx, "Client", lambda **kw: real(transport=httpx.MockTransport(handler), **kw))
+    out = str(tmp_path / "v.png")
+    rc, _, err = _cli(["client", "render", "d" * 22, "--camera", "CAM_FRONT", "--time", "12.5", "--out", out], capsys)
+    assert rc == 0 and float(sent[-1]["time"]) == 12.5, err
