@@ -428,21 +428,25 @@ def _voxel_distance(coords: np.ndarray, size: float, frame: np.ndarray, origins:
     return np.linalg.norm(centre - np.asarray(origins, np.float64)[frame], axis=1)
 
 
-def viewpoint_origins(positions: np.ndarray, radius_m: float | None = None) -> np.ndarray:
-    """[K, 3] metres: each keyframe's viewpoint for dedupe_frames, from the ego positions [K, 3] (scene frame, in
-    keyframe order): a keyframe within ``radius_m`` (default VIEWPOINT_RADIUS_M) of the first keyframe of the
-    current group joins it and sees from that keyframe's position, else it starts a group of its own. An ego that
-    stands still (the PandaSet drive's first 2 s) is one viewpoint: its keyframes tie and the earliest keeps the
-    surface whole, rather than a patchwork decided by centimetres of pose noise."""
+def viewpoint_groups(positions: np.ndarray, radius_m: float | None = None) -> np.ndarray:
+    """[K] int: each keyframe's viewpoint group, the index of the group's first keyframe, from the ego positions
+    [K, 3] (scene frame, in keyframe order): a keyframe within ``radius_m`` (default VIEWPOINT_RADIUS_M) of the first
+    keyframe of the current group joins it, else it starts a group of its own. An ego that stands still (the
+    PandaSet drive's first 2 s) is one viewpoint."""
     radius = VIEWPOINT_RADIUS_M if radius_m is None else radius_m
     positions = np.asarray(positions, np.float64).reshape(-1, 3)
-    out = positions.copy()
-    anchor = None
+    head = np.zeros(len(positions), np.int64)
     for k, p in enumerate(positions):
-        if anchor is None or np.linalg.norm(p - anchor) > radius:
-            anchor = p
-        out[k] = anchor
-    return out
+        head[k] = k if k == 0 or np.linalg.norm(p - positions[head[k - 1]]) > radius else head[k - 1]
+    return head
+
+
+def viewpoint_origins(positions: np.ndarray, radius_m: float | None = None) -> np.ndarray:
+    """[K, 3] metres: each keyframe's viewpoint for dedupe_frames, the position of its viewpoint group's first
+    keyframe (viewpoint_groups): the keyframes of an ego that stands still tie, and the earliest keeps the surface
+    whole, rather than a patchwork decided by centimetres of pose noise."""
+    positions = np.asarray(positions, np.float64).reshape(-1, 3)
+    return positions[viewpoint_groups(positions, radius_m)].copy()
 
 
 def _pack(coords: np.ndarray) -> np.ndarray:
@@ -484,28 +488,56 @@ def _coarse_footprint(g: Gaussians) -> np.ndarray:
 
 @dataclass
 class _Kept:
-    """The cells (or model Gaussians) of the keyframes so far that the fusion keeps, in the scene's frame."""
+    """The cells (or model Gaussians) of the keyframes so far, in the scene's frame, each part with its ``shared``
+    mask: what the fusion keeps in the scene's shared Gaussians (dedupe_frames over the shared cells so far: a cell
+    another keyframe took over never comes back, so deduping the shared ones as each keyframe arrives keeps what
+    deduping them all at once keeps). The rest stays only where it is a viewpoint group's first keyframe's
+    (``heads``): runtime.viewpoints."""
 
     gaussians: list[Gaussians]
     level: list[np.ndarray]
     frame: list[np.ndarray]
+    shared: list[np.ndarray]
     origins: np.ndarray             # [K, 3] metres: each keyframe's viewpoint (viewpoint_origins)
+    heads: np.ndarray               # [K] the first keyframe of each keyframe's viewpoint group (viewpoint_groups)
+
+    def add(self, g: Gaussians, level: np.ndarray, n: int) -> None:
+        self.gaussians.append(g)
+        self.level.append(level)
+        self.frame.append(np.full(len(g), n, np.int32))
+        self.shared.append(np.ones(len(g), bool))
+
+    def keep(self, i: int, m: np.ndarray) -> None:
+        """Part i keeps only the cells ``m`` selects (shared or not)."""
+        if not m.all():
+            self.gaussians[i] = self.gaussians[i].subset(m)
+            self.level[i], self.frame[i], self.shared[i] = self.level[i][m], self.frame[i][m], self.shared[i][m]
 
     def dedupe(self) -> None:
         if not self.gaussians:
             return
-        pts = np.concatenate([g.means for g in self.gaussians])
-        keep = dedupe_frames(pts, np.concatenate(self.level), np.concatenate(self.frame), self.origins)
+        sel = [np.flatnonzero(s) for s in self.shared]
+        pts = np.concatenate([g.means[j] for g, j in zip(self.gaussians, sel)])
+        keep = dedupe_frames(pts, np.concatenate([v[j] for v, j in zip(self.level, sel)]),
+                             np.concatenate([f[j] for f, j in zip(self.frame, sel)]), self.origins)
         start = 0
-        for i, g in enumerate(self.gaussians):
-            m = keep[start:start + len(g)]
-            start += len(g)
-            self.gaussians[i] = g.subset(m) if not m.all() else g
-            self.level[i] = self.level[i][m]
-            self.frame[i] = self.frame[i][m]
+        for i, j in enumerate(sel):
+            self.shared[i][j] = keep[start:start + len(j)]
+            start += len(j)
+            if len(self.frame[i]) and self.heads[self.frame[i][0]] != self.frame[i][0]:
+                self.keep(i, self.shared[i])        # not a group's first keyframe: only its shared cells stay
 
     def count(self) -> int:
-        return sum(len(g) for g in self.gaussians)
+        return sum(int(s.sum()) for s in self.shared)
+
+    def split(self) -> tuple[list[Gaussians], list[np.ndarray], dict[int, list[Gaussians]]]:
+        """(each part's shared Gaussians, their keyframes, {group head: its parts' other cells})."""
+        own: dict[int, list[Gaussians]] = {}
+        for g, f, s in zip(self.gaussians, self.frame, self.shared):
+            if len(f) and not s.all():
+                own.setdefault(int(f[0]), []).append(g.subset(~s))
+        return ([g.subset(s) if not s.all() else g for g, s in zip(self.gaussians, self.shared)],
+                [f[s] for f, s in zip(self.frame, self.shared)], own)
 
 
 _DEFAULT = object()
@@ -521,6 +553,7 @@ def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None,
     from .inference import DEFAULT_DETAIL
     from .lidar import has_lidar, load_lidar
     from .scene import Scene
+    from .viewpoints import Viewpoints
 
     say = progress or (lambda msg: None)
     detail = DEFAULT_DETAIL if detail is _DEFAULT else detail
@@ -541,9 +574,11 @@ def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None,
         return scene
     counts: dict[str, Any] = {"keyframes": len(keys), "frames": len(drive)}
     timings: dict[str, float] = {}
-    origins = viewpoint_origins(np.array([drive.relative(k)[:3, 3] for k in keys]))
-    detail_kept = _Kept([], [], [], origins)
-    coarse_kept = _Kept([], [], [], origins)
+    positions = np.array([drive.relative(k)[:3, 3] for k in keys])
+    heads = viewpoint_groups(positions)
+    origins = positions[heads]
+    detail_kept = _Kept([], [], [], [], origins, heads)
+    coarse_kept = _Kept([], [], [], [], origins, heads)
     window: list[tuple[int, list, list[Gaussians], list[np.ndarray]]] = []     # (keyframe, details, parts, keep)
     background = None
     moved_out = 0
@@ -555,15 +590,10 @@ def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None,
         n, details, parts, keep = entry
         for i, g in enumerate(coarse_kept.gaussians):
             if details and len(g):
-                m = cull_covered(g, details, tol)
-                coarse_kept.gaussians[i] = g.subset(m)
-                coarse_kept.level[i] = coarse_kept.level[i][m]
-                coarse_kept.frame[i] = coarse_kept.frame[i][m]
+                coarse_kept.keep(i, cull_covered(g, details, tol))
         for g, k in zip(parts, keep):
             g = g.subset(k)
-            detail_kept.gaussians.append(g)
-            detail_kept.level.append(voxel_levels(_cell_footprint_of(g)))
-            detail_kept.frame.append(np.full(len(g), n, np.int32))
+            detail_kept.add(g, voxel_levels(_cell_footprint_of(g)), n)
         detail_kept.dedupe()
 
     for n, k in enumerate(keys):
@@ -597,9 +627,7 @@ def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None,
             for i, m in enumerate(p_mem):
                 moved_out += int((own[i] & (m >= 0)).sum())
                 own[i] &= m < 0
-        coarse_kept.gaussians.append(coarse)
-        coarse_kept.level.append(voxel_levels(_coarse_footprint(coarse)))
-        coarse_kept.frame.append(np.full(len(coarse), n, np.int32))
+        coarse_kept.add(coarse, voxel_levels(_coarse_footprint(coarse)), n)
         entry = (n, details, parts, own)
         for prev in window:
             _carve_pair(entry, prev, tol)
@@ -612,21 +640,29 @@ def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None,
     while window:
         commit(window.pop(0))
     coarse_kept.dedupe()
-    coarse = _concat(coarse_kept.gaussians)
-    details_g = _concat(detail_kept.gaussians)
+    coarse_parts, coarse_frames, coarse_own = coarse_kept.split()
+    detail_parts, detail_frames, detail_own = detail_kept.split()
+    coarse = _concat(coarse_parts)
+    details_g = _concat(detail_parts)
     gauss = _concat([coarse, details_g])
+    group_heads = sorted(set(map(int, heads)))
+    viewpoints = Viewpoints.build(
+        [np.flatnonzero(heads == h).tolist() for h in group_heads],
+        [_concat(coarse_own.get(h, []) + detail_own.get(h, [])) for h in group_heads]) if len(keys) > 1 else None
     timings["fusion"] = time.perf_counter() - t1
     timings["total"] = time.perf_counter() - t0
     counts.update({"coarse": len(coarse), "detail": len(details_g), "moving_removed": moved_out,
                    "total": len(gauss)})
+    if viewpoints is not None:
+        counts.update({"viewpoints": len(viewpoints), "viewpoint_gaussians": viewpoints.count})
     actors = actors_of(drive, copies)
     if actors is not None:
         counts.update({"actors": len(actors), "actor_copies": len(actors.copy_track),
                        "actor_gaussians": len(actors.gaussians)})
-    keyframe_of = np.concatenate([*coarse_kept.frame, *detail_kept.frame]).astype(np.int16)
+    keyframe_of = np.concatenate([*coarse_frames, *detail_frames]).astype(np.int16)
     scene = Scene(gaussians=gauss, background=background, rig=drive.frames[0].rig, model=rec.scene_model(),
                   counts=counts, timings={key: round(v, 6) for key, v in timings.items()}, actors=actors,
-                  keyframe_of=keyframe_of if len(keyframe_of) == len(gauss) else None)
+                  keyframe_of=keyframe_of if len(keyframe_of) == len(gauss) else None, viewpoints=viewpoints)
     scene.drive = _drive_meta(drive, keys)
     return scene
 
@@ -684,5 +720,5 @@ def _drive_meta(drive: Drive, keys: Sequence[int]) -> dict[str, Any]:
 
 __all__ = ["DEFAULT_MAX_GAP_S", "DEFAULT_SPACING_M", "Drive", "DriveError", "DriveFrame", "Track", "dedupe_frames",
            "dedupe_frames_reference", "drive_of_rig", "inside_boxes", "is_drive_file", "load_drive", "load_tracks",
-           "moving_boxes", "pick_keyframes", "reconstruct_drive", "save_drive_scene", "transform_detail", "transform_gaussians",
-           "viewpoint_origins", "voxel_levels"]
+           "moving_boxes", "pick_keyframes", "reconstruct_drive", "save_drive_scene", "transform_detail",
+           "transform_gaussians", "viewpoint_groups", "viewpoint_origins", "voxel_levels"]

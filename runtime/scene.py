@@ -41,6 +41,7 @@ from .files import read_json_doc
 from .numba_cache import njit
 from .render import Gaussians, render
 from .rig import Rig
+from .viewpoints import ViewpointError, Viewpoints
 
 SCENE_FORMAT = "xyzcyl-scene"
 SCENE_VERSION = 1
@@ -242,6 +243,8 @@ class Scene:
     # [N] int16: the keyframe (an index into drive["keyframes"]) each Gaussian came from, for drives of several
     # keyframes (runtime.drive); a view draws its primary keyframe's first (Scene.render)
     keyframe_of: np.ndarray | None = field(default=None, repr=False)
+    # a drive's viewpoint chunks (runtime.viewpoints): each viewpoint group's own cells beyond the shared Gaussians
+    viewpoints: Viewpoints | None = field(default=None, repr=False)
 
     def own_camera(self, camera) -> int | None:
         """The index of the input camera whose pose ``camera`` (runtime.camera.Camera) has (OWN_POSE_TOL), when
@@ -260,28 +263,45 @@ class Scene:
                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(rgb [H, W, 3], depth [H, W], alpha [H, W]) float32 of this scene seen by ``camera`` at ``time_s``
         (render_view), over ``background`` ("scene": the scene's panorama; else the renderer's: None, an RGB or an
-        image). A drive's scene of several keyframes is drawn in two layers: the Gaussians of the view's primary
-        keyframe (primary_keyframe) and the moving objects first, the other keyframes' behind them, where the first
-        layer leaves the view open (I = I_1 + (1 - A_1) I_2): each keyframe's cells agree with its own images, and
-        another keyframe's copy of the same wall a few centimetres off (its depth, its exposure) would otherwise
-        show through in patches. The other keyframes fill what the primary one did not see: behind parked cars,
-        the road it had not reached."""
+        image). A drive's scene of several keyframes is drawn in layers, each over what the ones before leave open
+        (I = I_1 + (1 - A_1) I_2, composite_layers): first the view's primary keyframe (primary_keyframe) as it saw
+        the scene, i.e. its viewpoint group's shared Gaussians and the group's own chunk (runtime.viewpoints), and
+        the moving objects; then the two neighbouring viewpoint groups the same way; last the other keyframes'
+        shared Gaussians. Each keyframe's cells agree with its own images, and another keyframe's copy of the same
+        wall a few centimetres off (its depth, its exposure) would otherwise show through in patches; the nearer a
+        keyframe stood, the closer its copy is to what the view sees. The others fill what the primary one did not
+        see: behind parked cars, the road it had not reached. A scene without chunks (written before them) draws
+        the primary keyframe's shared Gaussians over the rest."""
         if isinstance(background, str) and background == "scene":
             bg = self.background.render(camera) if self.background is not None else None
         else:
             bg = background
-        g = self.gaussians_at(camera, time_s)
         k = self.primary_keyframe(camera, time_s)
         if k is None:
-            r = render(g, camera, background=bg, **options)
+            r = render(self.gaussians_at(camera, time_s), camera, background=bg, **options)
             return r.rgb, r.depth, r.alpha
-        first = np.ones(len(g), bool)               # the moving objects (after the static Gaussians) draw first
-        first[:len(self.keyframe_of)] = self.keyframe_of == k
-        a = render(g.with_opacity_logits(np.where(first, g.opacity_logits, HIDDEN_LOGIT)), camera, background=None,
-                   **options)
-        b = render(g.with_opacity_logits(np.where(first, HIDDEN_LOGIT, g.opacity_logits)), camera, background=bg,
-                   **options)
-        return composite_layers(a, b)
+        from .detail import concat_gaussians
+
+        g = self.gaussians_for(camera)
+        moving = self.moving_at(time_s)
+        moving = [moving] if moving is not None else []
+        if self.viewpoints is None:
+            mine = self.keyframe_of == k
+            a = render(concat_gaussians([g.subset(mine), *moving]), camera, background=None, **options)
+            b = render(g.with_opacity_logits(np.where(mine, HIDDEN_LOGIT, g.opacity_logits)), camera,
+                       background=bg, **options)
+            return composite_layers(a, b)
+        vp = self.viewpoints
+        i = vp.group_of(k)
+        near = [j for j in (i - 1, i + 1) if 0 <= j < len(vp)]
+        mine = np.isin(self.keyframe_of, vp.chunks[i].keyframes)
+        beside = np.isin(self.keyframe_of, [kk for j in near for kk in vp.chunks[j].keyframes])
+        a = render(concat_gaussians([g.subset(mine), vp.gaussians(i), *moving]), camera, background=None, **options)
+        b = render(concat_gaussians([g.subset(beside), *(vp.gaussians(j) for j in near)]), camera,
+                   background=None, **options)
+        c = render(g.with_opacity_logits(np.where(mine | beside, HIDDEN_LOGIT, g.opacity_logits)), camera,
+                   background=bg, **options)
+        return composite_layers(a, b, c)
 
     def primary_keyframe(self, camera, time_s: float | None = None) -> int | None:
         """The keyframe a view of ``camera`` draws first (Scene.render): of a drive's scene with keyframe_of, the
@@ -329,18 +349,24 @@ class Scene:
 
     def gaussians_at(self, camera, time_s: float | None = None) -> Gaussians:
         """The Gaussians ``camera`` sees at ``time_s`` (seconds on the rigs' clock; default the drive's first frame):
-        the static scene (gaussians_for) and the moving objects drawn at that time (runtime.actors). A scene without
+        the static scene (gaussians_for) and the moving objects drawn at that time (moving_at). A scene without
         actors is the same at every time."""
         g = self.gaussians_for(camera)
-        if self.actors is None:
-            return g
-        t = self.start_time() if time_s is None else float(time_s)
-        moving, _ = self.actors.at(t, 0.5 * self.frame_interval())
-        if not len(moving):
+        moving = self.moving_at(time_s)
+        if moving is None:
             return g
         from .detail import concat_gaussians
 
         return concat_gaussians([g, moving])
+
+    def moving_at(self, time_s: float | None = None) -> Gaussians | None:
+        """A drive's moving objects drawn at ``time_s`` (runtime.actors; default the drive's first frame), None when
+        there are none then."""
+        if self.actors is None:
+            return None
+        t = self.start_time() if time_s is None else float(time_s)
+        moving, _ = self.actors.at(t, 0.5 * self.frame_interval())
+        return moving if len(moving) else None
 
     def gaussians_for(self, camera) -> Gaussians:
         """The Gaussians as ``camera`` sees them: at an input camera's own pose its own view (runtime.detail.OwnViews:
@@ -381,6 +407,8 @@ class Scene:
             out["actors"] = {"file": ACTORS_NAME, "objects": len(self.actors), "copies": len(self.actors.copy_track),
                              "gaussians": len(self.actors.gaussians),
                              "about": "moving objects: per keyframe a copy in its box frame, drawn at a time"}
+        if self.viewpoints is not None:
+            out["viewpoints"] = self.viewpoints.to_json()
         if self.keyframe_of is not None:
             out["keyframe_of"] = {"file": KEYFRAME_OF_NAME, "keyframes": len(self.drive["keyframes"]),
                                   "about": "each Gaussian's keyframe (int16, an index into drive.keyframes): a "
@@ -399,6 +427,8 @@ class Scene:
                 self.own_views.save(tmp / OWN_VIEWS_NAME)
             if self.actors is not None:
                 self.actors.save(tmp / ACTORS_NAME)
+            if self.viewpoints is not None:
+                self.viewpoints.save(tmp)
             if self.keyframe_of is not None:
                 np.save(tmp / KEYFRAME_OF_NAME, np.asarray(self.keyframe_of, np.int16))
             if self.background is not None:
@@ -456,6 +486,16 @@ class Scene:
         if meta.get("keyframe_of"):
             keyframe_of = _keyframe_of(_scene_file(d, meta["keyframe_of"], KEYFRAME_OF_NAME), len(g),
                                        len((meta.get("drive") or {}).get("keyframes") or ()))
+        viewpoints = None
+        if meta.get("viewpoints"):
+            if keyframe_of is None:
+                raise SceneError("viewpoints", "needs keyframe_of (each shared Gaussian's keyframe)",
+                                 f"scene {str(jp)!r}")
+            try:
+                viewpoints = Viewpoints.from_json(meta["viewpoints"], d,
+                                                  len((meta.get("drive") or {}).get("keyframes") or ()))
+            except ViewpointError as e:
+                raise SceneError(e.field, e.message, e.where) from None
         bg = None
         b = meta.get("background")
         if b:
@@ -470,7 +510,8 @@ class Scene:
         return cls(gaussians=g, background=bg, rig=rig, model=meta.get("model") or {},
                    counts=meta.get("counts") or {}, timings=meta.get("timings") or {},
                    lifting_cached=bool(meta.get("lifting_cached", False)), created=meta.get("created", ""),
-                   own_views=own, drive=meta.get("drive"), actors=actors, keyframe_of=keyframe_of)
+                   own_views=own, drive=meta.get("drive"), actors=actors, keyframe_of=keyframe_of,
+                   viewpoints=viewpoints)
 
 
 # ------------------------------------------------------------------------------------------- views
@@ -499,15 +540,22 @@ def _scene_file(folder: Path, entry: Any, default: str) -> Path:
     return p
 
 
-def composite_layers(a, b) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(rgb, depth, alpha) of render result ``a`` drawn over ``b`` (runtime.render.RenderResult; ``b`` over the
-    background if any): I = I_a + (1 - A_a) I_b, A = A_a + (1 - A_a) A_b, depth the alpha-weighted mean of the
-    two (each result's depth is its own sum(w z) / alpha; 0 where A is 0)."""
-    ta = 1.0 - a.alpha
-    rgb = a.rgb + ta[..., None] * b.rgb
-    alpha = a.alpha + ta * b.alpha
-    wsum = a.alpha * a.depth + ta * b.alpha * b.depth
-    depth = np.divide(wsum, alpha, out=np.zeros_like(wsum), where=alpha > 0)
+def composite_layers(*layers) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(rgb, depth, alpha) of render results (runtime.render.RenderResult, or (rgb, depth, alpha) tuples) drawn
+    front to back, the last over the background if any: for a over b, I = I_a + (1 - A_a) I_b,
+    A = A_a + (1 - A_a) A_b, depth the alpha-weighted mean of the two (each result's depth is its own
+    sum(w z) / alpha; 0 where A is 0)."""
+    def parts(r):
+        return (r.rgb, r.depth, r.alpha) if hasattr(r, "rgb") else r
+
+    rgb, depth, alpha = parts(layers[-1])
+    for layer in layers[-2::-1]:
+        a_rgb, a_depth, a_alpha = parts(layer)
+        ta = 1.0 - a_alpha
+        wsum = a_alpha * a_depth + ta * alpha * depth
+        rgb = a_rgb + ta[..., None] * rgb
+        alpha = a_alpha + ta * alpha
+        depth = np.divide(wsum, alpha, out=np.zeros_like(wsum), where=alpha > 0)
     return rgb.astype(np.float32), depth.astype(np.float32), alpha.astype(np.float32)
 
 

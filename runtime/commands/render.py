@@ -188,7 +188,6 @@ def run(args: argparse.Namespace) -> int:
     else:
         bg = None
     if scene is not None:    # what the service renders for this camera (runtime.scene.render_view)
-        g = scene.gaussians_at(cam, req.time_s)
         rgb, depth, alpha = scene.render(cam, req.time_s, background=bg, antialiased=args.antialiased)
     else:
         res = render(g, cam, background=bg, antialiased=args.antialiased)

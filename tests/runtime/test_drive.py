@@ -212,6 +212,8 @@ def test_a_still_ego_posted_twice_is_kept_once(tmp_path, shipped):
     assert two.counts["keyframes"] == 2 and two.drive["keyframes"] == [0, 1]
     assert len(two.gaussians) <= 1.02 * shown, (len(two.gaussians), shown)
     assert len(two.gaussians) >= 0.9 * shown
+    # one viewpoint: its chunk holds what the first keyframe saw beyond the shared cells, nearly nothing here
+    assert len(two.viewpoints) == 1 and two.viewpoints.count <= 0.02 * shown, two.viewpoints.count
     single = reconstruct_drive(shipped, drive_of_rig(load_rig(EXAMPLE_RIG)), detail=opts)
     np.testing.assert_array_equal(single.gaussians.means, one.gaussians.means)
     # the scene folder records the drive, and reads it back
@@ -224,6 +226,41 @@ def test_a_still_ego_posted_twice_is_kept_once(tmp_path, shipped):
     assert back.keyframe_of.shape == (len(two.gaussians),) and set(np.unique(back.keyframe_of)) <= {0, 1}
     assert back.primary_keyframe(rig_camera(back.rig.cameras[0])) == 0
     np.testing.assert_allclose(back.drive["ego_to_world"], _pose(7, 3, 20))
+
+
+def test_each_viewpoint_keeps_what_its_keyframe_saw_whole(tmp_path, shipped, monkeypatch):
+    """A moving ego (two keyframes 3 m apart): the shared Gaussians keep each surface once, and each viewpoint's
+    chunk keeps the rest of its keyframe's cells, so a viewpoint's shared cells and its chunk are exactly that
+    keyframe's cells without the cross-keyframe dedupe (runtime.viewpoints); through the scene folder and back."""
+    from xyzcyl.runtime import drive as D
+    from xyzcyl.runtime.detail import DetailOptions
+    from xyzcyl.runtime.scene import Scene
+
+    opts = DetailOptions(stride=8)
+    E = np.array(_pose(7, 3, 20))
+    p = write_drive(tmp_path, [E.tolist(), (E @ np.array(_pose(3.0, 0.0))).tolist()], [0.0, 0.5])
+    drive = load_drive(p)
+    scene = D.reconstruct_drive(shipped, drive, detail=opts)
+    vp = scene.viewpoints
+    assert len(vp) == 2 and [c.keyframes for c in vp.chunks] == [(0,), (1,)]
+    assert scene.counts["viewpoint_gaussians"] == vp.count > 0
+    monkeypatch.setattr(D, "dedupe_frames", lambda points, *a, **k: np.ones(len(points), bool))
+    pile = D.reconstruct_drive(shipped, drive, detail=opts)
+    assert pile.viewpoints.count == 0 and len(pile.gaussians) == len(scene.gaussians) + vp.count
+
+    def rows(g):            # a set of Gaussians as sorted rows (order aside, the same cells)
+        a = np.concatenate([g.means, g.quats, g.log_scales, g.opacity_logits[:, None], g.sh[:, 0]], axis=1)
+        return a[np.lexsort(a.T[::-1])]
+
+    from xyzcyl.runtime.detail import concat_gaussians
+
+    for k in (0, 1):
+        whole = pile.gaussians.subset(pile.keyframe_of == k)
+        mine = concat_gaussians([scene.gaussians.subset(scene.keyframe_of == k), vp.gaussians(k)])
+        np.testing.assert_array_equal(rows(mine), rows(whole))
+    scene.save(tmp_path / "scene")
+    back = Scene.load(tmp_path / "scene")
+    np.testing.assert_array_equal(rows(back.viewpoints.gaussians(1)), rows(vp.gaussians(1)))
 
 
 def _actors(copy_times=(0.0, 1.0)):

@@ -57,6 +57,50 @@ def test_the_primary_layer_drawn_first_over_the_rest():
     assert np.abs(f_rgb - whole.rgb).max() > 0.1
 
 
+def test_with_viewpoint_chunks_the_primary_group_then_its_neighbours_then_the_rest():
+    from xyzcyl.runtime.viewpoints import Viewpoints
+
+    rng = np.random.default_rng(4)
+    sets = [random_gaussians(rng, 100, lo=(-2, -1.5, 2), hi=(2, 1.5, 4)),       # camera frame: 2-4 m ahead
+            random_gaussians(rng, 100, lo=(-3, -2, 6), hi=(3, 2, 10)),          # 6-10 m
+            random_gaussians(rng, 100, lo=(-4, -3, 12), hi=(4, 3, 16))]         # 12-16 m
+    cam = pinhole(c2w=np.eye(4))
+    drive = _drive([0.0, 30.0, 60.0, 90.0], [0.0, 1.0, 2.0, 3.0], [0, 1, 2, 3])
+
+    def scene(order):
+        """Keyframe 0's chunk holds sets[order[0]], keyframe 1's shared cells sets[order[1]], keyframe 2's
+        sets[order[2]] (keyframes 2 and 3 one group: the rest is keyframe 3's, one Gaussian, hidden)."""
+        hidden = random_gaussians(rng, 1).with_opacity_logits(np.float32([-30.0]))
+        shared = concat(sets[order[1]], sets[order[2]], hidden)
+        vp = Viewpoints.build([[0], [1], [2, 3]], [sets[order[0]], random_gaussians(rng, 0), hidden])
+        return Scene(gaussians=shared, background=None, rig=load_rig(EXAMPLE_RIG), drive=drive,
+                     keyframe_of=np.r_[np.ones(100), np.full(100, 2), [3]].astype(np.int16), viewpoints=vp)
+
+    layers = [render(g, cam) for g in sets]
+    for order in ((0, 1, 2), (2, 1, 0), (1, 0, 2)):
+        s = scene(order)
+        assert s.primary_keyframe(cam) == 0
+        rgb, depth, alpha = s.render(cam)
+        e_rgb, e_depth, e_alpha = composite_layers(*(layers[i] for i in order))
+        np.testing.assert_allclose(rgb, e_rgb, atol=1e-6)
+        np.testing.assert_allclose(alpha, e_alpha, atol=1e-6)
+        np.testing.assert_allclose(depth, e_depth, atol=1e-5)
+    # in depth order it is what one pass draws (tolerances: the first test's)
+    whole = render(concat(*sets), cam)
+    rgb, depth, _ = scene((0, 1, 2)).render(cam)
+    np.testing.assert_allclose(rgb, whole.rgb, atol=1e-3)
+    np.testing.assert_allclose(depth, whole.depth, atol=2e-2)     # metres: the remainders times up to 16 m
+    # from keyframe 3's place, group (2, 3) is primary, group 1 beside it, keyframe 0's chunk is never drawn
+    far = scene((0, 1, 2))
+    read = []
+    chunk = far.viewpoints.gaussians
+    far.viewpoints.gaussians = lambda i: read.append(i) or chunk(i)
+    at3 = pinhole(c2w=look_at([90.0, 0.0, 1.5], [120.0, 0.0, 1.5]))
+    assert far.primary_keyframe(at3) == 3
+    far.render(at3)
+    assert sorted(read) == [1, 2]
+
+
 def test_the_primary_keyframe_is_the_nearest_and_a_still_egos_by_time():
     g = random_gaussians(np.random.default_rng(0), 4)
     moving = _scene(g, [0, 1, 2, 2], _drive([0.0, 5.0, 10.0], [0.0, 0.5, 1.0], [0, 1, 2]))

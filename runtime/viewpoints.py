@@ -1,0 +1,170 @@
+"""A drive's viewpoint chunks: what each viewpoint saw beyond the scene's shared Gaussians (docs/inference.md "Layers in a view").
+
+A drive's scene keeps each surface once in its shared Gaussians (runtime.drive.dedupe_frames: the finest
+observation, as finely from nearer by). That set alone is a sieve from any one viewpoint: the keyframe a view is
+drawn from keeps only the cells it resolved best, and through the holes show other keyframes' copies of the same
+surfaces, seen from metres away (their discs edge-on, their depth a few centimetres off, their exposure). So each
+viewpoint group (runtime.drive.viewpoint_groups: keyframes whose ego stood within VIEWPOINT_RADIUS_M of the group's
+first) also keeps, in a chunk of its own, its first keyframe's cells that the dedupe gave to other keyframes. A
+view is drawn from its primary keyframe's group, whole (the group's shared cells and its chunk), over the two
+neighbouring groups, whole, over the other keyframes' shared cells (runtime.scene.Scene.render). An ego that stands
+still is one viewpoint: its chunk is what its first keyframe saw beyond the shared cells, and nothing grows with the
+frames; a moving ego adds a chunk per viewpoint, so the scene grows with the road.
+
+On disk a chunk is a 3DGS PLY in the scene folder's ``viewpoints/`` (scene.json's ``viewpoints`` block: each
+chunk's file, keyframes, count and bounds); a loaded scene reads a chunk when a view first needs it and keeps the
+last CACHE_CHUNKS it used: a view reads at most three."""
+
+from __future__ import annotations
+
+import threading
+from collections import OrderedDict
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from .errors import FieldError
+from .render import GaussianError, Gaussians
+
+CHUNKS_DIR = "viewpoints"
+CACHE_CHUNKS = 4            # chunks a loaded scene keeps in memory: a view's group and its two neighbours, and one
+                            # more, so that a camera moving along the drive reads one new chunk per group it enters
+
+
+class ViewpointError(FieldError):
+    """A scene's viewpoints block or chunk file is invalid: ``field`` names the entry."""
+
+
+@dataclass(frozen=True)
+class Chunk:
+    """One viewpoint group's own cells: ``keyframes`` the group's keyframes (indices into the drive's keyframes,
+    increasing), ``count`` its Gaussians, ``bbox`` the box of their centres ({"min", "max"}: metres, the scene's
+    frame; None when empty), ``file`` its PLY's path relative to the scene folder."""
+
+    keyframes: tuple[int, ...]
+    count: int
+    bbox: dict[str, list[float]] | None
+    file: str
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"file": self.file, "keyframes": list(self.keyframes), "count": self.count, "bbox": self.bbox}
+
+
+def _bbox(g: Gaussians) -> dict[str, list[float]] | None:
+    if not len(g):
+        return None
+    return {"min": [float(g.means[:, c].min()) for c in range(3)],
+            "max": [float(g.means[:, c].max()) for c in range(3)]}
+
+
+class Viewpoints:
+    """A drive scene's viewpoint chunks (module docstring): in memory after a reconstruction, or read from a scene
+    folder chunk by chunk (thread-safe: the service renders views of one scene on several threads)."""
+
+    def __init__(self, chunks: Sequence[Chunk], gaussians: Sequence[Gaussians | None], folder: Path | None = None):
+        if len(chunks) != len(gaussians):
+            raise ValueError("one Gaussians (or None, read from the folder) per chunk")
+        self.chunks = tuple(chunks)
+        self._group = {k: i for i, c in enumerate(self.chunks) for k in c.keyframes}
+        self._given = list(gaussians)
+        self._folder = folder
+        self._cache: OrderedDict[int, Gaussians] = OrderedDict()
+        self._lock = threading.Lock()
+
+    @classmethod
+    def build(cls, groups: Sequence[Sequence[int]], gaussians: Sequence[Gaussians]) -> Viewpoints:
+        """From each group's keyframes and its chunk's Gaussians (in memory; files named group_NN.ply)."""
+        chunks = [Chunk(tuple(int(k) for k in ks), len(g), _bbox(g), f"{CHUNKS_DIR}/group_{i:03d}.ply")
+                  for i, (ks, g) in enumerate(zip(groups, gaussians))]
+        return cls(chunks, list(gaussians))
+
+    def __len__(self) -> int:
+        return len(self.chunks)
+
+    @property
+    def count(self) -> int:
+        """The Gaussians of all chunks."""
+        return sum(c.count for c in self.chunks)
+
+    def group_of(self, keyframe: int) -> int:
+        """The chunk (index) of the group holding ``keyframe`` (an index into the drive's keyframes)."""
+        return self._group[int(keyframe)]
+
+    def gaussians(self, i: int) -> Gaussians:
+        """Chunk i's Gaussians (scene frame): in memory, or read from its file (ViewpointError naming the file)."""
+        given = self._given[i]
+        if given is not None:
+            return given
+        with self._lock:
+            if i in self._cache:
+                self._cache.move_to_end(i)
+                return self._cache[i]
+        c = self.chunks[i]
+        path = self._folder / c.file
+        try:
+            g = Gaussians.load_ply(path, max_points=max(1, c.count))
+        except (GaussianError, OSError) as e:
+            raise ViewpointError("viewpoints", f"chunk {c.file!r}: {e}", f"scene {str(self._folder)!r}") from None
+        if len(g) != c.count:
+            raise ViewpointError("viewpoints", f"chunk {c.file!r} holds {len(g)} Gaussians, scene.json says "
+                                               f"{c.count}", f"scene {str(self._folder)!r}")
+        with self._lock:
+            self._cache[i] = g
+            while len(self._cache) > CACHE_CHUNKS:
+                self._cache.popitem(last=False)
+        return g
+
+    def to_json(self) -> dict[str, Any]:
+        return {"dir": CHUNKS_DIR, "chunks": [c.to_dict() for c in self.chunks], "count": self.count,
+                "about": "per viewpoint group, its first keyframe's cells that the shared Gaussians keep from "
+                         "another keyframe: a view draws its primary keyframe's group whole, over the rest"}
+
+    def save(self, folder: Path) -> None:
+        """Write every chunk's PLY into ``folder`` (a scene folder being written)."""
+        (folder / CHUNKS_DIR).mkdir(exist_ok=True)
+        for i, c in enumerate(self.chunks):
+            self.gaussians(i).save_ply(folder / c.file)
+
+    @classmethod
+    def from_json(cls, block: Any, folder: Path, keyframes: int) -> Viewpoints:
+        """A scene folder's viewpoints (scene.json's block) over ``keyframes`` keyframes: each chunk's entry checked
+        and its file's header read (ViewpointError naming the entry); the Gaussians are read when first used."""
+        from .render.gaussians import _read_ply_header
+
+        where = f"scene {str(folder)!r}"
+        entries = block.get("chunks") if isinstance(block, dict) else None
+        if not isinstance(entries, list) or not entries:
+            raise ViewpointError("viewpoints.chunks", "must be a non-empty list", where)
+        chunks, seen = [], set()
+        for i, e in enumerate(entries):
+            name = f"viewpoints.chunks[{i}]"
+            if not isinstance(e, dict):
+                raise ViewpointError(name, "must be an object", where)
+            f, ks, n = e.get("file"), e.get("keyframes"), e.get("count")
+            if not isinstance(f, str) or not f.startswith(CHUNKS_DIR + "/") or ".." in Path(f).parts:
+                raise ViewpointError(f"{name}.file", f"must be a file in {CHUNKS_DIR}/ (got {f!r})", where)
+            if (not isinstance(ks, list) or not ks or not all(isinstance(k, int) and 0 <= k < keyframes for k in ks)
+                    or ks != sorted(set(ks)) or seen & set(ks)):
+                raise ViewpointError(f"{name}.keyframes", f"must be increasing keyframe indices in 0.."
+                                                          f"{keyframes - 1}, each in one chunk (got {ks!r})", where)
+            seen |= set(ks)
+            if not isinstance(n, int) or isinstance(n, bool) or n < 0:
+                raise ViewpointError(f"{name}.count", f"must be an integer >= 0 (got {n!r})", where)
+            path = folder / f
+            if not path.is_file():
+                raise ViewpointError(f"{name}.file", f"{str(path)!r} is missing", where)
+            try:
+                have = _read_ply_header(path)[0]
+            except GaussianError as exc:
+                raise ViewpointError(f"{name}.file", f"{str(path)!r}: {exc}", where) from None
+            if have != n:
+                raise ViewpointError(f"{name}.count", f"{str(path)!r} holds {have} Gaussians, not {n}", where)
+            chunks.append(Chunk(tuple(ks), n, e.get("bbox"), f))
+        if seen != set(range(keyframes)):
+            raise ViewpointError("viewpoints.chunks", f"must place each of the {keyframes} keyframes in a chunk "
+                                                      f"(missing {sorted(set(range(keyframes)) - seen)})", where)
+        return cls(chunks, [None] * len(chunks), folder)
+
+
+__all__ = ["CACHE_CHUNKS", "CHUNKS_DIR", "Chunk", "ViewpointError", "Viewpoints"]

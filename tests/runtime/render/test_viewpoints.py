@@ -1,0 +1,73 @@
+"""A drive's viewpoint chunks (runtime.viewpoints): through a scene folder and back, read when first used and kept
+in a small cache, and the refusals of a scene.json block that does not match its files."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from render_scenes import random_gaussians
+from xyzcyl.runtime import viewpoints as vp
+from xyzcyl.runtime.rig import load_rig
+from xyzcyl.runtime.scene import Scene, SceneError
+from xyzcyl.testing import EXAMPLE_RIG
+from xyzcyl.testing.drives import pose
+
+
+def _scene(n_chunks=3) -> Scene:
+    rng = np.random.default_rng(5)
+    g = random_gaussians(rng, 30)
+    drive = {"frames": n_chunks, "keyframes": list(range(n_chunks)), "timestamp_s": 0.0,
+             "times_s": [float(t) for t in range(n_chunks)], "ego_to_world": np.eye(4).tolist(),
+             "trajectory": [pose(5.0 * x, 0.0) for x in range(n_chunks)], "tracks": 0}
+    chunks = vp.Viewpoints.build([[k] for k in range(n_chunks)],
+                                 [random_gaussians(rng, 4 + k) for k in range(n_chunks)])
+    return Scene(gaussians=g, background=None, rig=load_rig(EXAMPLE_RIG), drive=drive,
+                 keyframe_of=np.arange(30, dtype=np.int16) % n_chunks, viewpoints=chunks)
+
+
+def test_chunks_through_the_scene_folder_read_when_used(tmp_path, monkeypatch):
+    scene = _scene()
+    scene.save(tmp_path / "s")
+    meta = json.loads((tmp_path / "s" / "scene.json").read_text())
+    assert [c["count"] for c in meta["viewpoints"]["chunks"]] == [4, 5, 6]
+    assert meta["viewpoints"]["count"] == 15
+    assert all((tmp_path / "s" / c["file"]).is_file() for c in meta["viewpoints"]["chunks"])
+    back = Scene.load(tmp_path / "s")
+    assert back.viewpoints.count == 15 and back.viewpoints.group_of(2) == 2
+    assert not back.viewpoints._cache                          # nothing read before a view needs it
+    monkeypatch.setattr(vp, "CACHE_CHUNKS", 2)
+    for i in range(3):
+        np.testing.assert_array_equal(back.viewpoints.gaussians(i).means, scene.viewpoints.gaussians(i).means)
+    assert list(back.viewpoints._cache) == [1, 2]              # the last two used
+    assert back.viewpoints.chunks[1].bbox == scene.viewpoints.chunks[1].bbox
+
+
+@pytest.mark.parametrize("edit, field", [
+    (lambda m, d: m["viewpoints"]["chunks"][0].update(count=99), "viewpoints.chunks[0].count"),
+    (lambda m, d: m["viewpoints"]["chunks"][1].update(keyframes=[0]), "viewpoints.chunks[1].keyframes"),
+    (lambda m, d: m["viewpoints"]["chunks"].pop(), "viewpoints.chunks"),
+    (lambda m, d: m["viewpoints"]["chunks"][0].update(file="../scene.ply"), "viewpoints.chunks[0].file"),
+    (lambda m, d: (d / m["viewpoints"]["chunks"][2]["file"]).unlink(), "viewpoints.chunks[2].file"),
+    (lambda m, d: m.update(viewpoints={"chunks": "x"}), "viewpoints.chunks"),
+    (lambda m, d: m.pop("keyframe_of"), "viewpoints"),
+])
+def test_a_viewpoints_block_that_does_not_match_its_files_is_refused(tmp_path, edit, field):
+    d = tmp_path / "s"
+    _scene().save(d)
+    meta = json.loads((d / "scene.json").read_text())
+    edit(meta, d)
+    (d / "scene.json").write_text(json.dumps(meta))
+    with pytest.raises(SceneError) as e:
+        Scene.load(d)
+    assert e.value.field == field, str(e.value)
+
+
+def test_a_chunk_changed_after_loading_is_an_error_naming_it(tmp_path):
+    d = tmp_path / "s"
+    _scene().save(d)
+    back = Scene.load(d)
+    random_gaussians(np.random.default_rng(1), 2).save_ply(d / back.viewpoints.chunks[0].file)
+    with pytest.raises(vp.ViewpointError, match="group_000.ply"):
+        back.viewpoints.gaussians(0)
