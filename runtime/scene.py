@@ -264,14 +264,16 @@ class Scene:
         """(rgb [H, W, 3], depth [H, W], alpha [H, W]) float32 of this scene seen by ``camera`` at ``time_s``
         (render_view), over ``background`` ("scene": the scene's panorama; else the renderer's: None, an RGB or an
         image). A drive's scene of several keyframes is drawn in layers, each over what the ones before leave open
-        (I = I_1 + (1 - A_1) I_2, composite_layers): first the view's primary keyframe (primary_keyframe) as it saw
-        the scene, i.e. its viewpoint group's shared Gaussians and the group's own chunk (runtime.viewpoints), and
-        the moving objects; then the two neighbouring viewpoint groups the same way; last the other keyframes'
-        shared Gaussians. Each keyframe's cells agree with its own images, and another keyframe's copy of the same
-        wall a few centimetres off (its depth, its exposure) would otherwise show through in patches; the nearer a
-        keyframe stood, the closer its copy is to what the view sees. The others fill what the primary one did not
-        see: behind parked cars, the road it had not reached. A scene without chunks (written before them) draws
-        the primary keyframe's shared Gaussians over the rest."""
+        (I = I_1 + (1 - A_1) I_2, composite_layers): first the view's primary keyframe's (primary_keyframe) viewpoint
+        group as its first keyframe saw the scene, i.e. that keyframe's shared Gaussians and the group's own chunk
+        (runtime.viewpoints), and the moving objects; then the group's other keyframes' shared Gaussians and the two
+        neighbouring viewpoint groups, whole; last the other keyframes' shared Gaussians. (An ego that stands still
+        is one group: its later keyframes add what its first did not see, and a surface both saw at slightly
+        different depths is not drawn as a patchwork of the two.) Each keyframe's cells agree with its own images,
+        and another keyframe's copy of the same wall a few centimetres off (its depth, its exposure) would otherwise
+        show through in patches; the nearer a keyframe stood, the closer its copy is to what the view sees. The
+        others fill what the primary one did not see: behind parked cars, the road it had not reached. A scene
+        without chunks (written before them) draws the primary keyframe's shared Gaussians over the rest."""
         if isinstance(background, str) and background == "scene":
             bg = self.background.render(camera) if self.background is not None else None
         else:
@@ -294,8 +296,8 @@ class Scene:
         vp = self.viewpoints
         i = vp.group_of(k)
         near = [j for j in (i - 1, i + 1) if 0 <= j < len(vp)]
-        mine = np.isin(self.keyframe_of, vp.chunks[i].keyframes)
-        beside = np.isin(self.keyframe_of, [kk for j in near for kk in vp.chunks[j].keyframes])
+        mine = self.keyframe_of == vp.chunks[i].keyframes[0]
+        beside = ~mine & np.isin(self.keyframe_of, [kk for j in (i, *near) for kk in vp.chunks[j].keyframes])
         a = render(concat_gaussians([g.subset(mine), vp.gaussians(i), *moving]), camera, background=None, **options)
         b = render(concat_gaussians([g.subset(beside), *(vp.gaussians(j) for j in near)]), camera,
                    background=None, **options)

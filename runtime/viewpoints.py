@@ -1,4 +1,4 @@
-"""A drive's viewpoint chunks: what each viewpoint saw beyond the scene's shared Gaussians (docs/inference.md "Layers in a view").
+"""A drive's viewpoint chunks: what each viewpoint saw beyond the shared Gaussians (docs/inference.md, "Layers").
 
 A drive's scene keeps each surface once in its shared Gaussians (runtime.drive.dedupe_frames: the finest
 observation, as finely from nearer by). That set alone is a sieve from any one viewpoint: the keyframe a view is
@@ -6,10 +6,11 @@ drawn from keeps only the cells it resolved best, and through the holes show oth
 surfaces, seen from metres away (their discs edge-on, their depth a few centimetres off, their exposure). So each
 viewpoint group (runtime.drive.viewpoint_groups: keyframes whose ego stood within VIEWPOINT_RADIUS_M of the group's
 first) also keeps, in a chunk of its own, its first keyframe's cells that the dedupe gave to other keyframes. A
-view is drawn from its primary keyframe's group, whole (the group's shared cells and its chunk), over the two
-neighbouring groups, whole, over the other keyframes' shared cells (runtime.scene.Scene.render). An ego that stands
-still is one viewpoint: its chunk is what its first keyframe saw beyond the shared cells, and nothing grows with the
-frames; a moving ego adds a chunk per viewpoint, so the scene grows with the road.
+view is drawn from its primary keyframe's group as the group's first keyframe saw it (that keyframe's shared cells
+and the chunk), over the group's other keyframes and the two neighbouring groups, over the other keyframes' shared
+cells (runtime.scene.Scene.render). An ego that stands still is one viewpoint: its chunk is what its first keyframe
+saw beyond the shared cells, and nothing grows with the frames; a moving ego adds a chunk per viewpoint, so the
+scene grows with the road.
 
 On disk a chunk is a 3DGS PLY in the scene folder's ``viewpoints/`` (scene.json's ``viewpoints`` block: each
 chunk's file, keyframes, count and bounds); a loaded scene reads a chunk when a view first needs it and keeps the
