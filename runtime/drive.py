@@ -579,7 +579,8 @@ def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None,
     origins = positions[heads]
     detail_kept = _Kept([], [], [], [], origins, heads)
     coarse_kept = _Kept([], [], [], [], origins, heads)
-    window: list[tuple[int, list, list[Gaussians], list[np.ndarray]]] = []     # (keyframe, details, parts, keep)
+    # (keyframe, details, parts, keep, whether its depth was measured: a LiDAR sweep)
+    window: list[tuple[int, list, list[Gaussians], list[np.ndarray], bool]] = []
     background = None
     moved_out = 0
     copies: list[tuple[int, float, Gaussians]] = []
@@ -587,7 +588,7 @@ def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None,
     def commit(entry) -> None:
         """A keyframe leaves the carving window: its kept cells join the scene (deduped across keyframes), and the
         model's Gaussians so far that would veil one of its cameras' surfaces go (as in one frame)."""
-        n, details, parts, keep = entry
+        n, details, parts, keep, _ = entry
         for i, g in enumerate(coarse_kept.gaussians):
             if details and len(g):
                 coarse_kept.keep(i, cull_covered(g, details, tol))
@@ -599,7 +600,8 @@ def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None,
     for n, k in enumerate(keys):
         fr = drive.frames[k]
         say(f"keyframe {n + 1}/{len(keys)}: frame {k} ({fr.timestamp_s - drive.frames[0].timestamp_s:.2f} s)")
-        kf = rec.keyframe(fr.rig, progress=say, lidar=sweep(k), detail=detail)
+        points = sweep(k)
+        kf = rec.keyframe(fr.rig, progress=say, lidar=points, detail=detail)
         for key, v in kf.timings.items():
             timings[key] = timings.get(key, 0.0) + v
         if background is None:
@@ -609,7 +611,7 @@ def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None,
         parts = [transform_gaussians(g, T) for g in kf.parts]
         details = [transform_detail(d, T) for d in kf.details]
         # this keyframe as one rig: its model Gaussians under its cells culled, its cells carved against its own
-        # cameras; later against its neighbours' (see-through)
+        # cameras; later against its neighbours' (see-through, by a keyframe with a LiDAR sweep: _carve_pair)
         if details and len(coarse):
             coarse = coarse.subset(cull_covered(coarse, details, tol))
         own = carve_details(details, tol, detail.dedupe) if details else []
@@ -628,7 +630,7 @@ def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None,
                 moved_out += int((own[i] & (m >= 0)).sum())
                 own[i] &= m < 0
         coarse_kept.add(coarse, voxel_levels(_coarse_footprint(coarse)), n)
-        entry = (n, details, parts, own)
+        entry = (n, details, parts, own, points is not None)
         for prev in window:
             _carve_pair(entry, prev, tol)
             _carve_pair(prev, entry, tol)
@@ -690,11 +692,16 @@ def _cell_footprint_of(g: Gaussians) -> np.ndarray:
 
 def _carve_pair(a, b, tolerance: float) -> None:
     """Clear a's keep masks for the cells that b's cameras see through (runtime.detail.carve_details' free-space
-    rule, dedupe 0: another keyframe never takes over a surface here; dedupe_frames does, on voxels)."""
+    rule, dedupe 0: another keyframe never takes over a surface here; dedupe_frames does, on voxels), when b's
+    depth was measured (its keyframe had a LiDAR sweep). The model's depth from images alone is too far off to
+    say that a camera of another keyframe sees through a cell: on the synthetic drive at 5 m/s without LiDAR,
+    carving by it cut trees and signs into pieces and cost 1.8 dB (docs/results.md "Drives at city speed")."""
     from .detail import carve_against
 
-    _, details_a, _, keep_a = a
-    _, details_b, _, _ = b
+    _, details_a, _, keep_a, _ = a
+    _, details_b, _, _, measured = b
+    if not measured:
+        return
     for d, keep in zip(details_a, keep_a):
         carve_against(d, details_b, keep, tolerance)
 

@@ -263,6 +263,23 @@ def test_each_viewpoint_keeps_what_its_keyframe_saw_whole(tmp_path, shipped, mon
     np.testing.assert_array_equal(rows(back.viewpoints.gaussians(1)), rows(vp.gaussians(1)))
 
 
+def test_only_a_keyframe_with_measured_depth_carves_its_neighbours(monkeypatch):
+    """runtime.drive._carve_pair: b's cameras carve a's cells when b had a LiDAR sweep, never on the model's depth
+    alone (each of a's cameras against all of b's)."""
+    from xyzcyl.runtime import detail
+    from xyzcyl.runtime.drive import _carve_pair
+
+    calls = []
+    monkeypatch.setattr(detail, "carve_against", lambda d, others, keep, tol: calls.append((d, others, tol)))
+    a = (0, ["a0", "a1"], [], [np.ones(2, bool), np.ones(3, bool)], False)
+    b_camera_only = (1, ["b0"], [], [np.ones(1, bool)], False)
+    b_lidar = (1, ["b0"], [], [np.ones(1, bool)], True)
+    _carve_pair(a, b_camera_only, 0.1)
+    assert calls == []
+    _carve_pair(a, b_lidar, 0.1)
+    assert calls == [("a0", ["b0"], 0.1), ("a1", ["b0"], 0.1)]
+
+
 def _actors(copy_times=(0.0, 1.0)):
     """One object annotated at t = 0, 1, 2 s moving +2 m/s along x and turning 90 degrees over 2 s, with a copy
     (two Gaussians: its centre and 1 m ahead along its length) at each of ``copy_times``."""
