@@ -544,9 +544,11 @@ _DEFAULT = object()
 
 
 def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None, lidar: bool = True,
-                      detail: Any = _DEFAULT, progress: Callable[[str], None] | None = None):
+                      detail: Any = _DEFAULT, progress: Callable[[str], None] | None = None, stereo: bool = True):
     """One runtime.scene.Scene of ``drive`` (module docstring) with runtime.inference.Reconstructor ``rec``:
-    ``keyframes`` (default pick_keyframes), each keyframe's LiDAR sweep when ``lidar`` and it has one, the detail
+    ``keyframes`` (default pick_keyframes), each keyframe's LiDAR sweep when ``lidar`` and it has one, else when
+    ``stereo`` the points triangulated between it and the frames about a metre before and after it
+    (runtime.stereo), the detail
     layer's settings ``detail`` (default runtime.inference.DEFAULT_DETAIL; None: the model's Gaussians only). A
     one-frame drive is exactly Reconstructor.reconstruct of its rig."""
     from .detail import carve_details, cull_covered
@@ -566,6 +568,30 @@ def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None,
     def sweep(k: int):
         rig = drive.frames[k].rig
         return load_lidar(rig).points if lidar and has_lidar(rig) else None
+
+    positions_all = np.array([drive.relative(j)[:3, 3] for j in range(len(drive))])
+
+    def stereo_sweep(k: int):
+        """Points triangulated between keyframe k and its partner frames (runtime.stereo), or None."""
+        from .detail import read_ego_mask
+        from .inference import as_rgb
+        from .stereo import partner_frames, stereo_points
+
+        parts = partner_frames(positions_all, k)
+        if not stereo or len(parts) < 2:
+            return None
+
+        def loaded(j):
+            r = drive.frames[j].rig
+            return r.cameras, [as_rgb(i, c) for i, c in zip(r.load_images(), r.cameras)], drive.relative(j)
+
+        rig = drive.frames[k].rig
+        cams, imgs, T = loaded(k)
+        masks = [read_ego_mask(rig.path(c.extra["ego_mask"]), c) if c.extra.get("ego_mask") else None
+                 for c in cams]
+        pts = stereo_points(cams, imgs, T, [loaded(j) for j in parts], masks, moving_boxes(drive, k))
+        say(f"stereo: {len(pts)} points from frames {parts}")
+        return pts if len(pts) else None
 
     if keys == [0] and not drive.tracks:          # the scene's frame is frame 0's: only then is it one rig's scene
         fr = drive.frames[keys[0]]
@@ -601,7 +627,11 @@ def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None,
         fr = drive.frames[k]
         say(f"keyframe {n + 1}/{len(keys)}: frame {k} ({fr.timestamp_s - drive.frames[0].timestamp_s:.2f} s)")
         points = sweep(k)
-        kf = rec.keyframe(fr.rig, progress=say, lidar=points, detail=detail)
+        t_s = time.perf_counter()
+        guide = points if points is not None else stereo_sweep(k)
+        if points is None:
+            timings["stereo"] = timings.get("stereo", 0.0) + time.perf_counter() - t_s
+        kf = rec.keyframe(fr.rig, progress=say, lidar=guide, detail=detail)
         for key, v in kf.timings.items():
             timings[key] = timings.get(key, 0.0) + v
         if background is None:
@@ -670,13 +700,13 @@ def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None,
 
 
 def save_drive_scene(rec, drive: Drive, keys: Sequence[int], out: str | os.PathLike, *, detail,
-                     lidar: bool = True, say: Callable[[str], None] | None = None):
+                     lidar: bool = True, say: Callable[[str], None] | None = None, stereo: bool = True):
     """A drive's scene folder, the one path of `xyzcyl reconstruct DRIVE_JSON` and of the service's worker for a
     posted drive: reconstruct_drive of the keyframes ``keys`` with the Reconstructor ``rec`` and the detail layer's
     settings ``detail`` (None: none), written to ``out`` (replaced). Returns the scene and the seconds the save
     took."""
     say = say or (lambda msg: None)
-    scene = reconstruct_drive(rec, drive, keys, lidar=lidar, detail=detail, progress=say)
+    scene = reconstruct_drive(rec, drive, keys, lidar=lidar, detail=detail, progress=say, stereo=stereo)
     say(f"write {out}")
     t1 = time.perf_counter()
     scene.save(out, overwrite=True)

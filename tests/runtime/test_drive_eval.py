@@ -111,5 +111,6 @@ def test_eval_real_drive_flag_errors(tmp_path, capsys):
     assert "--pairs" in fails(*d, "--pairs", "a:b")
     assert "--drive" in fails("--drive", str(tmp_path / "nowhere.json"))
     assert "--width" in fails(str(tmp_path / "drive"), "--width", "64")      # a --drive flag without --drive
+    assert "--stereo" in fails(str(tmp_path / "drive"), "--stereo", "off")
     assert "PATH" in fails("--lidar", "off")
     assert not (tmp_path / "out").exists()                                   # nothing written on an error
