@@ -544,11 +544,11 @@ _DEFAULT = object()
 
 
 def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None, lidar: bool = True,
-                      detail: Any = _DEFAULT, progress: Callable[[str], None] | None = None, stereo: bool = True):
+                      detail: Any = _DEFAULT, progress: Callable[[str], None] | None = None, stereo: bool = False):
     """One runtime.scene.Scene of ``drive`` (module docstring) with runtime.inference.Reconstructor ``rec``:
     ``keyframes`` (default pick_keyframes), each keyframe's LiDAR sweep when ``lidar`` and it has one, else when
     ``stereo`` the points triangulated between it and the frames about a metre before and after it
-    (runtime.stereo), the detail
+    (runtime.stereo; off by default: docs/inference.md), the detail
     layer's settings ``detail`` (default runtime.inference.DEFAULT_DETAIL; None: the model's Gaussians only). A
     one-frame drive is exactly Reconstructor.reconstruct of its rig."""
     from .detail import carve_details, cull_covered
@@ -700,7 +700,7 @@ def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None,
 
 
 def save_drive_scene(rec, drive: Drive, keys: Sequence[int], out: str | os.PathLike, *, detail,
-                     lidar: bool = True, say: Callable[[str], None] | None = None, stereo: bool = True):
+                     lidar: bool = True, say: Callable[[str], None] | None = None, stereo: bool = False):
     """A drive's scene folder, the one path of `xyzcyl reconstruct DRIVE_JSON` and of the service's worker for a
     posted drive: reconstruct_drive of the keyframes ``keys`` with the Reconstructor ``rec`` and the detail layer's
     settings ``detail`` (None: none), written to ``out`` (replaced). Returns the scene and the seconds the save

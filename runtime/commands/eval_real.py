@@ -53,7 +53,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="--drive: score K of the frames between keyframes, evenly spread (a quick run)")
     parser.add_argument("--stereo", choices=("on", "off"), default=None,
                         help="--drive: keyframes without a LiDAR sweep take depth from the motion between frames "
-                             "(runtime.stereo; default on)")
+                             "(runtime.stereo; default off)")
     parser.add_argument("--stride", type=int, default=None, metavar="S",
                         help="the detail stride: --detail-stride's short form")
     parser.add_argument("--out", required=True, metavar="DIR",
@@ -304,7 +304,7 @@ def _run_drive(args: argparse.Namespace) -> int:
         rec = Reconstructor.load(model_dir, threads=args.threads)
         report = drive_eval.evaluate_drive(rec, drive, keys, scored, out, lidar=lidar == "on", detail=detail,
                                            width=args.width, cameras=cameras, first=start, say=say, bar=bar,
-                                           stereo=args.stereo != "off")
+                                           stereo=args.stereo == "on")
     except (ModelError, RigError, InferenceError, SceneError, LidarError, DriveError) as exc:
         bar.close()
         return _fail(str(exc))
@@ -313,7 +313,7 @@ def _run_drive(args: argparse.Namespace) -> int:
         return _fail(f"--out: {exc}")
     report = {"format": REPORT_FORMAT, "format_version": 1, "kind": "drive", "drive": str(path),
               "frames_range": [start, stop], "every": every, "max_views": args.max_views, "lidar": lidar,
-              "stereo": args.stereo or "on",
+              "stereo": args.stereo or "off",
               "stride": None if detail is None else detail.stride,
               "settings": {"model": {"name": rec.info.name, "version": rec.info.version, "dir": str(model_dir)},
                            "detail": None if detail is None else dataclasses.asdict(detail),

@@ -42,9 +42,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                    help="a keyframe at least every S seconds, moving or not (default 2)")
     g.add_argument("--keyframes", default=None, metavar="I,J,...",
                    help="these frames (indices into the drive's frames) as the keyframes instead")
-    g.add_argument("--no-stereo", action="store_true",
-                   help="keyframes without a LiDAR sweep take no depth from the motion between frames (default: "
-                        "points triangulated with the frames ~1 m before and after each; docs/inference.md)")
+    g.add_argument("--stereo", action="store_true",
+                   help="keyframes without a LiDAR sweep take depth from the motion between frames: points "
+                        "triangulated with the frames ~1 m before and after each (docs/inference.md, \"Stereo "
+                        "between frames\"; ~2 s a keyframe)")
     parser.add_argument("--force", action="store_true", help="replace an existing SCENE_DIR")
     parser.add_argument("--quiet", action="store_true", help="no progress lines")
 
@@ -87,7 +88,7 @@ def run(args: argparse.Namespace) -> int:
     if is_drive_file(args.rig):
         return _drive(args, detail, out, model_dir, say)
     drive_flags = [f for f, v in (("--keyframe-spacing", args.keyframe_spacing), ("--keyframe-gap", args.keyframe_gap),
-                                  ("--keyframes", args.keyframes), ("--no-stereo", args.no_stereo or None))
+                                  ("--keyframes", args.keyframes), ("--stereo", args.stereo or None))
                    if v is not None]
     if drive_flags:
         return _fail(f"{drive_flags[0]}: goes with a drive file (a rig.json is one timestamp)")
@@ -164,7 +165,7 @@ def _drive(args: argparse.Namespace, detail, out: Path, model_dir: Path, say) ->
         rec = Reconstructor.load(model_dir, threads=args.threads)
         t_load = time.perf_counter() - t0
         scene, t_save = save_drive_scene(rec, drive, keys, out, lidar=not args.no_lidar, detail=detail, say=say,
-                                          stereo=not args.no_stereo)
+                                          stereo=args.stereo)
     except (DriveError, ModelError, RigError, InferenceError, SceneError, LidarError) as exc:
         return _fail(str(exc))
     except OSError as exc:

@@ -78,10 +78,10 @@ def test_a_textured_wall_seen_from_two_places_is_found_at_its_depth(depth_m):
     assert len(S.stereo_points([cam], [rgb(a)], np.eye(4), [([cam], [rgb(b)], T_b), moved])) < 0.05 * len(pts)
 
 
-def test_no_stereo_goes_with_a_drive_file(tmp_path, capsys):
+def test_stereo_goes_with_a_drive_file(tmp_path, capsys):
     from xyzcyl.cli import main
     from xyzcyl.testing import EXAMPLE_RIG
 
-    assert main(["reconstruct", str(EXAMPLE_RIG), "--out", str(tmp_path / "s"), "--no-stereo"]) == 2
-    assert "--no-stereo: goes with a drive file" in capsys.readouterr().err
+    assert main(["reconstruct", str(EXAMPLE_RIG), "--out", str(tmp_path / "s"), "--stereo"]) == 2
+    assert "--stereo: goes with a drive file" in capsys.readouterr().err
     assert not (tmp_path / "s").exists()
