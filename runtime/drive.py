@@ -39,9 +39,10 @@ from __future__ import annotations
 import json
 import math
 import os
+import tempfile
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -492,17 +493,37 @@ class _Kept:
     mask: what the fusion keeps in the scene's shared Gaussians (dedupe_frames over the shared cells so far: a cell
     another keyframe took over never comes back, so deduping the shared ones as each keyframe arrives keeps what
     deduping them all at once keeps). The rest stays only where it is a viewpoint group's first keyframe's
-    (``heads``): runtime.viewpoints."""
+    (``heads``): runtime.viewpoints. With ``spill`` (a folder), each part's Gaussians wait there (an .npz) and only
+    their centres stay in memory (12 of a cell's 68 bytes): a drive's memory does not grow with every keyframe's
+    every cell."""
 
-    gaussians: list[Gaussians]
-    level: list[np.ndarray]
-    frame: list[np.ndarray]
-    shared: list[np.ndarray]
     origins: np.ndarray             # [K, 3] metres: each keyframe's viewpoint (viewpoint_origins)
     heads: np.ndarray               # [K] the first keyframe of each keyframe's viewpoint group (viewpoint_groups)
+    spill: Path | None = None
+    means: list[np.ndarray] = field(default_factory=list)          # [N_i, 3] per part
+    store: list[Gaussians | Path] = field(default_factory=list)    # the part, or its .npz in ``spill``
+    level: list[np.ndarray] = field(default_factory=list)
+    frame: list[np.ndarray] = field(default_factory=list)
+    shared: list[np.ndarray] = field(default_factory=list)
+
+    def _put(self, i: int | None, g: Gaussians) -> Gaussians | Path:
+        if self.spill is None:
+            return g
+        path = self.spill / f"part_{len(self.store) if i is None else i:05d}.npz"
+        np.savez(path, means=g.means, quats=g.quats, log_scales=g.log_scales, opacity_logits=g.opacity_logits,
+                 sh=g.sh)
+        return path
+
+    def part(self, i: int) -> Gaussians:
+        s = self.store[i]
+        if isinstance(s, Gaussians):
+            return s
+        with np.load(s) as z:
+            return Gaussians(**{k: z[k] for k in ("means", "quats", "log_scales", "opacity_logits", "sh")})
 
     def add(self, g: Gaussians, level: np.ndarray, n: int) -> None:
-        self.gaussians.append(g)
+        self.store.append(self._put(None, g))
+        self.means.append(np.array(g.means, np.float32))
         self.level.append(level)
         self.frame.append(np.full(len(g), n, np.int32))
         self.shared.append(np.ones(len(g), bool))
@@ -510,14 +531,15 @@ class _Kept:
     def keep(self, i: int, m: np.ndarray) -> None:
         """Part i keeps only the cells ``m`` selects (shared or not)."""
         if not m.all():
-            self.gaussians[i] = self.gaussians[i].subset(m)
-            self.level[i], self.frame[i], self.shared[i] = self.level[i][m], self.frame[i][m], self.shared[i][m]
+            self.store[i] = self._put(i, self.part(i).subset(m))
+            self.means[i], self.level[i] = self.means[i][m], self.level[i][m]
+            self.frame[i], self.shared[i] = self.frame[i][m], self.shared[i][m]
 
     def dedupe(self) -> None:
-        if not self.gaussians:
+        if not self.store:
             return
         sel = [np.flatnonzero(s) for s in self.shared]
-        pts = np.concatenate([g.means[j] for g, j in zip(self.gaussians, sel)])
+        pts = np.concatenate([p[j] for p, j in zip(self.means, sel)])
         keep = dedupe_frames(pts, np.concatenate([v[j] for v, j in zip(self.level, sel)]),
                              np.concatenate([f[j] for f, j in zip(self.frame, sel)]), self.origins)
         start = 0
@@ -530,14 +552,18 @@ class _Kept:
     def count(self) -> int:
         return sum(int(s.sum()) for s in self.shared)
 
-    def split(self) -> tuple[list[Gaussians], list[np.ndarray], dict[int, list[Gaussians]]]:
-        """(each part's shared Gaussians, their keyframes, {group head: its parts' other cells})."""
-        own: dict[int, list[Gaussians]] = {}
-        for g, f, s in zip(self.gaussians, self.frame, self.shared):
-            if len(f) and not s.all():
-                own.setdefault(int(f[0]), []).append(g.subset(~s))
-        return ([g.subset(s) if not s.all() else g for g, s in zip(self.gaussians, self.shared)],
-                [f[s] for f, s in zip(self.frame, self.shared)], own)
+    def shared_parts(self) -> tuple[list[Gaussians], list[np.ndarray]]:
+        """(each part's shared Gaussians, their keyframes)."""
+        out = []
+        for i, s in enumerate(self.shared):
+            g = self.part(i)
+            out.append(g if s.all() else g.subset(s))
+        return out, [f[s] for f, s in zip(self.frame, self.shared)]
+
+    def own_of(self, head: int) -> list[Gaussians]:
+        """Keyframe ``head``'s cells that the shared Gaussians keep from another keyframe (its parts' unshared)."""
+        return [self.part(i).subset(~s) for i, (f, s) in enumerate(zip(self.frame, self.shared))
+                if len(f) and int(f[0]) == head and not s.all()]
 
 
 _DEFAULT = object()
@@ -603,8 +629,9 @@ def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None,
     positions = np.array([drive.relative(k)[:3, 3] for k in keys])
     heads = viewpoint_groups(positions)
     origins = positions[heads]
-    detail_kept = _Kept([], [], [], [], origins, heads)
-    coarse_kept = _Kept([], [], [], [], origins, heads)
+    spill = tempfile.TemporaryDirectory(prefix="xyzcyl-drive-")      # removed when the scene lets go of it
+    detail_kept = _Kept(origins, heads, Path(spill.name))
+    coarse_kept = _Kept(origins, heads)
     # (keyframe, details, parts, keep, whether its depth was measured: a LiDAR sweep)
     window: list[tuple[int, list, list[Gaussians], list[np.ndarray], bool]] = []
     background = None
@@ -615,7 +642,8 @@ def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None,
         """A keyframe leaves the carving window: its kept cells join the scene (deduped across keyframes), and the
         model's Gaussians so far that would veil one of its cameras' surfaces go (as in one frame)."""
         n, details, parts, keep, _ = entry
-        for i, g in enumerate(coarse_kept.gaussians):
+        for i in range(len(coarse_kept.store)):
+            g = coarse_kept.part(i)
             if details and len(g):
                 coarse_kept.keep(i, cull_covered(g, details, tol))
         for g, k in zip(parts, keep):
@@ -672,15 +700,17 @@ def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None,
     while window:
         commit(window.pop(0))
     coarse_kept.dedupe()
-    coarse_parts, coarse_frames, coarse_own = coarse_kept.split()
-    detail_parts, detail_frames, detail_own = detail_kept.split()
+    coarse_parts, coarse_frames = coarse_kept.shared_parts()
+    detail_parts, detail_frames = detail_kept.shared_parts()
     coarse = _concat(coarse_parts)
     details_g = _concat(detail_parts)
+    del coarse_parts, detail_parts
     gauss = _concat([coarse, details_g])
     group_heads = sorted(set(map(int, heads)))
-    viewpoints = Viewpoints.build(
-        [np.flatnonzero(heads == h).tolist() for h in group_heads],
-        [_concat(coarse_own.get(h, []) + detail_own.get(h, [])) for h in group_heads]) if len(keys) > 1 else None
+    # each group's chunk written beside the spilled parts, one at a time, and read back when a view needs it
+    viewpoints = Viewpoints.spilled([np.flatnonzero(heads == h).tolist() for h in group_heads],
+                                    (_concat(coarse_kept.own_of(h) + detail_kept.own_of(h)) for h in group_heads),
+                                    spill) if len(keys) > 1 else None
     timings["fusion"] = time.perf_counter() - t1
     timings["total"] = time.perf_counter() - t0
     counts.update({"coarse": len(coarse), "detail": len(details_g), "moving_removed": moved_out,

@@ -18,9 +18,10 @@ last CACHE_CHUNKS it used: a view reads at most three."""
 
 from __future__ import annotations
 
+import shutil
 import threading
 from collections import OrderedDict
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -72,6 +73,7 @@ class Viewpoints:
         self._folder = folder
         self._cache: OrderedDict[int, Gaussians] = OrderedDict()
         self._lock = threading.Lock()
+        self._tmp = None            # a temporary folder the chunks live in (spilled), removed with them
 
     @classmethod
     def build(cls, groups: Sequence[Sequence[int]], gaussians: Sequence[Gaussians]) -> Viewpoints:
@@ -79,6 +81,21 @@ class Viewpoints:
         chunks = [Chunk(tuple(int(k) for k in ks), len(g), _bbox(g), f"{CHUNKS_DIR}/group_{i:03d}.ply")
                   for i, (ks, g) in enumerate(zip(groups, gaussians))]
         return cls(chunks, list(gaussians))
+
+    @classmethod
+    def spilled(cls, groups: Sequence[Sequence[int]], gaussians: Iterable[Gaussians], tmp) -> Viewpoints:
+        """From each group's keyframes and its chunk's Gaussians, each written as it comes into the temporary folder
+        ``tmp`` (a tempfile.TemporaryDirectory, kept alive as long as these chunks) and read back when used."""
+        folder = Path(tmp.name)
+        (folder / CHUNKS_DIR).mkdir(exist_ok=True)
+        chunks = []
+        for i, (ks, g) in enumerate(zip(groups, gaussians)):
+            c = Chunk(tuple(int(k) for k in ks), len(g), _bbox(g), f"{CHUNKS_DIR}/group_{i:03d}.ply")
+            g.save_ply(folder / c.file)
+            chunks.append(c)
+        out = cls(chunks, [None] * len(chunks), folder)
+        out._tmp = tmp
+        return out
 
     def __len__(self) -> int:
         return len(self.chunks)
@@ -125,7 +142,10 @@ class Viewpoints:
         """Write every chunk's PLY into ``folder`` (a scene folder being written)."""
         (folder / CHUNKS_DIR).mkdir(exist_ok=True)
         for i, c in enumerate(self.chunks):
-            self.gaussians(i).save_ply(folder / c.file)
+            if self._given[i] is None:              # on disk already: copied, not read
+                shutil.copyfile(self._folder / c.file, folder / c.file)
+            else:
+                self._given[i].save_ply(folder / c.file)
 
     @classmethod
     def from_json(cls, block: Any, folder: Path, keyframes: int) -> Viewpoints:

@@ -171,7 +171,8 @@ def _drive(args: argparse.Namespace, detail, out: Path, model_dir: Path, say) ->
     except OSError as exc:
         return _fail(f"--out: {exc}")
     c, t = scene.counts, scene.timings
-    print(f"{out}: {c['total']} Gaussians from {len(keys)} keyframes of {len(drive)} frames, model {rec.info.name} "
-          f"{rec.info.version}")
+    chunks = f" (+ {c['viewpoint_gaussians']} in {c['viewpoints']} viewpoint chunks)" if c.get("viewpoints") else ""
+    print(f"{out}: {c['total']} Gaussians{chunks} from {len(keys)} keyframes of {len(drive)} frames, model "
+          f"{rec.info.name} {rec.info.version}")
     print(f"reconstruct {t['total']:.2f} s; model load {t_load:.2f} s, save {t_save:.2f} s")
     return 0
