@@ -603,8 +603,10 @@ def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None,
         from .inference import as_rgb
         from .stereo import partner_frames, stereo_points
 
+        if not stereo:
+            return None
         parts = partner_frames(positions_all, k)
-        if not stereo or len(parts) < 2:
+        if len(parts) < 2:              # stereo_points needs a partner on each side
             return None
 
         def loaded(j):
