@@ -617,7 +617,9 @@ def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None,
         cams, imgs, T = loaded(k)
         masks = [read_ego_mask(rig.path(c.extra["ego_mask"]), c) if c.extra.get("ego_mask") else None
                  for c in cams]
-        pts = stereo_points(cams, imgs, T, [loaded(j) for j in parts], masks, moving_boxes(drive, k))
+        boxes = moving_boxes(drive, k)
+        pts = stereo_points(cams, imgs, T, [loaded(j) for j in parts], masks,
+                            (lambda p: inside_boxes(p, boxes)) if boxes else None)
         say(f"stereo: {len(pts)} points from frames {parts}")
         return pts if len(pts) else None
 

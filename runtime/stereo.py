@@ -18,7 +18,7 @@ depth. They are sparse and less exact than a LiDAR's, so they never carve anothe
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import numpy as np
 
@@ -133,14 +133,14 @@ def _pair_points(cam, T, fa, p_cam, p_T, fb, pix: float) -> dict[int, np.ndarray
 
 
 def stereo_points(cameras: Sequence, images: Sequence[np.ndarray], T: np.ndarray, partners: Sequence[tuple],
-                  masks: Sequence[np.ndarray | None] | None = None, boxes: Sequence[tuple] = (),
-                  width: int | None = None) -> np.ndarray:
+                  masks: Sequence[np.ndarray | None] | None = None,
+                  moving: Callable[[np.ndarray], np.ndarray] | None = None, width: int | None = None) -> np.ndarray:
     """[P, 3] metres, the keyframe's ego frame: points triangulated between the keyframe's cameras (runtime.camera
     Camera, ego frame), their ``images`` ([H, W, 3] 0..1) and its pose ``T`` (ego -> the scene's frame), and each
     partner frame's (cameras, images, pose) in ``partners`` (module docstring); ``masks`` each keyframe camera's ego
-    body (True: the ego's own, no features there) or None; ``boxes`` the moving objects' (scene -> box [4, 4],
-    half-sizes) at the keyframe (runtime.drive.moving_boxes), whose points are dropped."""
-    from .drive import inside_boxes
+    body (True: the ego's own, no features there) or None; ``moving`` maps points [P, 3] (the scene's frame) to [P]
+    bool, True inside a moving object at the keyframe (runtime.drive.inside_boxes of its moving_boxes): those are
+    dropped."""
 
     width = STEREO_WIDTH if width is None else width
     masks = list(masks) if masks is not None else [None] * len(cameras)
@@ -160,8 +160,8 @@ def stereo_points(cameras: Sequence, images: Sequence[np.ndarray], T: np.ndarray
             if np.linalg.norm(p - q) <= AGREE * dist:
                 out.append(0.5 * (p + q))
     pts = np.array(out, np.float64).reshape(-1, 3)
-    if boxes and len(pts):
-        pts = pts[~inside_boxes(pts, boxes)]
+    if moving is not None and len(pts):
+        pts = pts[~moving(pts)]
     Ti = np.linalg.inv(T)
     return (pts @ Ti[:3, :3].T + Ti[:3, 3]).astype(np.float64)
 

@@ -4,7 +4,6 @@ squares reference, the partner frames, and a textured wall seen from two places 
 from __future__ import annotations
 
 import numpy as np
-import pytest
 from xyzcyl.runtime import stereo as S
 from xyzcyl.runtime.camera import Camera, pinhole_K
 from xyzcyl.testing.drives import pose
@@ -38,14 +37,15 @@ def test_partner_frames_about_a_baseline_away_on_each_side():
     assert S.partner_frames(np.zeros((5, 3)), 2, 1.0) == []          # a still ego: no stereo
 
 
-@pytest.mark.parametrize("depth_m", [6.0, 12.0])
-def test_a_textured_wall_seen_from_two_places_is_found_at_its_depth(depth_m):
+def test_a_textured_wall_seen_from_two_places_is_found_at_its_depth(monkeypatch):
     """A wall facing the camera at ``depth_m``; the ego steps 1 m to the right and 1 m to the left of the keyframe,
     so those images are the keyframe's shifted by -+ f B / D pixels. Every kept point lies on the wall, in the
     keyframe's ego frame."""
     import cv2
 
-    w, h, f = 640, 480, 400.0
+    monkeypatch.setattr(S, "MAX_FEATURES", 2000)         # enough for the test, and quick to match
+    depth_m = 8.0
+    w, h, f = 480, 360, 300.0
     cam = Camera(K=pinhole_K(f, f, (w - 1) / 2, (h - 1) / 2), cam_to_ego=FRONT, width=w, height=h)
     rng = np.random.default_rng(1)
     tex = cv2.GaussianBlur(rng.uniform(0, 1, (h, w + 200)).astype(np.float32), (0, 0), 2.0)
@@ -66,7 +66,8 @@ def test_a_textured_wall_seen_from_two_places_is_found_at_its_depth(depth_m):
     pts = S.stereo_points([cam], [rgb(a)], np.eye(4), [([cam], [rgb(b)], T_b), ([cam], [rgb(c)], T_c)])
     assert len(pts) > 200, len(pts)
     # the wall is at ego x = depth (the camera looks along ego x); tolerance: a tenth of a pixel of matching error
-    # is D^2 / (f B) * 0.1 = 0.009 D at 6 m... 0.018 D at 12 m, so 3 % of the depth for the median, 10 % for all
+    # is D / (f B) * 0.1 = 0.27 % of the depth at 8 m, so 3 % for the median and 10 % for 95 % are loose bounds that
+    # a wrong sign, scale or frame (tens of percent, or points behind) still fails
     err = np.abs(pts[:, 0] - depth_m) / depth_m
     assert np.median(err) < 0.03 and np.percentile(err, 95) < 0.10, (np.median(err), np.percentile(err, 95))
     # a still ego (the same image from the same place) gives nothing: no parallax
