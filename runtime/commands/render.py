@@ -199,6 +199,7 @@ def run(args: argparse.Namespace) -> int:
     except OSError as exc:
         return _fail(f"--out: {exc}")
     if not args.quiet:
-        print(f"rendered {len(g)} Gaussians -> {out} ({cam.width}x{cam.height}, "
+        chunks = " and the view's viewpoint chunks" if scene is not None and scene.viewpoints is not None else ""
+        print(f"rendered {len(g)} Gaussians{chunks} -> {out} ({cam.width}x{cam.height}, "
               f"coverage {float((alpha > 0).mean()):.3f}{', with background' if bg is not None else ''})")
     return 0
