@@ -595,23 +595,23 @@ def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None,
         rig = drive.frames[k].rig
         return load_lidar(rig).points if lidar and has_lidar(rig) else None
 
-    positions_all = np.array([drive.relative(j)[:3, 3] for j in range(len(drive))])
-
     def stereo_sweep(k: int):
-        """Points triangulated between keyframe k and its partner frames (runtime.stereo), or None."""
+        """(points triangulated between keyframe k and its partner frames (runtime.stereo) or None, keyframe k's
+        images when they were read for it, else None: Reconstructor.keyframe reads them)."""
         from .detail import read_ego_mask
-        from .inference import as_rgb
+        from .inference import rgb_images
         from .stereo import partner_frames, stereo_points
 
         if not stereo:
-            return None
+            return None, None
+        positions_all = np.array([drive.relative(j)[:3, 3] for j in range(len(drive))])
         parts = partner_frames(positions_all, k)
         if len(parts) < 2:              # stereo_points needs a partner on each side
-            return None
+            return None, None
 
         def loaded(j):
             r = drive.frames[j].rig
-            return r.cameras, [as_rgb(i, c) for i, c in zip(r.load_images(), r.cameras)], drive.relative(j)
+            return r.cameras, rgb_images(r), drive.relative(j)
 
         rig = drive.frames[k].rig
         cams, imgs, T = loaded(k)
@@ -621,7 +621,7 @@ def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None,
         pts = stereo_points(cams, imgs, T, [loaded(j) for j in parts], masks,
                             (lambda p: inside_boxes(p, boxes)) if boxes else None)
         say(f"stereo: {len(pts)} points from frames {parts}")
-        return pts if len(pts) else None
+        return (pts if len(pts) else None), imgs
 
     if keys == [0] and not drive.tracks:          # the scene's frame is frame 0's: only then is it one rig's scene
         fr = drive.frames[keys[0]]
@@ -658,12 +658,13 @@ def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None,
     for n, k in enumerate(keys):
         fr = drive.frames[k]
         say(f"keyframe {n + 1}/{len(keys)}: frame {k} ({fr.timestamp_s - drive.frames[0].timestamp_s:.2f} s)")
-        points = sweep(k)
-        t_s = time.perf_counter()
-        guide = points if points is not None else stereo_sweep(k)
-        if points is None:
+        points, images = sweep(k), None
+        guide = points
+        if points is None and stereo:
+            t_s = time.perf_counter()
+            guide, images = stereo_sweep(k)
             timings["stereo"] = timings.get("stereo", 0.0) + time.perf_counter() - t_s
-        kf = rec.keyframe(fr.rig, progress=say, lidar=guide, detail=detail)
+        kf = rec.keyframe(fr.rig, images, progress=say, lidar=guide, detail=detail)
         for key, v in kf.timings.items():
             timings[key] = timings.get(key, 0.0) + v
         if background is None:

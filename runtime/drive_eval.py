@@ -132,7 +132,7 @@ def evaluate_drive(rec, drive: Drive, keys: Sequence[int], scored: Sequence[int]
     report; ``bar`` (a tqdm-like object with update()/close(), or None) advances once per scored frame."""
     import cv2
 
-    from .inference import as_rgb
+    from .inference import rgb_images
     from .lidar import has_lidar, load_lidar
     from .realeval import image_metrics, sheet
     from .scene import render_view
@@ -145,8 +145,7 @@ def evaluate_drive(rec, drive: Drive, keys: Sequence[int], scored: Sequence[int]
         return load_lidar(rig).points if lidar and has_lidar(rig) else None
 
     def images(k: int) -> list[np.ndarray]:
-        rig = drive.frames[k].rig
-        return [as_rgb(img, cam) for img, cam in zip(rig.load_images(), rig.cameras)]
+        return rgb_images(drive.frames[k].rig)
 
     def shot(scene, cam, time_s=None) -> np.ndarray:
         rgb, _, _ = render_view(scene, cam, time_s=time_s)

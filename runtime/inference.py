@@ -95,6 +95,11 @@ def as_rgb(img: np.ndarray, cam: Camera) -> np.ndarray:
     return np.ascontiguousarray(out)
 
 
+def rgb_images(rig: Rig) -> list[np.ndarray]:
+    """Each camera's image of ``rig`` as as_rgb makes it ([H, W, 3] float32 0..1), in the rig's camera order."""
+    return [as_rgb(img, cam) for img, cam in zip(rig.load_images(), rig.cameras)]
+
+
 def resize_area(img: np.ndarray, height: int, width: int) -> np.ndarray:
     """cv2.INTER_AREA resize of [H, W, C] float32 (identity at the same size)."""
     if img.shape[:2] == (height, width):

@@ -543,20 +543,15 @@ def _scene_file(folder: Path, entry: Any, default: str) -> Path:
 
 
 def composite_layers(*layers) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(rgb, depth, alpha) of render results (runtime.render.RenderResult, or (rgb, depth, alpha) tuples) drawn
-    front to back, the last over the background if any: for a over b, I = I_a + (1 - A_a) I_b,
-    A = A_a + (1 - A_a) A_b, depth the alpha-weighted mean of the two (each result's depth is its own
-    sum(w z) / alpha; 0 where A is 0)."""
-    def parts(r):
-        return (r.rgb, r.depth, r.alpha) if hasattr(r, "rgb") else r
-
-    rgb, depth, alpha = parts(layers[-1])
-    for layer in layers[-2::-1]:
-        a_rgb, a_depth, a_alpha = parts(layer)
-        ta = 1.0 - a_alpha
-        wsum = a_alpha * a_depth + ta * alpha * depth
-        rgb = a_rgb + ta[..., None] * rgb
-        alpha = a_alpha + ta * alpha
+    """(rgb, depth, alpha) of render results (runtime.render.RenderResult) drawn front to back, the last over the
+    background if any: for a over b, I = I_a + (1 - A_a) I_b, A = A_a + (1 - A_a) A_b, depth the alpha-weighted
+    mean of the two (each result's depth is its own sum(w z) / alpha; 0 where A is 0)."""
+    rgb, depth, alpha = layers[-1].rgb, layers[-1].depth, layers[-1].alpha
+    for a in layers[-2::-1]:
+        ta = 1.0 - a.alpha
+        wsum = a.alpha * a.depth + ta * alpha * depth
+        rgb = a.rgb + ta[..., None] * rgb
+        alpha = a.alpha + ta * alpha
         depth = np.divide(wsum, alpha, out=np.zeros_like(wsum), where=alpha > 0)
     return rgb.astype(np.float32), depth.astype(np.float32), alpha.astype(np.float32)
 

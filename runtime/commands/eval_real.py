@@ -331,7 +331,7 @@ def _run_drive(args: argparse.Namespace) -> int:
 
 def _run(args: argparse.Namespace) -> int:
     from .. import realeval
-    from ..inference import InferenceError, ModelError, Reconstructor, as_rgb
+    from ..inference import InferenceError, ModelError, Reconstructor, rgb_images
     from ..lidar import LidarError, has_lidar, load_lidar
     from ..rig import RigError, load_rig
     from ..scene import SceneError
@@ -414,9 +414,6 @@ def _run(args: argparse.Namespace) -> int:
     try:
         say(f"load model {model_dir}")
         rec = Reconstructor.load(model_dir, threads=args.threads)
-
-        def rgb_images(r) -> list:
-            return [as_rgb(img, cam) for img, cam in zip(r.load_images(), r.cameras)]
 
         for k, name in enumerate(recon, 1):
             r = rigs[name]

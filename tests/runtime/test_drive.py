@@ -280,6 +280,25 @@ def test_only_a_keyframe_with_measured_depth_carves_its_neighbours(monkeypatch):
     assert calls == [("a0", ["b0"], 0.1), ("a1", ["b0"], 0.1)]
 
 
+def test_a_drive_with_stereo_triangulates_a_keyframe_between_its_partner_frames(tmp_path, shipped):
+    """reconstruct_drive(stereo=True): a keyframe without a sweep and with frames >= 1 m on both sides is matched
+    with them (runtime.stereo; its images read once, for the stereo and the keyframe); without stereo, nothing."""
+    from xyzcyl.runtime.detail import DetailOptions
+    from xyzcyl.runtime.drive import reconstruct_drive
+
+    E = np.array(_pose(7, 3, 20))
+    poses = [(E @ np.array(_pose(x, 0.0))).tolist() for x in (0.0, 1.2, 2.4)]
+    drive = load_drive(write_drive(tmp_path, poses, [0.0, 0.25, 0.5]))
+    said = []
+    with_stereo = reconstruct_drive(shipped, drive, keyframes=[1], detail=DetailOptions(stride=8), stereo=True,
+                                    progress=said.append)
+    assert "stereo" in with_stereo.timings
+    assert any(m.startswith("stereo: ") and "frames [0, 2]" in m for m in said), said
+    said.clear()
+    without = reconstruct_drive(shipped, drive, keyframes=[1], detail=DetailOptions(stride=8), progress=said.append)
+    assert "stereo" not in without.timings and not any(m.startswith("stereo") for m in said)
+
+
 def _actors(copy_times=(0.0, 1.0)):
     """One object annotated at t = 0, 1, 2 s moving +2 m/s along x and turning 90 degrees over 2 s, with a copy
     (two Gaussians: its centre and 1 m ahead along its length) at each of ``copy_times``."""
