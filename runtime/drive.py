@@ -29,9 +29,11 @@ Reconstruction (reconstruct_drive):
    model's Gaussians of every keyframe fill what no cell covers (runtime.detail.cull_covered), kept once per
    voxel the same way. Cells another keyframe drops are removed, not hidden: the scene has no own views.
 
+Before the keyframes, the ego's own body is found over the drive's frames (runtime.egobody: the pixels that stay
+put while the world moves) and used as the cameras' ego masks; the scene keeps them (Scene.ego_body).
+
 What is not done yet (docs/inference.md "Drives" lists it): moving objects found without tracks, exposure
-harmonisation across keyframes, a sky dome, the ego's own body found over frames, stereo depth between keyframes,
-spatial chunks, parallel keyframe workers.
+harmonisation across keyframes, a sky dome, spatial chunks, parallel keyframe workers.
 """
 
 from __future__ import annotations
@@ -50,6 +52,7 @@ import numpy as np
 from xyzcyl.common.wire import is_drive_file
 
 from .camera import check_pose
+from .egobody import EgoBody
 from .errors import FieldError, RigError
 from .render import Gaussians
 from .rig import Rig, load_rig
@@ -570,13 +573,15 @@ _DEFAULT = object()
 
 
 def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None, lidar: bool = True,
-                      detail: Any = _DEFAULT, progress: Callable[[str], None] | None = None, stereo: bool = False):
+                      detail: Any = _DEFAULT, progress: Callable[[str], None] | None = None, stereo: bool = False,
+                      ego_body: bool = True):
     """One runtime.scene.Scene of ``drive`` (module docstring) with runtime.inference.Reconstructor ``rec``:
     ``keyframes`` (default pick_keyframes), each keyframe's LiDAR sweep when ``lidar`` and it has one, else when
     ``stereo`` the points triangulated between it and the frames about a metre before and after it
     (runtime.stereo; off by default: docs/inference.md), the detail
-    layer's settings ``detail`` (default runtime.inference.DEFAULT_DETAIL; None: the model's Gaussians only). A
-    one-frame drive is exactly Reconstructor.reconstruct of its rig."""
+    layer's settings ``detail`` (default runtime.inference.DEFAULT_DETAIL; None: the model's Gaussians only), the
+    ego's own body found over the drive's frames when ``ego_body`` (runtime.egobody: no cells there; a camera's
+    ego_mask file wins). A one-frame drive is exactly Reconstructor.reconstruct of its rig."""
     from .detail import carve_details, cull_covered
     from .inference import DEFAULT_DETAIL
     from .lidar import has_lidar, load_lidar
@@ -615,8 +620,8 @@ def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None,
 
         rig = drive.frames[k].rig
         cams, imgs, T = loaded(k)
-        masks = [read_ego_mask(rig.path(c.extra["ego_mask"]), c) if c.extra.get("ego_mask") else None
-                 for c in cams]
+        masks = [read_ego_mask(rig.path(c.extra["ego_mask"]), c) if c.extra.get("ego_mask") else
+                 found.masks.get(c.name) for c in cams]
         boxes = moving_boxes(drive, k)
         pts = stereo_points(cams, imgs, T, [loaded(j) for j in parts], masks,
                             (lambda p: inside_boxes(p, boxes)) if boxes else None)
@@ -630,6 +635,14 @@ def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None,
         return scene
     counts: dict[str, Any] = {"keyframes": len(keys), "frames": len(drive)}
     timings: dict[str, float] = {}
+    found = EgoBody()
+    if ego_body:
+        t_e = time.perf_counter()
+        found = find_drive_ego_body(drive, lidar)
+        timings["ego_body"] = time.perf_counter() - t_e
+        say("ego body: " + (", ".join(f"{k} {v:.0%}" for k, v in found.fractions.items() if v > 0) or
+                            f"none found ({found.travelled_m:.1f} m travelled)"))
+        counts["ego_body_cameras"] = len(found.masks)
     positions = np.array([drive.relative(k)[:3, 3] for k in keys])
     heads = viewpoint_groups(positions)
     origins = positions[heads]
@@ -664,7 +677,7 @@ def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None,
             t_s = time.perf_counter()
             guide, images = stereo_sweep(k)
             timings["stereo"] = timings.get("stereo", 0.0) + time.perf_counter() - t_s
-        kf = rec.keyframe(fr.rig, images, progress=say, lidar=guide, detail=detail)
+        kf = rec.keyframe(fr.rig, images, progress=say, lidar=guide, detail=detail, ego_masks=found.masks)
         for key, v in kf.timings.items():
             timings[key] = timings.get(key, 0.0) + v
         if background is None:
@@ -729,19 +742,47 @@ def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None,
     keyframe_of = np.concatenate([*coarse_frames, *detail_frames]).astype(np.int16)
     scene = Scene(gaussians=gauss, background=background, rig=drive.frames[0].rig, model=rec.scene_model(),
                   counts=counts, timings={key: round(v, 6) for key, v in timings.items()}, actors=actors,
-                  keyframe_of=keyframe_of if len(keyframe_of) == len(gauss) else None, viewpoints=viewpoints)
+                  keyframe_of=keyframe_of if len(keyframe_of) == len(gauss) else None, viewpoints=viewpoints,
+                  ego_body=found if ego_body else None)
     scene.drive = _drive_meta(drive, keys)
     return scene
 
 
+def find_drive_ego_body(drive: Drive, lidar: bool = True) -> EgoBody:
+    """The ego's own body over ``drive``'s frames (runtime.egobody.find_ego_body) for the cameras whose rig gives
+    no ego_mask; the ground from the LiDAR sweep of the first frame that has one (when ``lidar``), else the ego
+    frame's z = 0."""
+    from .detail import fit_ground
+    from .egobody import find_ego_body
+    from .inference import rgb_images
+    from .lidar import has_lidar, load_lidar
+
+    rig0 = drive.frames[0].rig
+    poses = [drive.relative(k) for k in range(len(drive))]
+    ground_z = 0.0
+    with_lidar = [k for k in range(len(drive)) if lidar and has_lidar(drive.frames[k].rig)]
+    if with_lidar:
+        plane = fit_ground(load_lidar(drive.frames[with_lidar[0]].rig).points)
+        if plane is not None and abs(plane[2]) > 1e-6:
+            ground_z = float(-plane[3] / plane[2])          # n . x + d = 0 at x = y = 0
+    lidar_of = None
+    if with_lidar and len(with_lidar) == len(drive):
+        lidar_of = lambda k: load_lidar(drive.frames[k].rig).points    # noqa: E731
+    return find_ego_body(rig0.cameras, lambda k: rgb_images(drive.frames[k].rig),
+                         np.array([T[:3, 3] for T in poses]), poses, ground_z,
+                         skip=[c.name for c in rig0.cameras if c.extra.get("ego_mask")], lidar_of=lidar_of)
+
+
 def save_drive_scene(rec, drive: Drive, keys: Sequence[int], out: str | os.PathLike, *, detail,
-                     lidar: bool = True, say: Callable[[str], None] | None = None, stereo: bool = False):
+                     lidar: bool = True, say: Callable[[str], None] | None = None, stereo: bool = False,
+                     ego_body: bool = True):
     """A drive's scene folder, the one path of `xyzcyl reconstruct DRIVE_JSON` and of the service's worker for a
     posted drive: reconstruct_drive of the keyframes ``keys`` with the Reconstructor ``rec`` and the detail layer's
     settings ``detail`` (None: none), written to ``out`` (replaced). Returns the scene and the seconds the save
     took."""
     say = say or (lambda msg: None)
-    scene = reconstruct_drive(rec, drive, keys, lidar=lidar, detail=detail, progress=say, stereo=stereo)
+    scene = reconstruct_drive(rec, drive, keys, lidar=lidar, detail=detail, progress=say, stereo=stereo,
+                              ego_body=ego_body)
     say(f"write {out}")
     t1 = time.perf_counter()
     scene.save(out, overwrite=True)
@@ -791,6 +832,6 @@ def _drive_meta(drive: Drive, keys: Sequence[int]) -> dict[str, Any]:
 
 
 __all__ = ["DEFAULT_MAX_GAP_S", "DEFAULT_SPACING_M", "Drive", "DriveError", "DriveFrame", "Track", "dedupe_frames",
-           "dedupe_frames_reference", "drive_of_rig", "inside_boxes", "is_drive_file", "load_drive", "load_tracks",
+           "dedupe_frames_reference", "drive_of_rig", "find_drive_ego_body", "inside_boxes", "is_drive_file", "load_drive", "load_tracks",
            "moving_boxes", "pick_keyframes", "reconstruct_drive", "save_drive_scene", "transform_detail",
            "transform_gaussians", "viewpoint_groups", "viewpoint_origins", "voxel_levels"]

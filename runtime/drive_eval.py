@@ -14,9 +14,10 @@ the cameras' own), three ways against its own images:
   keyframe's ego frame);
 - still: "not moving", the nearest keyframe's own image of that camera.
 
-Scores: PSNR, SSIM and the sharpness ratio of runtime.realeval, over the pixels that are not the ego's own body
-where the rig gives the camera an ``ego_mask`` (the frame's rig's mask, resampled to the scored size: a pixel any
-part of which is the ego's is left out). One picture sheet per scored frame (ground truth | drive | one frame alone
+Scores: PSNR, SSIM and the sharpness ratio of runtime.realeval, over the pixels that are not the ego's own body:
+the camera's ``ego_mask`` where its rig gives one (the frame's rig's mask), else the body the drive's reconstruction
+found over its frames (runtime.egobody), resampled to the scored size (a pixel any part of which is the ego's is
+left out); the same pixels for all three. One picture sheet per scored frame (ground truth | drive | one frame alone
 | not moving, a row per camera) and the report (evaluate_drive); method_lines are the summary lines the command
 prints (the keys benchmarks/drive_eval.py printed: docs/results.md "Drives")."""
 
@@ -30,7 +31,7 @@ from typing import Any
 
 import numpy as np
 
-from .drive import Drive, DriveError, Track, reconstruct_drive
+from .drive import Drive, DriveError, Track, find_drive_ego_body, reconstruct_drive
 
 METHODS = ("drive", "one", "still")
 METRICS = ("psnr", "ssim", "sharpness")
@@ -88,17 +89,18 @@ def camera_at(drive: Drive, k_from: int, k_to: int, cam, width: int | None = Non
     return c
 
 
-def scored_mask(rig, cam, size: tuple[int, int]) -> np.ndarray | None:
+def scored_mask(rig, cam, size: tuple[int, int], found: np.ndarray | None = None) -> np.ndarray | None:
     """[H, W] bool at ``size`` (W, H): the pixels to score of rig camera ``cam``, i.e. not its ``ego_mask`` (a pixel
-    any part of which is the ego's body is left out); None when the camera has no ego mask."""
+    any part of which is the ego's body is left out), else not ``found`` ([H, W] bool at the camera's size: the
+    body runtime.egobody found over the drive); None when the camera has neither."""
     mask_file = cam.extra.get("ego_mask")
-    if mask_file is None:
+    if mask_file is None and found is None:
         return None
     import cv2
 
     from .detail import read_ego_mask
 
-    ego = read_ego_mask(rig.path(mask_file), cam).astype(np.float32)
+    ego = (read_ego_mask(rig.path(mask_file), cam) if mask_file is not None else found).astype(np.float32)
     if (ego.shape[1], ego.shape[0]) != tuple(size):
         ego = cv2.resize(ego, tuple(size), interpolation=cv2.INTER_AREA)
     return ego <= 0.0
@@ -120,13 +122,14 @@ def _mean(rows: Sequence[dict[str, Any]], key: str, sel: Callable[[dict[str, Any
 def evaluate_drive(rec, drive: Drive, keys: Sequence[int], scored: Sequence[int], out: str | Path, *,
                    lidar: bool = True, detail: Any = None, width: int | None = None,
                    cameras: Sequence[str] | None = None, first: int = 0,
-                   say: Callable[[str], None] = lambda msg: None, bar: Any = None, stereo: bool = False
-                   ) -> dict[str, Any]:
+                   say: Callable[[str], None] = lambda msg: None, bar: Any = None, stereo: bool = False,
+                   ego_body: bool = True) -> dict[str, Any]:
     """Score ``drive`` (module docstring) with runtime.inference.Reconstructor ``rec``: keyframes ``keys`` and
     frames ``scored`` (indices into ``drive``), each keyframe's LiDAR sweep when ``lidar`` and it has one, the detail
     layer ``detail`` (runtime.detail.DetailOptions; None: the model's Gaussians only), the drive's keyframes
     without a sweep with depth from the motion between frames when ``stereo`` (runtime.stereo; one frame alone has
-    none), the size ``width``, the
+    none), the ego's own body found over the drive when ``ego_body`` (runtime.egobody; off, it is found for the
+    scores only), the size ``width``, the
     cameras ``cameras`` (names; None: all). ``first``: the number of the drive's frame 0 in its drive file (frames
     are reported by that number). Writes a picture sheet per scored frame into ``out`` (frame_NN.jpg) and returns the
     report; ``bar`` (a tqdm-like object with update()/close(), or None) advances once per scored frame."""
@@ -154,8 +157,11 @@ def evaluate_drive(rec, drive: Drive, keys: Sequence[int], scored: Sequence[int]
     say(f"reconstruct the drive: {len(keys)} keyframes of {len(drive)} frames")
     t0 = time.perf_counter()
     whole = reconstruct_drive(rec, drive, keyframes=list(keys), lidar=lidar, detail=detail, progress=say,
-                              stereo=stereo)
+                              stereo=stereo, ego_body=ego_body)
     t_drive = time.perf_counter() - t0
+    # the same pixels are scored with the body used or not: off, it is still found, for the scores only
+    found = (whole.ego_body.masks if whole.ego_body is not None else
+             find_drive_ego_body(drive, lidar).masks if len(keys) > 1 or drive.tracks else {})
 
     rows: list[dict[str, Any]] = []
     pictures: list[str] = []
@@ -184,7 +190,7 @@ def evaluate_drive(rec, drive: Drive, keys: Sequence[int], scored: Sequence[int]
             c_one = camera_at(drive, near, b, cam, width)
             size = (c_drive.width, c_drive.height)
             gt_s, still_s = _fit(gt, size), _fit(still, size)
-            mask = scored_mask(fb.rig, cam, size)
+            mask = scored_mask(fb.rig, cam, size, found.get(cam.name))
             if mask is not None:
                 ego_masked[cam.name] = round(float(1.0 - mask.mean()), 6)
             r_drive, r_one = shot(whole, c_drive, fb.timestamp_s), shot(alone, c_one)

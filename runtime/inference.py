@@ -303,10 +303,13 @@ class Reconstructor:
     def keyframe(self, rig: Rig, images: Sequence[np.ndarray] | None = None,
                  depths: Sequence[np.ndarray | None] | None = None,
                  progress: Callable[[str], None] | None = None,
-                 lidar: np.ndarray | None = None, detail: DetailOptions | None = DEFAULT_DETAIL) -> Keyframe:
+                 lidar: np.ndarray | None = None, detail: DetailOptions | None = DEFAULT_DETAIL,
+                 ego_masks: Mapping[str, np.ndarray] | None = None) -> Keyframe:
         """One timestamp of ``rig`` up to, not including, the fusion of its cameras' detail layers (reconstruct's
         arguments): the model's Gaussians, each pinhole camera's detail Gaussians and cell maps, the background.
-        reconstruct fuses one; runtime.drive fuses the keyframes of a drive."""
+        reconstruct fuses one; runtime.drive fuses the keyframes of a drive. ego_masks: camera name -> [H, W] bool
+        (True: the ego's own body, no cells there) for cameras whose rig gives no ego_mask file (runtime.egobody
+        finds them over a drive)."""
         say = progress or (lambda msg: None)
         t: dict[str, float] = {}
         t_all = time.perf_counter()
@@ -344,7 +347,8 @@ class Reconstructor:
         owners: list[int] = []
         if detail is not None:
             say(f"detail Gaussians (stride {detail.stride})")
-            parts, details, owners = timed("detail", self.camera_details, rig, images, gauss, lidar, detail, counts)
+            parts, details, owners = timed("detail", self.camera_details, rig, images, gauss, lidar, detail, counts,
+                                           ego_masks)
 
         background = None
         app_plane = enc.get("app_plane")
@@ -390,13 +394,15 @@ class Reconstructor:
         return gauss, counts
 
     def camera_details(self, rig: Rig, images: Sequence[np.ndarray], coarse: Gaussians, lidar: np.ndarray | None,
-                       opts: DetailOptions, counts: dict[str, int]) -> tuple[list[Gaussians], list, list[int]]:
+                       opts: DetailOptions, counts: dict[str, int],
+                       ego_masks: Mapping[str, np.ndarray] | None = None) -> tuple[list[Gaussians], list, list[int]]:
         """Each pinhole camera's detail layer (any lens: on its cells' true rays), not fused: (its Gaussians, its
         runtime.detail.CameraDetail, its index in the rig) per camera. images: the full-resolution inputs in rig
         order; coarse: the model's Gaussians; lidar [P, 3] metres, ego frame, or None. Adds to ``counts``:
         detail_lidar / detail_ground / detail_model / detail_far (cells placed by LiDAR, by the ground plane (the
         LiDAR's; camera only, the model's), by the model's depth, at the far depth), detail_edge (cells dropped at
-        depth edges). runtime.detail.fuse_details fuses them with ``coarse`` (reconstruct)."""
+        depth edges). runtime.detail.fuse_details fuses them with ``coarse`` (reconstruct). ego_masks: keyframe's;
+        a camera's own ego_mask file wins."""
         from .detail import camera_detail, fit_ground, model_ground, read_ego_mask
 
         parts, details, owners = [], [], []
@@ -408,7 +414,8 @@ class Reconstructor:
             if cam.model != "pinhole":
                 continue
             mask_file = cam.extra.get("ego_mask")
-            mask = None if mask_file is None else read_ego_mask(rig.path(mask_file), cam)
+            mask = read_ego_mask(rig.path(mask_file), cam) if mask_file is not None else \
+                (ego_masks or {}).get(cam.name)
             g, d, n = camera_detail(cam, as_rgb(img, cam), coarse, opts, lidar, mask, plane,
                                     ground_measured=lidar is not None)
             parts.append(g)

@@ -36,6 +36,7 @@ from .actors import Actors, ActorsError
 from .camera import Camera, rig_camera
 from .cylinder import CylinderSpec
 from .detail import HIDDEN_LOGIT, DetailError, OwnViews
+from .egobody import EgoBody
 from .errors import FieldError
 from .files import read_json_doc
 from .numba_cache import njit
@@ -46,6 +47,7 @@ from .viewpoints import ViewpointError, Viewpoints
 SCENE_FORMAT = "xyzcyl-scene"
 SCENE_VERSION = 1
 PLY_NAME, EXR_NAME, PNG_NAME, JSON_NAME = "scene.ply", "background.exr", "background.png", "scene.json"
+EGO_BODY_DIR = "ego_body"           # a drive's ego body masks, one PNG per camera (runtime.egobody)
 ACTORS_NAME = "actors.npz"         # runtime.actors.Actors (a drive's moving objects)
 OWN_VIEWS_NAME = "own_views.npz"   # runtime.detail.OwnViews (scenes with the detail layer)
 KEYFRAME_OF_NAME = "keyframe_of.npy"   # Scene.keyframe_of (drives of several keyframes)
@@ -245,6 +247,8 @@ class Scene:
     keyframe_of: np.ndarray | None = field(default=None, repr=False)
     # a drive's viewpoint chunks (runtime.viewpoints): each viewpoint group's own cells beyond the shared Gaussians
     viewpoints: Viewpoints | None = field(default=None, repr=False)
+    # a drive's ego body found over its frames (runtime.egobody): its masks and what was looked at
+    ego_body: EgoBody | None = field(default=None, repr=False)
 
     def own_camera(self, camera) -> int | None:
         """The index of the input camera whose pose ``camera`` (runtime.camera.Camera) has (OWN_POSE_TOL), when
@@ -411,6 +415,11 @@ class Scene:
                              "about": "moving objects: per keyframe a copy in its box frame, drawn at a time"}
         if self.viewpoints is not None:
             out["viewpoints"] = self.viewpoints.to_json()
+        if self.ego_body is not None:
+            out["ego_body"] = {**self.ego_body.summary(),
+                               "files": {n: f"{EGO_BODY_DIR}/{n}.png" for n in self.ego_body.masks},
+                               "about": "the ego's own body found over the drive's frames (white): no Gaussians "
+                                        "there"}
         if self.keyframe_of is not None:
             out["keyframe_of"] = {"file": KEYFRAME_OF_NAME, "keyframes": len(self.drive["keyframes"]),
                                   "about": "each Gaussian's keyframe (int16, an index into drive.keyframes): a "
@@ -431,6 +440,8 @@ class Scene:
                 self.actors.save(tmp / ACTORS_NAME)
             if self.viewpoints is not None:
                 self.viewpoints.save(tmp)
+            if self.ego_body is not None and self.ego_body.masks:
+                _save_masks(tmp / EGO_BODY_DIR, self.ego_body.masks)
             if self.keyframe_of is not None:
                 np.save(tmp / KEYFRAME_OF_NAME, np.asarray(self.keyframe_of, np.int16))
             if self.background is not None:
@@ -498,6 +509,7 @@ class Scene:
                                                   len((meta.get("drive") or {}).get("keyframes") or ()))
             except ViewpointError as e:
                 raise SceneError(e.field, e.message, e.where) from None
+        ego_body = _load_ego_body(d, meta["ego_body"], rig) if meta.get("ego_body") else None
         bg = None
         b = meta.get("background")
         if b:
@@ -513,7 +525,44 @@ class Scene:
                    counts=meta.get("counts") or {}, timings=meta.get("timings") or {},
                    lifting_cached=bool(meta.get("lifting_cached", False)), created=meta.get("created", ""),
                    own_views=own, drive=meta.get("drive"), actors=actors, keyframe_of=keyframe_of,
-                   viewpoints=viewpoints)
+                   viewpoints=viewpoints, ego_body=ego_body)
+
+
+def _save_masks(folder: Path, masks: dict[str, np.ndarray]) -> None:
+    """Each [H, W] bool mask as folder/<camera>.png (8-bit grey, 255 = True)."""
+    import cv2
+
+    folder.mkdir()
+    for name, m in masks.items():
+        if not cv2.imwrite(str(folder / f"{name}.png"), np.where(m, 255, 0).astype(np.uint8)):
+            raise OSError(f"could not write {str(folder / f'{name}.png')!r}")
+
+
+def _load_ego_body(d: Path, block: Any, rig: Rig) -> EgoBody:
+    """scene.json's ego_body block and its masks (SceneError naming the field or file when invalid)."""
+    from .detail import read_ego_mask
+    from .rig import RigError
+
+    where = f"scene {str(d / JSON_NAME)!r}"
+    files = block.get("files") if isinstance(block, dict) else None
+    if not isinstance(files, dict):
+        raise SceneError("ego_body.files", "must be an object: camera name -> mask file", where)
+    masks = {}
+    for name, rel in files.items():
+        if name not in rig.names:
+            raise SceneError(f"ego_body.files.{name}", f"is not a camera of the rig ({rig.names})", where)
+        if not isinstance(rel, str):
+            raise SceneError(f"ego_body.files.{name}", "must be a file name", where)
+        try:
+            masks[name] = read_ego_mask(_scene_file(d, {"file": rel}, rel), rig.cameras[rig.names.index(name)])
+        except RigError as e:
+            raise SceneError(f"ego_body.files.{name}", e.message, where) from None
+    try:
+        return EgoBody(masks=masks, fractions={k: float(v) for k, v in (block.get("fractions") or {}).items()},
+                       notes=dict(block.get("notes") or {}), frames=tuple(int(f) for f in block.get("frames") or ()),
+                       travelled_m=float(block.get("travelled_m") or 0.0))
+    except (TypeError, ValueError, AttributeError) as e:
+        raise SceneError("ego_body", f"invalid ({e})", where) from None
 
 
 # ------------------------------------------------------------------------------------------- views

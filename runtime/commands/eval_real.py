@@ -54,6 +54,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--stereo", choices=("on", "off"), default=None,
                         help="--drive: keyframes without a LiDAR sweep take depth from the motion between frames "
                              "(runtime.stereo; default off)")
+    parser.add_argument("--ego-body", choices=("on", "off"), default=None,
+                        help="--drive: the drive's reconstruction leaves out the ego's own body found over the "
+                             "frames (runtime.egobody; default on). On or off, the body found is left out of the "
+                             "scores of all three methods")
     parser.add_argument("--stride", type=int, default=None, metavar="S",
                         help="the detail stride: --detail-stride's short form")
     parser.add_argument("--out", required=True, metavar="DIR",
@@ -214,7 +218,8 @@ def run(args: argparse.Namespace) -> int:
         if args.drive is not None:
             return _run_drive(args)
         drive_only = [f for f, v in (("--every", args.every), ("--frames", args.frames), ("--width", args.width),
-                                     ("--max-views", args.max_views), ("--stereo", args.stereo)) if v is not None]
+                                     ("--max-views", args.max_views), ("--stereo", args.stereo),
+                                     ("--ego-body", args.ego_body)) if v is not None]
         if drive_only:
             raise _Usage(drive_only[0], "goes with --drive DRIVE_JSON")
         if args.path is None:
@@ -304,7 +309,7 @@ def _run_drive(args: argparse.Namespace) -> int:
         rec = Reconstructor.load(model_dir, threads=args.threads)
         report = drive_eval.evaluate_drive(rec, drive, keys, scored, out, lidar=lidar == "on", detail=detail,
                                            width=args.width, cameras=cameras, first=start, say=say, bar=bar,
-                                           stereo=args.stereo == "on")
+                                           stereo=args.stereo == "on", ego_body=args.ego_body != "off")
     except (ModelError, RigError, InferenceError, SceneError, LidarError, DriveError) as exc:
         bar.close()
         return _fail(str(exc))
@@ -313,7 +318,7 @@ def _run_drive(args: argparse.Namespace) -> int:
         return _fail(f"--out: {exc}")
     report = {"format": REPORT_FORMAT, "format_version": 1, "kind": "drive", "drive": str(path),
               "frames_range": [start, stop], "every": every, "max_views": args.max_views, "lidar": lidar,
-              "stereo": args.stereo or "off",
+              "stereo": args.stereo or "off", "ego_body": args.ego_body or "on",
               "stride": None if detail is None else detail.stride,
               "settings": {"model": {"name": rec.info.name, "version": rec.info.version, "dir": str(model_dir)},
                            "detail": None if detail is None else dataclasses.asdict(detail),

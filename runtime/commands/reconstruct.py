@@ -46,6 +46,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                    help="keyframes without a LiDAR sweep take depth from the motion between frames: points "
                         "triangulated with the frames ~1 m before and after each (docs/inference.md, \"Stereo "
                         "between frames\"; ~2 s a keyframe)")
+    g.add_argument("--no-ego-body", action="store_true",
+                   help="do not look for the ego's own body over the frames (by default the pixels that stay put "
+                        "while the world moves, e.g. a hood or trunk, get no Gaussians; a camera's ego_mask wins)")
     parser.add_argument("--force", action="store_true", help="replace an existing SCENE_DIR")
     parser.add_argument("--quiet", action="store_true", help="no progress lines")
 
@@ -88,7 +91,8 @@ def run(args: argparse.Namespace) -> int:
     if is_drive_file(args.rig):
         return _drive(args, detail, out, model_dir, say)
     drive_flags = [f for f, v in (("--keyframe-spacing", args.keyframe_spacing), ("--keyframe-gap", args.keyframe_gap),
-                                  ("--keyframes", args.keyframes), ("--stereo", args.stereo or None))
+                                  ("--keyframes", args.keyframes), ("--stereo", args.stereo or None),
+                                  ("--no-ego-body", args.no_ego_body or None))
                    if v is not None]
     if drive_flags:
         return _fail(f"{drive_flags[0]}: goes with a drive file (a rig.json is one timestamp)")
@@ -165,7 +169,7 @@ def _drive(args: argparse.Namespace, detail, out: Path, model_dir: Path, say) ->
         rec = Reconstructor.load(model_dir, threads=args.threads)
         t_load = time.perf_counter() - t0
         scene, t_save = save_drive_scene(rec, drive, keys, out, lidar=not args.no_lidar, detail=detail, say=say,
-                                          stereo=args.stereo)
+                                          stereo=args.stereo, ego_body=not args.no_ego_body)
     except (DriveError, ModelError, RigError, InferenceError, SceneError, LidarError) as exc:
         return _fail(str(exc))
     except OSError as exc:
@@ -174,5 +178,8 @@ def _drive(args: argparse.Namespace, detail, out: Path, model_dir: Path, say) ->
     chunks = f" (+ {c['viewpoint_gaussians']} in {c['viewpoints']} viewpoint chunks)" if c.get("viewpoints") else ""
     print(f"{out}: {c['total']} Gaussians{chunks} from {len(keys)} keyframes of {len(drive)} frames, model "
           f"{rec.info.name} {rec.info.version}")
+    if scene.ego_body is not None and scene.ego_body.masks:
+        print("ego body found: " + ", ".join(f"{n} {scene.ego_body.fractions[n]:.0%}" for n in scene.ego_body.masks)
+              + f" of the image (masks in {out / 'ego_body'})")
     print(f"reconstruct {t['total']:.2f} s; model load {t_load:.2f} s, save {t_save:.2f} s")
     return 0

@@ -261,6 +261,50 @@ def test_each_viewpoint_keeps_what_its_keyframe_saw_whole(tmp_path, shipped, mon
     scene.save(tmp_path / "scene")
     back = Scene.load(tmp_path / "scene")
     np.testing.assert_array_equal(rows(back.viewpoints.gaussians(1)), rows(vp.gaussians(1)))
+    # two frames are too few to find the ego's body (runtime.egobody takes a median over at least three)
+    assert scene.ego_body.frames == (0, 1) and not scene.ego_body.masks and scene.ego_body.travelled_m == 3.0
+
+
+def test_a_found_ego_body_gets_no_cells_and_travels_with_the_scene(tmp_path, shipped, monkeypatch):
+    """The body runtime.egobody finds is used as the camera's ego mask in every keyframe (its detail layer has no
+    cell there) and is written to and read from the scene folder (ego_body/<camera>.png)."""
+    from xyzcyl.runtime import drive as D
+    from xyzcyl.runtime.detail import DetailOptions
+    from xyzcyl.runtime.egobody import EgoBody
+    from xyzcyl.runtime.inference import Reconstructor
+    from xyzcyl.runtime.scene import Scene, rig_camera
+
+    E = np.array(_pose(7, 3, 20))
+    p = write_drive(tmp_path, [E.tolist(), (E @ np.array(_pose(3.0, 0.0))).tolist()], [0.0, 0.5])
+    drive = load_drive(p)
+    cam = next(c for c in drive.frames[0].rig.cameras if c.model == "pinhole")
+    body = np.zeros((cam.height, cam.width), bool)
+    body[: cam.height // 2] = True                         # the top half: enough to see it go
+    monkeypatch.setattr(D, "find_drive_ego_body", lambda drive, lidar=True: EgoBody(
+        masks={cam.name: body}, fractions={cam.name: 0.5}, frames=(0, 1), travelled_m=3.0))
+    seen = []
+    keyframe = Reconstructor.keyframe
+
+    def spy(self, rig, *a, **k):
+        kf = keyframe(self, rig, *a, **k)
+        seen.append(kf)
+        return kf
+
+    monkeypatch.setattr(Reconstructor, "keyframe", spy)
+    scene = D.reconstruct_drive(shipped, drive, detail=DetailOptions(stride=8))
+    assert len(seen) == 2
+    k = drive.frames[0].rig.names.index(cam.name)
+    for kf in seen:                                        # each keyframe's cells are in its own ego frame
+        g = kf.parts[kf.owners.index(k)]
+        uv, _, _ = rig_camera(cam).project(g.means)
+        # cells only below the masked half (a stride-8 cell whose centre sample is unmasked may start a row above)
+        assert len(g) and (uv[:, 1] >= cam.height // 2 - 8).all()
+    assert scene.counts["ego_body_cameras"] == 1
+    scene.save(tmp_path / "scene")
+    assert (tmp_path / "scene" / "ego_body" / f"{cam.name}.png").is_file()
+    back = Scene.load(tmp_path / "scene")
+    np.testing.assert_array_equal(back.ego_body.masks[cam.name], body)
+    assert back.ego_body.travelled_m == 3.0
 
 
 def test_only_a_keyframe_with_measured_depth_carves_its_neighbours(monkeypatch):
