@@ -32,8 +32,11 @@ Reconstruction (reconstruct_drive):
 Before the keyframes, the ego's own body is found over the drive's frames (runtime.egobody: the pixels that stay
 put while the world moves) and used as the cameras' ego masks; the scene keeps them (Scene.ego_body).
 
-What is not done yet (docs/inference.md "Drives" lists it): moving objects found without tracks, exposure
-harmonisation across keyframes, a sky dome, spatial chunks, parallel keyframe workers.
+Each keyframe's cameras' exposure and white balance are harmonised as it arrives (runtime.exposure), against each
+other and the previous keyframe's; the gains go into scene.json's drive block.
+
+What is not done yet (docs/inference.md "Drives" lists it): moving objects found without tracks, a sky dome,
+spatial chunks, parallel keyframe workers.
 """
 
 from __future__ import annotations
@@ -574,14 +577,15 @@ _DEFAULT = object()
 
 def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None, lidar: bool = True,
                       detail: Any = _DEFAULT, progress: Callable[[str], None] | None = None, stereo: bool = False,
-                      ego_body: bool = True):
+                      ego_body: bool = True, exposure: bool = True):
     """One runtime.scene.Scene of ``drive`` (module docstring) with runtime.inference.Reconstructor ``rec``:
     ``keyframes`` (default pick_keyframes), each keyframe's LiDAR sweep when ``lidar`` and it has one, else when
     ``stereo`` the points triangulated between it and the frames about a metre before and after it
     (runtime.stereo; off by default: docs/inference.md), the detail
     layer's settings ``detail`` (default runtime.inference.DEFAULT_DETAIL; None: the model's Gaussians only), the
     ego's own body found over the drive's frames when ``ego_body`` (runtime.egobody: no cells there; a camera's
-    ego_mask file wins). A one-frame drive is exactly Reconstructor.reconstruct of its rig."""
+    ego_mask file wins), each camera's exposure and white balance harmonised across cameras and keyframes when
+    ``exposure`` (runtime.exposure). A one-frame drive is exactly Reconstructor.reconstruct of its rig."""
     from .detail import carve_details, cull_covered
     from .inference import DEFAULT_DETAIL
     from .lidar import has_lidar, load_lidar
@@ -635,6 +639,9 @@ def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None,
         return scene
     counts: dict[str, Any] = {"keyframes": len(keys), "frames": len(drive)}
     timings: dict[str, float] = {}
+    from .exposure import Harmoniser
+
+    harmoniser = Harmoniser(len(drive.frames[0].rig.cameras)) if exposure else None
     found = EgoBody()
     if ego_body:
         t_e = time.perf_counter()
@@ -686,6 +693,11 @@ def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None,
         coarse = transform_gaussians(kf.coarse, T)
         parts = [transform_gaussians(g, T) for g in kf.parts]
         details = [transform_detail(d, T) for d in kf.details]
+        if harmoniser is not None and parts:
+            t_x = time.perf_counter()
+            parts = harmoniser.add(details, parts, kf.owners)
+            coarse = harmoniser.coarse(coarse)
+            timings["exposure"] = timings.get("exposure", 0.0) + time.perf_counter() - t_x
         # this keyframe as one rig: its model Gaussians under its cells culled, its cells carved against its own
         # cameras; later against its neighbours' (see-through, by a keyframe with a LiDAR sweep: _carve_pair)
         if details and len(coarse):
@@ -745,6 +757,8 @@ def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None,
                   keyframe_of=keyframe_of if len(keyframe_of) == len(gauss) else None, viewpoints=viewpoints,
                   ego_body=found if ego_body else None)
     scene.drive = _drive_meta(drive, keys)
+    if harmoniser is not None:
+        scene.drive["exposure"] = harmoniser.to_json(drive.frames[0].rig.names)
     return scene
 
 
@@ -775,14 +789,14 @@ def find_drive_ego_body(drive: Drive, lidar: bool = True) -> EgoBody:
 
 def save_drive_scene(rec, drive: Drive, keys: Sequence[int], out: str | os.PathLike, *, detail,
                      lidar: bool = True, say: Callable[[str], None] | None = None, stereo: bool = False,
-                     ego_body: bool = True):
+                     ego_body: bool = True, exposure: bool = True):
     """A drive's scene folder, the one path of `xyzcyl reconstruct DRIVE_JSON` and of the service's worker for a
     posted drive: reconstruct_drive of the keyframes ``keys`` with the Reconstructor ``rec`` and the detail layer's
     settings ``detail`` (None: none), written to ``out`` (replaced). Returns the scene and the seconds the save
     took."""
     say = say or (lambda msg: None)
     scene = reconstruct_drive(rec, drive, keys, lidar=lidar, detail=detail, progress=say, stereo=stereo,
-                              ego_body=ego_body)
+                              ego_body=ego_body, exposure=exposure)
     say(f"write {out}")
     t1 = time.perf_counter()
     scene.save(out, overwrite=True)

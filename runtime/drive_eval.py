@@ -123,13 +123,13 @@ def evaluate_drive(rec, drive: Drive, keys: Sequence[int], scored: Sequence[int]
                    lidar: bool = True, detail: Any = None, width: int | None = None,
                    cameras: Sequence[str] | None = None, first: int = 0,
                    say: Callable[[str], None] = lambda msg: None, bar: Any = None, stereo: bool = False,
-                   ego_body: bool = True) -> dict[str, Any]:
+                   ego_body: bool = True, exposure: bool = True) -> dict[str, Any]:
     """Score ``drive`` (module docstring) with runtime.inference.Reconstructor ``rec``: keyframes ``keys`` and
     frames ``scored`` (indices into ``drive``), each keyframe's LiDAR sweep when ``lidar`` and it has one, the detail
     layer ``detail`` (runtime.detail.DetailOptions; None: the model's Gaussians only), the drive's keyframes
     without a sweep with depth from the motion between frames when ``stereo`` (runtime.stereo; one frame alone has
     none), the ego's own body found over the drive when ``ego_body`` (runtime.egobody; off, it is found for the
-    scores only), the size ``width``, the
+    scores only), exposure harmonised when ``exposure`` (runtime.exposure), the size ``width``, the
     cameras ``cameras`` (names; None: all). ``first``: the number of the drive's frame 0 in its drive file (frames
     are reported by that number). Writes a picture sheet per scored frame into ``out`` (frame_NN.jpg) and returns the
     report; ``bar`` (a tqdm-like object with update()/close(), or None) advances once per scored frame."""
@@ -157,7 +157,7 @@ def evaluate_drive(rec, drive: Drive, keys: Sequence[int], scored: Sequence[int]
     say(f"reconstruct the drive: {len(keys)} keyframes of {len(drive)} frames")
     t0 = time.perf_counter()
     whole = reconstruct_drive(rec, drive, keyframes=list(keys), lidar=lidar, detail=detail, progress=say,
-                              stereo=stereo, ego_body=ego_body)
+                              stereo=stereo, ego_body=ego_body, exposure=exposure)
     t_drive = time.perf_counter() - t0
     # the same pixels are scored with the body used or not: off, it is still found, for the scores only
     found = (whole.ego_body.masks if whole.ego_body is not None else

@@ -51,6 +51,7 @@ EGO_BODY_DIR = "ego_body"           # a drive's ego body masks, one PNG per came
 ACTORS_NAME = "actors.npz"         # runtime.actors.Actors (a drive's moving objects)
 OWN_VIEWS_NAME = "own_views.npz"   # runtime.detail.OwnViews (scenes with the detail layer)
 KEYFRAME_OF_NAME = "keyframe_of.npy"   # Scene.keyframe_of (drives of several keyframes)
+EXPOSURE_CONE_DEG = 30.0           # a view within this of an input camera's axis gets its exposure (runtime.exposure)
 PRIMARY_SLACK_M = 0.25             # keyframes whose cameras stood within this of the nearest one's: the view's time
 #                                    picks among them (a still ego's keyframes stand in one place)
 OWN_POSE_TOL = (1e-3, 1e-4)        # (metres, rotation matrix entries): a view this close to an input camera's pose is
@@ -286,6 +287,35 @@ class Scene:
         if k is None:
             r = render(self.gaussians_at(camera, time_s), camera, background=bg, **options)
             return r.rgb, r.depth, r.alpha
+        rgb, depth, alpha = self._layers(camera, k, time_s, bg, options)
+        gain = self.exposure_gain(camera, k)
+        if gain is not None:
+            rgb = (rgb * gain.astype(np.float32)).astype(np.float32)
+        return rgb, depth, alpha
+
+    def exposure_gain(self, camera, k: int) -> np.ndarray | None:
+        """[3] the per-channel gain of the input camera a view of ``camera`` stands in for at keyframe ``k`` (an
+        index into drive.keyframes; runtime.exposure): the rig camera whose optical axis at that keyframe is
+        nearest the view's, within EXPOSURE_CONE_DEG; None when none is, or the scene has no exposure block."""
+        ex = (self.drive or {}).get("exposure")
+        if not ex or k >= len(ex["gains"]):
+            return None
+        key = int(self.drive["keyframes"][k])
+        pose = np.asarray(self.drive["trajectory"], np.float64).reshape(-1, 4, 4)[key]
+        view = np.asarray(camera.cam_to_ego, np.float64)[:3, 2]
+        best, cos_best = None, math.cos(math.radians(EXPOSURE_CONE_DEG))
+        for c, cam in enumerate(self.rig.cameras):
+            axis = pose[:3, :3] @ np.asarray(cam.cam_to_ego, np.float64)[:3, 2]
+            cos = float(axis @ view / max(np.linalg.norm(axis) * np.linalg.norm(view), 1e-12))
+            if cos >= cos_best and cam.name in ex["cameras"]:
+                best, cos_best = cam.name, cos
+        if best is None:
+            return None
+        return np.asarray(ex["gains"][k][ex["cameras"].index(best)], np.float64)
+
+    def _layers(self, camera: Camera, k: int, time_s: float | None, bg: Any, options: dict
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """A drive's view in layers (Scene.render) with primary keyframe ``k``, before the exposure gain."""
         from .detail import concat_gaussians
 
         g = self.gaussians_for(camera)

@@ -58,6 +58,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="--drive: the drive's reconstruction leaves out the ego's own body found over the "
                              "frames (runtime.egobody; default on). On or off, the body found is left out of the "
                              "scores of all three methods")
+    parser.add_argument("--exposure", choices=("on", "off"), default=None,
+                        help="--drive: harmonise the drive's cameras' exposure and white balance "
+                             "(runtime.exposure; default on)")
     parser.add_argument("--stride", type=int, default=None, metavar="S",
                         help="the detail stride: --detail-stride's short form")
     parser.add_argument("--out", required=True, metavar="DIR",
@@ -219,7 +222,8 @@ def run(args: argparse.Namespace) -> int:
             return _run_drive(args)
         drive_only = [f for f, v in (("--every", args.every), ("--frames", args.frames), ("--width", args.width),
                                      ("--max-views", args.max_views), ("--stereo", args.stereo),
-                                     ("--ego-body", args.ego_body)) if v is not None]
+                                     ("--ego-body", args.ego_body), ("--exposure", args.exposure))
+                      if v is not None]
         if drive_only:
             raise _Usage(drive_only[0], "goes with --drive DRIVE_JSON")
         if args.path is None:
@@ -309,7 +313,8 @@ def _run_drive(args: argparse.Namespace) -> int:
         rec = Reconstructor.load(model_dir, threads=args.threads)
         report = drive_eval.evaluate_drive(rec, drive, keys, scored, out, lidar=lidar == "on", detail=detail,
                                            width=args.width, cameras=cameras, first=start, say=say, bar=bar,
-                                           stereo=args.stereo == "on", ego_body=args.ego_body != "off")
+                                           stereo=args.stereo == "on", ego_body=args.ego_body != "off",
+                                           exposure=args.exposure != "off")
     except (ModelError, RigError, InferenceError, SceneError, LidarError, DriveError) as exc:
         bar.close()
         return _fail(str(exc))
@@ -319,6 +324,7 @@ def _run_drive(args: argparse.Namespace) -> int:
     report = {"format": REPORT_FORMAT, "format_version": 1, "kind": "drive", "drive": str(path),
               "frames_range": [start, stop], "every": every, "max_views": args.max_views, "lidar": lidar,
               "stereo": args.stereo or "off", "ego_body": args.ego_body or "on",
+              "exposure": args.exposure or "on",
               "stride": None if detail is None else detail.stride,
               "settings": {"model": {"name": rec.info.name, "version": rec.info.version, "dir": str(model_dir)},
                            "detail": None if detail is None else dataclasses.asdict(detail),

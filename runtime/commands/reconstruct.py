@@ -49,6 +49,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--no-ego-body", action="store_true",
                    help="do not look for the ego's own body over the frames (by default the pixels that stay put "
                         "while the world moves, e.g. a hood or trunk, get no Gaussians; a camera's ego_mask wins)")
+    g.add_argument("--no-exposure", action="store_true",
+                   help="do not harmonise the cameras' exposure and white balance across cameras and keyframes "
+                        "(by default a per-channel gain per camera and keyframe is solved on what two of them both "
+                        "saw, docs/inference.md \"Exposure\")")
     parser.add_argument("--force", action="store_true", help="replace an existing SCENE_DIR")
     parser.add_argument("--quiet", action="store_true", help="no progress lines")
 
@@ -92,7 +96,8 @@ def run(args: argparse.Namespace) -> int:
         return _drive(args, detail, out, model_dir, say)
     drive_flags = [f for f, v in (("--keyframe-spacing", args.keyframe_spacing), ("--keyframe-gap", args.keyframe_gap),
                                   ("--keyframes", args.keyframes), ("--stereo", args.stereo or None),
-                                  ("--no-ego-body", args.no_ego_body or None))
+                                  ("--no-ego-body", args.no_ego_body or None),
+                                  ("--no-exposure", args.no_exposure or None))
                    if v is not None]
     if drive_flags:
         return _fail(f"{drive_flags[0]}: goes with a drive file (a rig.json is one timestamp)")
@@ -169,7 +174,8 @@ def _drive(args: argparse.Namespace, detail, out: Path, model_dir: Path, say) ->
         rec = Reconstructor.load(model_dir, threads=args.threads)
         t_load = time.perf_counter() - t0
         scene, t_save = save_drive_scene(rec, drive, keys, out, lidar=not args.no_lidar, detail=detail, say=say,
-                                          stereo=args.stereo, ego_body=not args.no_ego_body)
+                                          stereo=args.stereo, ego_body=not args.no_ego_body,
+                                          exposure=not args.no_exposure)
     except (DriveError, ModelError, RigError, InferenceError, SceneError, LidarError) as exc:
         return _fail(str(exc))
     except OSError as exc:

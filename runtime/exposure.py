@@ -1,0 +1,188 @@
+"""Exposure and white balance harmonised over a drive's cameras and keyframes: a gain per colour channel for each
+camera of each keyframe, solved on what two of them both saw (docs/inference.md "Exposure").
+
+Each camera exposes and white-balances on its own, so the same sky or wall has another colour in each camera's
+detail cells, and a view shows a seam where one camera's cells meet another's. The model: a camera's colour is
+its gain (per channel) times the scene's radiance. Two views' cells of one surface (a cell of view a that lands on
+a kept cell of view b at the same depth, within MATCH_DEPTH) give, per channel, log c_a - log c_b = x_a - x_b for
+the log gains x; their median over all such cells is one equation (weighted by the square root of their count, at
+least MIN_PAIRS cells, most of them agreeing with the median: AGREE_SHARE within AGREE_LOG). Per keyframe, as the drive streams: its cameras against each other and against the
+previous keyframe's cameras, whose cells are already harmonised (their x fixed at 0); the first keyframe's gains
+have a mean of 1 (log mean 0). A small pull of every x towards 0 (RIDGE) keeps a camera that overlaps nothing
+at gain 1. Each camera's detail cells are then divided by its gain (harmonise), and a view drawn near an input
+camera gets that camera's gain at the view's primary keyframe back (Scene.render), so a view at a recorded camera
+looks like its recording and a novel view sees one consistent exposure.
+
+The model's own Gaussians blend the cameras that saw them: each is divided by the geometric mean of the gains of
+its keyframe's cameras whose view holds it (Harmoniser.coarse).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+from .render import Gaussians
+from .render.sh import SH_C0
+
+MATCH_DEPTH = 0.03          # of the depth: a cell of another view within this is the same surface
+MIN_PAIRS = 200             # cells two views share before their ratio counts (a median of fewer is noise)
+MAX_SOURCE_CELLS = 40000    # cells of a view projected into another (a random subset: the median is stable)
+COLOUR_RANGE = (0.03, 0.97) # colours outside are clipped or black in one of the two: no ratio
+AGREE_LOG = 0.1             # a matched cell's log ratio this near the median agrees (10 %: shading, view angle)
+AGREE_SHARE = 0.5           # ... and this share of a pair's cells must agree
+RIDGE = 0.05                # a pull of each log gain towards 0 (relative to a pair's weight of ~sqrt(200) = 14)
+MAX_LOG_GAIN = float(np.log(2.0))   # gains are kept within 1/2..2: more is a wrong match, not an exposure
+
+
+def base_colours(g: Gaussians) -> np.ndarray:
+    """[N, 3] float64: the Gaussians' view-independent colour (the SH DC term: 0.5 + SH_C0 dc)."""
+    return 0.5 + SH_C0 * g.sh[:, 0, :].astype(np.float64)
+
+
+def match_cells(a_detail, a_colours: np.ndarray, b_detail, b_colours: np.ndarray, seed: int = 0
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """(ca [M, 3], cb [M, 3]): the colours of the cells of view a that land on a kept cell of view b at the same
+    depth (within MATCH_DEPTH of it), and that cell's colour. a_detail, b_detail: runtime.detail.CameraDetail in one
+    frame (the scene's); a_colours [Ma, 3], b_colours [Mb, 3]: their cells' colours in Gaussian order."""
+    means = a_detail.means
+    idx = np.arange(len(means))
+    if len(idx) > MAX_SOURCE_CELLS:
+        idx = np.sort(np.random.default_rng(seed).choice(len(means), MAX_SOURCE_CELLS, replace=False))
+    grid = b_detail.grid
+    uv, z, front = grid.project_depth(means[idx])
+    ok = front & grid.inside(uv)
+    u = np.clip(np.rint(uv[:, 0]).astype(np.int64), 0, grid.width - 1)
+    v = np.clip(np.rint(uv[:, 1]).astype(np.int64), 0, grid.height - 1)
+    ok &= b_detail.keep[v, u]
+    d = b_detail.depth[v, u]
+    ok &= np.abs(d - z) <= MATCH_DEPTH * np.maximum(z, 1e-6)
+    order = np.full(b_detail.keep.shape, -1, np.int64)
+    order[b_detail.keep] = np.arange(int(b_detail.keep.sum()))
+    return a_colours[idx[ok]], b_colours[order[v[ok], u[ok]]]
+
+
+def pair_offset(ca: np.ndarray, cb: np.ndarray) -> tuple[np.ndarray, int] | None:
+    """([3] the median over cells of log ca - log cb per channel, the count of cells used) or None when fewer than
+    MIN_PAIRS cells have both colours within COLOUR_RANGE, or when under AGREE_SHARE of them lie within AGREE_LOG of
+    the median in every channel (the matches are not one surface seen twice: a car that moved, a wrong depth)."""
+    lo, hi = COLOUR_RANGE
+    ok = np.all((ca > lo) & (ca < hi) & (cb > lo) & (cb < hi), axis=1)
+    if ok.sum() < MIN_PAIRS:
+        return None
+    r = np.log(ca[ok]) - np.log(cb[ok])
+    med = np.median(r, axis=0)
+    if np.mean(np.all(np.abs(r - med) <= AGREE_LOG, axis=1)) < AGREE_SHARE:
+        return None
+    return med, int(ok.sum())
+
+
+def solve_log_gains(n: int, pairs: Sequence[tuple[int, int | None, np.ndarray, int]]) -> np.ndarray:
+    """[n, 3] log gains of n views from pairs (a, b, offset [3], count): x_a - x_b = offset, b None for a view whose
+    cells are already harmonised (x_b = 0). Weighted least squares (sqrt(count)), each x pulled towards 0 by RIDGE,
+    and when no pair reaches a harmonised view, the mean of the x of the views in some pair held at 0 (the gauge: a
+    view in no pair stays at 0 with them); clipped to +-MAX_LOG_GAIN."""
+    rows, rhs, w = [], [], []
+    anchored = any(b is None for _, b, _, _ in pairs)
+    for a, b, off, count in pairs:
+        r = np.zeros(n)
+        r[a] = 1.0
+        if b is not None:
+            r[b] = -1.0
+        rows.append(r)
+        rhs.append(np.asarray(off, np.float64))
+        w.append(np.sqrt(count))
+    for i in range(n):
+        r = np.zeros(n)
+        r[i] = 1.0
+        rows.append(r)
+        rhs.append(np.zeros(3))
+        w.append(RIDGE)
+    linked = sorted({a for a, *_ in pairs} | {b for _, b, *_ in pairs if b is not None})
+    if not anchored and linked:
+        r = np.zeros(n)
+        r[linked] = 1.0 / len(linked)
+        rows.append(r)
+        rhs.append(np.zeros(3))
+        w.append(np.sqrt(sum(c for *_, c in pairs)) if pairs else 1.0)
+    A = np.array(rows) * np.array(w)[:, None]
+    B = np.array(rhs) * np.array(w)[:, None]
+    x = np.linalg.lstsq(A, B, rcond=None)[0]
+    return np.clip(x, -MAX_LOG_GAIN, MAX_LOG_GAIN)
+
+
+def apply_gain(g: Gaussians, gain: np.ndarray) -> Gaussians:
+    """``g`` with its colours divided by ``gain`` ([3] per channel, or [N, 3] per Gaussian): the SH DC term so
+    that 0.5 + SH_C0 dc is divided, the higher bands divided."""
+    gain = np.asarray(gain, np.float64)
+    sh = g.sh.astype(np.float64).copy()
+    sh[:, 0, :] = ((0.5 + SH_C0 * sh[:, 0, :]) / gain - 0.5) / SH_C0
+    sh[:, 1:, :] /= gain[..., None, :] if gain.ndim == 2 else gain
+    return Gaussians(means=g.means, quats=g.quats, log_scales=g.log_scales, opacity_logits=g.opacity_logits,
+                     sh=sh.astype(g.sh.dtype))
+
+
+class Harmoniser:
+    """The gains of a drive's keyframes, one keyframe at a time in drive order (module docstring). ``add`` takes a
+    keyframe's detail layers and Gaussians per camera (in the scene's frame) and returns its Gaussians harmonised;
+    ``gains`` [K][C] of [3] (C: the rig's cameras; 1 for a camera without a detail layer)."""
+
+    def __init__(self, n_cameras: int) -> None:
+        self.n_cameras = n_cameras
+        self.gains: list[np.ndarray] = []          # per keyframe [C, 3]
+        self.pairs: list[int] = []                 # per keyframe, the pairs that counted
+        self._prev: list[tuple[object, np.ndarray]] = []   # the previous keyframe's (detail, harmonised colours)
+
+    def add(self, details: Sequence, parts: Sequence[Gaussians], owners: Sequence[int]) -> list[Gaussians]:
+        colours = [base_colours(g) for g in parts]
+        pairs = []
+        n = len(parts)
+        for i in range(n):
+            for j in range(n):
+                if i != j:
+                    r = pair_offset(*match_cells(details[i], colours[i], details[j], colours[j]))
+                    if r is not None:
+                        pairs.append((i, j, r[0], r[1]))
+            for d_prev, c_prev in self._prev:
+                r = pair_offset(*match_cells(details[i], colours[i], d_prev, c_prev))
+                if r is not None:
+                    pairs.append((i, None, r[0], r[1]))
+        x = solve_log_gains(n, pairs) if n else np.zeros((0, 3))
+        gains = np.ones((self.n_cameras, 3))
+        out = []
+        for i, g in enumerate(parts):
+            gains[owners[i]] = np.exp(x[i])
+            out.append(apply_gain(g, np.exp(x[i])))
+        self.gains.append(gains)
+        self.pairs.append(len(pairs))
+        self._prev = [(d, colours[i] / np.exp(x[i])) for i, d in enumerate(details)]
+        self._last = ([d.grid for d in details], x)
+        return out
+
+    def coarse(self, g: Gaussians) -> Gaussians:
+        """The last added keyframe's model Gaussians ``g`` (scene frame) harmonised: each divided by the geometric
+        mean of the gains of that keyframe's cameras whose view holds its centre (the model blends what they saw);
+        one that no camera with a detail layer sees is left as it is."""
+        grids, x = self._last
+        if not len(g) or not grids:
+            return g
+        total = np.zeros((len(g), 3))
+        seen = np.zeros(len(g))
+        for grid, xi in zip(grids, x):
+            uv, _, front = grid.project(g.means)
+            inside = front & grid.inside(uv)
+            total[inside] += xi
+            seen[inside] += 1
+        gain = np.exp(total / np.maximum(seen, 1)[:, None])
+        return apply_gain(g, gain)
+
+    def to_json(self, names: Sequence[str]) -> dict:
+        """scene.json's ``exposure`` block: the cameras' names and gains [K][C][3] (rounded to 1e-4)."""
+        return {"cameras": list(names), "gains": [np.round(g, 4).tolist() for g in self.gains],
+                "pairs": list(self.pairs),
+                "about": "per keyframe and camera, the per-channel gain its detail cells were divided by; a view "
+                         "near an input camera gets that camera's gain back"}
+
+
+__all__ = ["Harmoniser", "apply_gain", "base_colours", "match_cells", "pair_offset", "solve_log_gains"]
