@@ -587,6 +587,7 @@ def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None,
     ego_mask file wins), each camera's exposure and white balance harmonised across cameras and keyframes when
     ``exposure`` (runtime.exposure). A one-frame drive is exactly Reconstructor.reconstruct of its rig."""
     from .detail import carve_details, cull_covered
+    from .exposure import Harmoniser
     from .inference import DEFAULT_DETAIL
     from .lidar import has_lidar, load_lidar
     from .scene import Scene
@@ -639,8 +640,6 @@ def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None,
         return scene
     counts: dict[str, Any] = {"keyframes": len(keys), "frames": len(drive)}
     timings: dict[str, float] = {}
-    from .exposure import Harmoniser
-
     harmoniser = Harmoniser(len(drive.frames[0].rig.cameras)) if exposure else None
     found = EgoBody()
     if ego_body:
@@ -846,6 +845,6 @@ def _drive_meta(drive: Drive, keys: Sequence[int]) -> dict[str, Any]:
 
 
 __all__ = ["DEFAULT_MAX_GAP_S", "DEFAULT_SPACING_M", "Drive", "DriveError", "DriveFrame", "Track", "dedupe_frames",
-           "dedupe_frames_reference", "drive_of_rig", "find_drive_ego_body", "inside_boxes", "is_drive_file", "load_drive", "load_tracks",
-           "moving_boxes", "pick_keyframes", "reconstruct_drive", "save_drive_scene", "transform_detail",
+           "dedupe_frames_reference", "drive_of_rig", "find_drive_ego_body", "inside_boxes", "is_drive_file",
+           "load_drive", "load_tracks", "moving_boxes", "pick_keyframes", "reconstruct_drive", "save_drive_scene", "transform_detail",
            "transform_gaussians", "viewpoint_groups", "viewpoint_origins", "voxel_levels"]

@@ -304,7 +304,7 @@ class Scene:
         pose = np.asarray(self.drive["trajectory"], np.float64).reshape(-1, 4, 4)[key]
         view = np.asarray(camera.cam_to_ego, np.float64)[:3, 2]
         best, cos_best = None, math.cos(math.radians(EXPOSURE_CONE_DEG))
-        for c, cam in enumerate(self.rig.cameras):
+        for cam in self.rig.cameras:
             axis = pose[:3, :3] @ np.asarray(cam.cam_to_ego, np.float64)[:3, 2]
             cos = float(axis @ view / max(np.linalg.norm(axis) * np.linalg.norm(view), 1e-12))
             if cos >= cos_best and cam.name in ex["cameras"]:
@@ -540,6 +540,8 @@ class Scene:
             except ViewpointError as e:
                 raise SceneError(e.field, e.message, e.where) from None
         ego_body = _load_ego_body(d, meta["ego_body"], rig) if meta.get("ego_body") else None
+        if (meta.get("drive") or {}).get("exposure") is not None:
+            _check_exposure(meta["drive"]["exposure"], len(meta["drive"].get("keyframes") or ()), rig, jp)
         bg = None
         b = meta.get("background")
         if b:
@@ -556,6 +558,21 @@ class Scene:
                    lifting_cached=bool(meta.get("lifting_cached", False)), created=meta.get("created", ""),
                    own_views=own, drive=meta.get("drive"), actors=actors, keyframe_of=keyframe_of,
                    viewpoints=viewpoints, ego_body=ego_body)
+
+
+def _check_exposure(block: Any, keyframes: int, rig: Rig, path: Path) -> None:
+    """scene.json's drive.exposure (runtime.exposure.Harmoniser.to_json): the rig's cameras and a positive, finite
+    gain [3] per keyframe and camera; SceneError naming the field otherwise."""
+    where = f"scene {str(path)!r}"
+    if not isinstance(block, dict) or block.get("cameras") != list(rig.names):
+        raise SceneError("drive.exposure.cameras", f"must be the rig's cameras {rig.names}", where)
+    try:
+        g = np.asarray(block.get("gains"), np.float64)
+    except (TypeError, ValueError):
+        g = np.zeros(0)
+    if g.shape != (keyframes, len(rig.names), 3) or not np.all(np.isfinite(g)) or not np.all(g > 0):
+        raise SceneError("drive.exposure.gains", f"must be [{keyframes}][{len(rig.names)}][3] positive numbers "
+                         "(per keyframe, camera and channel)", where)
 
 
 def _save_masks(folder: Path, masks: dict[str, np.ndarray]) -> None:

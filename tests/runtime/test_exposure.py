@@ -104,3 +104,11 @@ def test_a_brighter_camera_is_harmonised_and_its_view_gets_its_gain_back(tmp_pat
     assert scene.exposure_gain(up, 0) is None                       # 90 degrees off every camera's axis
     scene.save(tmp_path / "scene")
     assert Scene.load(tmp_path / "scene").drive["exposure"]["gains"] == scene.drive["exposure"]["gains"]
+    # a scene folder whose gains are not [keyframe][camera][3] positive numbers is refused naming the field
+    from xyzcyl.runtime.scene import SceneError
+
+    doc = json.loads((tmp_path / "scene" / "scene.json").read_text())
+    doc["drive"]["exposure"]["gains"][1][2] = [1.0, -1.0, 1.0]
+    (tmp_path / "scene" / "scene.json").write_text(json.dumps(doc))
+    with pytest.raises(SceneError, match="gains"):
+        Scene.load(tmp_path / "scene")
