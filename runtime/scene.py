@@ -598,8 +598,8 @@ def _load_ego_body(d: Path, block: Any, rig: Rig) -> EgoBody:
     for name, rel in files.items():
         if name not in rig.names:
             raise SceneError(f"ego_body.files.{name}", f"is not a camera of the rig ({rig.names})", where)
-        if not isinstance(rel, str):
-            raise SceneError(f"ego_body.files.{name}", "must be a file name", where)
+        if not isinstance(rel, str) or not rel.startswith(EGO_BODY_DIR + "/") or ".." in Path(rel).parts:
+            raise SceneError(f"ego_body.files.{name}", f"must be a file in {EGO_BODY_DIR}/ (got {rel!r})", where)
         try:
             masks[name] = read_ego_mask(_scene_file(d, {"file": rel}, rel), rig.cameras[rig.names.index(name)])
         except RigError as e:

@@ -305,6 +305,16 @@ def test_a_found_ego_body_gets_no_cells_and_travels_with_the_scene(tmp_path, shi
     back = Scene.load(tmp_path / "scene")
     np.testing.assert_array_equal(back.ego_body.masks[cam.name], body)
     assert back.ego_body.travelled_m == 3.0
+    # a mask file outside the folder's ego_body/ is refused, naming the entry
+    import json
+
+    from xyzcyl.runtime.scene import SceneError
+
+    doc = json.loads((tmp_path / "scene" / "scene.json").read_text())
+    doc["ego_body"]["files"][cam.name] = "../elsewhere.png"
+    (tmp_path / "scene" / "scene.json").write_text(json.dumps(doc))
+    with pytest.raises(SceneError, match=f"ego_body.files.{cam.name}"):
+        Scene.load(tmp_path / "scene")
 
 
 def test_only_a_keyframe_with_measured_depth_carves_its_neighbours(monkeypatch):
