@@ -425,6 +425,107 @@ def dedupe_frames(points: np.ndarray, level: np.ndarray, frame: np.ndarray,
     return keep
 
 
+class VoxelOwners:
+    """dedupe_frames kept up to date as keyframes arrive, at a cost that follows each keyframe's cells rather than
+    all the cells so far: per voxel level, the owner of every voxel that holds a kept cell (its rank: level, distance,
+    keyframe; the best of the kept cells in it at that level or finer) and the kept cells at exactly that level by
+    voxel. A keyframe's cells take a voxel over where their best beats its owner; the kept cells at that level in it
+    are then lost. Owners are never lost (a lost cell ranks below its voxel's new owner, and so below every coarser
+    voxel's), so this keeps what dedupe_frames keeps over all the cells added, whatever the order (the tests)."""
+
+    def __init__(self, origins: np.ndarray | None = None):
+        self.origins = None if origins is None else np.asarray(origins, np.float64)
+        n = VOXEL_LEVELS
+        self.keys = [np.zeros(0, np.int64) for _ in range(n)]      # per level: voxels with an owner, sorted
+        self.lev = [np.zeros(0, np.int64) for _ in range(n)]       # their owner's rank: level, distance, keyframe
+        self.dist = [np.zeros(0, np.float64) for _ in range(n)]
+        self.frame = [np.zeros(0, np.int64) for _ in range(n)]
+        self.cell_keys = [np.zeros(0, np.int64) for _ in range(n)]  # per level: the kept cells there, by voxel
+        self.cell_ids = [np.zeros(0, np.int64) for _ in range(n)]
+
+    def add(self, points: np.ndarray, level: np.ndarray, frame: int, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """One keyframe's cells (points [M, 3] metres, level [M] voxel_levels, all of keyframe ``frame``, ``ids`` [M]
+        int64 the caller's names for them) -> (keep [M] bool: the cells that own their voxel, the ids of cells added
+        before that are lost to them)."""
+        level = np.clip(np.asarray(level, np.int64), 0, VOXEL_LEVELS - 1)
+        ids = np.asarray(ids, np.int64)
+        keep = np.zeros(len(level), bool)
+        lost: list[np.ndarray] = []
+        if not len(level):
+            return keep, np.zeros(0, np.int64)
+        f = np.full(len(level), int(frame), np.int64)
+        oc = np.zeros((0, 3), np.int64)            # this keyframe's own owners so far (as dedupe_frames)
+        olev = np.zeros(0, np.int64)
+        odist = np.zeros(0, np.float64)
+        for L in range(VOXEL_LEVELS):
+            if L:
+                oc = np.floor_divide(oc, 2)
+            here = np.flatnonzero(level == L)
+            size = VOXEL_BASE_M * 2.0 ** L
+            cc = np.floor(np.asarray(points[here], np.float64) / size).astype(np.int64)
+            coords = np.concatenate([oc, cc])
+            if not len(coords):
+                continue
+            levs = np.concatenate([olev, level[here]])
+            dists = np.concatenate([odist, _voxel_distance(cc, size, f[here], self.origins)])
+            keys = _pack(coords)
+            order = np.lexsort((dists, levs, keys))
+            k_sorted = keys[order]
+            first = np.concatenate([[True], k_sorted[1:] != k_sorted[:-1]])
+            win = order[first]
+            oc, olev, odist, nk = coords[win], levs[win], dists[win], k_sorted[first]
+            # against the owners so far: a voxel is taken over where this keyframe's best ranks lower
+            T = self.keys[L]
+            pos = np.searchsorted(T, nk)
+            exists = np.zeros(len(nk), bool)
+            if len(T):
+                exists = T[np.minimum(pos, len(T) - 1)] == nk
+            p = pos[exists]
+            el, ed = olev[exists], odist[exists]
+            tl, td, tf = self.lev[L][p], self.dist[L][p], self.frame[L][p]
+            better = (el < tl) | ((el == tl) & ((ed < td) | ((ed == td) & (frame < tf))))
+            wins = np.ones(len(nk), bool)
+            wins[exists] = better
+            taken = p[better]
+            if len(taken):
+                self.lev[L][taken], self.dist[L][taken] = el[better], ed[better]
+                self.frame[L][taken] = frame
+                lo = np.searchsorted(self.cell_keys[L], nk[exists][better], "left")
+                hi = np.searchsorted(self.cell_keys[L], nk[exists][better], "right")
+                if (hi > lo).any():
+                    gone = np.zeros(len(self.cell_keys[L]), bool)
+                    gone[_ranges(lo, hi)] = True
+                    lost.append(self.cell_ids[L][gone])
+                    self.cell_keys[L], self.cell_ids[L] = self.cell_keys[L][~gone], self.cell_ids[L][~gone]
+            new = ~exists
+            if new.any():
+                at = pos[new]
+                self.keys[L] = np.insert(T, at, nk[new])
+                self.lev[L] = np.insert(self.lev[L], at, olev[new])
+                self.dist[L] = np.insert(self.dist[L], at, odist[new])
+                self.frame[L] = np.insert(self.frame[L], at, frame)
+            if len(here):
+                mine = keys[len(keys) - len(here):]
+                kept = wins[np.searchsorted(nk, mine)]
+                keep[here] = kept
+                if kept.any():
+                    k_new, i_new = mine[kept], ids[here][kept]
+                    o = np.argsort(k_new, kind="stable")
+                    at = np.searchsorted(self.cell_keys[L], k_new[o], "right")
+                    self.cell_keys[L] = np.insert(self.cell_keys[L], at, k_new[o])
+                    self.cell_ids[L] = np.insert(self.cell_ids[L], at, i_new[o])
+        return keep, (np.concatenate(lost) if lost else np.zeros(0, np.int64))
+
+
+def _ranges(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """The integers of the half-open ranges [lo_i, hi_i), concatenated."""
+    n = hi - lo
+    if not n.sum():
+        return np.zeros(0, np.int64)
+    starts = np.repeat(lo - np.concatenate([[0], np.cumsum(n)[:-1]]), n)
+    return starts + np.arange(int(n.sum()))
+
+
 def _voxel_distance(coords: np.ndarray, size: float, frame: np.ndarray, origins: np.ndarray | None) -> np.ndarray:
     """[N] metres from the centres of voxels ``coords`` [N, 3] (integer, of edge ``size`` metres) to the origins of
     keyframes ``frame`` [N] (0 without origins). Cells of one viewpoint group in one voxel get the same value
@@ -498,19 +599,24 @@ class _Kept:
     """The cells (or model Gaussians) of the keyframes so far, in the scene's frame, each part with its ``shared``
     mask: what the fusion keeps in the scene's shared Gaussians (dedupe_frames over the shared cells so far: a cell
     another keyframe took over never comes back, so deduping the shared ones as each keyframe arrives keeps what
-    deduping them all at once keeps). The rest stays only where it is a viewpoint group's first keyframe's
-    (``heads``): runtime.viewpoints. With ``spill`` (a folder), each part's Gaussians wait there (an .npz) and only
-    their centres stay in memory (12 of a cell's 68 bytes): a drive's memory does not grow with every keyframe's
-    every cell."""
+    deduping them all at once keeps; with ``owners``, a VoxelOwners, only the new keyframe's cells are looked at).
+    The rest stays only where it is a viewpoint group's first keyframe's (``heads``): runtime.viewpoints. With
+    ``spill`` (a folder), each part's Gaussians wait there (an .npz) and only their centres stay in memory (12 of a
+    cell's 68 bytes): a drive's memory does not grow with every keyframe's every cell."""
 
     origins: np.ndarray             # [K, 3] metres: each keyframe's viewpoint (viewpoint_origins)
     heads: np.ndarray               # [K] the first keyframe of each keyframe's viewpoint group (viewpoint_groups)
     spill: Path | None = None
+    owners: VoxelOwners | None = None
     means: list[np.ndarray] = field(default_factory=list)          # [N_i, 3] per part
     store: list[Gaussians | Path] = field(default_factory=list)    # the part, or its .npz in ``spill``
     level: list[np.ndarray] = field(default_factory=list)
     frame: list[np.ndarray] = field(default_factory=list)
     shared: list[np.ndarray] = field(default_factory=list)
+    start: list[int] = field(default_factory=list)      # the id of each part's first cell as added (VoxelOwners)
+    now: list[np.ndarray | None] = field(default_factory=list)      # a part's row as added -> its row now (-1: gone)
+    deduped: int = 0                                    # parts before this one have been through dedupe
+    next_id: int = 0
 
     def _put(self, i: int | None, g: Gaussians) -> Gaussians | Path:
         if self.spill is None:
@@ -528,6 +634,9 @@ class _Kept:
             return Gaussians(**{k: z[k] for k in ("means", "quats", "log_scales", "opacity_logits", "sh")})
 
     def add(self, g: Gaussians, level: np.ndarray, n: int) -> None:
+        self.start.append(self.next_id)
+        self.next_id += len(g)
+        self.now.append(None)
         self.store.append(self._put(None, g))
         self.means.append(np.array(g.means, np.float32))
         self.level.append(level)
@@ -540,20 +649,57 @@ class _Kept:
             self.store[i] = self._put(i, self.part(i).subset(m))
             self.means[i], self.level[i] = self.means[i][m], self.level[i][m]
             self.frame[i], self.shared[i] = self.frame[i][m], self.shared[i][m]
+            row = np.where(m, np.cumsum(m) - 1, -1)
+            old = self.now[i]
+            self.now[i] = row if old is None else np.where(old >= 0, row[np.maximum(old, 0)], -1)
 
     def dedupe(self) -> None:
         if not self.store:
             return
-        sel = [np.flatnonzero(s) for s in self.shared]
-        pts = np.concatenate([p[j] for p, j in zip(self.means, sel)])
-        keep = dedupe_frames(pts, np.concatenate([v[j] for v, j in zip(self.level, sel)]),
-                             np.concatenate([f[j] for f, j in zip(self.frame, sel)]), self.origins)
-        start = 0
-        for i, j in enumerate(sel):
-            self.shared[i][j] = keep[start:start + len(j)]
-            start += len(j)
-            if len(self.frame[i]) and self.heads[self.frame[i][0]] != self.frame[i][0]:
-                self.keep(i, self.shared[i])        # not a group's first keyframe: only its shared cells stay
+        if self.owners is None:
+            sel = [np.flatnonzero(s) for s in self.shared]
+            pts = np.concatenate([p[j] for p, j in zip(self.means, sel)])
+            keep = dedupe_frames(pts, np.concatenate([v[j] for v, j in zip(self.level, sel)]),
+                                 np.concatenate([f[j] for f, j in zip(self.frame, sel)]), self.origins)
+            start = 0
+            for i, j in enumerate(sel):
+                self.shared[i][j] = keep[start:start + len(j)]
+                start += len(j)
+                if len(self.frame[i]) and self.heads[self.frame[i][0]] != self.frame[i][0]:
+                    self.keep(i, self.shared[i])        # not a group's first keyframe: only its shared cells stay
+            return
+        # the parts added since: each keyframe's together (its cells never drop each other)
+        new = list(range(self.deduped, len(self.store)))
+        self.deduped = len(self.store)
+        for n in sorted({int(self.frame[i][0]) for i in new if len(self.frame[i])}):
+            mine = [i for i in new if len(self.frame[i]) and int(self.frame[i][0]) == n]
+            ids = np.concatenate([self.start[i] + np.arange(len(self.means[i])) for i in mine])
+            keep, lost = self.owners.add(np.concatenate([self.means[i] for i in mine]),
+                                         np.concatenate([self.level[i] for i in mine]), n, ids)
+            at = 0
+            for i in mine:
+                self.shared[i] = keep[at:at + len(self.means[i])].copy()
+                at += len(self.means[i])
+            self._lose(lost)
+        for i in range(len(self.store)):
+            # not a group's first keyframe: only its shared cells stay, once a quarter of it has gone (each part
+            # is rewritten a few times at most)
+            if len(self.frame[i]) and self.heads[self.frame[i][0]] != self.frame[i][0] and \
+                    self.shared[i].sum() < 0.75 * len(self.shared[i]):
+                self.keep(i, self.shared[i])
+
+    def _lose(self, ids: np.ndarray) -> None:
+        """The cells ``ids`` (VoxelOwners' names: start + row as added) are no longer shared."""
+        if not len(ids):
+            return
+        starts = np.asarray(self.start, np.int64)
+        part = np.searchsorted(starts, ids, "right") - 1
+        for i in np.unique(part):
+            rows = ids[part == i] - starts[i]
+            if self.now[i] is not None:
+                rows = self.now[i][rows]
+                rows = rows[rows >= 0]
+            self.shared[i][rows] = False
 
     def count(self) -> int:
         return sum(int(s.sum()) for s in self.shared)
@@ -653,7 +799,7 @@ def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None,
     heads = viewpoint_groups(positions)
     origins = positions[heads]
     spill = tempfile.TemporaryDirectory(prefix="xyzcyl-drive-")      # removed when the scene lets go of it
-    detail_kept = _Kept(origins, heads, Path(spill.name))
+    detail_kept = _Kept(origins, heads, Path(spill.name), VoxelOwners(origins))
     coarse_kept = _Kept(origins, heads)
     # (keyframe, details, parts, keep, whether its depth was measured: a LiDAR sweep)
     window: list[tuple[int, list, list[Gaussians], list[np.ndarray], bool]] = []
@@ -731,10 +877,14 @@ def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None,
     coarse_kept.dedupe()
     coarse_parts, coarse_frames = coarse_kept.shared_parts()
     detail_parts, detail_frames = detail_kept.shared_parts()
-    coarse = _concat(coarse_parts)
-    details_g = _concat(detail_parts)
+    n_coarse, n_detail = sum(map(len, coarse_parts)), sum(map(len, detail_parts))
+    # one run per keyframe (its model Gaussians, then its cells): a view draws a keyframe's without a copy (Scene)
+    pieces = sorted(zip(coarse_parts + detail_parts, coarse_frames + detail_frames),
+                    key=lambda p: int(p[1][0]) if len(p[1]) else -1)
     del coarse_parts, detail_parts
-    gauss = _concat([coarse, details_g])
+    gauss = _concat([p for p, _ in pieces])
+    keyframe_of = np.concatenate([f for _, f in pieces]).astype(np.int16)
+    del pieces
     group_heads = sorted(set(map(int, heads)))
     # each group's chunk written beside the spilled parts, one at a time, and read back when a view needs it
     viewpoints = Viewpoints.spilled([np.flatnonzero(heads == h).tolist() for h in group_heads],
@@ -742,7 +892,7 @@ def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None,
                                     spill) if len(keys) > 1 else None
     timings["fusion"] = time.perf_counter() - t1
     timings["total"] = time.perf_counter() - t0
-    counts.update({"coarse": len(coarse), "detail": len(details_g), "moving_removed": moved_out,
+    counts.update({"coarse": n_coarse, "detail": n_detail, "moving_removed": moved_out,
                    "total": len(gauss)})
     if viewpoints is not None:
         counts.update({"viewpoints": len(viewpoints), "viewpoint_gaussians": viewpoints.count})
@@ -750,7 +900,6 @@ def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None,
     if actors is not None:
         counts.update({"actors": len(actors), "actor_copies": len(actors.copy_track),
                        "actor_gaussians": len(actors.gaussians)})
-    keyframe_of = np.concatenate([*coarse_frames, *detail_frames]).astype(np.int16)
     scene = Scene(gaussians=gauss, background=background, rig=drive.frames[0].rig, model=rec.scene_model(),
                   counts=counts, timings={key: round(v, 6) for key, v in timings.items()}, actors=actors,
                   keyframe_of=keyframe_of if len(keyframe_of) == len(gauss) else None, viewpoints=viewpoints,
@@ -844,7 +993,8 @@ def _drive_meta(drive: Drive, keys: Sequence[int]) -> dict[str, Any]:
             "tracks": len(drive.tracks)}
 
 
-__all__ = ["DEFAULT_MAX_GAP_S", "DEFAULT_SPACING_M", "Drive", "DriveError", "DriveFrame", "Track", "dedupe_frames",
-           "dedupe_frames_reference", "drive_of_rig", "find_drive_ego_body", "inside_boxes", "is_drive_file",
-           "load_drive", "load_tracks", "moving_boxes", "pick_keyframes", "reconstruct_drive", "save_drive_scene", "transform_detail",
-           "transform_gaussians", "viewpoint_groups", "viewpoint_origins", "voxel_levels"]
+__all__ = ["DEFAULT_MAX_GAP_S", "DEFAULT_SPACING_M", "Drive", "DriveError", "DriveFrame", "Track", "VoxelOwners",
+           "dedupe_frames", "dedupe_frames_reference", "drive_of_rig", "find_drive_ego_body", "inside_boxes",
+           "is_drive_file", "load_drive", "load_tracks", "moving_boxes", "pick_keyframes", "reconstruct_drive",
+           "save_drive_scene", "transform_detail", "transform_gaussians", "viewpoint_groups", "viewpoint_origins",
+           "voxel_levels"]

@@ -35,7 +35,7 @@ from xyzcyl.common.files import atomic_folder
 from .actors import Actors, ActorsError
 from .camera import Camera, rig_camera
 from .cylinder import CylinderSpec
-from .detail import HIDDEN_LOGIT, DetailError, OwnViews
+from .detail import DetailError, OwnViews
 from .egobody import EgoBody
 from .errors import FieldError
 from .files import read_json_doc
@@ -250,6 +250,20 @@ class Scene:
     viewpoints: Viewpoints | None = field(default=None, repr=False)
     # a drive's ego body found over its frames (runtime.egobody): its masks and what was looked at
     ego_body: EgoBody | None = field(default=None, repr=False)
+    _bounds: np.ndarray | None = field(default=None, init=False, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        """A drive's Gaussians sorted by keyframe_of (stable: each keyframe's in their order), so a keyframe's are
+        one run (keyframe_bounds) that a view draws without copying it (Scene._layers). runtime.drive builds them so;
+        a scene folder written before is sorted here once."""
+        kf = self.keyframe_of
+        if kf is None or len(kf) < 2 or self.own_views is not None:
+            return
+        kf = np.asarray(kf)
+        if np.any(kf[1:] < kf[:-1]):
+            order = np.argsort(kf, kind="stable")
+            self.gaussians = self.gaussians.subset(order)
+            self.keyframe_of = kf[order]
 
     def own_camera(self, camera) -> int | None:
         """The index of the input camera whose pose ``camera`` (runtime.camera.Camera) has (OWN_POSE_TOL), when
@@ -285,7 +299,9 @@ class Scene:
             bg = background
         k = self.primary_keyframe(camera, time_s)
         if k is None:
-            r = render(self.gaussians_at(camera, time_s), camera, background=bg, **options)
+            moving = self.moving_at(time_s)
+            r = render([self.gaussians_for(camera)] + ([moving] if moving is not None else []), camera,
+                       background=bg, **options)
             return r.rgb, r.depth, r.alpha
         rgb, depth, alpha = self._layers(camera, k, time_s, bg, options)
         gain = self.exposure_gain(camera, k)
@@ -315,29 +331,45 @@ class Scene:
 
     def _layers(self, camera: Camera, k: int, time_s: float | None, bg: Any, options: dict
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """A drive's view in layers (Scene.render) with primary keyframe ``k``, before the exposure gain."""
-        from .detail import concat_gaussians
-
+        """A drive's view in layers (Scene.render) with primary keyframe ``k``, before the exposure gain. Each layer
+        is a list of keyframes' runs of the (keyframe-sorted) Gaussians, chunks and moving objects, drawn as their
+        concatenation without copying them (runtime.render: several sets)."""
         g = self.gaussians_for(camera)
+        bounds = self.keyframe_bounds()
         moving = self.moving_at(time_s)
         moving = [moving] if moving is not None else []
+
+        def runs(keys) -> list[Gaussians]:
+            """The Gaussians of keyframes ``keys`` (ascending), one view each."""
+            return [g.slice(int(bounds[kk]), int(bounds[kk + 1])) for kk in keys if bounds[kk + 1] > bounds[kk]]
+
+        def draw(parts: list[Gaussians], background: Any, behind=None):
+            return render(parts or [g.slice(0, 0)], camera, background=background, behind=behind, **options)
+
+        n_keys = len(bounds) - 1
+        # each layer drawn behind the ones before it, in the raster (render's behind: composite_layers' sum, but a
+        # pixel the layers before covered is not drawn again)
         if self.viewpoints is None:
-            mine = self.keyframe_of == k
-            a = render(concat_gaussians([g.subset(mine), *moving]), camera, background=None, **options)
-            b = render(g.with_opacity_logits(np.where(mine, HIDDEN_LOGIT, g.opacity_logits)), camera,
-                       background=bg, **options)
-            return composite_layers(a, b)
+            a = draw(runs([k]) + moving, None)
+            b = draw(runs([kk for kk in range(n_keys) if kk != k]), bg, a)
+            return b.rgb, b.depth, b.alpha
         vp = self.viewpoints
         i = vp.group_of(k)
         near = [j for j in (i - 1, i + 1) if 0 <= j < len(vp)]
-        mine = self.keyframe_of == vp.chunks[i].keyframes[0]
-        beside = ~mine & np.isin(self.keyframe_of, [kk for j in (i, *near) for kk in vp.chunks[j].keyframes])
-        a = render(concat_gaussians([g.subset(mine), vp.gaussians(i), *moving]), camera, background=None, **options)
-        b = render(concat_gaussians([g.subset(beside), *(vp.gaussians(j) for j in near)]), camera,
-                   background=None, **options)
-        c = render(g.with_opacity_logits(np.where(mine | beside, HIDDEN_LOGIT, g.opacity_logits)), camera,
-                   background=bg, **options)
-        return composite_layers(a, b, c)
+        mine = vp.chunks[i].keyframes[0]
+        beside = sorted({kk for j in (i, *near) for kk in vp.chunks[j].keyframes} - {mine})
+        a = draw(runs([mine]) + [vp.gaussians(i)] + moving, None)
+        b = draw(runs(beside) + [vp.gaussians(j) for j in near], None, a)
+        c = draw(runs([kk for kk in range(n_keys) if kk != mine and kk not in beside]), bg, b)
+        return c.rgb, c.depth, c.alpha
+
+    def keyframe_bounds(self) -> np.ndarray:
+        """[K + 1] int64: keyframe k's Gaussians are gaussians[bounds[k]:bounds[k + 1]] (keyframe_of is sorted:
+        Scene keeps it so)."""
+        if self._bounds is None:
+            n_keys = len(self.drive["keyframes"])
+            self._bounds = np.searchsorted(self.keyframe_of, np.arange(n_keys + 1), side="left").astype(np.int64)
+        return self._bounds
 
     def primary_keyframe(self, camera, time_s: float | None = None) -> int | None:
         """The keyframe a view of ``camera`` draws first (Scene.render): of a drive's scene with keyframe_of, the

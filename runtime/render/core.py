@@ -5,6 +5,7 @@ from __future__ import annotations
 import sys
 import threading
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numba
@@ -34,6 +35,7 @@ class _State:
     t_final: np.ndarray   # [H, W] float32
     timings: dict         # seconds per stage: project, sort_bin, raster
     row_evals: np.ndarray  # [ntiles] int64 16-pixel rows the raster evaluated per tile (16 Gaussian-pixel each)
+    resumed: bool = False  # drawn behind an earlier result (render's behind): no backward pass
 
 
 def _read_only(a: np.ndarray) -> np.ndarray:
@@ -156,22 +158,38 @@ def _scratch(name: str, shape: tuple[int, ...], dtype) -> np.ndarray:
     return buf[off:off + count].reshape(shape)
 
 
-def _prepare(g: Gaussians, camera, opts: RenderOptions, cull_chunks: bool = True):
+def as_parts(gaussians: Gaussians | Sequence[Gaussians]) -> list[Gaussians]:
+    """A render's Gaussians as a list of sets drawn as their concatenation (render: one set, or several)."""
+    if isinstance(gaussians, Gaussians):
+        return [gaussians]
+    parts = list(gaussians)
+    if not parts or not all(isinstance(p, Gaussians) for p in parts):
+        raise TypeError("gaussians: a Gaussians or a non-empty sequence of Gaussians")
+    return parts
+
+
+def _prepare(g: Gaussians | Sequence[Gaussians], camera, opts: RenderOptions, cull_chunks: bool = True):
+    """Project, sort and bin ``g`` (one set, or several drawn exactly as their concatenation in order, without
+    copying them: each part is projected into its own run of slots, so slots still increase with the index in the
+    concatenation and the depth order breaks ties the same way; gid holds that index)."""
     W, H = camera.width, camera.height
     ntx, nty = (W + K.TILE - 1) // K.TILE, (H + K.TILE - 1) // K.TILE
     if ntx > 0x7FFF or nty > 0x7FFF:  # tile ranges are packed as two 16-bit fields in an int32
         raise ValueError(f"camera: width and height must be at most {0x7FFF * K.TILE} px, got {W}x{H}")
     t0 = time.perf_counter()
-    n = len(g)
-    nch = (n + K.PROJ_CHUNK - 1) // K.PROJ_CHUNK
+    parts = as_parts(g)
+    nchs = [(len(p) + K.PROJ_CHUNK - 1) // K.PROJ_CHUNK for p in parts]
+    ch0 = np.concatenate([[0], np.cumsum(nchs)]).astype(np.int64)       # each part's first chunk
+    nch = int(ch0[-1])
     model, (*cargs, ptab) = _camera_args(camera)
     cam = (*cargs, W, H, float(opts.near), float(opts.far), float(opts.low_pass))   # kernels: the camera tuple
+    planes = chunk_planes(camera, opts) if cull_chunks else np.zeros((0, 5))
     pre = np.zeros(nch, np.int64)
-    if n:
-        # pass 1: an upper bound of the visible Gaussians per chunk, so the outputs are allocated to fit (a
-        # slot per Gaussian made the kernel zero up to 64 bytes x N of fresh huge pages per render)
-        K.precull_counts(model)(_c(g.means), _c(g.log_scales), cam, ptab,
-                                chunk_planes(camera, opts) if cull_chunks else np.zeros((0, 5)), pre)
+    for p, a, b in zip(parts, ch0[:-1], ch0[1:]):
+        if b > a:
+            # pass 1: an upper bound of the visible Gaussians per chunk, so the outputs are allocated to fit (a
+            # slot per Gaussian made the kernel zero up to 64 bytes x N of fresh huge pages per render)
+            K.precull_counts(model)(_c(p.means), _c(p.log_scales), cam, ptab, planes, pre[a:b])
     base = np.zeros(nch, np.int64)
     np.cumsum(pre[:-1], out=base[1:])
     m = int(pre.sum())
@@ -180,11 +198,16 @@ def _prepare(g: Gaussians, camera, opts: RenderOptions, cull_chunks: bool = True
     trange = _scratch("trange", (m, 2), np.int32)
     gid = _scratch("gid", (m,), np.int32)
     counts = np.zeros(nch, np.int64)
-    if m:
-        K.project_kernel(model)(_c(g.means), _c(g.quats), _c(g.log_scales), _c(g.opacity_logits), _c(g.sh),
-                                np.ascontiguousarray(camera.cam_to_ego[:3, 3]), cam, ptab,
-                                bool(opts.antialiased), opts.radius_mode == "opacity", pre, base, rows, trange,
-                                dep, gid, counts)
+    campos = np.ascontiguousarray(camera.cam_to_ego[:3, 3])
+    offset = 0
+    for p, a, b in zip(parts, ch0[:-1], ch0[1:]):
+        if b > a and pre[a:b].any():
+            K.project_kernel(model)(_c(p.means), _c(p.quats), _c(p.log_scales), _c(p.opacity_logits), _c(p.sh),
+                                    campos, cam, ptab, bool(opts.antialiased), opts.radius_mode == "opacity",
+                                    pre[a:b], base[a:b], rows, trange, dep, gid, counts[a:b])
+            if offset:                  # the part's own indices -> indices in the concatenation
+                gid[K.visible_slots(counts[a:b], base[a:b])] += offset
+        offset += len(p)
     t1 = time.perf_counter()
     visible = K.visible_slots(counts, base)
     # depth order: float32 depths (positive: near > 0, so their bit patterns order like the values), ties by
@@ -195,9 +218,16 @@ def _prepare(g: Gaussians, camera, opts: RenderOptions, cull_chunks: bool = True
     return ntx, start, ids, rows, gid, {"project": t1 - t0, "sort_bin": t2 - t1}
 
 
-def render(gaussians: Gaussians, camera, background=None, **options) -> RenderResult:
+def render(gaussians: Gaussians | Sequence[Gaussians], camera, background=None, behind: RenderResult | None = None,
+           **options) -> RenderResult:
     """Render Gaussians from a runtime.camera.Camera: pinhole or equirectangular, a pinhole with a lens
     (runtime.lenses: opencv, opencv_fisheye, ftheta) drawn through the lens.
+
+    gaussians: one set, or a sequence of sets drawn exactly as their concatenation in order (no copy; the parts
+    may have different SH degrees; render_backward needs one set).
+    behind: an earlier result of the same camera rendered with no background: these Gaussians are drawn behind
+    what it drew, I = I_behind + (1 - A_behind) I_these (alpha and the alpha-weighted depth alike), pixel by pixel
+    in the raster, which skips the pixels the earlier one already covered (render_backward cannot follow it).
 
     background: None (black), an RGB triple, or an image [H, W, 3] (0..1). Options: see RenderOptions.
     Returns RenderResult(rgb [H, W, 3], alpha [H, W], depth [H, W]) float32; depth is the expected camera z
@@ -210,22 +240,28 @@ def render(gaussians: Gaussians, camera, background=None, **options) -> RenderRe
     bg = background_image(background, H, W)
     ntx, start, ids, rows, gid, timings = _prepare(gaussians, camera, opts)
     t0 = time.perf_counter()
-    rgb = np.empty((H, W, 3), np.float32)
-    alpha = np.empty((H, W), np.float32)
-    depth = np.empty((H, W), np.float32)
+    if behind is None:
+        rgb = np.empty((H, W, 3), np.float32)
+        alpha = np.empty((H, W), np.float32)
+        depth = np.empty((H, W), np.float32)
+    else:
+        st = behind.state
+        if behind.alpha.shape != (H, W) or not isinstance(st, _State) or st.bg.any():
+            raise ValueError(f"behind: must be a render of this {W}x{H} camera with no background")
+        rgb, alpha, depth = behind.rgb.copy(), behind.alpha.copy(), behind.depth.copy()
     last = _scratch("last", (H, W), np.int32)          # kept for the backward pass only
     t_final = _scratch("t_final", (H, W), np.float32)
     row_evals = np.empty(start.shape[0] - 1, np.int64)
     model, lp = lens_params(camera)
     plane, offsets, kk, tilex, rowy = _plane_args(camera)
     K.raster_forward(start, ids, rows, ntx, W, H, camera.is_equirect, plane, offsets, kk, tilex, rowy, bg, rgb,
-                     alpha, depth, last, t_final, row_evals)
+                     alpha, depth, last, t_final, row_evals, behind is not None)
     if model in (lensmap.FISHEYE, lensmap.FTHETA):   # no ray reaches the pixels outside the image circle
         k = camera.K
         lensmap.clear_outside_circle(model, lp, k[0, 0], k[1, 1], k[0, 2], k[1, 2], bg, rgb, alpha, depth, last,
                                      t_final)
     timings["raster"] = time.perf_counter() - t0
-    state = _State(opts, ntx, start, ids, rows, gid, bg, last, t_final, timings, row_evals)
+    state = _State(opts, ntx, start, ids, rows, gid, bg, last, t_final, timings, row_evals, behind is not None)
     return RenderResult(rgb, alpha, depth, state)
 
 
@@ -247,7 +283,7 @@ def render_backward(gaussians: Gaussians, camera, result: RenderResult, d_rgb, d
     check_camera(camera, backward=True)
     W, H = camera.width, camera.height
     st = result.state
-    if not isinstance(st, _State) or st.opts != opts or st.last.shape != (H, W):
+    if not isinstance(st, _State) or st.opts != opts or st.last.shape != (H, W) or st.resumed:
         result = render(gaussians, camera, background, **options)
         st = result.state
     g_rgb = _as_grad(d_rgb, (H, W, 3), "d_rgb")

@@ -143,10 +143,21 @@ class Gaussians:
                           w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2, w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2], axis=1)
         return Gaussians(means, quats.astype(self.quats.dtype), self.log_scales, self.opacity_logits, self.sh)
 
+    def slice(self, start: int, stop: int) -> Gaussians:
+        """Gaussians start..stop - 1 as views of these arrays (no copy, not checked again: they were on
+        construction; Scene draws a drive's keyframes this way, per render)."""
+        out = object.__new__(Gaussians)
+        for name in ("means", "quats", "log_scales", "opacity_logits", "sh"):
+            object.__setattr__(out, name, getattr(self, name)[start:stop])
+        return out
+
     def subset(self, keep: np.ndarray) -> Gaussians:
-        """The Gaussians where ``keep`` ([N] bool, or indices) selects, in order."""
-        return Gaussians(self.means[keep], self.quats[keep], self.log_scales[keep], self.opacity_logits[keep],
-                         self.sh[keep])
+        """The Gaussians where ``keep`` ([N] bool, or indices) selects, in order (not checked again: a selection of
+        checked Gaussians; the drive's fusion takes thousands of subsets of millions)."""
+        out = object.__new__(Gaussians)
+        for name in ("means", "quats", "log_scales", "opacity_logits", "sh"):
+            object.__setattr__(out, name, getattr(self, name)[keep])
+        return out
 
     def astype(self, dtype) -> Gaussians:
         return Gaussians(*(np.asarray(getattr(self, f), dtype=dtype) for f in

@@ -1017,7 +1017,7 @@ def _blend_one(fb, j, jj, px, py, T, c0, c1, c2, dd, lst, wrap, plane, wf, inv_w
 
 @njit(cache=True, parallel=True, nogil=True, fastmath=RASTER_MATH)
 def raster_forward(start, ids, rows, ntx, width, height, wrap, plane, offsets, kk, tilex, rowy, bg, rgb, alpha, depth,
-                   last, t_final, row_evals):
+                   last, t_final, row_evals, resume):
     """Front-to-back blend per tile. bg [H, W, 3] f32. Outputs rgb [H, W, 3], alpha, depth [H, W] f32,
     last [H, W] int32 (index of the last blended instance, -1 if none), t_final [H, W] f32, row_evals [ntiles]
     int64 (16-pixel tile rows evaluated: the work done, for benchmarks).
@@ -1027,10 +1027,12 @@ def raster_forward(start, ids, rows, ntx, width, height, wrap, plane, offsets, k
     Gaussian blends there), with the tangent-plane power of lensmap.opencv_plane_footprint; else offsets, kk,
     tilex and rowy are unused.
     Each Gaussian is evaluated on the tile rows its bounding box touches, in one branch-free SIMD loop.
-    A pixel that stopped (or lies outside the image) keeps -T in T: negative T means inactive."""
+    A pixel that stopped (or lies outside the image) keeps -T in T: negative T means inactive.
+    resume: rgb, alpha and depth hold on entry what was drawn in front of these Gaussians over black (an earlier
+    render's outputs with no background), and the blend goes on from there, as if those Gaussians had come first
+    in the sort: a pixel starts at T = 1 - alpha with its colour and alpha-weighted depth, and one already below
+    T_STOP starts stopped."""
     ntiles = start.shape[0] - 1
-    wf = np.float32(width)
-    inv_w = np.float32(1.0 / width)
     for k in prange(SPREAD * ((ntiles + SPREAD - 1) // SPREAD)):
         t = _spread(k, ntiles)
         if t < 0:
@@ -1055,14 +1057,16 @@ def raster_forward(start, ids, rows, ntx, width, height, wrap, plane, offsets, k
                     px[r * TILE + q] = np.float32(q) + offsets[y0 + r, x0 + q, 0]
                     py[r * TILE + q] = np.float32(r) + offsets[y0 + r, x0 + q, 1]
         _raster_tile(t, start, ids, rows, ntx, width, height, wrap, plane, kk, tilex, rowy, bg, rgb, alpha, depth,
-                     last, t_final, row_evals, px, py, T, c0, c1, c2, dd, lst, fb, wf, inv_w)
+                     last, t_final, row_evals, px, py, T, c0, c1, c2, dd, lst, fb, resume)
 
 
 @njit(inline="always", fastmath=RASTER_MATH)
 def _raster_tile(t, start, ids, rows, ntx, width, height, wrap, plane, kk, tilex, rowy, bg, rgb, alpha, depth, last,
-                 t_final, row_evals, px, py, T, c0, c1, c2, dd, lst, fb, wf, inv_w):
+                 t_final, row_evals, px, py, T, c0, c1, c2, dd, lst, fb, resume):
     """Tile t of raster_forward: blend its instance list into the scratch arrays (pixel state), then write its
-    pixels out."""
+    pixels out. (At most 30 arguments: CPython passes more as *args, which numba cannot inline.)"""
+    wf = np.float32(width)
+    inv_w = np.float32(1.0 / width)
     x0 = (t % ntx) * TILE
     y0 = (t // ntx) * TILE
     nq = min(TILE, width - x0)          # the tile's columns and rows inside the image
@@ -1074,10 +1078,22 @@ def _raster_tile(t, start, ids, rows, ntx, width, height, wrap, plane, kk, tilex
         dd[p] = F0
         lst[p] = -1
         T[p] = -F1
+    nact = 0
     for r in range(nr):
         for q in range(nq):
-            T[r * TILE + q] = F1
-    nact = nq * nr
+            p = r * TILE + q
+            if resume:          # go on from the earlier render's pixel (raster_forward's resume)
+                al = alpha[y0 + r, x0 + q]
+                tb = F1 - al
+                c0[p] = rgb[y0 + r, x0 + q, 0]
+                c1[p] = rgb[y0 + r, x0 + q, 1]
+                c2[p] = rgb[y0 + r, x0 + q, 2]
+                dd[p] = depth[y0 + r, x0 + q] * al
+                T[p] = tb if tb > T_STOP else -tb
+                nact += 1 if tb > T_STOP else 0
+            else:
+                T[p] = F1
+                nact += 1
     nrow = 0
     for b0 in range(start[t], start[t + 1], GATHER):
         if nact == 0:

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 from xyzcyl.runtime.drive import (
     DriveError,
+    VoxelOwners,
     dedupe_frames,
     dedupe_frames_reference,
     inside_boxes,
@@ -151,6 +152,29 @@ def test_dedupe_frames_matches_its_reference_and_does_not_depend_on_the_order(wi
     assert dedupe_frames(two, np.array([2, 2]), np.array([1, 0])).tolist() == [False, True]
 
 
+@pytest.mark.parametrize("seed", range(6))
+def test_voxel_owners_keep_what_dedupe_frames_keeps_as_keyframes_arrive(seed):
+    """VoxelOwners (the fusion's dedupe, one keyframe's cells at a time) against dedupe_frames over all of them:
+    dense and sparse cells, with and without viewpoints, keyframes in time order and shuffled."""
+    rng = np.random.default_rng(seed)
+    n, frames = 600, 5
+    pts = rng.uniform(0, 1.0 if seed % 2 else 5.0, (n, 3))
+    level = rng.integers(0, 7, n).astype(np.int8)
+    frame = rng.integers(0, frames, n)
+    origins = viewpoint_origins(rng.uniform(-3, 3, (frames, 3))) if seed % 3 else None
+    full = dedupe_frames(pts, level, frame, origins)
+    owners = VoxelOwners(origins)
+    alive = np.zeros(n, bool)
+    for f in (rng.permutation(frames) if seed >= 4 else range(frames)):
+        idx = np.flatnonzero(frame == f)
+        keep, lost = owners.add(pts[idx], level[idx], int(f), idx + 1000)        # ids: any names
+        assert alive[lost - 1000].all()                                           # only kept cells are lost
+        alive[idx[keep]] = True
+        alive[lost - 1000] = False
+    np.testing.assert_array_equal(alive, full)
+    assert 0 < alive.sum() < n
+
+
 def test_dedupe_frames_prefers_the_nearer_viewpoint_among_equally_fine_cells():
     # one voxel seen as finely by three keyframes: the ones at the origin stood still (one viewpoint: the earlier
     # keeps it), the third drove 10 m on, next to the voxel, and takes it over; a coarser cell never does
@@ -244,7 +268,9 @@ def test_each_viewpoint_keeps_what_its_keyframe_saw_whole(tmp_path, shipped, mon
     vp = scene.viewpoints
     assert len(vp) == 2 and [c.keyframes for c in vp.chunks] == [(0,), (1,)]
     assert scene.counts["viewpoint_gaussians"] == vp.count > 0
-    monkeypatch.setattr(D, "dedupe_frames", lambda points, *a, **k: np.ones(len(points), bool))
+    monkeypatch.setattr(D, "dedupe_frames", lambda points, *a, **k: np.ones(len(points), bool))    # model's
+    monkeypatch.setattr(D.VoxelOwners, "add", lambda self, points, level, frame, ids:                 # cells'
+                        (np.ones(len(points), bool), np.zeros(0, np.int64)))
     pile = D.reconstruct_drive(shipped, drive, detail=opts)
     assert pile.viewpoints.count == 0 and len(pile.gaussians) == len(scene.gaussians) + vp.count
 
