@@ -4,4 +4,5 @@ import sys
 
 from xyzcyl.cli import main
 
-sys.exit(main())
+if __name__ == "__main__":         # not when a spawned worker process imports it (runtime.drive's keyframe workers)
+    sys.exit(main())

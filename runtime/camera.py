@@ -51,8 +51,21 @@ def _freeze(a: np.ndarray) -> np.ndarray:
     return a
 
 
+class PicklableExtra:
+    """Pickling for a frozen dataclass whose ``extra`` is a read-only MappingProxyType (which pickle refuses): sent
+    as a dict and wrapped again (a drive's frames go to keyframe worker processes, runtime.drive)."""
+
+    def __getstate__(self) -> dict:
+        return {**self.__dict__, "extra": dict(self.extra)}
+
+    def __setstate__(self, state: dict) -> None:
+        for key, value in state.items():
+            object.__setattr__(self, key, value)
+        object.__setattr__(self, "extra", MappingProxyType(dict(state["extra"])))
+
+
 @dataclass(frozen=True, eq=False, kw_only=True)
-class Camera:
+class Camera(PicklableExtra):
     """One camera. Arrays are stored as read-only float64 copies; construction validates every field.
 
     Keyword-only: ``Camera(K=K, cam_to_ego=T, width=1600, height=900)`` (a pinhole render camera),

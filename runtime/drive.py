@@ -63,6 +63,11 @@ from .rig import Rig, load_rig
 MAX_SPEED_MPS = 100.0          # an ego faster than this between two frames is a pose error (360 km/h)
 DEFAULT_SPACING_M = 1.5        # keyframe spacing: a drive posted at ~2 m spacing is used whole
 DEFAULT_MAX_GAP_S = 2.0        # a keyframe at least this often, moving or not
+# reconstruct_drive: keyframes made ahead in worker processes while this one fuses. 0 (all in one process) by
+# default: on 2 cores a worker was slower (5 PandaSet keyframes: 33.5 s with one, 29.9 s without; both processes
+# want both cores, and each keyframe's cells cross a pipe), and a script that starts workers needs the
+# `if __name__ == "__main__":` guard of every multiprocessing program; machines with cores to spare ask for them
+DEFAULT_WORKERS = 0
 CARVE_WINDOW = 2               # keyframes before and after whose cameras may carve a keyframe's cells
 VOXEL_BASE_M = 0.02            # dedupe_frames: the finest voxel (2 cm); a cell's voxel is the power of two above
 VOXEL_LEVELS = 12              # VOXEL_CELLS x its footprint, up to 2 cm x 2^11 = 41 m
@@ -723,7 +728,7 @@ _DEFAULT = object()
 
 def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None, lidar: bool = True,
                       detail: Any = _DEFAULT, progress: Callable[[str], None] | None = None, stereo: bool = False,
-                      ego_body: bool = True, exposure: bool = True):
+                      ego_body: bool = True, exposure: bool = True, workers: int | None = None):
     """One runtime.scene.Scene of ``drive`` (module docstring) with runtime.inference.Reconstructor ``rec``:
     ``keyframes`` (default pick_keyframes), each keyframe's LiDAR sweep when ``lidar`` and it has one, else when
     ``stereo`` the points triangulated between it and the frames about a metre before and after it
@@ -731,11 +736,12 @@ def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None,
     layer's settings ``detail`` (default runtime.inference.DEFAULT_DETAIL; None: the model's Gaussians only), the
     ego's own body found over the drive's frames when ``ego_body`` (runtime.egobody: no cells there; a camera's
     ego_mask file wins), each camera's exposure and white balance harmonised across cameras and keyframes when
-    ``exposure`` (runtime.exposure). A one-frame drive is exactly Reconstructor.reconstruct of its rig."""
+    ``exposure`` (runtime.exposure). ``workers``: keyframes reconstructed ahead in that many worker processes while
+    this one fuses (each loads the model once; at most ``workers`` keyframes wait, so memory stays bounded; 0: all
+    here; default DEFAULT_WORKERS). A one-frame drive is exactly Reconstructor.reconstruct of its rig."""
     from .detail import carve_details, cull_covered
     from .exposure import Harmoniser
     from .inference import DEFAULT_DETAIL
-    from .lidar import has_lidar, load_lidar
     from .scene import Scene
     from .viewpoints import Viewpoints
 
@@ -747,41 +753,9 @@ def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None,
         raise DriveError("keyframes", f"must be increasing frame indices in 0..{len(drive) - 1} (got {keys})")
     t0 = time.perf_counter()
 
-    def sweep(k: int):
-        rig = drive.frames[k].rig
-        return load_lidar(rig).points if lidar and has_lidar(rig) else None
-
-    def stereo_sweep(k: int):
-        """(points triangulated between keyframe k and its partner frames (runtime.stereo) or None, keyframe k's
-        images when they were read for it, else None: Reconstructor.keyframe reads them)."""
-        from .detail import read_ego_mask
-        from .inference import rgb_images
-        from .stereo import partner_frames, stereo_points
-
-        if not stereo:
-            return None, None
-        positions_all = np.array([drive.relative(j)[:3, 3] for j in range(len(drive))])
-        parts = partner_frames(positions_all, k)
-        if len(parts) < 2:              # stereo_points needs a partner on each side
-            return None, None
-
-        def loaded(j):
-            r = drive.frames[j].rig
-            return r.cameras, rgb_images(r), drive.relative(j)
-
-        rig = drive.frames[k].rig
-        cams, imgs, T = loaded(k)
-        masks = [read_ego_mask(rig.path(c.extra["ego_mask"]), c) if c.extra.get("ego_mask") else
-                 found.masks.get(c.name) for c in cams]
-        boxes = moving_boxes(drive, k)
-        pts = stereo_points(cams, imgs, T, [loaded(j) for j in parts], masks,
-                            (lambda p: inside_boxes(p, boxes)) if boxes else None)
-        say(f"stereo: {len(pts)} points from frames {parts}")
-        return (pts if len(pts) else None), imgs
-
     if keys == [0] and not drive.tracks:          # the scene's frame is frame 0's: only then is it one rig's scene
         fr = drive.frames[keys[0]]
-        scene = rec.reconstruct(fr.rig, progress=say, lidar=sweep(keys[0]), detail=detail)
+        scene = rec.reconstruct(fr.rig, progress=say, lidar=_sweep(drive, keys[0], lidar), detail=detail)
         scene.drive = _drive_meta(drive, keys)
         return scene
     counts: dict[str, Any] = {"keyframes": len(keys), "frames": len(drive)}
@@ -820,57 +794,57 @@ def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None,
             detail_kept.add(g, voxel_levels(_cell_footprint_of(g)), n)
         detail_kept.dedupe()
 
-    for n, k in enumerate(keys):
-        fr = drive.frames[k]
-        say(f"keyframe {n + 1}/{len(keys)}: frame {k} ({fr.timestamp_s - drive.frames[0].timestamp_s:.2f} s)")
-        points, images = sweep(k), None
-        guide = points
-        if points is None and stereo:
-            t_s = time.perf_counter()
-            guide, images = stereo_sweep(k)
-            timings["stereo"] = timings.get("stereo", 0.0) + time.perf_counter() - t_s
-        kf = rec.keyframe(fr.rig, images, progress=say, lidar=guide, detail=detail, ego_masks=found.masks)
-        for key, v in kf.timings.items():
-            timings[key] = timings.get(key, 0.0) + v
-        if background is None:
-            background = kf.background
-        T = drive.relative(k)
-        coarse = transform_gaussians(kf.coarse, T)
-        parts = [transform_gaussians(g, T) for g in kf.parts]
-        details = [transform_detail(d, T) for d in kf.details]
-        if harmoniser is not None and parts:
-            t_x = time.perf_counter()
-            parts = harmoniser.add(details, parts, kf.owners)
-            coarse = harmoniser.coarse(coarse)
-            timings["exposure"] = timings.get("exposure", 0.0) + time.perf_counter() - t_x
-        # this keyframe as one rig: its model Gaussians under its cells culled, its cells carved against its own
-        # cameras; later against its neighbours' (see-through, by a keyframe with a LiDAR sweep: _carve_pair)
-        if details and len(coarse):
-            coarse = coarse.subset(cull_covered(coarse, details, tol))
-        own = carve_details(details, tol, detail.dedupe) if details else []
-        boxes = moving_boxes(drive, k)
-        if boxes:                       # what moves is not the static scene's: each object's copy, in its box
-            geo = [(inv, half) for _, inv, half in boxes]
-            c_mem = box_members(coarse.means, geo)
-            p_mem = [box_members(g.means, geo) for g in parts]
-            for b, (t, inv, _) in enumerate(boxes):
-                pieces = [coarse.subset(c_mem == b)]
-                pieces += [g.subset(keep & (m == b)) for g, keep, m in zip(parts, own, p_mem)]
-                copies.append((t, fr.timestamp_s, transform_gaussians(_concat(pieces), inv)))
-            moved_out += int((c_mem >= 0).sum())
-            coarse = coarse.subset(c_mem < 0)
-            for i, m in enumerate(p_mem):
-                moved_out += int((own[i] & (m >= 0)).sum())
-                own[i] &= m < 0
-        coarse_kept.add(coarse, voxel_levels(_coarse_footprint(coarse)), n)
-        entry = (n, details, parts, own, points is not None)
-        for prev in window:
-            _carve_pair(entry, prev, tol)
-            _carve_pair(prev, entry, tol)
-        window.append(entry)
-        while len(window) > CARVE_WINDOW:
-            commit(window.pop(0))
-        say(f"fused: {detail_kept.count()} detail Gaussians so far")
+    n_workers = DEFAULT_WORKERS if workers is None else int(workers)
+    if n_workers < 0:
+        raise DriveError("workers", f"must be >= 0, got {workers}")
+    made = _keyframes_made(rec, drive, keys, n_workers, dict(lidar=lidar, stereo=stereo, detail=detail,
+                                                            masks=found.masks))
+    try:
+        for n, k in enumerate(keys):
+            fr = drive.frames[k]
+            say(f"keyframe {n + 1}/{len(keys)}: frame {k} ({fr.timestamp_s - drive.frames[0].timestamp_s:.2f} s)")
+            points, kf, coarse, parts, details, note = next(made)
+            if note:
+                say(note)
+            for key, v in kf.timings.items():
+                timings[key] = timings.get(key, 0.0) + v
+            if background is None:
+                background = kf.background
+            if harmoniser is not None and parts:
+                t_x = time.perf_counter()
+                parts = harmoniser.add(details, parts, kf.owners)
+                coarse = harmoniser.coarse(coarse)
+                timings["exposure"] = timings.get("exposure", 0.0) + time.perf_counter() - t_x
+            # this keyframe as one rig: its model Gaussians under its cells culled, its cells carved against its own
+            # cameras; later against its neighbours' (see-through, by a keyframe with a LiDAR sweep: _carve_pair)
+            if details and len(coarse):
+                coarse = coarse.subset(cull_covered(coarse, details, tol))
+            own = carve_details(details, tol, detail.dedupe) if details else []
+            boxes = moving_boxes(drive, k)
+            if boxes:                       # what moves is not the static scene's: each object's copy, in its box
+                geo = [(inv, half) for _, inv, half in boxes]
+                c_mem = box_members(coarse.means, geo)
+                p_mem = [box_members(g.means, geo) for g in parts]
+                for b, (t, inv, _) in enumerate(boxes):
+                    pieces = [coarse.subset(c_mem == b)]
+                    pieces += [g.subset(keep & (m == b)) for g, keep, m in zip(parts, own, p_mem)]
+                    copies.append((t, fr.timestamp_s, transform_gaussians(_concat(pieces), inv)))
+                moved_out += int((c_mem >= 0).sum())
+                coarse = coarse.subset(c_mem < 0)
+                for i, m in enumerate(p_mem):
+                    moved_out += int((own[i] & (m >= 0)).sum())
+                    own[i] &= m < 0
+            coarse_kept.add(coarse, voxel_levels(_coarse_footprint(coarse)), n)
+            entry = (n, details, parts, own, points is not None)
+            for prev in window:
+                _carve_pair(entry, prev, tol)
+                _carve_pair(prev, entry, tol)
+            window.append(entry)
+            while len(window) > CARVE_WINDOW:
+                commit(window.pop(0))
+            say(f"fused: {detail_kept.count()} detail Gaussians so far")
+    finally:
+        made.close()              # a failed keyframe: the workers stop
     t1 = time.perf_counter()
     while window:
         commit(window.pop(0))
@@ -910,6 +884,97 @@ def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None,
     return scene
 
 
+def _sweep(drive: Drive, k: int, lidar: bool) -> np.ndarray | None:
+    """Frame k's LiDAR sweep [P, 3] metres (its ego frame) when ``lidar`` and it has one, else None."""
+    from .lidar import has_lidar, load_lidar
+
+    rig = drive.frames[k].rig
+    return load_lidar(rig).points if lidar and has_lidar(rig) else None
+
+
+def _stereo_sweep(drive: Drive, k: int, masks: dict[str, np.ndarray]):
+    """(points triangulated between keyframe k and its partner frames (runtime.stereo) or None, keyframe k's images
+    when they were read for it, else None: Reconstructor.keyframe reads them; a note for the progress)."""
+    from .detail import read_ego_mask
+    from .inference import rgb_images
+    from .stereo import partner_frames, stereo_points
+
+    positions_all = np.array([drive.relative(j)[:3, 3] for j in range(len(drive))])
+    parts = partner_frames(positions_all, k)
+    if len(parts) < 2:              # stereo_points needs a partner on each side
+        return None, None, ""
+
+    def loaded(j):
+        r = drive.frames[j].rig
+        return r.cameras, rgb_images(r), drive.relative(j)
+
+    rig = drive.frames[k].rig
+    cams, imgs, T = loaded(k)
+    ego = [read_ego_mask(rig.path(c.extra["ego_mask"]), c) if c.extra.get("ego_mask") else masks.get(c.name)
+           for c in cams]
+    boxes = moving_boxes(drive, k)
+    pts = stereo_points(cams, imgs, T, [loaded(j) for j in parts], ego,
+                        (lambda p: inside_boxes(p, boxes)) if boxes else None)
+    return (pts if len(pts) else None), imgs, f"stereo: {len(pts)} points from frames {parts}"
+
+
+def _make_keyframe(rec, drive: Drive, k: int, lidar: bool, stereo: bool, detail, masks: dict[str, np.ndarray]):
+    """Keyframe k up to its fusion (a worker's job): (its LiDAR sweep or None, the runtime.inference.Keyframe,
+    its model Gaussians, detail Gaussians and cell maps moved into the scene's frame, a note for the progress)."""
+    points, images, note = _sweep(drive, k, lidar), None, ""
+    guide, t_s = points, time.perf_counter()
+    if points is None and stereo:
+        guide, images, note = _stereo_sweep(drive, k, masks)
+    t_s = time.perf_counter() - t_s
+    kf = rec.keyframe(drive.frames[k].rig, images, lidar=guide, detail=detail, ego_masks=masks)
+    if stereo and points is None:
+        kf.timings["stereo"] = t_s
+    kf.app_plane = None                 # baked into kf.background already; not sent back from a worker
+    T = drive.relative(k)
+    return (points, kf, transform_gaussians(kf.coarse, T), [transform_gaussians(g, T) for g in kf.parts],
+            [transform_detail(d, T) for d in kf.details], note)
+
+
+_WORKER: dict[str, Any] = {}
+
+
+def _worker_start(model_dir: str, threads: int | None, drive: Drive, opts: dict) -> None:
+    """A keyframe worker process's start: its own model sessions, the drive and the keyframes' settings."""
+    from .inference import Reconstructor
+
+    _WORKER.update(rec=Reconstructor.load(model_dir, threads=threads), drive=drive, opts=opts)
+
+
+def _worker_keyframe(k: int):
+    return _make_keyframe(_WORKER["rec"], _WORKER["drive"], k, **_WORKER["opts"])
+
+
+def _keyframes_made(rec, drive: Drive, keys: Sequence[int], workers: int, opts: dict):
+    """_make_keyframe of each of ``keys`` in order: here (``workers`` 0), else in that many worker processes
+    (spawned: no onnxruntime or numba threads are forked) with at most ``workers`` keyframes ahead of the one the
+    caller fuses. A worker's error is raised here, the others cancelled."""
+    if workers == 0 or len(keys) < 2:
+        for k in keys:
+            yield _make_keyframe(rec, drive, k, **opts)
+        return
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor
+
+    cores = os.cpu_count() or 1
+    threads = max(1, (rec.threads or cores) // (workers + 1))       # the cores shared with this process's fusion
+    pool = ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"), initializer=_worker_start,
+                               initargs=(str(rec.info.path), threads, drive, opts))
+    try:
+        ahead = [pool.submit(_worker_keyframe, k) for k in keys[:workers]]
+        for i in range(len(keys)):
+            got = ahead.pop(0).result()
+            if i + workers < len(keys):
+                ahead.append(pool.submit(_worker_keyframe, keys[i + workers]))
+            yield got
+    finally:
+        pool.shutdown(wait=True, cancel_futures=True)
+
+
 def find_drive_ego_body(drive: Drive, lidar: bool = True) -> EgoBody:
     """The ego's own body over ``drive``'s frames (runtime.egobody.find_ego_body) for the cameras whose rig gives
     no ego_mask; the ground from the LiDAR sweep of the first frame that has one (when ``lidar``), else the ego
@@ -937,14 +1002,14 @@ def find_drive_ego_body(drive: Drive, lidar: bool = True) -> EgoBody:
 
 def save_drive_scene(rec, drive: Drive, keys: Sequence[int], out: str | os.PathLike, *, detail,
                      lidar: bool = True, say: Callable[[str], None] | None = None, stereo: bool = False,
-                     ego_body: bool = True, exposure: bool = True):
+                     ego_body: bool = True, exposure: bool = True, workers: int | None = None):
     """A drive's scene folder, the one path of `xyzcyl reconstruct DRIVE_JSON` and of the service's worker for a
     posted drive: reconstruct_drive of the keyframes ``keys`` with the Reconstructor ``rec`` and the detail layer's
     settings ``detail`` (None: none), written to ``out`` (replaced). Returns the scene and the seconds the save
     took."""
     say = say or (lambda msg: None)
     scene = reconstruct_drive(rec, drive, keys, lidar=lidar, detail=detail, progress=say, stereo=stereo,
-                              ego_body=ego_body, exposure=exposure)
+                              ego_body=ego_body, exposure=exposure, workers=workers)
     say(f"write {out}")
     t1 = time.perf_counter()
     scene.save(out, overwrite=True)

@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from .camera import CAMERA_KEYS, Camera, check_pose, look_rotation, where_camera
+from .camera import CAMERA_KEYS, Camera, PicklableExtra, check_pose, look_rotation, where_camera
 from .errors import CameraError, RigError
 
 MAX_CAMERAS = 16
@@ -71,7 +71,7 @@ def check_keys(d: Any, known: Sequence[str], required: Sequence[str], kept: Sequ
 
 
 @dataclass(frozen=True, eq=False)
-class Rig:
+class Rig(PicklableExtra):
     """A set of 1..16 uniquely named cameras in one ego frame, plus the folder their files are relative to."""
 
     cameras: tuple[Camera, ...]

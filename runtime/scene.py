@@ -97,6 +97,7 @@ class Background:
     image: np.ndarray                 # [H, W, 3] float32 linear RGB, 0..1
     cylinder: CylinderSpec            # centre, radius R_u and z range of the cylinder (ego frame)
     v_range: tuple[float, float]      # normalised rows (2p - 1) of the panorama's top and bottom edges
+    dome: np.ndarray = field(init=False, repr=False)    # [4, W, 3] sky_dome(image): beyond the top and bottom
 
     def __post_init__(self) -> None:
         img = np.ascontiguousarray(self.image, np.float32)
@@ -109,6 +110,7 @@ class Background:
         if not (math.isfinite(v0) and math.isfinite(v1) and v1 > v0):
             raise SceneError("v_range", f"must be increasing finite numbers, got {self.v_range}", "background")
         object.__setattr__(self, "v_range", (v0, v1))
+        object.__setattr__(self, "dome", sky_dome(img))
 
     def to_dict(self) -> dict[str, Any]:
         c = self.cylinder
@@ -152,7 +154,7 @@ class Background:
         out = np.empty((camera.height, camera.width, 3), np.float32)
         c = self.cylinder
         T = np.ascontiguousarray(camera.cam_to_ego, np.float64)
-        args = (self.image, self.v_range[0], self.v_range[1], float(c.centre[0]), float(c.centre[1]),
+        args = (self.image, self.dome, self.v_range[0], self.v_range[1], float(c.centre[0]), float(c.centre[1]),
                 float(c.centre[2]), float(c.radius), float(c.Z_u))
         if camera.is_equirect or camera.distortion is not None:
             d = np.ascontiguousarray(camera.pixel_rays()[1], np.float64)      # NaN where no ray: black
@@ -163,22 +165,63 @@ class Background:
         return out
 
 
+DOME_BAND = 0.1        # sky_dome: the top (bottom) tenth of the panorama's rows is the sky (ground) it continues
+DOME_SIGMA = 1.0 / 12  # ... blurred around the horizon with a Gaussian of a twelfth of the circle (30 degrees)
+DOME_SMOOTH = 0.25     # _sample: a quarter of the way to the zenith (nadir), the blurred colour has taken over
+
+
+def sky_dome(pano: np.ndarray) -> np.ndarray:
+    """[4, W, 3] float32 of a panorama [H, W, 3]: how the background continues above its top edge and below its
+    bottom edge, where the cylinder's rows end (a wide lens sees there; clamping the edge rows drew vertical streaks
+    converging on the zenith): rows 0 / 1 the mean of the top / bottom DOME_BAND of rows per column, blurred around
+    the circle (DOME_SIGMA); rows 2 / 3 the zenith / nadir colour, the median of those columns (what the cameras saw
+    highest / lowest), the same in every column. _sample blends from the edge row to the blurred row to the zenith
+    (nadir) with the ray's elevation."""
+    pano = np.asarray(pano, np.float64)
+    H, W = pano.shape[:2]
+    band = max(1, int(round(DOME_BAND * H)))
+    f = np.fft.rfftfreq(W)                                       # cycles per column
+    kernel = np.exp(-2.0 * (np.pi * DOME_SIGMA * W * f) ** 2)[:, None]    # the circular Gaussian's spectrum
+    rows = []
+    for edge in (pano[:band].mean(axis=0), pano[H - band:].mean(axis=0)):
+        rows.append(np.fft.irfft(np.fft.rfft(edge, axis=0) * kernel, n=W, axis=0))
+    for edge in (pano[:band].mean(axis=0), pano[H - band:].mean(axis=0)):
+        rows.append(np.broadcast_to(np.median(edge, axis=0), (W, 3)))
+    return np.ascontiguousarray(np.clip(np.stack(rows), 0.0, None), np.float32)
+
+
 @njit(cache=True, inline="always")
-def _sample(pano, v0, v1, ox, oy, oz, dx, dy, dz, cx, cy, cz, R, Zu, out, y, x):
+def _smoothstep(x):
+    x = min(max(x, 0.0), 1.0)
+    return x * x * (3.0 - 2.0 * x)
+
+
+@njit(cache=True, inline="always")
+def _sample(pano, dome, v0, v1, ox, oy, oz, dx, dy, dz, cx, cy, cz, R, Zu, out, y, x):
+    """The panorama along the ray (ox, oy, oz) + t (dx, dy, dz) (ego frame) into out[y, x]: the cylinder's texel
+    where the ray leaves it; beyond the panorama's top (bottom) rows, the dome (sky_dome): the edge row blended into
+    the blurred edge colour and on to the zenith (nadir) as the ray climbs (falls) from the edge's elevation to
+    90 degrees; a vertical ray, or one that never meets the cylinder, the zenith (nadir) colour."""
     H, W = pano.shape[0], pano.shape[1]
     px, py = ox - cx, oy - cy
     a = dx * dx + dy * dy
     b = px * dx + py * dy
     c = px * px + py * py - R * R
     disc = b * b - a * c
-    u, v = -1.0, -2.0          # a miss (a vertical ray): the top row, as ZNet's border padding reads it
+    t = -1.0
     if a > 0.0 and disc >= 0.0:
         t = (-b + math.sqrt(disc)) / a
-        if t >= 0.0:
-            u = -math.atan2(py + t * dy, px + t * dx) / math.pi
-            v = -2.0 * (oz + t * dz - cz) / Zu
+    if t < 0.0:
+        cap = 2 if dz >= 0.0 else 3
+        for k in range(3):
+            out[y, x, k] = dome[cap, 0, k]
+        return
+    u = -math.atan2(py + t * dy, px + t * dx) / math.pi
+    v = -2.0 * (oz + t * dz - cz) / Zu
     col = (u + 1.0) * 0.5 * W - 0.5
     row = (v - v0) / (v1 - v0) * H - 0.5
+    top = row < 0.0
+    beyond = top or row > H - 1.0
     row = min(max(row, 0.0), H - 1.0)
     r0 = min(math.floor(row), H - 1)
     r1 = min(r0 + 1, H - 1)
@@ -187,14 +230,30 @@ def _sample(pano, v0, v1, ox, oy, oz, dx, dy, dz, cx, cy, cz, R, Zu, out, y, x):
     fc = col - cf
     c0 = int(cf) % W
     c1 = (c0 + 1) % W
+    w_blur, w_cap, side = 0.0, 0.0, 0
+    if beyond:
+        # the elevation of the ray and of the edge row's centre seen along it (its horizontal distance t sqrt(a))
+        hd = t * math.sqrt(a)
+        v_edge = v0 + (v1 - v0) * 0.5 / H if top else v1 - (v1 - v0) * 0.5 / H
+        e_edge = math.atan2(cz - 0.5 * v_edge * Zu - oz, hd)
+        e_ray = math.atan2(dz, math.sqrt(a))
+        half = 0.5 * math.pi
+        s = (e_ray - e_edge) / max(half - e_edge, 1e-6) if top else (e_edge - e_ray) / max(e_edge + half, 1e-6)
+        w_blur = _smoothstep(s / DOME_SMOOTH)
+        w_cap = _smoothstep(s)
+        side = 0 if top else 1
     for k in range(3):
-        top = pano[r0, c0, k] * (1.0 - fc) + pano[r0, c1, k] * fc
-        bot = pano[r1, c0, k] * (1.0 - fc) + pano[r1, c1, k] * fc
-        out[y, x, k] = top * (1.0 - fr) + bot * fr
+        hi = pano[r0, c0, k] * (1.0 - fc) + pano[r0, c1, k] * fc
+        lo = pano[r1, c0, k] * (1.0 - fc) + pano[r1, c1, k] * fc
+        val = hi * (1.0 - fr) + lo * fr
+        if beyond:
+            blur = dome[side, c0, k] * (1.0 - fc) + dome[side, c1, k] * fc
+            val = (val * (1.0 - w_blur) + blur * w_blur) * (1.0 - w_cap) + dome[2 + side, 0, k] * w_cap
+        out[y, x, k] = val
 
 
 @njit(parallel=True, cache=True, nogil=True)
-def _bg_pinhole(pano, v0, v1, cx, cy, cz, R, Zu, fx, fy, ppx, ppy, T, out):
+def _bg_pinhole(pano, dome, v0, v1, cx, cy, cz, R, Zu, fx, fy, ppx, ppy, T, out):
     H, W = out.shape[0], out.shape[1]
     for y in numba.prange(H):
         for x in range(W):
@@ -202,11 +261,11 @@ def _bg_pinhole(pano, v0, v1, cx, cy, cz, R, Zu, fx, fy, ppx, ppy, T, out):
             dx = T[0, 0] * a + T[0, 1] * b + T[0, 2]
             dy = T[1, 0] * a + T[1, 1] * b + T[1, 2]
             dz = T[2, 0] * a + T[2, 1] * b + T[2, 2]
-            _sample(pano, v0, v1, T[0, 3], T[1, 3], T[2, 3], dx, dy, dz, cx, cy, cz, R, Zu, out, y, x)
+            _sample(pano, dome, v0, v1, T[0, 3], T[1, 3], T[2, 3], dx, dy, dz, cx, cy, cz, R, Zu, out, y, x)
 
 
 @njit(parallel=True, cache=True, nogil=True)
-def _bg_dirs(pano, v0, v1, cx, cy, cz, R, Zu, T, d, out):
+def _bg_dirs(pano, dome, v0, v1, cx, cy, cz, R, Zu, T, d, out):
     H, W = out.shape[0], out.shape[1]
     for y in numba.prange(H):
         for x in range(W):
@@ -214,8 +273,8 @@ def _bg_dirs(pano, v0, v1, cx, cy, cz, R, Zu, T, d, out):
                 for k in range(3):
                     out[y, x, k] = 0.0          # no ray (outside a lens's image circle)
                 continue
-            _sample(pano, v0, v1, T[0, 3], T[1, 3], T[2, 3], d[y, x, 0], d[y, x, 1], d[y, x, 2], cx, cy, cz, R,
-                    Zu, out, y, x)
+            _sample(pano, dome, v0, v1, T[0, 3], T[1, 3], T[2, 3], d[y, x, 0], d[y, x, 1], d[y, x, 2], cx, cy, cz,
+                    R, Zu, out, y, x)
 
 
 # ------------------------------------------------------------------------------------------- scene

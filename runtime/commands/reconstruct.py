@@ -53,6 +53,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                    help="do not harmonise the cameras' exposure and white balance across cameras and keyframes "
                         "(by default a per-channel gain per camera and keyframe is solved on what two of them both "
                         "saw, docs/inference.md \"Exposure\")")
+    g.add_argument("--workers", type=int, default=None, metavar="N",
+                   help="reconstruct the next keyframes in N worker processes while this one fuses (default 0: "
+                        "all in this process; on 2 cores a worker was slower, docs/inference.md \"Workers\")")
     parser.add_argument("--force", action="store_true", help="replace an existing SCENE_DIR")
     parser.add_argument("--quiet", action="store_true", help="no progress lines")
 
@@ -97,7 +100,7 @@ def run(args: argparse.Namespace) -> int:
     drive_flags = [f for f, v in (("--keyframe-spacing", args.keyframe_spacing), ("--keyframe-gap", args.keyframe_gap),
                                   ("--keyframes", args.keyframes), ("--stereo", args.stereo or None),
                                   ("--no-ego-body", args.no_ego_body or None),
-                                  ("--no-exposure", args.no_exposure or None))
+                                  ("--no-exposure", args.no_exposure or None), ("--workers", args.workers))
                    if v is not None]
     if drive_flags:
         return _fail(f"{drive_flags[0]}: goes with a drive file (a rig.json is one timestamp)")
@@ -175,7 +178,7 @@ def _drive(args: argparse.Namespace, detail, out: Path, model_dir: Path, say) ->
         t_load = time.perf_counter() - t0
         scene, t_save = save_drive_scene(rec, drive, keys, out, lidar=not args.no_lidar, detail=detail, say=say,
                                           stereo=args.stereo, ego_body=not args.no_ego_body,
-                                          exposure=not args.no_exposure)
+                                          exposure=not args.no_exposure, workers=args.workers)
     except (DriveError, ModelError, RigError, InferenceError, SceneError, LidarError) as exc:
         return _fail(str(exc))
     except OSError as exc:

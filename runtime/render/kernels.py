@@ -46,6 +46,9 @@ HALF = np.float32(0.5)
 A_MAX = np.float32(0.99)
 A_MIN = np.float32(1.0 / 255.0)
 T_STOP = np.float32(1e-4)
+# raster_forward's resume: a pixel whose light left is below 1/255 starts stopped: what lies behind changes its colour
+# (at most 1) by less than one step of an 8-bit picture (a drive's view: most pixels are covered by its first layers)
+T_RESUME = np.float32(1.0 / 255.0)
 P_CLIP = np.float32(6.0)      # the exp argument is clamped here; powers above every cutoff (<= 5.55) anyway
 P_FAR = np.float32(1e30)      # the power of a pixel that sees none of a Gaussian (beyond every cutoff)
 INV16 = np.float32(1.0 / 16.0)
@@ -1030,8 +1033,8 @@ def raster_forward(start, ids, rows, ntx, width, height, wrap, plane, offsets, k
     A pixel that stopped (or lies outside the image) keeps -T in T: negative T means inactive.
     resume: rgb, alpha and depth hold on entry what was drawn in front of these Gaussians over black (an earlier
     render's outputs with no background), and the blend goes on from there, as if those Gaussians had come first
-    in the sort: a pixel starts at T = 1 - alpha with its colour and alpha-weighted depth, and one already below
-    T_STOP starts stopped."""
+    in the sort: a pixel starts at T = 1 - alpha with its colour and alpha-weighted depth, and one already at or
+    below T_RESUME starts stopped."""
     ntiles = start.shape[0] - 1
     for k in prange(SPREAD * ((ntiles + SPREAD - 1) // SPREAD)):
         t = _spread(k, ntiles)
@@ -1089,8 +1092,8 @@ def _raster_tile(t, start, ids, rows, ntx, width, height, wrap, plane, kk, tilex
                 c1[p] = rgb[y0 + r, x0 + q, 1]
                 c2[p] = rgb[y0 + r, x0 + q, 2]
                 dd[p] = depth[y0 + r, x0 + q] * al
-                T[p] = tb if tb > T_STOP else -tb
-                nact += 1 if tb > T_STOP else 0
+                T[p] = tb if tb > T_RESUME else -tb
+                nact += 1 if tb > T_RESUME else 0
             else:
                 T[p] = F1
                 nact += 1

@@ -494,3 +494,38 @@ def test_batch_items_carry_a_time():
         with pytest.raises(ViewError) as e:
             views_from_batch(doc)
         assert e.value.field == "cameras[0].time", str(e.value)
+
+
+def test_keyframes_made_in_a_worker_process_give_the_same_scene(tmp_path, shipped):
+    """workers=1: the next keyframe is reconstructed in a spawned worker process (its own model sessions) while
+    this one fuses; the scene is the one made in one process, Gaussian for Gaussian. A bad workers count is refused
+    naming the field."""
+    from xyzcyl.runtime.detail import DetailOptions
+    from xyzcyl.runtime.drive import DriveError, reconstruct_drive
+    from xyzcyl.runtime.errors import RigError
+
+    E = np.array(_pose(7, 3, 20))
+    poses = [(E @ np.array(_pose(x, 0.0))).tolist() for x in (0.0, 1.5, 3.0)]
+    drive = load_drive(write_drive(tmp_path, poses, [0.0, 0.3, 0.6]))
+    opts = DetailOptions(stride=8)
+    here = reconstruct_drive(shipped, drive, detail=opts, keyframes=[0, 1, 2], workers=0)
+    there = reconstruct_drive(shipped, drive, detail=opts, keyframes=[0, 1, 2], workers=1)
+    for name in ("means", "quats", "log_scales", "opacity_logits", "sh"):
+        # onnxruntime with the worker's thread count may sum in another order: float32 rounding of the model's
+        # outputs, carried into the cells' positions and colours
+        np.testing.assert_allclose(getattr(there.gaussians, name), getattr(here.gaussians, name), atol=1e-4)
+    np.testing.assert_array_equal(there.keyframe_of, here.keyframe_of)
+    assert there.viewpoints.count == here.viewpoints.count
+    with pytest.raises(DriveError) as e:
+        reconstruct_drive(shipped, drive, detail=opts, keyframes=[0, 1], workers=-1)
+    assert e.value.field == "workers"
+    # a keyframe that fails in the worker (an image that is not one) fails the drive, naming the camera
+    (tmp_path / "bad.jpg").write_bytes(b"not a picture")
+
+    def bad(i, rig):
+        if i == 2:
+            rig["cameras"][0]["image"] = str(tmp_path / "bad.jpg")
+
+    broken = load_drive(write_drive(tmp_path / "broken", poses, [0.0, 0.3, 0.6], bad), check_images=False)
+    with pytest.raises(RigError, match="image"):
+        reconstruct_drive(shipped, broken, detail=opts, keyframes=[0, 1, 2], workers=1)

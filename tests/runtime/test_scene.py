@@ -12,7 +12,7 @@ from xyzcyl.runtime.inference import Reconstructor
 from xyzcyl.runtime.lifting import background_grid
 from xyzcyl.runtime.render import render
 from xyzcyl.runtime.rig import look_rotation
-from xyzcyl.runtime.scene import Background, Scene, SceneError, bake_grid, render_view, rig_camera
+from xyzcyl.runtime.scene import Background, Scene, SceneError, bake_grid, render_view, rig_camera, sky_dome
 from xyzcyl.testing.model import overlap_rig
 
 SPEC = CylinderSpec(centre=[0.5, -0.2, 1.9], radius=20.0, z_min=-3.0, z_max=13.0, height=8, width=64)
@@ -29,18 +29,46 @@ def _pose(yaw, pitch=0.0, pos=(0.5, -0.2, 1.9)):
     return T
 
 
-def _sample_ref(bg: Background, uv: np.ndarray) -> np.ndarray:
-    """numpy reference of the panorama lookup at normalised cylinder coordinates (u, v) [..., 2]."""
+def _sample_ref(bg: Background, uv: np.ndarray, K=None, T=None) -> np.ndarray:
+    """numpy reference of the panorama lookup at normalised cylinder coordinates (u, v) [..., 2]; with the pinhole
+    view (K, T) whose rays they are, the dome beyond the panorama's top and bottom rows (sky_dome): the edge row
+    blended into the blurred edge row by a quarter of the way from the edge's elevation to the zenith (nadir), and
+    into the zenith (nadir) colour by the whole way, both with smoothstep."""
     H, W, _ = bg.image.shape
     v0, v1 = bg.v_range
     col = (uv[..., 0] + 1) / 2 * W - 0.5
-    row = np.clip((uv[..., 1] - v0) / (v1 - v0) * H - 0.5, 0, H - 1)
+    row_free = (uv[..., 1] - v0) / (v1 - v0) * H - 0.5
+    row = np.clip(row_free, 0, H - 1)
     c0, r0 = np.floor(col).astype(int), np.floor(row).astype(int)
     fc, fr = (col - c0)[..., None], (row - r0)[..., None]
     r1 = np.minimum(r0 + 1, H - 1)
     img = bg.image
     g = lambda r, c: img[r, np.mod(c, W)]
-    return (g(r0, c0) * (1 - fc) + g(r0, c0 + 1) * fc) * (1 - fr) + (g(r1, c0) * (1 - fc) + g(r1, c0 + 1) * fc) * fr
+    out = (g(r0, c0) * (1 - fc) + g(r0, c0 + 1) * fc) * (1 - fr) + (g(r1, c0) * (1 - fc) + g(r1, c0 + 1) * fc) * fr
+    if K is None:
+        return out
+    dome = sky_dome(img).astype(np.float64)
+    h, w = uv.shape[:2]
+    y, x = np.meshgrid(np.arange(h, dtype=np.float64), np.arange(w, dtype=np.float64), indexing="ij")
+    d = np.stack([(x - K[0, 2]) / K[0, 0], (y - K[1, 2]) / K[1, 1], np.ones_like(x)], -1) @ np.asarray(T)[:3, :3].T
+    o = np.asarray(T)[:3, 3]
+    c = SPEC if bg.cylinder is SPEC else bg.cylinder
+    p = o[:2] - np.asarray(c.centre)[:2]
+    a = d[..., 0] ** 2 + d[..., 1] ** 2
+    t = (-(p[0] * d[..., 0] + p[1] * d[..., 1]) + np.sqrt((p[0] * d[..., 0] + p[1] * d[..., 1]) ** 2
+                                                          - a * (p @ p - c.radius ** 2))) / a
+    smooth = lambda z: np.clip(z, 0, 1) ** 2 * (3 - 2 * np.clip(z, 0, 1))
+    for side, beyond in ((0, row_free < 0), (1, row_free > H - 1)):
+        v_edge = v0 + (v1 - v0) * 0.5 / H if side == 0 else v1 - (v1 - v0) * 0.5 / H
+        e_edge = np.arctan2(c.centre[2] - 0.5 * v_edge * c.Z_u - o[2], t * np.sqrt(a))
+        e_ray = np.arctan2(d[..., 2], np.sqrt(a))
+        sgn = 1 if side == 0 else -1
+        s_ = sgn * (e_ray - e_edge) / (np.pi / 2 - sgn * e_edge)
+        blur = dome[side][np.mod(c0, W)] * (1 - fc) + dome[side][np.mod(c0 + 1, W)] * fc
+        w_blur, w_cap = smooth(s_ / 0.25)[..., None], smooth(s_)[..., None]
+        dome_val = (out * (1 - w_blur) + blur * w_blur) * (1 - w_cap) + dome[2 + side, 0] * w_cap
+        out = np.where(beyond[..., None], dome_val, out)
+    return out
 
 
 def test_bake_grid_is_the_cylinder_with_wrapped_columns_and_cap_rows():
@@ -57,23 +85,46 @@ def test_bake_grid_is_the_cylinder_with_wrapped_columns_and_cap_rows():
 
 def test_panorama_lookup_follows_the_ray_cylinder_rule():
     """Background.render (numba, step 1) == background_grid's (u, v) (runtime.lifting, the network's ray rule)
-    looked up in the panorama by the numpy reference, for pinhole views in and off the cylinder's centre; rays
-    above the top cap read the top row."""
+    looked up in the panorama by the numpy reference, for pinhole views in and off the cylinder's centre, rays
+    beyond the panorama's rows included (the sky dome); near the zenith, the dome's zenith colour, without the
+    streaks that clamping the top row drew."""
     rng = np.random.default_rng(0)
     bg = Background(image=rng.random((26, 256, 3), dtype=np.float32), cylinder=SPEC, v_range=(-1.4, 1.4))
     K = np.array([[60.0, 0, 39.5], [0, 60.0, 24.5], [0, 0, 1]])
-    for yaw, pitch, pos in ((0.3, 0.0, (0.5, -0.2, 1.9)), (2.9, 0.4, (3.0, 1.0, 1.2)), (-1.0, 1.2, (0, 0, 0))):
+    for yaw, pitch, pos in ((0.3, 0.0, (0.5, -0.2, 1.9)), (2.9, 0.4, (3.0, 1.0, 1.2)), (-1.0, 1.2, (0, 0, 0)),
+                            (0.7, -1.3, (0.5, -0.2, 1.9))):
         T = _pose(yaw, pitch, pos)
         got = bg.render(Camera(K=K, cam_to_ego=T, width=80, height=50), step=1)
-        uv = background_grid(SPEC, K, T, 80, 50)
-        np.testing.assert_allclose(got, _sample_ref(bg, uv.astype(np.float64)), atol=2e-5)
-    T = _pose(0.0, 1.5)   # nearly straight up: every ray leaves through the top cap and reads the top row
+        uv = background_grid(SPEC, K, T, 80, 50).astype(np.float64)
+        # float32 panorama and dome read in float64 either way; atan2 / sqrt orders differ: float32-sized noise
+        np.testing.assert_allclose(got, _sample_ref(bg, uv, K, T), atol=2e-5)
+    T = _pose(0.0, 1.5)   # nearly straight up: every ray leaves through the top cap, into the dome
     uv = background_grid(SPEC, K, T, 80, 50).astype(np.float64)
     assert (uv[..., 1] < -1.4).all()
-    top = _sample_ref(Background(image=np.repeat(bg.image[:1], 26, 0), cylinder=SPEC, v_range=(-1.4, 1.4)), uv)
-    np.testing.assert_allclose(bg.render(Camera(K=K, cam_to_ego=T, width=80, height=50), step=1), top, atol=2e-5)
+    up = bg.render(Camera(K=K, cam_to_ego=T, width=80, height=50), step=1)
+    zenith = sky_dome(bg.image)[2, 0]
+    # the centre ray at 86 degrees: smoothstep(0.93) = 0.986 of the way from the edge (~33 degrees up here) to the
+    # zenith, so within 2 % of the colours' difference (< 1) of the zenith's
+    assert np.abs(up[25, 40] - zenith).max() < 0.02
+    clamped = _sample_ref(bg, uv)                         # what clamping the top row drew: streaks (random columns)
+    assert np.std(up, axis=(0, 1)).max() < 0.1 * np.std(clamped, axis=(0, 1)).max()
     eq = bg.render(Camera(model="equirectangular", cam_to_ego=_pose(0.0), width=64, height=32), step=1)
     assert eq.shape == (32, 64, 3) and np.isfinite(eq).all()
+
+
+def test_sky_dome_continues_the_panorama_edges():
+    """sky_dome: the blurred edge rows keep the band's mean colour (a Gaussian blur around the circle), are smooth
+    around it, and the zenith / nadir colours are the band's median column."""
+    rng = np.random.default_rng(1)
+    img = rng.random((40, 120, 3), dtype=np.float32)
+    img[:4] += 0.5                                     # a bright top band (DOME_BAND: 4 of 40 rows)
+    dome = sky_dome(img)
+    assert dome.shape == (4, 120, 3)
+    band = img[:4].mean(axis=0)
+    np.testing.assert_allclose(dome[0].mean(axis=0), band.mean(axis=0), atol=1e-5)
+    assert np.abs(np.diff(dome[0], axis=0)).max() < 0.1 * np.abs(np.diff(band, axis=0)).max()
+    np.testing.assert_allclose(dome[2], np.broadcast_to(np.median(band, axis=0), (120, 3)), atol=1e-6)
+    np.testing.assert_allclose(dome[3, 0], np.median(img[-4:].mean(axis=0), axis=0), atol=1e-6)
 
 
 @pytest.mark.slow   # the session's ONNX export

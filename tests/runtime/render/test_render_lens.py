@@ -528,7 +528,7 @@ def test_image_circle_and_background_through_the_lens():
     T = np.ascontiguousarray(cam.cam_to_ego)
     c = bg.cylinder
     again = np.empty_like(exact)
-    _bg_dirs(bg.image, -1.2, 1.2, float(c.centre[0]), float(c.centre[1]), float(c.centre[2]), float(c.radius),
+    _bg_dirs(bg.image, bg.dome, -1.2, 1.2, float(c.centre[0]), float(c.centre[1]), float(c.centre[2]), float(c.radius),
              float(c.Z_u), T, np.ascontiguousarray(d), again)
     assert np.array_equal(exact, again)
     g = random_gaussians(np.random.default_rng(2), 50, lo=(2, -3, 0), hi=(8, 3, 3), scale=(0.05, 0.3))

@@ -16,8 +16,9 @@ from xyzcyl.runtime.scene import composite_layers
 # render(behind=a) against composite_layers(a, render alone): the layered raster stops a pixel once a's and b's
 # transmittance together would fall to T_STOP, the composite once b's own would; a pixel stops before the Gaussian
 # that would take it there, so each stop leaves at most T_STOP / (1 - A_MAX) of its light undrawn (the renderer's own
-# bound, as in one pass), times colours below ~2 here (SH DC of sigma 0.5); typically far less (the mean's bound)
-LAYERED_ATOL = 2 * 2 * float(K.T_STOP) / (1 - float(K.A_MAX))
+# bound, as in one pass), and a pixel with at most T_RESUME left is not drawn behind at all; times colours below ~2
+# here (SH DC of sigma 0.5); typically far less (the mean's bound)
+LAYERED_ATOL = 2 * 2 * max(float(K.T_STOP) / (1 - float(K.A_MAX)), float(K.T_RESUME))
 
 
 def test_several_sets_draw_as_their_concatenation():
