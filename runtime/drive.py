@@ -798,7 +798,7 @@ def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None,
     if n_workers < 0:
         raise DriveError("workers", f"must be >= 0, got {workers}")
     made = _keyframes_made(rec, drive, keys, n_workers, dict(lidar=lidar, stereo=stereo, detail=detail,
-                                                            masks=found.masks))
+                                                            masks=found.masks), say)
     try:
         for n, k in enumerate(keys):
             fr = drive.frames[k]
@@ -918,7 +918,8 @@ def _stereo_sweep(drive: Drive, k: int, masks: dict[str, np.ndarray]):
     return (pts if len(pts) else None), imgs, f"stereo: {len(pts)} points from frames {parts}"
 
 
-def _make_keyframe(rec, drive: Drive, k: int, lidar: bool, stereo: bool, detail, masks: dict[str, np.ndarray]):
+def _make_keyframe(rec, drive: Drive, k: int, lidar: bool, stereo: bool, detail, masks: dict[str, np.ndarray],
+                   progress: Callable[[str], None] | None = None):
     """Keyframe k up to its fusion (a worker's job): (its LiDAR sweep or None, the runtime.inference.Keyframe,
     its model Gaussians, detail Gaussians and cell maps moved into the scene's frame, a note for the progress)."""
     points, images, note = _sweep(drive, k, lidar), None, ""
@@ -926,7 +927,7 @@ def _make_keyframe(rec, drive: Drive, k: int, lidar: bool, stereo: bool, detail,
     if points is None and stereo:
         guide, images, note = _stereo_sweep(drive, k, masks)
     t_s = time.perf_counter() - t_s
-    kf = rec.keyframe(drive.frames[k].rig, images, lidar=guide, detail=detail, ego_masks=masks)
+    kf = rec.keyframe(drive.frames[k].rig, images, progress=progress, lidar=guide, detail=detail, ego_masks=masks)
     if stereo and points is None:
         kf.timings["stereo"] = t_s
     kf.app_plane = None                 # baked into kf.background already; not sent back from a worker
@@ -949,13 +950,15 @@ def _worker_keyframe(k: int):
     return _make_keyframe(_WORKER["rec"], _WORKER["drive"], k, **_WORKER["opts"])
 
 
-def _keyframes_made(rec, drive: Drive, keys: Sequence[int], workers: int, opts: dict):
+def _keyframes_made(rec, drive: Drive, keys: Sequence[int], workers: int, opts: dict,
+                    say: Callable[[str], None] | None = None):
     """_make_keyframe of each of ``keys`` in order: here (``workers`` 0), else in that many worker processes
     (spawned: no onnxruntime or numba threads are forked) with at most ``workers`` keyframes ahead of the one the
-    caller fuses. A worker's error is raised here, the others cancelled."""
+    caller fuses. A worker's error is raised here, the others cancelled. ``say``: the stages' progress lines (here
+    only)."""
     if workers == 0 or len(keys) < 2:
         for k in keys:
-            yield _make_keyframe(rec, drive, k, **opts)
+            yield _make_keyframe(rec, drive, k, **opts, progress=say)
         return
     import multiprocessing
     from concurrent.futures import ProcessPoolExecutor
