@@ -399,35 +399,41 @@ def dedupe_frames(points: np.ndarray, level: np.ndarray, frame: np.ndarray,
         return keep
     level = np.asarray(level, np.int64)
     frame = np.asarray(frame, np.int64)
-    # level by level, fine to coarse: a voxel's owner is the best of its cells at this level and the owners of its
-    # eight children (the voxels of the level below: their coordinates halved), so each step sorts the owners so
-    # far and this level's cells, not every finer cell again; an owner keeps its (level, distance, keyframe)
-    oc = np.zeros((0, 3), np.int64)            # owners: voxel coordinates, level, distance, keyframe
-    olev = np.zeros(0, np.int64)
-    odist = np.zeros(0, np.float64)
-    oframe = np.zeros(0, np.int64)
-    for L in range(int(level.max()) + 1):
-        if L:
-            oc = np.floor_divide(oc, 2)
+    owners = _NO_OWNERS
+    for L in range(int(level.max()) + 1):      # level by level, fine to coarse (_owners_up)
         here = np.flatnonzero(level == L)
-        size = VOXEL_BASE_M * 2.0 ** L
-        cc = np.floor(np.asarray(points[here], np.float64) / size).astype(np.int64)
-        coords = np.concatenate([oc, cc])
-        levs = np.concatenate([olev, level[here]])
-        dists = np.concatenate([odist, _voxel_distance(cc, size, frame[here], origins)])
-        frames = np.concatenate([oframe, frame[here]])
-        keys = _pack(coords)
-        if not len(keys):
-            continue
-        order = np.lexsort((frames, dists, levs, keys))
-        k_sorted = keys[order]
-        first = np.concatenate([[True], k_sorted[1:] != k_sorted[:-1]])
-        win = order[first]
-        oc, olev, odist, oframe = coords[win], levs[win], dists[win], frames[win]
+        owners, okeys, mine = _owners_up(owners, points[here], level[here], frame[here], L, origins)
         if len(here):
-            at = np.searchsorted(k_sorted[first], keys[len(keys) - len(here):])
-            keep[here] = oframe[at] == frame[here]
+            keep[here] = owners[3][np.searchsorted(okeys, mine)] == frame[here]
     return keep
+
+
+_NO_OWNERS = (np.zeros((0, 3), np.int64), np.zeros(0, np.int64), np.zeros(0, np.float64), np.zeros(0, np.int64))
+
+
+def _owners_up(owners: tuple, points: np.ndarray, level: np.ndarray, frame: np.ndarray, L: int,
+               origins: np.ndarray | None) -> tuple[tuple, np.ndarray, np.ndarray]:
+    """One level of dedupe_frames, fine to coarse: a voxel's owner at level L is the best of its cells at this level
+    and the owners of its eight children (the voxels of the level below: their coordinates halved), so each step
+    sorts the owners so far and this level's cells, not every finer cell again; an owner keeps its (level,
+    distance, keyframe). owners: (voxel coordinates [M, 3] at level L - 1 (ignored at L 0), level, distance,
+    keyframe) of the level below; points [n, 3] metres, level, frame [n]: this level's cells. Returns (the owners of
+    level L's voxels, their packed keys (ascending, one per voxel), the packed keys of this level's cells)."""
+    oc, olev, odist, oframe = owners
+    if L:
+        oc = np.floor_divide(oc, 2)
+    size = VOXEL_BASE_M * 2.0 ** L
+    cc = np.floor(np.asarray(points, np.float64) / size).astype(np.int64)
+    coords = np.concatenate([oc, cc])
+    levs = np.concatenate([olev, level])
+    dists = np.concatenate([odist, _voxel_distance(cc, size, frame, origins)])
+    frames = np.concatenate([oframe, frame])
+    keys = _pack(coords)
+    order = np.lexsort((frames, dists, levs, keys))
+    k_sorted = keys[order]
+    first = np.concatenate([[True], k_sorted[1:] != k_sorted[:-1]]) if len(keys) else np.zeros(0, bool)
+    win = order[first]
+    return (coords[win], levs[win], dists[win], frames[win]), k_sorted[first], keys[len(oc):]
 
 
 class VoxelOwners:
@@ -459,26 +465,13 @@ class VoxelOwners:
         if not len(level):
             return keep, np.zeros(0, np.int64)
         f = np.full(len(level), int(frame), np.int64)
-        oc = np.zeros((0, 3), np.int64)            # this keyframe's own owners so far (as dedupe_frames)
-        olev = np.zeros(0, np.int64)
-        odist = np.zeros(0, np.float64)
+        owners = _NO_OWNERS                         # this keyframe's own owners so far (as dedupe_frames)
         for L in range(VOXEL_LEVELS):
-            if L:
-                oc = np.floor_divide(oc, 2)
             here = np.flatnonzero(level == L)
-            size = VOXEL_BASE_M * 2.0 ** L
-            cc = np.floor(np.asarray(points[here], np.float64) / size).astype(np.int64)
-            coords = np.concatenate([oc, cc])
-            if not len(coords):
+            owners, nk, mine = _owners_up(owners, points[here], level[here], f[here], L, self.origins)
+            if not len(nk):
                 continue
-            levs = np.concatenate([olev, level[here]])
-            dists = np.concatenate([odist, _voxel_distance(cc, size, f[here], self.origins)])
-            keys = _pack(coords)
-            order = np.lexsort((dists, levs, keys))
-            k_sorted = keys[order]
-            first = np.concatenate([[True], k_sorted[1:] != k_sorted[:-1]])
-            win = order[first]
-            oc, olev, odist, nk = coords[win], levs[win], dists[win], k_sorted[first]
+            olev, odist = owners[1], owners[2]
             # against the owners so far: a voxel is taken over where this keyframe's best ranks lower
             T = self.keys[L]
             pos = np.searchsorted(T, nk)
@@ -510,7 +503,6 @@ class VoxelOwners:
                 self.dist[L] = np.insert(self.dist[L], at, odist[new])
                 self.frame[L] = np.insert(self.frame[L], at, frame)
             if len(here):
-                mine = keys[len(keys) - len(here):]
                 kept = wins[np.searchsorted(nk, mine)]
                 keep[here] = kept
                 if kept.any():
