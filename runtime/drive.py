@@ -743,6 +743,9 @@ def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None,
     keys = pick_keyframes(drive) if keyframes is None else list(keyframes)
     if not keys or any(not 0 <= k < len(drive) for k in keys) or keys != sorted(set(keys)):
         raise DriveError("keyframes", f"must be increasing frame indices in 0..{len(drive) - 1} (got {keys})")
+    n_workers = DEFAULT_WORKERS if workers is None else int(workers)
+    if n_workers < 0:
+        raise DriveError("workers", f"must be >= 0, got {workers}")
     t0 = time.perf_counter()
 
     if keys == [0] and not drive.tracks:          # the scene's frame is frame 0's: only then is it one rig's scene
@@ -786,9 +789,6 @@ def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None,
             detail_kept.add(g, voxel_levels(_cell_footprint_of(g)), n)
         detail_kept.dedupe()
 
-    n_workers = DEFAULT_WORKERS if workers is None else int(workers)
-    if n_workers < 0:
-        raise DriveError("workers", f"must be >= 0, got {workers}")
     made = _keyframes_made(rec, drive, keys, n_workers, dict(lidar=lidar, stereo=stereo, detail=detail,
                                                             masks=found.masks), say)
     try:

@@ -182,11 +182,9 @@ def sky_dome(pano: np.ndarray) -> np.ndarray:
     band = max(1, int(round(DOME_BAND * H)))
     f = np.fft.rfftfreq(W)                                       # cycles per column
     kernel = np.exp(-2.0 * (np.pi * DOME_SIGMA * W * f) ** 2)[:, None]    # the circular Gaussian's spectrum
-    rows = []
-    for edge in (pano[:band].mean(axis=0), pano[H - band:].mean(axis=0)):
-        rows.append(np.fft.irfft(np.fft.rfft(edge, axis=0) * kernel, n=W, axis=0))
-    for edge in (pano[:band].mean(axis=0), pano[H - band:].mean(axis=0)):
-        rows.append(np.broadcast_to(np.median(edge, axis=0), (W, 3)))
+    edges = (pano[:band].mean(axis=0), pano[H - band:].mean(axis=0))        # [W, 3] each
+    rows = [np.fft.irfft(np.fft.rfft(e, axis=0) * kernel, n=W, axis=0) for e in edges]
+    rows += [np.broadcast_to(np.median(e, axis=0), (W, 3)) for e in edges]
     return np.ascontiguousarray(np.clip(np.stack(rows), 0.0, None), np.float32)
 
 

@@ -96,6 +96,8 @@ def run(args: argparse.Namespace) -> int:
     from ..drive import is_drive_file
 
     if is_drive_file(args.rig):
+        if args.workers is not None and args.workers < 0:
+            return _fail(f"--workers: must be >= 0 (got {args.workers})")
         return _drive(args, detail, out, model_dir, say)
     drive_flags = [f for f, v in (("--keyframe-spacing", args.keyframe_spacing), ("--keyframe-gap", args.keyframe_gap),
                                   ("--keyframes", args.keyframes), ("--stereo", args.stereo or None),

@@ -211,3 +211,16 @@ def test_detail_stride_and_no_detail_reach_the_reconstruction(tmp_path, capsys):
     line = capsys.readouterr().out.splitlines()[0].split(": ", 1)[1]
     c = json.loads((tmp_path / "off" / "scene.json").read_text())["counts"]
     assert not {"detail", "culled", "coarse"} & set(c) and "detail" not in line, (c, line)
+
+
+def test_a_bad_workers_count_is_refused_before_any_work(tmp_path, capsys):
+    """`reconstruct DRIVE --workers -1` exits 2 naming the flag, before the model or any frame is read; with a rig
+    (one timestamp) the flag is refused as the other drive flags are."""
+    from xyzcyl.testing.drives import write_drive
+
+    drive = write_drive(tmp_path / "d", [np.eye(4), np.eye(4)], [0.0, 1.0])
+    assert cli.main(["reconstruct", str(drive), "--out", str(tmp_path / "s"), "--workers", "-1"]) == 2
+    err = capsys.readouterr().err
+    assert "--workers: must be >= 0" in err and "load model" not in err
+    assert cli.main(["reconstruct", str(EXAMPLE_RIG), "--out", str(tmp_path / "s"), "--workers", "1"]) == 2
+    assert "--workers: goes with a drive file" in capsys.readouterr().err
