@@ -52,6 +52,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from numba import njit
 from xyzcyl.common.wire import is_drive_file
 
 from .camera import check_pose
@@ -67,7 +68,7 @@ DEFAULT_MAX_GAP_S = 2.0        # a keyframe at least this often, moving or not
 # default: on 2 cores a worker was slower (5 PandaSet keyframes: 33.5 s with one, 29.9 s without; both processes
 # want both cores, and each keyframe's cells cross a pipe), and a script that starts workers needs the
 # `if __name__ == "__main__":` guard of every multiprocessing program; machines with cores to spare ask for them
-DEFAULT_WORKERS = 0
+DEFAULT_WORKERS = 0            # 0: keyframes made in this process, one ahead in a thread (_keyframes_made)
 CARVE_WINDOW = 2               # keyframes before and after whose cameras may carve a keyframe's cells
 VOXEL_BASE_M = 0.02            # dedupe_frames: the finest voxel (2 cm); a cell's voxel is the power of two above
 VOXEL_LEVELS = 12              # VOXEL_CELLS x its footprint, up to 2 cm x 2^11 = 41 m
@@ -298,27 +299,32 @@ def inside_boxes(points: np.ndarray, boxes: Sequence[tuple]) -> np.ndarray:
 
 
 def box_members(points: np.ndarray, boxes: Sequence[tuple[np.ndarray, np.ndarray]]) -> np.ndarray:
-    """[N] int: the index of the (first) box each point lies in, -1 for none (boxes: (frame -> box [4, 4],
-    half-sizes [3])). Only the points within a box's reach along x are tested against it (the points sorted by x
-    once): a drive's keyframe holds millions of cells and dozens of boxes."""
-    p = np.asarray(points)
-    out = np.full(len(p), -1, np.int32)
+    """[N] int: the index of the (first) box each point ([N, 3] metres) lies in, -1 for none (boxes: (frame -> box
+    [4, 4], half-sizes [3])). A point is tested against a box only when it lies within the box's reach along x (a
+    drive's keyframe holds millions of cells and dozens of boxes)."""
+    p = np.ascontiguousarray(points, np.float64).reshape(-1, 3)
     if not len(p) or not boxes:
-        return out
-    x = p[:, 0].astype(np.float64)
-    order = np.argsort(x, kind="stable")
-    xs = x[order]
-    for b, (inv, half) in enumerate(boxes):
-        centre = -inv[:3, :3].T @ inv[:3, 3]                 # the box centre in the points' frame
-        reach = float(np.linalg.norm(half))
-        lo, hi = np.searchsorted(xs, [centre[0] - reach, centre[0] + reach], side="left")
-        idx = order[lo:hi]
-        if not len(idx):
-            continue
-        q = p[idx].astype(np.float64) @ inv[:3, :3].T + inv[:3, 3]
-        hit = idx[np.all(np.abs(q) <= half, axis=1)]
-        hit = hit[out[hit] < 0]
-        out[hit] = b
+        return np.full(len(p), -1, np.int32)
+    inv = np.array([np.asarray(b[0], np.float64)[:3] for b in boxes])          # [B, 3, 4]
+    half = np.array([np.asarray(b[1], np.float64) for b in boxes])             # [B, 3]
+    centre_x = np.array([-(m[:3, :3].T @ m[:3, 3])[0] for m in inv])            # the box centres' x
+    return _box_members(p, inv, half, centre_x, np.linalg.norm(half, axis=1))
+
+
+@njit(cache=True, nogil=True)
+def _box_members(p, inv, half, centre_x, reach):
+    out = np.full(len(p), -1, np.int32)
+    for i in range(len(p)):
+        x, y, z = p[i, 0], p[i, 1], p[i, 2]
+        for b in range(len(inv)):
+            if abs(x - centre_x[b]) > reach[b]:
+                continue
+            m = inv[b]
+            if (abs(m[0, 0] * x + m[0, 1] * y + m[0, 2] * z + m[0, 3]) <= half[b, 0]
+                    and abs(m[1, 0] * x + m[1, 1] * y + m[1, 2] * z + m[1, 3]) <= half[b, 1]
+                    and abs(m[2, 0] * x + m[2, 1] * y + m[2, 2] * z + m[2, 3]) <= half[b, 2]):
+                out[i] = b
+                break
     return out
 
 
@@ -429,11 +435,34 @@ def _owners_up(owners: tuple, points: np.ndarray, level: np.ndarray, frame: np.n
     dists = np.concatenate([odist, _voxel_distance(cc, size, frame, origins)])
     frames = np.concatenate([oframe, frame])
     keys = _pack(coords)
-    order = np.lexsort((frames, dists, levs, keys))
+    order = np.argsort(keys, kind="stable")
     k_sorted = keys[order]
-    first = np.concatenate([[True], k_sorted[1:] != k_sorted[:-1]]) if len(keys) else np.zeros(0, bool)
-    win = order[first]
-    return (coords[win], levs[win], dists[win], frames[win]), k_sorted[first], keys[len(oc):]
+    win = _best_of_runs(order, k_sorted, levs, dists, frames)
+    return (coords[win], levs[win], dists[win], frames[win]), keys[win], keys[len(oc):]
+
+
+@njit(cache=True, nogil=True)
+def _best_of_runs(order, k_sorted, levs, dists, frames):
+    """[V] int64: for each run of equal keys in ``k_sorted`` (= keys[order], ``order`` a stable argsort), the entry
+    of the best rank (level, distance, keyframe), the earliest among equals: what the first of each run of
+    np.lexsort((frames, dists, levs, keys)) is, in one pass over the sorted keys."""
+    n = len(order)
+    out = np.empty(n, np.int64)
+    v = 0
+    i = 0
+    while i < n:
+        best = order[i]
+        j = i + 1
+        while j < n and k_sorted[j] == k_sorted[i]:
+            c = order[j]
+            if levs[c] < levs[best] or (levs[c] == levs[best] and (dists[c] < dists[best] or (
+                    dists[c] == dists[best] and frames[c] < frames[best]))):
+                best = c
+            j += 1
+        out[v] = best
+        v += 1
+        i = j
+    return out[:v]
 
 
 class VoxelOwners:
@@ -944,13 +973,33 @@ def _worker_keyframe(k: int):
 
 def _keyframes_made(rec, drive: Drive, keys: Sequence[int], workers: int, opts: dict,
                     say: Callable[[str], None] | None = None):
-    """_make_keyframe of each of ``keys`` in order: here (``workers`` 0), else in that many worker processes
-    (spawned: no onnxruntime or numba threads are forked) with at most ``workers`` keyframes ahead of the one the
-    caller fuses. A worker's error is raised here, the others cancelled. ``say``: the stages' progress lines (here
-    only)."""
-    if workers == 0 or len(keys) < 2:
+    """_make_keyframe of each of ``keys`` in order: here (``workers`` 0: in a thread of this process, one keyframe
+    ahead of the one the caller fuses), else in that many worker processes (spawned: no onnxruntime or numba threads
+    are forked) with at most ``workers`` keyframes ahead. An error making a keyframe is raised here, the others
+    cancelled. ``say``: the stages' progress lines, each led by its frame (here only)."""
+    if len(keys) < 2:
         for k in keys:
             yield _make_keyframe(rec, drive, k, **opts, progress=say)
+        return
+    if workers == 0:
+        # the next keyframe is made while the caller fuses this one: onnxruntime, the numba kernels and numpy's big
+        # operations release the GIL, and a keyframe's making and its fusion each leave a core idle part of the
+        # time (one keyframe's cells more in memory; the service renders from threads the same way)
+        from concurrent.futures import ThreadPoolExecutor
+
+        def make(k: int):
+            return _make_keyframe(rec, drive, k, **opts, progress=(lambda m: say(f"frame {k}: {m}")) if say else None)
+
+        ahead = ThreadPoolExecutor(1, thread_name_prefix="keyframe")
+        try:
+            nxt = ahead.submit(make, keys[0])
+            for i in range(len(keys)):
+                got = nxt.result()
+                if i + 1 < len(keys):
+                    nxt = ahead.submit(make, keys[i + 1])
+                yield got
+        finally:
+            ahead.shutdown(wait=True, cancel_futures=True)
         return
     import multiprocessing
     from concurrent.futures import ProcessPoolExecutor

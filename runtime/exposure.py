@@ -20,6 +20,7 @@ its keyframe's cameras whose view holds it (Harmoniser.coarse).
 from __future__ import annotations
 
 from collections.abc import Sequence
+from functools import cached_property
 
 import numpy as np
 
@@ -46,21 +47,36 @@ def match_cells(a_detail, a_colours: np.ndarray, b_detail, b_colours: np.ndarray
     """(ca [M, 3], cb [M, 3]): the colours of the cells of view a that land on a kept cell of view b at the same
     depth (within MATCH_DEPTH of it), and that cell's colour. a_detail, b_detail: runtime.detail.CameraDetail in one
     frame (the scene's); a_colours [Ma, 3], b_colours [Mb, 3]: their cells' colours in Gaussian order."""
-    means = a_detail.means
-    idx = np.arange(len(means))
-    if len(idx) > MAX_SOURCE_CELLS:
-        idx = np.sort(np.random.default_rng(seed).choice(len(means), MAX_SOURCE_CELLS, replace=False))
-    grid = b_detail.grid
-    uv, z, front = grid.project_depth(means[idx])
-    ok = front & grid.inside(uv)
-    u = np.clip(np.rint(uv[:, 0]).astype(np.int64), 0, grid.width - 1)
-    v = np.clip(np.rint(uv[:, 1]).astype(np.int64), 0, grid.height - 1)
-    ok &= b_detail.keep[v, u]
-    d = b_detail.depth[v, u]
-    ok &= np.abs(d - z) <= MATCH_DEPTH * np.maximum(z, 1e-6)
-    order = np.full(b_detail.keep.shape, -1, np.int64)
-    order[b_detail.keep] = np.arange(int(b_detail.keep.sum()))
-    return a_colours[idx[ok]], b_colours[order[v[ok], u[ok]]]
+    return _View(a_detail, a_colours, seed).onto(_View(b_detail, b_colours, seed))
+
+
+class _View:
+    """A view's cells as match_cells uses them, prepared once for all the pairs a keyframe's views make: a subset of
+    at most MAX_SOURCE_CELLS of them (random, ``seed``) to project into the other views, and each kept cell's row
+    among the cells (raster order of its grid, the Gaussians' order)."""
+
+    def __init__(self, detail, colours: np.ndarray, seed: int = 0):
+        self.detail, self.colours, self.seed = detail, colours, seed
+        self.row = np.cumsum(detail.keep.ravel()) - 1          # [h w]: a kept cell's row among the kept cells
+
+    @cached_property
+    def source(self) -> np.ndarray:
+        """The rows of the cells projected into other views."""
+        idx = np.arange(len(self.detail.means))
+        if len(idx) > MAX_SOURCE_CELLS:
+            idx = np.sort(np.random.default_rng(self.seed).choice(len(idx), MAX_SOURCE_CELLS, replace=False))
+        return idx
+
+    def onto(self, b: _View) -> tuple[np.ndarray, np.ndarray]:
+        """match_cells(self's cells, b's)."""
+        grid, bd = b.detail.grid, b.detail
+        uv, z, front = grid.project_depth(self.detail.means[self.source])
+        ok = front & grid.inside(uv)
+        u = np.clip(np.rint(uv[:, 0]).astype(np.int64), 0, grid.width - 1)
+        v = np.clip(np.rint(uv[:, 1]).astype(np.int64), 0, grid.height - 1)
+        ok &= bd.keep[v, u]
+        ok &= np.abs(bd.depth[v, u] - z) <= MATCH_DEPTH * np.maximum(z, 1e-6)
+        return self.colours[self.source[ok]], b.colours[b.row[v[ok] * grid.width + u[ok]]]
 
 
 def pair_offset(ca: np.ndarray, cb: np.ndarray) -> tuple[np.ndarray, int] | None:
@@ -132,20 +148,21 @@ class Harmoniser:
         self.n_cameras = n_cameras
         self.gains: list[np.ndarray] = []          # per keyframe [C, 3]
         self.pairs: list[int] = []                 # per keyframe, the pairs that counted
-        self._prev: list[tuple[object, np.ndarray]] = []   # the previous keyframe's (detail, harmonised colours)
+        self._prev: list[_View] = []               # the previous keyframe's views, harmonised colours
 
     def add(self, details: Sequence, parts: Sequence[Gaussians], owners: Sequence[int]) -> list[Gaussians]:
         colours = [base_colours(g) for g in parts]
+        views = [_View(d, c) for d, c in zip(details, colours)]
         pairs = []
         n = len(parts)
         for i in range(n):
             for j in range(n):
                 if i != j:
-                    r = pair_offset(*match_cells(details[i], colours[i], details[j], colours[j]))
+                    r = pair_offset(*views[i].onto(views[j]))
                     if r is not None:
                         pairs.append((i, j, r[0], r[1]))
-            for d_prev, c_prev in self._prev:
-                r = pair_offset(*match_cells(details[i], colours[i], d_prev, c_prev))
+            for prev in self._prev:
+                r = pair_offset(*views[i].onto(prev))
                 if r is not None:
                     pairs.append((i, None, r[0], r[1]))
         x = solve_log_gains(n, pairs) if n else np.zeros((0, 3))
@@ -156,7 +173,7 @@ class Harmoniser:
             out.append(apply_gain(g, np.exp(x[i])))
         self.gains.append(gains)
         self.pairs.append(len(pairs))
-        self._prev = [(d, colours[i] / np.exp(x[i])) for i, d in enumerate(details)]
+        self._prev = [_View(d, colours[i] / np.exp(x[i])) for i, d in enumerate(details)]
         self._last = ([d.grid for d in details], x)
         return out
 

@@ -86,10 +86,11 @@ def as_rgb(img: np.ndarray, cam: Camera) -> np.ndarray:
     if np.issubdtype(a.dtype, np.integer):
         out = a.astype(np.float32) / float(np.iinfo(a.dtype).max)
     elif np.issubdtype(a.dtype, np.floating):
-        out = a.astype(np.float32)
-        if not np.all(np.isfinite(out)):
+        # one pass to check (a NaN or an inf makes the float64 sum non-finite; float32 values cannot overflow it),
+        # one to clip into a new array (the caller's stays as it is)
+        if not np.isfinite(a.sum(dtype=np.float64)):
             raise RigError("image", "has non-finite values", cam.where)
-        out = np.clip(out, 0.0, 1.0)
+        out = np.clip(a, 0.0, 1.0, dtype=np.float32)
     else:
         raise RigError("image", f"dtype {a.dtype} is not a number type", cam.where)
     return np.ascontiguousarray(out)

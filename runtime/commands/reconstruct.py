@@ -55,7 +55,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "saw, docs/inference.md \"Exposure\")")
     g.add_argument("--workers", type=int, default=None, metavar="N",
                    help="reconstruct the next keyframes in N worker processes while this one fuses (default 0: "
-                        "all in this process; on 2 cores a worker was slower, docs/inference.md \"Workers\")")
+                        "in this process, the next keyframe in a thread; on 2 cores a worker was slower, "
+                        "docs/inference.md \"Workers\")")
     parser.add_argument("--force", action="store_true", help="replace an existing SCENE_DIR")
     parser.add_argument("--quiet", action="store_true", help="no progress lines")
 

@@ -196,7 +196,7 @@ def test_voxel_levels_and_boxes():
     box = (np.linalg.inv(np.array(_pose(10, 0, 90))), np.array([2.0, 1.0, 1.0]))
     pts = np.array([[10, 1.9, 0], [10, 2.1, 0], [11.5, 0, 0], [10, 0, 1.5]])
     assert inside_boxes(pts, [box]).tolist() == [True, False, False, False]
-    # box_members (points sorted along x, only those within a box's reach tested) against the direct test
+    # box_members (only the points within a box's reach along x tested, in a kernel) against the direct test
     from xyzcyl.runtime.drive import box_members
 
     rng = np.random.default_rng(2)
@@ -498,8 +498,9 @@ def test_batch_items_carry_a_time():
 
 def test_keyframes_made_in_a_worker_process_give_the_same_scene(tmp_path, shipped):
     """workers=1: the next keyframe is reconstructed in a spawned worker process (its own model sessions) while
-    this one fuses; the scene is the one made in one process, Gaussian for Gaussian. A bad workers count is refused
-    naming the field."""
+    this one fuses; the scene is the one made in one process (workers=0: the next keyframe made in a thread),
+    Gaussian for Gaussian. A bad workers count is refused naming the field; a keyframe that fails fails the drive
+    either way."""
     from xyzcyl.runtime.detail import DetailOptions
     from xyzcyl.runtime.drive import DriveError, reconstruct_drive
     from xyzcyl.runtime.errors import RigError
@@ -508,7 +509,9 @@ def test_keyframes_made_in_a_worker_process_give_the_same_scene(tmp_path, shippe
     poses = [(E @ np.array(_pose(x, 0.0))).tolist() for x in (0.0, 1.5, 3.0)]
     drive = load_drive(write_drive(tmp_path, poses, [0.0, 0.3, 0.6]))
     opts = DetailOptions(stride=8)
-    here = reconstruct_drive(shipped, drive, detail=opts, keyframes=[0, 1, 2], workers=0)
+    said: list[str] = []
+    here = reconstruct_drive(shipped, drive, detail=opts, keyframes=[0, 1, 2], workers=0, progress=said.append)
+    assert "frame 2: encode" in said, said            # the stage lines of a keyframe made ahead name its frame
     there = reconstruct_drive(shipped, drive, detail=opts, keyframes=[0, 1, 2], workers=1)
     for name in ("means", "quats", "log_scales", "opacity_logits", "sh"):
         # onnxruntime with the worker's thread count may sum in another order: float32 rounding of the model's
@@ -527,5 +530,6 @@ def test_keyframes_made_in_a_worker_process_give_the_same_scene(tmp_path, shippe
             rig["cameras"][0]["image"] = str(tmp_path / "bad.jpg")
 
     broken = load_drive(write_drive(tmp_path / "broken", poses, [0.0, 0.3, 0.6], bad), check_images=False)
-    with pytest.raises(RigError, match="image"):
-        reconstruct_drive(shipped, broken, detail=opts, keyframes=[0, 1, 2], workers=1)
+    for workers in (1, 0):
+        with pytest.raises(RigError, match="image"):
+            reconstruct_drive(shipped, broken, detail=opts, keyframes=[0, 1, 2], workers=workers)
