@@ -52,12 +52,13 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from numba import njit
 from xyzcyl.common.wire import is_drive_file
 
+from .boxes import box_members, inside_boxes
 from .camera import check_pose
 from .egobody import EgoBody
 from .errors import FieldError, RigError
+from .numba_cache import njit
 from .render import Gaussians
 from .rig import Rig, load_rig
 
@@ -284,48 +285,6 @@ def transform_detail(d, T: np.ndarray):
     centres; depths and footprints are the camera's own and stay)."""
     R = np.asarray(T[:3, :3], np.float64)
     return replace(d, grid=d.grid.replace(cam_to_ego=T @ d.grid.cam_to_ego), means=d.means @ R.T + T[:3, 3])
-
-
-def inside_box(points: np.ndarray, inv: np.ndarray, half: np.ndarray) -> np.ndarray:
-    """[N] bool: whether each point ([N, 3] metres) lies in the box (points' frame -> box ``inv`` [4, 4],
-    half-sizes ``half`` [3])."""
-    return box_members(points, [(inv, half)]) == 0
-
-
-def inside_boxes(points: np.ndarray, boxes: Sequence[tuple]) -> np.ndarray:
-    """[N] bool: whether each point lies in one of ``boxes`` (each ending with (frame -> box [4, 4], half-sizes
-    [3]), as moving_boxes gives them)."""
-    return box_members(points, [b[-2:] for b in boxes]) >= 0
-
-
-def box_members(points: np.ndarray, boxes: Sequence[tuple[np.ndarray, np.ndarray]]) -> np.ndarray:
-    """[N] int: the index of the (first) box each point ([N, 3] metres) lies in, -1 for none (boxes: (frame -> box
-    [4, 4], half-sizes [3])). A point is tested against a box only when it lies within the box's reach along x (a
-    drive's keyframe holds millions of cells and dozens of boxes)."""
-    p = np.ascontiguousarray(points, np.float64).reshape(-1, 3)
-    if not len(p) or not boxes:
-        return np.full(len(p), -1, np.int32)
-    inv = np.array([np.asarray(b[0], np.float64)[:3] for b in boxes])          # [B, 3, 4]
-    half = np.array([np.asarray(b[1], np.float64) for b in boxes])             # [B, 3]
-    centre_x = np.array([-(m[:3, :3].T @ m[:3, 3])[0] for m in inv])            # the box centres' x
-    return _box_members(p, inv, half, centre_x, np.linalg.norm(half, axis=1))
-
-
-@njit(cache=True, nogil=True)
-def _box_members(p, inv, half, centre_x, reach):
-    out = np.full(len(p), -1, np.int32)
-    for i in range(len(p)):
-        x, y, z = p[i, 0], p[i, 1], p[i, 2]
-        for b in range(len(inv)):
-            if abs(x - centre_x[b]) > reach[b]:
-                continue
-            m = inv[b]
-            if (abs(m[0, 0] * x + m[0, 1] * y + m[0, 2] * z + m[0, 3]) <= half[b, 0]
-                    and abs(m[1, 0] * x + m[1, 1] * y + m[1, 2] * z + m[1, 3]) <= half[b, 1]
-                    and abs(m[2, 0] * x + m[2, 1] * y + m[2, 2] * z + m[2, 3]) <= half[b, 2]):
-                out[i] = b
-                break
-    return out
 
 
 def moving_tracks(drive: Drive) -> list[int]:
@@ -748,13 +707,12 @@ _DEFAULT = object()
 
 
 def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None, lidar: bool = True,
-                      detail: Any = _DEFAULT, progress: Callable[[str], None] | None = None, stereo: bool = False,
+                      detail: Any = _DEFAULT, progress: Callable[[str], None] | None = None, stereo: bool = True,
                       ego_body: bool = True, exposure: bool = True, workers: int | None = None):
     """One runtime.scene.Scene of ``drive`` (module docstring) with runtime.inference.Reconstructor ``rec``:
     ``keyframes`` (default pick_keyframes), each keyframe's LiDAR sweep when ``lidar`` and it has one, else when
-    ``stereo`` the points triangulated between it and the frames about a metre before and after it
-    (runtime.stereo; off by default: docs/inference.md), the detail
-    layer's settings ``detail`` (default runtime.inference.DEFAULT_DETAIL; None: the model's Gaussians only), the
+    ``stereo`` (the default) the points triangulated between it and the frames about a metre before and after it
+    (runtime.stereo; docs/inference.md), the detail layer's settings ``detail`` (default runtime.inference.DEFAULT_DETAIL; None: the model's Gaussians only), the
     ego's own body found over the drive's frames when ``ego_body`` (runtime.egobody: no cells there; a camera's
     ego_mask file wins), each camera's exposure and white balance harmonised across cameras and keyframes when
     ``exposure`` (runtime.exposure). ``workers``: keyframes reconstructed ahead in that many worker processes while
@@ -922,7 +880,8 @@ def _stereo_sweep(drive: Drive, k: int, masks: dict[str, np.ndarray]):
 
     positions_all = np.array([drive.relative(j)[:3, 3] for j in range(len(drive))])
     parts = partner_frames(positions_all, k)
-    if len(parts) < 2:              # stereo_points needs a partner on each side
+    tracked = bool(drive.tracks)    # the tracks name what moves: a feature seen with one partner is enough
+    if len(parts) < (1 if tracked else 2):      # else stereo_points needs a partner on each side
         return None, None, ""
 
     def loaded(j):
@@ -933,9 +892,8 @@ def _stereo_sweep(drive: Drive, k: int, masks: dict[str, np.ndarray]):
     cams, imgs, T = loaded(k)
     ego = [read_ego_mask(rig.path(c.extra["ego_mask"]), c) if c.extra.get("ego_mask") else masks.get(c.name)
            for c in cams]
-    boxes = moving_boxes(drive, k)
-    pts = stereo_points(cams, imgs, T, [loaded(j) for j in parts], ego,
-                        (lambda p: inside_boxes(p, boxes)) if boxes else None)
+    boxes = [(inv, half) for _, inv, half in moving_boxes(drive, k)]
+    pts = stereo_points(cams, imgs, T, [loaded(j) for j in parts], ego, boxes, tracked=tracked)
     return (pts if len(pts) else None), imgs, f"stereo: {len(pts)} points from frames {parts}"
 
 
@@ -1045,7 +1003,7 @@ def find_drive_ego_body(drive: Drive, lidar: bool = True) -> EgoBody:
 
 
 def save_drive_scene(rec, drive: Drive, keys: Sequence[int], out: str | os.PathLike, *, detail,
-                     lidar: bool = True, say: Callable[[str], None] | None = None, stereo: bool = False,
+                     lidar: bool = True, say: Callable[[str], None] | None = None, stereo: bool = True,
                      ego_body: bool = True, exposure: bool = True, workers: int | None = None):
     """A drive's scene folder, the one path of `xyzcyl reconstruct DRIVE_JSON` and of the service's worker for a
     posted drive: reconstruct_drive of the keyframes ``keys`` with the Reconstructor ``rec`` and the detail layer's

@@ -122,7 +122,7 @@ def _mean(rows: Sequence[dict[str, Any]], key: str, sel: Callable[[dict[str, Any
 def evaluate_drive(rec, drive: Drive, keys: Sequence[int], scored: Sequence[int], out: str | Path, *,
                    lidar: bool = True, detail: Any = None, width: int | None = None,
                    cameras: Sequence[str] | None = None, first: int = 0,
-                   say: Callable[[str], None] = lambda msg: None, bar: Any = None, stereo: bool = False,
+                   say: Callable[[str], None] = lambda msg: None, bar: Any = None, stereo: bool = True,
                    ego_body: bool = True, exposure: bool = True) -> dict[str, Any]:
     """Score ``drive`` (module docstring) with runtime.inference.Reconstructor ``rec``: keyframes ``keys`` and
     frames ``scored`` (indices into ``drive``), each keyframe's LiDAR sweep when ``lidar`` and it has one, the detail

@@ -7,10 +7,13 @@ matched with the same camera of each partner frame (SIFT features on images resi
 ratio test), and each match's two rays (Camera.pixel_rays: any lens) are triangulated at the midpoint of their
 closest points. A point is kept when the rays meet (closest distance within MAX_RAY_GAP_PX pixels of the resized
 image, seen from either camera), cross at MIN_PARALLAX_DEG or more (a smaller angle leaves the depth undetermined:
-the error grows as the distance over the parallax), lie in front of both cameras and outside the boxes of the
-tracked objects that move (whose features moved between the frames), and a feature must be found with both
-partners, its two points within AGREE of its distance (what moves without a track parts): a keyframe without a
-partner on each side (the drive's ends) gets no stereo points. The points, in the keyframe's ego frame, go
+the error grows as the distance over the parallax) and lie in front of both cameras. What moves gives no points: no
+feature is taken where a keyframe camera sees the box of a tracked object that moves (box_mask; a point triangulated
+from a car that moved between the frames lands anywhere, not in its box) and no point inside one. A feature found
+with both partners is kept when its two points lie within AGREE of its distance of each other (what moves without
+a track parts); when the drive's tracks name what moves (``tracked``), a feature found with one partner only is kept
+too if its rays cross at MIN_PARALLAX_ONE_DEG or more, else a keyframe without a partner on each side gets none.
+The points, in the keyframe's ego frame, go
 where a LiDAR sweep would (Reconstructor.keyframe's ``lidar``): the model's depth is scaled to them per camera
 (runtime.lidar.fuse_depth), and detail cells sit on them, so a camera-only drive is not held back by single-image
 depth. They are sparse and less exact than a LiDAR's, so they never carve another keyframe's cells
@@ -18,18 +21,25 @@ depth. They are sparse and less exact than a LiDAR's, so they never carve anothe
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 
 import numpy as np
+
+from .boxes import inside_boxes
 
 STEREO_BASELINE_M = 1.0     # the partner frames: the nearest frames at least this far from the keyframe, each side
 STEREO_WIDTH = 960          # features are found on images resized to this width (2x faster than 1920, enough texture)
 MIN_PARALLAX_DEG = 2.0      # rays that cross at a smaller angle leave the depth undetermined (at 2 degrees and a
                             # pixel of matching error, the depth is good to ~6 % of the distance)
+MIN_PARALLAX_ONE_DEG = 3.0  # a point seen with one partner only (no second one to agree): a wider angle (its depth
+                            # good to ~4 % at a pixel of error). Measured on the synthetic drive, camera only: 2 degrees
+                            # gave +1.19 dB over one frame alone but the front camera 0.02 dB below it, 4 degrees +1.00
 MAX_RAY_GAP_PX = 1.5        # the rays' closest distance, as pixels of the resized image at the point's distance
 RATIO = 0.75                # Lowe's ratio test: the best match clearly better than the second
 AGREE = 0.03                # a feature matched with both partners: its two points within this fraction of its range
 MAX_FEATURES = 8000         # per image
+BOX_SAMPLES = 5             # box_mask: points a side on each face of a moving object's box, projected
+BOX_GROW_PX = 4             # ... and its outline grown this many pixels of the resized image (the box's pose error)
 CONTRAST = 0.01             # SIFT's contrast threshold (OpenCV's default 0.04 finds a few hundred features on a
                             # rendered street, 0.01 several thousand; the ratio test and the ray check keep the good)
 
@@ -86,8 +96,7 @@ def _features(img: np.ndarray, mask: np.ndarray | None, width: int):
     small = cv2.resize(grey, (round(w * scale), round(h * scale)), interpolation=cv2.INTER_AREA) if scale < 1 else grey
     m = None
     if mask is not None:
-        m = (cv2.resize(mask.astype(np.uint8), small.shape[::-1], interpolation=cv2.INTER_NEAREST) > 0)
-        m = (~m).astype(np.uint8) * 255                     # features only off the ego's body
+        m = (~_resized_mask(mask, small.shape)).astype(np.uint8) * 255      # features only off the mask
     kps, desc = cv2.SIFT_create(nfeatures=MAX_FEATURES, contrastThreshold=CONTRAST).detectAndCompute(small, m)
     if desc is None or not len(kps):
         return np.zeros((0, 2)), np.zeros((0, 128), np.float32)
@@ -114,9 +123,10 @@ def match(fa, fb) -> tuple[np.ndarray, np.ndarray]:
     return i, j
 
 
-def _pair_points(cam, T, fa, p_cam, p_T, fb, pix: float) -> dict[int, np.ndarray]:
-    """{feature index in a: its point [3] in the scene's frame} of the matches between a keyframe camera (cam, pose
-    T, features fa) and a partner frame's (p_cam, p_T, fb) that pass the ray checks (module docstring)."""
+def _pair_points(cam, T, fa, p_cam, p_T, fb, pix: float) -> dict[int, tuple[np.ndarray, float]]:
+    """{feature index in a: (its point [3] in the scene's frame, the rays' angle in degrees)} of the matches between
+    a keyframe camera (cam, pose T, features fa) and a partner frame's (p_cam, p_T, fb) that pass the ray checks
+    (module docstring)."""
     i, j = match(fa, fb)
     if not len(i):
         return {}
@@ -129,41 +139,93 @@ def _pair_points(cam, T, fa, p_cam, p_T, fb, pix: float) -> dict[int, np.ndarray
     pts, gap, st, ang = triangulate(oa, da, ob, db)
     good = ((ang >= MIN_PARALLAX_DEG) & (st > 0.5).all(axis=1)
             & (gap <= MAX_RAY_GAP_PX * pix * st.min(axis=1)) & np.isfinite(pts).all(axis=1))
-    return dict(zip(i[good].tolist(), pts[good]))
+    return {int(a): (p, float(g)) for a, p, g in zip(i[good], pts[good], ang[good])}
+
+
+def box_mask(cam, T: np.ndarray, boxes: Sequence[tuple[np.ndarray, np.ndarray]], size: tuple[int, int],
+             grow_px: int = BOX_GROW_PX) -> np.ndarray:
+    """[h, w] bool at ``size`` (w, h: the camera's image resized): the pixels where camera ``cam`` (ego frame; the
+    ego at pose ``T``, ego -> the scene's frame) sees one of ``boxes`` (each (scene frame -> box [4, 4], half-sizes
+    [3] metres): the convex hull of the box's projected surface points (BOX_SAMPLES a side; those behind the
+    camera left out), grown by ``grow_px``."""
+    import cv2
+
+    w, h = size
+    out = np.zeros((h, w), np.uint8)
+    t = np.linspace(-1.0, 1.0, BOX_SAMPLES)
+    grid = np.stack(np.meshgrid(t, t, t, indexing="ij"), -1).reshape(-1, 3)
+    grid = grid[np.abs(grid).max(axis=1) == 1.0]                 # the box's surface
+    sx, sy = w / cam.width, h / cam.height
+    Ti = np.linalg.inv(T)
+    for inv, half in boxes:
+        box_to_scene = np.linalg.inv(np.asarray(inv, np.float64))
+        pts = grid * np.asarray(half, np.float64)
+        pts = pts @ box_to_scene[:3, :3].T + box_to_scene[:3, 3]
+        pts = pts @ Ti[:3, :3].T + Ti[:3, 3]                       # the keyframe's ego frame
+        uv, _, front = cam.project(pts)
+        uv = uv[front & np.isfinite(uv).all(axis=1)]
+        if len(uv) < 3:
+            continue
+        uv = np.clip(uv * (sx, sy), -4 * w, 4 * w).astype(np.float32)
+        cv2.fillConvexPoly(out, cv2.convexHull(uv).astype(np.int32), 1)
+    if grow_px > 0 and out.any():
+        out = cv2.dilate(out, np.ones((2 * grow_px + 1, 2 * grow_px + 1), np.uint8))
+    return out > 0
 
 
 def stereo_points(cameras: Sequence, images: Sequence[np.ndarray], T: np.ndarray, partners: Sequence[tuple],
                   masks: Sequence[np.ndarray | None] | None = None,
-                  moving: Callable[[np.ndarray], np.ndarray] | None = None, width: int | None = None) -> np.ndarray:
+                  boxes: Sequence[tuple[np.ndarray, np.ndarray]] | None = None, width: int | None = None,
+                  tracked: bool = False) -> np.ndarray:
     """[P, 3] metres, the keyframe's ego frame: points triangulated between the keyframe's cameras (runtime.camera
     Camera, ego frame), their ``images`` ([H, W, 3] 0..1) and its pose ``T`` (ego -> the scene's frame), and each
     partner frame's (cameras, images, pose) in ``partners`` (module docstring); ``masks`` each keyframe camera's ego
-    body (True: the ego's own, no features there) or None; ``moving`` maps points [P, 3] (the scene's frame) to [P]
-    bool, True inside a moving object at the keyframe (runtime.drive.inside_boxes of its moving_boxes): those are
-    dropped."""
-
+    body (True: the ego's own, no features there) or None; ``boxes``: the objects that move, at the keyframe (each
+    (scene frame -> box [4, 4], half-sizes [3]), runtime.drive.moving_boxes): no features where a camera sees one,
+    and no point inside one. ``tracked``: the drive's tracks name every object that moves, so a feature matched
+    with one partner only is kept too (else it must be found with both, its two points agreeing: what moves without
+    a track parts)."""
     width = STEREO_WIDTH if width is None else width
     masks = list(masks) if masks is not None else [None] * len(cameras)
+    boxes = list(boxes or [])
     out = []
-    for c, (cam, img, mask) in enumerate(zip(cameras, images, masks)):
+    for c, (cam, img, body) in enumerate(zip(cameras, images, masks)):
+        mask = body
+        if boxes:
+            scale = min(1.0, width / cam.width)
+            mask = box_mask(cam, T, boxes, (round(cam.width * scale), round(cam.height * scale)))
+            if body is not None:
+                mask |= _resized_mask(body, mask.shape)
         fa = _features(img, mask, width)
         pix = 1.0 / max(1e-9, float(cam.K[0][0]) * min(1.0, width / cam.width))    # radians a resized pixel
-        found = [_pair_points(cam, T, fa, p_cams[c], p_T, _features(p_imgs[c], mask, width), pix)
+        found = [_pair_points(cam, T, fa, p_cams[c], p_T, _features(p_imgs[c], body, width), pix)
                  for p_cams, p_imgs, p_T in partners]
-        if len(found) < 2:              # one partner: nothing tells a still surface from one that moved
+        if len(found) < 2 and not tracked:      # one partner: nothing tells a still surface from one that moved
             continue
+        both = found[0].keys() & found[1].keys() if len(found) == 2 else set()
         # a feature found with both partners: the two points agree for a still surface; a moving one (a car
         # without a track) moved between the three frames, and its two points part
-        for i in found[0].keys() & found[1].keys():
-            p, q = found[0][i], found[1][i]
+        for i in both:
+            p, q = found[0][i][0], found[1][i][0]
             dist = np.linalg.norm(0.5 * (p + q) - T[:3, 3])
             if np.linalg.norm(p - q) <= AGREE * dist:
                 out.append(0.5 * (p + q))
+        if tracked:
+            out.extend(p for f in found for i, (p, ang) in f.items() if i not in both and ang >= MIN_PARALLAX_ONE_DEG)
     pts = np.array(out, np.float64).reshape(-1, 3)
-    if moving is not None and len(pts):
-        pts = pts[~moving(pts)]
+    if boxes and len(pts):
+        pts = pts[~inside_boxes(pts, boxes)]
     Ti = np.linalg.inv(T)
     return (pts @ Ti[:3, :3].T + Ti[:3, 3]).astype(np.float64)
+
+
+def _resized_mask(mask: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """[h, w] bool: ``mask`` resized to ``shape`` (h, w), nearest."""
+    import cv2
+
+    if mask.shape == tuple(shape):
+        return mask.astype(bool)
+    return cv2.resize(mask.astype(np.uint8), shape[::-1], interpolation=cv2.INTER_NEAREST) > 0
 
 
 __all__ = ["MIN_PARALLAX_DEG", "STEREO_BASELINE_M", "STEREO_WIDTH", "match", "partner_frames", "stereo_points",

@@ -53,7 +53,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="--drive: score K of the frames between keyframes, evenly spread (a quick run)")
     parser.add_argument("--stereo", choices=("on", "off"), default=None,
                         help="--drive: keyframes without a LiDAR sweep take depth from the motion between frames "
-                             "(runtime.stereo; default off)")
+                             "(runtime.stereo; default on)")
     parser.add_argument("--ego-body", choices=("on", "off"), default=None,
                         help="--drive: the drive's reconstruction leaves out the ego's own body found over the "
                              "frames (runtime.egobody; default on). On or off, the body found is left out of the "
@@ -313,7 +313,7 @@ def _run_drive(args: argparse.Namespace) -> int:
         rec = Reconstructor.load(model_dir, threads=args.threads)
         report = drive_eval.evaluate_drive(rec, drive, keys, scored, out, lidar=lidar == "on", detail=detail,
                                            width=args.width, cameras=cameras, first=start, say=say, bar=bar,
-                                           stereo=args.stereo == "on", ego_body=args.ego_body != "off",
+                                           stereo=args.stereo != "off", ego_body=args.ego_body != "off",
                                            exposure=args.exposure != "off")
     except (ModelError, RigError, InferenceError, SceneError, LidarError, DriveError) as exc:
         bar.close()
@@ -323,7 +323,7 @@ def _run_drive(args: argparse.Namespace) -> int:
         return _fail(f"--out: {exc}")
     report = {"format": REPORT_FORMAT, "format_version": 1, "kind": "drive", "drive": str(path),
               "frames_range": [start, stop], "every": every, "max_views": args.max_views, "lidar": lidar,
-              "stereo": args.stereo or "off", "ego_body": args.ego_body or "on",
+              "stereo": args.stereo or "on", "ego_body": args.ego_body or "on",
               "exposure": args.exposure or "on",
               "stride": None if detail is None else detail.stride,
               "settings": {"model": {"name": rec.info.name, "version": rec.info.version, "dir": str(model_dir)},

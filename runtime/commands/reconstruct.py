@@ -42,10 +42,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                    help="a keyframe at least every S seconds, moving or not (default 2)")
     g.add_argument("--keyframes", default=None, metavar="I,J,...",
                    help="these frames (indices into the drive's frames) as the keyframes instead")
-    g.add_argument("--stereo", action="store_true",
-                   help="keyframes without a LiDAR sweep take depth from the motion between frames: points "
-                        "triangulated with the frames ~1 m before and after each (docs/inference.md, \"Stereo "
-                        "between frames\"; ~2 s a keyframe)")
+    st = g.add_mutually_exclusive_group()
+    st.add_argument("--stereo", action="store_true",
+                    help="keyframes without a LiDAR sweep take depth from the motion between frames: points "
+                         "triangulated with the frames ~1 m before and after each (the default; docs/inference.md, "
+                         "\"Stereo between frames\"; ~2-5 s a keyframe)")
+    st.add_argument("--no-stereo", action="store_true",
+                    help="keyframes without a LiDAR sweep take depth from the model alone")
     g.add_argument("--no-ego-body", action="store_true",
                    help="do not look for the ego's own body over the frames (by default the pixels that stay put "
                         "while the world moves, e.g. a hood or trunk, get no Gaussians; a camera's ego_mask wins)")
@@ -102,6 +105,7 @@ def run(args: argparse.Namespace) -> int:
         return _drive(args, detail, out, model_dir, say)
     drive_flags = [f for f, v in (("--keyframe-spacing", args.keyframe_spacing), ("--keyframe-gap", args.keyframe_gap),
                                   ("--keyframes", args.keyframes), ("--stereo", args.stereo or None),
+                                  ("--no-stereo", args.no_stereo or None),
                                   ("--no-ego-body", args.no_ego_body or None),
                                   ("--no-exposure", args.no_exposure or None), ("--workers", args.workers))
                    if v is not None]
@@ -180,7 +184,7 @@ def _drive(args: argparse.Namespace, detail, out: Path, model_dir: Path, say) ->
         rec = Reconstructor.load(model_dir, threads=args.threads)
         t_load = time.perf_counter() - t0
         scene, t_save = save_drive_scene(rec, drive, keys, out, lidar=not args.no_lidar, detail=detail, say=say,
-                                          stereo=args.stereo, ego_body=not args.no_ego_body,
+                                          stereo=not args.no_stereo, ego_body=not args.no_ego_body,
                                           exposure=not args.no_exposure, workers=args.workers)
     except (DriveError, ModelError, RigError, InferenceError, SceneError, LidarError) as exc:
         return _fail(str(exc))

@@ -361,8 +361,9 @@ def test_only_a_keyframe_with_measured_depth_carves_its_neighbours(monkeypatch):
 
 
 def test_a_drive_with_stereo_triangulates_a_keyframe_between_its_partner_frames(tmp_path, shipped):
-    """reconstruct_drive(stereo=True): a keyframe without a sweep and with frames >= 1 m on both sides is matched
-    with them (runtime.stereo; its images read once, for the stereo and the keyframe); without stereo, nothing."""
+    """reconstruct_drive (stereo, the default): a keyframe without a sweep and with frames >= 1 m on both sides is
+    matched with them (runtime.stereo; its images read once, for the stereo and the keyframe); with stereo=False,
+    nothing."""
     from xyzcyl.runtime.detail import DetailOptions
     from xyzcyl.runtime.drive import reconstruct_drive
 
@@ -370,12 +371,13 @@ def test_a_drive_with_stereo_triangulates_a_keyframe_between_its_partner_frames(
     poses = [(E @ np.array(_pose(x, 0.0))).tolist() for x in (0.0, 1.2, 2.4)]
     drive = load_drive(write_drive(tmp_path, poses, [0.0, 0.25, 0.5]))
     said = []
-    with_stereo = reconstruct_drive(shipped, drive, keyframes=[1], detail=DetailOptions(stride=8), stereo=True,
+    with_stereo = reconstruct_drive(shipped, drive, keyframes=[1], detail=DetailOptions(stride=8),
                                     progress=said.append)
     assert "stereo" in with_stereo.timings
     assert any(m.startswith("stereo: ") and "frames [0, 2]" in m for m in said), said
     said.clear()
-    without = reconstruct_drive(shipped, drive, keyframes=[1], detail=DetailOptions(stride=8), progress=said.append)
+    without = reconstruct_drive(shipped, drive, keyframes=[1], detail=DetailOptions(stride=8), stereo=False,
+                                progress=said.append)
     assert "stereo" not in without.timings and not any(m.startswith("stereo") for m in said)
 
 

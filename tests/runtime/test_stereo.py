@@ -77,12 +77,26 @@ def test_a_textured_wall_seen_from_two_places_is_found_at_its_depth(monkeypatch)
     # part, and none is kept
     moved = ([cam], [rgb(b)], T_c)
     assert len(S.stereo_points([cam], [rgb(a)], np.eye(4), [([cam], [rgb(b)], T_b), moved])) < 0.05 * len(pts)
+    # a drive whose tracks name what moves: one partner is enough, and the points are as good
+    one = S.stereo_points([cam], [rgb(a)], np.eye(4), [([cam], [rgb(b)], T_b)], tracked=True)
+    assert len(one) > 200, len(one)
+    err = np.abs(one[:, 0] - depth_m) / depth_m
+    assert np.median(err) < 0.03 and np.percentile(err, 95) < 0.10, (np.median(err), np.percentile(err, 95))
+    # a moving object's box over the wall's left half (ego y > 0: the image's u < 240) and beyond its top and
+    # bottom: its outline in the image, no feature inside it and no point in it
+    half_y = 0.8 * depth_m / 2                    # the image spans y in +-0.8 depth (tan = 240 / 300)
+    box = (np.linalg.inv(np.array(pose(depth_m, half_y))), np.array([0.5, half_y, 8.0]))
+    m = S.box_mask(cam, np.eye(4), [box], (w, h))
+    assert m[:, :230].mean() > 0.99 and m[:, 250:].mean() < 0.01, (m[:, :230].mean(), m[:, 250:].mean())
+    kept = S.stereo_points([cam], [rgb(a)], np.eye(4), [([cam], [rgb(b)], T_b)], boxes=[box], tracked=True)
+    assert len(kept) > 100 and (kept[:, 1] < 0.0).all(), (len(kept), kept[:, 1].max())
 
 
 def test_stereo_goes_with_a_drive_file(tmp_path, capsys):
     from xyzcyl.cli import main
     from xyzcyl.testing import EXAMPLE_RIG
 
-    assert main(["reconstruct", str(EXAMPLE_RIG), "--out", str(tmp_path / "s"), "--stereo"]) == 2
-    assert "--stereo: goes with a drive file" in capsys.readouterr().err
+    for flag in ("--stereo", "--no-stereo"):
+        assert main(["reconstruct", str(EXAMPLE_RIG), "--out", str(tmp_path / "s"), flag]) == 2
+        assert f"{flag}: goes with a drive file" in capsys.readouterr().err
     assert not (tmp_path / "s").exists()
