@@ -144,19 +144,20 @@ class Gaussians:
         return Gaussians(means, quats.astype(self.quats.dtype), self.log_scales, self.opacity_logits, self.sh)
 
     def slice(self, start: int, stop: int) -> Gaussians:
-        """Gaussians start..stop - 1 as views of these arrays (no copy, not checked again: they were on
-        construction; Scene draws a drive's keyframes this way, per render)."""
-        out = object.__new__(Gaussians)
-        for name in ("means", "quats", "log_scales", "opacity_logits", "sh"):
-            object.__setattr__(out, name, getattr(self, name)[start:stop])
-        return out
+        """Gaussians start..stop - 1 as views of these arrays (no copy; Scene draws a drive's keyframes this way,
+        per render)."""
+        return self._taken(slice(start, stop))
 
     def subset(self, keep: np.ndarray) -> Gaussians:
-        """The Gaussians where ``keep`` ([N] bool, or indices) selects, in order (not checked again: a selection of
-        checked Gaussians; the drive's fusion takes thousands of subsets of millions)."""
+        """The Gaussians where ``keep`` ([N] bool, or indices) selects, in order."""
+        return self._taken(keep)
+
+    def _taken(self, index) -> Gaussians:
+        """These Gaussians indexed by ``index`` along N, not checked again: a selection of checked Gaussians (the
+        drive's fusion takes thousands of subsets of millions)."""
         out = object.__new__(Gaussians)
         for name in ("means", "quats", "log_scales", "opacity_logits", "sh"):
-            object.__setattr__(out, name, getattr(self, name)[keep])
+            object.__setattr__(out, name, getattr(self, name)[index])
         return out
 
     def astype(self, dtype) -> Gaussians:
