@@ -992,14 +992,18 @@ def model_grid_depth(coarse: Gaussians, grid: Camera, max_width: int = 480) -> t
 
 def camera_detail(cam: Camera, image: np.ndarray, coarse: Gaussians, opts: DetailOptions,
                   lidar: np.ndarray | None = None, ego_mask: np.ndarray | None = None,
-                  ground: np.ndarray | None = None, ground_measured: bool = True
+                  ground: np.ndarray | None = None, sweep: bool = True
                   ) -> tuple[Gaussians, CameraDetail, dict[str, int]]:
     """The detail Gaussians of one input camera.
 
     image [H, W, 3] float32 0..1 (the camera's full-resolution input); coarse: the model's Gaussians (ego frame);
     lidar [P, 3] metres, ego frame, or None; ego_mask [H, W] bool, True = the ego's own body (no cell there);
-    ground: the ground plane (fit_ground of the LiDAR, or model_ground) or None; ground_measured: whether it is the
-    LiDAR's (its cells are then as trusted as LiDAR's: opacity, CONF_MEASURED), else the model's.
+    ground: the ground plane (fit_ground of the LiDAR, or model_ground) or None; sweep: whether ``lidar`` and
+    ``ground`` are a LiDAR sweep's: its ground cells are then as trusted as LiDAR's (opacity, CONF_MEASURED), and its
+    returns spread over the image say where a surface stands clearly in front of the ground. False: the ground is
+    the model's, and ``lidar`` (if any) a few hundred points triangulated between frames (runtime.stereo) that
+    place only the cells near them: spread over a whole image from a dozen points on one car they would tell every
+    road cell beyond that car that it is behind a surface.
     Returns (Gaussians, the camera's CameraDetail, counts {"lidar": cells placed by LiDAR, "ground": by the ground
     plane, "model": by the model's depth, "far": at far_depth, "edge": dropped at depth edges})."""
     import cv2
@@ -1035,7 +1039,9 @@ def camera_detail(cam: Camera, image: np.ndarray, coarse: Gaussians, opts: Detai
         # a cell LiDAR does not reach looks at the ground when the plane is near enough and neither the model nor
         # the LiDAR spread from the nearest returns puts a surface clearly in front of it (a car's flank below the
         # lowest beam). 0.8: the model's real-camera depth error is ~0.5 AbsRel, so only a clear margin counts
-        nearer = ((md > 0) & (md < 0.8 * gd)) | ((dense > 0) & (dense < 0.8 * gd))
+        nearer = (md > 0) & (md < 0.8 * gd)
+        if sweep:
+            nearer |= (dense > 0) & (dense < 0.8 * gd)
         on_ground = ~supported & (gd >= opts.min_depth) & (gd <= opts.ground_max) & ~nearer
         depth[on_ground] = gd[on_ground]
     from_model = ~supported & ~on_ground & (md > 0)
@@ -1058,7 +1064,7 @@ def camera_detail(cam: Camera, image: np.ndarray, coarse: Gaussians, opts: Detai
     if not grid.is_ideal:
         depth[~cell_geometry(grid).has_ray] = 0                 # outside a lens's image circle: no cell
     keep = edge_keep(depth, opts.edge_ratio)
-    measured = supported | (on_ground if ground_measured else False)
+    measured = (supported | on_ground) if sweep else np.zeros(depth.shape, bool)
     opacity = np.where(measured, opts.opacity, opts.model_opacity).astype(np.float64)
     g = cell_gaussians(grid, colours, depth, opacity, keep, opts.footprint, opts.thickness,
                        surface_stretch=opts.surface_stretch)

@@ -906,7 +906,8 @@ def _make_keyframe(rec, drive: Drive, k: int, lidar: bool, stereo: bool, detail,
     if points is None and stereo:
         guide, images, note = _stereo_sweep(drive, k, masks)
     t_s = time.perf_counter() - t_s
-    kf = rec.keyframe(drive.frames[k].rig, images, progress=progress, lidar=guide, detail=detail, ego_masks=masks)
+    kf = rec.keyframe(drive.frames[k].rig, images, progress=progress, lidar=guide, detail=detail, ego_masks=masks,
+                      lidar_is_sweep=points is not None)
     if stereo and points is None:
         kf.timings["stereo"] = t_s
     kf.app_plane = None                 # baked into kf.background already; not sent back from a worker

@@ -305,12 +305,13 @@ class Reconstructor:
                  depths: Sequence[np.ndarray | None] | None = None,
                  progress: Callable[[str], None] | None = None,
                  lidar: np.ndarray | None = None, detail: DetailOptions | None = DEFAULT_DETAIL,
-                 ego_masks: Mapping[str, np.ndarray] | None = None) -> Keyframe:
+                 ego_masks: Mapping[str, np.ndarray] | None = None, lidar_is_sweep: bool = True) -> Keyframe:
         """One timestamp of ``rig`` up to, not including, the fusion of its cameras' detail layers (reconstruct's
         arguments): the model's Gaussians, each pinhole camera's detail Gaussians and cell maps, the background.
         reconstruct fuses one; runtime.drive fuses the keyframes of a drive. ego_masks: camera name -> [H, W] bool
         (True: the ego's own body, no cells there) for cameras whose rig gives no ego_mask file (runtime.egobody
-        finds them over a drive)."""
+        finds them over a drive). lidar_is_sweep=False: ``lidar`` holds sparse points triangulated between frames
+        (runtime.stereo), not a sweep: the detail layer's ground plane is then the model's (camera_details)."""
         say = progress or (lambda msg: None)
         t: dict[str, float] = {}
         t_all = time.perf_counter()
@@ -349,7 +350,7 @@ class Reconstructor:
         if detail is not None:
             say(f"detail Gaussians (stride {detail.stride})")
             parts, details, owners = timed("detail", self.camera_details, rig, images, gauss, lidar, detail, counts,
-                                           ego_masks)
+                                           ego_masks, lidar_is_sweep)
 
         background = None
         app_plane = enc.get("app_plane")
@@ -396,21 +397,25 @@ class Reconstructor:
 
     def camera_details(self, rig: Rig, images: Sequence[np.ndarray], coarse: Gaussians, lidar: np.ndarray | None,
                        opts: DetailOptions, counts: dict[str, int],
-                       ego_masks: Mapping[str, np.ndarray] | None = None) -> tuple[list[Gaussians], list, list[int]]:
+                       ego_masks: Mapping[str, np.ndarray] | None = None, lidar_is_sweep: bool = True
+                       ) -> tuple[list[Gaussians], list, list[int]]:
         """Each pinhole camera's detail layer (any lens: on its cells' true rays), not fused: (its Gaussians, its
         runtime.detail.CameraDetail, its index in the rig) per camera. images: the full-resolution inputs in rig
         order; coarse: the model's Gaussians; lidar [P, 3] metres, ego frame, or None. Adds to ``counts``:
         detail_lidar / detail_ground / detail_model / detail_far (cells placed by LiDAR, by the ground plane (the
         LiDAR's; camera only, the model's), by the model's depth, at the far depth), detail_edge (cells dropped at
         depth edges). runtime.detail.fuse_details fuses them with ``coarse`` (reconstruct). ego_masks: keyframe's;
-        a camera's own ego_mask file wins."""
+        a camera's own ego_mask file wins. lidar_is_sweep=False (``lidar`` is a few hundred stereo points, on walls
+        and cars rather than the road: no plane fits them): the ground plane and its trust are the model's, as
+        camera only, and the points place only the cells near them (runtime.detail.camera_detail's ``sweep``)."""
         from .detail import camera_detail, fit_ground, model_ground, read_ego_mask
 
         parts, details, owners = [], [], []
         c = {f"detail_{k}": 0 for k in ("lidar", "ground", "model", "far", "edge")}
         plane = None
-        if opts.ground:       # the LiDAR's ground, else (camera only) the model's
-            plane = fit_ground(lidar) if lidar is not None else model_ground(coarse)
+        swept = lidar is not None and lidar_is_sweep
+        if opts.ground:       # the LiDAR's ground, else (camera only, stereo points) the model's
+            plane = fit_ground(lidar) if swept else model_ground(coarse)
         for img, cam in zip(images, rig.cameras):
             if cam.model != "pinhole":
                 continue
@@ -418,7 +423,7 @@ class Reconstructor:
             mask = read_ego_mask(rig.path(mask_file), cam) if mask_file is not None else \
                 (ego_masks or {}).get(cam.name)
             g, d, n = camera_detail(cam, as_rgb(img, cam), coarse, opts, lidar, mask, plane,
-                                    ground_measured=lidar is not None)
+                                    sweep=swept)
             parts.append(g)
             details.append(d)
             owners.append(rig.names.index(cam.name))

@@ -17,7 +17,9 @@ The points, in the keyframe's ego frame, go
 where a LiDAR sweep would (Reconstructor.keyframe's ``lidar``): the model's depth is scaled to them per camera
 (runtime.lidar.fuse_depth), and detail cells sit on them, so a camera-only drive is not held back by single-image
 depth. They are sparse and less exact than a LiDAR's, so they never carve another keyframe's cells
-(runtime.drive._carve_pair). An ego that stands still has no partner frame and no stereo points."""
+(runtime.drive._carve_pair), and they are no sweep (Reconstructor.keyframe's ``lidar_is_sweep``): the detail
+layer's ground plane stays the model's and their cells are trusted as the model's (runtime.detail.camera_detail's
+``sweep``). An ego that stands still has no partner frame and no stereo points."""
 
 from __future__ import annotations
 

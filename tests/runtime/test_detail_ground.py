@@ -58,7 +58,7 @@ def test_camera_only_road_cells_beside_the_car_sit_on_the_ground():
     truth = ground_depth(grid, np.array([0.0, 0.0, 1.0, 0.0]))            # camera z where each cell meets the road
     near = (truth > 1.0) & (truth < 0.8 * 6.0 * np.cos(np.radians(20)))    # road cells nearer than the model's
     assert near.sum() > 200
-    _, d, counts = camera_detail(cam, img, coarse, opts, None, None, model_ground(coarse), ground_measured=False)
+    _, d, counts = camera_detail(cam, img, coarse, opts, None, None, model_ground(coarse), sweep=False)
     depth = d.depth
     assert counts["ground"] > 0
     rel = np.abs(depth[near] - truth[near]) / truth[near]
@@ -79,3 +79,33 @@ def test_add_detail_uses_the_model_ground_without_lidar():
     grid = grid_camera(cam, opts.stride)
     uv, z, front = grid.project_depth(scene_g.means[-counts["detail"] - counts["carved"]:].astype(np.float64))
     assert np.percentile(z[front], 5) < 5.0                                 # road cells a few metres ahead
+
+
+def _stereo_points_on_a_car() -> np.ndarray:
+    """[30, 3] metres, ego frame: what stereo triangulates on a camera-only keyframe (runtime.stereo): a few dozen
+    points on one object (here the back of a car 8 m ahead, 1.5 m to the right, 0.4-1.2 m up), none on the road."""
+    rng = np.random.default_rng(3)
+    return np.stack([np.full(30, 8.0), rng.uniform(-2.0, -1.0, 30), rng.uniform(0.4, 1.2, 30)], axis=1)
+
+
+def test_stereo_points_keep_the_model_ground_and_the_road_beyond_them():
+    """Stereo points (lidar_is_sweep=False) are no sweep: no plane fits 30 points on a car, so the ground is the
+    model's, as camera only; the points place the cells near them, not spread over the image as a sweep's returns
+    are (where a dozen points on one car would tell every road cell beyond it that a surface stands in front of it).
+    Measured when written: as a sweep, no ground plane and 0 ground cells; as stereo, the same road cells on the
+    ground as camera only."""
+    cam, coarse, opts = _camera(), _road_gaussians(), DetailOptions()
+    img = np.full((cam.height, cam.width, 3), 0.4, np.float32)
+    pts = _stereo_points_on_a_car()
+    rig = Rig(cameras=(cam,))
+    got = {}
+    for name, lidar, sweep in (("camera only", None, True), ("stereo", pts, False), ("as a sweep", pts, True)):
+        counts: dict = {}
+        _, details, _ = Reconstructor.camera_details(None, rig, [img], coarse, lidar, opts, counts, None, sweep)
+        got[name] = (counts, details[0])
+    assert got["as a sweep"][0]["detail_ground"] == 0                     # fit_ground of 30 points: no plane
+    only, stereo = got["camera only"], got["stereo"]
+    assert stereo[0]["detail_ground"] > 200
+    assert stereo[0]["detail_ground"] >= 0.95 * only[0]["detail_ground"]  # the points hide only the cells they cover
+    assert stereo[0]["detail_lidar"] > 0                                   # ... and place the cells near them
+    assert np.all(stereo[1].conf[stereo[1].keep] == 1)                     # stereo cells are not as trusted as LiDAR's
