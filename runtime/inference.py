@@ -311,7 +311,7 @@ class Reconstructor:
         reconstruct fuses one; runtime.drive fuses the keyframes of a drive. ego_masks: camera name -> [H, W] bool
         (True: the ego's own body, no cells there) for cameras whose rig gives no ego_mask file (runtime.egobody
         finds them over a drive). lidar_is_sweep=False: ``lidar`` holds sparse points triangulated between frames
-        (runtime.stereo), not a sweep: the detail layer's ground plane is then the model's (camera_details)."""
+        (runtime.stereo), not a sweep: the detail layer keeps the model's ground plane and trust (camera_details)."""
         say = progress or (lambda msg: None)
         t: dict[str, float] = {}
         t_all = time.perf_counter()
