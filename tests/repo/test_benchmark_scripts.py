@@ -135,3 +135,26 @@ def test_the_eight_camera_rig_loads():
     from xyzcyl.runtime.rig import load_rig
 
     assert len(load_rig(BENCH / "rigs" / "ring8.json", check_images=False)) == 8
+
+
+def test_drive_under_ego_camera_looks_down_and_refuses_a_frame_outside_the_drive(real_data):
+    """benchmarks/drive_under_ego.py (docs/results.md "Drives: the ground under the ego"): its camera looks straight
+    down with the ego's forward up in the image, and a --frame the drive lacks exits 2 naming the flag, before any
+    reconstruction."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("drive_under_ego", BENCH / "drive_under_ego.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    T = np.eye(4)
+    T[:3, 3] = (5.0, 2.0, 0.0)
+    cam = mod.down_camera(T, 2.0)
+    uv, z, front = cam.project(np.array([[5.0, 2.0, 0.0], [6.0, 2.0, 0.0], [5.0, 3.0, 0.0]]))
+    assert front.all() and np.allclose(z, 2.0)                       # the ground 2 m below, straight down
+    assert np.allclose(uv[0], [(cam.width - 1) / 2, (cam.height - 1) / 2])
+    assert uv[1][1] < uv[0][1] and abs(uv[1][0] - uv[0][0]) < 1e-9      # forward is up
+    assert uv[2][0] < uv[0][0]                                         # left is left
+    drive = real_data / "pandaset_002_drive" / "drive.json"
+    r = subprocess.run([sys.executable, str(BENCH / "drive_under_ego.py"), str(drive), "--frame", "99"], cwd=REPO,
+                       capture_output=True, text=True, timeout=120, check=False)
+    assert r.returncode == 2 and "--frame" in r.stderr, r.stderr[-2000:]
