@@ -1189,9 +1189,21 @@ OWN_VIEW_MARGIN = 2    # cells: a neighbour's cell centred this far outside a ca
 #                        it (a disc's 3 sigma is 1.5 cells, footprint 0.5), so its own view hides those too
 
 
-def _own_cells(grid: Camera, keep: np.ndarray, means: np.ndarray) -> np.ndarray:
-    """[N] bool: the points ``means`` [N, 3] (ego) that ``grid`` sees in front of it on, or within OWN_VIEW_MARGIN
-    cells outside the image of, a cell of ``keep`` (the nearest cell inside the image)."""
+def _own_cells(grid: Camera, keep: np.ndarray, means: np.ndarray, cells: np.ndarray) -> np.ndarray:
+    """[M] bool: which of the points ``means[cells]`` ([N, 3] ego; cells [M] int64 indices) ``grid`` sees in front
+    of it on, or within OWN_VIEW_MARGIN cells outside the image of, a cell of ``keep`` (the nearest cell inside the
+    image). An ideal pinhole grid in one numba pass (_own_cells_kernel: own_view_hide_reference's formula), a lens
+    through Camera.project_depth."""
+    if grid.is_ideal:
+        out = np.empty(len(cells), np.bool_)
+        K = grid.K
+        _own_cells_kernel(np.ascontiguousarray(means), np.ascontiguousarray(cells, np.int64),
+                          np.ascontiguousarray(grid.rotation, np.float64), np.ascontiguousarray(grid.position,
+                                                                                                np.float64),
+                          float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]),
+                          np.ascontiguousarray(keep, np.bool_), OWN_VIEW_MARGIN, out)
+        return out
+    means = means[cells]
     uv, _, front = grid.project_depth(means)
     px = np.rint(np.nan_to_num(uv, nan=-1e9)).astype(np.int64)
     m = OWN_VIEW_MARGIN
@@ -1201,6 +1213,31 @@ def _own_cells(grid: Camera, keep: np.ndarray, means: np.ndarray) -> np.ndarray:
     return ok & keep[v, u]
 
 
+@njit(cache=True, parallel=True, nogil=True)
+def _own_cells_kernel(means, cells, R, pos, fx, fy, cx, cy, keep, margin, out):
+    """_own_cells for an ideal pinhole grid (rotation R [3, 3] camera -> ego, centre pos [3], K's fx fy cx cy):
+    out[t] for the point means[cells[t]], as own_view_hide_reference computes it (q = R^T (m - pos), in front when
+    q_z > 1e-6, the pixel rint(f q / q_z + c))."""
+    h, w = keep.shape
+    for t in numba.prange(cells.shape[0]):
+        k = cells[t]
+        d0 = means[k, 0] - pos[0]
+        d1 = means[k, 1] - pos[1]
+        d2 = means[k, 2] - pos[2]
+        qz = R[0, 2] * d0 + R[1, 2] * d1 + R[2, 2] * d2
+        if not qz > 1e-6:
+            out[t] = False
+            continue
+        qx = R[0, 0] * d0 + R[1, 0] * d1 + R[2, 0] * d2
+        qy = R[0, 1] * d0 + R[1, 1] * d1 + R[2, 1] * d2
+        u = np.rint(fx * qx / qz + cx)
+        v = np.rint(fy * qy / qz + cy)
+        if not (-margin <= u < w + margin and -margin <= v < h + margin):
+            out[t] = False
+            continue
+        out[t] = keep[min(max(int(v), 0), h - 1), min(max(int(u), 0), w - 1)]
+
+
 def own_view_hide(details: list[CameraDetail], kept: list[np.ndarray], starts: list[int]) -> list[np.ndarray]:
     """Per camera p (details[p]), the positions of the other cameras' kept cells that land on one of p's cells
     (before the fusion: p's whole detail layer; at the image's border, within OWN_VIEW_MARGIN cells outside it) at
@@ -1208,14 +1245,16 @@ def own_view_hide(details: list[CameraDetail], kept: list[np.ndarray], starts: l
     would cover p's; behind it, it would show through p's 5 % of transparency). kept[j]: camera j's cells kept by
     the fusion; starts[j]: the position of its first cell in the scene's Gaussians."""
     out = []
+    cells = [np.flatnonzero(k) for k in kept]
+    ordered = bool(np.all(np.diff(np.asarray(starts)) >= 0))   # then the runs concatenate in ascending order
     for p, dp in enumerate(details):
         hide = []
         for j, dj in enumerate(details):
-            if j == p or not kept[j].any():
+            if j == p or not len(cells[j]):
                 continue
-            cells = np.flatnonzero(kept[j])
-            hide.append(starts[j] + cells[_own_cells(dp.grid, dp.keep, dj.means[cells])])
-        out.append(np.sort(np.concatenate(hide)).astype(np.int64) if hide else np.zeros(0, np.int64))
+            hide.append(starts[j] + cells[j][_own_cells(dp.grid, dp.keep, dj.means, cells[j])])
+        h = np.concatenate(hide).astype(np.int64) if hide else np.zeros(0, np.int64)
+        out.append(h if ordered else np.sort(h))
     return out
 
 

@@ -110,6 +110,11 @@ def test_own_view_hide_matches_its_reference(wall):
     ref = own_view_hide_reference([da, db], kept, starts)
     assert all(np.array_equal(f, r) for f, r in zip(fast, ref, strict=True))
     assert len(fast[0]) > 50 and len(fast[1]) > 50       # the two cameras overlap
+    # the second camera's cells placed first: each camera's list still ascends (the runs are then sorted)
+    starts = [5 + len(db.means), 5]
+    fast = own_view_hide([da, db], kept, starts)
+    ref = own_view_hide_reference([da, db], kept, starts)
+    assert all(np.array_equal(f, r) for f, r in zip(fast, ref, strict=True))
 
 
 def test_scene_folder_keeps_the_own_views(wall, tmp_path):
