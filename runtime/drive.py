@@ -35,8 +35,8 @@ put while the world moves) and used as the cameras' ego masks; the scene keeps t
 Each keyframe's cameras' exposure and white balance are harmonised as it arrives (runtime.exposure), against each
 other and the previous keyframe's; the gains go into scene.json's drive block.
 
-What is not done yet (docs/inference.md "Drives" lists it): moving objects found without tracks, a sky dome,
-spatial chunks, parallel keyframe workers.
+What is not done yet (docs/inference.md "Drives" lists it): moving objects found without tracks, spatial chunks
+of the shared Gaussians (the viewpoint chunks are read on demand), mirrors found as the ego's body.
 """
 
 from __future__ import annotations
