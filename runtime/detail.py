@@ -627,9 +627,10 @@ def cell_gaussians(grid: Camera, colours: np.ndarray, depth: np.ndarray, opacity
     n = len(ys)
     counts = keep.sum(axis=1)
     row_start = np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int64)
-    means = np.empty((n, 3))
-    quats = np.empty((n, 4))
-    log_s = np.empty((n, 3))
+    # float32 written by the kernel (its float64 values rounded on assignment, as astype(np.float32) rounds them)
+    means = np.empty((n, 3), np.float32)
+    quats = np.empty((n, 4), np.float32)
+    log_s = np.empty((n, 3), np.float32)
     geo = cell_geometry(grid)
     if n:
         _cells_kernel(np.ascontiguousarray(depth, np.float64), keep, row_start, np.ascontiguousarray(geo.rays),
@@ -638,9 +639,8 @@ def cell_gaussians(grid: Camera, colours: np.ndarray, depth: np.ndarray, opacity
                       float(footprint), float(thickness), float(surface_stretch), means, quats, log_s)
     sh = np.zeros((n, (sh_degree + 1) ** 2, 3), np.float32)
     sh[:, 0, :] = (colours[ys, xs] - 0.5) / SH_C0
-    return Gaussians(means=means.astype(np.float32), quats=quats.astype(np.float32),
-                     log_scales=log_s.astype(np.float32), opacity_logits=_logit(opacity[ys, xs]).astype(np.float32),
-                     sh=sh)
+    return Gaussians(means=means, quats=quats, log_scales=log_s,
+                     opacity_logits=_logit(opacity[ys, xs]).astype(np.float32), sh=sh)
 
 
 def cell_gaussians_reference(grid: Camera, colours: np.ndarray, depth: np.ndarray, opacity: np.ndarray,
