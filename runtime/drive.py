@@ -27,7 +27,9 @@ Reconstruction (reconstruct_drive):
    of about VOXEL_CELLS of the cells' footprints, the keyframe with the finest cell in a voxel keeps it; among
    equally fine ones the keyframe that saw it from nearest, keyframes of a still ego being one viewpoint); the
    model's Gaussians of every keyframe fill what no cell covers (runtime.detail.cull_covered), kept once per
-   voxel the same way. Cells another keyframe drops are removed, not hidden: the scene has no own views.
+   voxel the same way. Cells another keyframe drops are removed, not hidden: the scene has no own views; but a
+   cell its own LiDAR placed that a neighbouring keyframe with LiDAR sees through moved away (_carve_pair): it is
+   drawn only around its keyframe's time (actors_of, moved_spans), as an untracked object of that keyframe.
 
 Before the keyframes, the ego's own body is found over the drive's frames (runtime.egobody: the pixels that stay
 put while the world moves) and used as the cameras' ego masks; the scene keeps them (Scene.ego_body).
@@ -35,7 +37,8 @@ put while the world moves) and used as the cameras' ego masks; the scene keeps t
 Each keyframe's cameras' exposure and white balance are harmonised as it arrives (runtime.exposure), against each
 other and the previous keyframe's; the gains go into scene.json's drive block.
 
-What is not done yet (docs/inference.md "Drives" lists it): moving objects found without tracks, spatial chunks
+What is not done yet (docs/inference.md "Drives" lists it): moving objects found without tracks in a camera-only
+drive, untracked objects drawn at their pose between keyframes, spatial chunks
 of the shared Gaussians (the viewpoint chunks are read on demand), mirrors found as the ego's body.
 """
 
@@ -306,13 +309,36 @@ def moving_boxes(drive: Drive, k: int) -> list[tuple[int, np.ndarray, np.ndarray
     return out
 
 
-def actors_of(drive: Drive, copies: list[tuple[int, float, Gaussians]]):
+MOVED_LABEL = "moved"          # the label of a keyframe's cells that moved away without a track (moved_spans)
+
+
+def moved_spans(times: Sequence[float], first_s: float, last_s: float, slack_s: float) -> list[tuple[float, float]]:
+    """Per keyframe (``times`` [K] seconds, ascending): the (first, last) times its cells that moved away are drawn
+    at (runtime.actors draws an object from ``first - slack_s`` to ``last + slack_s``): from halfway to the keyframe
+    before (the drive's first frame ``first_s`` for the first keyframe) to halfway to the one after (``last_s``),
+    narrowed by the slack on either side, so that at any time one keyframe's are drawn (both at a midpoint, within
+    2 x slack_s of it); never narrower than the keyframe's own time."""
+    t = [float(x) for x in times]
+    out = []
+    for i, tk in enumerate(t):
+        lo = first_s if i == 0 else 0.5 * (t[i - 1] + tk) + slack_s
+        hi = last_s if i == len(t) - 1 else 0.5 * (tk + t[i + 1]) - slack_s
+        out.append((min(lo, tk), max(hi, tk)))
+    return out
+
+
+def actors_of(drive: Drive, copies: list[tuple[int, float, Gaussians]],
+              moved: Sequence[tuple[int, Gaussians]] = (), keys: Sequence[int] = ()):
     """runtime.actors.Actors of the drive's moving tracks (every annotated pose, box -> scene frame, at its frame's
-    time) and ``copies`` (track index, keyframe time, Gaussians in the box frame); None without moving tracks."""
+    time) and ``copies`` (track index, keyframe time, Gaussians in the box frame); then, one object a keyframe, the
+    cells that moved away (``moved``: (index into ``keys``, Gaussians in the scene's frame), runtime.drive's
+    carving across keyframes): label MOVED_LABEL, id "moved@<frame>", its box the cells' bounds, at the scene's
+    frame (identity poses) over moved_spans. None when there is neither."""
     from .actors import Actors
 
     moving = moving_tracks(drive)
-    if not moving:
+    moved = [(n, g) for n, g in moved if len(g)]
+    if not moving and not moved:
         return None
     index = {t: a for a, t in enumerate(moving)}
     E0inv = np.linalg.inv(drive.frames[0].ego_to_world)
@@ -323,16 +349,33 @@ def actors_of(drive: Drive, copies: list[tuple[int, float, Gaussians]]):
             ptime.append(drive.frames[fr].timestamp_s)
             pose.append(E0inv @ m)
     kept = [(index[t], ts, g) for t, ts, g in copies if len(g)]
-    sizes = np.cumsum([0] + [len(g) for _, _, g in kept])
+    ids = [drive.tracks[t].id for t in moving]
+    labels = [drive.tracks[t].label for t in moving]
+    sizes = [drive.tracks[t].size for t in moving]
+    if moved:
+        times = [drive.frames[k].timestamp_s for k in keys]
+        dt = np.diff([f.timestamp_s for f in drive.frames])
+        slack = 0.5 * (float(np.median(dt)) if len(dt) else 0.1)          # Scene.moving_at's slack
+        spans = moved_spans(times, drive.frames[0].timestamp_s, drive.frames[-1].timestamp_s, slack)
+        for n, g in moved:
+            a = len(ids)
+            ids.append(f"moved@{keys[n]}")
+            labels.append(MOVED_LABEL)
+            lo, hi = g.means.min(axis=0).astype(np.float64), g.means.max(axis=0).astype(np.float64)
+            sizes.append(tuple(float(x) for x in hi - lo))
+            for ts in spans[n]:
+                pt.append(a)
+                ptime.append(ts)
+                pose.append(np.eye(4))
+            kept.append((a, times[n], g))
+    starts = np.cumsum([0] + [len(g) for _, _, g in kept])
     g = _concat([g for _, _, g in kept]) if kept else Gaussians.empty(0)
-    return Actors(track_id=tuple(drive.tracks[t].id for t in moving),
-                  track_label=tuple(drive.tracks[t].label for t in moving),
-                  track_size=np.array([drive.tracks[t].size for t in moving], np.float64),
+    return Actors(track_id=tuple(ids), track_label=tuple(labels), track_size=np.array(sizes, np.float64),
                   pose_track=np.array(pt, np.int32), pose_time=np.array(ptime, np.float64),
                   pose=np.array(pose, np.float64).reshape(-1, 4, 4),
                   copy_track=np.array([a for a, _, _ in kept], np.int32),
                   copy_time=np.array([ts for _, ts, _ in kept], np.float64),
-                  copy_start=sizes.astype(np.int64), gaussians=g)
+                  copy_start=starts.astype(np.int64), gaussians=g)
 
 
 # ------------------------------------------------------------------------------------------- fusion
@@ -757,8 +800,10 @@ def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None,
     spill = tempfile.TemporaryDirectory(prefix="xyzcyl-drive-")      # removed when the scene lets go of it
     detail_kept = _Kept(origins, heads, Path(spill.name), VoxelOwners(origins))
     coarse_kept = _Kept(origins, heads)
-    # (keyframe, details, parts, keep, whether its depth was measured: a LiDAR sweep)
-    window: list[tuple[int, list, list[Gaussians], list[np.ndarray], bool]] = []
+    # (keyframe, details, parts, keep, whether its depth was measured: a LiDAR sweep, its measured cells that a
+    # neighbouring keyframe saw through: they moved away (_carve_pair))
+    window: list[tuple[int, list, list[Gaussians], list[np.ndarray], bool, list[np.ndarray]]] = []
+    moved: list[tuple[int, Gaussians]] = []
     background = None
     moved_out = 0
     copies: list[tuple[int, float, Gaussians]] = []
@@ -766,7 +811,9 @@ def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None,
     def commit(entry) -> None:
         """A keyframe leaves the carving window: its kept cells join the scene (deduped across keyframes), and the
         model's Gaussians so far that would veil one of its cameras' surfaces go (as in one frame)."""
-        n, details, parts, keep, _ = entry
+        n, details, parts, keep, _, gone = entry
+        if any(m.any() for m in gone):       # drawn only around this keyframe's time (actors_of)
+            moved.append((n, _concat([g.subset(m) for g, m in zip(parts, gone) if m.any()])))
         for i in range(len(coarse_kept.store)):
             g = coarse_kept.part(i)
             if details and len(g):
@@ -814,7 +861,7 @@ def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None,
                     moved_out += int((own[i] & (m >= 0)).sum())
                     own[i] &= m < 0
             coarse_kept.add(coarse, voxel_levels(_coarse_footprint(coarse)), n)
-            entry = (n, details, parts, own, points is not None)
+            entry = (n, details, parts, own, points is not None, [np.zeros(len(k), bool) for k in own])
             for prev in window:
                 _carve_pair(entry, prev, tol)
                 _carve_pair(prev, entry, tol)
@@ -846,10 +893,10 @@ def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None,
     timings["fusion"] = time.perf_counter() - t1
     timings["total"] = time.perf_counter() - t0
     counts.update({"coarse": n_coarse, "detail": n_detail, "moving_removed": moved_out,
-                   "total": len(gauss)})
+                   "moved_away": int(sum(len(g) for _, g in moved)), "total": len(gauss)})
     if viewpoints is not None:
         counts.update({"viewpoints": len(viewpoints), "viewpoint_gaussians": viewpoints.count})
-    actors = actors_of(drive, copies)
+    actors = actors_of(drive, copies, moved, keys)
     if actors is not None:
         counts.update({"actors": len(actors), "actor_copies": len(actors.copy_track),
                        "actor_gaussians": len(actors.gaussians)})
@@ -1031,15 +1078,21 @@ def _carve_pair(a, b, tolerance: float) -> None:
     rule, dedupe 0: another keyframe never takes over a surface here; dedupe_frames does, on voxels), when b's
     depth was measured (its keyframe had a LiDAR sweep). The model's depth from images alone is too far off to
     say that a camera of another keyframe sees through a cell: on the synthetic drive at 5 m/s without LiDAR,
-    carving by it cut trees and signs into pieces and cost 1.8 dB (docs/results.md "Drives at city speed")."""
-    from .detail import carve_against
+    carving by it cut trees and signs into pieces and cost 1.8 dB (docs/results.md "Drives at city speed").
+    A cell of a that a's own LiDAR placed (CONF_MEASURED) and b sees through was there at a's time and gone at
+    b's: it moved away (a car, a pedestrian, tracked or not). It is marked in a's moved masks (the entry's last
+    field) and drawn only around a's time (actors_of), not dropped."""
+    from .detail import CONF_MEASURED, carve_against
 
-    _, details_a, _, keep_a, _ = a
-    _, details_b, _, _, measured = b
+    _, details_a, _, keep_a, measured_a, moved_a = a
+    _, details_b, _, _, measured, _ = b
     if not measured:
         return
-    for d, keep in zip(details_a, keep_a):
+    for d, keep, gone in zip(details_a, keep_a, moved_a):
+        before = keep.copy()
         carve_against(d, details_b, keep, tolerance)
+        if measured_a:
+            gone |= before & ~keep & (d.cell_conf() == CONF_MEASURED)
 
 
 def _concat(parts: list[Gaussians]) -> Gaussians:

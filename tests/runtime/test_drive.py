@@ -351,13 +351,68 @@ def test_only_a_keyframe_with_measured_depth_carves_its_neighbours(monkeypatch):
 
     calls = []
     monkeypatch.setattr(detail, "carve_against", lambda d, others, keep, tol: calls.append((d, others, tol)))
-    a = (0, ["a0", "a1"], [], [np.ones(2, bool), np.ones(3, bool)], False)
-    b_camera_only = (1, ["b0"], [], [np.ones(1, bool)], False)
-    b_lidar = (1, ["b0"], [], [np.ones(1, bool)], True)
+    a = (0, ["a0", "a1"], [], [np.ones(2, bool), np.ones(3, bool)], False, [np.zeros(2, bool), np.zeros(3, bool)])
+    b_camera_only = (1, ["b0"], [], [np.ones(1, bool)], False, [np.zeros(1, bool)])
+    b_lidar = (1, ["b0"], [], [np.ones(1, bool)], True, [np.zeros(1, bool)])
     _carve_pair(a, b_camera_only, 0.1)
     assert calls == []
     _carve_pair(a, b_lidar, 0.1)
     assert calls == [("a0", ["b0"], 0.1), ("a1", ["b0"], 0.1)]
+
+
+def test_measured_cells_a_neighbour_sees_through_moved_away(monkeypatch):
+    """runtime.drive._carve_pair: of a's cells that b (LiDAR) sees through, those a's own LiDAR placed
+    (CONF_MEASURED) are marked as moved away (drawn around a's time); those on the model's depth are only dropped;
+    a keyframe without a sweep marks none."""
+    from xyzcyl.runtime import detail
+    from xyzcyl.runtime.drive import _carve_pair
+
+    class Cells:                                   # a camera's kept cells: their confidence, in Gaussian order
+        def __init__(self, conf):
+            self.conf = np.array(conf, np.int8)
+
+        def cell_conf(self):
+            return self.conf
+
+    def see_through(d, others, keep, tol):         # b sees through a's first two cells
+        keep[:2] = False
+
+    monkeypatch.setattr(detail, "carve_against", see_through)
+    M, C = detail.CONF_MEASURED, detail.CONF_MODEL
+    b = (1, ["b0"], [], [np.ones(1, bool)], True, [np.zeros(1, bool)])
+    for measured, want in ((True, [True, False, False, False]), (False, [False] * 4)):
+        keep, gone = np.ones(4, bool), np.zeros(4, bool)
+        a = (0, [Cells([M, C, M, C])], [], [keep], measured, [gone])
+        _carve_pair(a, b, 0.1)
+        assert keep.tolist() == [False, False, True, True]
+        assert gone.tolist() == want
+
+
+def test_moved_away_cells_are_drawn_only_around_their_keyframes_time():
+    """actors_of: one object a keyframe for its cells that moved away, in the scene's frame, drawn from halfway to
+    the keyframe before to halfway to the one after (moved_spans), so that one keyframe's are drawn at any time."""
+    from pathlib import Path
+
+    from xyzcyl.runtime.drive import MOVED_LABEL, Drive, DriveFrame, actors_of, moved_spans
+    from xyzcyl.runtime.render import Gaussians
+
+    def cells(n, x):
+        return Gaussians(np.tile(np.float32([x, 0, 1]), (n, 1)), np.tile(np.float32([1, 0, 0, 0]), (n, 1)),
+                         np.full((n, 3), -3.0, np.float32), np.zeros(n, np.float32), np.zeros((n, 1, 3), np.float32))
+
+    assert moved_spans([10.0, 11.0, 13.0], 9.5, 14.0, 0.05) == [(9.5, 10.45), (10.55, 11.95), (12.05, 14.0)]
+    assert moved_spans([10.0, 10.04], 10.0, 10.04, 0.05) == [(10.0, 10.0), (10.04, 10.04)]   # never past its time
+    frames = tuple(DriveFrame(index=i, rig_path=Path("rig.json"), rig=None, timestamp_s=10.0 + 0.1 * i,
+                              ego_to_world=np.eye(4)) for i in range(31))          # 10.0 .. 13.0 s
+    drive = Drive(frames=frames, path=None, tracks=())
+    g0, g2 = cells(5, 1.0), cells(7, 3.0)
+    actors = actors_of(drive, [], [(0, g0), (2, g2)], keys=[0, 10, 30])        # keyframes at 10, 11, 13 s
+    assert actors.track_id == ("moved@0", "moved@30") and set(actors.track_label) == {MOVED_LABEL}
+    for t, n in ((10.0, 5), (10.4, 5), (10.6, 0), (11.5, 0), (12.5, 7), (13.0, 7)):
+        g, _ = actors.at(t, 0.05)
+        assert len(g) == n, t
+    g, _ = actors.at(12.5, 0.05)
+    np.testing.assert_allclose(g.means, g2.means)                              # where it was: the scene's frame
 
 
 def test_a_drive_with_stereo_triangulates_a_keyframe_between_its_partner_frames(tmp_path, shipped):
