@@ -316,8 +316,8 @@ def moved_spans(times: Sequence[float], first_s: float, last_s: float, slack_s: 
     """Per keyframe (``times`` [K] seconds, ascending): the (first, last) times its cells that moved away are drawn
     at (runtime.actors draws an object from ``first - slack_s`` to ``last + slack_s``): from halfway to the keyframe
     before (the drive's first frame ``first_s`` for the first keyframe) to halfway to the one after (``last_s``),
-    narrowed by the slack on either side, so that at any time one keyframe's are drawn (both at a midpoint, within
-    2 x slack_s of it); never narrower than the keyframe's own time."""
+    narrowed by the slack on either side, so that at any time one keyframe's are drawn (two exactly at a
+    midpoint); never narrower than the keyframe's own time."""
     t = [float(x) for x in times]
     out = []
     for i, tk in enumerate(t):
