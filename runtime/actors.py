@@ -33,6 +33,13 @@ class ActorsError(FieldError):
     """An actors.npz that cannot be used (``field`` the array at fault)."""
 
 
+def frame_interval(times_s) -> float:
+    """A drive's median time between frames (seconds; ``times_s`` [F] ascending; 0.1 with fewer than two). An
+    object is drawn half of it beyond its first and last pose (Actors.at's slack)."""
+    d = np.diff(np.asarray(times_s, np.float64))
+    return float(np.median(d)) if len(d) else 0.1
+
+
 def _slerp(q0: np.ndarray, q1: np.ndarray, t: float) -> np.ndarray:
     """Unit quaternion (wxyz) a fraction ``t`` of the way from q0 to q1 along the shorter arc."""
     d = float(np.dot(q0, q1))

@@ -334,7 +334,7 @@ def actors_of(drive: Drive, copies: list[tuple[int, float, Gaussians]],
     cells that moved away (``moved``: (index into ``keys``, Gaussians in the scene's frame), runtime.drive's
     carving across keyframes): label MOVED_LABEL, id "moved@<frame>", its box the cells' bounds, at the scene's
     frame (identity poses) over moved_spans. None when there is neither."""
-    from .actors import Actors
+    from .actors import Actors, frame_interval
 
     moving = moving_tracks(drive)
     moved = [(n, g) for n, g in moved if len(g)]
@@ -354,8 +354,7 @@ def actors_of(drive: Drive, copies: list[tuple[int, float, Gaussians]],
     sizes = [drive.tracks[t].size for t in moving]
     if moved:
         times = [drive.frames[k].timestamp_s for k in keys]
-        dt = np.diff([f.timestamp_s for f in drive.frames])
-        slack = 0.5 * (float(np.median(dt)) if len(dt) else 0.1)          # Scene.moving_at's slack
+        slack = 0.5 * frame_interval([f.timestamp_s for f in drive.frames])     # Scene.moving_at's slack
         spans = moved_spans(times, drive.frames[0].timestamp_s, drive.frames[-1].timestamp_s, slack)
         for n, g in moved:
             a = len(ids)
@@ -1089,9 +1088,9 @@ def _carve_pair(a, b, tolerance: float) -> None:
     if not measured:
         return
     for d, keep, gone in zip(details_a, keep_a, moved_a):
-        before = keep.copy()
+        before = keep.copy() if measured_a else None
         carve_against(d, details_b, keep, tolerance)
-        if measured_a:
+        if before is not None:
             gone |= before & ~keep & (d.cell_conf() == CONF_MEASURED)
 
 

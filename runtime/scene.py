@@ -453,9 +453,10 @@ class Scene:
         return None if not self.drive else float(self.drive["timestamp_s"])
 
     def frame_interval(self) -> float:
-        """A drive's median time between frames (seconds; 0.1 without frames)."""
-        times = np.diff(self.drive.get("times_s", [])) if self.drive else []
-        return float(np.median(times)) if len(times) else 0.1
+        """A drive's median time between frames (seconds; 0.1 without frames): runtime.actors.frame_interval."""
+        from .actors import frame_interval
+
+        return frame_interval(self.drive.get("times_s", []) if self.drive else [])
 
     def timeline(self) -> tuple[np.ndarray, np.ndarray]:
         """(times_s [F] float64 seconds on the rigs' clock, ego_to_world [F, 4, 4]) of the scene's frames: a drive's
