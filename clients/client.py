@@ -1179,12 +1179,21 @@ class Client:
 
     def render_bytes(self, scene_id: str, camera: Any, output: str = "rgb", format: str = "png",
                      width: int | None = None, height: int | None = None, quality: int | None = None,
-                     move: Any = None, time: float | None = None) -> bytes:
+                     move: Any = None, time: float | None = None, actors: Any = None) -> bytes:
         """GET /v1/scenes/{id}/render: the encoded view as the server sends it (PNG, JPEG or EXR bytes). camera:
         as view_params() describes (an input camera name, OpenCV K + cam_to_ego, or a CARLA pose + fov); move: a
         camera move (a CameraMove or {forward, left, up, yaw}; view_params); time: seconds on the rigs' clock (a
-        drive's scene draws its moving objects then; None: the drive's first frame)."""
+        drive's scene draws its moving objects then; None: the drive's first frame); actors: edits of a drive's
+        actors for this view (a list of {"id", and one of "pose" (16 numbers, box -> scene frame), "offset"
+        ([forward, left, up] metres from where it is then), "hide": True; "insert": a new id draws a copy}, or
+        common.wire.ActorEdit; JSON text; docs/api.md "Actors"; the ids: actors())."""
         params = view_params(camera, width, height, move)
+        if actors is not None:
+            try:
+                edits = wire.actor_edits(actors, "actors")
+            except ViewError as e:
+                raise InvalidArgumentError(None, "invalid", str(e), e.field) from None
+            params["actors"] = json.dumps([e.wire() for e in edits], separators=(",", ":"))
         params.update(output=output, format=format)
         if quality is not None:
             params["quality"] = str(int(quality))
@@ -1197,12 +1206,24 @@ class Client:
 
     def render(self, scene_id: str, camera: Any, output: str = "rgb", format: str = "png",
                width: int | None = None, height: int | None = None, quality: int | None = None,
-               move: Any = None, time: float | None = None) -> np.ndarray:
+               move: Any = None, time: float | None = None, actors: Any = None) -> np.ndarray:
         """One view as a float32 array (decode_image): rgb [H, W, 3] 0..1 RGB; depth [H, W] metres (0 = no
         surface; png saturates at 65.535 m, use format="exr" for float depth); alpha [H, W] 0..1. Arguments as
         render_bytes."""
-        return decode_image(self.render_bytes(scene_id, camera, output, format, width, height, quality, move, time),
-                            output)
+        return decode_image(self.render_bytes(scene_id, camera, output, format, width, height, quality, move, time,
+                                              actors), output)
+
+    def actors(self, scene_id: str, time: float | None = None) -> wire.ActorList:
+        """GET /v1/scenes/{id}/actors: a drive scene's actors (wire.ActorList: id, label, tracked, size, span_s,
+        copies, gaussians; with ``time`` (seconds on the rigs' clock) each one's pose then, box -> scene frame)."""
+        params = {}
+        if time is not None:
+            if isinstance(time, bool) or not isinstance(time, (int, float)) or not math.isfinite(time):
+                raise InvalidArgumentError(None, "invalid", f"time: must be a finite number of seconds (got "
+                                                            f"{time!r:.60})", "time")
+            params["time"] = repr(float(time))
+        doc = self._json("GET", f"/v1/scenes/{_seg(scene_id)}/actors", wire.ActorList, params=params)
+        return wire.ActorList.model_validate(doc)
 
     def render_path(self, scene_id: str, camera_path: Any, output: str | None = None, format: str | None = None,
                     quality: int | None = None, decode: bool = True, progress: Progress | None = None) -> FrameBatch:

@@ -7,11 +7,21 @@ their comments say what they are."""
 from __future__ import annotations
 
 import json
+import math
 import numbers
 from collections.abc import Mapping
 from typing import Annotated, Any, Literal, get_args
 
-from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, ValidationError, WithJsonSchema
+from pydantic import (
+    BaseModel,
+    BeforeValidator,
+    ConfigDict,
+    Field,
+    StrictBool,
+    ValidationError,
+    WithJsonSchema,
+    model_validator,
+)
 from pydantic_core import PydanticCustomError
 
 from .errors import FieldError
@@ -192,6 +202,30 @@ class SceneInfo(BaseModel):
 
 
 # a page of GET /v1/scenes, newest first; next: the next page's path, null on the last page
+# one actor of a drive's scene (GET /v1/scenes/{id}/actors; runtime.actors.Actors.listing)
+class ActorInfo(BaseModel):
+    id: str = Field(description="the id a view's actors edits name (a track's id; moved@<frame> for cells that "
+                                "moved away without a track)")
+    label: str = Field(description="the track's class (Car, Pedestrian, ...); \"moved\" for cells that moved "
+                                   "away without a track")
+    tracked: bool = Field(description="from the drive's tracks (false: found moving without one)")
+    size: tuple[float, float, float] = Field(description="its box: length, width, height, metres")
+    span_s: tuple[float, float] = Field(description="its first and last recorded time, seconds on the rigs' clock "
+                                                    "(drawn half a frame interval beyond either end, unless edited)")
+    copies: int = Field(description="keyframes whose Gaussians of it are kept (a view draws the one nearest its "
+                                    "time)")
+    gaussians: int = Field(description="its Gaussians over all copies")
+    pose: tuple[float, ...] | None = Field(None, description=(
+        "with ?time=: its box -> scene frame then (16 numbers, row-major 4x4, metres; null when it is not drawn "
+        "then)"))
+
+
+# GET /v1/scenes/{id}/actors: a drive scene's actors (an empty list for any other scene)
+class ActorList(BaseModel):
+    time: float | None = Field(None, description="the ?time= the poses are at (seconds on the rigs' clock)")
+    actors: list[ActorInfo]
+
+
 class SceneList(BaseModel):
     scenes: list[SceneInfo]
     total: int
@@ -281,17 +315,23 @@ def _pose16(v: Any) -> Any:
         raise PydanticCustomError("pose", e.message) from None
 
 
+def _json_text(v: Any, kind: str, limit: int) -> Any:
+    """A query parameter's JSON text (at most ``limit`` characters) parsed; anything else as given."""
+    v = _query_text(v)
+    if isinstance(v, str):
+        if len(v) > limit:
+            raise PydanticCustomError(kind, f"at most {limit} characters")
+        try:
+            return json.loads(v)
+        except ValueError as e:
+            raise PydanticCustomError(kind, f"not valid JSON ({e})") from None
+    return v
+
+
 def _lens(v: Any) -> Any:
     """A lens as rig.json writes one: OpenCV's coefficient list, or an object with a "model" (JSON text in a
     query). Its parameters are checked where the camera is made (runtime.lenses)."""
-    v = _query_text(v)
-    if isinstance(v, str):
-        if len(v) > LENS_TEXT_MAX:
-            raise PydanticCustomError("lens", f"at most {LENS_TEXT_MAX} characters")
-        try:
-            v = json.loads(v)
-        except ValueError as e:
-            raise PydanticCustomError("lens", f"not valid JSON ({e})") from None
+    v = _json_text(v, "lens", LENS_TEXT_MAX)
     if v is None:
         return None
     if not isinstance(v, (list, dict)):
@@ -317,6 +357,94 @@ Pixels = Annotated[int, Field(ge=1), BeforeValidator(_not_bool)]
 LensJSON = Annotated[list[float] | dict[str, str | float | list[float]], BeforeValidator(_lens),
                      WithJsonSchema({"type": "string", "contentMediaType": "application/json",
                                      "maxLength": LENS_TEXT_MAX})]
+ACTOR_ID_MAX = 256          # characters of an actor's id
+ACTOR_EDITS_MAX = 256       # actor edits in one view
+ACTORS_TEXT_MAX = 65536     # characters of a view's actor edits given as JSON text (the GET query's actors)
+
+
+def _actors_json(v: Any) -> Any:
+    """A view's actor edits: a JSON list of objects (JSON text in a query)."""
+    v = _json_text(v, "actors", ACTORS_TEXT_MAX)
+    if v is not None and not isinstance(v, (list, tuple)):
+        raise PydanticCustomError("actors", 'a JSON list of edits expected ([{"id": ..., "pose" | "offset" | '
+                                            '"hide": ...}, ...])')
+    return v
+
+
+def _finite3(v: Any) -> Any:
+    if not (isinstance(v, (list, tuple)) and len(v) == 3 and all(is_real(x) and math.isfinite(x) for x in v)):
+        raise PydanticCustomError("offset", f"3 finite numbers expected (forward, left, up metres; got {v!r:.60})")
+    return v
+
+
+# one edit of a drive scene's actors for one view (ViewQuery.actors; docs/api.md "Actors"): the actor ``id`` (GET
+# /v1/scenes/{id}/actors) drawn at ``pose`` (its box -> the scene's frame) or ``offset`` from where it is at the
+# view's time, or hidden; with ``insert``, a copy of it is drawn under that new id and the actor itself stays.
+# runtime.actors checks the ids, the poses and how far they are against the scene.
+class ActorEdit(BaseModel):
+    model_config = ConfigDict(frozen=True, extra="forbid")
+
+    id: str = Field(min_length=1, max_length=ACTOR_ID_MAX, description="an actor of the scene")
+    pose: Pose16 | None = Field(None, description=(
+        "the actor's box -> the scene's frame (x along its length, y to its left, z up, origin at the box's "
+        "centre; the scene's frame is its first frame's ego frame, as cam_to_ego's): 16 numbers, row-major 4x4, "
+        "metres; drawn there at any time"))
+    offset: Annotated[tuple[float, float, float], BeforeValidator(_finite3)] | None = Field(None, description=(
+        "metres along the actor's own axes (forward, left, up) from where it is at the view's time (its recorded "
+        "pose then)"))
+    hide: StrictBool = Field(False, description="true: the actor is not drawn")
+    insert: str | None = Field(None, min_length=1, max_length=ACTOR_ID_MAX, description=(
+        "draw a copy of the actor (its Gaussians) under this new id, at pose or offset; the actor itself stays"))
+
+    @model_validator(mode="after")
+    def _one_edit(self) -> ActorEdit:
+        given = [k for k, on in (("pose", self.pose is not None), ("offset", self.offset is not None),
+                                 ("hide", self.hide)) if on]
+        if len(given) != 1:
+            raise PydanticCustomError("actor", "give exactly one of pose, offset and hide (true); got "
+                                               f"{' and '.join(given) or 'none'}")
+        if self.insert is not None and self.hide:
+            raise PydanticCustomError("actor", "insert places a copy: give it a pose or an offset, not hide")
+        return self
+
+    def wire(self) -> dict[str, Any]:
+        """The edit as JSON (the fields that are set; the pose as 16 numbers)."""
+        return self.model_dump(exclude_none=True, exclude_defaults=True) | {"id": self.id}
+
+
+ActorEdits = Annotated[tuple[ActorEdit, ...], Field(max_length=ACTOR_EDITS_MAX), BeforeValidator(_actors_json),
+                       WithJsonSchema({"type": "string", "contentMediaType": "application/json",
+                                       "maxLength": ACTORS_TEXT_MAX})]
+
+
+def field_path(loc: Any) -> str:
+    """A pydantic error's location as a field path: ("actors", 2, "pose") -> "actors[2].pose" (every front end's
+    errors name nested fields so)."""
+    out = ""
+    for x in loc:
+        out += f"[{x}]" if isinstance(x, int) else (f".{x}" if out else str(x))
+    return out
+
+
+def actor_edits(value: Any, field: str = "actors") -> tuple[ActorEdit, ...]:
+    """A view's actor edits from JSON text, a list of objects, or a path to a .json file holding the list (the
+    CLI's --actors): ViewError naming ``field`` (and the edit's path: "--actors[1].pose") otherwise."""
+    from pathlib import Path
+
+    from pydantic import TypeAdapter
+
+    if isinstance(value, str) and not value.lstrip().startswith("[") and value.endswith(".json"):
+        try:
+            value = Path(value).read_text(encoding="utf-8")
+        except (OSError, UnicodeDecodeError) as e:
+            raise ViewError(field, f"cannot read {value!r} ({e})") from None
+    try:
+        return TypeAdapter(ActorEdits).validate_python(value)
+    except ValidationError as e:
+        first = e.errors()[0]
+        raise ViewError(field_path((field, *first["loc"])), first["msg"]) from None
+
+
 _MOVE = {f.name: f for f in MOVE_FIELDS}
 _WITH_POSE = "with camera or cam_to_ego"
 
@@ -364,6 +492,10 @@ class ViewQuery(BaseModel):
     time: float | None = Field(None, allow_inf_nan=False, description=(
         "seconds on the rigs' clock: a drive's scene draws its moving objects where they were then (default: its "
         "first frame); a one-rig scene is the same at every time"))
+    actors: ActorEdits | None = Field(None, description=(
+        "a drive scene's actors edited for this view: a JSON list of {\"id\", and one of \"pose\" (16 numbers, "
+        "box -> scene), \"offset\" ([forward, left, up] metres from its recorded pose), \"hide\": true; "
+        "\"insert\": a new id draws a copy} (JSON text in a query; docs/api.md \"Actors\")"))
 
     def _yaw_is_the_moves(self) -> bool:
         return self.camera is not None or self.cam_to_ego is not None
@@ -390,6 +522,8 @@ class ViewQuery(BaseModel):
                 out[name] = ",".join(repr(float(x)) for x in v)
             elif name == "distortion":
                 out[name] = json.dumps(v, separators=(",", ":"))
+            elif name == "actors":
+                out[name] = json.dumps([e.wire() for e in v], separators=(",", ":"))
             elif isinstance(v, float):
                 out[name] = repr(v)
             else:
@@ -443,11 +577,12 @@ class ViewQuery(BaseModel):
         if "distortion" in item and "transform" not in item:
             flat["distortion"] = item["distortion"]
         flat.update(move)
-        if "time" in item:              # any kind of item (a CARLA sensor's too)
-            flat["time"] = item["time"]
-            names["time"] = f"{where}.time"
+        for k in ("time", "actors"):    # any kind of item (a CARLA sensor's too)
+            if k in item:
+                flat[k] = item[k]
+                names[k] = f"{where}.{k}"
         for k, v in flat.items():      # JSON's true and "70" are not numbers (pydantic's lax mode would take them)
-            if k not in ("camera", "cam_to_ego", "distortion") and (isinstance(v, (bool, str))):
+            if k not in ("camera", "cam_to_ego", "distortion", "actors") and (isinstance(v, (bool, str))):
                 what = f"an integer in 1..{MAX_SIZE}" if k in ("width", "height") else "a finite number"
                 raise ViewError(names[k], f"must be {what} (got {v!r:.60})")
         return validated(flat, names), names
@@ -459,9 +594,9 @@ ITEM_KINDS = ('{"K", "cam_to_ego", "width", "height"[, "distortion"]} (OpenCV), 
               'sensor) or {"camera"[, "width", "height", "distortion"]} (an input camera of the scene); the OpenCV '
               'and input-camera items also take a move: "forward", "left", "up" (metres), "yaw" (degrees to the '
               'left)')
-_OPENCV_K_KEYS = ("K", "cam_to_ego", "width", "height", "distortion", "name", *MOVE_NAMES, "time")
-_OPENCV_FOV_KEYS = ("fov", "cam_to_ego", "width", "height", "distortion", "name", *MOVE_NAMES, "time")
-_RIG_KEYS = ("camera", "width", "height", "distortion", "name", *MOVE_NAMES, "time")
+_OPENCV_K_KEYS = ("K", "cam_to_ego", "width", "height", "distortion", "name", *MOVE_NAMES, "time", "actors")
+_OPENCV_FOV_KEYS = ("fov", "cam_to_ego", "width", "height", "distortion", "name", *MOVE_NAMES, "time", "actors")
+_RIG_KEYS = ("camera", "width", "height", "distortion", "name", *MOVE_NAMES, "time", "actors")
 
 
 def validated(values: Mapping[str, Any], names: Mapping[str, str] | None = None) -> ViewQuery:
@@ -471,8 +606,10 @@ def validated(values: Mapping[str, Any], names: Mapping[str, str] | None = None)
         return ViewQuery(**values)
     except ValidationError as e:
         first = e.errors()[0]
-        key = str(first["loc"][0]) if first["loc"] else "query"
-        raise ViewError((names or {}).get(key, key), first["msg"]) from None
+        loc = first["loc"]
+        key = str(loc[0]) if loc else "query"
+        # a nested field's path: ("actors", 2, "pose") -> "actors[2].pose" (its root named by ``names``)
+        raise ViewError(field_path(((names or {}).get(key, key), *loc[1:])), first["msg"]) from None
 
 
 def _get(item: Mapping[str, Any], key: str, where: str) -> Any:
@@ -507,7 +644,7 @@ def move_of(query: ViewQuery, names: Mapping[str, str] | None = None) -> CameraM
     except MoveError as e:
         raise ViewError((names or {}).get(e.field, e.field), e.message) from None
 
-__all__ = ["LOCAL_OUTPUTS", "MAX_RENDER_PIXELS", "MAX_SIZE", "render_limit", "DETAIL_STRIDE_MAX", "DETAIL_STRIDE_MIN", "FORMATS", "ITEM_KINDS", "MEDIA_TYPES",
+__all__ = ["ACTOR_EDITS_MAX", "ActorEdit", "ActorEdits", "ActorInfo", "ActorList", "actor_edits", "field_path", "LOCAL_OUTPUTS", "MAX_RENDER_PIXELS", "MAX_SIZE", "render_limit", "DETAIL_STRIDE_MAX", "DETAIL_STRIDE_MIN", "FORMATS", "ITEM_KINDS", "MEDIA_TYPES",
            "OUTPUTS", "Format", "LensJSON", "Output", "Pose16", "ViewError", "ViewQuery", "detail_stride_error",
            "move_of", "validated", "STATES", "BatchIndex", "CameraInfo", "DetailInfo", "DRIVE_PART", "DriveInfo",
            "ErrorBody", "FRAME_PARTS", "KEYFRAME_PARAMS", "frame_part", "is_drive_document", "is_drive_file", "keyframe_error",

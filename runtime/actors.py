@@ -17,15 +17,19 @@ from __future__ import annotations
 
 import math
 import os
-from dataclasses import dataclass
+from collections.abc import Sequence
+from dataclasses import dataclass, field
 
 import numpy as np
+from xyzcyl.common.wire import ActorEdit, ViewError
 
-from .errors import FieldError
+from .camera import check_pose
+from .errors import CameraError, FieldError
 from .render import Gaussians
 from .rotations import quat_to_rotmat, rotmats_to_quats
 
 ACTORS_NAME = "actors.npz"
+MOVED_LABEL = "moved"          # the label of a keyframe's cells that moved away without a track (runtime.drive)
 FIELDS = ("means", "quats", "log_scales", "opacity_logits", "sh")
 
 
@@ -64,6 +68,7 @@ class Actors:
     copy_time: np.ndarray         # [C] float64 seconds: the keyframe's time
     copy_start: np.ndarray        # [C + 1] int: copy c is Gaussians copy_start[c]:copy_start[c + 1]
     gaussians: Gaussians          # the copies' Gaussians, each in its object's box frame
+    _ids: dict[str, int] | None = field(default=None, init=False, repr=False, compare=False)
 
     def __len__(self) -> int:
         return len(self.track_id)
@@ -94,16 +99,107 @@ class Actors:
         out[:3, :3] = quat_to_rotmat(q)
         return out
 
-    def at(self, time_s: float, slack_s: float) -> tuple[Gaussians, list[int]]:
-        """The Gaussians of every object drawn at ``time_s`` (scene frame) and which objects those are."""
-        parts, drawn = [], []
-        for a in range(len(self)):
-            T = self.pose_at(a, time_s, slack_s)
-            copies = np.flatnonzero(self.copy_track == a)
-            if T is None or not len(copies):
+    def index(self, actor_id: str) -> int | None:
+        """The index of the object ``actor_id``, None when the scene has none so named."""
+        if self._ids is None:
+            object.__setattr__(self, "_ids", {a: i for i, a in enumerate(self.track_id)})
+        return self._ids.get(actor_id)
+
+    def placements(self, time_s: float, slack_s: float, edits: Sequence[ActorEdit] = (),
+                   reach: tuple[np.ndarray, float] | None = None, field: str = "actors"
+                   ) -> list[tuple[int, np.ndarray]]:
+        """(object, box -> scene [4, 4]) of every object drawn at ``time_s``: each at its recorded pose then
+        (pose_at: none outside its span), with ``edits`` (common.wire.ActorEdit, a view's ``actors``) applied: an
+        edited object at its ``pose`` (at any time) or ``offset`` (metres along its own axes from its recorded pose
+        then), or not at all (``hide``); an edit with ``insert`` adds a copy of its object at that pose, the object
+        itself untouched. ``reach``: (positions [P, 3] metres, scene frame; R metres): a pose farther than R from
+        every position is refused (a pose kilometres away is a mistake in the caller's frame, not a place). Each
+        refusal a ViewError naming the edit's field (``field``[i].id, .pose, .offset, .insert)."""
+        edited: dict[int, np.ndarray | None] = {}
+        inserted: list[tuple[int, np.ndarray]] = []
+        names: set[str] = set()
+        for i, e in enumerate(edits):
+            where = f"{field}[{i}]"
+            a = self.index(e.id)
+            if a is None:
+                known = ", ".join(self.track_id[:5]) + (f", ... ({len(self)} in all)" if len(self) > 5 else "")
+                raise ViewError(f"{where}.id", f"no actor {e.id!r} in the scene (GET .../actors lists them: "
+                                               f"{known or 'none'})")
+            if e.insert is not None:
+                if e.insert in names or self.index(e.insert) is not None:
+                    raise ViewError(f"{where}.insert", f"{e.insert!r} is already an actor of this view (a new id "
+                                                       f"is needed)")
+                names.add(e.insert)
+            elif a in edited:
+                raise ViewError(f"{where}.id", f"{e.id!r} is edited twice in this view")
+            if e.hide:
+                edited[a] = None
                 continue
-            c = int(copies[np.argmin(np.abs(self.copy_time[copies] - time_s))])
-            g = self.gaussians.subset(np.arange(self.copy_start[c], self.copy_start[c + 1]))
+            if e.pose is not None:
+                try:        # a rotation and a translation (runtime.camera.check_pose)
+                    T = check_pose(e.pose, key=f"{where}.pose")
+                except CameraError as err:
+                    raise ViewError(f"{where}.pose", err.message) from None
+            else:
+                here = self.pose_at(a, time_s, slack_s)
+                if here is None:
+                    lo, hi = self.span(a)
+                    raise ViewError(f"{where}.offset", f"{e.id!r} is not in the scene at {time_s:.3f} s (its "
+                                                       f"span is {lo:.3f}..{hi:.3f} s): give a pose")
+                T = here.copy()
+                T[:3, 3] = here[:3, 3] + here[:3, :3] @ np.asarray(e.offset, np.float64)
+            if reach is not None and len(reach[0]):
+                d = float(np.linalg.norm(np.asarray(reach[0], np.float64) - T[:3, 3], axis=1).min())
+                if d > reach[1]:
+                    key = "pose" if e.pose is not None else "offset"
+                    raise ViewError(f"{where}.{key}", f"puts {e.id!r} {d:.0f} m from the drive (at most "
+                                                      f"{reach[1]:.0f} m; poses are in the scene's frame)")
+            if e.insert is not None:
+                inserted.append((a, T))
+            else:
+                edited[a] = T
+        out = []
+        for a in range(len(self)):
+            T = edited[a] if a in edited else self.pose_at(a, time_s, slack_s)
+            if T is not None:
+                out.append((a, T))
+        return out + inserted
+
+    def listing(self, time_s: float | None = None, slack_s: float = 0.0) -> list[dict]:
+        """Every object as common.wire.ActorInfo's fields: id, label, tracked (False: cells that moved away without
+        a track, label MOVED), size (metres: length, width, height), span_s (first, last annotated time),
+        copies, gaussians; with ``time_s`` also its pose then (16 numbers row-major, box -> scene frame; None when
+        it is not drawn then)."""
+        counts = np.diff(self.copy_start)
+        out = []
+        for a in range(len(self)):
+            mine = self.copy_track == a
+            row = {"id": self.track_id[a], "label": self.track_label[a],
+                   "tracked": self.track_label[a] != MOVED_LABEL,
+                   "size": [round(float(x), 4) for x in self.track_size[a]],
+                   "span_s": [round(t, 6) for t in self.span(a)], "copies": int(mine.sum()),
+                   "gaussians": int(counts[mine].sum())}
+            if time_s is not None:
+                T = self.pose_at(a, time_s, slack_s)
+                row["pose"] = None if T is None else [round(float(x), 9) + 0.0 for x in T.ravel()]
+            out.append(row)
+        return out
+
+    def copy_of(self, a: int, time_s: float) -> Gaussians:
+        """Object a's Gaussians in its box frame: its copy from the keyframe nearest ``time_s`` (empty without)."""
+        copies = np.flatnonzero(self.copy_track == a)
+        if not len(copies):
+            return Gaussians.empty(self.gaussians.sh_degree)
+        c = int(copies[np.argmin(np.abs(self.copy_time[copies] - time_s))])
+        return self.gaussians.slice(int(self.copy_start[c]), int(self.copy_start[c + 1]))
+
+    def at(self, time_s: float, slack_s: float, edits: Sequence[ActorEdit] = (),
+           reach: tuple[np.ndarray, float] | None = None) -> tuple[Gaussians, list[int]]:
+        """The Gaussians of every object drawn at ``time_s`` (scene frame; placements, with ``edits``) and which
+        objects those are (an inserted copy: its object's index)."""
+        parts, drawn = [], []
+        for a, T in self.placements(time_s, slack_s, edits, reach):
+            g = self.copy_of(a, time_s)
             if len(g):
                 parts.append(g.transformed(T))
                 drawn.append(a)
@@ -146,4 +242,4 @@ class Actors:
                    gaussians=Gaussians(*(d[k] for k in FIELDS)))
 
 
-__all__ = ["ACTORS_NAME", "Actors", "ActorsError"]
+__all__ = ["ACTORS_NAME", "MOVED_LABEL", "Actors", "ActorsError", "frame_interval"]

@@ -57,6 +57,7 @@ from typing import Any
 import numpy as np
 from xyzcyl.common.wire import is_drive_file
 
+from .actors import MOVED_LABEL
 from .boxes import box_members, inside_boxes
 from .camera import check_pose
 from .egobody import EgoBody
@@ -309,7 +310,6 @@ def moving_boxes(drive: Drive, k: int) -> list[tuple[int, np.ndarray, np.ndarray
     return out
 
 
-MOVED_LABEL = "moved"          # the label of a keyframe's cells that moved away without a track (moved_spans)
 
 
 def moved_spans(times: Sequence[float], first_s: float, last_s: float, slack_s: float) -> list[tuple[float, float]]:

@@ -24,6 +24,7 @@ import datetime as _dt
 import json
 import math
 import os
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -31,6 +32,7 @@ from typing import Any
 import numba
 import numpy as np
 from xyzcyl.common.files import atomic_folder
+from xyzcyl.common.wire import ActorEdit, ViewError
 
 from .actors import Actors, ActorsError
 from .camera import Camera, rig_camera
@@ -52,6 +54,7 @@ ACTORS_NAME = "actors.npz"         # runtime.actors.Actors (a drive's moving obj
 OWN_VIEWS_NAME = "own_views.npz"   # runtime.detail.OwnViews (scenes with the detail layer)
 KEYFRAME_OF_NAME = "keyframe_of.npy"   # Scene.keyframe_of (drives of several keyframes)
 EXPOSURE_CONE_DEG = 30.0           # a view within this of an input camera's axis gets its exposure (runtime.exposure)
+ACTOR_REACH_M = 1000.0             # an edited actor is placed within this of the drive's path (a view's actors)
 PRIMARY_SLACK_M = 0.25             # keyframes whose cameras stood within this of the nearest one's: the view's time
 #                                    picks among them (a still ego's keyframes stand in one place)
 OWN_POSE_TOL = (1e-3, 1e-4)        # (metres, rotation matrix entries): a view this close to an input camera's pose is
@@ -335,8 +338,8 @@ class Scene:
                 return k
         return None
 
-    def render(self, camera: Camera, time_s: float | None = None, background: Any = "scene", **options
-               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def render(self, camera: Camera, time_s: float | None = None, background: Any = "scene",
+               actors: Sequence[ActorEdit] = (), **options) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(rgb [H, W, 3], depth [H, W], alpha [H, W]) float32 of this scene seen by ``camera`` at ``time_s``
         (render_view), over ``background`` ("scene": the scene's panorama; else the renderer's: None, an RGB or an
         image). A drive's scene of several keyframes is drawn in layers, each over what the ones before leave open
@@ -349,18 +352,19 @@ class Scene:
         and another keyframe's copy of the same wall a few centimetres off (its depth, its exposure) would otherwise
         show through in patches; the nearer a keyframe stood, the closer its copy is to what the view sees. The
         others fill what the primary one did not see: behind parked cars, the road it had not reached. A scene
-        without chunks (written before them) draws the primary keyframe's shared Gaussians over the rest."""
+        without chunks (written before them) draws the primary keyframe's shared Gaussians over the rest.
+        ``actors``: the view's edits of the moving objects (moving_at)."""
         if isinstance(background, str) and background == "scene":
             bg = self.background.render(camera) if self.background is not None else None
         else:
             bg = background
         k = self.primary_keyframe(camera, time_s)
         if k is None:
-            moving = self.moving_at(time_s)
+            moving = self.moving_at(time_s, actors)
             r = render([self.gaussians_for(camera)] + ([moving] if moving is not None else []), camera,
                        background=bg, **options)
             return r.rgb, r.depth, r.alpha
-        rgb, depth, alpha = self._layers(camera, k, time_s, bg, options)
+        rgb, depth, alpha = self._layers(camera, k, time_s, bg, options, actors)
         gain = self.exposure_gain(camera, k)
         if gain is not None:
             rgb = (rgb * gain.astype(np.float32)).astype(np.float32)
@@ -386,14 +390,14 @@ class Scene:
             return None
         return np.asarray(ex["gains"][k][ex["cameras"].index(best)], np.float64)
 
-    def _layers(self, camera: Camera, k: int, time_s: float | None, bg: Any, options: dict
-                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def _layers(self, camera: Camera, k: int, time_s: float | None, bg: Any, options: dict,
+                actors: Sequence[ActorEdit] = ()) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """A drive's view in layers (Scene.render) with primary keyframe ``k``, before the exposure gain. Each layer
         is a list of keyframes' runs of the (keyframe-sorted) Gaussians, chunks and moving objects, drawn as their
         concatenation without copying them (runtime.render: several sets)."""
         g = self.gaussians_for(camera)
         bounds = self.keyframe_bounds()
-        moving = self.moving_at(time_s)
+        moving = self.moving_at(time_s, actors)
         moving = [moving] if moving is not None else []
 
         def runs(keys) -> list[Gaussians]:
@@ -473,26 +477,52 @@ class Scene:
         pose = np.eye(4) if self.rig.ego_to_world is None else np.asarray(self.rig.ego_to_world, np.float64)
         return np.array([t]), pose[None].copy()
 
-    def gaussians_at(self, camera, time_s: float | None = None) -> Gaussians:
+    def gaussians_at(self, camera, time_s: float | None = None, actors: Sequence[ActorEdit] = ()) -> Gaussians:
         """The Gaussians ``camera`` sees at ``time_s`` (seconds on the rigs' clock; default the drive's first frame):
-        the static scene (gaussians_for) and the moving objects drawn at that time (moving_at). A scene without
-        actors is the same at every time."""
+        the static scene (gaussians_for) and the moving objects drawn at that time (moving_at, with the edits
+        ``actors``). A scene without actors is the same at every time."""
         g = self.gaussians_for(camera)
-        moving = self.moving_at(time_s)
+        moving = self.moving_at(time_s, actors)
         if moving is None:
             return g
         from .detail import concat_gaussians
 
         return concat_gaussians([g, moving])
 
-    def moving_at(self, time_s: float | None = None) -> Gaussians | None:
-        """A drive's moving objects drawn at ``time_s`` (runtime.actors; default the drive's first frame), None when
+    def moving_at(self, time_s: float | None = None, actors: Sequence[ActorEdit] = ()) -> Gaussians | None:
+        """A drive's moving objects drawn at ``time_s`` (runtime.actors; default the drive's first frame) with the
+        view's edits ``actors`` (common.wire.ActorEdit: moved, hidden, inserted; check_actors' refusals), None when
         there are none then."""
         if self.actors is None:
+            self.check_actors(actors, time_s)
             return None
         t = self.start_time() if time_s is None else float(time_s)
-        moving, _ = self.actors.at(t, 0.5 * self.frame_interval())
+        moving, _ = self.actors.at(t, 0.5 * self.frame_interval(), actors, self.actor_reach())
         return moving if len(moving) else None
+
+    def actor_list(self, time_s: float | None = None) -> dict[str, Any]:
+        """common.wire.ActorList's fields: {"time": time_s, "actors": [runtime.actors.Actors.listing's rows]} (each
+        actor's pose at ``time_s`` when given); no actors: an empty list."""
+        rows = [] if self.actors is None else self.actors.listing(time_s, 0.5 * self.frame_interval())
+        return {"time": time_s, "actors": rows}
+
+    def actor_reach(self) -> tuple[np.ndarray, float]:
+        """(the drive's ego positions [F, 3] metres, scene frame; ACTOR_REACH_M): an edited actor is placed within
+        that distance of one of them (runtime.actors.Actors.placements)."""
+        traj = np.asarray((self.drive or {}).get("trajectory", np.eye(4)), np.float64).reshape(-1, 4, 4)
+        return traj[:, :3, 3], ACTOR_REACH_M
+
+    def check_actors(self, actors: Sequence[ActorEdit], time_s: float | None = None, field: str = "actors") -> None:
+        """Refuse a view's actor edits this scene cannot honour (ViewError naming ``field``[i] and the key: an
+        unknown id, an offset outside the actor's time span, a pose that is no rigid transform or farther than
+        ACTOR_REACH_M from the drive, a new id already taken); the service asks before it renders."""
+        if not actors:
+            return
+        if self.actors is None:
+            raise ViewError(f"{field}[0].id", "this scene has no actors (a drive reconstructed with tracks has its "
+                                              "moving objects as actors)")
+        t = self.start_time() if time_s is None else float(time_s)
+        self.actors.placements(t, 0.5 * self.frame_interval(), actors, self.actor_reach(), field)
 
     def gaussians_for(self, camera) -> Gaussians:
         """The Gaussians as ``camera`` sees them: at an input camera's own pose its own view (runtime.detail.OwnViews:

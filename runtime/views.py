@@ -36,6 +36,7 @@ from xyzcyl.common.wire import (
     LOCAL_OUTPUTS,
     MEDIA_TYPES,
     OUTPUTS,
+    ActorEdit,
     ViewError,
     ViewQuery,
     move_of,
@@ -146,7 +147,7 @@ def request(query: ViewQuery, rig: Rig | None = None, names: Mapping[str, str] |
     "all"), format and quality (errors named by ``names``)."""
     cam = resolve(query, rig, names)
     try:
-        return ViewRequest(cam, output or query.output, query.format, query.quality, query.time)
+        return ViewRequest(cam, output or query.output, query.format, query.quality, query.time, query.actors or ())
     except ViewError as e:
         raise ViewError((names or {}).get(e.field, e.field), e.message) from None
 
@@ -302,13 +303,14 @@ def _check_count(field: str, n: int, max_frames: int | None) -> None:
 
 def cameras_from_batch(doc: Mapping[str, Any], rig: Rig | None = None, max_frames: int | None = None
                        ) -> list[Camera]:
-    """The cameras of views_from_batch (their times left out)."""
-    return [c for c, _ in views_from_batch(doc, rig, max_frames)]
+    """The cameras of views_from_batch (their times and actor edits left out)."""
+    return [c for c, _, _ in views_from_batch(doc, rig, max_frames)]
 
 
 def views_from_batch(doc: Mapping[str, Any], rig: Rig | None = None, max_frames: int | None = None
-                     ) -> list[tuple[Camera, float | None]]:
-    """The cameras of a batch request (all in the ego frame), in order. ``doc`` is either
+                     ) -> list[tuple[Camera, float | None, tuple[ActorEdit, ...]]]:
+    """The views of a batch request, in order: (camera (ego frame), time (seconds or None), actor edits (common.
+    wire.ActorEdit; an item's "actors")). ``doc`` is either
 
     (a) {"cameras": [item, ...]}, each item one of
         {"K": [[3x3]] or 9 numbers, "cam_to_ego": [[4x4]] or 16 numbers, "width", "height"}   OpenCV K (pixels)
@@ -319,7 +321,8 @@ def views_from_batch(doc: Mapping[str, Any], rig: Rig | None = None, max_frames:
                                                                "distortion": its pose and K through that lens)
       (an optional "name" is allowed in the OpenCV and input-camera items, and a camera move "forward", "left",
       "up" (metres along ego x, y, z), "yaw" (degrees to the left), applied by move_camera, and every item a "time"
-      (seconds on the rigs' clock: a drive's moving objects then); CARLA items may carry CARLA's other sensor
+      (seconds on the rigs' clock: a drive's moving objects then) and "actors" (a list of edits of them:
+      common.wire.ActorEdit); CARLA items may carry CARLA's other sensor
       attributes but no move; other keys are refused, so a misspelt field is not silently dropped). Each item is a common.wire.ViewQuery (ViewQuery.from_item), resolved by resolve; or
     (b) a nerfstudio camera_path.json: {"render_width", "render_height", ["camera_type"], "camera_path":
         [{"camera_to_world": 16 numbers row-major, OpenGL camera axes, world = ego; "fov": VERTICAL degrees;
@@ -341,7 +344,7 @@ def views_from_batch(doc: Mapping[str, Any], rig: Rig | None = None, max_frames:
             cams = convert.cameras_from_nerfstudio_path(doc)
         except convert.ConversionError as e:
             raise _from_conversion(e) from None
-        return [(rig_camera(c), None) for c in cams]
+        return [(rig_camera(c), None, ()) for c in cams]
     if "cameras" not in doc:
         raise ViewError("cameras", "is missing")
     items = doc["cameras"]
@@ -351,7 +354,7 @@ def views_from_batch(doc: Mapping[str, Any], rig: Rig | None = None, max_frames:
     out = []
     for i, item in enumerate(items):
         query, names = ViewQuery.from_item(item, f"cameras[{i}]")
-        out.append((resolve(query, rig, names), query.time))
+        out.append((resolve(query, rig, names), query.time, query.actors or ()))
     return out
 
 
@@ -367,6 +370,7 @@ class ViewRequest:
     format: str = "png"      # png | jpeg | exr (jpeg cannot hold depth)
     quality: int = 90        # JPEG quality 1..100 (kept, and part of key(), for every format)
     time_s: float | None = None   # seconds on the rigs' clock (a drive's moving objects; None: the scene's start)
+    actors: tuple[ActorEdit, ...] = ()   # the view's edits of a drive's moving objects (Scene.check_actors)
 
     def __post_init__(self) -> None:
         if not isinstance(self.camera, Camera):
@@ -379,6 +383,8 @@ class ViewRequest:
         if isinstance(q, (bool, np.bool_)) or not isinstance(q, (int, np.integer)) or not 1 <= int(q) <= 100:
             raise ViewError("quality", f"must be an integer in 1..100 (got {_short(q)})")
         object.__setattr__(self, "quality", int(q))
+        if not isinstance(self.actors, tuple) or not all(isinstance(e, ActorEdit) for e in self.actors):
+            raise ViewError("actors", "expected a tuple of common.wire.ActorEdit")
         if self.output == "all" and self.format != "exr":
             raise ViewError("output", "all (R G B A Z float32 channels) needs format exr")
         if self.format == "jpeg" and self.output == "depth":
@@ -415,6 +421,9 @@ class ViewRequest:
                "quality": self.quality}
         if self.time_s is not None:       # only when given: a request without a time keeps its key
             out["time_s"] = round(float(self.time_s), 6)
+        if self.actors:                   # likewise: the edits in their order, poses rounded as cam_to_ego
+            out["actors"] = [{**e.wire(), **({"pose": rounded(e.pose)} if e.pose is not None else {})}
+                             for e in self.actors]
         return out
 
     def key(self) -> str:
@@ -505,7 +514,7 @@ def encode_view(rgb, depth, alpha, request: ViewRequest) -> bytes:
 def render_request(scene: Scene, request: ViewRequest, **options) -> bytes:
     """Render ``request.camera`` with runtime.scene.render_view (Gaussians over the background panorama;
     ``options`` are the renderer's RenderOptions) and encode it with encode_view."""
-    rgb, depth, alpha = render_view(scene, request.camera, time_s=request.time_s, **options)
+    rgb, depth, alpha = render_view(scene, request.camera, time_s=request.time_s, actors=request.actors, **options)
     return encode_view(rgb, depth, alpha, request)
 
 

@@ -27,6 +27,7 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse, Response
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.requests import ClientDisconnect
+from xyzcyl.common.wire import field_path
 
 from .deps import service_of
 from .errors import ApiError, TooLarge, error_body
@@ -126,8 +127,8 @@ def _install_handlers(app: FastAPI) -> None:
     async def _validation(request: Request, exc: RequestValidationError):
         errs = exc.errors()
         first = errs[0] if errs else {}
-        loc = [str(x) for x in first.get("loc", ()) if x not in ("query", "path", "body", "header")]
-        field_name = ".".join(loc) or None
+        loc = [x for x in first.get("loc", ()) if x not in ("query", "path", "body", "header")]
+        field_name = field_path(loc) or None
         msg = first.get("msg", "invalid request")
         return _json_error(422, "invalid", f"{field_name}: {msg}" if field_name else msg, field_name)
 

@@ -370,6 +370,12 @@ class Service:
                            code="no_background")
         return await self.scene_file(sid, "background.png" if format == "png" else "background.exr")
 
+    async def actors(self, sid: str, time_s: float | None = None) -> dict:
+        """A ready scene's actors (runtime.scene.Scene.actor_list: wire.ActorList's fields; their poses at
+        ``time_s`` when given), from the loaded scene (in the render pool)."""
+        await self.ready_record(sid)
+        return await self.renders.run(lambda: self.load_scene(sid).actor_list(time_s))
+
     def load_scene(self, sid: str):
         """The loaded runtime Scene of a ready scene (from the scene cache), in a worker thread."""
         from xyzcyl.runtime.scene import Scene, SceneError
@@ -417,9 +423,18 @@ class Service:
         try:
             req = request_of(query, rig)
             self.check_size(req.camera)
+            if req.actors:
+                await self.renders.run(self.check_actors, sid, [(req, "actors")])
         except ViewError as e:
             raise Invalid(str(e), e.field) from None
         return req, self.view_key(sid, req)
+
+    def check_actors(self, sid: str, items: list[tuple[ViewRequest, str]]) -> None:
+        """ViewError for a view's actor edits the scene cannot honour (runtime.scene.Scene.check_actors: unknown
+        ids, poses beyond the drive), naming each request's field (``actors``, ``cameras[i].actors``)."""
+        scene = self.load_scene(sid)
+        for req, name in items:
+            scene.check_actors(req.actors, req.time_s, name)
 
     async def render(self, sid: str, req: ViewRequest, key: str, force: bool = False) -> bytes:
         """The encoded view (from the render cache, else rendered in the render pool; Busy when it is full, unless
@@ -458,10 +473,13 @@ class Service:
         rig = await self.renders.run(self._rig, sid)
         try:
             views = views_from_batch(doc, rig=rig, max_frames=self.settings.max_batch_frames)
-            for i, (c, _) in enumerate(views):
+            for i, (c, _, _) in enumerate(views):
                 self.check_size(c, f"cameras[{i}]")
-            reqs = [ViewRequest(camera=c, output=opts["output"], format=opts["format"], quality=q, time_s=t)
-                    for c, t in views]
+            reqs = [ViewRequest(camera=c, output=opts["output"], format=opts["format"], quality=q, time_s=t,
+                                actors=edits) for c, t, edits in views]
+            edited = [(r, f"cameras[{i}].actors") for i, r in enumerate(reqs) if r.actors]
+            if edited:
+                await self.renders.run(self.check_actors, sid, edited)
         except ViewError as e:
             raise Invalid(str(e), e.field) from None
         if self.renders.busy():

@@ -103,6 +103,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     p.add_argument("--time", type=float, default=None, metavar="T",
                    help="seconds on the rigs' clock: a drive's scene draws its moving objects then (default the "
                         "drive's first frame)")
+    p.add_argument("--actors", default=None, metavar="JSON|FILE.json",
+                   help="a drive scene's actors edited for this view: a JSON list of {\"id\", and one of \"pose\" "
+                        "(16 numbers, box -> scene frame), \"offset\" ([forward, left, up] metres), \"hide\": "
+                        "true; \"insert\": a new id draws a copy}, or a .json file holding it (`xyzcyl client "
+                        "actors SCENE_ID` lists them)")
     p.add_argument("--width", type=int, metavar="W", help="pixels (required unless --camera; with --camera: resize)")
     p.add_argument("--height", type=int, metavar="H", help="pixels (as --width)")
     p.add_argument("--output", choices=OUTPUTS, default="rgb",
@@ -131,6 +136,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     p.add_argument("--out", required=True, metavar="FILE",
                    help="scene.ply (3DGS binary PLY) or scene.splat (antimatter15)")
     p.add_argument("--format", choices=("ply", "splat"), default=None, help="default: from the extension")
+
+    p = sub.add_parser("actors", parents=[common], help="list a drive scene's actors (JSON)",
+                       description="Print GET /v1/scenes/{id}/actors: each moving object's id, label, box size, "
+                                   "time span and Gaussians; with --time, its pose then (box -> scene frame).")
+    p.add_argument("scene", metavar="SCENE_ID", help=_SCENE_HELP)
+    p.add_argument("--time", type=float, default=None, metavar="T", help="seconds on the rigs' clock: poses then")
 
     p = sub.add_parser("scene", parents=[common], help="print a scene's JSON")
     p.add_argument("scene", metavar="SCENE_ID", help=_SCENE_HELP)
@@ -297,9 +308,27 @@ def _render(c, args) -> int:
         raise _UsageError(e.field, e.message) from None
     camera, move = _pose(args)
     data = c.render_bytes(args.scene, camera, output=args.output, format=fmt, width=args.width,
-                          height=args.height, quality=args.quality, move=move, time=args.time)
+                          height=args.height, quality=args.quality, move=move, time=args.time,
+                          actors=_actors_arg(args.actors))
     _write_atomic(out, data)
     _say(args, f"wrote {out} ({len(data)} bytes, {args.output} {fmt})")
+    return 0
+
+
+def _actors_arg(value: str | None):
+    """--actors: the edits (common.wire.actor_edits reads JSON text or a .json file), a _UsageError naming the flag."""
+    from xyzcyl.common.wire import ViewError, actor_edits
+
+    if value is None:
+        return None
+    try:
+        return actor_edits(value, "--actors")
+    except ViewError as e:
+        raise _UsageError(e.field, e.message) from None
+
+
+def _actors(c, args) -> int:
+    print(json.dumps(c.actors(args.scene, args.time).model_dump(), indent=1))
     return 0
 
 
@@ -381,7 +410,7 @@ def _delete(c, args) -> int:
 
 
 _ACTIONS = {"reconstruct": _reconstruct, "render": _render, "path": _path, "gaussians": _gaussians,
-            "scene": _scene, "scenes": _scenes, "delete": _delete}
+            "scene": _scene, "scenes": _scenes, "delete": _delete, "actors": _actors}
 
 
 def run(args: argparse.Namespace) -> int:

@@ -31,6 +31,11 @@ def _eval_real():
     return eval_real
 
 
+def _actors():
+    from . import actors
+    return actors
+
+
 def _export():
     from . import export
     return export
@@ -44,6 +49,7 @@ COMMANDS: tuple[Command, ...] = (
     Command("lidar-eval", "depth of a reconstruction against a LiDAR sweep of the same timestamp (no torch)",
             _lidar_eval),
     Command("eval-real", "input / novel views of real rigs (no torch)", _eval_real),
+    Command("actors", "list a drive scene folder's actors (the moving objects a render can move, hide, insert)", _actors),
     Command("export", "export a scene folder for other tools (USDZ, glTF, SPZ): not available yet", _export),
 )
 

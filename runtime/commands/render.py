@@ -66,6 +66,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--time", type=float, default=None, metavar="T",
                         help="seconds on the rigs' clock: a drive's scene draws its moving objects where they were "
                              "then (default: its first frame)")
+    parser.add_argument("--actors", default=None, metavar="JSON|FILE.json",
+                        help="a drive scene's actors edited for this view: a JSON list of {\"id\", and one of "
+                             "\"pose\" (16 numbers, box -> scene frame), \"offset\" ([forward, left, up] metres), "
+                             "\"hide\": true; \"insert\": a new id draws a copy}, or a .json file holding it "
+                             "(docs/api.md 'Actors'; `xyzcyl actors SCENE_DIR` lists them)")
     parser.add_argument("--background", type=float, nargs=3, default=None, metavar=("R", "G", "B"),
                         help="background colour in 0..1 (default: the scene's background panorama for a "
                              "SCENE_DIR, black for a PLY)")
@@ -87,12 +92,13 @@ def _fail(msg: str) -> int:
 # where each ViewQuery field comes from on this command line (its errors name the flag)
 FLAGS = {"camera": "--camera", "cam_to_ego": "--cam-to-world", "fx": "--K", "fy": "--K", "cx": "--K", "cy": "--K",
          "fov": "--fov", "distortion": "--distortion", "width": "--width", "height": "--height", "output": "--output",
-         "format": "--out", "quality": "--quality", "time": "--time", **{k: f"--{k}" for k in MOVE_NAMES}}
+         "format": "--out", "quality": "--quality", "time": "--time", "actors": "--actors",
+         **{k: f"--{k}" for k in MOVE_NAMES}}
 
 
 def run(args: argparse.Namespace) -> int:
     from xyzcyl.common.files import atomic_file
-    from xyzcyl.common.wire import ViewError, validated
+    from xyzcyl.common.wire import ViewError, actor_edits, validated
 
     from ..render import GaussianError, Gaussians, render
     from ..render.gaussians import DEFAULT_MAX_POINTS
@@ -166,18 +172,23 @@ def run(args: argparse.Namespace) -> int:
     names = FLAGS if args.format is None else {**FLAGS, "format": "--format"}
     wire = {"output": "rgb"} if output == "all" else {"output": output}    # "all" (R G B A Z) is local: no wire value
     try:
+        edits = () if args.actors is None else actor_edits(args.actors, "--actors")
+        if edits and scene is None:
+            raise ViewError("--actors", "a PLY has no actors: give a drive's SCENE_DIR")
         if args.equirect:        # a 360x180 panorama: a pose and a size, no intrinsics (not a wire view)
             given = [f for f, v in (("--K", args.K), ("--fov", args.fov), ("--distortion", lens)) if v is not None]
             if given:
                 raise ViewError(given[0], "an equirectangular panorama takes no intrinsics")
             req = ViewRequest(equirect_camera(c2w, args.width, args.height, move, names), output, fmt, args.quality,
-                              args.time)
+                              args.time, edits)
         else:
             query = validated({"camera": args.camera, "cam_to_ego": c2w, "fx": fx, "fy": fy, "cx": cx, "cy": cy,
                                "fov": args.fov, "distortion": lens, **move.values(), "width": args.width,
                                "height": args.height, **wire, "format": fmt, "quality": args.quality,
-                               "time": args.time}, names)
+                               "time": args.time, "actors": edits or None}, names)
             req = request(query, None if scene is None else scene.rig, names, output=output)
+        if scene is not None:
+            scene.check_actors(req.actors, req.time_s, "--actors")
     except ViewError as exc:
         return _fail(str(exc))
     cam = req.camera
@@ -188,7 +199,8 @@ def run(args: argparse.Namespace) -> int:
     else:
         bg = None
     if scene is not None:    # what the service renders for this camera (runtime.scene.render_view)
-        rgb, depth, alpha = scene.render(cam, req.time_s, background=bg, antialiased=args.antialiased)
+        rgb, depth, alpha = scene.render(cam, req.time_s, background=bg, actors=req.actors,
+                                         antialiased=args.antialiased)
     else:
         res = render(g, cam, background=bg, antialiased=args.antialiased)
         rgb, depth, alpha = res.rgb, res.depth, res.alpha

@@ -10,6 +10,7 @@ from fastapi.responses import JSONResponse, Response, StreamingResponse
 from xyzcyl.common.wire import (
     DETAIL_STRIDE_MAX,
     DETAIL_STRIDE_MIN,
+    ActorList,
     SceneInfo,
     SceneList,
     detail_stride_error,
@@ -131,6 +132,14 @@ async def gaussians(request: Request, scene_id: str,
     headers["Content-Length"] = str(f.seek(0, 2))
     f.seek(0)
     return StreamingResponse(_stream(f), media_type="application/x-ply", headers=headers)
+
+
+@router.get("/scenes/{scene_id}/actors", response_model=ActorList, summary="a drive scene's actors (the moving "
+            "objects a view's actors= edits)", responses=ERRORS)
+async def actors(request: Request, scene_id: str,
+                 time: float | None = Query(None, allow_inf_nan=False, description=(
+                     "seconds on the rigs' clock: each actor's pose then"))):
+    return await service_of(request).actors(scene_id, time)
 
 
 @router.get("/scenes/{scene_id}/background", summary="the background panorama on the scene's cylinder",

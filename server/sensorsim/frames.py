@@ -44,8 +44,9 @@ from collections.abc import Mapping
 from typing import Any
 
 import numpy as np
+from pydantic import ValidationError
 from xyzcyl.common.errors import FieldError
-from xyzcyl.common.wire import ViewError
+from xyzcyl.common.wire import ActorEdit, ViewError
 from xyzcyl.runtime.camera import Camera, check_render_size, pinhole_K
 from xyzcyl.runtime.lenses import FISHEYE_NAMES, OPENCV_NAMES, fisheye_max_angle_deg
 from xyzcyl.runtime.rig import Rig
@@ -145,6 +146,41 @@ def scene_ego_to_world(rig: Rig) -> np.ndarray:
 def cam_to_ego(sensor_pose: np.ndarray, ego_pose: np.ndarray) -> np.ndarray:
     """The frame chain (module docstring): inv(ego_to_world) @ sensor pose @ CAMERA_AXES."""
     return np.linalg.inv(ego_pose) @ sensor_pose @ CAMERA_AXES
+
+
+def actor_edits(objects, ego_pose: np.ndarray, prefix: str = "") -> tuple[ActorEdit, ...]:
+    """A request's ``dynamic_objects`` as the view's actor edits (common.wire.ActorEdit): each listed track drawn at
+    its box pose at the middle of the exposure (mid_exposure of its pose_pair: box -> local frame), in the scene's
+    frame (inv(ego_to_world) @ that pose). Tracks the request does not list are drawn where the recording has them,
+    as NVIDIA's renderer draws them (docs/simulators.md "Actors"). ViewError naming
+    ``dynamic_objects[i].track_id`` / ``.pose_pair``; the scene checks the ids and how far the poses are
+    (runtime.scene.Scene.check_actors: rename_actor_field names its errors by these fields)."""
+    out = []
+    E_inv = np.linalg.inv(ego_pose)
+    for i, obj in enumerate(objects):
+        where = f"{prefix}dynamic_objects[{i}]"
+        if not obj.track_id:
+            raise ViewError(f"{where}.track_id", "is empty: give a track id of the scene (its actors)")
+        if not obj.HasField("pose_pair"):
+            raise ViewError(f"{where}.pose_pair", "is not set (the object's box pose at the exposure's start and "
+                                                  "end)")
+        T = E_inv @ mid_exposure(obj.pose_pair, f"{where}.pose_pair")
+        try:
+            out.append(ActorEdit(id=obj.track_id, pose=tuple(float(x) for x in T.ravel())))
+        except ValidationError as e:
+            first = e.errors()[0]
+            key = {"id": "track_id", "pose": "pose_pair"}.get(str(first["loc"][0]) if first["loc"] else "", "")
+            raise ViewError(f"{where}.{key or 'track_id'}", first["msg"]) from None
+    return tuple(out)
+
+
+def rename_actor_field(field: str) -> str:
+    """The protocol field of a scene's refusal of an actor edit ("dynamic_objects[2].id" -> ".track_id", ".pose"
+    -> ".pose_pair")."""
+    for ours, theirs in ((".id", ".track_id"), (".pose", ".pose_pair")):
+        if field.endswith(ours):
+            return field[: -len(ours)] + theirs
+    return field
 
 
 # ------------------------------------------------------------------------------------------- cameras: rig -> spec
@@ -339,7 +375,7 @@ def view_request(req: sensorsim_pb2.RGBRenderRequest, ego_pose: np.ndarray, pref
         check_render_size(cam.width, cam.height)
     except FieldError as e:
         raise ViewError(f"{p}resolution_{'w' if cam.width >= cam.height else 'h'}", e.message) from None
-    return ViewRequest(cam, "rgb", fmt, q, time_s)
+    return ViewRequest(cam, "rgb", fmt, q, time_s, actor_edits(req.dynamic_objects, ego_pose, p))
 
-__all__ = ["CAMERA_AXES", "available_cameras", "cam_to_ego", "camera_spec", "exposure_time", "mid_exposure",
+__all__ = ["CAMERA_AXES", "actor_edits", "available_cameras", "rename_actor_field", "cam_to_ego", "camera_spec", "exposure_time", "mid_exposure",
            "pose_matrix", "pose_message", "quality", "scene_ego_to_world", "trajectory_message", "view_request"]

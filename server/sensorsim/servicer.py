@@ -181,6 +181,11 @@ class SensorsimServicer(sensorsim_pb2_grpc.SensorsimServiceServicer):
         sid, rig = rigs[req.scene_id]
         view = frames.view_request(req, frames.scene_ego_to_world(rig), prefix)
         self.service.check_size(view.camera, f"{prefix}resolution_w")
+        if view.actors:         # the scene's refusals (unknown track ids, poses kilometres away) named as the proto's
+            try:
+                await self.service.renders.run(self.service.check_actors, sid, [(view, f"{prefix}dynamic_objects")])
+            except ViewError as e:
+                raise ViewError(frames.rename_actor_field(e.field), e.message) from None
         return await self.service.render(sid, view, self.service.view_key(sid, view), force=force)
 
     async def render_rgb(self, request, context):

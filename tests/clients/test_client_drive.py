@@ -169,3 +169,47 @@ def test_a_render_at_a_time_sends_it_and_a_bad_time_is_refused_before(monkeypatc
     out = str(tmp_path / "v.png")
     rc, _, err = _cli(["client", "render", "d" * 22, "--camera", "CAM_FRONT", "--time", "12.5", "--out", out], capsys)
     assert rc == 0 and float(sent[-1]["time"]) == 12.5, err
+
+
+def test_actor_edits_are_sent_checked_first_and_listed(monkeypatch, capsys, tmp_path):
+    """render(actors=...) sends the edits as the GET query's JSON text; malformed edits are refused before anything
+    is sent, naming the edit's field; actors() reads GET .../actors; `xyzcyl client render --actors JSON|FILE` and
+    `xyzcyl client actors SCENE_ID` do the same from the command line."""
+    png = cv2.imencode(".png", np.zeros((4, 6, 3), np.uint8))[1].tobytes()
+    listed = {"time": T0, "actors": [{"id": "car-1", "label": "Car", "tracked": True, "size": [5.0, 6.0, 4.0],
+                                      "span_s": [T0, T0 + 1.0], "copies": 2, "gaussians": 900,
+                                      "pose": [1, 0, 0, 12, 0, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1]}]}
+    sent = []
+
+    def handler(request):
+        sent.append((request.url.path, dict(request.url.params)))
+        if request.url.path.endswith("/actors"):
+            return httpx.Response(200, json=listed)
+        return httpx.Response(200, content=png, headers={"content-type": "image/png"})
+
+    with _mock(handler) as c:
+        c.render("d" * 22, "CAM_FRONT", time=T0, actors=[{"id": "car-1", "offset": [0, 1.5, 0]},
+                                                          {"id": "car-1", "insert": "car-2", "offset": [0, -3, 0]}])
+        assert json.loads(sent[-1][1]["actors"]) == [{"id": "car-1", "offset": [0.0, 1.5, 0.0]},
+                                                     {"id": "car-1", "offset": [0.0, -3.0, 0.0], "insert": "car-2"}]
+        for bad, field in (([{"id": "car-1"}], "actors[0]"), ([{"id": "car-1", "hide": 1}], "actors[0].hide"),
+                           ("{", "actors")):
+            with pytest.raises(InvalidArgumentError) as e:
+                c.render_bytes("d" * 22, "CAM_FRONT", actors=bad)
+            assert e.value.field == field
+        got = c.actors("d" * 22, time=T0)
+        assert sent[-1] == (f"/v1/scenes/{'d' * 22}/actors", {"time": repr(T0)})
+        assert got.actors[0].id == "car-1" and got.actors[0].pose[3] == 12
+    assert len(sent) == 2
+    real = httpx.Client
+    monkeypatch.setattr(httpx, "Client", lambda **kw: real(transport=httpx.MockTransport(handler), **kw))
+    edits = tmp_path / "edits.json"
+    edits.write_text('[{"id": "car-1", "hide": true}]')
+    rc, _, err = _cli(["client", "render", "d" * 22, "--camera", "CAM_FRONT", "--actors", str(edits),
+                       "--out", str(tmp_path / "v.png")], capsys)
+    assert rc == 0 and json.loads(sent[-1][1]["actors"]) == [{"id": "car-1", "hide": True}], err
+    rc, _, err = _cli(["client", "render", "d" * 22, "--camera", "CAM_FRONT", "--actors", '[{"id": "car-1"}]',
+                       "--out", str(tmp_path / "v.png")], capsys)
+    assert rc == 2 and "--actors[0]: give exactly one of pose, offset and hide" in err and len(sent) == 3, err
+    rc, out, err = _cli(["client", "actors", "d" * 22], capsys)
+    assert rc == 0 and json.loads(out)["actors"][0]["id"] == "car-1", err

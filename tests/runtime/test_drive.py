@@ -545,7 +545,7 @@ def test_batch_items_carry_a_time():
              "fov": 90, "image_size_x": 64, "image_size_y": 36, "time": 3.5}
     doc = {"cameras": [{"fov": 60, "cam_to_ego": c2e, "width": 64, "height": 36, "time": 1.25},
                        {"fov": 60, "cam_to_ego": c2e, "width": 64, "height": 36}, carla]}
-    assert [t for _, t in views_from_batch(doc)] == [1.25, None, 3.5]
+    assert [t for _, t, _ in views_from_batch(doc)] == [1.25, None, 3.5]
     for bad in ("soon", float("nan"), True):
         doc["cameras"][0]["time"] = bad
         with pytest.raises(ViewError) as e:
