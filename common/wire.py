@@ -215,6 +215,8 @@ class ActorInfo(BaseModel):
     copies: int = Field(description="keyframes whose Gaussians of it are kept (a view draws the one nearest its "
                                     "time)")
     gaussians: int = Field(description="its Gaussians over all copies")
+    filled_m2: float = Field(0.0, description="the ground under it that no frame saw (it stood there), filled "
+                                              "with the neighbouring road's colour, square metres")
     pose: tuple[float, ...] | None = Field(None, description=(
         "with ?time=: its box -> scene frame then (16 numbers, row-major 4x4, metres; null when it is not drawn "
         "then)"))

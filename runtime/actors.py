@@ -11,7 +11,8 @@ trail; the static scene holds no copy of it.
 actors.npz (numpy arrays, no pickle): the copies' Gaussians concatenated (means, quats, log_scales,
 opacity_logits, sh), ``copy_track`` / ``copy_time`` / ``copy_start`` (each copy's object, keyframe time, first
 Gaussian; copy_start has one more entry), ``track_id`` / ``track_label`` / ``track_size``, ``pose_track`` /
-``pose_time`` / ``pose`` (every annotated pose: object, time, box -> scene [4, 4])."""
+``pose_time`` / ``pose`` (every annotated pose: object, time, box -> scene [4, 4]), ``filled_m2`` (optional: the
+ground under each object that no frame saw, filled by runtime.groundfill)."""
 
 from __future__ import annotations
 
@@ -68,6 +69,7 @@ class Actors:
     copy_time: np.ndarray         # [C] float64 seconds: the keyframe's time
     copy_start: np.ndarray        # [C + 1] int: copy c is Gaussians copy_start[c]:copy_start[c + 1]
     gaussians: Gaussians          # the copies' Gaussians, each in its object's box frame
+    filled_m2: np.ndarray | None = None   # [A] m^2: the ground under each that no frame saw, filled (groundfill)
     _ids: dict[str, int] | None = field(default=None, init=False, repr=False, compare=False)
 
     def __len__(self) -> int:
@@ -178,7 +180,8 @@ class Actors:
                    "tracked": self.track_label[a] != MOVED_LABEL,
                    "size": [round(float(x), 4) for x in self.track_size[a]],
                    "span_s": [round(t, 6) for t in self.span(a)], "copies": int(mine.sum()),
-                   "gaussians": int(counts[mine].sum())}
+                   "gaussians": int(counts[mine].sum()),
+                   "filled_m2": round(float(self.filled_m2[a]), 2) if self.filled_m2 is not None else 0.0}
             if time_s is not None:
                 T = self.pose_at(a, time_s, slack_s)
                 row["pose"] = None if T is None else [round(float(x), 9) + 0.0 for x in T.ravel()]
@@ -215,7 +218,8 @@ class Actors:
                      sh=g.sh, copy_track=self.copy_track.astype(np.int32), copy_time=self.copy_time,
                      copy_start=self.copy_start.astype(np.int64), track_id=np.array(self.track_id, dtype=str),
                      track_label=np.array(self.track_label, dtype=str), track_size=self.track_size,
-                     pose_track=self.pose_track.astype(np.int32), pose_time=self.pose_time, pose=self.pose)
+                     pose_track=self.pose_track.astype(np.int32), pose_time=self.pose_time, pose=self.pose,
+                     **({} if self.filled_m2 is None else {"filled_m2": np.asarray(self.filled_m2, np.float64)}))
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> Actors:
@@ -233,13 +237,16 @@ class Actors:
         if len(cs) != len(d["copy_track"]) + 1 or (len(cs) and (cs[0] != 0 or cs[-1] != n or np.any(np.diff(cs) < 0))):
             raise ActorsError("copy_start", f"does not split the {n} Gaussians into the copies ({str(path)!r})")
         a = len(d["track_id"])
+        filled = d.get("filled_m2")             # written since the ground fill (absent in older scenes)
+        if filled is not None and filled.shape != (a,):
+            raise ActorsError("filled_m2", f"has shape {list(filled.shape)}, not [{a}] ({str(path)!r})")
         for k in ("copy_track", "pose_track"):
             if len(d[k]) and (d[k].min() < 0 or d[k].max() >= a):
                 raise ActorsError(k, f"names an object outside 0..{a - 1} ({str(path)!r})")
         return cls(track_id=tuple(str(x) for x in d["track_id"]), track_label=tuple(str(x) for x in d["track_label"]),
                    track_size=d["track_size"], pose_track=d["pose_track"], pose_time=d["pose_time"], pose=d["pose"],
                    copy_track=d["copy_track"], copy_time=d["copy_time"], copy_start=cs,
-                   gaussians=Gaussians(*(d[k] for k in FIELDS)))
+                   gaussians=Gaussians(*(d[k] for k in FIELDS)), filled_m2=filled)
 
 
 __all__ = ["ACTORS_NAME", "MOVED_LABEL", "Actors", "ActorsError", "frame_interval"]

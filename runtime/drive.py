@@ -62,6 +62,7 @@ from .boxes import box_members, inside_boxes
 from .camera import check_pose
 from .egobody import EgoBody
 from .errors import FieldError, RigError
+from .groundfill import fill_under
 from .numba_cache import njit
 from .render import Gaussians
 from .rig import Rig, load_rig
@@ -899,6 +900,19 @@ def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None,
     if actors is not None:
         counts.update({"actors": len(actors), "actor_copies": len(actors.copy_track),
                        "actor_gaussians": len(actors.gaussians)})
+        # the ground under the tracked objects that no keyframe saw: filled, so a hidden or moved one leaves road
+        t_f = time.perf_counter()
+        tracked = actors.pose_track < len(moving_tracks(drive))
+        fill, filled = fill_under(gauss, [(int(a), T, actors.track_size[a]) for a, T in
+                                          zip(actors.pose_track[tracked], actors.pose[tracked])], len(actors))
+        if len(fill):                    # in the last keyframe's run (keyframe_of stays sorted)
+            gauss = _concat([gauss, fill])
+            keyframe_of = np.concatenate([keyframe_of, np.full(len(fill), len(keys) - 1, np.int16)])
+        actors = replace(actors, filled_m2=filled)
+        counts.update({"ground_filled": len(fill), "ground_filled_m2": round(float(filled.sum()), 2),
+                       "total": len(gauss)})
+        timings["ground_fill"] = time.perf_counter() - t_f
+        timings["total"] += timings["ground_fill"]
     scene = Scene(gaussians=gauss, background=background, rig=drive.frames[0].rig, model=rec.scene_model(),
                   counts=counts, timings={key: round(v, 6) for key, v in timings.items()}, actors=actors,
                   keyframe_of=keyframe_of if len(keyframe_of) == len(gauss) else None, viewpoints=viewpoints,

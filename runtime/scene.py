@@ -563,6 +563,9 @@ class Scene:
             out["actors"] = {"file": ACTORS_NAME, "objects": len(self.actors), "copies": len(self.actors.copy_track),
                              "gaussians": len(self.actors.gaussians),
                              "about": "moving objects: per keyframe a copy in its box frame, drawn at a time"}
+            if self.actors.filled_m2 is not None:     # the ground no frame saw under each, filled (runtime.groundfill)
+                out["actors"]["filled_m2"] = {i: round(float(v), 2) for i, v in zip(self.actors.track_id,
+                                                                                    self.actors.filled_m2) if v > 0}
         if self.viewpoints is not None:
             out["viewpoints"] = self.viewpoints.to_json()
         if self.ego_body is not None:

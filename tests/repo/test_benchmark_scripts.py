@@ -158,3 +158,22 @@ def test_drive_under_ego_camera_looks_down_and_refuses_a_frame_outside_the_drive
     r = subprocess.run([sys.executable, str(BENCH / "drive_under_ego.py"), str(drive), "--frame", "99"], cwd=REPO,
                        capture_output=True, text=True, timeout=120, check=False)
     assert r.returncode == 2 and "--frame" in r.stderr, r.stderr[-2000:]
+
+
+def test_actors_bench_times_thirty_moved_actors(tmp_path):
+    """benchmarks/actors_bench.py (docs/results.md "Actors"): a drive with one moving car gives 30 edits a view
+    (the car moved, 29 copies inserted beside it) and the ratio of the render times; a drive without tracks exits
+    2 saying so."""
+    from xyzcyl.testing.drives import moving_car, pose, write_drive
+
+    E = pose(0)
+    drive = write_drive(tmp_path / "d", [E, E], [0.0, 0.5], tracks=moving_car(E, 12.0, 1.0))
+    (doc,) = _run("actors_bench.py", str(drive), "--every", "1", "--frames", "0,1", "--repeats", "1",
+                  "--scene", str(tmp_path / "scene"), timeout=300)
+    assert doc["moved_actors"] == [30, 30] and doc["actors"] == 1 and doc["views"] == 2 * 6
+    assert doc["seconds_30_moved"] > 0 and doc["ratio"] == pytest.approx(doc["seconds_30_moved"] /
+                                                                         doc["seconds_no_edits"], rel=0.01)
+    plain = write_drive(tmp_path / "p", [E, E], [0.0, 0.5])
+    r = subprocess.run([sys.executable, str(BENCH / "actors_bench.py"), str(plain)], cwd=REPO, capture_output=True,
+                       text=True, timeout=120, check=False)
+    assert r.returncode == 2 and "no tracks" in r.stderr, r.stderr[-2000:]

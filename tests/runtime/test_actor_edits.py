@@ -135,6 +135,9 @@ def test_a_tracked_actor_leaves_nothing_in_the_static_scene_and_edits_change_onl
     listed = scene.actor_list(1.0)["actors"]
     assert [r["id"] for r in listed] == ["car-1"] and listed[0]["tracked"] and len(listed[0]["pose"]) == 16
     assert listed[0]["copies"] >= 1 and listed[0]["gaussians"] == len(scene.actors.gaussians)
+    # the ground no frame saw under it is filled and counted (runtime.groundfill), in the listing and scene.json
+    assert listed[0]["filled_m2"] == pytest.approx(scene.counts["ground_filled_m2"], abs=0.01)
+    assert scene.to_json()["actors"].get("filled_m2", {}).get("car-1", 0.0) == pytest.approx(listed[0]["filled_m2"])
     # the command line: `xyzcyl render --actors` draws what Scene.render draws with the edits; `xyzcyl actors`
     from xyzcyl import cli
     from xyzcyl.runtime.views import ViewRequest, encode_view
