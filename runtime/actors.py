@@ -11,8 +11,9 @@ trail; the static scene holds no copy of it.
 actors.npz (numpy arrays, no pickle): the copies' Gaussians concatenated (means, quats, log_scales,
 opacity_logits, sh), ``copy_track`` / ``copy_time`` / ``copy_start`` (each copy's object, keyframe time, first
 Gaussian; copy_start has one more entry), ``track_id`` / ``track_label`` / ``track_size``, ``pose_track`` /
-``pose_time`` / ``pose`` (every annotated pose: object, time, box -> scene [4, 4]), ``filled_m2`` (optional: the
-ground under each object that no frame saw, filled by runtime.groundfill)."""
+``pose_time`` / ``pose`` (every annotated pose: object, time, box -> scene [4, 4]); optionally ``fill_means`` ...
+``fill_sh`` and ``fill_track`` (the ground under the objects that no frame saw, runtime.groundfill, in the scene's
+frame, and each disc's object)."""
 
 from __future__ import annotations
 
@@ -22,6 +23,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
+from xyzcyl.common.poses import pose_matrix
 from xyzcyl.common.wire import ActorEdit, ViewError
 
 from .camera import check_pose
@@ -30,6 +32,7 @@ from .render import Gaussians
 from .rotations import quat_to_rotmat, rotmats_to_quats
 
 ACTORS_NAME = "actors.npz"
+CLEARED_TOL = (0.05, 1.0)  # (metres, degrees): an actor placed within this of where it is has not been taken away
 MOVED_LABEL = "moved"          # the label of a keyframe's cells that moved away without a track (runtime.drive)
 FIELDS = ("means", "quats", "log_scales", "opacity_logits", "sh")
 
@@ -69,7 +72,10 @@ class Actors:
     copy_time: np.ndarray         # [C] float64 seconds: the keyframe's time
     copy_start: np.ndarray        # [C + 1] int: copy c is Gaussians copy_start[c]:copy_start[c + 1]
     gaussians: Gaussians          # the copies' Gaussians, each in its object's box frame
-    filled_m2: np.ndarray | None = None   # [A] m^2: the ground under each that no frame saw, filled (groundfill)
+    # the ground under the objects that no frame saw (runtime.groundfill), scene frame, and each disc's object:
+    # drawn where a view hides or moves its object (fill_for)
+    fill: Gaussians | None = None
+    fill_track: np.ndarray | None = None      # [F] int
     _ids: dict[str, int] | None = field(default=None, init=False, repr=False, compare=False)
 
     def __len__(self) -> int:
@@ -173,6 +179,7 @@ class Actors:
         copies, gaussians; with ``time_s`` also its pose then (16 numbers row-major, box -> scene frame; None when
         it is not drawn then)."""
         counts = np.diff(self.copy_start)
+        filled = self.filled_m2()
         out = []
         for a in range(len(self)):
             mine = self.copy_track == a
@@ -181,12 +188,43 @@ class Actors:
                    "size": [round(float(x), 4) for x in self.track_size[a]],
                    "span_s": [round(t, 6) for t in self.span(a)], "copies": int(mine.sum()),
                    "gaussians": int(counts[mine].sum()),
-                   "filled_m2": round(float(self.filled_m2[a]), 2) if self.filled_m2 is not None else 0.0}
+                   "filled_m2": round(float(filled[a]), 2)}
             if time_s is not None:
                 T = self.pose_at(a, time_s, slack_s)
                 row["pose"] = None if T is None else [round(float(x), 9) + 0.0 for x in T.ravel()]
             out.append(row)
         return out
+
+    def filled_m2(self) -> np.ndarray:
+        """[A] m^2: the ground under each object that no frame saw, filled (runtime.groundfill)."""
+        from .groundfill import FILL_SPACING_M
+
+        n = np.zeros(len(self), np.float64)
+        if self.fill_track is not None:
+            np.add.at(n, np.asarray(self.fill_track, np.int64), FILL_SPACING_M ** 2)
+        return n
+
+    def cleared(self, edits: Sequence[ActorEdit], time_s: float, slack_s: float) -> list[int]:
+        """The objects ``edits`` take away from where the recording has them at ``time_s``: hidden, or placed
+        (pose, offset) more than CLEARED_TOL from it. An inserted copy takes nothing away, nor does an edit of an
+        object that is not there then (known ids only)."""
+        out = {}
+        for e in edits:
+            a = self.index(e.id)
+            if a is None or e.insert is not None:
+                continue
+            here = self.pose_at(a, time_s, slack_s)
+            if here is None:
+                continue
+            if not e.hide:
+                P = pose_matrix(e.pose, "pose") if e.pose is not None else None
+                T = here[:3, 3] + here[:3, :3] @ np.asarray(e.offset, np.float64) if P is None else P[:3, 3]
+                R = here[:3, :3] if P is None else P[:3, :3]
+                turn = math.degrees(math.acos(max(-1.0, min(1.0, (float(np.trace(R.T @ here[:3, :3])) - 1) / 2))))
+                if np.linalg.norm(T - here[:3, 3]) <= CLEARED_TOL[0] and turn <= CLEARED_TOL[1]:
+                    continue
+            out[a] = here
+        return sorted(out)
 
     def copy_of(self, a: int, time_s: float) -> Gaussians:
         """Object a's Gaussians in its box frame: its copy from the keyframe nearest ``time_s`` (empty without)."""
@@ -219,7 +257,8 @@ class Actors:
                      copy_start=self.copy_start.astype(np.int64), track_id=np.array(self.track_id, dtype=str),
                      track_label=np.array(self.track_label, dtype=str), track_size=self.track_size,
                      pose_track=self.pose_track.astype(np.int32), pose_time=self.pose_time, pose=self.pose,
-                     **({} if self.filled_m2 is None else {"filled_m2": np.asarray(self.filled_m2, np.float64)}))
+                     **({} if self.fill is None else {**{f"fill_{k}": getattr(self.fill, k) for k in FIELDS},
+                                                      "fill_track": np.asarray(self.fill_track, np.int32)}))
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> Actors:
@@ -237,16 +276,22 @@ class Actors:
         if len(cs) != len(d["copy_track"]) + 1 or (len(cs) and (cs[0] != 0 or cs[-1] != n or np.any(np.diff(cs) < 0))):
             raise ActorsError("copy_start", f"does not split the {n} Gaussians into the copies ({str(path)!r})")
         a = len(d["track_id"])
-        filled = d.get("filled_m2")             # written since the ground fill (absent in older scenes)
-        if filled is not None and filled.shape != (a,):
-            raise ActorsError("filled_m2", f"has shape {list(filled.shape)}, not [{a}] ({str(path)!r})")
-        for k in ("copy_track", "pose_track"):
+        fill = fill_track = None
+        if "fill_track" in d:           # written since the ground fill (runtime.groundfill)
+            if any(f"fill_{k}" not in d for k in FIELDS):
+                raise ActorsError("fill_means", f"the ground fill is incomplete ({str(path)!r})")
+            fill = Gaussians(*(d[f"fill_{k}"] for k in FIELDS))
+            fill_track = d["fill_track"]
+            if len(fill_track) != len(fill):
+                raise ActorsError("fill_track", f"names {len(fill_track)} discs' objects, not {len(fill)} "
+                                                f"({str(path)!r})")
+        for k in ("copy_track", "pose_track", *(("fill_track",) if fill_track is not None else ())):
             if len(d[k]) and (d[k].min() < 0 or d[k].max() >= a):
                 raise ActorsError(k, f"names an object outside 0..{a - 1} ({str(path)!r})")
         return cls(track_id=tuple(str(x) for x in d["track_id"]), track_label=tuple(str(x) for x in d["track_label"]),
                    track_size=d["track_size"], pose_track=d["pose_track"], pose_time=d["pose_time"], pose=d["pose"],
                    copy_track=d["copy_track"], copy_time=d["copy_time"], copy_start=cs,
-                   gaussians=Gaussians(*(d[k] for k in FIELDS)), filled_m2=filled)
+                   gaussians=Gaussians(*(d[k] for k in FIELDS)), fill=fill, fill_track=fill_track)
 
 
 __all__ = ["ACTORS_NAME", "MOVED_LABEL", "Actors", "ActorsError", "frame_interval"]

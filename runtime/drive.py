@@ -30,6 +30,9 @@ Reconstruction (reconstruct_drive):
    voxel the same way. Cells another keyframe drops are removed, not hidden: the scene has no own views; but a
    cell its own LiDAR placed that a neighbouring keyframe with LiDAR sees through moved away (_carve_pair): it is
    drawn only around its keyframe's time (actors_of, moved_spans), as an untracked object of that keyframe.
+4. the ground under the tracked moving objects that no keyframe saw (they stood on it) is filled with the
+   surrounding road's colour (runtime.groundfill), kept with the actors and drawn behind everything where a view
+   hides or moves one (a view's actor edits: runtime.actors), so it leaves road, not the background panorama.
 
 Before the keyframes, the ego's own body is found over the drive's frames (runtime.egobody: the pixels that stay
 put while the world moves) and used as the cameras' ego masks; the scene keeps them (Scene.ego_body).
@@ -58,7 +61,7 @@ import numpy as np
 from xyzcyl.common.wire import is_drive_file
 
 from .actors import MOVED_LABEL
-from .boxes import box_members, inside_boxes
+from .boxes import box_members, inside_boxes, snap_into_boxes
 from .camera import check_pose
 from .egobody import EgoBody
 from .errors import FieldError, RigError
@@ -849,6 +852,8 @@ def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None,
             boxes = moving_boxes(drive, k)
             if boxes:                       # what moves is not the static scene's: each object's copy, in its box
                 geo = [(inv, half) for _, inv, half in boxes]
+                if points is None:          # no sweep: the model's depth of what a box holds is put into the box
+                    parts = [_snapped(g, d.grid.cam_to_ego[:3, 3], geo) for g, d in zip(parts, details)]
                 c_mem = box_members(coarse.means, geo)
                 p_mem = [box_members(g.means, geo) for g in parts]
                 for b, (t, inv, _) in enumerate(boxes):
@@ -900,17 +905,15 @@ def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None,
     if actors is not None:
         counts.update({"actors": len(actors), "actor_copies": len(actors.copy_track),
                        "actor_gaussians": len(actors.gaussians)})
-        # the ground under the tracked objects that no keyframe saw: filled, so a hidden or moved one leaves road
+        # the ground under the tracked objects that no keyframe saw: filled, drawn where a view hides or moves one
         t_f = time.perf_counter()
         tracked = actors.pose_track < len(moving_tracks(drive))
-        fill, filled = fill_under(gauss, [(int(a), T, actors.track_size[a]) for a, T in
-                                          zip(actors.pose_track[tracked], actors.pose[tracked])], len(actors))
-        if len(fill):                    # in the last keyframe's run (keyframe_of stays sorted)
-            gauss = _concat([gauss, fill])
-            keyframe_of = np.concatenate([keyframe_of, np.full(len(fill), len(keys) - 1, np.int16)])
-        actors = replace(actors, filled_m2=filled)
-        counts.update({"ground_filled": len(fill), "ground_filled_m2": round(float(filled.sum()), 2),
-                       "total": len(gauss)})
+        fill, fill_track, filled = fill_under(gauss, [(int(a), T, actors.track_size[a]) for a, T in
+                                                      zip(actors.pose_track[tracked], actors.pose[tracked])],
+                                              len(actors))
+        if len(fill):
+            actors = replace(actors, fill=fill, fill_track=fill_track)
+        counts.update({"ground_filled": len(fill), "ground_filled_m2": round(float(filled.sum()), 2)})
         timings["ground_fill"] = time.perf_counter() - t_f
         timings["total"] += timings["ground_fill"]
     scene = Scene(gaussians=gauss, background=background, rig=drive.frames[0].rig, model=rec.scene_model(),
@@ -1106,6 +1109,18 @@ def _carve_pair(a, b, tolerance: float) -> None:
         carve_against(d, details_b, keep, tolerance)
         if before is not None:
             gone |= before & ~keep & (d.cell_conf() == CONF_MEASURED)
+
+
+def _snapped(g: Gaussians, origin: np.ndarray, boxes) -> Gaussians:
+    """A camera's detail Gaussians with the cells whose ray passes through a moving object's box near their
+    depth moved into it (runtime.boxes.snap_into_boxes), their sizes scaled with their distance."""
+    means, factor = snap_into_boxes(g.means, origin, boxes)
+    moved = factor != 1.0
+    if not moved.any():
+        return g
+    scales = np.array(g.log_scales, copy=True)
+    scales[moved] += np.log(factor[moved])[:, None].astype(scales.dtype)
+    return replace(g, means=means.astype(g.means.dtype), log_scales=scales)
 
 
 def _concat(parts: list[Gaussians]) -> Gaussians:

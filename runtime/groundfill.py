@@ -1,7 +1,8 @@
 """The road where a moving object stood and no frame saw it (issue 38 item 2): a drive's actor leaves the static
 scene, and the ground under and behind it is what the other keyframes saw there; where none saw it (the road under a
 car the ego followed the whole drive), that ground is filled here with flat discs of the neighbouring road's colour,
-so a hidden or moved actor leaves road, not the background panorama showing through the street.
+kept with the actor (runtime.actors.Actors.fill) and drawn, behind everything else, when a view hides or moves it:
+it leaves road, not the background panorama showing through the street.
 
 fill_under(static, footprints) takes every annotated pose of the moving objects (its box: the ground is its bottom
 face), lays a FILL_SPACING_M lattice over each footprint (grown by GROW_M), and keeps the lattice points that no
@@ -41,13 +42,14 @@ def _pack(k: np.ndarray) -> np.ndarray:
 
 
 def fill_under(static: Gaussians, footprints: Sequence[tuple[int, np.ndarray, np.ndarray]], n_objects: int
-               ) -> tuple[Gaussians, np.ndarray]:
-    """(fill Gaussians [scene frame, SH degree 0], filled area per object [n_objects] m^2) for ``footprints``:
+               ) -> tuple[Gaussians, np.ndarray, np.ndarray]:
+    """(fill Gaussians [F] (scene frame, SH degree 0), the object under which each lies [F] int, the filled area
+    per object [n_objects] m^2) for ``footprints``:
     (object index, box -> scene [4, 4], size [3] metres: length, width, height) of the moving objects' annotated
     poses, against the ``static`` Gaussians (scene frame; module docstring)."""
     area = np.zeros(n_objects, np.float64)
     if not len(footprints):
-        return Gaussians.empty(0), area
+        return Gaussians.empty(0), np.zeros(0, np.int64), area
     s = FILL_SPACING_M
     keys, heights, owners, inner = [], [], [], []
     for a, T, size in footprints:
@@ -90,7 +92,7 @@ def fill_under(static: Gaussians, footprints: Sequence[tuple[int, np.ndarray, np
             covered[m[packed[m] == nk]] = True
     keep = inner & ~covered
     if not keep.any():
-        return Gaussians.empty(0), area
+        return Gaussians.empty(0), np.zeros(0, np.int64), area
 
     # each object's ground colour: the median SH DC of the static Gaussians on its ring's cells
     colour = np.full((n_objects, 3), GREY_DC)
@@ -108,7 +110,7 @@ def fill_under(static: Gaussians, footprints: Sequence[tuple[int, np.ndarray, np
                      np.full(n, np.log(FILL_OPACITY / (1 - FILL_OPACITY)), np.float32),
                      colour[owner[keep]].astype(np.float32)[:, None, :])
     np.add.at(area, owner[keep], s * s)
-    return fill, area
+    return fill, owner[keep], area
 
 
 __all__ = ["FILL_SPACING_M", "fill_under"]

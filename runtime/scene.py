@@ -361,7 +361,8 @@ class Scene:
         k = self.primary_keyframe(camera, time_s)
         if k is None:
             moving = self.moving_at(time_s, actors)
-            r = render([self.gaussians_for(camera)] + ([moving] if moving is not None else []), camera,
+            fill = self.fill_for(actors, time_s)
+            r = render([self.gaussians_for(camera)] + [p for p in (moving, fill) if p is not None], camera,
                        background=bg, **options)
             return r.rgb, r.depth, r.alpha
         rgb, depth, alpha = self._layers(camera, k, time_s, bg, options, actors)
@@ -399,6 +400,8 @@ class Scene:
         bounds = self.keyframe_bounds()
         moving = self.moving_at(time_s, actors)
         moving = [moving] if moving is not None else []
+        fill = self.fill_for(actors, time_s)
+        fill = [fill] if fill is not None else []       # behind everything: it never hides what a keyframe saw
 
         def runs(keys) -> list[Gaussians]:
             """The Gaussians of keyframes ``keys`` (ascending), one view each."""
@@ -412,7 +415,7 @@ class Scene:
         # pixel the layers before covered is not drawn again)
         if self.viewpoints is None:
             a = draw(runs([k]) + moving, None)
-            b = draw(runs([kk for kk in range(n_keys) if kk != k]), bg, a)
+            b = draw(runs([kk for kk in range(n_keys) if kk != k]) + fill, bg, a)
             return b.rgb, b.depth, b.alpha
         vp = self.viewpoints
         i = vp.group_of(k)
@@ -421,7 +424,7 @@ class Scene:
         beside = sorted({kk for j in (i, *near) for kk in vp.chunks[j].keyframes} - {mine})
         a = draw(runs([mine]) + [vp.gaussians(i)] + moving, None)
         b = draw(runs(beside) + [vp.gaussians(j) for j in near], None, a)
-        c = draw(runs([kk for kk in range(n_keys) if kk != mine and kk not in beside]), bg, b)
+        c = draw(runs([kk for kk in range(n_keys) if kk != mine and kk not in beside]) + fill, bg, b)
         return c.rgb, c.depth, c.alpha
 
     def keyframe_bounds(self) -> np.ndarray:
@@ -506,6 +509,16 @@ class Scene:
         rows = [] if self.actors is None else self.actors.listing(time_s, 0.5 * self.frame_interval())
         return {"time": time_s, "actors": rows}
 
+    def fill_for(self, actors: Sequence[ActorEdit], time_s: float | None = None) -> Gaussians | None:
+        """The ground fill (runtime.groundfill: the road under the moving objects that no frame saw, all of it: the
+        road one hid is often the road the next one in the lane hid too) when the view's edits take an actor away
+        from where it is at ``time_s`` (runtime.actors.Actors.cleared: hidden or moved), else None: a view as
+        recorded draws none (it cost 0.13 dB there: docs/results.md "Actors")."""
+        if self.actors is None or self.actors.fill is None or not actors:
+            return None
+        t = self.start_time() if time_s is None else float(time_s)
+        return self.actors.fill if self.actors.cleared(actors, t, 0.5 * self.frame_interval()) else None
+
     def actor_reach(self) -> tuple[np.ndarray, float]:
         """(the drive's ego positions [F, 3] metres, scene frame; ACTOR_REACH_M): an edited actor is placed within
         that distance of one of them (runtime.actors.Actors.placements)."""
@@ -563,9 +576,9 @@ class Scene:
             out["actors"] = {"file": ACTORS_NAME, "objects": len(self.actors), "copies": len(self.actors.copy_track),
                              "gaussians": len(self.actors.gaussians),
                              "about": "moving objects: per keyframe a copy in its box frame, drawn at a time"}
-            if self.actors.filled_m2 is not None:     # the ground no frame saw under each, filled (runtime.groundfill)
+            if self.actors.fill is not None:     # the ground no frame saw under each, filled (runtime.groundfill)
                 out["actors"]["filled_m2"] = {i: round(float(v), 2) for i, v in zip(self.actors.track_id,
-                                                                                    self.actors.filled_m2) if v > 0}
+                                                                                    self.actors.filled_m2()) if v > 0}
         if self.viewpoints is not None:
             out["viewpoints"] = self.viewpoints.to_json()
         if self.ego_body is not None:

@@ -150,3 +150,50 @@ def test_a_tracked_actor_leaves_nothing_in_the_static_scene_and_edits_change_onl
     assert cli.main(["render", str(tmp_path / "scene"), "--camera", "CAM_FRONT", "--width", "160", "--actors",
                      '[{"id": "bus", "hide": true}]', "--out", str(out), "--quiet"]) == 2
     assert cli.main(["actors", str(tmp_path / "scene"), "--time", "1.0"]) == 0
+
+
+def test_the_ground_fill_is_drawn_only_where_a_view_takes_its_actor_away(tmp_path):
+    """An actor's ground fill (runtime.groundfill: the road under it no frame saw) is drawn when the view hides it
+    or moves it away (farther than CLEARED_TOL) from where it stands at the view's time; not without edits, not for
+    a nudge within the tolerance, an inserted copy, or an actor not there then. Through actors.npz."""
+    from xyzcyl.runtime.actors import Actors
+    from xyzcyl.runtime.camera import Camera, pinhole_K
+    from xyzcyl.runtime.render import Gaussians
+    from xyzcyl.runtime.rig import load_rig
+    from xyzcyl.runtime.scene import Scene
+    from xyzcyl.testing import EXAMPLE_RIG
+
+    x, y = (a.ravel() for a in np.meshgrid(np.arange(8.1, 12.0, 0.2), np.arange(-0.9, 1.0, 0.2), indexing="ij"))
+    n = len(x)
+    fill = Gaussians(np.column_stack([x, y, np.zeros(n)]).astype(np.float32), np.tile(np.float32([1, 0, 0, 0]), (n, 1)),
+                     np.tile(np.log(np.float32([0.14, 0.14, 0.02])), (n, 1)), np.full(n, 3.0, np.float32),
+                     np.full((n, 1, 3), 1.5, np.float32))
+    T = np.array(_pose(10.0), float)
+    T[2, 3] = 0.75                                    # a 4 x 2 x 1.5 m box standing still at x = 10 m, 0..2 s
+    empty = Gaussians.empty(0)
+    Actors(track_id=("car",), track_label=("Car",), track_size=np.array([[4.0, 2.0, 1.5]]),
+           pose_track=np.zeros(3, np.int32), pose_time=np.array([0.0, 1.0, 2.0]), pose=np.array([T] * 3),
+           copy_track=np.zeros(1, np.int32), copy_time=np.zeros(1), copy_start=np.array([0, 0]), gaussians=empty,
+           fill=fill, fill_track=np.zeros(n, np.int64)).save(tmp_path / "a.npz")
+    back = Actors.load(tmp_path / "a.npz")
+    assert back.listing()[0]["filled_m2"] == pytest.approx(n * 0.04)
+    far = Gaussians(np.array([[60.0, 0.0, 5.0]], np.float32), np.float32([[1, 0, 0, 0]]),
+                    np.full((1, 3), 0.0, np.float32), np.zeros(1, np.float32), np.zeros((1, 1, 3), np.float32))
+    scene = Scene(gaussians=far, background=None, rig=load_rig(EXAMPLE_RIG), actors=back,
+                  drive={"timestamp_s": 0.0, "times_s": [0.0, 1.0, 2.0], "trajectory": [np.eye(4).tolist()] * 3,
+                         "keyframes": [0]})
+    # a camera 1.5 m up looking down the road at the fill (8-12 m ahead: image rows 72-78)
+    c2e = np.array([[0, 0, 1, 0], [-1, 0, 0, 0], [0, -1, 0, 1.5], [0, 0, 0, 1]], float)
+    cam = Camera(K=pinhole_K(100, 100, 79.5, 59.5), cam_to_ego=c2e, width=160, height=120)
+
+    def alpha(t, edits=()):
+        return scene.render(cam, t, background=None, actors=actor_edits(list(edits)))[2][73:78, 75:85]
+
+    pose_far = [1, 0, 0, 0, 0, 1, 0, 40, 0, 0, 1, 0, 0, 0, 0, 1]
+    assert alpha(1.0).max() < 0.01
+    assert alpha(1.0, [{"id": "car", "hide": True}]).min() > 0.5          # thin discs seen at a grazing angle
+    assert alpha(1.0, [{"id": "car", "offset": [0, 30, 0]}]).min() > 0.5
+    assert alpha(1.0, [{"id": "car", "pose": pose_far}]).min() > 0.5
+    assert alpha(1.0, [{"id": "car", "offset": [0.01, 0, 0]}]).max() < 0.01     # within CLEARED_TOL: still there
+    assert alpha(1.0, [{"id": "car", "insert": "c2", "pose": pose_far}]).max() < 0.01
+    assert alpha(5.0, [{"id": "car", "hide": True}]).max() < 0.01          # not there at 5 s: nothing uncovered

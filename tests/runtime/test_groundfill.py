@@ -33,7 +33,8 @@ def test_the_hole_a_car_left_is_filled_with_the_roads_colour():
     T = np.array(_pose(1.0, 2.0), float)
     T[2, 3] = 0.75                                  # the box's centre half its height above the ground
     # no frame saw 3 x 1.6 m of the ground under the car (inside its footprint): filled, nothing else
-    fill, area = fill_under(_ground((-0.5, 2.5, 1.2, 2.8)), [(1, T, size)], 3)
+    fill, owner, area = fill_under(_ground((-0.5, 2.5, 1.2, 2.8)), [(1, T, size)], 3)
+    assert np.all(owner == 1)
     assert area[0] == 0 and area[2] == 0
     # the lattice's cells whose 3 x 3 neighbourhood holds no ground Gaussian: the hole less one cell on each side
     # (0.2 m), give or take a cell along each edge (the lattice is not aligned with the hole)
@@ -46,13 +47,38 @@ def test_the_hole_a_car_left_is_filled_with_the_roads_colour():
     np.testing.assert_allclose(fill.sh[:, 0, :], np.tile([0.2, -0.1, 0.3], (len(fill), 1)), atol=1e-6)
     assert fill.sh_degree == 0 and np.all(fill.opacity_logits > 2)
     # seen whole: nothing filled; a hole outside the (grown) footprint: not ours to fill
-    assert fill_under(_ground(None), [(0, T, size)], 1)[1].sum() == 0
+    assert fill_under(_ground(None), [(0, T, size)], 1)[2].sum() == 0
     far = fill_under(_ground((5.0, 8.0, -8.0, -5.0)), [(0, T, size)], 1)
     assert len(far[0]) == 0
     # a hole larger than the footprint is filled only within the footprint grown by GROW_M
-    big, a_big = fill_under(_ground((-6.0, 8.0, -3.0, 7.0)), [(0, T, size)], 1)
+    big, _, a_big = fill_under(_ground((-6.0, 8.0, -3.0, 7.0)), [(0, T, size)], 1)
     assert a_big[0] <= (4.0 + 2 * GROW_M + FILL_SPACING_M) * (2.0 + 2 * GROW_M + FILL_SPACING_M)
     assert a_big[0] >= (4.0 + 2 * GROW_M - FILL_SPACING_M) * (2.0 + 2 * GROW_M - FILL_SPACING_M)
     # no ground around to copy: mid grey (DC 0)
-    none, _ = fill_under(_ground((-20, 20, -20, 20)), [(0, T, size)], 1)
+    none, _, _ = fill_under(_ground((-20, 20, -20, 20)), [(0, T, size)], 1)
     assert len(none) and np.all(none.sh[:, 0, :] == 0)
+
+
+def test_cells_near_a_box_along_their_rays_are_snapped_into_it():
+    """runtime.boxes.snap_into_boxes: a camera without measured depth puts a moving object's cells where its
+    model's depth says, often metres off; those whose ray passes through the object's box near it move onto the
+    box's near side (their distance scaled by ``factor``), the rest stay."""
+    from xyzcyl.runtime.boxes import SNAP_FAR, SNAP_INTO_M, SNAP_NEAR, snap_into_boxes
+
+    origin = np.array([0.0, 0.0, 1.5])
+    inv = np.linalg.inv(np.array(_pose(12.0, 0.0), float))         # a 4 x 2 x 3 m box centred 12 m ahead, z 0
+    half = np.array([2.0, 1.0, 1.5])
+    ray = np.array([1.0, 0.02, -0.05])
+    ray /= np.linalg.norm(ray)
+    # where the ray enters and leaves the box: x = 10 and 14 (|y| <= 1 and |z| <= 1.5 hold along the way)
+    t_in, t_out = 10.0 / ray[0], 14.0 / ray[0]
+    d = np.array([0.4 * t_in, SNAP_NEAR * t_in + 0.01, 12.0 / ray[0], SNAP_FAR * t_out - 0.01, SNAP_FAR * t_out + 1])
+    cells = origin + d[:, None] * ray
+    missing = origin + 12.0 * np.array([0.0, 1.0, 0.0])               # beside the camera: no box on its ray
+    out, factor = snap_into_boxes(np.vstack([cells, missing]), origin, [(inv, half)])
+    want = t_in + min(SNAP_INTO_M, 0.5 * (t_out - t_in))
+    np.testing.assert_allclose(factor, [1.0, want / d[1], 1.0, want / d[3], 1.0, 1.0], rtol=1e-9)
+    np.testing.assert_allclose(out[[1, 3]], origin + want * np.tile(ray, (2, 1)), atol=1e-9)
+    np.testing.assert_array_equal(out[[0, 2, 4, 5]], np.vstack([cells, missing])[[0, 2, 4, 5]])
+    # the camera inside the box: nothing to snap to
+    assert np.all(snap_into_boxes(cells, np.array([12.0, 0.0, 1.0]), [(inv, half)])[1] == 1.0)
