@@ -177,3 +177,26 @@ def test_actors_bench_times_thirty_moved_actors(tmp_path):
     r = subprocess.run([sys.executable, str(BENCH / "actors_bench.py"), str(plain)], cwd=REPO, capture_output=True,
                        text=True, timeout=120, check=False)
     assert r.returncode == 2 and "no tracks" in r.stderr, r.stderr[-2000:]
+
+
+def test_actors_boxes_scores_inside_the_moving_boxes(tmp_path):
+    """benchmarks/actors_boxes.py (docs/results.md "Actors"): a drive with a moving car, reconstructed with and
+    without its tracks, scored inside its boxes, outside and whole at the frame between the keyframes; the scenes
+    are reused from --work; a drive without tracks exits 2."""
+    from xyzcyl.testing.drives import moving_car, pose, write_drive
+
+    E = pose(0)
+    tracks = moving_car(E, 12.0, 1.0)
+    tracks["tracks"][0]["poses"].append({"frame": 2, "object_to_world": tracks["tracks"][0]["poses"][1]
+                                         ["object_to_world"]})
+    drive = write_drive(tmp_path / "d", [E, E, E], [0.0, 0.5, 1.0], tracks=tracks)
+    (doc,) = _run("actors_boxes.py", str(drive), "--every", "2", "--work", str(tmp_path / "w"), "--no-lidar",
+                  timeout=300)
+    assert doc["keyframes"] == [0, 2] and doc["scored_frames"] == [1] and not doc["lidar"]
+    for name in ("tracks", "untracked", "still"):
+        assert all(np.isfinite(doc["psnr"][name][k]) for k in ("outside", "all")), doc
+    assert (tmp_path / "w" / "tracks" / "scene.json").is_file() and (tmp_path / "w" / "untracked").is_dir()
+    plain = write_drive(tmp_path / "p", [E, E], [0.0, 0.5])
+    r = subprocess.run([sys.executable, str(BENCH / "actors_boxes.py"), str(plain), "--work", str(tmp_path / "x")],
+                       cwd=REPO, capture_output=True, text=True, timeout=120, check=False)
+    assert r.returncode == 2 and "no tracks" in r.stderr, r.stderr[-2000:]
