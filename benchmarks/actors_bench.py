@@ -113,6 +113,7 @@ def picture(scene, drive, frames, slack: float, path: str, rows: int = 2) -> lis
     largest (the whole box in the image, 6-25 m away; one row each, different cameras); their descriptions."""
     import cv2
     from xyzcyl.common.wire import actor_edits
+    from xyzcyl.runtime.actors import MOVED_LABEL
     from xyzcyl.runtime.drive_eval import camera_at
     from xyzcyl.runtime.realeval import sheet
 
@@ -121,7 +122,7 @@ def picture(scene, drive, frames, slack: float, path: str, rows: int = 2) -> lis
     for f in frames:
         t = drive.frames[f].timestamp_s
         for a, T in scene.actors.placements(t, slack):
-            if not scene.actors.listing()[a]["tracked"]:
+            if scene.actors.track_label[a] == MOVED_LABEL:      # untracked cells that moved away: no car
                 continue
             corners = (signs * 0.5 * scene.actors.track_size[a]) @ T[:3, :3].T + T[:3, 3]
             for cam in drive.frames[f].rig.cameras:

@@ -169,7 +169,7 @@ class SceneInfo(BaseModel):
     cameras: list[CameraInfo]
     detail: DetailInfo | None = None
     model: dict[str, Any] | None = None
-    counts: dict[str, int] | None = None
+    counts: dict[str, int | float] | None = None    # integers, but for areas (ground_filled_m2: square metres)
     gaussians: int | None = None
     background: bool | None = None
     bbox: dict[str, list[float]] | None = None

@@ -73,7 +73,7 @@ class Actors:
     copy_start: np.ndarray        # [C + 1] int: copy c is Gaussians copy_start[c]:copy_start[c + 1]
     gaussians: Gaussians          # the copies' Gaussians, each in its object's box frame
     # the ground under the objects that no frame saw (runtime.groundfill), scene frame, and each disc's object:
-    # drawn where a view hides or moves its object (fill_for)
+    # drawn in views that take an object away (runtime.scene.Scene.fill_for, cleared)
     fill: Gaussians | None = None
     fill_track: np.ndarray | None = None      # [F] int
     _ids: dict[str, int] | None = field(default=None, init=False, repr=False, compare=False)

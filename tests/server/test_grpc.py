@@ -449,6 +449,11 @@ def test_actors_listed_edited_over_http_and_moved_by_dynamic_objects(live):
     "actors" hide or move them (another ETag), refusals named; over gRPC, a DynamicObject draws its track at the
     given box pose (the listed pose: the same picture as none given; 1.5 m to the side: another), unknown track
     ids and poses kilometres away are INVALID_ARGUMENT naming the field."""
+    info = live.http.get(f"/v1/scenes/{live.drive_sid}")        # its counts hold an area (ground_filled_m2)
+    assert info.status_code == 200 and isinstance(info.json()["counts"]["ground_filled_m2"], float), info.text
+    from xyzcyl.common.wire import SceneInfo
+
+    assert SceneInfo.model_validate(info.json()).counts["actors"] == 1        # what the client parses
     r = live.http.get(f"/v1/scenes/{live.drive_sid}/actors", params={"time": T0 + 1.0})
     assert r.status_code == 200, r.text
     (car,) = r.json()["actors"]
