@@ -1072,7 +1072,7 @@ class Client:
                           progress: Progress | None = None, depths: bool = True, lidar: bool = True,
                           ego_masks: bool = True, detail_stride: int | None = None, detail: bool = True,
                           name: str | None = None, keyframe_spacing: float | None = None,
-                          keyframe_gap: float | None = None) -> SceneInfo:
+                          keyframe_gap: float | None = None, stationary_actors: bool = False) -> SceneInfo:
         """POST /v1/scenes with a recorded drive (docs/api.md "Drives"); returns the scene, whose ``drive`` says its
         frames and keyframes.
 
@@ -1082,9 +1082,15 @@ class Client:
         depths, lidar, ego_masks: False leaves the frames' depth maps, LiDAR sweeps, ego masks out.
         keyframe_spacing (metres), keyframe_gap (seconds): the keyframes' spacing and longest gap (None: the
         server's defaults, 1.5 m and 2 s; `xyzcyl reconstruct --keyframe-spacing/--keyframe-gap`).
+        stationary_actors: the tracks marked stationary (parked cars) become actors too (docs/api.md "Actors").
         wait, timeout, progress, detail_stride, detail, name: as reconstruct. The upload is one request: a failed or
         cut one is posted again whole."""
+        if not isinstance(stationary_actors, bool):
+            raise InvalidArgumentError(None, "invalid", f"stationary_actors: must be True or False (got "
+                                                        f"{stationary_actors!r:.60})", "stationary_actors")
         query = _scene_params(detail_stride, detail, name) | _keyframe_params(keyframe_spacing, keyframe_gap)
+        if stationary_actors:
+            query["stationary_actors"] = "true"
         upload = drive if isinstance(drive, DriveUpload) else read_drive(drive, depths, lidar, ego_masks)
         return self._post_scene(upload.parts, query, wait, timeout, progress)
 

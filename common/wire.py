@@ -156,6 +156,8 @@ class DriveInfo(BaseModel):
                                            "default time)")
     duration_s: float = Field(description="seconds from the first frame to the last")
     tracks: int = Field(0, description="annotated objects posted with the drive")
+    stationary_actors: bool = Field(False, description="its stationary tracks are actors too (POST "
+                                                       "?stationary_actors=true)")
 
 
 # a scene as POST /v1/scenes, GET /v1/scenes/{id} and the list answer it

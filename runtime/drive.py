@@ -754,7 +754,8 @@ _DEFAULT = object()
 
 def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None, lidar: bool = True,
                       detail: Any = _DEFAULT, progress: Callable[[str], None] | None = None, stereo: bool = True,
-                      ego_body: bool = True, exposure: bool = True, workers: int | None = None):
+                      ego_body: bool = True, exposure: bool = True, workers: int | None = None,
+                      stationary_actors: bool = False):
     """One runtime.scene.Scene of ``drive`` (module docstring) with runtime.inference.Reconstructor ``rec``:
     ``keyframes`` (default pick_keyframes), each keyframe's LiDAR sweep when ``lidar`` and it has one, else when
     ``stereo`` (the default) the points triangulated between it and the frames about a metre before and after it
@@ -763,7 +764,9 @@ def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None,
     ego_mask file wins), each camera's exposure and white balance harmonised across cameras and keyframes when
     ``exposure`` (runtime.exposure). ``workers``: keyframes reconstructed ahead in that many worker processes while
     this one fuses (each loads the model once; at most ``workers`` keyframes wait, so memory stays bounded; 0: all
-    here; default DEFAULT_WORKERS). A one-frame drive is exactly Reconstructor.reconstruct of its rig."""
+    here; default DEFAULT_WORKERS). ``stationary_actors``: the tracks marked ``stationary`` (parked cars) become
+    actors too (a view can then hide or move them), instead of staying in the static scene. A one-frame drive is
+    exactly Reconstructor.reconstruct of its rig."""
     from .detail import carve_details, cull_covered
     from .exposure import Harmoniser
     from .inference import DEFAULT_DETAIL
@@ -772,6 +775,8 @@ def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None,
 
     say = progress or (lambda msg: None)
     detail = DEFAULT_DETAIL if detail is _DEFAULT else detail
+    if stationary_actors:           # every track is then an object that leaves the static scene
+        drive = replace(drive, tracks=tuple(replace(t, stationary=False) for t in drive.tracks))
     tol = detail.cull_tolerance if detail is not None else 0.0
     keys = pick_keyframes(drive) if keyframes is None else list(keyframes)
     if not keys or any(not 0 <= k < len(drive) for k in keys) or keys != sorted(set(keys)):
@@ -1068,14 +1073,16 @@ def find_drive_ego_body(drive: Drive, lidar: bool = True) -> EgoBody:
 
 def save_drive_scene(rec, drive: Drive, keys: Sequence[int], out: str | os.PathLike, *, detail,
                      lidar: bool = True, say: Callable[[str], None] | None = None, stereo: bool = True,
-                     ego_body: bool = True, exposure: bool = True, workers: int | None = None):
+                     ego_body: bool = True, exposure: bool = True, workers: int | None = None,
+                     stationary_actors: bool = False):
     """A drive's scene folder, the one path of `xyzcyl reconstruct DRIVE_JSON` and of the service's worker for a
     posted drive: reconstruct_drive of the keyframes ``keys`` with the Reconstructor ``rec`` and the detail layer's
     settings ``detail`` (None: none), written to ``out`` (replaced). Returns the scene and the seconds the save
     took."""
     say = say or (lambda msg: None)
     scene = reconstruct_drive(rec, drive, keys, lidar=lidar, detail=detail, progress=say, stereo=stereo,
-                              ego_body=ego_body, exposure=exposure, workers=workers)
+                              ego_body=ego_body, exposure=exposure, workers=workers,
+                              stationary_actors=stationary_actors)
     say(f"write {out}")
     t1 = time.perf_counter()
     scene.save(out, overwrite=True)

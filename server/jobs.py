@@ -155,11 +155,12 @@ def _worker_ping() -> WorkerStarted:
 
 
 def _worker_reconstruct(rig_json: str, out_dir: str, detail_stride: int | None,
-                        keyframes: list[int] | None = None) -> Reconstructed | ReconstructFailed:
+                        keyframes: list[int] | None = None,
+                        stationary_actors: bool = False) -> Reconstructed | ReconstructFailed:
     """The scene of ``rig_json`` written to ``out_dir``, or why not. detail_stride: the detail layer's stride (the
     runtime's other detail settings stay at their defaults), None for no detail layer. ``keyframes``: ``rig_json``
     is an uploaded drive's drive.json and these are its keyframes (the scene folder `xyzcyl reconstruct DRIVE_JSON`
-    writes: runtime.drive.save_drive_scene)."""
+    writes: runtime.drive.save_drive_scene), with its stationary tracks as actors when ``stationary_actors``."""
     import errno
     from dataclasses import replace
 
@@ -173,7 +174,8 @@ def _worker_reconstruct(rig_json: str, out_dir: str, detail_stride: int | None,
     try:
         detail = None if detail_stride is None else replace(DEFAULT_DETAIL, stride=detail_stride)
         if keyframes is not None:
-            scene, _ = save_drive_scene(_RECONSTRUCTOR, load_drive(rig_json), keyframes, out_dir, detail=detail)
+            scene, _ = save_drive_scene(_RECONSTRUCTOR, load_drive(rig_json), keyframes, out_dir, detail=detail,
+                                        stationary_actors=stationary_actors)
         else:
             rig = load_rig(rig_json)
             pts = load_lidar(rig) if has_lidar(rig) else None
@@ -209,6 +211,7 @@ class Job:
     detail_stride: int | None          # the detail layer's stride (POST ?detail_stride=), None: no detail layer
     input: str = "rig.json"            # the file of ``work`` to reconstruct: rig.json, or a drive's drive.json
     keyframes: list[int] | None = None     # a drive's keyframes (None: one rig)
+    stationary_actors: bool = False        # a drive's stationary tracks become actors too (POST ?stationary_actors=)
     submitted: float = field(default_factory=time.perf_counter)
     done: asyncio.Event = field(default_factory=asyncio.Event)
 
@@ -361,7 +364,7 @@ class Reconstructions:
         out = job.work / "scene"
         t0 = time.perf_counter()
         fut = loop.run_in_executor(worker.pool, _worker_reconstruct, str(job.work / job.input), str(out),
-                                   job.detail_stride, job.keyframes)
+                                   job.detail_stride, job.keyframes, job.stationary_actors)
         try:
             result = await asyncio.wait_for(fut, self.settings.reconstruct_timeout_s)
         except TimeoutError:

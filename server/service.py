@@ -267,12 +267,14 @@ class Service:
 
     async def create_scene(self, read_form: Callable[..., Awaitable[Any]], detail_stride: int | None,
                            wait: float | None, name: str | None = None,
-                           keyframes: dict[str, float | None] | None = None) -> SceneRecord:
+                           keyframes: dict[str, float | None] | None = None,
+                           stationary_actors: bool = False) -> SceneRecord:
         """POST /v1/scenes: admit (Busy while loading or with the queue full), read the multipart form with
         ``read_form`` (the request's ``form``) into a work folder (uploads.ingest: a rig, or a recorded drive), create
         the record (with its ``name``, checked by the route: store.name_error; a drive's frames and keyframes) and
         queue the job (detail_stride None: no detail layer); ``keyframes``: the query's keyframe_spacing and
-        keyframe_gap (None: not given; Invalid naming the first given for a rig); with ``wait``, hold up to that many
+        keyframe_gap (None: not given; Invalid naming the first given for a rig); ``stationary_actors``: a drive's
+        stationary tracks become actors too (Invalid for a rig); with ``wait``, hold up to that many
         seconds (at most ``wait_max_s``) for the job to end. Returns the scene's record then (a failed one when it
         was deleted meanwhile)."""
         st = self.settings
@@ -293,8 +295,8 @@ class Service:
                 raise Invalid(f"the multipart body cannot be parsed: {e.detail}", "body") from None
             upload = await asyncio.to_thread(ingest, form, work, st, self.info.meta.get("input") or {})
             knobs = {k: v for k, v in (keyframes or {}).items() if v is not None}
-            if upload.drive is None and knobs:
-                first = next(iter(knobs))
+            if upload.drive is None and (knobs or stationary_actors):
+                first = next(iter(knobs)) if knobs else "stationary_actors"
                 raise Invalid(f"{first}: goes with a drive upload (a 'drive' part; a rig is one timestamp)", first)
             sid = new_scene_id()
             rig = upload.rig
@@ -304,13 +306,14 @@ class Service:
                 fields["name"] = name
             keys = None
             if upload.drive is not None:
-                fields["drive"] = _drive_info(upload.drive, knobs)
+                fields["drive"] = _drive_info(upload.drive, knobs) | {"stationary_actors": stationary_actors}
                 keys = fields["drive"]["keyframes"]
             try:
                 await asyncio.to_thread(self.store.create, sid, fields)
             except StoreFull as e:
                 raise StorageFull(str(e)) from None
-            job = Job(sid=sid, work=work, detail_stride=detail_stride, input=upload.path, keyframes=keys)
+            job = Job(sid=sid, work=work, detail_stride=detail_stride, input=upload.path, keyframes=keys,
+                      stationary_actors=stationary_actors)
             try:
                 self.reconstructions.submit(job)
             except Busy:

@@ -77,6 +77,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                    help="a drive: a keyframe each M metres the ego moves (default: the server's, 1.5)")
     p.add_argument("--keyframe-gap", type=float, default=None, metavar="S",
                    help="a drive: a keyframe at least every S seconds, moving or not (default: the server's, 2)")
+    p.add_argument("--stationary-actors", action="store_true",
+                   help="a drive: its tracks marked stationary (parked cars) become actors too, which a render can "
+                        "hide or move (default: they stay in the static scene)")
     p.add_argument("--json", action="store_true", help="print the scene JSON instead of its id")
 
     p = sub.add_parser("render", parents=[common], help="render one view to a file (png, jpg or exr)",
@@ -216,6 +219,8 @@ def _reconstruct(c, args) -> int:
         raise _UsageError("--detail-stride", why)
     knobs = {"--keyframe-spacing": args.keyframe_spacing, "--keyframe-gap": args.keyframe_gap}
     drive = is_drive_file(args.rig)
+    if args.stationary_actors and not drive:
+        raise _UsageError("--stationary-actors", f"goes with a drive file ({args.rig} is a rig.json: one timestamp)")
     for flag, v in knobs.items():
         if v is not None and not drive:
             raise _UsageError(flag, f"goes with a drive file ({args.rig} is a rig.json: one timestamp)")
@@ -242,7 +247,8 @@ def _reconstruct(c, args) -> int:
         if drive:
             info = c.reconstruct_drive(drive, wait=wait, timeout=args.wait or 600.0, progress=progress,
                                        detail_stride=args.detail_stride, detail=not args.no_detail,
-                                       keyframe_spacing=args.keyframe_spacing, keyframe_gap=args.keyframe_gap)
+                                       keyframe_spacing=args.keyframe_spacing, keyframe_gap=args.keyframe_gap,
+                                       stationary_actors=args.stationary_actors)
         else:
             info = c.reconstruct(args.rig, depths=depths, wait=wait, timeout=args.wait or 600.0, progress=progress,
                                  lidar=False if args.no_lidar else None, detail_stride=args.detail_stride,

@@ -56,6 +56,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                    help="do not harmonise the cameras' exposure and white balance across cameras and keyframes "
                         "(by default a per-channel gain per camera and keyframe is solved on what two of them both "
                         "saw, docs/inference.md \"Exposure\")")
+    g.add_argument("--stationary-actors", action="store_true",
+                   help="the tracks marked stationary (parked cars) become actors too, which a render can hide or "
+                        "move (by default they stay in the static scene; docs/api.md \"Actors\")")
     g.add_argument("--workers", type=int, default=None, metavar="N",
                    help="reconstruct the next keyframes in N worker processes while this one fuses (default 0: "
                         "in this process, the next keyframe in a thread; on 2 cores a worker was slower, "
@@ -107,7 +110,8 @@ def run(args: argparse.Namespace) -> int:
                                   ("--keyframes", args.keyframes), ("--stereo", args.stereo or None),
                                   ("--no-stereo", args.no_stereo or None),
                                   ("--no-ego-body", args.no_ego_body or None),
-                                  ("--no-exposure", args.no_exposure or None), ("--workers", args.workers))
+                                  ("--no-exposure", args.no_exposure or None), ("--workers", args.workers),
+                                  ("--stationary-actors", args.stationary_actors or None))
                    if v is not None]
     if drive_flags:
         return _fail(f"{drive_flags[0]}: goes with a drive file (a rig.json is one timestamp)")
@@ -185,7 +189,8 @@ def _drive(args: argparse.Namespace, detail, out: Path, model_dir: Path, say) ->
         t_load = time.perf_counter() - t0
         scene, t_save = save_drive_scene(rec, drive, keys, out, lidar=not args.no_lidar, detail=detail, say=say,
                                           stereo=not args.no_stereo, ego_body=not args.no_ego_body,
-                                          exposure=not args.no_exposure, workers=args.workers)
+                                          exposure=not args.no_exposure, workers=args.workers,
+                                          stationary_actors=args.stationary_actors)
     except (DriveError, ModelError, RigError, InferenceError, SceneError, LidarError) as exc:
         return _fail(str(exc))
     except OSError as exc:

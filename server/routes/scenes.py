@@ -65,7 +65,10 @@ async def create_scene(request: Request,
                                                               f"ego moved this many metres (default "
                                                               f"{DEFAULT_SPACING_M:g})"),
                        keyframe_gap: float | None = Query(None, description="a drive: a keyframe at least every this "
-                                                          f"many seconds (default {DEFAULT_MAX_GAP_S:g})")):
+                                                          f"many seconds (default {DEFAULT_MAX_GAP_S:g})"),
+                       stationary_actors: bool = Query(False, description="a drive: its tracks marked stationary "
+                                                       "(parked cars) become actors too, which a view can hide or "
+                                                       "move (default: they stay in the static scene)")):
     stride = _detail_stride(request, detail, detail_stride)
     if name is not None and (why := name_error(name)):
         raise Invalid(f"name: {why}", "name")
@@ -76,7 +79,8 @@ async def create_scene(request: Request,
         if (why := keyframe_error(v)) is not None:
             raise Invalid(f"{k}: {why}", k)
     require_content_type(request, "multipart/form-data", "POST /v1/scenes")
-    rec = await service_of(request).create_scene(request.form, stride, wait, name=name, keyframes=knobs)
+    rec = await service_of(request).create_scene(request.form, stride, wait, name=name, keyframes=knobs,
+                                                 stationary_actors=stationary_actors)
     headers = {"Location": f"/v1/scenes/{rec.id}"}
     if rec.state == "failed" and wait:
         err = rec.error

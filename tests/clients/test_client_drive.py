@@ -129,8 +129,8 @@ def test_cli_reconstructs_a_drive_with_a_line_per_stage(drive, monkeypatch, caps
     sent, handler = _recorder()
     real = httpx.Client
     monkeypatch.setattr(httpx, "Client", lambda **kw: real(transport=httpx.MockTransport(handler), **kw))
-    rc, out, err = _cli(["client", "reconstruct", str(drive), "--wait", "--keyframe-gap", "0.5", "--no-lidar"],
-                        capsys)
+    rc, out, err = _cli(["client", "reconstruct", str(drive), "--wait", "--keyframe-gap", "0.5", "--no-lidar",
+                         "--stationary-actors"], capsys)
     assert rc == 0 and out.strip() == SCENE["id"], err
     lines = err.strip().splitlines()
     assert lines[0].startswith(f"drive {drive}: 3 frames of 6 cameras, ") and lines[0].endswith(" MB to upload")
@@ -138,11 +138,14 @@ def test_cli_reconstructs_a_drive_with_a_line_per_stage(drive, monkeypatch, caps
     assert lines[2] == (f"scene {SCENE['id']} ready: 1234 Gaussians, 1 cameras, 3 frames (2 keyframes) in 4.2 s")
     params, parts = sent[0]
     assert params["keyframe_gap"] == "0.5" and "frames/1/lidar" not in parts
+    assert params["stationary_actors"] == "true"
     # the keyframe flags go with a drive file: refused for a rig.json before anything is sent
     rc, out, err = _cli(["client", "reconstruct", str(EXAMPLE_RIG), "--keyframe-spacing", "3"], capsys)
     assert rc == 2 and "--keyframe-spacing: goes with a drive file" in err and len(sent) == 1, err
     rc, out, err = _cli(["client", "reconstruct", str(drive), "--keyframe-gap", "0"], capsys)
     assert rc == 2 and "--keyframe-gap: must be a finite number > 0" in err and len(sent) == 1, err
+    rc, out, err = _cli(["client", "reconstruct", str(EXAMPLE_RIG), "--stationary-actors"], capsys)
+    assert rc == 2 and "--stationary-actors: goes with a drive file" in err and len(sent) == 1, err
 
 
 def test_a_render_at_a_time_sends_it_and_a_bad_time_is_refused_before(monkeypatch, capsys, tmp_path):

@@ -224,3 +224,5 @@ def test_a_bad_workers_count_is_refused_before_any_work(tmp_path, capsys):
     assert "--workers: must be >= 0" in err and "load model" not in err
     assert cli.main(["reconstruct", str(EXAMPLE_RIG), "--out", str(tmp_path / "s"), "--workers", "1"]) == 2
     assert "--workers: goes with a drive file" in capsys.readouterr().err
+    assert cli.main(["reconstruct", str(EXAMPLE_RIG), "--out", str(tmp_path / "s"), "--stationary-actors"]) == 2
+    assert "--stationary-actors: goes with a drive file" in capsys.readouterr().err

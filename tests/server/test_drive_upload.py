@@ -73,9 +73,10 @@ def test_a_drive_reaches_a_ready_scene_that_records_its_frames(env, client, tmp_
     sid = scene["id"]
     try:
         want = {"frames": 3, "keyframes": [0, 2], "keyframe_spacing": 1.5, "keyframe_gap": 2.0, "timestamp_s": T0,
-                "duration_s": 1.0, "tracks": 1}
+                "duration_s": 1.0, "tracks": 1, "stationary_actors": False}
         assert scene["drive"] == want
         assert scene["counts"]["keyframes"] == 2 and scene["counts"]["frames"] == 3, scene["counts"]
+        assert "actors" not in scene["counts"]                   # its one track is stationary: the static scene's
         assert [(c["name"], c["width"]) for c in scene["cameras"]] == [(c["name"], 400) for c in small]
         got = client.get(f"/v1/scenes/{sid}").json()
         assert got["drive"] == want and got["state"] == "ready"
@@ -87,17 +88,18 @@ def test_a_drive_reaches_a_ready_scene_that_records_its_frames(env, client, tmp_
 
 def test_the_client_posts_a_drive_file_with_its_keyframe_knobs(env, tmp_path, small):
     """Client.reconstruct of a drive file: keyframe_spacing / keyframe_gap reach the server (far apart: the first
-    frame alone is the keyframe, reconstructed as one rig)."""
+    frame alone is the keyframe), and stationary_actors makes its stationary track an actor."""
     from xyzcyl.clients import Client
 
-    path = _drive(tmp_path, small)
+    path = _drive(tmp_path, small, tracks=_track())
     sent = []
     c = Client(http_client=env.client)
-    info = c.reconstruct(path, detail=False, keyframe_spacing=100, keyframe_gap=100, timeout=60,
-                         progress=lambda done, total: sent.append((done, total)))
+    info = c.reconstruct_drive(path, detail=False, keyframe_spacing=100, keyframe_gap=100, timeout=60,
+                               progress=lambda done, total: sent.append((done, total)), stationary_actors=True)
     try:
         assert info.ready and info.drive is not None, info.raw
-        assert (info.drive.frames, info.drive.keyframes, info.drive.tracks) == (3, [0], 0)
+        assert (info.drive.frames, info.drive.keyframes, info.drive.tracks) == (3, [0], 1)
+        assert info.drive.stationary_actors and info.raw["counts"]["actors"] == 1, info.raw
         assert (info.drive.keyframe_spacing, info.drive.keyframe_gap) == (100.0, 100.0)
         assert sent and sent[-1][0] == sent[-1][1]
         assert c.scene(info.id).drive == info.drive
@@ -202,6 +204,8 @@ def test_a_rig_answers_as_before_and_refuses_the_keyframe_parameters(env, client
     assert env.created.json()["drive"] is None
     assert client.get(f"/v1/scenes/{env.sid}").json()["drive"] is None
     e = err(_post(client, rig_files(), {"keyframe_gap": "1"}), 422, "keyframe_gap", "invalid")
+    assert "drive" in e["message"]
+    e = err(_post(client, rig_files(), {"stationary_actors": "true"}), 422, "stationary_actors", "invalid")
     assert "drive" in e["message"]
     first = rig_files()[1][1]
     e = err(_post(client, rig_files(extra=[("frames/0/CAM_FRONT", first)])), 422, "frames/0/CAM_FRONT")
