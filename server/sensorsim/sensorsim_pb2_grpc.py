@@ -80,6 +80,11 @@ class SensorsimServiceStub:
                 request_serializer=xyzcyl_dot_server_dot_sensorsim_dot_common__pb2.Empty.SerializeToString,
                 response_deserializer=xyzcyl_dot_server_dot_sensorsim_dot_sensorsim__pb2.AvailableEgoMasksReturn.FromString,
                 _registered_method=True)
+        self.shut_down = channel.unary_unary(
+                '/nre.grpc.protos.sensorsim.SensorsimService/shut_down',
+                request_serializer=xyzcyl_dot_server_dot_sensorsim_dot_common__pb2.Empty.SerializeToString,
+                response_deserializer=xyzcyl_dot_server_dot_sensorsim_dot_common__pb2.Empty.FromString,
+                _registered_method=True)
 
 
 class SensorsimServiceServicer:
@@ -139,6 +144,13 @@ class SensorsimServiceServicer:
         context.set_details('Method not implemented!')
         raise NotImplementedError('Method not implemented!')
 
+    def shut_down(self, request, context):
+        """CARLA's NuRec variant of the protocol: asks the renderer to stop (xyzcyl answers and keeps serving)
+        """
+        context.set_code(grpc.StatusCode.UNIMPLEMENTED)
+        context.set_details('Method not implemented!')
+        raise NotImplementedError('Method not implemented!')
+
 
 def add_SensorsimServiceServicer_to_server(servicer, server):
     rpc_method_handlers = {
@@ -186,6 +198,11 @@ def add_SensorsimServiceServicer_to_server(servicer, server):
                     servicer.get_available_ego_masks,
                     request_deserializer=xyzcyl_dot_server_dot_sensorsim_dot_common__pb2.Empty.FromString,
                     response_serializer=xyzcyl_dot_server_dot_sensorsim_dot_sensorsim__pb2.AvailableEgoMasksReturn.SerializeToString,
+            ),
+            'shut_down': grpc.unary_unary_rpc_method_handler(
+                    servicer.shut_down,
+                    request_deserializer=xyzcyl_dot_server_dot_sensorsim_dot_common__pb2.Empty.FromString,
+                    response_serializer=xyzcyl_dot_server_dot_sensorsim_dot_common__pb2.Empty.SerializeToString,
             ),
     }
     generic_handler = grpc.method_handlers_generic_handler(
@@ -431,6 +448,33 @@ class SensorsimService:
             '/nre.grpc.protos.sensorsim.SensorsimService/get_available_ego_masks',
             xyzcyl_dot_server_dot_sensorsim_dot_common__pb2.Empty.SerializeToString,
             xyzcyl_dot_server_dot_sensorsim_dot_sensorsim__pb2.AvailableEgoMasksReturn.FromString,
+            options,
+            channel_credentials,
+            insecure,
+            call_credentials,
+            compression,
+            wait_for_ready,
+            timeout,
+            metadata,
+            _registered_method=True)
+
+    @staticmethod
+    def shut_down(request,
+            target,
+            options=(),
+            channel_credentials=None,
+            call_credentials=None,
+            insecure=False,
+            compression=None,
+            wait_for_ready=None,
+            timeout=None,
+            metadata=None):
+        return grpc.experimental.unary_unary(
+            request,
+            target,
+            '/nre.grpc.protos.sensorsim.SensorsimService/shut_down',
+            xyzcyl_dot_server_dot_sensorsim_dot_common__pb2.Empty.SerializeToString,
+            xyzcyl_dot_server_dot_sensorsim_dot_common__pb2.Empty.FromString,
             options,
             channel_credentials,
             insecure,

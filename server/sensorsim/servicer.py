@@ -18,6 +18,10 @@ one-rig scene its one). Errors become status codes, the message naming the field
     UNIMPLEMENTED        render_lidar, render_aggregated
     INTERNAL             anything else (logged)
 
+CARLA's NuRec integration speaks a variant of the protocol (docs/simulators.md "CARLA's variant"): its extra
+fields (``trajectory_idx``) are unknown fields here and ignored, its ``shut_down`` is answered (the server keeps
+serving), and its empty OpenCV pinhole message reads as a pinhole without focal length (INVALID_ARGUMENT naming it).
+
 The field is also sent as the trailing metadata ``xyzcyl-field``. batch_render_rgb answers every item once, in
 order, echoing its camera_name: an item that fails has success false and ``error_message`` "<CODE>: <field>:
 <message>" (the call itself fails only for UNAUTHENTICATED, RESOURCE_EXHAUSTED or UNAVAILABLE, before any item
@@ -230,6 +234,16 @@ class SensorsimServicer(sensorsim_pb2_grpc.SensorsimServiceServicer):
                                                           error_message=f"{f.code.name}: {f.message}")
         return sensorsim_pb2.BatchRGBRenderReturnItem(camera_name=it.camera_name, success=True,
                                                       result=sensorsim_pb2.RGBRenderReturn(image_bytes=data))
+
+    # -- CARLA's variant of the protocol ---------------------------------------------------------------------------
+    async def shut_down(self, request, context):
+        """CARLA's NuRec example asks its renderer to stop when it is done: answered (Empty), and logged; xyzcyl
+        keeps serving (it is a service shared by its HTTP and gRPC clients: stop it as a process, SIGTERM)."""
+        async def work():
+            log.info("gRPC shut_down asked by a client (CARLA's protocol): answered; the server keeps serving "
+                     "(stop it with SIGTERM)")
+            return common_pb2.Empty()
+        return await self._answer("shut_down", context, work)
 
     # -- what is not implemented -----------------------------------------------------------------------------------
     async def _unimplemented(self, method: str, context):

@@ -512,3 +512,44 @@ def test_actors_listed_edited_over_http_and_moved_by_dynamic_objects(live):
     far[:3, 3] += 1e4
     fails(live.stub.render_rgb, req(("car-1", far)), Code.INVALID_ARGUMENT, "dynamic_objects[0].pose_pair")
     fails(live.stub.render_rgb, req(("", box)), Code.INVALID_ARGUMENT, "dynamic_objects[0].track_id")
+
+
+# ----------------------------------------------------------------------------------------------- CARLA's variant
+
+
+def test_carlas_variant_of_the_protocol(live):
+    """CARLA's NuRec integration speaks the protocol with extra fields (``trajectory_idx``: CameraSpec field 6,
+    AvailableCamera field 4, AvailableTrajectory field 1), a ``shut_down`` rpc and an empty OpenCV pinhole message
+    (docs/simulators.md "CARLA's variant"): its extra fields are unknown fields here and change nothing, shut_down
+    answers and the server keeps serving, the empty pinhole message is refused naming its focal length."""
+    front = live.cameras[0]
+    plain = render_request(live, front, w=160, h=100)
+    want = live.stub.render_rgb(plain, metadata=AUTH, timeout=TIMEOUT).image_bytes
+    # CARLA's CameraSpec: ours with trajectory_idx = 7 (field 6, varint: tag 0x30) on the wire
+    spec = pb.CameraSpec()
+    spec.ParseFromString(plain.camera_intrinsics.SerializeToString() + b"\x30\x07")
+    carla = pb.RGBRenderRequest()
+    carla.CopyFrom(plain)
+    carla.camera_intrinsics.CopyFrom(spec)
+    assert carla.SerializeToString() != plain.SerializeToString()          # the unknown field travels
+    assert live.stub.render_rgb(carla, metadata=AUTH, timeout=TIMEOUT).image_bytes == want
+    # its answers parse on CARLA's side: our AvailableTrajectory has no field 1 (trajectory_idx there reads 0)
+    traj = live.stub.get_available_trajectories(pb.AvailableTrajectoriesRequest(scene_id=NAME), metadata=AUTH,
+                                                timeout=TIMEOUT)
+    assert all(not t.trajectory.poses or t.HasField("trajectory") for t in traj.available_trajectories)
+    # shut_down: answered, logged, and the server still renders
+    assert live.stub.shut_down(common_pb2.Empty(), metadata=AUTH, timeout=TIMEOUT) == common_pb2.Empty()
+    fails(live.stub.shut_down, common_pb2.Empty(), Code.UNAUTHENTICATED, metadata=())
+    assert live.stub.render_rgb(plain, metadata=AUTH, timeout=TIMEOUT).image_bytes == want
+    # CARLA's OpenCVPinholeCameraParam has no fields: chosen in the oneof, it reads as a pinhole without a focal
+    empty = pb.RGBRenderRequest()
+    empty.CopyFrom(plain)
+    empty.camera_intrinsics.opencv_pinhole_param.Clear()
+    empty.camera_intrinsics.opencv_pinhole_param.SetInParent()
+    fails(live.stub.render_rgb, empty, Code.INVALID_ARGUMENT,
+          "camera_intrinsics.opencv_pinhole_param.focal_length_x")
+    for _ in range(50):                             # the log line is written as the call returns (bounded wait)
+        if "shut_down asked by a client" in live.log.read_text():
+            break
+        time.sleep(0.1)
+    assert "shut_down asked by a client" in live.log.read_text()
