@@ -314,8 +314,6 @@ def moving_boxes(drive: Drive, k: int) -> list[tuple[int, np.ndarray, np.ndarray
     return out
 
 
-
-
 def moved_spans(times: Sequence[float], first_s: float, last_s: float, slack_s: float) -> list[tuple[float, float]]:
     """Per keyframe (``times`` [K] seconds, ascending): the (first, last) times its cells that moved away are drawn
     at (runtime.actors draws an object from ``first - slack_s`` to ``last + slack_s``): from halfway to the keyframe
