@@ -22,6 +22,7 @@ import errno
 import hashlib
 import json
 import logging
+import math
 import shutil
 import sys
 import tempfile
@@ -364,6 +365,34 @@ class Service:
         scene = await self.renders.run(self.load_scene, sid)
         return await self.renders.run(scene.gaussians.splat_bytes)
 
+    async def export_usdz(self, sid: str) -> tuple[IO[bytes], int]:
+        """A ready scene as an AlpaSim scene artifact (runtime.usdz), built in the render pool into a work folder:
+        (the file opened, its size in bytes). The scene id written into it is the one the gRPC front end lists (the
+        scene's name, else its id). The file is gone once closed (unlinked while open), so nothing is left behind
+        whether the download finishes or not."""
+        from xyzcyl.runtime.usdz import UsdzError, export_usdz
+
+        rec = await self.ready_record(sid)
+        await asyncio.to_thread(self.store.touch, sid)
+        work = await asyncio.to_thread(self.store.work_dir)
+        out = work / "scene.usdz"
+
+        def build() -> IO[bytes]:
+            try:
+                export_usdz(self.store.scene_dir(sid), out, rec.name or rec.id)
+                return open(out, "rb")
+            except (KeyError, FileNotFoundError):
+                raise NotFound(f"scene {sid} was deleted", "id") from None
+            except UsdzError as e:
+                raise Conflict(f"scene {sid} cannot be exported: {e}", "id", code="not_exportable") from None
+            finally:
+                shutil.rmtree(work, ignore_errors=True)      # an open file outlives its name (POSIX)
+
+        f = await self.renders.run(build)
+        size = f.seek(0, 2)
+        f.seek(0)
+        return f, size
+
     async def background(self, sid: str, format: str) -> IO[bytes]:
         """A ready scene's background panorama file (png or exr), opened; NotFound ``no_background`` for a model
         without a background graph."""
@@ -457,6 +486,44 @@ class Service:
         self.metrics.render_seconds.observe(time.perf_counter() - t0)
         self.views.put(key, data, owner=sid)
         return data
+
+    async def render_lidar(self, sid: str, req: Any) -> Any:
+        """A simulated LiDAR sweep (runtime.lidarsim.LidarSweep) of ``req`` (runtime.lidarsim.LidarRequest, checked
+        by its front end) in the render pool (Busy when it is full); not cached (a sweep's pose changes every
+        call in a simulation)."""
+        await asyncio.to_thread(self.store.touch, sid)
+        return await self.renders.run(self._render_lidar, sid, req)
+
+    def _render_lidar(self, sid: str, req: Any) -> Any:
+        from xyzcyl.runtime.lidarsim import render_request as lidar_render
+
+        scene = self.load_scene(sid)
+        t0 = time.perf_counter()
+        sweep = lidar_render(scene, req)
+        self.metrics.render_seconds.observe(time.perf_counter() - t0)
+        return sweep
+
+    async def lidar_request(self, sid: str, model: str | None, pose: Any, end_pose: Any, time_s: float | None,
+                            max_range: float | None, azimuth_step: float | None, format: str) -> Any:
+        """GET /v1/scenes/{id}/lidar's query as a runtime.lidarsim.LidarRequest of a ready scene: the model (with its
+        overrides), the LiDAR's pose (lidar -> the scene's frame, x forward, y left, z up) at the spin's start and
+        end (end_pose None: still). Invalid naming the query parameter otherwise."""
+        from xyzcyl.common.errors import FieldError
+        from xyzcyl.common.poses import pose_matrix
+        from xyzcyl.runtime.camera import check_pose
+        from xyzcyl.runtime.lidarsim import LidarRequest, lidar_model
+
+        await self.ready_record(sid)
+        try:
+            m = lidar_model(model, max_range_m=max_range, azimuth_step_deg=azimuth_step,
+                            fields={"azimuth_step_deg": "azimuth_step", "max_range_m": "max_range"})
+            start = check_pose(pose_matrix(pose, "pose"), key="pose")
+            end = start if end_pose is None else check_pose(pose_matrix(end_pose, "end_pose"), key="end_pose")
+            if time_s is not None and not math.isfinite(time_s):
+                raise ViewError("time", f"must be finite (got {time_s})")
+        except FieldError as e:
+            raise Invalid(str(e), e.field) from None
+        return LidarRequest(m, start, end, time_s, (), format)
 
     async def render_batch(self, sid: str, doc: dict[str, Any], output: str | None, format: str | None,
                            quality: int | None) -> AsyncIterator[bytes]:

@@ -50,7 +50,7 @@ COMMANDS: tuple[Command, ...] = (
             _lidar_eval),
     Command("eval-real", "input / novel views of real rigs (no torch)", _eval_real),
     Command("actors", "list a drive scene folder's actors (the moving objects a render can move, hide, insert)", _actors),
-    Command("export", "export a scene folder for other tools (USDZ, glTF, SPZ): not available yet", _export),
+    Command("export", "export a scene folder for other tools: an AlpaSim scene artifact (USDZ)", _export),
 )
 
 __all__ = ["COMMANDS"]

@@ -82,6 +82,21 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--quiet", "-q", action="store_true",
                         help="print nothing but errors (no summary line, no numba compile notice)")
     add_move_arguments(parser)
+    lidar = parser.add_argument_group("LiDAR (docs/simulators.md 'LiDAR')")
+    lidar.add_argument("--lidar", nargs="?", const="pandar128", default=None, metavar="MODEL",
+                       help="simulate one LiDAR sweep instead of an image: pandar128 (default), at128 or pandar64 "
+                            "(nominal beam layouts); --out .ply (x y z intensity ring) or .npy (float32 N x 4: x y z "
+                            "intensity), points in the end-of-spin LiDAR frame")
+    add_matrix_argument(lidar, "--lidar-pose",
+                        help="--lidar: the LiDAR's pose at the spin's start, lidar -> the scene's frame (LiDAR axes x "
+                             "forward, y left, z up; default: the identity, the scene's origin)")
+    add_matrix_argument(lidar, "--lidar-end-pose", help="--lidar: its pose at the spin's end (default: --lidar-pose)")
+    lidar.add_argument("--lidar-beams", default=None, metavar="JSON|FILE.json",
+                       help="--lidar: beam elevations of one's own, degrees (a JSON list, or a .json file holding one)")
+    lidar.add_argument("--azimuth-step", type=float, default=None, metavar="DEG",
+                       help="--lidar: degrees between columns (default: the model's)")
+    lidar.add_argument("--max-range", type=float, default=None, metavar="M",
+                       help="--lidar: metres (default: the model's)")
 
 
 def _fail(msg: str) -> int:
@@ -109,6 +124,11 @@ def run(args: argparse.Namespace) -> int:
         from ..compile_notice import install
 
         install(lambda line: None)
+    if args.lidar is not None:
+        return run_lidar(args)
+    if any(v is not None for v in (args.lidar_pose, args.lidar_end_pose, args.lidar_beams, args.azimuth_step,
+                                   args.max_range)):
+        return _fail("--lidar-pose, --lidar-end-pose, --lidar-beams, --azimuth-step, --max-range: need --lidar")
     out = Path(args.out)
     try:
         fmt = out_format(out, args.format)
@@ -214,4 +234,100 @@ def run(args: argparse.Namespace) -> int:
         chunks = " and the view's viewpoint chunks" if scene is not None and scene.viewpoints is not None else ""
         print(f"rendered {len(g)} Gaussians{chunks} -> {out} ({cam.width}x{cam.height}, "
               f"coverage {float((alpha > 0).mean()):.3f}{', with background' if bg is not None else ''})")
+    return 0
+
+
+LIDAR_OUT = {".ply": "ply", ".npy": "npy"}
+_LIDAR_IMAGE_FLAGS = ("K", "fov", "cam_to_world", "camera", "equirect", "distortion", "output", "background",
+                      "width", "height", "format")
+
+
+def _lidar_beams(value: str) -> list:
+    import json
+
+    text = Path(value).read_text() if value.strip().endswith(".json") and Path(value).is_file() else value
+    try:
+        beams = json.loads(text)
+    except ValueError:
+        raise PoseArgError("--lidar-beams", "a JSON list of elevations in degrees expected (or a .json file)") from None
+    if not isinstance(beams, list):
+        raise PoseArgError("--lidar-beams", f"a JSON list of elevations in degrees expected (got {type(beams).__name__})")
+    return beams
+
+
+def run_lidar(args: argparse.Namespace) -> int:
+    """`xyzcyl render SCENE_DIR|PLY --lidar [MODEL] --out F.ply|F.npy`: one simulated sweep (runtime.lidarsim)."""
+    from xyzcyl.common.files import atomic_file
+    from xyzcyl.common.wire import ViewError, actor_edits
+
+    from ..errors import FieldError
+    from ..lidarsim import gaussians_drawer, lidar_model, render_lidar, scene_drawer, sweep_bytes
+    from ..render import GaussianError, Gaussians
+    from ..render.gaussians import DEFAULT_MAX_POINTS
+    from ..scene import JSON_NAME, Scene, SceneError
+
+    if args.quiet:
+        from ..compile_notice import install
+
+        install(lambda line: None)
+    given = [f for f in _LIDAR_IMAGE_FLAGS if getattr(args, f) not in (None, False)]
+    if given:
+        return _fail(f"--{given[0].replace('_', '-')}: an image flag; --lidar renders a sweep (its pose: --lidar-pose)")
+    if any(getattr(args, k) for k in MOVE_NAMES if getattr(args, k, None) is not None):
+        return _fail("--forward/--left/--up/--yaw: image flags; move the LiDAR with --lidar-pose")
+    out = Path(args.out)
+    fmt = LIDAR_OUT.get(out.suffix.lower())
+    if fmt is None:
+        return _fail(f"--out: a LiDAR sweep is written as .ply or .npy (got {out.suffix or 'no extension'!r})")
+    if not out.parent.is_dir():
+        return _fail(f"--out: folder {str(out.parent)!r} does not exist")
+    if args.time is not None and not np.isfinite(args.time):
+        return _fail("--time: must be finite")
+    try:
+        start = np.eye(4) if args.lidar_pose is None else parse_matrix(args.lidar_pose, "--lidar-pose")
+        end = None if args.lidar_end_pose is None else parse_matrix(args.lidar_end_pose, "--lidar-end-pose")
+        beams = None if args.lidar_beams is None else _lidar_beams(args.lidar_beams)
+    except PoseArgError as exc:
+        return _fail(str(exc))
+    try:
+        model = lidar_model(args.lidar, elevations_deg=beams, azimuth_step_deg=args.azimuth_step,
+                            max_range_m=args.max_range,
+                            fields={"model": "--lidar", "elevations_deg": "--lidar-beams",
+                                    "azimuth_step_deg": "--azimuth-step", "max_range_m": "--max-range"})
+    except ViewError as exc:
+        return _fail(str(exc))
+    src = Path(args.ply)
+    if not src.exists():
+        return _fail(f"PLY|SCENE_DIR: {args.ply!r} does not exist")
+    max_points = DEFAULT_MAX_POINTS if args.max_points is None else args.max_points
+    try:
+        if src.is_dir():
+            if not (src / JSON_NAME).is_file():
+                return _fail(f"SCENE_DIR: {str(src)!r} has no {JSON_NAME} (not a scene folder)")
+            scene = Scene.load(src, max_points=max_points)
+            edits = () if args.actors is None else actor_edits(args.actors, "--actors")
+            scene.check_actors(edits, args.time, "--actors")
+            draw = scene_drawer(scene, args.time, edits)
+        else:
+            if args.actors is not None:
+                return _fail("--actors: a PLY has no actors: give a drive's SCENE_DIR")
+            draw = gaussians_drawer(Gaussians.load_ply(src, max_points=max_points))
+    except SceneError as exc:
+        return _fail(f"SCENE_DIR: {exc}")
+    except (GaussianError, ViewError) as exc:
+        return _fail(str(exc))
+    try:
+        sweep = render_lidar(draw, model, start, end)
+    except FieldError as exc:       # a pose that is no rigid transform
+        flag = "--lidar-end-pose" if end is not None and "end" in str(exc) else "--lidar-pose"
+        return _fail(f"{flag}: {exc.message}")
+    try:
+        with atomic_file(out) as f:
+            f.write(sweep_bytes(sweep, fmt))
+    except OSError as exc:
+        return _fail(f"--out: {exc}")
+    if not args.quiet:
+        st = sweep.stats
+        print(f"LiDAR {model.name}: {st['returns']} points of {st['rays']} rays ({model.beams} beams x "
+              f"{model.columns} columns, {st['sectors']} sectors) -> {out}")
     return 0

@@ -1,9 +1,11 @@
-"""Rendered views of a ready scene: GET one view from query parameters, POST a batch (a zip of frames, streamed).
+"""Rendered views of a ready scene: GET one view from query parameters, POST a batch (a zip of frames, streamed);
+GET one simulated LiDAR sweep (runtime.lidarsim, docs/api.md "LiDAR").
 The query is common.wire.ViewQuery (the one render view of every front end, FastAPI's query model here); the
 Service (service.py) resolves it against the scene (runtime.views.request); this module only reads it from HTTP."""
 
 from __future__ import annotations
 
+import asyncio
 import json
 from typing import Annotated
 
@@ -51,6 +53,38 @@ async def render_batch(request: Request, scene_id: str,
     frames = await s.render_batch(scene_id, doc, output, format, quality)
     return StreamingResponse(frames, media_type="application/zip",
                              headers={"Content-Disposition": f'attachment; filename="{scene_id}-frames.zip"'})
+
+
+LIDAR_MEDIA = {"ply": "application/octet-stream", "npy": "application/octet-stream"}
+
+
+@router.get("/scenes/{scene_id}/lidar", response_class=Response, summary="simulate one LiDAR sweep",
+            responses={200: {"content": {"application/octet-stream": {}},
+                             "description": "the sweep's points: a binary PLY (x, y, z, intensity, ring) or an .npy "
+                                            "float32 [N, 4] (x, y, z, intensity); end-of-spin LiDAR frame, metres"},
+                       **ERRORS})
+async def render_lidar(request: Request, scene_id: str,
+                       pose: str = Query(..., max_length=1024, description=(
+                           "the LiDAR's pose at the spin's start: lidar -> the scene's frame, 16 numbers row-major "
+                           "(LiDAR axes x forward, y left, z up)")),
+                       end_pose: str | None = Query(None, max_length=1024, description=(
+                           "its pose at the spin's end (default: pose; the points are in this frame)")),
+                       model: str = Query("pandar128", max_length=32, description="pandar128, at128 or pandar64 "
+                                                                                   "(nominal beam layouts)"),
+                       time: float | None = Query(None, description="seconds on the rigs' clock: where a drive's "
+                                                                    "moving objects are drawn"),
+                       max_range: float | None = Query(None, description="metres (default: the model's)"),
+                       azimuth_step: float | None = Query(None, description="degrees (default: the model's)"),
+                       format: str = Query("ply", pattern="^(ply|npy)$", description="ply or npy")):
+    from xyzcyl.runtime.lidarsim import sweep_bytes
+
+    s = service_of(request)
+    req = await s.lidar_request(scene_id, model, pose, end_pose, time, max_range, azimuth_step, format)
+    sweep = await s.render_lidar(scene_id, req)
+    headers = {"X-Lidar-Points": str(len(sweep)), "X-Lidar-Rays": str(sweep.stats["rays"]),
+               "Content-Disposition": f'attachment; filename="{scene_id}-lidar.{format}"'}
+    data = await asyncio.to_thread(sweep_bytes, sweep, format)
+    return Response(data, media_type=LIDAR_MEDIA[format], headers=headers)
 
 
 __all__ = ["router"]

@@ -138,6 +138,28 @@ async def gaussians(request: Request, scene_id: str,
     return StreamingResponse(_stream(f), media_type="application/x-ply", headers=headers)
 
 
+@router.get("/scenes/{scene_id}/export", summary="the scene in another tool's format: an AlpaSim scene artifact "
+            "(USDZ)", response_class=Response,
+            responses={200: {"content": {"model/vnd.usdz+zip": {}},
+                             "description": "an AlpaSim scene artifact: the trajectory, cameras, tracks, a ground "
+                                            "mesh and the Gaussians as a NuRec volume (docs/simulators.md)"},
+                       **ERRORS})
+async def export(request: Request, scene_id: str,
+                 format: Literal["usdz"] = Query(..., description="usdz: an AlpaSim scene artifact")):
+    from xyzcyl.runtime.usdz import FORMAT_VERSION
+
+    etag = f'"{scene_id}-{format}-{FORMAT_VERSION}"'
+    headers = {"ETag": etag, "Cache-Control": _IMMUTABLE,
+               "Content-Disposition": f'attachment; filename="{scene_id}.{format}"'}
+    s = service_of(request)
+    if request.headers.get("if-none-match") == etag:
+        await s.ready_record(scene_id)
+        return Response(status_code=304, headers=headers)
+    f, size = await s.export_usdz(scene_id)
+    headers["Content-Length"] = str(size)
+    return StreamingResponse(_stream(f), media_type="model/vnd.usdz+zip", headers=headers)
+
+
 @router.get("/scenes/{scene_id}/actors", response_model=ActorList, summary="a drive scene's actors (the moving "
             "objects a view's actors= edits)", responses=ERRORS)
 async def actors(request: Request, scene_id: str,

@@ -18,6 +18,10 @@ The frame chain (docs/simulators.md states it for users):
   so that the chain reads whole;
 - cam_to_ego: our camera -> ego (docs/conventions.md "Frames and cameras"), the pose of a render camera.
 
+LiDAR (render_lidar; docs/simulators.md "LiDAR"): lidar_to_ego = inv(E) @ S @ LIDAR_AXES for each of the spin's
+start_pose and end_pose (the LiDAR frame: x forward, y left, z up, the sensor's own; LIDAR_AXES the identity, as
+CAMERA_AXES), and the points are answered in the end-of-spin LiDAR frame.
+
 get_available_cameras answers each rig camera's cam_to_ego @ inv(A) as the camera -> rig pose (the protocol's
 ``rig_to_camera``, named the other way round): AlpaSim's rig frame (x forward, y left, z up) has our ego frame's
 axes, and its origin is then ours (the rig's, e.g. the rear axle on the ground for nuScenes-style rigs).
@@ -49,6 +53,7 @@ from xyzcyl.common.errors import FieldError
 from xyzcyl.common.wire import ActorEdit, ViewError
 from xyzcyl.runtime.camera import Camera, check_render_size, pinhole_K
 from xyzcyl.runtime.lenses import FISHEYE_NAMES, OPENCV_NAMES, fisheye_max_angle_deg
+from xyzcyl.runtime.lidarsim import PROTO_MODELS, LidarRequest, LidarSweep, lidar_model
 from xyzcyl.runtime.rig import Rig
 from xyzcyl.runtime.rotations import quat_to_rotmat, rotmat_to_quat
 from xyzcyl.runtime.views import ViewRequest
@@ -56,6 +61,7 @@ from xyzcyl.runtime.views import ViewRequest
 from . import common_pb2, sensorsim_pb2
 
 CAMERA_AXES = np.eye(4)             # the protocol's camera frame -> ours: both OpenCV (module docstring)
+LIDAR_AXES = np.eye(4)              # the protocol's LiDAR frame -> ours: both x forward, y left, z up (module docstring)
 QUAT_NORM_TOL = 1e-2                # a quaternion whose norm is off 1 by more is refused, not silently normalised
 FORMATS = {sensorsim_pb2.PNG: "png", sensorsim_pb2.JPEG: "jpeg", sensorsim_pb2.UNDEFINED: "png"}
 DEFAULT_QUALITY = 90                # image_quality 0 (unset)
@@ -377,5 +383,41 @@ def view_request(req: sensorsim_pb2.RGBRenderRequest, ego_pose: np.ndarray, pref
         raise ViewError(f"{p}resolution_{'w' if cam.width >= cam.height else 'h'}", e.message) from None
     return ViewRequest(cam, "rgb", fmt, q, time_s, actor_edits(req.dynamic_objects, ego_pose, p))
 
-__all__ = ["CAMERA_AXES", "actor_edits", "available_cameras", "rename_actor_field", "cam_to_ego", "camera_spec", "exposure_time", "mid_exposure",
+# ------------------------------------------------------------------------------------------- LiDAR
+
+def lidar_request(req: sensorsim_pb2.LidarRenderRequest, ego_pose: np.ndarray, prefix: str = "") -> LidarRequest:
+    """The runtime LidarRequest of a LidarRenderRequest (runtime.lidarsim; docs/simulators.md "LiDAR"): the model of
+    ``lidar_config.lidar_type`` (PANDAR128, AT128: nominal layouts), the LiDAR's pose at the spin's start and end in
+    the scene's frame (``lidar_to_ego`` = inv(ego_to_world) @ sensor pose @ LIDAR_AXES, each of start_pose and
+    end_pose; end_pose unset: the LiDAR is still), the time of the middle of the spin (exposure_time of
+    frame_start_us..frame_end_us) and the actor edits of ``dynamic_objects`` (at the middle of the spin, as RGB's).
+    ViewError naming the protocol field."""
+    p = prefix
+    kind = req.lidar_config.lidar_type
+    if kind not in range(len(PROTO_MODELS)):
+        raise ViewError(f"{p}lidar_config.lidar_type", f"{kind} is not a LidarDeviceType (PANDAR128 = 0, AT128 = 1)")
+    if not req.HasField("sensor_pose"):
+        raise ViewError(f"{p}sensor_pose", "is not set (the LiDAR's pose at the spin's start and end)")
+    start = pose_matrix(req.sensor_pose.start_pose, f"{p}sensor_pose.start_pose")
+    end = (pose_matrix(req.sensor_pose.end_pose, f"{p}sensor_pose.end_pose") if _is_set(req.sensor_pose.end_pose)
+           else start)
+    E_inv = np.linalg.inv(ego_pose)
+    time_s = exposure_time(req.frame_start_us, req.frame_end_us, p)
+    return LidarRequest(lidar_model(PROTO_MODELS[kind]), E_inv @ start @ LIDAR_AXES, E_inv @ end @ LIDAR_AXES,
+                        time_s, actor_edits(req.dynamic_objects, ego_pose, p))
+
+
+def lidar_return(sweep: LidarSweep) -> sensorsim_pb2.LidarRenderReturn:
+    """A LidarRenderReturn of a sweep: num_points and the points (x, y, z in the end-of-spin LiDAR frame, metres) and
+    intensities ([0, 1], runtime.lidarsim's luminance proxy) as little-endian float32 buffers. The repeated
+    point_xyzs / point_intensities stay empty: AlpaSim's and CARLA's clients read the buffers first (and fall back
+    to the repeated fields), NVIDIA's NRE answers the buffers alone, and both forms of a Pandar128 sweep (7.4 MB)
+    would pass gRPC's default 4 MB receive limit where the buffers alone (3.7 MB at most) do not."""
+    xyz = np.ascontiguousarray(sweep.points, dtype="<f4")
+    inten = np.ascontiguousarray(sweep.intensity, dtype="<f4")
+    return sensorsim_pb2.LidarRenderReturn(num_points=len(sweep), point_xyzs_buffer=xyz.tobytes(),
+                                           point_intensities_buffer=inten.tobytes())
+
+
+__all__ = ["CAMERA_AXES", "LIDAR_AXES", "actor_edits", "lidar_request", "lidar_return", "available_cameras", "rename_actor_field", "cam_to_ego", "camera_spec", "exposure_time", "mid_exposure",
            "pose_matrix", "pose_message", "quality", "scene_ego_to_world", "trajectory_message", "view_request"]

@@ -6,7 +6,8 @@ Like a route, each method parses its request and answers in a few lines: frames.
 into a runtime ViewRequest (its camera made directly from the protocol's intrinsics and pose, its time the middle of
 the exposure), rendered by the HTTP routes' one render path (Service.render -> runtime.views.render_request);
 get_available_trajectories answers the scene's frames (runtime.scene.Scene.timeline: a drive's every frame, a
-one-rig scene its one). Errors become status codes, the message naming the field:
+one-rig scene its one). render_lidar answers a simulated sweep (frames.lidar_request -> Service.render_lidar ->
+runtime.lidarsim; docs/simulators.md "LiDAR"). Errors become status codes, the message naming the field:
 
     UNAUTHENTICATED      API keys set and no valid ``authorization: Bearer KEY`` or ``x-api-key: KEY`` metadata
     INVALID_ARGUMENT     a bad request field (frames.py's ViewError, the render limits), a lens the renderer cannot
@@ -15,7 +16,7 @@ one-rig scene its one). Errors become status codes, the message naming the field
     FAILED_PRECONDITION  a scene that is queued, running or failed
     RESOURCE_EXHAUSTED   the render pool and its queue are full (HTTP's 503), the store is full
     UNAVAILABLE          the server is draining, or the store cannot be reached
-    UNIMPLEMENTED        render_lidar, render_aggregated
+    UNIMPLEMENTED        render_aggregated
     INTERNAL             anything else (logged)
 
 CARLA's NuRec integration speaks a variant of the protocol (docs/simulators.md "CARLA's variant"): its extra
@@ -58,8 +59,7 @@ _BY_STATUS = {401: StatusCode.UNAUTHENTICATED, 404: StatusCode.NOT_FOUND, 409: S
               413: StatusCode.INVALID_ARGUMENT, 415: StatusCode.INVALID_ARGUMENT, 422: StatusCode.INVALID_ARGUMENT,
               503: StatusCode.RESOURCE_EXHAUSTED, 507: StatusCode.RESOURCE_EXHAUSTED}
 _UNIMPLEMENTED = {
-    "render_lidar": "xyzcyl renders cameras only: no LiDAR simulation",
-    "render_aggregated": "call batch_render_rgb (cameras) instead; LiDAR is not simulated",
+    "render_aggregated": "call batch_render_rgb (cameras) and render_lidar instead",
 }
 
 
@@ -252,7 +252,22 @@ class SensorsimServicer(sensorsim_pb2_grpc.SensorsimServiceServicer):
         return await self._answer(method, context, work)
 
     async def render_lidar(self, request, context):
-        return await self._unimplemented("render_lidar", context)
+        """A simulated LiDAR sweep (runtime.lidarsim; docs/simulators.md "LiDAR"): frames.lidar_request ->
+        Service.render_lidar (render pool; not cached) -> frames.lidar_return."""
+        async def work():
+            if not request.scene_id:
+                raise ViewError("scene_id", "is empty: give a scene's name or id (get_available_scenes)")
+            rec = await self.service.resolve_scene(request.scene_id)
+            rig = await self.service.scene_rig(rec.id)
+            req = frames.lidar_request(request, frames.scene_ego_to_world(rig))
+            if req.actors:
+                try:
+                    await self.service.renders.run(self.service.check_actors, rec.id, [(req, "dynamic_objects")])
+                except ViewError as e:
+                    raise ViewError(frames.rename_actor_field(e.field), e.message) from None
+            sweep = await self.service.render_lidar(rec.id, req)
+            return frames.lidar_return(sweep)
+        return await self._answer("render_lidar", context, work)
 
     async def render_aggregated(self, request, context):
         return await self._unimplemented("render_aggregated", context)

@@ -1,7 +1,7 @@
 """The `xyzcyl` console script (cli.py; its parser common/command.py), issue 27: negative numbers in scientific
 notation for every command (defect 2), the extra to install when a command's dependency is missing (defect 3),
 --version, and help that covers every flag and names only flags that exist (defect 7); issue 36: `xyzcyl export` is
-the export of scenes (not available yet), the model's export `xyzcyl export-model` (the old spelling still runs it,
+the export of scenes (issue 39: USDZ), the model's export `xyzcyl export-model` (the old spelling still runs it,
 with a notice)."""
 
 from __future__ import annotations
@@ -117,17 +117,20 @@ def test_train_help_names_every_stage(capsys):
     assert all(s in description for s in stages), description
 
 
-# -- export: scenes (not yet), export-model: the model ---------------------------------------------------------
+# -- export: scenes, export-model: the model ---------------------------------------------------------------------
 
-def test_export_of_scenes_is_not_available_yet(capsys):
-    from xyzcyl.runtime.commands.export import NOT_YET
+def test_export_is_the_export_of_scenes(capsys):
+    """`xyzcyl export` exports a scene folder (tests/runtime/test_usdz.py: what it writes); without its arguments it
+    says which (argparse: exit 2), and its help names the model's export command."""
+    with pytest.raises(SystemExit) as e:
+        cli.main(["export"])
+    assert e.value.code == 2 and "SCENE_DIR" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as e:
+        cli.main(["export", "scene", "--format", "usdz"])                 # no --out
+    assert e.value.code == 2 and "--out" in capsys.readouterr().err
+    from xyzcyl.runtime.commands import export
 
-    assert cli.main(["export"]) == 2
-    assert capsys.readouterr().err == NOT_YET + "\n"
-    with pytest.raises(SystemExit) as e:                           # arguments, flags: the same line
-        cli.main(["export", "scene", "--format", "usdz"])
-    assert e.value.code == 2 and capsys.readouterr().err == NOT_YET + "\n"
-    assert "USDZ, glTF, SPZ" in NOT_YET and "`xyzcyl export-model`" in NOT_YET
+    assert "`xyzcyl export-model`" in export.__doc__
 
 
 def test_old_export_spelling_runs_export_model_with_a_notice(tmp_path, capsys):

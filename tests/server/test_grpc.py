@@ -156,7 +156,8 @@ def test_version_scenes_cameras_ego_masks(live):
 
 
 def test_unimplemented(live):
-    fails(live.stub.render_lidar, pb.LidarRenderRequest(scene_id=NAME), Code.UNIMPLEMENTED)
+    # render_lidar is implemented: tests/server/test_grpc_lidar.py
+    fails(live.stub.render_lidar, pb.LidarRenderRequest(scene_id=NAME), Code.INVALID_ARGUMENT, "sensor_pose")
     fails(live.stub.render_aggregated, pb.AggregatedRenderRequest(), Code.UNIMPLEMENTED)
 
 
@@ -553,3 +554,67 @@ def test_carlas_variant_of_the_protocol(live):
             break
         time.sleep(0.1)
     assert "shut_down asked by a client" in live.log.read_text()
+
+
+# ----------------------------------------------------------------------------------------------- AlpaSim's rollout
+
+
+def test_an_exported_artifact_drives_a_rollout(live):
+    """GET .../export?format=usdz of the drive scene (an AlpaSim scene artifact: runtime.usdz), then the requests
+    AlpaSim's runtime builds from it: each recorded rig pose composed with the camera -> rig pose, the camera's
+    recorded exposure window, every track at its pose then as a dynamic object (the artifact's rows, xyz + a
+    scipy-order quaternion). At the recorded poses the picture is GET's of the same view (the frames of the
+    artifact and of the gRPC front end agree); 1.5 m to the side of the trajectory it renders another. The
+    artifact's scene id is the name get_available_scenes lists."""
+    import io
+    import json
+    import zipfile
+
+    from xyzcyl.runtime.rotations import quat_to_rotmat
+
+    r = live.http.get(f"/v1/scenes/{live.drive_sid}/export", params={"format": "usdz"})
+    assert r.status_code == 200, r.text
+    assert r.headers["content-type"] == "model/vnd.usdz+zip" and int(r.headers["content-length"]) == len(r.content)
+    again = live.http.get(f"/v1/scenes/{live.drive_sid}/export", params={"format": "usdz"},
+                          headers={"if-none-match": r.headers["etag"]})
+    assert again.status_code == 304
+    for params, field in (({"format": "gltf"}, "format"), ({}, "format"), ({"format": "usdz", "x": "1"}, "x")):
+        bad = live.http.get(f"/v1/scenes/{live.drive_sid}/export", params=params)
+        assert bad.status_code == 422 and bad.json()["error"]["field"] == field, bad.text
+    z = zipfile.ZipFile(io.BytesIO(r.content))
+    rig = json.loads(z.read("rig_trajectories.json"))
+    tracks = json.loads(z.read("sequence_tracks.json"))
+    sid = json.loads(z.read("metadata.yaml"))["scene_id"]       # JSON is YAML (runtime.usdz)
+    scenes = live.stub.get_available_scenes(common_pb2.Empty(), metadata=AUTH, timeout=TIMEOUT).scene_ids
+    assert sid == DRIVE and sid in scenes
+    (traj,) = rig["rig_trajectories"]
+    front = live.cameras[0]
+    window = traj["cameras_frame_timestamps_us"][front.logical_id]
+    np.testing.assert_allclose(rig["camera_calibrations"][front.logical_id]["T_sensor_rig"],
+                               frames.pose_matrix(front.rig_to_camera, "rig_to_camera"), atol=2e-6)
+    data = tracks[sid]["tracks_data"]
+
+    def request(i: int, rig_pose: np.ndarray) -> pb.RGBRenderRequest:
+        start, end = window[i]
+        q = rgb_request(front, rig_pose, scene=sid, width=160, height=100, time_us=start, exposure_us=end - start)
+        for tid, stamps, rows in zip(data["tracks_id"], data["tracks_timestamps_us"], data["tracks_poses"]):
+            if stamps[0] <= (start + end) // 2 <= stamps[-1]:
+                row = rows[int(np.argmin([abs(s - (start + end) // 2) for s in stamps]))]
+                T = np.eye(4)
+                T[:3, :3] = quat_to_rotmat(np.array([row[6], *row[3:6]]))     # scipy order -> wxyz
+                T[:3, 3] = row[:3]
+                pose = frames.pose_message(T)
+                q.dynamic_objects.add(track_id=tid, pose_pair=pb.PosePair(start_pose=pose, end_pose=pose))
+        return q
+
+    for i, (t_us, rig_pose) in enumerate(zip(traj["T_rig_world_timestamps_us"], traj["T_rig_worlds"])):
+        rig_pose = np.array(rig_pose)
+        q = request(i, rig_pose)
+        assert len(q.dynamic_objects) == 1                      # the car, annotated at both frames
+        got = decode(live.stub.render_rgb(q, metadata=AUTH, timeout=TIMEOUT).image_bytes).astype(float)
+        want = decode(http_render(live, view_query(q, live.E), live.drive_sid)).astype(float)
+        assert np.abs(got - want).max() <= 2, i                 # the car's pose through float32 on the wire
+        side = rig_pose.copy()
+        side[:3, 3] += rig_pose[:3, 1] * 1.5                    # 1.5 m to the left of the recorded trajectory
+        moved = decode(live.stub.render_rgb(request(i, side), metadata=AUTH, timeout=TIMEOUT).image_bytes)
+        assert (np.abs(moved.astype(float) - got).max(axis=2) > 8).mean() > 0.01

@@ -42,6 +42,7 @@ def test_every_unknown_parameter_is_named(client):
     ("GET", "/v1/scenes", "limt=3", "limt"),
     ("GET", f"/v1/scenes/{SID}/gaussians", "fromat=splat", "fromat"),
     ("GET", f"/v1/scenes/{SID}/background", "format=exr&Format=png", "Format"),   # names are case-sensitive
+    ("GET", f"/v1/scenes/{SID}/export", "format=usdz&fromat=usdz", "fromat"),
     ("POST", "/v1/scenes", "wiat=60", "wiat"),                                    # before the body is read
     ("POST", f"/v1/scenes/{SID}/render", "fromat=png", "fromat"),
 ])
@@ -69,7 +70,7 @@ def test_every_route_with_query_parameters_refuses_unknown_ones(client):
             e = _error(client.request(method.upper(), f"{target}?no_such_parameter=1"), 422)
             assert e["field"] == "no_such_parameter", (method, path, e)
             checked.append(f"{method.upper()} {path}")
-    assert len(checked) == 7, checked
+    assert len(checked) == 9, checked
 
 
 def test_the_api_key_is_checked_first(tmp_path):
