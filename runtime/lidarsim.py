@@ -492,6 +492,33 @@ def peakiness(elev_deg: np.ndarray, bin_deg: float = 0.05) -> float:
     return float((s * s).sum())
 
 
+SENSOR_GROUND_BAND_M = 0.1   # returns this close to the sweep's ground plane are ground (sensor_height_from_sweep)
+INNER_RING_QUANTILE = 0.5    # percent: the innermost ground ring's radius is this quantile of the ground returns'
+
+
+def sensor_height_from_sweep(points: np.ndarray, lowest_elevation_deg: float) -> tuple[float, float]:
+    """(the ground's height under the frame's origin, the sensor's height above that ground), metres, from a
+    recorded sweep ``points`` [N, 3] (a frame with z up, e.g. an ego frame whose origin is not the sensor) and its
+    LiDAR's lowest beam (degrees, negative; a Pandar64's is -25): its nearest ground returns lie on the ring where
+    that beam meets the ground, ``height = radius * tan(-lowest)``. The ground is runtime.detail.fit_ground's plane;
+    the ring's radius the INNER_RING_QUANTILE percentile of the ground returns' horizontal distance from the origin
+    (the sensor is taken to stand above the origin: an offset of d metres sideways shifts the estimate by about
+    d x tan(-lowest) on average around the ring). ViewError when the sweep shows no ground."""
+    from .detail import fit_ground
+
+    p = np.asarray(points, np.float64)[:, :3]
+    p = p[np.all(np.isfinite(p), axis=1)]
+    if not lowest_elevation_deg < 0:
+        raise ViewError("lowest_elevation_deg", f"must be below the horizon (got {lowest_elevation_deg})")
+    plane = fit_ground(p)
+    if plane is None:
+        raise ViewError("points", "no ground plane in the sweep: cannot estimate the sensor's height")
+    ground = p[np.abs(p @ plane[:3] + plane[3]) <= SENSOR_GROUND_BAND_M]
+    radius = float(np.percentile(np.hypot(ground[:, 0], ground[:, 1]), INNER_RING_QUANTILE))
+    ground_z = float(-plane[3] / plane[2])
+    return ground_z, radius * math.tan(math.radians(-lowest_elevation_deg))
+
+
 def beams_from_sweep(points: np.ndarray, origin: Sequence[float] = (0.0, 0.0, 0.0), max_beams: int = 128,
                      bin_deg: float = 0.02, min_gap_deg: float = 0.08, min_share: float = 0.002) -> tuple[float, ...]:
     """The beam elevations (degrees, ascending) of a recorded sweep ``points`` [N, 3] seen from ``origin``: the
@@ -527,4 +554,4 @@ within ``min_gap_deg`` / 2 of its peak."""
 
 __all__ = ["ALPHA_MIN", "LIDAR_MODELS", "MAX_RAYS", "PROTO_MODELS", "LidarModel", "LidarRequest", "LidarSweep", "beams_from_sweep",
            "elevations_of", "gaussians_drawer", "interpolate_pose", "lidar_model", "peakiness", "ray_ranges", "render_lidar",
-           "render_request", "scene_drawer", "sector_count", "sweep_bytes"]
+           "render_request", "scene_drawer", "sector_count", "sensor_height_from_sweep", "sweep_bytes"]

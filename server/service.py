@@ -504,12 +504,16 @@ class Service:
         return sweep
 
     async def lidar_request(self, sid: str, model: str | None, pose: Any, end_pose: Any, time_s: float | None,
-                            max_range: float | None, azimuth_step: float | None, format: str) -> Any:
+                            max_range: float | None, azimuth_step: float | None, format: str,
+                            actors: str | None = None) -> Any:
         """GET /v1/scenes/{id}/lidar's query as a runtime.lidarsim.LidarRequest of a ready scene: the model (with its
         overrides), the LiDAR's pose (lidar -> the scene's frame, x forward, y left, z up) at the spin's start and
-        end (end_pose None: still). Invalid naming the query parameter otherwise."""
+        end (end_pose None: still), the actor edits (JSON text, as GET render's ``actors``; checked against the
+        scene). Invalid naming the query parameter otherwise."""
+        from pydantic import TypeAdapter, ValidationError
         from xyzcyl.common.errors import FieldError
         from xyzcyl.common.poses import pose_matrix
+        from xyzcyl.common.wire import ActorEdits, field_path
         from xyzcyl.runtime.camera import check_pose
         from xyzcyl.runtime.lidarsim import LidarRequest, lidar_model
 
@@ -521,9 +525,19 @@ class Service:
             end = start if end_pose is None else check_pose(pose_matrix(end_pose, "end_pose"), key="end_pose")
             if time_s is not None and not math.isfinite(time_s):
                 raise ViewError("time", f"must be finite (got {time_s})")
+            edits: tuple = ()
+            if actors is not None:
+                try:               # JSON text only (never a file name: that is the CLI's)
+                    edits = TypeAdapter(ActorEdits).validate_python(actors)
+                except ValidationError as e:
+                    first = e.errors()[0]
+                    raise ViewError(field_path(("actors", *first["loc"])), first["msg"]) from None
+            req = LidarRequest(m, start, end, time_s, edits, format)
+            if edits:
+                await self.renders.run(self.check_actors, sid, [(req, "actors")])
         except FieldError as e:
             raise Invalid(str(e), e.field) from None
-        return LidarRequest(m, start, end, time_s, (), format)
+        return req
 
     async def render_batch(self, sid: str, doc: dict[str, Any], output: str | None, format: str | None,
                            quality: int | None) -> AsyncIterator[bytes]:

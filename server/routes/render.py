@@ -11,7 +11,7 @@ from typing import Annotated
 
 from fastapi import APIRouter, Depends, Query, Request
 from fastapi.responses import Response, StreamingResponse
-from xyzcyl.common.wire import MEDIA_TYPES, Format, Output, ViewQuery
+from xyzcyl.common.wire import ACTORS_TEXT_MAX, MEDIA_TYPES, Format, Output, ViewQuery
 
 from ..deps import known_query, require_content_type, require_key, service_of
 from ..errors import Invalid
@@ -75,11 +75,14 @@ async def render_lidar(request: Request, scene_id: str,
                                                                     "moving objects are drawn"),
                        max_range: float | None = Query(None, description="metres (default: the model's)"),
                        azimuth_step: float | None = Query(None, description="degrees (default: the model's)"),
-                       format: str = Query("ply", pattern="^(ply|npy)$", description="ply or npy")):
+                       format: str = Query("ply", pattern="^(ply|npy)$", description="ply or npy"),
+                       actors: str | None = Query(None, max_length=ACTORS_TEXT_MAX, description=(
+                           "a drive scene's actors edited for this sweep: a JSON list of edits, as GET render's "
+                           "actors (docs/api.md \"Actors\")"))):
     from xyzcyl.runtime.lidarsim import sweep_bytes
 
     s = service_of(request)
-    req = await s.lidar_request(scene_id, model, pose, end_pose, time, max_range, azimuth_step, format)
+    req = await s.lidar_request(scene_id, model, pose, end_pose, time, max_range, azimuth_step, format, actors)
     sweep = await s.render_lidar(scene_id, req)
     headers = {"X-Lidar-Points": str(len(sweep)), "X-Lidar-Rays": str(sweep.stats["rays"]),
                "Content-Disposition": f'attachment; filename="{scene_id}-lidar.{format}"'}

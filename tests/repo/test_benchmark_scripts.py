@@ -200,3 +200,21 @@ def test_actors_boxes_scores_inside_the_moving_boxes(tmp_path):
     r = subprocess.run([sys.executable, str(BENCH / "actors_boxes.py"), str(plain), "--work", str(tmp_path / "x")],
                        cwd=REPO, capture_output=True, text=True, timeout=120, check=False)
     assert r.returncode == 2 and "no tracks" in r.stderr, r.stderr[-2000:]
+
+
+def test_lidar_bench_times_a_sweep_and_refuses_bad_arguments(tmp_path):
+    """benchmarks/lidar_bench.py on a cylinder of Gaussians 10 m around the LiDAR (testing.lidarscene): one AT128
+    sweep at a given sensor origin, timed, every ray of the forward 120 degrees returning; bad flags exit 2."""
+    from xyzcyl.testing.lidarscene import cylinder_scene
+
+    scene = cylinder_scene(tmp_path / "cyl", n_around=360, n_up=30)
+    (doc,) = _run("lidar_bench.py", "--scene", str(scene), "--models", "at128", "--repeat", "1",
+                  "--sensor-origin", "0,0,0.5")
+    assert doc["sensor_origin_m"] == {"ego_frame": [0.0, 0.0, 0.5], "given": [0.0, 0.0, 0.5]}
+    (m,) = doc["models"]
+    assert m["name"] == "at128" and m["seconds_per_sweep"] > 0 and m["returns"] > 0.9 * m["rays"]
+    for args, says in ((["--sensor-origin", "1,2"], "--sensor-origin"), ([], "--sensor-origin auto: needs --drive"),
+                       (["--sensor-origin", "0,0,0", "--compare"], "--compare: needs --drive")):
+        r = subprocess.run([sys.executable, str(BENCH / "lidar_bench.py"), "--scene", str(scene), *args], cwd=REPO,
+                           capture_output=True, text=True, timeout=60, check=False)
+        assert r.returncode == 2 and says in r.stderr, r.stderr[-500:]

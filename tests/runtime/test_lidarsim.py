@@ -178,3 +178,24 @@ def test_beams_from_a_sweep_and_the_origin_that_sharpens_them():
     assert peakiness(elevations_of(pts, o)) > 3 * peakiness(elevations_of(pts, (0.0, 0.0, 0.0)))
     with pytest.raises(ViewError):
         beams_from_sweep(np.zeros((5, 3)))
+
+
+def test_the_sensors_height_from_its_nearest_ground_ring():
+    """A spinner 2.1 m above a flat road whose ego origin sits 0.3 m above it (PandaSet's case), its lowest beam at
+    -25 degrees, a wall 12 m ahead: the height above the ground and the ground under the origin come back from the
+    sweep alone, to within the ring's sampling (0.2-degree columns; the 0.5 % quantile of the ring radius)."""
+    from xyzcyl.runtime.lidarsim import sensor_height_from_sweep
+
+    h, ground = 2.1, -0.3
+    elev = np.radians(np.linspace(-25.0, -2.0, 24))[:, None]
+    az = np.radians(np.arange(0.0, 360.0, 0.2))[None, :]
+    r = h / np.tan(-elev) + 0.0 * az                                   # where each beam meets the road
+    road = np.stack([r * np.cos(az), r * np.sin(az), np.full(r.shape, ground)], -1).reshape(-1, 3)
+    wall = np.stack(np.meshgrid([12.0], np.linspace(-5, 5, 50), np.linspace(0, 3, 30), indexing="ij"), -1)
+    g, height = sensor_height_from_sweep(np.concatenate([road, wall.reshape(-1, 3)]), -25.0)
+    assert g == pytest.approx(ground, abs=0.02) and height == pytest.approx(h, abs=0.02)
+    with pytest.raises(ViewError) as e:
+        sensor_height_from_sweep(wall.reshape(-1, 3), -25.0)           # no ground in it
+    assert e.value.field == "points"
+    with pytest.raises(ViewError):
+        sensor_height_from_sweep(road, 5.0)
