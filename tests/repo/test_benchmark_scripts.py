@@ -218,3 +218,22 @@ def test_lidar_bench_times_a_sweep_and_refuses_bad_arguments(tmp_path):
         r = subprocess.run([sys.executable, str(BENCH / "lidar_bench.py"), "--scene", str(scene), *args], cwd=REPO,
                            capture_output=True, text=True, timeout=60, check=False)
         assert r.returncode == 2 and says in r.stderr, r.stderr[-500:]
+
+
+def test_usdz_bench_exports_and_draws_the_artifact(tmp_path):
+    """benchmarks/usdz_bench.py on a one-rig scene of a flat road: the export's report with its members, and the
+    picture of the artifact read back."""
+    from xyzcyl.runtime.render import Gaussians
+    from xyzcyl.runtime.rig import load_rig
+    from xyzcyl.runtime.scene import Scene
+
+    x, y = np.meshgrid(np.arange(-20, 20, 0.5), np.arange(-10, 10, 0.5), indexing="ij")
+    n = x.size
+    means = np.stack([x.ravel(), y.ravel(), np.full(n, -0.3)], 1).astype(np.float32)
+    g = Gaussians(means, np.tile(np.float32([1, 0, 0, 0]), (n, 1)), np.full((n, 3), -2.5, np.float32),
+                  np.full(n, 4.0, np.float32), np.zeros((n, 1, 3), np.float32))
+    Scene(gaussians=g, background=None, rig=load_rig(EXAMPLE_RIG)).save(tmp_path / "scene")
+    (doc,) = _run("usdz_bench.py", str(tmp_path / "scene"), "--out", str(tmp_path / "s.usdz"),
+                  "--picture", str(tmp_path / "top.jpg"))
+    assert doc["gaussians"] == n and doc["frames"] == 1 and "scene.nurec" in doc["members"]
+    assert (tmp_path / "top.jpg").stat().st_size > 1000
