@@ -31,6 +31,22 @@ RUN pip install '.[server]' \
  && find /opt/venv -name '__pycache__' -prune -exec rm -rf {} + \
  && python -m compileall -q /opt/venv/lib
 
+# ---- the web viewer's browser modules (docs/viewer.md): three.js and Spark from the lockfile (npm ci; Debian's node
+# and npm, only in this stage); the service keeps the files its page loads
+FROM ${PYTHON_IMAGE} AS viewer
+RUN apt-get update \
+ && DEBIAN_FRONTEND=noninteractive apt-get install -y --no-install-recommends nodejs npm \
+ && rm -rf /var/lib/apt/lists/*
+WORKDIR /src
+COPY package.json package-lock.json ./
+RUN npm ci --omit=dev --no-audit --no-fund \
+ && mkdir -p /opt/viewer/three/examples \
+ && cp -r node_modules/three/build node_modules/three/LICENSE /opt/viewer/three/ \
+ && cp -r node_modules/three/examples/jsm /opt/viewer/three/examples/ \
+ && mkdir -p /opt/viewer/@sparkjsdev/spark \
+ && cp -r node_modules/@sparkjsdev/spark/dist node_modules/@sparkjsdev/spark/LICENSE /opt/viewer/@sparkjsdev/spark/ \
+ && find /opt/viewer -name '*.map' -delete
+
 # ---- the service
 FROM ${PYTHON_IMAGE}
 LABEL org.opencontainers.image.title="xyzcyl" \
@@ -42,9 +58,11 @@ RUN groupadd --gid 10001 xyzcyl \
  && chown -R 10001:10001 /data /tmp/numba-cache
 COPY --from=build /opt/venv /opt/venv
 COPY models/xyzcyl-cpu-v1 /opt/xyzcyl/models/xyzcyl-cpu-v1
+COPY --from=viewer /opt/viewer /opt/xyzcyl/node_modules
 ENV PATH=/opt/venv/bin:$PATH \
     PYTHONUNBUFFERED=1 \
     XYZCYL_MODEL=/opt/xyzcyl/models/xyzcyl-cpu-v1 \
+    XYZCYL_VIEWER_MODULES=/opt/xyzcyl/node_modules \
     XYZCYL_STORE=/data/store \
     NUMBA_CACHE_DIR=/tmp/numba-cache
 # scenes (and their Gaussians) live on the volume; everything else in the image is read-only to the service

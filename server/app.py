@@ -32,7 +32,7 @@ from xyzcyl.common.wire import field_path
 from .deps import service_of
 from .errors import ApiError, TooLarge, error_body
 from .metrics import Metrics
-from .routes import health, render, scenes
+from .routes import health, render, scenes, viewer
 from .service import Service
 from .settings import Settings
 from .store import StoreUnavailable
@@ -191,6 +191,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.include_router(health.router)
     app.include_router(scenes.router)
     app.include_router(render.router)
+    app.include_router(viewer.router)
+    viewer.mount_files(app, settings)          # the viewer page's files and its npm modules (server/viewer)
     if settings.cors_origins:
         from fastapi.middleware.cors import CORSMiddleware
 

@@ -43,7 +43,7 @@ from xyzcyl.runtime.views import request as request_of
 from xyzcyl.runtime.warmup import LENS_MODELS
 
 from .cache import BytesCache, SceneCache
-from .errors import Busy, Conflict, Invalid, NotFound, StorageFull
+from .errors import ApiError, Busy, Conflict, Invalid, NotFound, StorageFull
 from .jobs import Job, Reconstructions, Renders
 from .metrics import Metrics
 from .settings import Settings
@@ -365,26 +365,34 @@ class Service:
         scene = await self.renders.run(self.load_scene, sid)
         return await self.renders.run(scene.gaussians.splat_bytes)
 
-    async def export_usdz(self, sid: str) -> tuple[IO[bytes], int]:
-        """A ready scene as an AlpaSim scene artifact (runtime.usdz), built in the render pool into a work folder:
-        (the file opened, its size in bytes). The scene id written into it is the one the gRPC front end lists (the
-        scene's name, else its id). The file is gone once closed (unlinked while open), so nothing is left behind
-        whether the download finishes or not."""
+    async def export(self, sid: str, fmt: str, time_s: float | None = None) -> tuple[IO[bytes], int]:
+        """A ready scene in another tool's format (runtime.exports.FORMATS; the route checked ``fmt`` and ``time_s``
+        with runtime.exports.check_request), built in the render pool into a work folder: (the file opened, its size
+        in bytes). usdz: an AlpaSim scene artifact from the scene folder (runtime.usdz), whose scene id is the one the
+        gRPC front end lists (the scene's name, else its id); the others from the loaded scene at ``time_s`` (a
+        drive's actors then: runtime.exports.write_scene), glTF's root node so named. The file is gone once closed
+        (unlinked while open), so nothing is left behind whether the download finishes or not."""
+        from xyzcyl.runtime.exports import ExportError, write_scene
+        from xyzcyl.runtime.gltf import GltfError
+        from xyzcyl.runtime.spz import SpzError
         from xyzcyl.runtime.usdz import UsdzError, export_usdz
 
         rec = await self.ready_record(sid)
         await asyncio.to_thread(self.store.touch, sid)
         work = await asyncio.to_thread(self.store.work_dir)
-        out = work / "scene.usdz"
+        out = work / f"scene.{fmt}"
 
         def build() -> IO[bytes]:
             try:
-                export_usdz(self.store.scene_dir(sid), out, rec.name or rec.id)
+                if fmt == "usdz":
+                    export_usdz(self.store.scene_dir(sid), out, rec.name or rec.id)
+                else:
+                    write_scene(self.load_scene(sid), out, fmt, time_s, rec.name or rec.id)
                 return open(out, "rb")
             except (KeyError, FileNotFoundError):
                 raise NotFound(f"scene {sid} was deleted", "id") from None
-            except UsdzError as e:
-                raise Conflict(f"scene {sid} cannot be exported: {e}", "id", code="not_exportable") from None
+            except (UsdzError, ExportError, GltfError, SpzError) as e:
+                raise Conflict(f"scene {sid} cannot be exported as {fmt}: {e}", "id", code="not_exportable") from None
             finally:
                 shutil.rmtree(work, ignore_errors=True)      # an open file outlives its name (POSIX)
 
@@ -407,6 +415,40 @@ class Service:
         ``time_s`` when given), from the loaded scene (in the render pool)."""
         await self.ready_record(sid)
         return await self.renders.run(lambda: self.load_scene(sid).actor_list(time_s))
+
+    async def viewer_page(self, sid: str, camera: str | None, width: int | None, height: int | None,
+                          base: str = "") -> str:
+        """The web viewer's page of a ready scene (server/viewer: its data from the loaded scene, in the render
+        pool), opening at input camera ``camera`` (default the rig's first), drawn at width x height pixels when
+        given (one of them: the other from the camera's aspect ratio, as a render's). ApiError 503
+        ``viewer_not_installed`` when the browser modules are missing (what to run); Invalid naming the field."""
+        from .viewer import frames, missing, modules_dir, page, scene_data, splat_sources
+
+        rec = await self.ready_record(sid)
+        why = missing(modules_dir(self.settings))
+        if why is not None:
+            raise ApiError(why, None, code="viewer_not_installed", status=503)
+        data = await self.renders.run(lambda: scene_data(self.load_scene(sid)))
+        cams = {c["name"]: c for c in data["cameras"]}
+        if camera is not None and camera not in cams:
+            raise Invalid(f"camera: no camera {camera[:80]!r} in the scene's rig (cameras: {', '.join(cams)})",
+                          "camera")
+        cam = cams[camera or next(iter(cams))]
+        if width is not None and height is None:
+            height = max(1, round(width * cam["height"] / cam["width"]))
+        elif height is not None and width is None:
+            width = max(1, round(height * cam["width"] / cam["height"]))
+        if width is not None:
+            try:
+                check_render_size(width, height, "width" if width >= height else "height",
+                                  self.settings.max_render_side, self.settings.max_render_pixels)
+            except CameraError as e:
+                raise Invalid(str(e), e.field) from None
+        url = f"{base}/v1/scenes/{sid}"
+        data |= {"id": sid, "name": rec.name, "view": {"camera": cam["name"], "width": width, "height": height},
+                 "frames": frames(), "splats": splat_sources(url),
+                 "links": {"self": url, "render": f"{url}/render", "actors": f"{url}/actors"}}
+        return page(base, sid, rec.name, data)
 
     def load_scene(self, sid: str):
         """The loaded runtime Scene of a ready scene (from the scene cache), in a worker thread."""

@@ -89,6 +89,9 @@ class Settings(BaseSettings):
     api_docs: bool | None = Field(None, description="serve /openapi.json, /docs and /redoc (the API's description, "
                                                     "without a key) to anyone; default: only when no API keys are set "
                                                     "(with keys they answer 404)")
+    viewer_modules: Path | None = Field(None, description="the web viewer's browser modules (three, @sparkjsdev/spark): "
+                                                          "a node_modules folder (default: ./node_modules, else the "
+                                                          "source checkout's; `npm ci` installs it; docs/viewer.md)")
 
     # scale-out: the s3:// store (server/store/s3.py, docs/deploy.md)
     s3_cache: Path | None = Field(None, description="s3:// store: local folder for downloaded scenes and work in "

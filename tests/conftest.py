@@ -113,19 +113,30 @@ def tiny_export(tmp_path_factory) -> TinyExport:
             last.bias.zero_()
             occ = model(torch.rand(6, 3, 64, 128), rig_inputs(overlap_rig(6), cfg))["occ_logits"]
             last.bias[1] -= float((occ[1] - occ[0]).median())
-        # XYZCYL_TINY_EXPORT=DIR (development only): export into DIR once and reuse it in later sessions
+        # XYZCYL_TINY_EXPORT=DIR (development only): export into DIR once and reuse it in later sessions. Under
+        # xdist the workers share one export: the first to need it writes it beside their base temp folders (the
+        # run's common parent), under a file lock, and the others read it (xdist's "session fixtures once" recipe;
+        # the test groups of tests/conftest.py do not reach its scheduler, so both workers may need it)
         reuse = os.environ.get("XYZCYL_TINY_EXPORT")
-        root = Path(reuse) if reuse else tmp_path_factory.mktemp("tiny_export")
+        if reuse:
+            root = Path(reuse)
+        elif os.environ.get("PYTEST_XDIST_WORKER"):
+            root = tmp_path_factory.getbasetemp().parent / "tiny_export_shared"
+        else:
+            root = tmp_path_factory.mktemp("tiny_export")
         root.mkdir(parents=True, exist_ok=True)
         ck = root / "tiny.pt"
         out = root / "tiny-model"
-        if reuse and (out / "model.json").is_file():
-            return TinyExport(model=model, dir=out, checkpoint=ck)
-        torch.save({"model": model.state_dict(), "model_cfg": cfg.to_dict(), "step": 0,
-                    "train_cfg": {"stage": "render", "steps": 0}}, ck)
-        rc = cli.main(["export-model", "--checkpoint", str(ck), "--out", str(out), "--name", "tiny-test",
-                       "--version", "0.0.1", "--threads", "1", "--quiet"])
-        assert rc == 0
+        from filelock import FileLock
+
+        with FileLock(str(root) + ".lock"):
+            if (reuse or root.name == "tiny_export_shared") and (out / "model.json").is_file():
+                return TinyExport(model=model, dir=out, checkpoint=ck)
+            torch.save({"model": model.state_dict(), "model_cfg": cfg.to_dict(), "step": 0,
+                        "train_cfg": {"stage": "render", "steps": 0}}, ck)
+            rc = cli.main(["export-model", "--checkpoint", str(ck), "--out", str(out), "--name", "tiny-test",
+                           "--version", "0.0.1", "--threads", "1", "--quiet"])
+            assert rc == 0
     finally:
         torch.set_num_threads(threads)
     return TinyExport(model=model, dir=out, checkpoint=ck)

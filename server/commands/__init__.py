@@ -1,4 +1,5 @@
-"""The server layer's command (gathered by xyzcyl.cli): ``xyzcyl serve``, imported only when it runs."""
+"""The server layer's commands (gathered by xyzcyl.cli): ``xyzcyl serve`` and ``xyzcyl view``, imported only when
+they run."""
 
 from __future__ import annotations
 
@@ -11,6 +12,15 @@ def _serve():
     return serve
 
 
-COMMANDS: tuple[Command, ...] = (Command("serve", "run the HTTP service (FastAPI + uvicorn)", _serve, "server"),)
+def _view():
+    from . import view
+
+    return view
+
+
+COMMANDS: tuple[Command, ...] = (
+    Command("serve", "run the HTTP service (FastAPI + uvicorn)", _serve, "server"),
+    Command("view", "open a scene folder in the web viewer (a local server on 127.0.0.1)", _view, "server"),
+)
 
 __all__ = ["COMMANDS"]

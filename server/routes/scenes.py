@@ -17,6 +17,8 @@ from xyzcyl.common.wire import (
     keyframe_error,
 )
 from xyzcyl.runtime.drive import DEFAULT_MAX_GAP_S, DEFAULT_SPACING_M
+from xyzcyl.runtime.exports import FORMATS as EXPORT_FORMATS
+from xyzcyl.runtime.exports import MEDIA_TYPES
 from xyzcyl.runtime.inference import DEFAULT_DETAIL
 
 from ..deps import known_query, require_content_type, require_key, service_of
@@ -139,25 +141,40 @@ async def gaussians(request: Request, scene_id: str,
 
 
 @router.get("/scenes/{scene_id}/export", summary="the scene in another tool's format: an AlpaSim scene artifact "
-            "(USDZ)", response_class=Response,
-            responses={200: {"content": {"model/vnd.usdz+zip": {}},
-                             "description": "an AlpaSim scene artifact: the trajectory, cameras, tracks, a ground "
-                                            "mesh and the Gaussians as a NuRec volume (docs/simulators.md)"},
+            "(USDZ), glTF / GLB (KHR_gaussian_splatting), SPZ, PLY or .splat", response_class=Response,
+            responses={200: {"content": {MEDIA_TYPES[f]: {} for f in EXPORT_FORMATS},
+                             "description": "usdz: an AlpaSim scene artifact (the trajectory, cameras, tracks, a "
+                                            "ground mesh and the Gaussians as a NuRec volume: docs/simulators.md); "
+                                            "gltf/glb: glTF 2.0 with KHR_gaussian_splatting, +Y up, a drive's actors "
+                                            "as nodes at ?time; spz/ply/splat: one cloud, a drive's actors at ?time "
+                                            "baked in (docs/api.md)"},
                        **ERRORS})
 async def export(request: Request, scene_id: str,
-                 format: Literal["usdz"] = Query(..., description="usdz: an AlpaSim scene artifact")):
-    from xyzcyl.runtime.usdz import FORMAT_VERSION
+                 format: Literal[EXPORT_FORMATS] = Query(..., description="usdz, gltf, glb, spz, ply or splat"),
+                 time: float | None = Query(None, allow_inf_nan=False, description=(
+                     "a drive: seconds on the rigs' clock, when its actors are placed (default its first frame; "
+                     "not for usdz)"))):
+    from xyzcyl.runtime.exports import FORMAT_VERSION, ExportError, check_request
+    from xyzcyl.runtime.usdz import FORMAT_VERSION as USDZ_VERSION
 
-    etag = f'"{scene_id}-{format}-{FORMAT_VERSION}"'
+    for name in ("format", "time"):
+        if len(request.query_params.getlist(name)) > 1:
+            raise Invalid(f"{name}: given more than once", name)
+    try:
+        check_request(format, time, None)
+    except ExportError as e:
+        raise Invalid(f"{e.field}: {e.message}", e.field) from None
+    version = USDZ_VERSION if format == "usdz" else FORMAT_VERSION
+    etag = f'"{scene_id}-{format}-{version}"' if time is None else f'"{scene_id}-{format}-{version}-t{time!r}"'
     headers = {"ETag": etag, "Cache-Control": _IMMUTABLE,
                "Content-Disposition": f'attachment; filename="{scene_id}.{format}"'}
     s = service_of(request)
     if request.headers.get("if-none-match") == etag:
         await s.ready_record(scene_id)
         return Response(status_code=304, headers=headers)
-    f, size = await s.export_usdz(scene_id)
+    f, size = await s.export(scene_id, format, time)
     headers["Content-Length"] = str(size)
-    return StreamingResponse(_stream(f), media_type="model/vnd.usdz+zip", headers=headers)
+    return StreamingResponse(_stream(f), media_type=MEDIA_TYPES[format], headers=headers)
 
 
 @router.get("/scenes/{scene_id}/actors", response_model=ActorList, summary="a drive scene's actors (the moving "

@@ -154,7 +154,9 @@ def test_the_wheel_holds_the_package_and_nothing_else(wheel):
     for folder in TOP:                                         # every module of every package folder
         modules = {f"xyzcyl/{p.relative_to(REPO).as_posix()}" for p in (REPO / folder).rglob("*.py")}
         assert modules <= set(names), sorted(modules - set(names))
-    assert {"xyzcyl/server/sensorsim/sensorsim.proto", "xyzcyl/model_export/data/photos/README.md"} <= set(names)
+    assert {"xyzcyl/server/sensorsim/sensorsim.proto", "xyzcyl/model_export/data/photos/README.md",
+            "xyzcyl/server/viewer/web/index.html", "xyzcyl/server/viewer/web/viewer.js",
+            "xyzcyl/server/viewer/web/viewer.css"} <= set(names)
     dist = next(n.split("/")[0] for n in names if n.endswith(".dist-info/entry_points.txt"))
     assert "xyzcyl = xyzcyl.cli:main" in (site / dist / "entry_points.txt").read_text()
 

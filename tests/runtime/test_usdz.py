@@ -263,7 +263,7 @@ def test_the_command_line(tmp_path, capsys):
     assert cli.main(["export", str(tmp_path / "scene"), "--format", "usdz", "--out", str(tmp_path / "s.usdz")]) == 0
     out = json.loads(capsys.readouterr().out)
     assert out["scene_id"] == "scene" and out["frames"] == 1 and (tmp_path / "s.usdz").stat().st_size == out["bytes"]
-    for argv, says in (([str(tmp_path / "scene"), "--format", "gltf", "--out", "x.usdz"], "--format: glTF"),
+    for argv, says in (([str(tmp_path / "scene"), "--format", "gltf", "--out", "x.usdz"], "a gltf file's"),
                        ([str(tmp_path / "scene"), "--format", "obj", "--out", "x.usdz"], "--format: 'obj'"),
                        ([str(tmp_path / "scene"), "--out", str(tmp_path / "s.zip")], "--out: "),
                        ([str(tmp_path / "scene"), "--out", str(tmp_path / "no" / "s.usdz")], "does not exist"),

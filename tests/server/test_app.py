@@ -21,7 +21,7 @@ def test_api_keys(tmp_path):
     key = "secret-key-1"
     client = cold_client(tmp_path, api_keys=(key, "another-key-2"))
     routes = _v1_routes(client)
-    assert len(routes) == 11
+    assert len(routes) == 12
     for method, path in routes:
         for headers in ({}, {"Authorization": "Bearer wrong-key-99"}, {"X-API-Key": "secret-key-"},
                         {"Authorization": f"Basic {key}"}, {"Authorization": "Bearer "},

@@ -578,7 +578,8 @@ def test_an_exported_artifact_drives_a_rollout(live):
     again = live.http.get(f"/v1/scenes/{live.drive_sid}/export", params={"format": "usdz"},
                           headers={"if-none-match": r.headers["etag"]})
     assert again.status_code == 304
-    for params, field in (({"format": "gltf"}, "format"), ({}, "format"), ({"format": "usdz", "x": "1"}, "x")):
+    for params, field in (({"format": "obj"}, "format"), ({}, "format"), ({"format": "usdz", "x": "1"}, "x"),
+                          ({"format": "usdz", "time": "1"}, "time")):
         bad = live.http.get(f"/v1/scenes/{live.drive_sid}/export", params=params)
         assert bad.status_code == 422 and bad.json()["error"]["field"] == field, bad.text
     z = zipfile.ZipFile(io.BytesIO(r.content))

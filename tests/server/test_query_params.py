@@ -70,7 +70,7 @@ def test_every_route_with_query_parameters_refuses_unknown_ones(client):
             e = _error(client.request(method.upper(), f"{target}?no_such_parameter=1"), 422)
             assert e["field"] == "no_such_parameter", (method, path, e)
             checked.append(f"{method.upper()} {path}")
-    assert len(checked) == 9, checked
+    assert len(checked) == 10, checked
 
 
 def test_the_api_key_is_checked_first(tmp_path):
