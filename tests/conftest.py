@@ -18,8 +18,11 @@ os.environ.setdefault("XYZCYL_WARM_UP", "false")
 
 # The README's test command runs the suite on two processes (pytest-xdist, ``-n 2 --dist loadgroup``: CI's machine
 # has two cores and much of the suite waits on one: exports, compiles, servers). A session fixture is built once per
-# process that uses it, so the tests of each expensive one run in one process: an ONNX export or a rendered dataset
-# is made once, not twice side by side. The groups follow from the fixtures a test uses (its whole closure).
+# process that uses it, so the tests of each expensive one are marked to run in one process. The groups follow from
+# the fixtures a test uses (its whole closure). But pytest 9 keeps a node's id in ``_id``, and xdist 3.8 still writes
+# the group into ``_nodeid``: the scheduler never sees the groups (checked: two tests of one static group ran on both
+# workers), so the costliest fixture, the tiny ONNX export, is shared between the workers by a file lock instead
+# (tiny_export below). The marks stay for an xdist that reads them again.
 _GROUPS = {"tiny_export": "tiny-export", "tiny_synth_data": "tiny-synth", "tiny_scenes": "tiny-synth"}
 
 
