@@ -10,6 +10,7 @@ from xyzcyl import cli
 pytestmark = pytest.mark.slow   # the session's ONNX export (tests/conftest.py) and one pattern export
 
 
+@pytest.mark.heavy
 def test_import_model_recovers_the_exported_weights(tiny_export, tmp_path, capsys):
     out = tmp_path / "back.pt"
     # --no-verify: the comparison with the original weights below is the stronger check (and saves an export)

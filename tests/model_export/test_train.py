@@ -280,6 +280,7 @@ def test_threads_option_sets_torch_and_numba():
 
 
 @pytest.mark.slow
+@pytest.mark.heavy
 def test_overfit_one_scene_halves_the_render_loss(tiny_synth_data, tmp_path):
     """The issue's overfit check: stage render on one scene, all 12 ego-forward targets every step (so the loss
     of each step measures the same views), from random weights. Mean of the first / last 3 steps, measured on

@@ -72,6 +72,7 @@ def _lens_renders_after_pinhole(c, server, sid: str) -> None:
 
 
 @pytest.mark.slow
+@pytest.mark.heavy
 def test_serve_warms_up_before_ready_first_requests_not_slow(tmp_path):
     assert XYZCYL.is_file(), f"{XYZCYL} not installed (pip install -e .)"
     cache = tmp_path / "numba-cache"

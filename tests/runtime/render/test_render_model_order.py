@@ -6,6 +6,7 @@ runtime/numba_cache.py and tests/runtime/test_numba_cache.py)."""
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from render_scenes import look_at
 from test_render_lens import PSNR_MIN, _lens_scene, _psnr, lens_camera
 from xyzcyl.runtime.camera import Camera
@@ -145,6 +146,7 @@ np.savez(sys.argv[1], **out)
 """
 
 
+@pytest.mark.heavy
 def test_models_compiled_in_different_processes_load_together(tmp_path):
     import os
     import subprocess
