@@ -8,10 +8,15 @@
 # registry is reachable; nothing below depends on which: the venv is made with `python3 -m venv` and every
 # command runs from /opt/venv/bin.
 ARG PYTHON_IMAGE=python:3.11-slim
+# EXTRAS: the package's pip extras in the venv. `server` is the service; `server,batch` adds ray[data] for
+# `xyzcyl batch` on a Ray cluster (deploy/rayjob.yaml runs this image as xyzcyl:batch):
+#   docker build --build-arg EXTRAS=server,batch -t xyzcyl:batch .
+ARG EXTRAS=server
 
-# ---- build: a venv with the package and its server extra (fastapi, uvicorn, ...); the train extra (torch)
-# is not installed
+# ---- build: a venv with the package and its server extra (fastapi, uvicorn, ...), plus any other extras named in
+# EXTRAS; the train extra (torch) is not installed
 FROM ${PYTHON_IMAGE} AS build
+ARG EXTRAS
 ENV PIP_NO_CACHE_DIR=1 PIP_DISABLE_PIP_VERSION_CHECK=1 PYTHONDONTWRITEBYTECODE=1
 RUN python3 -m venv /opt/venv
 ENV PATH=/opt/venv/bin:$PATH
@@ -26,7 +31,7 @@ COPY clients ./clients
 COPY model_export ./model_export
 COPY testing ./testing
 # non-editable: the code lives in the venv's site-packages, the model is found through XYZCYL_MODEL
-RUN pip install '.[server]' \
+RUN pip install ".[${EXTRAS}]" \
  && if python -c 'import torch' 2>/dev/null; then echo 'torch must not be in the image' >&2; exit 1; fi \
  && find /opt/venv -name '__pycache__' -prune -exec rm -rf {} + \
  && python -m compileall -q /opt/venv/lib

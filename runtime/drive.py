@@ -753,7 +753,7 @@ _DEFAULT = object()
 def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None, lidar: bool = True,
                       detail: Any = _DEFAULT, progress: Callable[[str], None] | None = None, stereo: bool = True,
                       ego_body: bool = True, exposure: bool = True, workers: int | None = None,
-                      stationary_actors: bool = False):
+                      stationary_actors: bool = False, make_keyframes: Callable[..., Any] | None = None):
     """One runtime.scene.Scene of ``drive`` (module docstring) with runtime.inference.Reconstructor ``rec``:
     ``keyframes`` (default pick_keyframes), each keyframe's LiDAR sweep when ``lidar`` and it has one, else when
     ``stereo`` (the default) the points triangulated between it and the frames about a metre before and after it
@@ -764,7 +764,10 @@ def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None,
     this one fuses (each loads the model once; at most ``workers`` keyframes wait, so memory stays bounded; 0: all
     here; default DEFAULT_WORKERS). ``stationary_actors``: the tracks marked ``stationary`` (parked cars) become
     actors too (a view can then hide or move them), instead of staying in the static scene. A one-frame drive is
-    exactly Reconstructor.reconstruct of its rig."""
+    exactly Reconstructor.reconstruct of its rig (one_rig). ``make_keyframes(drive, keys, opts)``: where the
+    keyframes are made instead of ``workers`` (`xyzcyl batch`: on Ray actors): an iterator of make_keyframe(rec,
+    drive, k, **opts) for each of ``keys`` in order; ``rec`` is then only asked for ``scene_model()``, and a
+    one-frame drive is refused (make it with Reconstructor.reconstruct)."""
     from .detail import carve_details, cull_covered
     from .exposure import Harmoniser
     from .inference import DEFAULT_DETAIL
@@ -784,10 +787,12 @@ def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None,
         raise DriveError("workers", f"must be >= 0, got {workers}")
     t0 = time.perf_counter()
 
-    if keys == [0] and not drive.tracks:          # the scene's frame is frame 0's: only then is it one rig's scene
+    if one_rig(drive, keys):
+        if make_keyframes is not None:
+            raise DriveError("keyframes", "a one-frame drive is one rig's scene (Reconstructor.reconstruct)")
         fr = drive.frames[keys[0]]
         scene = rec.reconstruct(fr.rig, progress=say, lidar=_sweep(drive, keys[0], lidar), detail=detail)
-        scene.drive = _drive_meta(drive, keys)
+        scene.drive = drive_meta(drive, keys)
         return scene
     counts: dict[str, Any] = {"keyframes": len(keys), "frames": len(drive)}
     timings: dict[str, float] = {}
@@ -829,8 +834,9 @@ def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None,
             detail_kept.add(g, voxel_levels(_cell_footprint_of(g)), n)
         detail_kept.dedupe()
 
-    made = _keyframes_made(rec, drive, keys, n_workers, dict(lidar=lidar, stereo=stereo, detail=detail,
-                                                            masks=found.masks), say)
+    opts = dict(lidar=lidar, stereo=stereo, detail=detail, masks=found.masks)
+    made = _keyframes_made(rec, drive, keys, n_workers, opts, say) if make_keyframes is None else \
+        make_keyframes(drive, keys, opts)
     try:
         for n, k in enumerate(keys):
             fr = drive.frames[k]
@@ -923,10 +929,16 @@ def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None,
                   counts=counts, timings={key: round(v, 6) for key, v in timings.items()}, actors=actors,
                   keyframe_of=keyframe_of if len(keyframe_of) == len(gauss) else None, viewpoints=viewpoints,
                   ego_body=found if ego_body else None)
-    scene.drive = _drive_meta(drive, keys)
+    scene.drive = drive_meta(drive, keys)
     if harmoniser is not None:
         scene.drive["exposure"] = harmoniser.to_json(drive.frames[0].rig.names)
     return scene
+
+
+def one_rig(drive: Drive, keys: Sequence[int]) -> bool:
+    """Whether the keyframes ``keys`` of ``drive`` make one rig's scene (Reconstructor.reconstruct of frame 0):
+    the scene's frame is frame 0's, and without tracks nothing moves."""
+    return list(keys) == [0] and not drive.tracks
 
 
 def _sweep(drive: Drive, k: int, lidar: bool) -> np.ndarray | None:
@@ -963,7 +975,7 @@ def _stereo_sweep(drive: Drive, k: int, masks: dict[str, np.ndarray]):
     return (pts if len(pts) else None), imgs, f"stereo: {len(pts)} points from frames {parts}"
 
 
-def _make_keyframe(rec, drive: Drive, k: int, lidar: bool, stereo: bool, detail, masks: dict[str, np.ndarray],
+def make_keyframe(rec, drive: Drive, k: int, lidar: bool, stereo: bool, detail, masks: dict[str, np.ndarray],
                    progress: Callable[[str], None] | None = None):
     """Keyframe k up to its fusion (a worker's job): (its LiDAR sweep or None, the runtime.inference.Keyframe,
     its model Gaussians, detail Gaussians and cell maps moved into the scene's frame, a note for the progress)."""
@@ -993,18 +1005,18 @@ def _worker_start(model_dir: str, threads: int | None, drive: Drive, opts: dict)
 
 
 def _worker_keyframe(k: int):
-    return _make_keyframe(_WORKER["rec"], _WORKER["drive"], k, **_WORKER["opts"])
+    return make_keyframe(_WORKER["rec"], _WORKER["drive"], k, **_WORKER["opts"])
 
 
 def _keyframes_made(rec, drive: Drive, keys: Sequence[int], workers: int, opts: dict,
                     say: Callable[[str], None] | None = None):
-    """_make_keyframe of each of ``keys`` in order: here (``workers`` 0: in a thread of this process, one keyframe
+    """make_keyframe of each of ``keys`` in order: here (``workers`` 0: in a thread of this process, one keyframe
     ahead of the one the caller fuses), else in that many worker processes (spawned: no onnxruntime or numba threads
     are forked) with at most ``workers`` keyframes ahead. An error making a keyframe is raised here, the others
     cancelled. ``say``: the stages' progress lines, each led by its frame (here only)."""
     if len(keys) < 2:
         for k in keys:
-            yield _make_keyframe(rec, drive, k, **opts, progress=say)
+            yield make_keyframe(rec, drive, k, **opts, progress=say)
         return
     if workers == 0:
         # the next keyframe is made while the caller fuses this one: onnxruntime, the numba kernels and numpy's big
@@ -1013,7 +1025,7 @@ def _keyframes_made(rec, drive: Drive, keys: Sequence[int], workers: int, opts: 
         from concurrent.futures import ThreadPoolExecutor
 
         def make(k: int):
-            return _make_keyframe(rec, drive, k, **opts, progress=(lambda m: say(f"frame {k}: {m}")) if say else None)
+            return make_keyframe(rec, drive, k, **opts, progress=(lambda m: say(f"frame {k}: {m}")) if say else None)
 
         ahead = ThreadPoolExecutor(1, thread_name_prefix="keyframe")
         try:
@@ -1135,7 +1147,7 @@ def _concat(parts: list[Gaussians]) -> Gaussians:
     return concat_gaussians(parts) if parts else Gaussians.empty()      # no parts: detail off
 
 
-def _drive_meta(drive: Drive, keys: Sequence[int]) -> dict[str, Any]:
+def drive_meta(drive: Drive, keys: Sequence[int]) -> dict[str, Any]:
     """What scene.json records of the drive: its frames' times (seconds after the first) and ego poses in the
     scene's frame, the keyframes, the first frame's ego_to_world, the tracks' count."""
     t0 = drive.frames[0].timestamp_s
@@ -1149,6 +1161,6 @@ def _drive_meta(drive: Drive, keys: Sequence[int]) -> dict[str, Any]:
 
 __all__ = ["DEFAULT_MAX_GAP_S", "DEFAULT_SPACING_M", "Drive", "DriveError", "DriveFrame", "Track", "VoxelOwners",
            "dedupe_frames", "dedupe_frames_reference", "drive_of_rig", "find_drive_ego_body", "inside_boxes",
-           "is_drive_file", "load_drive", "load_tracks", "moving_boxes", "pick_keyframes", "reconstruct_drive",
+           "is_drive_file", "drive_meta", "load_drive", "load_tracks", "make_keyframe", "moving_boxes", "one_rig", "pick_keyframes", "reconstruct_drive",
            "save_drive_scene", "transform_detail", "transform_gaussians", "viewpoint_groups", "viewpoint_origins",
            "voxel_levels"]

@@ -190,6 +190,13 @@ class Keyframe:
     started: float
 
 
+def scene_model_of(info: ModelInfo) -> dict[str, str]:
+    """What a scene records of the model folder ``info`` (model.json's name, version and sha256): without loading
+    its sessions (`xyzcyl batch` stamps and fuses scenes in processes that hold no model)."""
+    return {"name": info.name, "version": info.version,
+            "model_json_sha256": _sha256((info.path / "model.json").read_bytes())}
+
+
 class Reconstructor:
     """One model folder's onnxruntime sessions and a cache of lifting inputs per rig calibration."""
 
@@ -298,8 +305,7 @@ class Reconstructor:
 
     def scene_model(self) -> dict[str, str]:
         """What a scene records of the model that made it: name, version, model.json's sha256."""
-        return {"name": self.info.name, "version": self.info.version,
-                "model_json_sha256": _sha256((self.info.path / "model.json").read_bytes())}
+        return scene_model_of(self.info)
 
     def keyframe(self, rig: Rig, images: Sequence[np.ndarray] | None = None,
                  depths: Sequence[np.ndarray | None] | None = None,
@@ -496,4 +502,4 @@ class Reconstructor:
 
 
 __all__ = ["MODEL_FORMAT", "InferenceError", "ModelError", "ModelInfo", "Reconstructor", "calibration_key",
-           "default_model_dir", "read_model_file", "read_model_info", "select_voxels", "verify_model"]
+           "default_model_dir", "read_model_file", "read_model_info", "scene_model_of", "select_voxels", "verify_model"]

@@ -51,6 +51,15 @@ class Reconstructed:
     lifting_cached: bool             # the rig's lifting inputs came from the worker's cache
     pid: int                         # the worker process
 
+    @classmethod
+    def of(cls, scene) -> Reconstructed:
+        """What a runtime.scene.Scene's record says of it (its scene.json's model, counts, timings, bbox), made in
+        this process."""
+        meta = scene.to_json()
+        return cls(model=meta["model"], counts=meta["counts"], timings=meta["timings"], bbox=meta["bbox"],
+                   gaussians=meta["gaussians"]["count"], background=meta["background"] is not None,
+                   lifting_cached=meta["lifting_cached"], pid=os.getpid())
+
     def record_fields(self, queued_s: float, worker_s: float) -> dict[str, Any]:
         """The fields the store's ``commit`` marks the record ready with: the timings gain ``queued`` (the wait
         for a worker) and ``worker_total`` (the reconstruction and writing the folder)."""
@@ -76,6 +85,20 @@ class WorkerStarted:
     pid: int
     warm_up_s: float | None = None
     warm_up_error: str | None = None
+
+
+def drive_info(drive, knobs: dict[str, float], keys: list[int] | None = None) -> dict[str, Any]:
+    """A scene record's ``drive`` (wire.DriveInfo) of a runtime.drive.Drive: its keyframes ``keys``, else as `xyzcyl
+    reconstruct` picks them with ``knobs``' keyframe_spacing / keyframe_gap (the defaults for those not given)."""
+    from xyzcyl.common.wire import DriveInfo
+    from xyzcyl.runtime.drive import DEFAULT_MAX_GAP_S, DEFAULT_SPACING_M, pick_keyframes
+
+    spacing = knobs.get("keyframe_spacing", DEFAULT_SPACING_M)
+    gap = knobs.get("keyframe_gap", DEFAULT_MAX_GAP_S)
+    t0 = drive.frames[0].timestamp_s
+    return DriveInfo(frames=len(drive), keyframes=pick_keyframes(drive, spacing, gap) if keys is None else keys,
+                     keyframe_spacing=spacing, keyframe_gap=gap, timestamp_s=t0,
+                     duration_s=round(drive.frames[-1].timestamp_s - t0, 6), tracks=len(drive.tracks)).model_dump()
 
 
 # -------------------------------------------------------------------------------------- in the worker process
@@ -183,10 +206,7 @@ def _worker_reconstruct(rig_json: str, out_dir: str, detail_stride: int | None,
             if pts is not None:     # the points left out (a non-finite coordinate) are counted, never silent
                 scene.counts.update(pts.counts())
             scene.save(out_dir)
-        meta = scene.to_json()
-        return Reconstructed(model=meta["model"], counts=meta["counts"], timings=meta["timings"], bbox=meta["bbox"],
-                             gaussians=meta["gaussians"]["count"], background=meta["background"] is not None,
-                             lifting_cached=meta["lifting_cached"], pid=os.getpid())
+        return Reconstructed.of(scene)
     except DriveError as e:         # its ``where`` names the work folder: the field and the message only
         return ReconstructFailed("invalid_input", f"drive: {e.field}: {e.message}")
     except (RigError, InferenceError, SceneError, LidarError, DetailError) as e:

@@ -34,7 +34,7 @@ from pathlib import Path
 from typing import IO, Any
 
 from starlette.exceptions import HTTPException as StarletteHTTPException
-from xyzcyl.common.wire import FORMATS, OUTPUTS, BatchIndex, DriveInfo, FrameInfo, ViewError, ViewQuery
+from xyzcyl.common.wire import FORMATS, OUTPUTS, BatchIndex, FrameInfo, ViewError, ViewQuery
 from xyzcyl.runtime import compile_notice
 from xyzcyl.runtime.camera import CameraError, check_render_size
 from xyzcyl.runtime.inference import ModelInfo, verify_model
@@ -44,7 +44,7 @@ from xyzcyl.runtime.warmup import LENS_MODELS
 
 from .cache import BytesCache, SceneCache
 from .errors import ApiError, Busy, Conflict, Invalid, NotFound, StorageFull
-from .jobs import Job, Reconstructions, Renders
+from .jobs import Job, Reconstructions, Renders, drive_info
 from .metrics import Metrics
 from .settings import Settings
 from .store import SceneFailure, SceneRecord, Store, StoreFull, StoreUnavailable, new_scene_id, open_store
@@ -307,7 +307,7 @@ class Service:
                 fields["name"] = name
             keys = None
             if upload.drive is not None:
-                fields["drive"] = _drive_info(upload.drive, knobs) | {"stationary_actors": stationary_actors}
+                fields["drive"] = drive_info(upload.drive, knobs) | {"stationary_actors": stationary_actors}
                 keys = fields["drive"]["keyframes"]
             try:
                 await asyncio.to_thread(self.store.create, sid, fields)
@@ -644,19 +644,6 @@ class Service:
                 "inputs": _tensors(enc.get("inputs", [])), "outputs": _tensors(enc.get("outputs", [])),
                 "parameters": {"graphs": sorted(graphs), "input": info.meta.get("input"),
                                "counts": info.meta.get("counts")}}
-
-
-def _drive_info(drive, knobs: dict[str, float]) -> dict[str, Any]:
-    """The record's ``drive`` (wire.DriveInfo) of an uploaded runtime.drive.Drive: its keyframes as `xyzcyl
-    reconstruct` picks them with the query's keyframe_spacing / keyframe_gap (``knobs``; the defaults else)."""
-    from xyzcyl.runtime.drive import DEFAULT_MAX_GAP_S, DEFAULT_SPACING_M, pick_keyframes
-
-    spacing = knobs.get("keyframe_spacing", DEFAULT_SPACING_M)
-    gap = knobs.get("keyframe_gap", DEFAULT_MAX_GAP_S)
-    t0 = drive.frames[0].timestamp_s
-    return DriveInfo(frames=len(drive), keyframes=pick_keyframes(drive, spacing, gap), keyframe_spacing=spacing,
-                     keyframe_gap=gap, timestamp_s=t0, duration_s=round(drive.frames[-1].timestamp_s - t0, 6),
-                     tracks=len(drive.tracks)).model_dump()
 
 
 def _ready(rec: SceneRecord, field: str) -> SceneRecord:

@@ -66,4 +66,32 @@ def moving_car(ego_to_world: Any, ahead_m: float = 12.0, moved_m: float = 3.0,
                                   {"frame": 1, "object_to_world": at(moved_m)}]}]}
 
 
-__all__ = ["moving_car", "pose", "write_drive"]
+def cut_drive(src: Path, frames: list[int], out: Path) -> Path:
+    """A drive of ``frames`` (indices into the drive file ``src``'s frames, increasing) written to ``out``/drive.json:
+    its frame entries (rigs by absolute path) and its tracks, each pose renumbered into the new frames and the
+    poses of other frames left out (a track left with none is dropped). Returns the drive file."""
+    src, out = Path(src), Path(out)
+    doc = json.loads(src.read_text())
+    new = {old: i for i, old in enumerate(frames)}
+    entries = []
+    for old in frames:
+        e = dict(doc["frames"][old])
+        e["rig"] = str((src.parent / e["rig"]).resolve())
+        entries.append(e)
+    cut: dict = {"frames": entries}
+    if isinstance(doc.get("tracks"), str):
+        tracks = json.loads((src.parent / doc["tracks"]).read_text())
+        kept = []
+        for t in tracks["tracks"]:
+            poses = [{**p, "frame": new[p["frame"]]} for p in t["poses"] if p["frame"] in new]
+            if poses:
+                kept.append({**t, "poses": poses})
+        out.mkdir(parents=True, exist_ok=True)
+        (out / "tracks.json").write_text(json.dumps({**tracks, "tracks": kept}))
+        cut["tracks"] = "tracks.json"
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "drive.json").write_text(json.dumps(cut))
+    return out / "drive.json"
+
+
+__all__ = ["cut_drive", "moving_car", "pose", "write_drive"]

@@ -1,4 +1,4 @@
-"""The server layer's commands (gathered by xyzcyl.cli): ``xyzcyl serve`` and ``xyzcyl view``, imported only when
+"""The server layer's commands (gathered by xyzcyl.cli): ``xyzcyl serve``, ``xyzcyl view`` and ``xyzcyl batch``, imported only when
 they run."""
 
 from __future__ import annotations
@@ -12,6 +12,12 @@ def _serve():
     return serve
 
 
+def _batch():
+    from . import batch
+
+    return batch
+
+
 def _view():
     from . import view
 
@@ -21,6 +27,7 @@ def _view():
 COMMANDS: tuple[Command, ...] = (
     Command("serve", "run the HTTP service (FastAPI + uvicorn)", _serve, "server"),
     Command("view", "open a scene folder in the web viewer (a local server on 127.0.0.1)", _view, "server"),
+    Command("batch", "reconstruct every drive a manifest lists on Ray into a scene store", _batch, "batch"),
 )
 
 __all__ = ["COMMANDS"]

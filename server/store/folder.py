@@ -136,6 +136,23 @@ class FolderStore(BaseStore):
             rec = self._records.get(sid)
             return None if rec is None else rec.model_copy(deep=True)
 
+    def reload(self, sid: str) -> SceneRecord | None:
+        """The record of ``sid`` as its file holds it now, taken into memory (None, and forgotten, when there is
+        none or it is damaged): for a store folder that other processes write too (`xyzcyl batch`'s tasks each
+        hold a FolderStore of one folder without open(), which would empty the others' tmp/)."""
+        if not valid_id(sid):
+            return None
+        try:
+            rec = SceneRecord.parse(sid, json.loads(self._record_path(sid).read_text()))
+        except (OSError, ValueError):
+            rec = None
+        with self._lock:
+            if rec is None:
+                self._records.pop(sid, None)
+                return None
+            self._records[sid] = rec
+            return rec.model_copy(deep=True)
+
     def list(self, offset: int = 0, limit: int = 100) -> tuple[list[SceneRecord], int]:
         """Records, newest first, and the total count."""
         with self._lock:

@@ -83,3 +83,25 @@ def test_the_build_stage_copies_every_package_folder():
     wanted = (folders - {"."}) | ({p.name for p in REPO.glob("*.py")} if "." in folders else set())
     assert wanted - set(_context_copies()) == set(), "the Dockerfile's build stage must COPY these (pip install)"
     assert "." not in _context_copies()
+
+
+def _stage(name: str) -> str:
+    """The Dockerfile's text from `FROM ... AS name` to the next FROM."""
+    m = re.search(rf"^FROM\s+\S+\s+AS\s+{name}\s*$(.*?)(?=^FROM\s)", DOCKERFILE, re.M | re.S)
+    assert m, f"the Dockerfile has no stage {name}"
+    return m.group(1)
+
+
+def test_the_extras_are_a_build_argument_defaulting_to_the_server():
+    """`docker build --build-arg EXTRAS=server,batch -t xyzcyl:batch .` makes deploy/rayjob.yaml's image:
+    EXTRAS is declared before the first FROM with the default `server` (the serving image, no ray), declared
+    again inside the build stage (an ARG before FROM is not visible inside a stage otherwise, and pip would
+    install `.[]`), and the stage's pip install uses it; the torch check stays on the same RUN."""
+    first_from = re.search(r"^FROM\s", DOCKERFILE, re.M).start()
+    assert re.search(r"^ARG\s+EXTRAS=server\s*$", DOCKERFILE[:first_from], re.M), "ARG EXTRAS=server first"
+    build = _stage("build")
+    assert re.search(r"^ARG\s+EXTRAS\s*$", build, re.M), "the build stage must redeclare ARG EXTRAS"
+    install = re.search(r"^RUN pip install (\S+)(.*?)(?<!\\)\n", build, re.M | re.S)
+    assert install, "the build stage installs the package with pip"
+    assert install.group(1).strip("'\"") == ".[${EXTRAS}]"
+    assert "import torch" in install.group(2) and "exit 1" in install.group(2), "keep the no-torch check"

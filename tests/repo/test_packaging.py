@@ -205,3 +205,15 @@ def test_testing_works_from_the_wheel(wheel, tmp_path):
     assert printed[-2:] == [f"xyzcyl {PYPROJECT['project']['version']}",
                             f"model: {model['name']} {model['version']} ({REPO / 'models' / 'xyzcyl-cpu-v1'})"]
     assert out["version"] == PYPROJECT["project"]["version"] and out["heavy"] == []
+
+
+def test_ray_is_the_batch_extras_only():
+    """`xyzcyl batch` needs Ray (the batch extra); the serving install has none and the server's modules import
+    without it (server/batch.py imports Ray inside its functions only)."""
+    project = tomllib.loads((REPO / "pyproject.toml").read_text())["project"]
+    serving = project["dependencies"] + project["optional-dependencies"]["server"]
+    assert not [d for d in serving if d.lower().startswith("ray")]
+    assert [d for d in project["optional-dependencies"]["batch"] if d.startswith("ray[data]")]
+    code = ("import sys; sys.modules['ray'] = None; import xyzcyl.server.app, xyzcyl.server.batch, "
+            "xyzcyl.server.commands.batch; from xyzcyl import cli; cli.build_parser()")
+    subprocess.run([sys.executable, "-c", code], check=True)
