@@ -56,6 +56,10 @@ HUGE = 1 << 62                    # the batch's store handles keep no quota: it 
 READ_CHUNK = 1 << 20
 
 
+class BatchError(OSError):
+    """The batch cannot go on (Ray or the store failed); the items finished are in the results table."""
+
+
 class ManifestError(FieldError):
     """A manifest that cannot be used: ``field`` is "line N" or "line N: option", ``where`` the manifest."""
 
@@ -451,9 +455,10 @@ def _keys_of(drive, item: BatchItem) -> list[int]:
     return pick_keyframes(drive, item.keyframe_spacing, item.keyframe_gap)
 
 
-def plan_item(row: dict[str, Any], store: str, model: dict[str, str]) -> dict[str, Any]:
+def plan_item(row: dict[str, Any], store: str, model: dict[str, str], usdz: bool = False) -> dict[str, Any]:
     """Stage 1 of a row (module doc): the row with ``status`` "skipped" (its scene is ready in the store), "todo"
-    (with ``scene_id``, ``key``, ``fields``: the record's cameras, detail, name, drive) or "failed" (``error``)."""
+    (with ``scene_id``, ``key``, ``fields``: the record's cameras, detail, name, drive) or "failed" (``error``).
+    ``usdz``: the scene folder holds its AlpaSim artifact too, a folder of its own (its key says so)."""
     item = BatchItem.model_validate_json(row["item"])
     t0 = time.perf_counter()
     out = {**row, "status": "failed", "scene_id": None, "error": None, "frames": None, "keyframes": None}
@@ -461,7 +466,7 @@ def plan_item(row: dict[str, Any], store: str, model: dict[str, str]) -> dict[st
         path = fetch_input(item.input)
         drive = load_input(path)
         keys = _keys_of(drive, item)
-        key = scene_key(drive, path.parent, item.options(), model)
+        key = scene_key(drive, path.parent, {**item.options(), **({"usdz": True} if usdz else {})}, model)
         sid = scene_id_of(key)
         out.update(scene_id=sid, key=key, frames=len(drive), keyframes=len(keys))
         handle = StoreHandle.of(store)
@@ -585,7 +590,6 @@ class KeyframeWorker:
     any drive's, the drive read once and kept for its next keyframes (the last two)."""
 
     def __init__(self, model_dir: str, threads: int):
-        os.environ.setdefault("NUMBA_CACHE_DIR", str(Path(tempfile.gettempdir()) / "xyzcyl-numba-cache"))
         import numba
         from xyzcyl.runtime.inference import Reconstructor
 
@@ -707,6 +711,7 @@ def run_batch(items: list[BatchItem], opts: BatchOptions, say: Callable[[str], N
         say(f"removed {removed} work folder(s) of an earlier run that stopped")
     StoreHandle.of(opts.store)                # the store's folders, and an S3 store's credentials, checked here
     address = opts.address or os.environ.get("RAY_ADDRESS") or None
+    t0 = time.perf_counter()
     # a local Ray's workers inherit this process's environment (XYZCYL_*, NUMBA_CACHE_DIR, AWS_*); a cluster's
     # nodes have their own (deploy/rayjob.yaml): nothing is sent along (credentials would sit in the job's metadata)
     ray.init(address=address, include_dashboard=False, log_to_driver=not opts.quiet,
@@ -720,6 +725,7 @@ def run_batch(items: list[BatchItem], opts: BatchOptions, say: Callable[[str], N
         worker = ray.remote(num_cpus=opts.worker_cpus, max_restarts=1)(KeyframeWorker)
         actors = [worker.remote(opts.model_dir, opts.worker_cpus) for _ in range(workers)]
         ray.get([a.ready.remote() for a in actors])
+        say(f"workers ready {time.perf_counter() - t0:.1f} s after Ray's start")
         ctx = ray.data.DataContext.get_current()
         ctx.enable_progress_bars = not opts.quiet
         ctx.enable_operator_progress_bars = not opts.quiet
@@ -727,7 +733,7 @@ def run_batch(items: list[BatchItem], opts: BatchOptions, say: Callable[[str], N
         rows = [{"item": it.model_dump_json(), "input": it.input, "name": it.name, "index": i}
                 for i, it in enumerate(items)]
         ds = ray.data.from_items(rows, override_num_blocks=len(rows))
-        ds = ds.map(plan_item, fn_kwargs={"store": opts.store, "model": model}, num_cpus=0,
+        ds = ds.map(plan_item, fn_kwargs={"store": opts.store, "model": model, "usdz": opts.usdz}, num_cpus=0,
                     compute=ray.data.TaskPoolStrategy(size=max(2, drives)))
         ds = ds.map(reconstruct_item, fn_kwargs={"store": opts.store, "model": model, "actors": actors,
                                                  "usdz": opts.usdz},
@@ -736,7 +742,15 @@ def run_batch(items: list[BatchItem], opts: BatchOptions, say: Callable[[str], N
         table = Results(opts.results)
         done: list[dict[str, Any]] = []
         try:
-            for row in ds.iter_rows():
+            rows_out = iter(ds.iter_rows())
+            while True:
+                try:
+                    row = next(rows_out)
+                except StopIteration:
+                    break
+                except Exception as e:      # noqa: BLE001 - Ray gave up (a task crashed past its retries)
+                    raise BatchError(f"Ray stopped the batch after {len(done)} of {len(items)} items: "
+                                     f"{failure_of(e)['message']}; run it again to finish") from None
                 row = dict(row)
                 row["item"] = row.pop("index")
                 pub = public_row(row, run)
@@ -750,6 +764,6 @@ def run_batch(items: list[BatchItem], opts: BatchOptions, say: Callable[[str], N
         ray.shutdown()
 
 
-__all__ = ["EXIT_OK", "EXIT_PARTIAL", "EXIT_USAGE", "BatchItem", "BatchOptions", "KeyframeWorker", "ManifestError",
+__all__ = ["EXIT_OK", "EXIT_PARTIAL", "EXIT_USAGE", "BatchError", "BatchItem", "BatchOptions", "KeyframeWorker", "ManifestError",
            "StoreHandle", "clean_work", "failure_of", "fetch_input", "input_files", "load_input", "plan_item",
            "read_manifest", "reconstruct_item", "run_batch", "scene_id_of", "scene_key"]

@@ -232,9 +232,9 @@ def test_the_command_refuses_bad_arguments_before_starting_ray(tmp_path):
 
 
 def _inputs(tmp_path: Path) -> tuple[str, list[str]]:
-    """The manifest of three drives: a synthetic one moving at 5 m/s, the shared PandaSet drive cut to frames 0
-    and 8 (its tracks kept; a second synthetic drive where the real data is absent), and one whose frames are out
-    of time order; the names in the manifest's order."""
+    """The manifest of three drives and a rig: a synthetic drive moving at 5 m/s, the shared PandaSet drive cut to
+    frames 0 and 8 (its tracks kept; a second synthetic drive where the real data is absent), the example rig (a
+    one-frame drive), and a drive whose frames are out of time order; the names in the manifest's order."""
     write_drive(tmp_path / "synth", [pose(0), pose(2), pose(4)], [0.0, 0.4, 0.8])
     real = ROOT.parent / "shared" / "data" / "real" / "pandaset_002_drive" / "drive.json"
     if os.environ.get("XYZCYL_REAL_DATA"):
@@ -247,8 +247,9 @@ def _inputs(tmp_path: Path) -> tuple[str, list[str]]:
     lines = ["synth/drive.json",
              json.dumps({"input": "pandaset/drive.json", "name": "pandaset-cut", "detail_stride": 4,
                          "keyframes": [0, 1]}),
+             json.dumps({"input": str(EXAMPLE_RIG), "name": "rig", "detail_stride": 4}),
              "broken/drive.json"]
-    return _manifest(tmp_path, "\n".join(lines) + "\n"), ["synth", "pandaset-cut", "broken"]
+    return _manifest(tmp_path, "\n".join(lines) + "\n"), ["synth", "pandaset-cut", "rig", "broken"]
 
 
 def _rows(path: Path) -> list[dict]:
@@ -267,10 +268,11 @@ def _store_state(store: Path) -> dict[str, tuple]:
 
 @pytest.mark.timeout(900)
 def test_batch_on_local_ray_killed_and_run_again(tmp_path):
-    """Three drives, one broken, on a local Ray: the run is killed (SIGKILL to its process group: Ray's processes
-    too) once the first scene is in the store; the next run finishes the others and skips that one (its files not
-    rewritten); the store then holds two ready scenes, one error is in the table, the exit status is 3 (partial);
-    a third run skips both and rewrites nothing."""
+    """Three drives, one broken, and a rig on a local Ray: the run is killed (SIGKILL to its process group: Ray's
+    processes too) once the first scene is in the store; the next run finishes the others and skips that one (its
+    files not rewritten); the store then holds the three ready scenes the manifest names (the ids its inputs,
+    options and the model make), one error is in the table, the exit status is 3 (partial); a third run skips all
+    three and rewrites nothing."""
     pytest.importorskip("ray")
     manifest, names = _inputs(tmp_path)
     store, results = tmp_path / "store", tmp_path / "results.jsonl"
@@ -299,13 +301,19 @@ def test_batch_on_local_ray_killed_and_run_again(tmp_path):
     rows = {r["name"]: r for r in _rows(results)}
     assert sorted(rows) == sorted(names)
     assert rows[first[0]["name"]]["status"] == "skipped"               # made by the killed run, kept
-    assert {rows[n]["status"] for n in names[:2]} <= {"ready", "skipped"}
+    assert {rows[n]["status"] for n in names[:3]} <= {"ready", "skipped"}
     err = rows["broken"]["error"]
     assert rows["broken"]["status"] == "failed" and err["code"] == "invalid_input"
     assert err["field"] == "frames[1].timestamp_s" and "broken" in err["message"]
     assert "done: " in run2.stderr and "1 failed" in run2.stderr
     after = _store_state(store)
-    ready = {rows[n]["scene_id"] for n in names[:2]}
+    ready = {rows[n]["scene_id"] for n in names[:3]}
+    from xyzcyl.runtime.inference import default_model_dir, read_model_info, scene_model_of
+
+    model = scene_model_of(read_model_info(default_model_dir()))
+    expected = {B.scene_id_of(B.scene_key(B.load_input(Path(i.input)), Path(i.input).parent, i.options(), model))
+                for i in B.read_manifest(manifest)[:3]}
+    assert ready == expected                                                      # the manifest's scenes
     assert set(after) == ready and all(v[1] == "ready" for v in after.values())   # no record left running
     assert after[first[0]["scene_id"]] == before[first[0]["scene_id"]]           # not rewritten
     assert not list((store / "tmp").iterdir())                                    # no work folder left
@@ -314,10 +322,13 @@ def test_batch_on_local_ray_killed_and_run_again(tmp_path):
     for sid in ready:
         scene = Scene.load(store / "scenes" / sid)
         assert len(scene.gaussians) == after[sid][2] > 0
-        assert scene.drive is not None and scene.drive["frames"] == rows[after[sid][0]]["frames"]
+        if after[sid][0] == "rig":
+            assert scene.drive is None and rows["rig"]["frames"] == 1
+        else:
+            assert scene.drive is not None and scene.drive["frames"] == rows[after[sid][0]]["frames"]
 
     run3 = subprocess.run(argv, capture_output=True, text=True, timeout=600)
     assert run3.returncode == 3, run3.stderr[-3000:]
     assert {r["name"]: r["status"] for r in _rows(results)} == {names[0]: "skipped", names[1]: "skipped",
-                                                                 "broken": "failed"}
+                                                                 names[2]: "skipped", "broken": "failed"}
     assert _store_state(store) == after                                          # nothing rewritten
