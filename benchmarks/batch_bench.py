@@ -4,12 +4,13 @@ and with one of two. One
 JSON line per run and a summary line:
 
 - ``reconstruct``: `xyzcyl reconstruct DRIVE --keyframes K --out DIR` (keyframes made one ahead in a thread while
-  the last one fuses: the command's default): wall seconds, the largest process's peak RSS;
+  the last one fuses: the command's default): wall seconds, its peak PSS and RSS;
 - ``batch``: `xyzcyl batch MANIFEST --out STORE --workers N --worker-cpus C` into an empty store (the drive with the same keyframes
   as a JSON line): wall seconds, the drive's own seconds inside Ray (the results table's ``seconds``: from its record
   begun to its scene committed) and its plan stage's, Ray's overhead (wall - both: Ray's start, the workers'
-  model loads, shutting down), the peak RSS of the whole process tree (Ray's processes included) and of its
-  largest process;
+  model loads, shutting down), the peak memory of the whole process tree (Ray's processes included; the sum of
+  their PSS, which splits the object store's shared pages among the processes mapping them) and each kind of
+  process's peak RSS (the keyframe workers, the fusion task, the driver, Ray's own);
 - ``summary``: batch / reconstruct wall ratios, the scaling from 1 to 2 workers.
 
     .venv/bin/python benchmarks/batch_bench.py [--drive D] [--every 4] [--workers 1:1,2:1,1:2]
@@ -21,7 +22,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import resource
 import shutil
 import subprocess
 import sys
@@ -32,17 +32,33 @@ HERE = Path(__file__).resolve().parent
 DEFAULT_DRIVE = HERE.parent.parent / "shared" / "data" / "real" / "pandaset_002_drive" / "drive.json"
 
 
-def _tree_rss(root: int) -> tuple[int, int]:
-    """(the sum, the largest) of the resident set sizes in bytes of ``root`` and every process below it (/proc)."""
-    parent, rss = {}, {}
+def _role(pid: int) -> str:
+    """A process's role: Ray's process title ("ray::KeyframeWorker", "ray::Map(reconstruct_item)", "raylet", ...)
+    or the command's program name."""
+    try:
+        argv = (Path("/proc") / str(pid) / "cmdline").read_bytes().split(b"\0")
+    except OSError:
+        return "?"
+    first = argv[0].decode(errors="replace").strip()
+    if first.startswith("ray::"):
+        return first.split()[0]
+    name = Path(first).name
+    if name.startswith("python") and len(argv) > 1:
+        script = next((Path(a.decode()).name for a in argv[1:] if a and not a.startswith(b"-")), "")
+        return f"python {script}" if script else name
+    return name
+
+
+def _tree(root: int) -> dict[int, tuple[str, int, int]]:
+    """pid -> (role, RSS bytes, PSS bytes) of ``root`` and every process below it (/proc; PSS from smaps_rollup:
+    shared pages, Ray's object store among them, split between the processes that map them)."""
+    parent = {}
     for d in Path("/proc").iterdir():
         if not d.name.isdigit():
             continue
         try:
             stat = (d / "stat").read_text()
-            fields = stat[stat.rindex(")") + 2:].split()
-            parent[int(d.name)] = int(fields[1])
-            rss[int(d.name)] = int(fields[21]) * os.sysconf("SC_PAGE_SIZE")
+            parent[int(d.name)] = int(stat[stat.rindex(")") + 2:].split()[1])
         except (OSError, ValueError, IndexError):
             continue
     tree, todo = {root}, [root]
@@ -52,25 +68,34 @@ def _tree_rss(root: int) -> tuple[int, int]:
             if pp == p and c not in tree:
                 tree.add(c)
                 todo.append(c)
-    sizes = [rss.get(p, 0) for p in tree]
-    return sum(sizes), max(sizes, default=0)
+    out = {}
+    for p in tree:
+        try:
+            rollup = (Path("/proc") / str(p) / "smaps_rollup").read_text().splitlines()
+        except OSError:
+            continue
+        kib = {line.split()[0].rstrip(":"): int(line.split()[1]) for line in rollup[1:] if len(line.split()) >= 2}
+        out[p] = (_role(p), kib.get("Rss", 0) * 1024, kib.get("Pss", 0) * 1024)
+    return out
 
 
-def _timed(argv: list[str], log: Path) -> tuple[float, int, float, float]:
-    """(wall seconds, exit status, the peak of the process tree's summed RSS and of its largest process, GiB) of a
-    command; the tree sampled every 0.5 s (Ray's workers are the raylet's children, not this one's: getrusage does
-    not see them)."""
+def _timed(argv: list[str], log: Path) -> tuple[float, int, float, dict[str, float]]:
+    """(wall seconds, exit status, the peak of the process tree's summed PSS in GiB, the peak RSS in GiB of each
+    role) of a command; the tree sampled every 0.5 s (Ray's workers are the raylet's children, not this one's:
+    getrusage does not see them)."""
     t0 = time.perf_counter()
-    peak_sum = peak_one = 0
+    peak_sum, roles = 0, {}
     with open(log, "w") as f:
         proc = subprocess.Popen(argv, stdout=f, stderr=subprocess.STDOUT)
         while proc.poll() is None:
-            total, one = _tree_rss(proc.pid)
-            peak_sum, peak_one = max(peak_sum, total), max(peak_one, one)
+            tree = _tree(proc.pid)
+            peak_sum = max(peak_sum, sum(pss for _, _, pss in tree.values()))
+            for role, rss, _ in tree.values():
+                roles[role] = max(roles.get(role, 0), rss)
             time.sleep(0.5)
     wall = time.perf_counter() - t0
-    peak_one = max(peak_one, resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss * 1024)
-    return wall, proc.returncode, peak_sum / 2**30, peak_one / 2**30
+    big = {k: round(v / 2**30, 2) for k, v in sorted(roles.items(), key=lambda kv: -kv[1]) if v > 200 * 2**20}
+    return wall, proc.returncode, peak_sum / 2**30, big
 
 
 def main() -> int:
@@ -120,18 +145,18 @@ def main() -> int:
 
 def _case(case: str, drive: Path, keys: list[int], work: Path, exe: list[str]) -> int:
     if case == "reconstruct":
-        wall, rc, peak, one = _timed(exe + ["reconstruct", str(drive), "--keyframes", ",".join(map(str, keys)), "--out",
+        wall, rc, peak, roles = _timed(exe + ["reconstruct", str(drive), "--keyframes", ",".join(map(str, keys)), "--out",
                                        str(work / "scene"), "--force"], work / "reconstruct.log")
         scene = json.loads((work / "scene" / "scene.json").read_text()) if rc == 0 else {}
         print(json.dumps({"case": "reconstruct", "rc": rc, "keyframes": len(keys), "wall_s": round(wall, 2),
-                          "gaussians": scene.get("gaussians", {}).get("count"), "peak_rss_sum_gib": round(peak, 2),
-                          "peak_rss_largest_gib": round(one, 2)}))
+                          "gaussians": scene.get("gaussians", {}).get("count"), "peak_pss_gib": round(peak, 2),
+                          "peak_rss_gib_by_process": roles}))
         return 0
     workers, cpus = (int(x) for x in case.split(":")[1:])
     manifest = work / f"drives-{workers}.jsonl"
     manifest.write_text(json.dumps({"input": str(drive.resolve()), "keyframes": keys, "name": "bench"}) + "\n")
     store, results = work / f"store-{workers}-{cpus}", work / f"results-{workers}-{cpus}.jsonl"
-    wall, rc, peak, one = _timed(exe + ["batch", str(manifest), "--out", str(store), "--results", str(results),
+    wall, rc, peak, roles = _timed(exe + ["batch", str(manifest), "--out", str(store), "--results", str(results),
                                         "--workers", str(workers), "--worker-cpus", str(cpus), "--quiet"],
                                  work / f"batch-{case}.log")
     rows = [json.loads(x) for x in results.read_text().splitlines()] if results.is_file() else []
@@ -140,7 +165,7 @@ def _case(case: str, drive: Path, keys: list[int], work: Path, exe: list[str]) -
     print(json.dumps({"case": "batch", "workers": workers, "worker_cpus": cpus, "rc": rc, "status": row.get("status"),
                       "keyframes": len(keys), "wall_s": round(wall, 2), "drive_s": drive_s, "plan_s": plan_s,
                       "ray_overhead_s": round(wall - drive_s - plan_s, 2), "gaussians": row.get("gaussians"),
-                      "peak_rss_sum_gib": round(peak, 2), "peak_rss_largest_gib": round(one, 2)}))
+                      "peak_pss_gib": round(peak, 2), "peak_rss_gib_by_process": roles}))
     return 0
 
 

@@ -37,6 +37,7 @@ import re
 import shutil
 import socket
 import tempfile
+import threading
 import time
 from collections import OrderedDict, deque
 from collections.abc import Callable, Iterator, Mapping
@@ -724,8 +725,16 @@ def run_batch(items: list[BatchItem], opts: BatchOptions, say: Callable[[str], N
             f"{opts.worker_cpus} CPU, {drives} drive(s) at once; model {model['name']} {model['version']}")
         worker = ray.remote(num_cpus=opts.worker_cpus, max_restarts=1)(KeyframeWorker)
         actors = [worker.remote(opts.model_dir, opts.worker_cpus) for _ in range(workers)]
-        ray.get([a.ready.remote() for a in actors])
-        say(f"workers ready {time.perf_counter() - t0:.1f} s after Ray's start")
+        ready = [a.ready.remote() for a in actors]
+
+        def loaded() -> None:           # the models load while the first items are planned
+            try:
+                ray.get(ready)
+                say(f"keyframe workers ready {time.perf_counter() - t0:.1f} s after Ray's start")
+            except Exception as e:      # noqa: BLE001 - said here; the items they were to make fail with it
+                say(f"a keyframe worker could not start: {failure_of(e)['message']}")
+
+        threading.Thread(target=loaded, daemon=True).start()
         ctx = ray.data.DataContext.get_current()
         ctx.enable_progress_bars = not opts.quiet
         ctx.enable_operator_progress_bars = not opts.quiet
@@ -734,10 +743,10 @@ def run_batch(items: list[BatchItem], opts: BatchOptions, say: Callable[[str], N
                 for i, it in enumerate(items)]
         ds = ray.data.from_items(rows, override_num_blocks=len(rows))
         ds = ds.map(plan_item, fn_kwargs={"store": opts.store, "model": model, "usdz": opts.usdz}, num_cpus=0,
-                    compute=ray.data.TaskPoolStrategy(size=max(2, drives)))
+                    compute=ray.data.TaskPoolStrategy(size=min(len(rows), max(2, drives))))
         ds = ds.map(reconstruct_item, fn_kwargs={"store": opts.store, "model": model, "actors": actors,
                                                  "usdz": opts.usdz},
-                    num_cpus=0, compute=ray.data.TaskPoolStrategy(size=drives))
+                    num_cpus=0, compute=ray.data.TaskPoolStrategy(size=min(len(rows), drives)))
         run = time.strftime("%Y%m%dT%H%M%SZ", time.gmtime())
         table = Results(opts.results)
         done: list[dict[str, Any]] = []

@@ -244,7 +244,7 @@ def _inputs(tmp_path: Path) -> tuple[str, list[str]]:
     else:
         write_drive(tmp_path / "pandaset", [pose(0), pose(0, 1.5)], [0.0, 0.3])
     write_drive(tmp_path / "broken", [pose(0), pose(2)], [0.4, 0.0])
-    lines = ["synth/drive.json",
+    lines = [json.dumps({"input": "synth/drive.json", "detail_stride": 4}),
              json.dumps({"input": "pandaset/drive.json", "name": "pandaset-cut", "detail_stride": 4,
                          "keyframes": [0, 1]}),
              json.dumps({"input": str(EXAMPLE_RIG), "name": "rig", "detail_stride": 4}),
@@ -276,8 +276,9 @@ def test_batch_on_local_ray_killed_and_run_again(tmp_path):
     pytest.importorskip("ray")
     manifest, names = _inputs(tmp_path)
     store, results = tmp_path / "store", tmp_path / "results.jsonl"
+    # one keyframe worker: its model loads while the plan step runs (the test's CI has 2 cores)
     argv = [sys.executable, "-m", "xyzcyl", "batch", manifest, "--out", str(store), "--results", str(results),
-            "--quiet"]
+            "--workers", "1", "--quiet"]
     log = open(tmp_path / "run1.log", "w")
     proc = subprocess.Popen(argv, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
     try:
