@@ -408,7 +408,9 @@ class Scene:
             return [g.slice(int(bounds[kk]), int(bounds[kk + 1])) for kk in keys if bounds[kk + 1] > bounds[kk]]
 
         def draw(parts: list[Gaussians], background: Any, behind=None):
-            return render(parts or [g.slice(0, 0)], camera, background=background, behind=behind, **options)
+            # each layer's result only feeds the next: drawn into its arrays, not copies
+            return render(parts or [g.slice(0, 0)], camera, background=background, behind=behind,
+                          behind_inplace=behind is not None, **options)
 
         n_keys = len(bounds) - 1
         # each layer drawn behind the ones before it, in the raster (render's behind: composite_layers' sum, but a

@@ -219,7 +219,7 @@ def _prepare(g: Gaussians | Sequence[Gaussians], camera, opts: RenderOptions, cu
 
 
 def render(gaussians: Gaussians | Sequence[Gaussians], camera, background=None, behind: RenderResult | None = None,
-           **options) -> RenderResult:
+           behind_inplace: bool = False, **options) -> RenderResult:
     """Render Gaussians from a runtime.camera.Camera: pinhole or equirectangular, a pinhole with a lens
     (runtime.lenses: opencv, opencv_fisheye, ftheta) drawn through the lens.
 
@@ -228,6 +228,8 @@ def render(gaussians: Gaussians | Sequence[Gaussians], camera, background=None, 
     behind: an earlier result of the same camera rendered with no background: these Gaussians are drawn behind
     what it drew, I = I_behind + (1 - A_behind) I_these (alpha and the alpha-weighted depth alike), pixel by pixel
     in the raster, which skips the pixels the earlier one already covered (render_backward cannot follow it).
+    behind_inplace: draw into ``behind``'s own arrays instead of copies of them (``behind`` is then this render's
+    result too: for layers whose earlier results are not kept, runtime.scene; saves three image copies a layer).
 
     background: None (black), an RGB triple, or an image [H, W, 3] (0..1). Options: see RenderOptions.
     Returns RenderResult(rgb [H, W, 3], alpha [H, W], depth [H, W]) float32; depth is the expected camera z
@@ -248,7 +250,10 @@ def render(gaussians: Gaussians | Sequence[Gaussians], camera, background=None, 
         st = behind.state
         if behind.alpha.shape != (H, W) or not isinstance(st, _State) or st.bg.any():
             raise ValueError(f"behind: must be a render of this {W}x{H} camera with no background")
-        rgb, alpha, depth = behind.rgb.copy(), behind.alpha.copy(), behind.depth.copy()
+        if behind_inplace:
+            rgb, alpha, depth = behind.rgb, behind.alpha, behind.depth
+        else:
+            rgb, alpha, depth = behind.rgb.copy(), behind.alpha.copy(), behind.depth.copy()
     last = _scratch("last", (H, W), np.int32)          # kept for the backward pass only
     t_final = _scratch("t_final", (H, W), np.float32)
     row_evals = np.empty(start.shape[0] - 1, np.int64)

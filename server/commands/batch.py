@@ -74,7 +74,9 @@ def run(args: argparse.Namespace) -> int:
         return _fail(str(e))
     results = args.results or default_results(args.manifest, args.out)
     say(f"{len(items)} input(s) from {args.manifest} -> store {args.out}; results table {results}")
-    opts = BatchOptions(store=args.out, model_dir=str(model_dir.resolve()), results=results, address=args.address,
+    # a folder store by its absolute path: a cluster's workers do not run in this folder
+    store = args.out if args.out.startswith("s3://") else str(Path(args.out).resolve())
+    opts = BatchOptions(store=store, model_dir=str(model_dir.resolve()), results=results, address=args.address,
                         workers=args.workers, worker_cpus=args.worker_cpus, drives=args.drives, usdz=args.usdz,
                         quiet=args.quiet)
     try:

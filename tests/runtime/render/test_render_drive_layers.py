@@ -146,3 +146,19 @@ def test_a_drives_gaussians_are_kept_sorted_by_keyframe():
     cam = pinhole(c2w=look_at([6.0, 0.0, 1.5], [20.0, 0.0, 1.5]))
     by_hand = _scene(g.subset([1, 3, 6, 7, 2, 5, 0, 4]), [0, 0, 0, 0, 1, 1, 2, 2], drive)
     np.testing.assert_array_equal(scene.render(cam)[0], by_hand.render(cam)[0])
+
+
+def test_a_layer_drawn_into_the_one_before_equals_one_drawn_into_copies():
+    """render(..., behind=a, behind_inplace=True), what Scene's layers use, draws into a's arrays: the same pixels as
+    into copies (exactly: the same operations on the same values), and a then holds the result."""
+    rng = np.random.default_rng(5)
+    near = random_gaussians(rng, 120, lo=(-2, -1.5, 2), hi=(2, 1.5, 4))
+    far = random_gaussians(rng, 120, lo=(-3, -2, 6), hi=(3, 2, 10))
+    cam = pinhole(c2w=np.eye(4))
+    copied = render(far, cam, background=(0.2, 0.3, 0.4), behind=render(near, cam))
+    a = render(near, cam)
+    before = a.rgb.copy()
+    inplace = render(far, cam, background=(0.2, 0.3, 0.4), behind=a, behind_inplace=True)
+    assert inplace.rgb is a.rgb and not np.array_equal(a.rgb, before)
+    for x, y in ((inplace.rgb, copied.rgb), (inplace.alpha, copied.alpha), (inplace.depth, copied.depth)):
+        np.testing.assert_array_equal(x, y)

@@ -21,6 +21,8 @@ def test_ply_round_trip_renders_identically(tmp_path, degree):
     assert h.sh_degree == degree
     for f in ("means", "quats", "log_scales", "opacity_logits", "sh"):
         assert np.array_equal(getattr(g, f), getattr(h, f)), f
+        # contiguous, not views of the PLY's records: every render would gather a strided column again
+        assert getattr(h, f).flags.c_contiguous, f
     a, b = render(g, pinhole(), (0.1, 0.2, 0.3)), render(h, pinhole(), (0.1, 0.2, 0.3))
     assert np.array_equal(a.rgb, b.rgb) and np.array_equal(a.depth, b.depth)
 
