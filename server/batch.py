@@ -342,8 +342,12 @@ class StoreHandle:
             from .store.folder import FolderStore
 
             self.store = FolderStore(url, max_scenes=HUGE, max_bytes=HUGE)
+
+    def prepare(self) -> None:
+        """The folder store's folders made (a new store); an S3 store's bucket is written as it goes."""
+        if not self.s3:
             for sub in ("records", "scenes", "tmp"):
-                (Path(url) / sub).mkdir(parents=True, exist_ok=True)
+                (Path(self.url) / sub).mkdir(parents=True, exist_ok=True)
 
     @classmethod
     def of(cls, url: str) -> StoreHandle:
@@ -364,6 +368,7 @@ class StoreHandle:
     def begin(self, sid: str, fields: Mapping[str, Any]) -> None:
         """The scene's record, running: created, or retaken from a run that was killed or failed (a ready one is
         never retaken: plan_item skips it)."""
+        self.prepare()
         rec = self.record(sid)
         if rec is None:
             self.store.create(sid, fields)
@@ -375,6 +380,7 @@ class StoreHandle:
         that a later run can tell a dead run's folder, clean_work)."""
         if self.s3:
             return self.store.work_dir()
+        self.prepare()
         d = Path(self.url) / "tmp" / f"batch-{socket.gethostname()}-{os.getpid()}-{time.monotonic_ns()}"
         d.mkdir(parents=True)
         return d
@@ -456,10 +462,12 @@ def _keys_of(drive, item: BatchItem) -> list[int]:
     return pick_keyframes(drive, item.keyframe_spacing, item.keyframe_gap)
 
 
-def plan_item(row: dict[str, Any], store: str, model: dict[str, str], usdz: bool = False) -> dict[str, Any]:
+def plan_item(row: dict[str, Any], store: str, model: dict[str, str], usdz: bool = False,
+              dry: bool = False) -> dict[str, Any]:
     """Stage 1 of a row (module doc): the row with ``status`` "skipped" (its scene is ready in the store), "todo"
     (with ``scene_id``, ``key``, ``fields``: the record's cameras, detail, name, drive) or "failed" (``error``).
-    ``usdz``: the scene folder holds its AlpaSim artifact too, a folder of its own (its key says so)."""
+    ``usdz``: the scene folder holds its AlpaSim artifact too, a folder of its own (its key says so). ``dry``
+    (`--dry-run`): nothing written (a ready scene's new name is not)."""
     item = BatchItem.model_validate_json(row["item"])
     t0 = time.perf_counter()
     out = {**row, "status": "failed", "scene_id": None, "error": None, "frames": None, "keyframes": None}
@@ -473,7 +481,7 @@ def plan_item(row: dict[str, Any], store: str, model: dict[str, str], usdz: bool
         handle = StoreHandle.of(store)
         rec = handle.record(sid)
         if rec is not None and rec.state == "ready":
-            if rec.name != item.name:
+            if rec.name != item.name and not dry:
                 handle.store.update(sid, name=item.name)
             out.update(status="skipped", gaussians=rec.gaussians)
             return out
@@ -681,6 +689,8 @@ def describe(row: Mapping[str, Any]) -> str:
         what += f", {row['gaussians']:,} Gaussians"
     if row["status"] == "skipped":
         return f"{row['name']}: skipped ({what} is in the store)"
+    if row["status"] == "todo":
+        return f"{row['name']}: to make ({what}, {row.get('keyframes')} keyframes of {row.get('frames')} frames)"
     return f"{row['name']}: ready ({what}, {row.get('keyframes')} keyframes of {row.get('frames')} frames, " \
            f"{row.get('seconds', 0):.1f} s)"
 
@@ -698,6 +708,23 @@ class BatchOptions:
     quiet: bool = False
 
 
+def plan_batch(items: list[BatchItem], opts: BatchOptions, say: Callable[[str], None]) -> list[dict[str, Any]]:
+    """`--dry-run`: every item's plan step here, without Ray (plan_item: fetched, checked, keyframes, scene id, and
+    whether the store has it), said one line each; the rows (status "todo", "skipped" or "failed"). Nothing is
+    written but an S3 input's copy in this machine's cache."""
+    from xyzcyl.runtime.inference import read_model_info, scene_model_of
+
+    model = scene_model_of(read_model_info(opts.model_dir))
+    out = []
+    for i, it in enumerate(items):
+        row = plan_item({"item": it.model_dump_json(), "input": it.input, "name": it.name, "index": i}, opts.store,
+                        model, opts.usdz, dry=True)
+        row["item"] = row.pop("index")
+        say(f"[{i + 1}/{len(items)}] {describe(row)}")
+        out.append(row)
+    return out
+
+
 def run_batch(items: list[BatchItem], opts: BatchOptions, say: Callable[[str], None]) -> list[dict[str, Any]]:
     """Every item of a manifest through the pipeline (module doc) on Ray; the results table's rows in the order
     they finished."""
@@ -710,7 +737,7 @@ def run_batch(items: list[BatchItem], opts: BatchOptions, say: Callable[[str], N
     removed = clean_work(opts.store)
     if removed:
         say(f"removed {removed} work folder(s) of an earlier run that stopped")
-    StoreHandle.of(opts.store)                # the store's folders, and an S3 store's credentials, checked here
+    StoreHandle.of(opts.store).prepare()      # the store's folders, and an S3 store's credentials, checked here
     address = opts.address or os.environ.get("RAY_ADDRESS") or None
     t0 = time.perf_counter()
     # a local Ray's workers inherit this process's environment (XYZCYL_*, NUMBA_CACHE_DIR, AWS_*); a cluster's
@@ -774,5 +801,5 @@ def run_batch(items: list[BatchItem], opts: BatchOptions, say: Callable[[str], N
 
 
 __all__ = ["EXIT_OK", "EXIT_PARTIAL", "EXIT_USAGE", "BatchError", "BatchItem", "BatchOptions", "KeyframeWorker", "ManifestError",
-           "StoreHandle", "clean_work", "failure_of", "fetch_input", "input_files", "load_input", "plan_item",
+           "StoreHandle", "clean_work", "failure_of", "fetch_input", "input_files", "load_input", "plan_batch", "plan_item",
            "read_manifest", "reconstruct_item", "run_batch", "scene_id_of", "scene_key"]

@@ -36,6 +36,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--model", default=None, metavar="DIR",
                         help="model folder, at this path on every node (default: $XYZCYL_MODEL, else the shipped "
                              "models/xyzcyl-cpu-v1)")
+    parser.add_argument("--dry-run", action="store_true",
+                        help="plan only, without Ray: check every input, pick its keyframes, derive its scene id and "
+                             "say whether the store has it (to make / skipped / FAILED); nothing is reconstructed or "
+                             "written (exit 3 when an input is bad)")
     parser.add_argument("--quiet", action="store_true", help="no progress bars or Ray logs; the lines per item stay")
 
 
@@ -55,15 +59,24 @@ def default_results(manifest: str, store: str) -> str:
 def run(args: argparse.Namespace) -> int:
     from xyzcyl.runtime.inference import default_model_dir
 
-    from ..batch import EXIT_OK, EXIT_PARTIAL, BatchOptions, ManifestError, read_manifest, run_batch
+    from ..batch import (
+        EXIT_OK,
+        EXIT_PARTIAL,
+        BatchOptions,
+        ManifestError,
+        plan_batch,
+        read_manifest,
+        run_batch,
+    )
 
     for flag, v in (("--workers", args.workers), ("--worker-cpus", args.worker_cpus), ("--drives", args.drives)):
         if v is not None and v < 1:
             return _fail(f"{flag}: must be >= 1 (got {v})")
-    try:
-        import ray  # noqa: F401
-    except ImportError:
-        return _fail("needs Ray: pip install 'xyzcyl[batch]'")
+    if not args.dry_run:
+        try:
+            import ray  # noqa: F401
+        except ImportError:
+            return _fail("needs Ray: pip install 'xyzcyl[batch]'")
     model_dir = Path(args.model) if args.model else default_model_dir()
     if not (model_dir / "model.json").is_file():
         return _fail(f"--model: no model folder at {str(model_dir)!r}")
@@ -73,12 +86,22 @@ def run(args: argparse.Namespace) -> int:
     except ManifestError as e:
         return _fail(str(e))
     results = args.results or default_results(args.manifest, args.out)
-    say(f"{len(items)} input(s) from {args.manifest} -> store {args.out}; results table {results}")
+    say(f"{len(items)} input(s) from {args.manifest} -> store {args.out}" +
+        ("" if args.dry_run else f"; results table {results}"))
     # a folder store by its absolute path: a cluster's workers do not run in this folder
     store = args.out if args.out.startswith("s3://") else str(Path(args.out).resolve())
     opts = BatchOptions(store=store, model_dir=str(model_dir.resolve()), results=results, address=args.address,
                         workers=args.workers, worker_cpus=args.worker_cpus, drives=args.drives, usdz=args.usdz,
                         quiet=args.quiet)
+    if args.dry_run:
+        try:
+            rows = plan_batch(items, opts, say)
+        except OSError as e:
+            print(f"xyzcyl batch: {e}", file=sys.stderr)
+            return 1
+        counts = {s: sum(r["status"] == s for r in rows) for s in ("todo", "skipped", "failed")}
+        say(f"dry run: {counts['todo']} to make, {counts['skipped']} in the store, {counts['failed']} failed")
+        return EXIT_PARTIAL if counts["failed"] else EXIT_OK
     try:
         rows = run_batch(items, opts, say)
     except KeyboardInterrupt:

@@ -7,6 +7,7 @@ from __future__ import annotations
 import errno
 import json
 import os
+import re
 import shutil
 import signal
 import subprocess
@@ -229,6 +230,25 @@ def test_the_command_refuses_bad_arguments_before_starting_ray(tmp_path):
     r = _cli(_manifest(tmp_path, str(EXAMPLE_RIG)), "--out", str(tmp_path / "s"), "--model", str(tmp_path))
     assert r.returncode == 2 and "--model" in r.stderr
     assert not (tmp_path / "s").exists()
+
+
+def test_a_dry_run_plans_without_ray_and_writes_nothing(tmp_path):
+    write_drive(tmp_path / "broken", [pose(0), pose(2)], [0.4, 0.0])
+    m = _manifest(tmp_path, f"{EXAMPLE_RIG}\nbroken/drive.json\n")
+    store = tmp_path / "store"
+    r = _cli(m, "--out", str(store), "--dry-run", env={**os.environ, "PYTHONWARNINGS": "ignore"})
+    assert r.returncode == 3, r.stderr                              # one input is bad
+    assert "synth_nuscenes: to make (scene " in r.stderr and "broken: FAILED invalid_input" in r.stderr
+    assert "dry run: 1 to make, 0 in the store, 1 failed" in r.stderr
+    assert not store.exists() and not list(tmp_path.glob("*.results.jsonl"))
+    # the scene in the store (as a batch leaves it, by its id): the dry run says it would be skipped
+    sid = re.search(r"to make \(scene (\S+),", r.stderr).group(1)
+    h = B.StoreHandle(str(store))
+    h.begin(sid, FIELDS)
+    h.store.commit(sid, _scene_folder(h.work_dir()), gaussians=9)
+    r = _cli(m, "--out", str(store), "--dry-run")
+    assert f"synth_nuscenes: skipped (scene {sid}, 9 Gaussians is in the store)" in r.stderr
+    assert h.record(sid).name == "drive-a"                        # a dry run renames nothing
 
 
 def _inputs(tmp_path: Path) -> tuple[str, list[str]]:
