@@ -507,8 +507,9 @@ def plan_item(row: dict[str, Any], store: str, model: dict[str, str], usdz: bool
 
 def _on_workers(actors: list, uri: str, first: int) -> Callable[..., Iterator]:
     """reconstruct_drive's make_keyframes: each keyframe made by a worker actor (round robin from ``first``), at
-    most one per actor in flight, taken back in order. Arrays from Ray's object store are read-only: each result
-    is copied where the fusion writes (_writable)."""
+    most one per actor in flight, taken back in order. A result's arrays come from Ray's object store without a
+    copy and are read-only: the fusion only reads a keyframe's arrays (it makes new ones), as the batch's tests of
+    drives with several keyframes show (a write would raise)."""
     import ray
 
     def make(drive, keys, opts):
