@@ -11,6 +11,8 @@ from pathlib import Path
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.epilog = ("exit status: 0 every item ready or skipped, 3 some failed (the results table says which and "
+                     "why), 2 bad arguments or manifest (nothing ran), 1 Ray or the store failed, 130 interrupted")
     parser.add_argument("manifest", metavar="MANIFEST",
                         help="a file (or s3://bucket/key) listing the inputs: one drive file or rig.json per line "
                              "(relative to the manifest, or s3:// URIs), or JSON lines {\"input\": ..., \"name\": "
@@ -27,7 +29,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="CPUs (and threads) of each keyframe worker (default 1)")
     parser.add_argument("--drives", type=int, default=None, metavar="D",
                         help="drives fused at once (default: workers / 4, at least 1; a 40-frame drive's fusion "
-                             "holds ~3 GB)")
+                             "peaks at ~3.5 GiB)")
     parser.add_argument("--results", default=None, metavar="FILE",
                         help="the results table, JSON lines (a path or s3:// URI; default MANIFEST's name with "
                              ".results.jsonl beside it, or STORE/batch-results.jsonl for an s3:// manifest)")
