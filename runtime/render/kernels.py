@@ -971,13 +971,15 @@ def _blend_px(p, power, op, pm, cr, cg, cbl, z, jj, T, c0, c1, c2, dd, lst):
 
 
 @njit(inline="always", fastmath=RASTER_MATH)
-def _blend_one(fb, j, jj, px, py, T, c0, c1, c2, dd, lst, wrap, plane, wf, inv_w):
+def _blend_one(fb, j, jj, px, py, T, c0, c1, c2, dd, lst, wrap, plane, wf, inv_w, live):
     """Blend gathered instance fb[j] (global instance index jj) into the tile's pixel state, on the tile rows
-    its bounding box touches, one SIMD vector (16 pixels, AVX-512) per row: a constant trip count, so no
+    its bounding box touches, one SIMD vector (16 pixels, AVX-512) per row (the rows evaluated returned): a constant
+    trip count, so no
     remainder loop. Unsigned pixel indices: numba then emits no negative-index wraparound, which would block
     SIMD. `wrap` and `plane` are passed as literals by the caller, so LLVM drops the seam code for pinhole
     cameras and keeps dy per row where the pixels' positions are a grid (plane: an opencv camera's pixels sit at
-    their undistorted positions, px and py vary along a row)."""
+    their undistorted positions, px and py vary along a row). live [TILE] bool: a row whose pixels all stopped
+    (as of the tile's last stop check) is skipped whole (its pixels would not change: a stopped pixel's T < 0)."""
     mx = fb[j, 0]
     my = fb[j, 1]
     A = fb[j, 2]
@@ -992,7 +994,11 @@ def _blend_one(fb, j, jj, px, py, T, c0, c1, c2, dd, lst, wrap, plane, wf, inv_w
     b1 = fb[j, 13]
     n0 = fb[j, 14]
     n1 = fb[j, 15]
+    done = 0
     for row in range(np.uint64(fb[j, 11]), np.uint64(fb[j, 12]) + np.uint64(1)):
+        if not live[row]:
+            continue
+        done += 1
         base = row * np.uint64(TILE)
         if plane:   # lensmap.opencv_plane_footprint: A, B, C hold a0, a1, b0
             for q in range(TILE):
@@ -1016,6 +1022,7 @@ def _blend_one(fb, j, jj, px, py, T, c0, c1, c2, dd, lst, wrap, plane, wf, inv_w
                 dx = dx - wf * np.floor(dx * inv_w + HALF)
             power = (A * dx + bdy) * dx + cdy
             _blend_px(p, power, op, pm, cr, cg, cbl, z, jj, T, c0, c1, c2, dd, lst)
+    return done
 
 
 @njit(cache=True, parallel=True, nogil=True, fastmath=RASTER_MATH)
@@ -1049,6 +1056,7 @@ def raster_forward(start, ids, rows, ntx, width, height, wrap, plane, offsets, k
         dd = np.empty(TILE_PIX, np.float32)
         lst = np.empty(TILE_PIX, np.int32)
         fb = np.empty((GATHER, NFEAT), np.float32)
+        live = np.empty(TILE, np.bool_)
         for p in range(TILE_PIX):
             px[p] = p % TILE
             py[p] = p // TILE
@@ -1060,14 +1068,15 @@ def raster_forward(start, ids, rows, ntx, width, height, wrap, plane, offsets, k
                     px[r * TILE + q] = np.float32(q) + offsets[y0 + r, x0 + q, 0]
                     py[r * TILE + q] = np.float32(r) + offsets[y0 + r, x0 + q, 1]
         _raster_tile(t, start, ids, rows, ntx, width, height, wrap, plane, kk, tilex, rowy, bg, rgb, alpha, depth,
-                     last, t_final, row_evals, px, py, T, c0, c1, c2, dd, lst, fb, resume)
+                     last, t_final, row_evals, px, py, T, c0, c1, c2, dd, lst, fb, resume, live)
 
 
 @njit(inline="always", fastmath=RASTER_MATH)
 def _raster_tile(t, start, ids, rows, ntx, width, height, wrap, plane, kk, tilex, rowy, bg, rgb, alpha, depth, last,
-                 t_final, row_evals, px, py, T, c0, c1, c2, dd, lst, fb, resume):
+                 t_final, row_evals, px, py, T, c0, c1, c2, dd, lst, fb, resume, live):
     """Tile t of raster_forward: blend its instance list into the scratch arrays (pixel state), then write its
-    pixels out. (At most 30 arguments: CPython passes more as *args, which numba cannot inline.)"""
+    pixels out; ``live`` [TILE]: which rows still have a blending pixel (updated at each stop check; _blend_one
+    skips the others). (At most 30 arguments: CPython passes more as *args, which numba cannot inline.)"""
     wf = np.float32(width)
     inv_w = np.float32(1.0 / width)
     x0 = (t % ntx) * TILE
@@ -1097,6 +1106,11 @@ def _raster_tile(t, start, ids, rows, ntx, width, height, wrap, plane, kk, tilex
             else:
                 T[p] = F1
                 nact += 1
+    for r in range(TILE):
+        lv = False
+        for q in range(TILE):
+            lv |= T[r * TILE + q] > F0
+        live[r] = lv
     nrow = 0
     for b0 in range(start[t], start[t + 1], GATHER):
         if nact == 0:
@@ -1105,18 +1119,24 @@ def _raster_tile(t, start, ids, rows, ntx, width, height, wrap, plane, kk, tilex
         for jb in range(nb):  # gather this batch's features into a small contiguous buffer
             gather_row(rows, ids[b0 + jb], x0, y0, width, wrap, plane, kk, tilex, rowy, fb, jb)
         for jb in range(nb):
-            nrow += np.int64(fb[jb, 12] - fb[jb, 11]) + 1
             if wrap:
-                _blend_one(fb, jb, np.int32(b0 + jb), px, py, T, c0, c1, c2, dd, lst, True, False, wf, inv_w)
+                nrow += _blend_one(fb, jb, np.int32(b0 + jb), px, py, T, c0, c1, c2, dd, lst, True, False, wf, inv_w,
+                                   live)
             elif plane:
-                _blend_one(fb, jb, np.int32(b0 + jb), px, py, T, c0, c1, c2, dd, lst, False, True, wf, inv_w)
+                nrow += _blend_one(fb, jb, np.int32(b0 + jb), px, py, T, c0, c1, c2, dd, lst, False, True, wf, inv_w,
+                                   live)
             else:
-                _blend_one(fb, jb, np.int32(b0 + jb), px, py, T, c0, c1, c2, dd, lst, False, False, wf, inv_w)
+                nrow += _blend_one(fb, jb, np.int32(b0 + jb), px, py, T, c0, c1, c2, dd, lst, False, False, wf,
+                                   inv_w, live)
             if (jb & (STOP_CHECK - 1)) == STOP_CHECK - 1 or jb == nb - 1:
                 # every STOP_CHECK instances: does any pixel still blend? (stopped pixels hold T < 0)
                 tmax = -F1
-                for p in range(TILE_PIX):
-                    tmax = max(tmax, T[p])
+                for r in range(TILE):
+                    rmax = -F1
+                    for q in range(TILE):
+                        rmax = max(rmax, T[r * TILE + q])
+                    live[r] = rmax > F0
+                    tmax = max(tmax, rmax)
                 if tmax <= F0:
                     nact = 0
                     break
