@@ -52,6 +52,11 @@ from xyzcyl.common.wire import is_drive_document
 from .store.record import name_error
 
 RESULTS_NAME = "results.jsonl"
+# measured peaks (docs/results.md "Batch on Ray": the shared PandaSet drive, six 1920x1080 cameras + LiDAR, 40
+# frames): a keyframe worker ~3.7 GiB RSS, a drive's fusion 3.4-3.7 GiB; the default worker and drive counts keep
+# their sum within Ray's memory (default_sizes)
+WORKER_BYTES = int(3.7 * 2**30)
+FUSION_BYTES = int(3.7 * 2**30)
 EXIT_OK, EXIT_USAGE, EXIT_PARTIAL = 0, 2, 3
 HUGE = 1 << 62                    # the batch's store handles keep no quota: it writes what the manifest asks
 READ_CHUNK = 1 << 20
@@ -726,6 +731,30 @@ def plan_batch(items: list[BatchItem], opts: BatchOptions, say: Callable[[str], 
     return out
 
 
+def default_sizes(cpus: int, memory: float, worker_cpus: int, workers: int | None, drives: int | None
+                  ) -> tuple[int, int, str]:
+    """(keyframe workers, drives at once, why) for a cluster of ``cpus`` CPUs and ``memory`` bytes that Ray hands
+    out (ray.cluster_resources()'s "memory": ~70 % of a local machine's free memory): the given counts, else as many
+    workers as the CPUs take (``worker_cpus`` each) and the memory holds beside the fusions (WORKER_BYTES each,
+    FUSION_BYTES a drive), and a drive at once per four workers; at least one of each."""
+    def fusing(w: int) -> int:
+        return drives or max(1, w // 4)
+
+    why = ""
+    if workers is None:
+        by_cpu = max(1, cpus // worker_cpus)
+        workers = 1
+        for w in range(by_cpu, 0, -1):       # the most workers whose peaks, with their drives' fusions, fit
+            if w * WORKER_BYTES + fusing(w) * FUSION_BYTES <= memory:
+                workers = w
+                break
+        if workers < by_cpu:
+            why = (f"{workers} keyframe worker(s), not {by_cpu}: Ray has {memory / 2**30:.1f} GiB, "
+                   f"~{WORKER_BYTES / 2**30:.1f} GiB a worker and ~{FUSION_BYTES / 2**30:.1f} GiB a drive's fusion "
+                   "(--workers sets it)")
+    return workers, fusing(workers), why
+
+
 def run_batch(items: list[BatchItem], opts: BatchOptions, say: Callable[[str], None]) -> list[dict[str, Any]]:
     """Every item of a manifest through the pipeline (module doc) on Ray; the results table's rows in the order
     they finished."""
@@ -746,9 +775,12 @@ def run_batch(items: list[BatchItem], opts: BatchOptions, say: Callable[[str], N
     ray.init(address=address, include_dashboard=False, log_to_driver=not opts.quiet,
              logging_level=logging.WARNING, configure_logging=True)
     try:
-        cpus = int(ray.cluster_resources().get("CPU", 1))
-        workers = opts.workers or max(1, cpus // opts.worker_cpus)
-        drives = opts.drives or max(1, workers // 4)
+        res = ray.cluster_resources()
+        cpus = int(res.get("CPU", 1))
+        workers, drives, why = default_sizes(cpus, float(res.get("memory", 0.0)), opts.worker_cpus, opts.workers,
+                                             opts.drives)
+        if why:
+            say(why)
         say(f"Ray: {cpus} CPUs ({'cluster ' + address if address else 'local'}); {workers} keyframe worker(s) of "
             f"{opts.worker_cpus} CPU, {drives} drive(s) at once; model {model['name']} {model['version']}")
         worker = ray.remote(num_cpus=opts.worker_cpus, max_restarts=1)(KeyframeWorker)
@@ -802,5 +834,5 @@ def run_batch(items: list[BatchItem], opts: BatchOptions, say: Callable[[str], N
 
 
 __all__ = ["EXIT_OK", "EXIT_PARTIAL", "EXIT_USAGE", "BatchError", "BatchItem", "BatchOptions", "KeyframeWorker", "ManifestError",
-           "StoreHandle", "clean_work", "failure_of", "fetch_input", "input_files", "load_input", "plan_batch", "plan_item",
+           "StoreHandle", "clean_work", "default_sizes", "failure_of", "fetch_input", "input_files", "load_input", "plan_batch", "plan_item",
            "read_manifest", "reconstruct_item", "run_batch", "scene_id_of", "scene_key"]

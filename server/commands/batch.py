@@ -24,7 +24,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "on this machine's cores")
     parser.add_argument("--workers", type=int, default=None, metavar="N",
                         help="keyframe workers (each loads the model once; default: the cluster's CPUs / "
-                             "--worker-cpus)")
+                             "--worker-cpus, fewer when Ray's memory cannot hold their peaks, ~3.7 GiB each, beside "
+                             "the drives' fusions)")
     parser.add_argument("--worker-cpus", type=int, default=1, metavar="C",
                         help="CPUs (and threads) of each keyframe worker (default 1)")
     parser.add_argument("--drives", type=int, default=None, metavar="D",

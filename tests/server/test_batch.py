@@ -201,6 +201,21 @@ def test_s3_store_handle_and_inputs(bucket, tmp_path, monkeypatch):  # noqa: F81
     assert [json.loads(x)["status"] for x in body.splitlines()] == ["ready", "failed"]
 
 
+def test_default_sizes_keep_the_workers_within_cpus_and_memory():
+    gib = 2**30
+    # this machine: 2 CPUs, ~16 GiB for Ray: both CPUs make keyframes, one drive at once
+    assert B.default_sizes(2, 16 * gib, 1, None, None)[:2] == (2, 1)
+    # a 16-core laptop with ~20 GiB for Ray: the memory, not the cores, bounds the workers (and says so)
+    w, d, why = B.default_sizes(16, 20 * gib, 1, None, None)
+    assert (w, d) == (4, 1) and "not 16" in why                   # 4 x 3.7 + 3.7 = 18.5 GiB; 5 would be 22.2
+    assert w * B.WORKER_BYTES + d * B.FUSION_BYTES <= 20 * gib < (w + 1) * B.WORKER_BYTES + d * B.FUSION_BYTES
+    # a cluster with memory to spare: the CPUs (2 each) bound them
+    assert B.default_sizes(64, 512 * gib, 2, None, None) == (32, 8, "")
+    # what the user asks for is kept; a tiny machine still gets one of each
+    assert B.default_sizes(16, 4 * gib, 1, 6, 3) == (6, 3, "")
+    assert B.default_sizes(1, 1 * gib, 1, None, None)[:2] == (1, 1)
+
+
 # ---------------------------------------------------------------------------------------------- failures
 
 def test_failures_are_rows_with_the_services_codes():
