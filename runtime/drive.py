@@ -1159,8 +1159,9 @@ def drive_meta(drive: Drive, keys: Sequence[int]) -> dict[str, Any]:
             "tracks": len(drive.tracks)}
 
 
-__all__ = ["DEFAULT_MAX_GAP_S", "DEFAULT_SPACING_M", "Drive", "DriveError", "DriveFrame", "Track", "VoxelOwners",
-           "dedupe_frames", "dedupe_frames_reference", "drive_of_rig", "find_drive_ego_body", "inside_boxes",
-           "is_drive_file", "drive_meta", "load_drive", "load_tracks", "make_keyframe", "moving_boxes", "one_rig", "pick_keyframes", "reconstruct_drive",
-           "save_drive_scene", "transform_detail", "transform_gaussians", "viewpoint_groups", "viewpoint_origins",
-           "voxel_levels"]
+__all__ = ["DEFAULT_MAX_GAP_S", "DEFAULT_SPACING_M", "Drive", "DriveError", "DriveFrame", "Track",
+           "VoxelOwners", "dedupe_frames", "dedupe_frames_reference", "drive_meta", "drive_of_rig",
+           "find_drive_ego_body", "inside_boxes", "is_drive_file", "load_drive", "load_tracks",
+           "make_keyframe", "moving_boxes", "one_rig", "pick_keyframes", "reconstruct_drive",
+           "save_drive_scene", "transform_detail", "transform_gaussians", "viewpoint_groups",
+           "viewpoint_origins", "voxel_levels"]

@@ -502,4 +502,5 @@ class Reconstructor:
 
 
 __all__ = ["MODEL_FORMAT", "InferenceError", "ModelError", "ModelInfo", "Reconstructor", "calibration_key",
-           "default_model_dir", "read_model_file", "read_model_info", "scene_model_of", "select_voxels", "verify_model"]
+           "default_model_dir", "read_model_file", "read_model_info", "scene_model_of", "select_voxels",
+           "verify_model"]

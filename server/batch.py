@@ -51,13 +51,12 @@ from xyzcyl.common.wire import is_drive_document
 
 from .store.record import name_error
 
-RESULTS_NAME = "results.jsonl"
 # measured peaks (docs/results.md "Batch on Ray": the shared PandaSet drive, six 1920x1080 cameras + LiDAR, 40
 # frames): a keyframe worker ~3.7 GiB RSS, a drive's fusion 3.4-3.7 GiB; the default worker and drive counts keep
 # their sum within Ray's memory (default_sizes)
 WORKER_BYTES = int(3.7 * 2**30)
 FUSION_BYTES = int(3.7 * 2**30)
-EXIT_OK, EXIT_USAGE, EXIT_PARTIAL = 0, 2, 3
+EXIT_OK, EXIT_PARTIAL = 0, 3             # and 2: bad arguments or manifest (the command)
 HUGE = 1 << 62                    # the batch's store handles keep no quota: it writes what the manifest asks
 READ_CHUNK = 1 << 20
 
@@ -833,6 +832,6 @@ def run_batch(items: list[BatchItem], opts: BatchOptions, say: Callable[[str], N
         ray.shutdown()
 
 
-__all__ = ["EXIT_OK", "EXIT_PARTIAL", "EXIT_USAGE", "BatchError", "BatchItem", "BatchOptions", "KeyframeWorker", "ManifestError",
+__all__ = ["EXIT_OK", "EXIT_PARTIAL", "BatchError", "BatchItem", "BatchOptions", "KeyframeWorker", "ManifestError",
            "StoreHandle", "clean_work", "default_sizes", "failure_of", "fetch_input", "input_files", "load_input", "plan_batch", "plan_item",
            "read_manifest", "reconstruct_item", "run_batch", "scene_id_of", "scene_key"]
