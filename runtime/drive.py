@@ -41,8 +41,8 @@ Each keyframe's cameras' exposure and white balance are harmonised as it arrives
 other and the previous keyframe's; the gains go into scene.json's drive block.
 
 What is not done yet (docs/inference.md "Drives" lists it): moving objects found without tracks in a camera-only
-drive, untracked objects drawn at their pose between keyframes, spatial chunks
-of the shared Gaussians (the viewpoint chunks are read on demand), mirrors found as the ego's body.
+drive, untracked objects drawn at their pose between keyframes, mirrors found as the ego's body. (The shared
+Gaussians are kept in spatial tiles that views read and draw as they need them: runtime.tiles, by Scene.)
 """
 
 from __future__ import annotations
@@ -892,7 +892,8 @@ def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None,
     coarse_parts, coarse_frames = coarse_kept.shared_parts()
     detail_parts, detail_frames = detail_kept.shared_parts()
     n_coarse, n_detail = sum(map(len, coarse_parts)), sum(map(len, detail_parts))
-    # one run per keyframe (its model Gaussians, then its cells): a view draws a keyframe's without a copy (Scene)
+    # one run per keyframe (its model Gaussians, then its cells); Scene puts them in tiles, each tile's keyframes
+    # one run each, which a view draws without a copy
     pieces = sorted(zip(coarse_parts + detail_parts, coarse_frames + detail_frames),
                     key=lambda p: int(p[1][0]) if len(p[1]) else -1)
     del coarse_parts, detail_parts
@@ -928,8 +929,7 @@ def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None,
     scene = Scene(gaussians=gauss, background=background, rig=drive.frames[0].rig, model=rec.scene_model(),
                   counts=counts, timings={key: round(v, 6) for key, v in timings.items()}, actors=actors,
                   keyframe_of=keyframe_of if len(keyframe_of) == len(gauss) else None, viewpoints=viewpoints,
-                  ego_body=found if ego_body else None)
-    scene.drive = drive_meta(drive, keys)
+                  ego_body=found if ego_body else None, drive=drive_meta(drive, keys))   # tiles: Scene
     if harmoniser is not None:
         scene.drive["exposure"] = harmoniser.to_json(drive.frames[0].rig.names)
     return scene

@@ -44,6 +44,7 @@ from .files import read_json_doc
 from .numba_cache import njit
 from .render import Gaussians, render
 from .rig import Rig
+from .tiles import TileError, Tiles, build_tiles, tile_order
 from .viewpoints import ViewpointError, Viewpoints
 
 SCENE_FORMAT = "xyzcyl-scene"
@@ -310,20 +311,25 @@ class Scene:
     viewpoints: Viewpoints | None = field(default=None, repr=False)
     # a drive's ego body found over its frames (runtime.egobody): its masks and what was looked at
     ego_body: EgoBody | None = field(default=None, repr=False)
-    _bounds: np.ndarray | None = field(default=None, init=False, repr=False, compare=False)
+    # a drive's shared Gaussians in spatial tiles (runtime.tiles): a view draws (and a loaded scene reads) only the
+    # tiles its camera can see; None for a one-rig scene
+    tiles: Tiles | None = field(default=None, repr=False)
+    _saved_bbox: dict[str, list[float]] | None = field(default=None, init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
-        """A drive's Gaussians sorted by keyframe_of (stable: each keyframe's in their order), so a keyframe's are
-        one run (keyframe_bounds) that a view draws without copying it (Scene._layers). runtime.drive builds them so;
-        a scene folder written before is sorted here once."""
+        """A drive's Gaussians of several keyframes put in tile order (runtime.tiles.tile_order: tile after tile,
+        within a tile keyframe after keyframe, otherwise as they were), so a tile's keyframe is one run that a view
+        draws without copying it (Scene._layers); a scene folder written before the tiles is ordered here once.
+        A scene loaded with its tiles (Scene.load) is in that order already and reads its Gaussians when used."""
         kf = self.keyframe_of
-        if kf is None or len(kf) < 2 or self.own_views is not None:
+        if (self.tiles is not None or kf is None or not self.drive or len(self.drive.get("keyframes", ())) < 2
+                or self.own_views is not None):
             return
-        kf = np.asarray(kf)
-        if np.any(kf[1:] < kf[:-1]):
-            order = np.argsort(kf, kind="stable")
-            self.gaussians = self.gaussians.subset(order)
-            self.keyframe_of = kf[order]
+        kf = np.asarray(kf, np.int16)
+        order, cells = tile_order(self.gaussians.means, kf)
+        g = self.gaussians if np.array_equal(order, np.arange(len(order))) else self.gaussians.subset(order)
+        self.gaussians, self.keyframe_of = g, kf[order]
+        self.tiles = Tiles(build_tiles(g, cells), self.keyframe_of, len(self.drive["keyframes"]), source=g)
 
     def own_camera(self, camera) -> int | None:
         """The index of the input camera whose pose ``camera`` (runtime.camera.Camera) has (OWN_POSE_TOL), when
@@ -396,23 +402,35 @@ class Scene:
         """A drive's view in layers (Scene.render) with primary keyframe ``k``, before the exposure gain. Each layer
         is a list of keyframes' runs of the (keyframe-sorted) Gaussians, chunks and moving objects, drawn as their
         concatenation without copying them (runtime.render: several sets)."""
-        g = self.gaussians_for(camera)
-        bounds = self.keyframe_bounds()
+        tiles = self.tiles
+        seen = tiles.visible(camera, **options)     # the tiles this camera can see: the others are not read
         moving = self.moving_at(time_s, actors)
         moving = [moving] if moving is not None else []
         fill = self.fill_for(actors, time_s)
         fill = [fill] if fill is not None else []       # behind everything: it never hides what a keyframe saw
 
         def runs(keys) -> list[Gaussians]:
-            """The Gaussians of keyframes ``keys`` (ascending), one view each."""
-            return [g.slice(int(bounds[kk]), int(bounds[kk + 1])) for kk in keys if bounds[kk + 1] > bounds[kk]]
+            """The Gaussians of keyframes ``keys`` in the tiles seen, one view of each tile's run of consecutive
+            keyframes among them (tile after tile)."""
+            ks = sorted(keys)
+            spans = [[ks[0], ks[0] + 1]] if ks else []
+            for kk in ks[1:]:
+                if kk == spans[-1][1]:
+                    spans[-1][1] = kk + 1
+                else:
+                    spans.append([kk, kk + 1])
+            out = []
+            for t in seen:
+                s = tiles.key_starts[t]
+                out += [tiles.part(t, a, b) for a, b in spans if s[b] > s[a]]
+            return out
 
         def draw(parts: list[Gaussians], background: Any, behind=None):
             # each layer's result only feeds the next: drawn into its arrays, not copies
-            return render(parts or [g.slice(0, 0)], camera, background=background, behind=behind,
+            return render(parts or [Gaussians.empty()], camera, background=background, behind=behind,
                           behind_inplace=behind is not None, **options)
 
-        n_keys = len(bounds) - 1
+        n_keys = tiles.n_keys
         # each layer drawn behind the ones before it, in the raster (render's behind: composite_layers' sum, but a
         # pixel the layers before covered is not drawn again)
         if self.viewpoints is None:
@@ -428,14 +446,6 @@ class Scene:
         b = draw(runs(beside) + [vp.gaussians(j) for j in near], None, a)
         c = draw(runs([kk for kk in range(n_keys) if kk != mine and kk not in beside]) + fill, bg, b)
         return c.rgb, c.depth, c.alpha
-
-    def keyframe_bounds(self) -> np.ndarray:
-        """[K + 1] int64: keyframe k's Gaussians are gaussians[bounds[k]:bounds[k + 1]] (keyframe_of is sorted:
-        Scene keeps it so)."""
-        if self._bounds is None:
-            n_keys = len(self.drive["keyframes"])
-            self._bounds = np.searchsorted(self.keyframe_of, np.arange(n_keys + 1), side="left").astype(np.int64)
-        return self._bounds
 
     def primary_keyframe(self, camera, time_s: float | None = None) -> int | None:
         """The keyframe a view of ``camera`` draws first (Scene.render): of a drive's scene with keyframe_of, the
@@ -549,6 +559,8 @@ class Scene:
 
     def bbox(self) -> dict[str, list[float]] | None:
         """Axis-aligned box (ego metres) of the Gaussians' centres whose opacity is at least 1/255."""
+        if self.tiles is not None and self.tiles.lazy and self._saved_bbox is not None:
+            return self._saved_bbox         # scene.json's: what the whole set gives, without reading it
         g = self.gaussians
         if len(g) == 0:
             return None
@@ -560,13 +572,15 @@ class Scene:
         return {"min": [float(c.min()) for c in cols], "max": [float(c.max()) for c in cols]}
 
     def to_json(self) -> dict[str, Any]:
-        g = self.gaussians
+        g = self.__dict__.get("_gaussians")
+        # a scene read tile by tile: the count and SH degree from its tiles, nothing read whole
+        n, degree = (len(g), g.sh_degree) if g is not None else (self.tiles.count, self.tiles.sh_degree)
         out = {"format": SCENE_FORMAT, "format_version": SCENE_VERSION, "created": self.created,
                 "frame": "ego: x forward, y left, z up, metres",
                 "model": self.model, "rig": _calibration_rig(self.rig).to_dict(),
                 "counts": self.counts, "timings": self.timings, "lifting_cached": self.lifting_cached,
                 "bbox": self.bbox(),
-                "gaussians": {"file": PLY_NAME, "count": len(g), "sh_degree": g.sh_degree,
+                "gaussians": {"file": PLY_NAME, "count": n, "sh_degree": degree,
                               "layout": "3DGS PLY: logit opacity, log scale, quaternion wxyz, f_rest channel-major"},
                 "background": None if self.background is None else self.background.to_dict(),
                 "own_views": None if self.own_views is None else {
@@ -583,6 +597,8 @@ class Scene:
                                                                                     self.actors.filled_m2()) if v > 0}
         if self.viewpoints is not None:
             out["viewpoints"] = self.viewpoints.to_json()
+        if self.tiles is not None:
+            out["tiles"] = self.tiles.to_json()
         if self.ego_body is not None:
             out["ego_body"] = {**self.ego_body.summary(),
                                "files": {n: f"{EGO_BODY_DIR}/{n}.png" for n in self.ego_body.masks},
@@ -601,7 +617,12 @@ class Scene:
         if out.exists() and not overwrite:
             raise SceneError("scene", f"{str(out)!r} exists")
         with atomic_folder(out) as tmp:
-            self.gaussians.save_ply(tmp / PLY_NAME)
+            if self.__dict__.get("_gaussians") is None and self.tiles is not None:
+                import shutil
+
+                shutil.copyfile(self.tiles.ply, tmp / PLY_NAME)      # read from a folder, never read whole
+            else:
+                self.gaussians.save_ply(tmp / PLY_NAME)
             if self.own_views is not None:
                 self.own_views.save(tmp / OWN_VIEWS_NAME)
             if self.actors is not None:
@@ -642,15 +663,21 @@ class Scene:
         pp = d / PLY_NAME
         if not pp.is_file():
             raise SceneError("scene", f"{str(pp)!r} is missing")
+        n_keys = len((meta.get("drive") or {}).get("keyframes") or ())
+        tiled = bool(meta.get("tiles")) and bool(meta.get("keyframe_of")) and n_keys >= 2
         try:
-            g = Gaussians.load_ply(pp, max_points=max_points or DEFAULT_MAX_POINTS)
+            if tiled:           # a drive in tiles: the header checked now, the tiles read when views need them
+                g, n = None, _tiled_ply_count(pp)
+            else:
+                g = Gaussians.load_ply(pp, max_points=max_points or DEFAULT_MAX_POINTS)
+                n = len(g)
         except GaussianError as e:      # its where names the file by its name alone: here, by its path
             raise SceneError(e.field, e.message, f"scene PLY {str(pp)!r}") from None
         own = None
         if meta.get("own_views"):
             op = _scene_file(d, meta["own_views"], OWN_VIEWS_NAME)
             try:
-                own = OwnViews.load(op, len(g))
+                own = OwnViews.load(op, n)
             except DetailError as e:
                 raise SceneError(e.field, e.message, e.where) from None
             if own.cameras != tuple(rig.names):
@@ -665,8 +692,18 @@ class Scene:
                 raise SceneError(e.field, e.message, f"scene {str(ap)!r}") from None
         keyframe_of = None
         if meta.get("keyframe_of"):
-            keyframe_of = _keyframe_of(_scene_file(d, meta["keyframe_of"], KEYFRAME_OF_NAME), len(g),
-                                       len((meta.get("drive") or {}).get("keyframes") or ()))
+            keyframe_of = _keyframe_of(_scene_file(d, meta["keyframe_of"], KEYFRAME_OF_NAME), n, n_keys)
+        tiles = None
+        if tiled:
+            try:
+                tiles = Tiles.from_json(meta["tiles"], pp, n, keyframe_of, n_keys)
+            except TileError as e:
+                raise SceneError(e.field, e.message, e.where) from None
+            limit = max_points or DEFAULT_MAX_POINTS
+            big = max((t.count for t in tiles.tiles), default=0)
+            if big > limit:     # the memory guard the whole PLY has elsewhere: here per tile, read one at a time
+                raise SceneError("tiles", f"a tile of {big} Gaussians, more than the maximum {limit}",
+                                 f"scene {str(jp)!r}")
         viewpoints = None
         if meta.get("viewpoints"):
             if keyframe_of is None:
@@ -691,11 +728,14 @@ class Scene:
             spec = CylinderSpec(centre=c["centre"], radius=c["radius"], z_min=c["z_min"], z_max=c["z_max"],
                                 height=c["height"], width=c["width"])
             bg = Background(image=img[..., :3], cylinder=spec, v_range=tuple(b["v_range"]))
-        return cls(gaussians=g, background=bg, rig=rig, model=meta.get("model") or {},
-                   counts=meta.get("counts") or {}, timings=meta.get("timings") or {},
-                   lifting_cached=bool(meta.get("lifting_cached", False)), created=meta.get("created", ""),
-                   own_views=own, drive=meta.get("drive"), actors=actors, keyframe_of=keyframe_of,
-                   viewpoints=viewpoints, ego_body=ego_body)
+        scene = cls(gaussians=g, background=bg, rig=rig, model=meta.get("model") or {},
+                    counts=meta.get("counts") or {}, timings=meta.get("timings") or {},
+                    lifting_cached=bool(meta.get("lifting_cached", False)), created=meta.get("created", ""),
+                    own_views=own, drive=meta.get("drive"), actors=actors, keyframe_of=keyframe_of,
+                    viewpoints=viewpoints, ego_body=ego_body, tiles=tiles)
+        if tiles is not None and isinstance(meta.get("bbox"), dict):
+            scene._saved_bbox = meta["bbox"]
+        return scene
 
 
 def _check_exposure(block: Any, keyframes: int, rig: Rig, path: Path) -> None:
@@ -753,6 +793,22 @@ def _load_ego_body(d: Path, block: Any, rig: Rig) -> EgoBody:
 # ------------------------------------------------------------------------------------------- views
 
 
+def _tiled_ply_count(path: Path) -> int:
+    """The Gaussians a drive's tiled scene.ply holds, from its header (GaussianError: not binary little-endian, or
+    shorter than the header says); its rows are read and checked tile by tile (Scene.load bounds the largest tile,
+    not the whole: a long drive's whole set need not fit in memory)."""
+    from .render import GaussianError
+    from .render.gaussians import _INT_TYPES, _ply_where, _read_ply_header
+
+    n, props, fmt, header_len = _read_ply_header(path)
+    if fmt != "binary_little_endian":
+        raise GaussianError("format", f"{fmt!r}: a drive's tiles need binary_little_endian", _ply_where(path))
+    need = header_len + n * sum(_INT_TYPES[t] for _, t in props)
+    if path.stat().st_size < need:
+        raise GaussianError("body", f"truncated: {path.stat().st_size} bytes, header needs {need}", _ply_where(path))
+    return n
+
+
 def _keyframe_of(path: Path, n: int, keyframes: int) -> np.ndarray:
     """A scene folder's keyframe_of.npy: [n] integers in 0..keyframes - 1 (SceneError naming the file else)."""
     where = f"scene {str(path)!r}"
@@ -774,6 +830,23 @@ def _scene_file(folder: Path, entry: Any, default: str) -> Path:
     if not p.is_file():
         raise SceneError("scene", f"{str(p)!r} is missing")
     return p
+
+
+def _scene_gaussians(self: Scene) -> Gaussians:
+    """Scene.gaussians: the shared Gaussians (a loaded drive scene reads them whole when first asked: its views read
+    only their tiles, runtime.tiles)."""
+    g = self.__dict__.get("_gaussians")
+    if g is None and self.tiles is not None:
+        g = self.__dict__["_gaussians"] = self.tiles.whole()
+    return g
+
+
+def _set_scene_gaussians(self: Scene, g: Gaussians | None) -> None:
+    self.__dict__["_gaussians"] = g
+
+
+# a property over the dataclass's field: Scene(gaussians=...) sets it; a scene loaded with tiles starts with None
+Scene.gaussians = property(_scene_gaussians, _set_scene_gaussians)
 
 
 def composite_layers(*layers) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -363,7 +363,8 @@ class Service:
         """A ready scene's Gaussians as antimatter15's .splat (made from the loaded scene, in the render pool)."""
         await asyncio.to_thread(self.store.touch, sid)
         scene = await self.renders.run(self.load_scene, sid)
-        return await self.renders.run(scene.gaussians.splat_bytes)
+        # in the pool: a drive's tiled scene reads its Gaussians whole here (runtime.tiles)
+        return await self.renders.run(self._reading, sid, lambda: scene.gaussians.splat_bytes())
 
     async def export(self, sid: str, fmt: str, time_s: float | None = None) -> tuple[IO[bytes], int]:
         """A ready scene in another tool's format (runtime.exports.FORMATS; the route checked ``fmt`` and ``time_s``
@@ -387,7 +388,7 @@ class Service:
                 if fmt == "usdz":
                     export_usdz(self.store.scene_dir(sid), out, rec.name or rec.id)
                 else:
-                    write_scene(self.load_scene(sid), out, fmt, time_s, rec.name or rec.id)
+                    self._reading(sid, write_scene, self.load_scene(sid), out, fmt, time_s, rec.name or rec.id)
                 return open(out, "rb")
             except (KeyError, FileNotFoundError):
                 raise NotFound(f"scene {sid} was deleted", "id") from None
@@ -524,10 +525,25 @@ class Service:
         self.metrics.render_cache.labels("miss").inc()
         scene = self.load_scene(sid)
         t0 = time.perf_counter()
-        data = render_request(scene, req)
+        data = self._reading(sid, render_request, scene, req)
         self.metrics.render_seconds.observe(time.perf_counter() - t0)
         self.views.put(key, data, owner=sid)
         return data
+
+    def _reading(self, sid: str, fn, *args):
+        """fn(*args) for a loaded scene that reads its tiles and chunks as views need them (runtime.tiles,
+        runtime.viewpoints): NotFound when the scene was deleted meanwhile and its files with it."""
+        from xyzcyl.runtime.tiles import TileError
+        from xyzcyl.runtime.viewpoints import ViewpointError
+
+        try:
+            return fn(*args)
+        except (TileError, ViewpointError):
+            rec = self.store.get(sid)
+            if rec is None or rec.state != "ready":
+                self.scenes.drop(sid)
+                raise NotFound(f"scene {sid} was deleted", "id") from None
+            raise
 
     async def render_lidar(self, sid: str, req: Any) -> Any:
         """A simulated LiDAR sweep (runtime.lidarsim.LidarSweep) of ``req`` (runtime.lidarsim.LidarRequest, checked
@@ -541,7 +557,7 @@ class Service:
 
         scene = self.load_scene(sid)
         t0 = time.perf_counter()
-        sweep = lidar_render(scene, req)
+        sweep = self._reading(sid, lidar_render, scene, req)
         self.metrics.render_seconds.observe(time.perf_counter() - t0)
         return sweep
 

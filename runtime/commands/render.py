@@ -180,7 +180,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         if is_scene:
             scene = Scene.load(src, max_points=max_points)
-            g = scene.gaussians
+            g = None            # a drive's scene reads only the tiles the view sees (runtime.tiles)
         else:
             g = Gaussians.load_ply(src, max_points=max_points)
     except SceneError as exc:
@@ -232,7 +232,14 @@ def run(args: argparse.Namespace) -> int:
         return _fail(f"--out: {exc}")
     if not args.quiet:
         chunks = " and the view's viewpoint chunks" if scene is not None and scene.viewpoints is not None else ""
-        print(f"rendered {len(g)} Gaussians{chunks} -> {out} ({cam.width}x{cam.height}, "
+        if scene is None:
+            n = len(g)
+        elif scene.tiles is not None:
+            n = sum(scene.tiles.tiles[t].count for t in scene.tiles.visible(cam, antialiased=args.antialiased))
+            chunks = f" of the {len(scene.tiles)} tiles' {scene.tiles.count} the view sees" + chunks
+        else:
+            n = len(scene.gaussians)
+        print(f"rendered {n} Gaussians{chunks} -> {out} ({cam.width}x{cam.height}, "
               f"coverage {float((alpha > 0).mean()):.3f}{', with background' if bg is not None else ''})")
     return 0
 

@@ -20,6 +20,9 @@ DEFAULT_MAX_POINTS = 20_000_000  # PLY reader refuses headers claiming more vert
 _INT_TYPES = {"char": 1, "uchar": 1, "int8": 1, "uint8": 1, "short": 2, "ushort": 2, "int16": 2,
               "uint16": 2, "int": 4, "uint": 4, "int32": 4, "uint32": 4, "float": 4, "float32": 4,
               "double": 8, "float64": 8}
+_PLY_DTYPES = {"char": "i1", "uchar": "u1", "int8": "i1", "uint8": "u1", "short": "<i2", "ushort": "<u2",
+               "int16": "<i2", "uint16": "<u2", "int": "<i4", "uint": "<u4", "int32": "<i4", "uint32": "<u4",
+               "float": "<f4", "float32": "<f4", "double": "<f8", "float64": "<f8"}   # little endian
 
 
 class GaussianError(FieldError):
@@ -225,6 +228,32 @@ class Gaussians:
             vert = ply["vertex"].data
         except Exception as exc:  # plyfile raises various types on malformed bodies
             raise GaussianError("body", f"unreadable: {exc}", where) from None
+        return cls._from_vertices(vert, where)
+
+    @classmethod
+    def load_ply_rows(cls, path: str | os.PathLike, start: int, stop: int) -> Gaussians:
+        """Vertices start..stop - 1 of a binary little-endian 3DGS PLY (load_ply's checks on them), read from their
+        bytes alone: a drive scene's tile (runtime.tiles) is one run of its scene.ply."""
+        path = Path(path)
+        where = _ply_where(path)
+        n, props, fmt, header_len = _read_ply_header(path)
+        if fmt != "binary_little_endian":
+            raise GaussianError("format", f"{fmt!r}: reading a run of vertices needs binary_little_endian", where)
+        if not 0 <= start <= stop <= n:
+            raise GaussianError("element vertex", f"rows {start}..{stop} outside the file's {n} vertices", where)
+        dtype = np.dtype([(name, _PLY_DTYPES[t]) for name, t in props])
+        with open(path, "rb") as f:
+            f.seek(header_len + start * dtype.itemsize)
+            raw = f.read((stop - start) * dtype.itemsize)
+        if len(raw) != (stop - start) * dtype.itemsize:
+            raise GaussianError("body", f"truncated: rows {start}..{stop} end past the file's end", where)
+        return cls._from_vertices(np.frombuffer(raw, dtype), where)
+
+    @classmethod
+    def _from_vertices(cls, vert: np.ndarray, where: str) -> Gaussians:
+        """Gaussians from a PLY's vertex records [N] (structured: the 3DGS properties by name), checked
+        (GaussianError naming the property or field, at ``where``)."""
+        n = len(vert)
         names = set(vert.dtype.names or ())
         required = ["x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity",
                     "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]

@@ -82,8 +82,23 @@ def test_a_drive_reaches_a_ready_scene_that_records_its_frames(env, client, tmp_
         assert got["drive"] == want and got["state"] == "ready"
         view = client.get(f"/v1/scenes/{sid}/render", params={"camera": "CAM_FRONT", "width": 64, "time": T0 + 1})
         assert view.status_code == 200 and view.headers["content-type"] == "image/png"
+        # the service's scene reads its shared Gaussians tile by tile (runtime.tiles), never whole for a view
+        loaded = env.service.load_scene(sid)
+        assert loaded.tiles is not None and loaded.tiles.lazy and loaded.__dict__["_gaussians"] is None
+        assert 0 < len(loaded.tiles._cache) <= len(loaded.tiles)
     finally:
         assert client.delete(f"/v1/scenes/{sid}").status_code == 204
+    # a view that was reading the scene's tiles when it was deleted answers 404, not 500
+    from xyzcyl.runtime.tiles import TileError
+    from xyzcyl.server.errors import NotFound
+
+    def gone():
+        raise TileError("tiles[0]", "rows 0..10: [Errno 2] No such file or directory")
+
+    with pytest.raises(NotFound, match="deleted"):
+        env.service._reading(sid, gone)
+    with pytest.raises(TileError):         # a ready scene's unreadable tile is the store's fault: not hidden
+        env.service._reading(env.sid, gone)
 
 
 def test_the_client_posts_a_drive_file_with_its_keyframe_knobs(env, tmp_path, small):

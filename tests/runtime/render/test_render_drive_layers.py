@@ -125,7 +125,9 @@ def test_keyframe_of_through_the_scene_folder_and_its_refusals(tmp_path):
     scene = _scene(g, [0, 0, 1, 1, 2, 2], _drive([0.0, 5.0, 10.0], [0.0, 0.5, 1.0], [0, 1, 2]))
     scene.save(tmp_path / "s")
     back = Scene.load(tmp_path / "s")
-    np.testing.assert_array_equal(back.keyframe_of, [0, 0, 1, 1, 2, 2])
+    # each Gaussian keeps its keyframe (the folder holds them in tile order: runtime.tiles)
+    at = {tuple(m): k for m, k in zip(g.means.tolist(), [0, 0, 1, 1, 2, 2])}
+    assert [at[tuple(m)] for m in back.gaussians.means.tolist()] == back.keyframe_of.tolist()
     for bad, why in ((np.zeros(5, np.int16), "one per Gaussian"), (np.full(6, 3, np.int16), "3 keyframes"),
                      (np.zeros(6, np.float32), "integers")):
         np.save(tmp_path / "s" / "keyframe_of.npy", bad)
@@ -134,17 +136,21 @@ def test_keyframe_of_through_the_scene_folder_and_its_refusals(tmp_path):
         assert e.value.field == "keyframe_of"
 
 
-def test_a_drives_gaussians_are_kept_sorted_by_keyframe():
-    """Scene keeps each keyframe's Gaussians one run (keyframe_bounds), stably: a scene folder written unsorted reads
-    back sorted, and a view draws the same."""
-    g = random_gaussians(np.random.default_rng(5), 8)
+def test_a_drives_gaussians_are_kept_in_tile_order():
+    """Scene keeps a drive's Gaussians tile after tile, each tile's keyframe after keyframe, stably (runtime.tiles
+    .tile_order): a scene folder written in another order reads back so, and a view draws the same."""
+    g = random_gaussians(np.random.default_rng(5), 8, lo=(-30, -5, 0), hi=(30, 5, 2))
+    g.means[:, 0] = [30.0, -10.0, 5.0, 40.0, -20.0, 10.0, 12.0, -1.0]     # tiles (x // 25): 1 -1 0 1 -1 0 0 -1
+    g.means[:, 1] = 1.0
     drive = _drive([0.0, 5.0, 10.0], [0.0, 0.5, 1.0], [0, 1, 2])
     scene = _scene(g, [2, 0, 1, 0, 2, 1, 0, 0], drive)
-    np.testing.assert_array_equal(scene.keyframe_of, [0, 0, 0, 0, 1, 1, 2, 2])
-    np.testing.assert_array_equal(scene.gaussians.means, g.means[[1, 3, 6, 7, 2, 5, 0, 4]])
-    np.testing.assert_array_equal(scene.keyframe_bounds(), [0, 4, 6, 8])
+    order = [1, 7, 4, 6, 2, 5, 3, 0]        # tile -1: keyframes 0 0 2; tile 0: 0 1 1; tile 1: 0 2
+    np.testing.assert_array_equal(scene.keyframe_of, [0, 0, 2, 0, 1, 1, 0, 2])
+    np.testing.assert_array_equal(scene.gaussians.means, g.means[order])
+    assert [t.cell for t in scene.tiles.tiles] == [(-1, 0), (0, 0), (1, 0)]
+    np.testing.assert_array_equal(scene.tiles.key_starts, [[0, 2, 2, 3], [0, 1, 3, 3], [0, 1, 1, 2]])
     cam = pinhole(c2w=look_at([6.0, 0.0, 1.5], [20.0, 0.0, 1.5]))
-    by_hand = _scene(g.subset([1, 3, 6, 7, 2, 5, 0, 4]), [0, 0, 0, 0, 1, 1, 2, 2], drive)
+    by_hand = _scene(g.subset(order), [0, 0, 2, 0, 1, 1, 0, 2], drive)
     np.testing.assert_array_equal(scene.render(cam)[0], by_hand.render(cam)[0])
 
 

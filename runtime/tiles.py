@@ -1,0 +1,264 @@
+"""Spatial tiles of a drive scene's shared Gaussians (docs/inference.md "Tiles").
+
+A drive's shared Gaussians grow with the road (docs/results.md: about 0.6 M a metre at city speed), so a long drive
+does not fit in a server's memory whole, and most of it is behind or beside any one camera. The scene's ground plane
+(x, y of the scene frame) is cut into square tiles of TILE_M; scene.ply holds the Gaussians tile after tile, and
+within a tile keyframe after keyframe (each keyframe's in the order the fusion made them). scene.json's ``tiles``
+block lists each tile's cell, its run of scene.ply's rows, the box of its centres and its largest log scale.
+
+A view asks ``visible`` for the tiles its camera can see: the renderer's own chunk test (runtime.render.core
+.chunk_planes: near, far and the image's sides, widened by each Gaussian's largest extent), applied to a tile's box,
+so a tile left out holds only Gaussians the renderer would cull one by one; the picture is the same. A scene loaded
+from its folder reads a tile's rows from scene.ply when a view first needs it (Gaussians.load_ply_rows) and keeps
+the tiles it used last, up to CACHE_BYTES; the whole set is read only when something asks for all of it (an
+export, the PLY download). A scene made in memory (a reconstruction) slices its Gaussians instead."""
+
+from __future__ import annotations
+
+import threading
+from collections import OrderedDict
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .errors import FieldError
+from .render import GaussianError, Gaussians
+
+TILE_M = 25.0               # metres: a tile's side on the scene's ground plane (x, y). A 1920x1080 camera on a drive
+                            # sees ~200 m ahead; 25 m tiles leave a side or back camera out of most of the road ahead
+CACHE_BYTES = 2 << 30       # a loaded scene keeps the tiles it used last up to this many bytes (a view needing more
+                            # reads them all, and keeps the most recent)
+SLACK_M = 1e-4              # metres: a tile is left out only this far beyond the renderer's own cull (rounding of
+                            # the box test against the per-Gaussian test it stands for)
+
+
+class TileError(FieldError):
+    """A scene's tiles block is invalid, or a tile's rows cannot be read: ``field`` names the entry."""
+
+
+@dataclass(frozen=True)
+class Tile:
+    """One tile: ``cell`` (ix, iy) covers x in [ix, ix + 1) * size, y in [iy, iy + 1) * size metres (the scene's
+    frame); its Gaussians are rows ``start`` .. ``start + count - 1`` of scene.ply; ``lo``, ``hi`` the box of their
+    centres (metres, scene frame), ``max_log_scale`` the largest of their log scales."""
+
+    cell: tuple[int, int]
+    start: int
+    count: int
+    lo: tuple[float, float, float]
+    hi: tuple[float, float, float]
+    max_log_scale: float
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"cell": list(self.cell), "start": self.start, "count": self.count,
+                "bounds": {"min": list(self.lo), "max": list(self.hi)}, "max_log_scale": self.max_log_scale}
+
+
+def tile_order(means: np.ndarray, keyframe_of: np.ndarray, size: float = TILE_M) -> tuple[np.ndarray, np.ndarray]:
+    """(order [N] int64, cells [N, 2] int64 after ordering): the permutation that puts Gaussians with centres
+    ``means`` [N, 3] (metres, scene frame) tile after tile (cells increasing in x, then y), within a tile keyframe
+    after keyframe (``keyframe_of`` [N]), and otherwise in their order (stable)."""
+    cells = np.floor(np.asarray(means[:, :2], np.float64) / size).astype(np.int64)             # [N, 2]
+    if not len(cells):
+        return np.zeros(0, np.int64), cells
+    _, rank = np.unique(cells, axis=0, return_inverse=True)             # tiles numbered in (ix, iy) order
+    n_keys = int(keyframe_of.max()) + 1 if len(keyframe_of) else 1
+    key = rank.reshape(-1).astype(np.int64) * n_keys + np.asarray(keyframe_of, np.int64)
+    order = np.argsort(key, kind="stable")
+    return order, cells[order]
+
+
+def build_tiles(g: Gaussians, cells: np.ndarray) -> list[Tile]:
+    """The tiles of Gaussians ``g`` already in tile order (tile_order) with their ``cells`` [N, 2]."""
+    if not len(g):
+        return []
+    change = np.flatnonzero(np.any(cells[1:] != cells[:-1], axis=1)) + 1
+    starts = np.r_[0, change]
+    stops = np.r_[change, len(g)]
+    # rounded outwards (to a millimetre, a ten-thousandth of a log scale): short in scene.json, still holding them
+    lo = np.floor(np.minimum.reduceat(g.means, starts, axis=0).astype(np.float64) * 1e3) / 1e3
+    hi = np.ceil(np.maximum.reduceat(g.means, starts, axis=0).astype(np.float64) * 1e3) / 1e3
+    ls = np.ceil(np.maximum.reduceat(g.log_scales.max(axis=1), starts).astype(np.float64) * 1e4) / 1e4
+    return [Tile((int(cells[a, 0]), int(cells[a, 1])), int(a), int(b - a), tuple(float(v) for v in lo[i]),
+                 tuple(float(v) for v in hi[i]), float(ls[i])) for i, (a, b) in enumerate(zip(starts, stops))]
+
+
+class Tiles:
+    """A drive scene's tiles (module docstring) over its shared Gaussians: in memory (``source``, the whole set in
+    tile order) or read from ``ply`` tile by tile (thread-safe: the service renders views of one scene on several
+    threads). ``keyframe_of`` [N] (each Gaussian's keyframe, in the same order) splits each tile into keyframes."""
+
+    def __init__(self, tiles: Sequence[Tile], keyframe_of: np.ndarray, n_keys: int, size: float = TILE_M,
+                 source: Gaussians | None = None, ply: Path | None = None, cache_bytes: int = CACHE_BYTES):
+        if (source is None) == (ply is None):
+            raise ValueError("tiles: either the Gaussians in memory or the PLY to read them from")
+        self.tiles = tuple(tiles)
+        self.size = float(size)
+        self.n_keys = int(n_keys)
+        self._source, self.ply, self.cache_bytes = source, ply, int(cache_bytes)
+        self._cache: OrderedDict[int, Gaussians] = OrderedDict()
+        self._held = 0
+        self._lock = threading.Lock()
+        kf = np.asarray(keyframe_of)
+        # [T, K + 1]: tile t's keyframe k is rows key_starts[t, k] .. key_starts[t, k + 1] - 1 of the tile
+        self.key_starts = np.zeros((len(self.tiles), self.n_keys + 1), np.int64)
+        for t, tile in enumerate(self.tiles):
+            self.key_starts[t] = np.searchsorted(kf[tile.start:tile.start + tile.count], np.arange(self.n_keys + 1))
+        self._lo = np.array([t.lo for t in self.tiles], np.float64).reshape(-1, 3)
+        self._hi = np.array([t.hi for t in self.tiles], np.float64).reshape(-1, 3)
+        self._smax = np.exp(np.array([t.max_log_scale for t in self.tiles], np.float64))
+
+    def __len__(self) -> int:
+        return len(self.tiles)
+
+    @property
+    def count(self) -> int:
+        return sum(t.count for t in self.tiles)
+
+    @property
+    def sh_degree(self) -> int:
+        """The SH degree of the Gaussians (from the PLY's header while none is read)."""
+        if self._source is not None:
+            return self._source.sh_degree
+        from .render.gaussians import _n_rest_to_degree, _read_ply_header
+
+        props = _read_ply_header(self.ply)[1]
+        return int(_n_rest_to_degree(sum(1 for p, _ in props if p.startswith("f_rest_"))) or 0)
+
+    @property
+    def lazy(self) -> bool:
+        """True when the tiles are read from the scene's PLY as views need them."""
+        return self._source is None
+
+    @property
+    def source(self) -> Gaussians | None:
+        """The whole set in memory, or None while the tiles are read from the PLY."""
+        return self._source
+
+    def visible(self, camera, **options) -> list[int]:
+        """The tiles (indices, increasing) that ``camera`` (runtime.camera.Camera) with render ``options`` can see:
+        those whose box, widened by their largest Gaussian's extent, is not wholly outside one of the renderer's
+        chunk planes (every tile for an equirect camera or a lens wider than 180 degrees)."""
+        from .render.core import chunk_planes
+        from .render.projection import RenderOptions
+
+        planes = chunk_planes(camera, RenderOptions.from_kwargs(options))
+        if not len(self.tiles) or not len(planes):
+            return list(range(len(self.tiles)))
+        a, off, ks = planes[:, :3], planes[:, 3], planes[:, 4]
+        c, h = 0.5 * (self._lo + self._hi), 0.5 * (self._hi - self._lo)
+        top = c @ a.T + h @ np.abs(a).T + off                                  # [T, P]: the box's highest a.x + off
+        outside = np.any(top + SLACK_M < -ks * self._smax[:, None], axis=1)
+        return [int(t) for t in np.flatnonzero(~outside)]
+
+    def gaussians(self, t: int) -> Gaussians:
+        """Tile t's Gaussians (scene frame): a slice of the set in memory, or its rows read from the PLY (TileError
+        naming the tile when they cannot be)."""
+        tile = self.tiles[t]
+        if self._source is not None:
+            return self._source.slice(tile.start, tile.start + tile.count)
+        with self._lock:
+            if t in self._cache:
+                self._cache.move_to_end(t)
+                return self._cache[t]
+        where = f"scene PLY {str(self.ply)!r}"
+        try:
+            g = Gaussians.load_ply_rows(self.ply, tile.start, tile.start + tile.count)
+        except (GaussianError, OSError) as e:
+            raise TileError(f"tiles[{t}]", f"rows {tile.start}..{tile.start + tile.count}: {e}", where) from None
+        # a box that does not hold its Gaussians would leave them out of views that see them
+        m = g.means.astype(np.float64)
+        if (np.any(m < np.array(tile.lo)) or np.any(m > np.array(tile.hi))
+                or float(g.log_scales.max(initial=-np.inf)) > tile.max_log_scale):
+            raise TileError(f"tiles[{t}].bounds", "its Gaussians lie outside its box or have larger scales than "
+                                                  "max_log_scale", where)
+        size = _nbytes(g)
+        with self._lock:
+            if t not in self._cache:
+                self._cache[t] = g
+                self._held += size
+            while self._held > self.cache_bytes and len(self._cache) > 1:
+                _, old = self._cache.popitem(last=False)
+                self._held -= _nbytes(old)
+        return g
+
+    def part(self, t: int, k0: int, k1: int) -> Gaussians:
+        """Tile t's Gaussians of keyframes k0 .. k1 - 1 (a view of the tile's arrays)."""
+        s = self.key_starts[t]
+        return self.gaussians(t).slice(int(s[k0]), int(s[k1]))
+
+    @property
+    def held_bytes(self) -> int:
+        """The bytes of the tiles read and kept (0 for tiles in memory)."""
+        return self._held
+
+    def whole(self) -> Gaussians:
+        """Every shared Gaussian in tile order: the set in memory, or the whole PLY read (and kept: the tiles are
+        then its slices)."""
+        if self._source is not None:
+            return self._source
+        from .render.gaussians import DEFAULT_MAX_POINTS
+
+        try:
+            g = Gaussians.load_ply(self.ply, max_points=max(DEFAULT_MAX_POINTS, self.count))
+        except GaussianError as e:
+            raise TileError("scene.ply", str(e), f"scene PLY {str(self.ply)!r}") from None
+        with self._lock:            # from now on the tiles are slices of it: nothing read twice
+            self._source = g
+            self._cache.clear()
+            self._held = 0
+        return g
+
+    def to_json(self) -> dict[str, Any]:
+        return {"size_m": self.size, "tiles": [t.to_dict() for t in self.tiles],
+                "about": "scene.ply holds the shared Gaussians tile after tile (within a tile keyframe after "
+                         "keyframe); a view reads and draws only the tiles its camera can see"}
+
+    @classmethod
+    def from_json(cls, block: Any, ply: Path, n: int, keyframe_of: np.ndarray, n_keys: int) -> Tiles:
+        """A scene folder's tiles (scene.json's block) over its PLY ``ply`` of ``n`` Gaussians, each entry checked
+        (TileError naming it): the runs cover the rows in order, each tile's keyframes increase."""
+        where = f"scene {str(ply.parent)!r}"
+        size = block.get("size_m") if isinstance(block, dict) else None
+        entries = block.get("tiles") if isinstance(block, dict) else None
+        if not isinstance(size, (int, float)) or isinstance(size, bool) or not np.isfinite(size) or size <= 0:
+            raise TileError("tiles.size_m", f"must be a number > 0 (got {size!r})", where)
+        if not isinstance(entries, list):
+            raise TileError("tiles.tiles", "must be a list", where)
+        tiles, at = [], 0
+        kf = np.asarray(keyframe_of)
+        for i, e in enumerate(entries):
+            name = f"tiles.tiles[{i}]"
+            try:
+                cell = tuple(int(v) for v in e["cell"])
+                start, count = e["start"], e["count"]
+                lo = tuple(float(v) for v in e["bounds"]["min"])
+                hi = tuple(float(v) for v in e["bounds"]["max"])
+                ls = float(e["max_log_scale"])
+            except (KeyError, TypeError, ValueError):
+                raise TileError(name, "must have cell [ix, iy], start, count, bounds {min, max} and max_log_scale",
+                                where) from None
+            if len(cell) != 2 or len(lo) != 3 or len(hi) != 3 or not all(np.isfinite(lo + hi + (ls,))):
+                raise TileError(name, "cell must be 2 integers, bounds 3 finite numbers each, max_log_scale "
+                                      "finite", where)
+            if not isinstance(start, int) or not isinstance(count, int) or start != at or count <= 0:
+                raise TileError(f"{name}.start", f"tiles must cover scene.ply's rows in order: expected start {at} "
+                                                 f"and count > 0 (got {start!r}, {count!r})", where)
+            run = kf[start:start + count]
+            if np.any(run[1:] < run[:-1]):
+                raise TileError(name, "its Gaussians' keyframes (keyframe_of.npy) must increase", where)
+            at += count
+            tiles.append(Tile(cell, start, count, lo, hi, ls))
+        if at != n:
+            raise TileError("tiles.tiles", f"cover {at} Gaussians, scene.ply holds {n}", where)
+        return cls(tiles, kf, n_keys, float(size), ply=ply)
+
+
+def _nbytes(g: Gaussians) -> int:
+    return sum(getattr(g, f).nbytes for f in ("means", "quats", "log_scales", "opacity_logits", "sh"))
+
+
+__all__ = ["CACHE_BYTES", "TILE_M", "Tile", "TileError", "Tiles", "build_tiles", "tile_order"]
