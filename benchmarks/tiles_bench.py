@@ -9,11 +9,12 @@ per case, each case in a child process of its own (peak RSS from its getrusage):
   density, built in seconds. Its Gaussians, tiles and folder size.
 - ``tiles``: Scene.load of that folder (tiles read as views need them), then the six input cameras of the first
   keyframe seen from each copy's place along the drive (1920x1080, the input cameras' own size): per view seconds
-  (median, max: the views that read new tiles), the tiles and bytes held, the process's peak RSS.
+  (median, max: the views that read new tiles), the tiles and bytes held, the process's peak RSS (VmHWM, Linux).
 - ``whole``: the same views of the same folder after reading the whole set (Scene.gaussians), what the service did
   before the tiles.
 
     .venv/bin/python benchmarks/tiles_bench.py SCENE [--copies 8] [--spacing 60] [--work /tmp/xyzcyl-tiles-bench]
+        [--horizon M] [--reuse]
 """
 
 from __future__ import annotations
@@ -26,11 +27,14 @@ import tempfile
 from pathlib import Path
 
 CHILD = r"""
-import dataclasses, json, resource, statistics, sys, time
+import dataclasses, json, statistics, sys, time
 import numpy as np
 from xyzcyl.runtime.scene import Scene
 
 case, folder, copies, spacing = sys.argv[1], sys.argv[2], int(sys.argv[3]), float(sys.argv[4])
+if sys.argv[5] != "-":              # --horizon: another than the runtime's (runtime.tiles.HORIZON_M)
+    import xyzcyl.runtime.scene as S
+    S.HORIZON_M = float(sys.argv[5])
 t0 = time.perf_counter()
 scene = Scene.load(folder)
 load_s = time.perf_counter() - t0
@@ -50,11 +54,14 @@ for i in range(copies):
         scene.render(c, time_s=scene.drive["timestamp_s"] + scene.drive["times_s"][k])
         ts.append(time.perf_counter() - t0)
 tiles = scene.tiles
-r = {"case": case, "views": len(ts), "load_s": round(load_s, 3), "median_s": round(statistics.median(ts), 4),
+r = {"case": case, "horizon_m": __import__("xyzcyl.runtime.scene").runtime.scene.HORIZON_M, "views": len(ts), "load_s": round(load_s, 3), "median_s": round(statistics.median(ts), 4),
      "max_s": round(max(ts), 4), "first_s": round(ts[0], 4),
      "tiles_held": len(tiles._cache) if tiles.lazy else len(tiles), "tiles": len(tiles),
      "held_gb": round((tiles.held_bytes if tiles.lazy else 56 * tiles.count) / 1e9, 3),
-     "peak_rss_gb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6, 2)}
+     # VmHWM: this process's own peak (getrusage's ru_maxrss keeps the parent's across fork and exec, and the
+     # parent held the whole long drive while it built it)
+     "peak_rss_gb": round(int(next(l.split()[1] for l in open("/proc/self/status") if l.startswith("VmHWM"))) / 1e6,
+                          2)}
 print(json.dumps(r))
 """
 
@@ -99,15 +106,20 @@ def main() -> None:
     ap.add_argument("--copies", type=int, default=8)
     ap.add_argument("--spacing", type=float, default=60.0, help="metres between the copies along x")
     ap.add_argument("--work", type=Path, default=Path(tempfile.gettempdir()) / "xyzcyl-tiles-bench")
+    ap.add_argument("--horizon", type=float, default=None,
+                    help="metres: draw other keyframes only this near (default the runtime's HORIZON_M; 1e9: none)")
+    ap.add_argument("--reuse", action="store_true", help="keep WORK/long when it was built before (same options)")
     args = ap.parse_args()
     if args.copies < 1 or args.spacing <= 0:
         raise SystemExit("--copies must be >= 1 and --spacing > 0")
     if not (args.scene / "scene.json").is_file():
         raise SystemExit(f"no scene folder at {args.scene}")
     out = args.work / "long"
-    print(json.dumps(build(args.scene, out, args.copies, args.spacing)), flush=True)
+    if not args.reuse or not (out / "scene.json").is_file():
+        print(json.dumps(build(args.scene, out, args.copies, args.spacing)), flush=True)
     for case in ("tiles", "whole"):
-        p = subprocess.run([sys.executable, "-c", CHILD, case, str(out), str(args.copies), str(args.spacing)],
+        p = subprocess.run([sys.executable, "-c", CHILD, case, str(out), str(args.copies), str(args.spacing),
+                            "-" if args.horizon is None else str(args.horizon)],
                            capture_output=True, text=True)
         if p.returncode:
             sys.stderr.write(p.stderr[-4000:])

@@ -44,7 +44,7 @@ from .files import read_json_doc
 from .numba_cache import njit
 from .render import Gaussians, render
 from .rig import Rig
-from .tiles import TileError, Tiles, build_tiles, tile_order
+from .tiles import HORIZON_M, TileError, Tiles, build_tiles, tile_order
 from .viewpoints import ViewpointError, Viewpoints
 
 SCENE_FORMAT = "xyzcyl-scene"
@@ -352,7 +352,8 @@ class Scene:
         (I = I_1 + (1 - A_1) I_2, composite_layers): first the view's primary keyframe's (primary_keyframe) viewpoint
         group as its first keyframe saw the scene, i.e. that keyframe's shared Gaussians and the group's own chunk
         (runtime.viewpoints), and the moving objects; then the group's other keyframes' shared Gaussians and the two
-        neighbouring viewpoint groups, whole; last the other keyframes' shared Gaussians. (An ego that stands still
+        neighbouring viewpoint groups, whole; last the other keyframes' shared Gaussians (these two layers only in the
+        tiles within runtime.tiles.HORIZON_M of the camera: beyond, the primary's alone). (An ego that stands still
         is one group: its later keyframes add what its first did not see, and a surface both saw at slightly
         different depths is not drawn as a patchwork of the two.) Each keyframe's cells agree with its own images,
         and another keyframe's copy of the same wall a few centimetres off (its depth, its exposure) would otherwise
@@ -404,14 +405,16 @@ class Scene:
         concatenation without copying them (runtime.render: several sets)."""
         tiles = self.tiles
         seen = tiles.visible(camera, **options)     # the tiles this camera can see: the others are not read
+        close = tiles.within(camera, HORIZON_M, seen)   # beyond, the primary keyframe's alone (HORIZON_M)
         moving = self.moving_at(time_s, actors)
         moving = [moving] if moving is not None else []
         fill = self.fill_for(actors, time_s)
         fill = [fill] if fill is not None else []       # behind everything: it never hides what a keyframe saw
 
-        def runs(keys) -> list[Gaussians]:
-            """The Gaussians of keyframes ``keys`` in the tiles seen, one view of each tile's run of consecutive
-            keyframes among them (tile after tile)."""
+        def runs(keys, everywhere: bool = False) -> list[Gaussians]:
+            """The Gaussians of keyframes ``keys`` in the tiles seen within the horizon (``everywhere``: in all
+            the tiles seen; beyond the horizon only these keyframes' rows are read), one view of each tile's run of
+            consecutive keyframes among them (tile after tile)."""
             ks = sorted(keys)
             spans = [[ks[0], ks[0] + 1]] if ks else []
             for kk in ks[1:]:
@@ -421,8 +424,9 @@ class Scene:
                     spans.append([kk, kk + 1])
             out = []
             for t in seen:
-                s = tiles.key_starts[t]
-                out += [tiles.part(t, a, b) for a, b in spans if s[b] > s[a]]
+                if t in close or everywhere:
+                    s = tiles.key_starts[t]
+                    out += [tiles.part(t, a, b, alone=t not in close) for a, b in spans if s[b] > s[a]]
             return out
 
         def draw(parts: list[Gaussians], background: Any, behind=None):
@@ -434,7 +438,7 @@ class Scene:
         # each layer drawn behind the ones before it, in the raster (render's behind: composite_layers' sum, but a
         # pixel the layers before covered is not drawn again)
         if self.viewpoints is None:
-            a = draw(runs([k]) + moving, None)
+            a = draw(runs([k], everywhere=True) + moving, None)
             b = draw(runs([kk for kk in range(n_keys) if kk != k]) + fill, bg, a)
             return b.rgb, b.depth, b.alpha
         vp = self.viewpoints
@@ -442,7 +446,7 @@ class Scene:
         near = [j for j in (i - 1, i + 1) if 0 <= j < len(vp)]
         mine = vp.chunks[i].keyframes[0]
         beside = sorted({kk for j in (i, *near) for kk in vp.chunks[j].keyframes} - {mine})
-        a = draw(runs([mine]) + [vp.gaussians(i)] + moving, None)
+        a = draw(runs([mine], everywhere=True) + [vp.gaussians(i)] + moving, None)
         b = draw(runs(beside) + [vp.gaussians(j) for j in near], None, a)
         c = draw(runs([kk for kk in range(n_keys) if kk != mine and kk not in beside]) + fill, bg, b)
         return c.rgb, c.depth, c.alpha

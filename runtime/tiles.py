@@ -31,6 +31,11 @@ TILE_M = 25.0               # metres: a tile's side on the scene's ground plane 
                             # sees ~200 m ahead; 25 m tiles leave a side or back camera out of most of the road ahead
 CACHE_BYTES = 2 << 30       # a loaded scene keeps the tiles it used last up to this many bytes (a view needing more
                             # reads them all, and keeps the most recent)
+HORIZON_M = 200.0           # metres from a view's camera: beyond, a drive's view draws its primary keyframe's
+                            # Gaussians alone (runtime.scene). The detail layer trusts depths to 150 m (max_depth)
+                            # and puts what lies beyond on a 300 m sphere about its keyframe (far_depth): another
+                            # keyframe's copy of that far background adds nothing the primary's does not draw, and a
+                            # long drive has one such sphere per keyframe, each read and drawn by every view
 SLACK_M = 1e-4              # metres: a tile is left out only this far beyond the renderer's own cull (rounding of
                             # the box test against the per-Gaussian test it stands for)
 
@@ -154,21 +159,48 @@ class Tiles:
         outside = np.any(top + SLACK_M < -ks * self._smax[:, None], axis=1)
         return [int(t) for t in np.flatnonzero(~outside)]
 
+    def within(self, camera, horizon: float, tiles: Sequence[int]) -> set[int]:
+        """Of ``tiles``, those whose box comes within ``horizon`` metres of ``camera``'s centre."""
+        if not len(tiles):
+            return set()
+        idx = np.asarray(tiles, np.int64)
+        c = np.asarray(camera.cam_to_ego, np.float64)[:3, 3]
+        d = np.linalg.norm(np.clip(c, self._lo[idx], self._hi[idx]) - c, axis=1)
+        return {int(t) for t in idx[d <= horizon]}
+
     def gaussians(self, t: int) -> Gaussians:
         """Tile t's Gaussians (scene frame): a slice of the set in memory, or its rows read from the PLY (TileError
         naming the tile when they cannot be)."""
         tile = self.tiles[t]
         if self._source is not None:
             return self._source.slice(tile.start, tile.start + tile.count)
+        return self._read((t,), t, 0, tile.count)
+
+    def part(self, t: int, k0: int, k1: int, alone: bool = False) -> Gaussians:
+        """Tile t's Gaussians of keyframes k0 .. k1 - 1: a view of the tile's arrays; ``alone``: when the tile is
+        not read already, only those rows are read (a view's primary keyframe beyond the horizon, HORIZON_M)."""
+        s = self.key_starts[t]
+        a, b = int(s[k0]), int(s[k1])
+        if alone and self._source is None:
+            with self._lock:
+                whole = self._cache.get((t,))
+            if whole is None:
+                return self._read((t, k0, k1), t, a, b)
+        return self.gaussians(t).slice(a, b)
+
+    def _read(self, key: tuple, t: int, a: int, b: int) -> Gaussians:
+        """Rows a..b - 1 of tile t, from the cache under ``key`` or read from the PLY and checked against the tile's
+        box (TileError naming the tile)."""
         with self._lock:
-            if t in self._cache:
-                self._cache.move_to_end(t)
-                return self._cache[t]
+            if key in self._cache:
+                self._cache.move_to_end(key)
+                return self._cache[key]
+        tile = self.tiles[t]
         where = f"scene PLY {str(self.ply)!r}"
         try:
-            g = Gaussians.load_ply_rows(self.ply, tile.start, tile.start + tile.count)
+            g = Gaussians.load_ply_rows(self.ply, tile.start + a, tile.start + b)
         except (GaussianError, OSError) as e:
-            raise TileError(f"tiles[{t}]", f"rows {tile.start}..{tile.start + tile.count}: {e}", where) from None
+            raise TileError(f"tiles[{t}]", f"rows {tile.start + a}..{tile.start + b}: {e}", where) from None
         # a box that does not hold its Gaussians would leave them out of views that see them
         m = g.means.astype(np.float64)
         if (np.any(m < np.array(tile.lo)) or np.any(m > np.array(tile.hi))
@@ -177,18 +209,13 @@ class Tiles:
                                                   "max_log_scale", where)
         size = _nbytes(g)
         with self._lock:
-            if t not in self._cache:
-                self._cache[t] = g
+            if key not in self._cache:
+                self._cache[key] = g
                 self._held += size
             while self._held > self.cache_bytes and len(self._cache) > 1:
                 _, old = self._cache.popitem(last=False)
                 self._held -= _nbytes(old)
         return g
-
-    def part(self, t: int, k0: int, k1: int) -> Gaussians:
-        """Tile t's Gaussians of keyframes k0 .. k1 - 1 (a view of the tile's arrays)."""
-        s = self.key_starts[t]
-        return self.gaussians(t).slice(int(s[k0]), int(s[k1]))
 
     @property
     def held_bytes(self) -> int:
@@ -261,4 +288,4 @@ def _nbytes(g: Gaussians) -> int:
     return sum(getattr(g, f).nbytes for f in ("means", "quats", "log_scales", "opacity_logits", "sh"))
 
 
-__all__ = ["CACHE_BYTES", "TILE_M", "Tile", "TileError", "Tiles", "build_tiles", "tile_order"]
+__all__ = ["CACHE_BYTES", "HORIZON_M", "TILE_M", "Tile", "TileError", "Tiles", "build_tiles", "tile_order"]

@@ -234,9 +234,10 @@ def run(args: argparse.Namespace) -> int:
         chunks = " and the view's viewpoint chunks" if scene is not None and scene.viewpoints is not None else ""
         if scene is None:
             n = len(g)
-        elif scene.tiles is not None:
-            n = sum(scene.tiles.tiles[t].count for t in scene.tiles.visible(cam, antialiased=args.antialiased))
-            chunks = f" of the {len(scene.tiles)} tiles' {scene.tiles.count} the view sees" + chunks
+        elif scene.tiles is not None:      # a drive's: the tiles the view sees (runtime.tiles)
+            seen = scene.tiles.visible(cam, antialiased=args.antialiased)
+            n = sum(scene.tiles.tiles[t].count for t in seen)
+            chunks = f" (the {len(seen)} of {len(scene.tiles)} tiles the view sees)" + chunks
         else:
             n = len(scene.gaussians)
         print(f"rendered {n} Gaussians{chunks} -> {out} ({cam.width}x{cam.height}, "

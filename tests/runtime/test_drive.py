@@ -5,6 +5,7 @@ model: a still ego posted twice is kept once, a moving one grows the scene with 
 from __future__ import annotations
 
 import math
+import re
 
 import numpy as np
 import pytest
@@ -501,7 +502,7 @@ def test_a_drive_with_a_moving_track_draws_it_at_the_render_time(tmp_path, shipp
     assert len(back.gaussians_at(cam, 10.0)) == n_static                     # after its last pose: not drawn
 
 
-def test_render_time_flag_draws_the_objects_of_that_time(tmp_path, shipped):
+def test_render_time_flag_draws_the_objects_of_that_time(tmp_path, shipped, capsys):
     """`xyzcyl render --time T` on a drive's scene renders what Scene.render draws at T; another time moves the
     tracked object; the time is refused when it is not a number."""
     from xyzcyl import cli
@@ -522,6 +523,11 @@ def test_render_time_flag_draws_the_objects_of_that_time(tmp_path, shipped):
                          "--out", str(out), "--quiet"]) == 0
         outs[t] = out.read_bytes()
     assert outs["0.0"] != outs["1.0"]
+    capsys.readouterr()
+    assert cli.main(["render", str(tmp_path / "scene"), "--camera", "CAM_FRONT", "--width", "160",
+                     "--out", str(tmp_path / "v.png")]) == 0
+    assert re.match(r"rendered \d+ Gaussians \(the \d+ of \d+ tiles the view sees\) and the view's viewpoint "
+                    r"chunks -> ", capsys.readouterr().out)
     scene = Scene.load(tmp_path / "scene")
     from xyzcyl.runtime.scene import rig_camera
     from xyzcyl.runtime.views import ViewRequest, encode_view

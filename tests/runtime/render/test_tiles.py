@@ -14,7 +14,7 @@ from xyzcyl.runtime.camera import Camera
 from xyzcyl.runtime.render import GaussianError, Gaussians, render
 from xyzcyl.runtime.rig import load_rig
 from xyzcyl.runtime.scene import Scene, SceneError
-from xyzcyl.runtime.tiles import TILE_M, TileError, Tiles, build_tiles, tile_order
+from xyzcyl.runtime.tiles import HORIZON_M, TILE_M, TileError, Tiles, build_tiles, tile_order
 from xyzcyl.testing import EXAMPLE_RIG
 
 
@@ -106,7 +106,7 @@ def test_a_scene_folder_is_read_tile_by_tile_and_draws_the_same(tmp_path):
         for x, y in zip(a, b):
             np.testing.assert_array_equal(x, y)
     # only the tiles those views see were read
-    read = set(there.tiles._cache)
+    read = {key[0] for key in there.tiles._cache}
     assert 0 < len(read) < len(there.tiles)
     assert read <= {t for n in ("side", "back") for t in here.tiles.visible(cams[n])}
     assert there.__dict__["_gaussians"] is None
@@ -131,10 +131,10 @@ def test_the_tile_cache_keeps_to_its_budget(tmp_path):
         tiles.gaussians(t)
         assert tiles.held_bytes <= 2 * one
     assert 1 <= len(tiles._cache) <= 2 * one // min(t.count * 56 for t in tiles.tiles)
-    assert list(tiles._cache)[-1] == len(tiles) - 1                  # the last used is kept
+    assert list(tiles._cache)[-1] == (len(tiles) - 1,)                 # the last used is kept
     tiles.cache_bytes = 1                                             # less than any tile: still the last one kept
     tiles.gaussians(0)
-    assert list(tiles._cache) == [0]
+    assert list(tiles._cache) == [(0,)]
 
 
 def test_rows_of_a_ply_read_alone(tmp_path):
@@ -223,3 +223,36 @@ def test_a_tiled_view_equals_the_layers_drawn_from_every_tile():
     for x, y in zip(a, b):
         np.testing.assert_array_equal(x, y)
     assert len(Tiles.visible(scene.tiles, cam)) < len(every)
+
+
+def test_beyond_the_horizon_a_view_draws_its_primary_keyframe_alone(tmp_path):
+    """Tiles farther than HORIZON_M from the camera give the view's primary keyframe's Gaussians only (each
+    keyframe's far background sphere, runtime.detail's far_depth, is drawn once, not once per keyframe), and a
+    folder's far tile is read for those rows alone."""
+    rng = np.random.default_rng(19)
+    near = random_gaussians(rng, 200, lo=(5, -10, 0), hi=(60, 10, 5))                  # ahead, within the horizon
+    far = random_gaussians(rng, 400, lo=(HORIZON_M + 60, -40, 0), hi=(HORIZON_M + 100, 40, 30))
+    g = Gaussians(*(np.concatenate([getattr(near, f), getattr(far, f)]) for f in
+                    ("means", "quats", "log_scales", "opacity_logits", "sh")))
+    kf = np.r_[np.zeros(100), np.ones(100), np.zeros(200), np.ones(200)].astype(np.int16)  # each half of each
+    drive = _drive([0.0, 30.0], [0.0, 1.0], [0, 1])
+    scene = Scene(gaussians=g, background=None, rig=load_rig(EXAMPLE_RIG), drive=drive, keyframe_of=kf)
+    cam = pinhole(96, 64, 50.0, c2w=look_at([0, 0, 1.5], [100, 0, 1.5]))
+    assert scene.primary_keyframe(cam) == 0
+    rgb, _, alpha = scene.render(cam)
+    # by hand: keyframe 0 everywhere, then keyframe 1 within the horizon, behind it
+    first = render([near.subset(np.arange(200) < 100), far.subset(np.arange(400) < 200)], cam)
+    by_hand = render(near.subset(np.arange(200) >= 100), cam, behind=first)
+    np.testing.assert_array_equal(rgb, by_hand.rgb)
+    np.testing.assert_array_equal(alpha, by_hand.alpha)
+    # keyframe 1's far Gaussians would show: the horizon is what left them out
+    every = render(far.subset(np.arange(400) >= 200), cam, behind=render(
+        [near.subset(np.arange(200) < 100), far.subset(np.arange(400) < 200)], cam))
+    assert np.abs(every.rgb - by_hand.rgb).max() > 0.05
+    # from its folder: the far tiles' keyframe-0 rows alone are read
+    scene.save(tmp_path / "s")
+    back = Scene.load(tmp_path / "s")
+    for x, y in zip(back.render(cam), scene.render(cam)):
+        np.testing.assert_array_equal(x, y)
+    far_tiles = {t for t, tile in enumerate(back.tiles.tiles) if tile.lo[0] > HORIZON_M}
+    assert far_tiles and {key for key in back.tiles._cache if key[0] in far_tiles} == {(t, 0, 1) for t in far_tiles}
