@@ -6,7 +6,8 @@ detail cells, and a view shows a seam where one camera's cells meet another's. T
 its gain (per channel) times the scene's radiance. Two views' cells of one surface (a cell of view a that lands on
 a kept cell of view b at the same depth, within MATCH_DEPTH) give, per channel, log c_a - log c_b = x_a - x_b for
 the log gains x; their median over all such cells is one equation (weighted by the square root of their count, at
-least MIN_PAIRS cells, most of them agreeing with the median: AGREE_SHARE within AGREE_LOG). Per keyframe, as the drive streams: its cameras against each other and against the
+least MIN_PAIRS cells, enough of them agreeing with the median: AGREE_SHARE within AGREE_LOG, or AGREE_MIN when that
+is AGREE_OVER_CHANCE times the share that would by chance). Per keyframe, as the drive streams: its cameras against each other and against the
 previous keyframe's cameras, whose cells are already harmonised (their x fixed at 0); the first keyframe's gains
 have a mean of 1 (log mean 0). A small pull of every x towards 0 (RIDGE) keeps a camera that overlaps nothing
 at gain 1. Each camera's detail cells are then divided by its gain (harmonise), and a view drawn near an input
@@ -32,7 +33,15 @@ MIN_PAIRS = 200             # cells two views share before their ratio counts (a
 MAX_SOURCE_CELLS = 40000    # cells of a view projected into another (a random subset: the median is stable)
 COLOUR_RANGE = (0.03, 0.97) # colours outside are clipped or black in one of the two: no ratio
 AGREE_LOG = 0.1             # a matched cell's log ratio this near the median agrees (10 %: shading, view angle)
-AGREE_SHARE = 0.5           # ... and this share of a pair's cells must agree
+AGREE_SHARE = 0.5           # ... and this share of a pair's cells must agree,
+AGREE_MIN = 0.25            # ... or at least this share, when that is AGREE_OVER_CHANCE times the share that agrees
+AGREE_OVER_CHANCE = 2.0     # with each of a's cells paired with a random one of b's (colours that agree by chance).
+                            # Real camera pairs of the PandaSet drive with LiDAR agree 0.34-0.75 against a chance of
+                            # 0.04-0.24: cells at another camera's image edge, seen at another angle and resolution,
+                            # spread more than 10 % (the front and front-left cameras: 0.44 against 0.13), and the
+                            # share alone left those cameras unrelated (a bright rectangle where their cells met).
+                            # The share alone still counts: camera only, that pair's matches are the sky (0.86
+                            # against a chance of 0.62: one colour, the same wherever a cell is paired)
 RIDGE = 0.05                # a pull of each log gain towards 0 (relative to a pair's weight of ~sqrt(200) = 14)
 MAX_LOG_GAIN = float(np.log(2.0))   # gains are kept within 1/2..2: more is a wrong match, not an exposure
 
@@ -79,19 +88,28 @@ class _View:
         return self.colours[self.source[ok]], b.colours[b.row[v[ok] * grid.width + u[ok]]]
 
 
-def pair_offset(ca: np.ndarray, cb: np.ndarray) -> tuple[np.ndarray, int] | None:
+def pair_offset(ca: np.ndarray, cb: np.ndarray, seed: int = 0) -> tuple[np.ndarray, int] | None:
     """([3] the median over cells of log ca - log cb per channel, the count of cells used) or None when fewer than
-    MIN_PAIRS cells have both colours within COLOUR_RANGE, or when under AGREE_SHARE of them lie within AGREE_LOG of
-    the median in every channel (the matches are not one surface seen twice: a car that moved, a wrong depth)."""
+    MIN_PAIRS cells have both colours within COLOUR_RANGE, or when the share of them within AGREE_LOG of the median in
+    every channel is under AGREE_SHARE and either under AGREE_MIN or under AGREE_OVER_CHANCE times the share that
+    agrees with ca's cells paired with cb's shuffled (``seed``): the matches are then not one surface seen twice (a
+    car that moved, a wrong depth)."""
     lo, hi = COLOUR_RANGE
     ok = np.all((ca > lo) & (ca < hi) & (cb > lo) & (cb < hi), axis=1)
     if ok.sum() < MIN_PAIRS:
         return None
-    r = np.log(ca[ok]) - np.log(cb[ok])
-    med = np.median(r, axis=0)
-    if np.mean(np.all(np.abs(r - med) <= AGREE_LOG, axis=1)) < AGREE_SHARE:
-        return None
-    return med, int(ok.sum())
+    la, lb = np.log(ca[ok]), np.log(cb[ok])
+    agree = _agreeing(la - lb)
+    if agree < AGREE_SHARE:
+        chance = _agreeing(la - lb[np.random.default_rng(seed).permutation(len(lb))])
+        if agree < AGREE_MIN or agree < AGREE_OVER_CHANCE * chance:
+            return None
+    return np.median(la - lb, axis=0), int(ok.sum())
+
+
+def _agreeing(r: np.ndarray) -> float:
+    """The share of log ratios r [M, 3] within AGREE_LOG of their median in every channel."""
+    return float(np.mean(np.all(np.abs(r - np.median(r, axis=0)) <= AGREE_LOG, axis=1)))
 
 
 def solve_log_gains(n: int, pairs: Sequence[tuple[int, int | None, np.ndarray, int]]) -> np.ndarray:

@@ -34,6 +34,28 @@ def test_pair_offset_needs_enough_agreeing_cells():
     assert X.pair_offset(rng.uniform(0.1, 0.8, size=(1000, 3)), cb) is None  # unrelated colours: no agreement
 
 
+def test_a_noisy_pair_counts_when_it_agrees_well_beyond_chance():
+    """Two cameras' cells of one surface spread (another angle, resolution, an image edge): fewer than half agree
+    within AGREE_LOG, but far more than chance does (cells paired at random): kept, at the right ratio. Colours that
+    agree about as often paired at random as matched are refused; one colour (the sky) matched counts by its share."""
+    rng = np.random.default_rng(4)
+    cb = rng.uniform(0.1, 0.8, size=(4000, 3))
+    noisy = cb * 1.2 * np.exp(rng.normal(0.0, 0.09, size=cb.shape))        # ~39 % within 10 % in all channels
+    r = np.log(noisy) - np.log(cb)
+    assert 0.25 < np.mean(np.all(np.abs(r - np.median(r, 0)) <= X.AGREE_LOG, axis=1)) < X.AGREE_SHARE
+    off, n = X.pair_offset(noisy, cb)
+    np.testing.assert_allclose(off, np.log(1.2), atol=0.01)     # the median of ~3600 cells: within 1 %
+    lo, hi = X.COLOUR_RANGE
+    assert n == np.all((noisy > lo) & (noisy < hi) & (cb > lo) & (cb < hi), axis=1).sum() > 3000
+    # narrow colours, unrelated: a third agree with the median, and as many would at random
+    a, b = rng.uniform(0.45, 0.55, size=(4000, 3)), rng.uniform(0.45, 0.55, size=(4000, 3))
+    assert X.pair_offset(a, b) is None
+    # the sky: one colour in both, 1.3x brighter in a; chance agrees as much, the share alone counts
+    sky = np.full((4000, 3), 0.5) * np.exp(rng.normal(0.0, 0.03, size=(4000, 3)))
+    off, _ = X.pair_offset(sky * 1.3, sky)
+    np.testing.assert_allclose(off, np.log(1.3), atol=1e-9)
+
+
 def test_apply_gain_divides_the_colour_of_every_band():
 
     rng = np.random.default_rng(3)
