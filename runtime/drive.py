@@ -791,7 +791,8 @@ def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None,
         if make_keyframes is not None:
             raise DriveError("keyframes", "a one-frame drive is one rig's scene (Reconstructor.reconstruct)")
         fr = drive.frames[keys[0]]
-        scene = rec.reconstruct(fr.rig, progress=say, lidar=_sweep(drive, keys[0], lidar), detail=detail)
+        scene = rec.reconstruct(fr.rig, progress=say, lidar=_sweep(drive, keys[0], lidar), detail=detail,
+                                exposure=exposure)
         scene.drive = drive_meta(drive, keys)
         return scene
     counts: dict[str, Any] = {"keyframes": len(keys), "frames": len(drive)}

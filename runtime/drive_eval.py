@@ -176,7 +176,8 @@ def evaluate_drive(rec, drive: Drive, keys: Sequence[int], scored: Sequence[int]
             imgs_k = images(near)
             say(f"reconstruct keyframe {first + near} alone")
             t1 = time.perf_counter()
-            scene = rec.reconstruct(drive.frames[near].rig, images=imgs_k, lidar=sweep(near), detail=detail)
+            scene = rec.reconstruct(drive.frames[near].rig, images=imgs_k, lidar=sweep(near), detail=detail,
+                                    exposure=exposure)
             t_single[near] = time.perf_counter() - t1
             singles_n[near] = int((scene.gaussians.opacity_logits > -20).sum())
             single = (near, scene, imgs_k)

@@ -281,27 +281,40 @@ class Reconstructor:
     def reconstruct(self, rig: Rig, images: Sequence[np.ndarray] | None = None,
                     depths: Sequence[np.ndarray | None] | None = None,
                     progress: Callable[[str], None] | None = None,
-                    lidar: np.ndarray | None = None, detail: DetailOptions | None = DEFAULT_DETAIL) -> Scene:
+                    lidar: np.ndarray | None = None, detail: DetailOptions | None = DEFAULT_DETAIL,
+                    exposure: bool = True) -> Scene:
         """Gaussians (ego frame), background and metadata of one timestamp of ``rig``.
 
         images: one [H, W, 3] array per camera in rig order (uint8, uint16 or float 0..1), or None to read the
         rig's image files; depths: per camera a [H, W] depth map in metres or None, or None for the rig's depth
         files (if any). lidar: [P, 3] metres, ego frame, a LiDAR sweep of the same timestamp: each pinhole camera
         without a depth map then gets one made from it (``lidar_depths``: two encode passes). detail: the detail
-        layer's settings (runtime.detail; None = the model's Gaussians only). Errors name the camera (RigError)
-        or the model file (ModelError)."""
+        layer's settings (runtime.detail; None = the model's Gaussians only). exposure: harmonise the cameras'
+        exposure and white balance (runtime.exposure, as a drive's keyframe: each camera's detail cells divided by its
+        gain, a view near an input camera drawn with its gain back; with the detail layer and two cameras or more).
+        Errors name the camera (RigError) or the model file (ModelError)."""
         kf = self.keyframe(rig, images, depths, progress, lidar, detail)
-        gauss, own_views = kf.coarse, None
+        gauss, own_views, gains = kf.coarse, None, None
         if kf.details:
             t0 = time.perf_counter()
-            gauss, own_views, fused = fuse_details(kf.coarse, kf.parts, kf.details, kf.owners, tuple(rig.names),
+            coarse, parts = kf.coarse, kf.parts
+            if exposure and len(kf.details) > 1:
+                from .exposure import Harmoniser
+
+                h = Harmoniser(len(rig.cameras))
+                parts = h.add(kf.details, parts, kf.owners)
+                coarse = h.coarse(coarse)
+                gains = h.to_json(rig.names)
+                kf.timings["exposure"] = time.perf_counter() - t0
+                t0 = time.perf_counter()
+            gauss, own_views, fused = fuse_details(coarse, parts, kf.details, kf.owners, tuple(rig.names),
                                                    detail)
             kf.counts.update(fused)
             kf.timings["detail"] += time.perf_counter() - t0
         kf.timings["total"] = time.perf_counter() - kf.started
         return Scene(gaussians=gauss, background=kf.background, rig=rig, model=self.scene_model(),
                      counts=kf.counts, timings={k: round(v, 6) for k, v in kf.timings.items()},
-                     lifting_cached=kf.lifting_cached, app_plane=kf.app_plane, own_views=own_views)
+                     lifting_cached=kf.lifting_cached, app_plane=kf.app_plane, own_views=own_views, exposure=gains)
 
     def scene_model(self) -> dict[str, str]:
         """What a scene records of the model that made it: name, version, model.json's sha256."""

@@ -314,6 +314,9 @@ class Scene:
     # a drive's shared Gaussians in spatial tiles (runtime.tiles): a view draws (and a loaded scene reads) only the
     # tiles its camera can see; None for a one-rig scene
     tiles: Tiles | None = field(default=None, repr=False)
+    # a one-rig scene's exposure gains (runtime.exposure.Harmoniser.to_json: one keyframe); a drive keeps its own in
+    # drive["exposure"]
+    exposure: dict[str, Any] | None = field(default=None, repr=False)
     _saved_bbox: dict[str, list[float]] | None = field(default=None, init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
@@ -371,22 +374,31 @@ class Scene:
             fill = self.fill_for(actors, time_s)
             r = render([self.gaussians_for(camera)] + [p for p in (moving, fill) if p is not None], camera,
                        background=bg, **options)
-            return r.rgb, r.depth, r.alpha
+            gain = self.exposure_gain(camera, None)
+            if gain is None:
+                return r.rgb, r.depth, r.alpha
+            return (r.rgb * gain.astype(np.float32)).astype(np.float32), r.depth, r.alpha
         rgb, depth, alpha = self._layers(camera, k, time_s, bg, options, actors)
         gain = self.exposure_gain(camera, k)
         if gain is not None:
             rgb = (rgb * gain.astype(np.float32)).astype(np.float32)
         return rgb, depth, alpha
 
-    def exposure_gain(self, camera, k: int) -> np.ndarray | None:
+    def exposure_gain(self, camera, k: int | None) -> np.ndarray | None:
         """[3] the per-channel gain of the input camera a view of ``camera`` stands in for at keyframe ``k`` (an
-        index into drive.keyframes; runtime.exposure): the rig camera whose optical axis at that keyframe is
-        nearest the view's, within EXPOSURE_CONE_DEG; None when none is, or the scene has no exposure block."""
-        ex = (self.drive or {}).get("exposure")
+        index into drive.keyframes; None: a one-rig scene, its rig as it stood; runtime.exposure): the rig camera
+        whose optical axis at that keyframe is nearest the view's, within EXPOSURE_CONE_DEG; None when none is, or
+        the scene has no exposure block."""
+        if k is None:
+            ex, k, pose = self.exposure, 0, np.eye(4)
+        else:
+            ex = (self.drive or {}).get("exposure")
+            pose = None
         if not ex or k >= len(ex["gains"]):
             return None
-        key = int(self.drive["keyframes"][k])
-        pose = np.asarray(self.drive["trajectory"], np.float64).reshape(-1, 4, 4)[key]
+        if pose is None:
+            key = int(self.drive["keyframes"][k])
+            pose = np.asarray(self.drive["trajectory"], np.float64).reshape(-1, 4, 4)[key]
         view = np.asarray(camera.cam_to_ego, np.float64)[:3, 2]
         best, cos_best = None, math.cos(math.radians(EXPOSURE_CONE_DEG))
         for cam in self.rig.cameras:
@@ -603,6 +615,8 @@ class Scene:
             out["viewpoints"] = self.viewpoints.to_json()
         if self.tiles is not None:
             out["tiles"] = self.tiles.to_json()
+        if self.exposure is not None:
+            out["exposure"] = self.exposure
         if self.ego_body is not None:
             out["ego_body"] = {**self.ego_body.summary(),
                                "files": {n: f"{EGO_BODY_DIR}/{n}.png" for n in self.ego_body.masks},
@@ -721,6 +735,8 @@ class Scene:
         ego_body = _load_ego_body(d, meta["ego_body"], rig) if meta.get("ego_body") else None
         if (meta.get("drive") or {}).get("exposure") is not None:
             _check_exposure(meta["drive"]["exposure"], len(meta["drive"].get("keyframes") or ()), rig, jp)
+        if meta.get("exposure") is not None:
+            _check_exposure(meta["exposure"], 1, rig, jp, "exposure")
         bg = None
         b = meta.get("background")
         if b:
@@ -736,24 +752,25 @@ class Scene:
                     counts=meta.get("counts") or {}, timings=meta.get("timings") or {},
                     lifting_cached=bool(meta.get("lifting_cached", False)), created=meta.get("created", ""),
                     own_views=own, drive=meta.get("drive"), actors=actors, keyframe_of=keyframe_of,
-                    viewpoints=viewpoints, ego_body=ego_body, tiles=tiles)
+                    viewpoints=viewpoints, ego_body=ego_body, tiles=tiles, exposure=meta.get("exposure"))
         if tiles is not None and isinstance(meta.get("bbox"), dict):
             scene._saved_bbox = meta["bbox"]
         return scene
 
 
-def _check_exposure(block: Any, keyframes: int, rig: Rig, path: Path) -> None:
-    """scene.json's drive.exposure (runtime.exposure.Harmoniser.to_json): the rig's cameras and a positive, finite
-    gain [3] per keyframe and camera; SceneError naming the field otherwise."""
+def _check_exposure(block: Any, keyframes: int, rig: Rig, path: Path, name: str = "drive.exposure") -> None:
+    """scene.json's ``name`` block (drive.exposure, or a one-rig scene's exposure: runtime.exposure.Harmoniser
+    .to_json): the rig's cameras and a positive, finite gain [3] per keyframe and camera; SceneError naming the field
+    otherwise."""
     where = f"scene {str(path)!r}"
     if not isinstance(block, dict) or block.get("cameras") != list(rig.names):
-        raise SceneError("drive.exposure.cameras", f"must be the rig's cameras {rig.names}", where)
+        raise SceneError(f"{name}.cameras", f"must be the rig's cameras {rig.names}", where)
     try:
         g = np.asarray(block.get("gains"), np.float64)
     except (TypeError, ValueError):
         g = np.zeros(0)
     if g.shape != (keyframes, len(rig.names), 3) or not np.all(np.isfinite(g)) or not np.all(g > 0):
-        raise SceneError("drive.exposure.gains", f"must be [{keyframes}][{len(rig.names)}][3] positive numbers "
+        raise SceneError(f"{name}.gains", f"must be [{keyframes}][{len(rig.names)}][3] positive numbers "
                          "(per keyframe, camera and channel)", where)
 
 

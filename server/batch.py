@@ -565,7 +565,8 @@ def reconstruct_item(row: dict[str, Any], store: str, model: dict[str, str], act
         opts = dict(lidar=item.lidar, detail=item.detail())
         first = int(sid.encode()[0])        # drives at once start on different workers
         if one_rig(drive, keys):
-            scene = ray.get(actors[first % len(actors)].rig_scene.remote(item.input, opts))
+            scene = ray.get(actors[first % len(actors)].rig_scene.remote(item.input, {**opts,
+                                                                                     "exposure": item.exposure}))
             if drive.path is not None:              # a drive file of one frame: its scene says so
                 scene.drive = drive_meta(drive, keys)
         else:
@@ -633,7 +634,8 @@ class KeyframeWorker:
 
         rig = self._drive(uri).frames[0].rig
         pts = load_lidar(rig) if opts["lidar"] and has_lidar(rig) else None
-        scene = self.rec.reconstruct(rig, lidar=None if pts is None else pts.points, detail=opts["detail"])
+        scene = self.rec.reconstruct(rig, lidar=None if pts is None else pts.points, detail=opts["detail"],
+                                     exposure=opts["exposure"])
         if pts is not None:
             scene.counts.update(pts.counts())
         return scene

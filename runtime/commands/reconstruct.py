@@ -33,6 +33,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--lidar-columns", type=int, default=None, metavar="C",
                         help="columns of a .bin LiDAR file (default: the rig's lidar.columns, else 5 for *.pcd.bin, "
                              "4 otherwise)")
+    parser.add_argument("--no-exposure", action="store_true",
+                        help="do not harmonise the cameras' exposure and white balance (by default a per-channel gain "
+                             "per camera, and per keyframe of a drive, is solved on what two of them both saw, with "
+                             "the detail layer; docs/inference.md \"Exposure\")")
     add_detail_arguments(parser)
     g = parser.add_argument_group("drives (a DRIVE_JSON)")
     g.add_argument("--keyframe-spacing", type=float, default=None, metavar="M",
@@ -52,10 +56,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--no-ego-body", action="store_true",
                    help="do not look for the ego's own body over the frames (by default the pixels that stay put "
                         "while the world moves, e.g. a hood or trunk, get no Gaussians; a camera's ego_mask wins)")
-    g.add_argument("--no-exposure", action="store_true",
-                   help="do not harmonise the cameras' exposure and white balance across cameras and keyframes "
-                        "(by default a per-channel gain per camera and keyframe is solved on what two of them both "
-                        "saw, docs/inference.md \"Exposure\")")
     g.add_argument("--stationary-actors", action="store_true",
                    help="the tracks marked stationary (parked cars) become actors too, which a render can hide or "
                         "move (by default they stay in the static scene; docs/api.md \"Actors\")")
@@ -109,8 +109,7 @@ def run(args: argparse.Namespace) -> int:
     drive_flags = [f for f, v in (("--keyframe-spacing", args.keyframe_spacing), ("--keyframe-gap", args.keyframe_gap),
                                   ("--keyframes", args.keyframes), ("--stereo", args.stereo or None),
                                   ("--no-stereo", args.no_stereo or None),
-                                  ("--no-ego-body", args.no_ego_body or None),
-                                  ("--no-exposure", args.no_exposure or None), ("--workers", args.workers),
+                                  ("--no-ego-body", args.no_ego_body or None), ("--workers", args.workers),
                                   ("--stationary-actors", args.stationary_actors or None))
                    if v is not None]
     if drive_flags:
@@ -131,7 +130,8 @@ def run(args: argparse.Namespace) -> int:
         say(f"load model {model_dir}")
         rec = Reconstructor.load(model_dir, threads=args.threads)
         t_load = time.perf_counter() - t0
-        scene = rec.reconstruct(rig, depths=depths, progress=say, lidar=lidar, detail=detail)
+        scene = rec.reconstruct(rig, depths=depths, progress=say, lidar=lidar, detail=detail,
+                                exposure=not args.no_exposure)
         if pts is not None:
             scene.counts.update(pts.counts())
         say(f"write {out}")

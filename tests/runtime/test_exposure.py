@@ -134,3 +134,50 @@ def test_a_brighter_camera_is_harmonised_and_its_view_gets_its_gain_back(tmp_pat
     (tmp_path / "scene" / "scene.json").write_text(json.dumps(doc))
     with pytest.raises(SceneError, match="gains"):
         Scene.load(tmp_path / "scene")
+
+
+def test_a_rigs_cameras_are_harmonised_too(tmp_path, shipped):
+    """One timestamp (Reconstructor.reconstruct): the example rig's second camera posted 1.3x brighter gets a gain
+    ~1.3x the others', a view at it is drawn with its gain back (at its own pose: its own cells, the others' at its
+    edges in its exposure), nearer its image than without harmonising; the gains go through the scene folder, and
+    a folder whose exposure block is malformed is refused naming the field."""
+    import cv2
+    from xyzcyl.runtime.detail import DetailOptions
+    from xyzcyl.runtime.rig import Rig
+    from xyzcyl.runtime.scene import Scene, SceneError, rig_camera
+    from xyzcyl.testing import EXAMPLE_RIG
+
+    doc = json.loads(Path(EXAMPLE_RIG).read_text())
+    img = cv2.imread(str(Path(EXAMPLE_RIG).parent / doc["cameras"][1]["image"]))
+    cv2.imwrite(str(tmp_path / "bright.png"), np.clip(img.astype(np.float32) * 1.3, 0, 255).astype(np.uint8))
+    for c in doc["cameras"]:
+        c["image"] = str(Path(EXAMPLE_RIG).parent / c["image"])
+    doc["cameras"][1]["image"] = str(tmp_path / "bright.png")
+    rig = Rig.from_dict(doc, root=tmp_path)
+    opts = DetailOptions(stride=8)
+    scene = shipped.reconstruct(rig, detail=opts)
+    plain = shipped.reconstruct(rig, detail=opts, exposure=False)
+    assert plain.exposure is None and "exposure" in scene.timings
+    gains = np.array(scene.exposure["gains"])                    # [1, C, 3]
+    assert gains.shape == (1, 6, 3)
+    others = [c for c in range(6) if c != 1 and not np.allclose(gains[0, c], 1.0)]
+    assert len(others) >= 2
+    # the clipped highlights of the brightened image and PNG rounding: within 6 % (as a drive's test)
+    np.testing.assert_allclose(gains[0, 1] / np.median(gains[0, others], axis=0), 1.3, rtol=0.06)
+    cam = rig_camera(rig.cameras[1])
+    np.testing.assert_allclose(scene.exposure_gain(cam, None), gains[0, 1])
+    gt = cv2.resize(cv2.imread(str(tmp_path / "bright.png"))[..., ::-1].astype(np.float32) / 255,
+                    (cam.width, cam.height), interpolation=cv2.INTER_AREA)
+
+    def psnr(r):
+        return -10 * np.log10(np.mean((np.clip(r, 0, 1) - gt) ** 2))
+
+    assert psnr(scene.render(cam)[0]) > psnr(plain.render(cam)[0])
+    scene.save(tmp_path / "scene")
+    assert Scene.load(tmp_path / "scene").exposure["gains"] == scene.exposure["gains"]
+    meta = json.loads((tmp_path / "scene" / "scene.json").read_text())
+    meta["exposure"]["gains"][0][2] = [1.0, 0.0, 1.0]
+    (tmp_path / "scene" / "scene.json").write_text(json.dumps(meta))
+    with pytest.raises(SceneError, match="positive") as e:
+        Scene.load(tmp_path / "scene")
+    assert e.value.field == "exposure.gains"
