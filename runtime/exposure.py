@@ -34,7 +34,7 @@ MAX_SOURCE_CELLS = 40000    # cells of a view projected into another (a random s
 COLOUR_RANGE = (0.03, 0.97) # colours outside are clipped or black in one of the two: no ratio
 AGREE_LOG = 0.1             # a matched cell's log ratio this near the median agrees (10 %: shading, view angle)
 AGREE_SHARE = 0.5           # ... and this share of a pair's cells must agree,
-AGREE_MIN = 0.25            # ... or at least this share, when that is AGREE_OVER_CHANCE times the share that agrees
+AGREE_MIN = 0.3             # ... or at least this share, when that is AGREE_OVER_CHANCE times the share that agrees
 AGREE_OVER_CHANCE = 2.0     # with each of a's cells paired with a random one of b's (colours that agree by chance).
                             # Real camera pairs of the PandaSet drive with LiDAR agree 0.34-0.75 against a chance of
                             # 0.04-0.24: cells at another camera's image edge, seen at another angle and resolution,
@@ -42,6 +42,14 @@ AGREE_OVER_CHANCE = 2.0     # with each of a's cells paired with a random one of
                             # share alone left those cameras unrelated (a bright rectangle where their cells met).
                             # The share alone still counts: camera only, that pair's matches are the sky (0.86
                             # against a chance of 0.62: one colour, the same wherever a cell is paired)
+AGREE_MIN_RATIO = float(np.log(1.5))   # ... and a pair counted by AGREE_MIN must say the two cameras' exposures
+                            # differ by less than 1.5x in every channel: the nuScenes rig's front and front-left
+                            # cameras' matches agree 0.33 against a chance of 0.09 but say 2.7x (their narrow overlap,
+                            # cells of other surfaces at the same depth), which no two cameras of one rig are apart;
+                            # PandaSet's front and front-left are 1.3x (1.17-1.28x in their recordings). AGREE_MIN:
+                            # the PandaSet pairs it adds agree 0.34-0.44; the nuScenes rig's other doubtful pairs
+                            # 0.24-0.27 (1.3x, which made its back-right camera's own view 3 dB worse at 0.25): two
+                            # rigs, so a rule of thumb, not a measured boundary
 RIDGE = 0.05                # a pull of each log gain towards 0 (relative to a pair's weight of ~sqrt(200) = 14)
 MAX_LOG_GAIN = float(np.log(2.0))   # gains are kept within 1/2..2: more is a wrong match, not an exposure
 
@@ -91,20 +99,20 @@ class _View:
 def pair_offset(ca: np.ndarray, cb: np.ndarray, seed: int = 0) -> tuple[np.ndarray, int] | None:
     """([3] the median over cells of log ca - log cb per channel, the count of cells used) or None when fewer than
     MIN_PAIRS cells have both colours within COLOUR_RANGE, or when the share of them within AGREE_LOG of the median in
-    every channel is under AGREE_SHARE and either under AGREE_MIN or under AGREE_OVER_CHANCE times the share that
-    agrees with ca's cells paired with cb's shuffled (``seed``): the matches are then not one surface seen twice (a
-    car that moved, a wrong depth)."""
+    every channel is under AGREE_SHARE and either under AGREE_MIN, or under AGREE_OVER_CHANCE times the share that
+    agrees with ca's cells paired with cb's shuffled (``seed``), or the median says more than AGREE_MIN_RATIO: the
+    matches are then not one surface seen twice (a car that moved, a wrong depth)."""
     lo, hi = COLOUR_RANGE
     ok = np.all((ca > lo) & (ca < hi) & (cb > lo) & (cb < hi), axis=1)
     if ok.sum() < MIN_PAIRS:
         return None
     la, lb = np.log(ca[ok]), np.log(cb[ok])
-    agree = _agreeing(la - lb)
+    agree, med = _agreeing(la - lb), np.median(la - lb, axis=0)
     if agree < AGREE_SHARE:
         chance = _agreeing(la - lb[np.random.default_rng(seed).permutation(len(lb))])
-        if agree < AGREE_MIN or agree < AGREE_OVER_CHANCE * chance:
+        if agree < AGREE_MIN or agree < AGREE_OVER_CHANCE * chance or np.abs(med).max() > AGREE_MIN_RATIO:
             return None
-    return np.median(la - lb, axis=0), int(ok.sum())
+    return med, int(ok.sum())
 
 
 def _agreeing(r: np.ndarray) -> float:

@@ -42,7 +42,7 @@ def test_a_noisy_pair_counts_when_it_agrees_well_beyond_chance():
     cb = rng.uniform(0.1, 0.8, size=(4000, 3))
     noisy = cb * 1.2 * np.exp(rng.normal(0.0, 0.09, size=cb.shape))        # ~39 % within 10 % in all channels
     r = np.log(noisy) - np.log(cb)
-    assert 0.25 < np.mean(np.all(np.abs(r - np.median(r, 0)) <= X.AGREE_LOG, axis=1)) < X.AGREE_SHARE
+    assert X.AGREE_MIN < np.mean(np.all(np.abs(r - np.median(r, 0)) <= X.AGREE_LOG, axis=1)) < X.AGREE_SHARE
     off, n = X.pair_offset(noisy, cb)
     np.testing.assert_allclose(off, np.log(1.2), atol=0.01)     # the median of ~3600 cells: within 1 %
     lo, hi = X.COLOUR_RANGE
@@ -50,6 +50,8 @@ def test_a_noisy_pair_counts_when_it_agrees_well_beyond_chance():
     # narrow colours, unrelated: a third agree with the median, and as many would at random
     a, b = rng.uniform(0.45, 0.55, size=(4000, 3)), rng.uniform(0.45, 0.55, size=(4000, 3))
     assert X.pair_offset(a, b) is None
+    # as well agreeing, but 2x apart: more than two cameras of one rig are (AGREE_MIN_RATIO), refused
+    assert X.pair_offset(noisy / 1.2 * 2.0, cb) is None
     # the sky: one colour in both, 1.3x brighter in a; chance agrees as much, the share alone counts
     sky = np.full((4000, 3), 0.5) * np.exp(rng.normal(0.0, 0.03, size=(4000, 3)))
     off, _ = X.pair_offset(sky * 1.3, sky)
