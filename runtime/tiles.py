@@ -8,10 +8,12 @@ block lists each tile's cell, its run of scene.ply's rows, the box of its centre
 
 A view asks ``visible`` for the tiles its camera can see: the renderer's own chunk test (runtime.render.core
 .chunk_planes: near, far and the image's sides, widened by each Gaussian's largest extent), applied to a tile's box,
-so a tile left out holds only Gaussians the renderer would cull one by one; the picture is the same. A scene loaded
-from its folder reads a tile's rows from scene.ply when a view first needs it (Gaussians.load_ply_rows) and keeps
-the tiles it used last, up to CACHE_BYTES; the whole set is read only when something asks for all of it (an
-export, the PLY download). A scene made in memory (a reconstruction) slices its Gaussians instead."""
+so a tile left out holds only Gaussians the renderer would cull one by one; the picture is the same. Beyond
+HORIZON_M of the camera a drive's view draws its primary keyframe's Gaussians alone (``within``; runtime.scene). A
+scene loaded from its folder reads a tile's rows from scene.ply when a view first needs it
+(Gaussians.load_ply_rows; beyond the horizon the primary keyframe's rows alone, ``part(alone=True)``) and keeps the
+runs it used last, up to CACHE_BYTES; the whole set is read only when something asks for all of it (an export, the
+PLY download). A scene made in memory (a reconstruction) slices its Gaussians instead."""
 
 from __future__ import annotations
 
@@ -139,11 +141,6 @@ class Tiles:
     def lazy(self) -> bool:
         """True when the tiles are read from the scene's PLY as views need them."""
         return self._source is None
-
-    @property
-    def source(self) -> Gaussians | None:
-        """The whole set in memory, or None while the tiles are read from the PLY."""
-        return self._source
 
     def visible(self, camera, **options) -> list[int]:
         """The tiles (indices, increasing) that ``camera`` (runtime.camera.Camera) with render ``options`` can see:
