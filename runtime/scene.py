@@ -374,11 +374,9 @@ class Scene:
             fill = self.fill_for(actors, time_s)
             r = render([self.gaussians_for(camera)] + [p for p in (moving, fill) if p is not None], camera,
                        background=bg, **options)
-            gain = self.exposure_gain(camera, None)
-            if gain is None:
-                return r.rgb, r.depth, r.alpha
-            return (r.rgb * gain.astype(np.float32)).astype(np.float32), r.depth, r.alpha
-        rgb, depth, alpha = self._layers(camera, k, time_s, bg, options, actors)
+            rgb, depth, alpha = r.rgb, r.depth, r.alpha
+        else:
+            rgb, depth, alpha = self._layers(camera, k, time_s, bg, options, actors)
         gain = self.exposure_gain(camera, k)
         if gain is not None:
             rgb = (rgb * gain.astype(np.float32)).astype(np.float32)
@@ -389,14 +387,14 @@ class Scene:
         index into drive.keyframes; None: a one-rig scene, its rig as it stood; runtime.exposure): the rig camera
         whose optical axis at that keyframe is nearest the view's, within EXPOSURE_CONE_DEG; None when none is, or
         the scene has no exposure block."""
-        if k is None:
-            ex, k, pose = self.exposure, 0, np.eye(4)
-        else:
-            ex = (self.drive or {}).get("exposure")
-            pose = None
-        if not ex or k >= len(ex["gains"]):
+        if k is None and self.exposure is None and self.drive and len(self.drive.get("keyframes", ())) == 1:
+            k = 0                       # a drive fused from one keyframe: its gains are the drive's
+        ex = self.exposure if k is None else (self.drive or {}).get("exposure")
+        if not ex or (k or 0) >= len(ex["gains"]):
             return None
-        if pose is None:
+        if k is None:                   # one rig: its cameras as they stood, its one set of gains
+            k, pose = 0, np.eye(4)
+        else:
             key = int(self.drive["keyframes"][k])
             pose = np.asarray(self.drive["trajectory"], np.float64).reshape(-1, 4, 4)[key]
         view = np.asarray(camera.cam_to_ego, np.float64)[:3, 2]
@@ -665,7 +663,7 @@ class Scene:
     def load(cls, folder: str | os.PathLike, max_points: int | None = None) -> Scene:
         """Read a scene folder (SceneError naming the file when something is missing or invalid)."""
         from .render import GaussianError
-        from .render.gaussians import DEFAULT_MAX_POINTS
+        from .render.gaussians import DEFAULT_MAX_POINTS, ply_rows_layout
         from .rig import RigError
 
         d = Path(folder)
@@ -684,8 +682,9 @@ class Scene:
         n_keys = len((meta.get("drive") or {}).get("keyframes") or ())
         tiled = bool(meta.get("tiles")) and bool(meta.get("keyframe_of")) and n_keys >= 2
         try:
-            if tiled:           # a drive in tiles: the header checked now, the tiles read when views need them
-                g, n = None, _tiled_ply_count(pp)
+            if tiled:           # a drive in tiles: the header and size checked now, the tiles read when views
+                # need them (Scene.load bounds the largest tile below, not the whole: it need not fit in memory)
+                g, n = None, ply_rows_layout(pp)[0]
             else:
                 g = Gaussians.load_ply(pp, max_points=max_points or DEFAULT_MAX_POINTS)
                 n = len(g)
@@ -812,22 +811,6 @@ def _load_ego_body(d: Path, block: Any, rig: Rig) -> EgoBody:
 
 
 # ------------------------------------------------------------------------------------------- views
-
-
-def _tiled_ply_count(path: Path) -> int:
-    """The Gaussians a drive's tiled scene.ply holds, from its header (GaussianError: not binary little-endian, or
-    shorter than the header says); its rows are read and checked tile by tile (Scene.load bounds the largest tile,
-    not the whole: a long drive's whole set need not fit in memory)."""
-    from .render import GaussianError
-    from .render.gaussians import _INT_TYPES, _ply_where, _read_ply_header
-
-    n, props, fmt, header_len = _read_ply_header(path)
-    if fmt != "binary_little_endian":
-        raise GaussianError("format", f"{fmt!r}: a drive's tiles need binary_little_endian", _ply_where(path))
-    need = header_len + n * sum(_INT_TYPES[t] for _, t in props)
-    if path.stat().st_size < need:
-        raise GaussianError("body", f"truncated: {path.stat().st_size} bytes, header needs {need}", _ply_where(path))
-    return n
 
 
 def _keyframe_of(path: Path, n: int, keyframes: int) -> np.ndarray:

@@ -17,9 +17,6 @@ from ..errors import FieldError
 
 SH_C0 = 0.28209479177387814
 DEFAULT_MAX_POINTS = 20_000_000  # PLY reader refuses headers claiming more vertices (memory guard)
-_INT_TYPES = {"char": 1, "uchar": 1, "int8": 1, "uint8": 1, "short": 2, "ushort": 2, "int16": 2,
-              "uint16": 2, "int": 4, "uint": 4, "int32": 4, "uint32": 4, "float": 4, "float32": 4,
-              "double": 8, "float64": 8}
 _PLY_DTYPES = {"char": "i1", "uchar": "u1", "int8": "i1", "uint8": "u1", "short": "<i2", "ushort": "<u2",
                "int16": "<i2", "uint16": "<u2", "int": "<i4", "uint": "<u4", "int32": "<i4", "uint32": "<u4",
                "float": "<f4", "float32": "<f4", "double": "<f8", "float64": "<f8"}   # little endian
@@ -217,12 +214,7 @@ class Gaussians:
             raise GaussianError("element vertex", f"header claims {n} points, more than the maximum {max_points}",
                                 where)
         if fmt != "ascii":
-            row = sum(_INT_TYPES[t] for _, t in props)
-            need = header_len + n * row
-            size = path.stat().st_size
-            if size < need:
-                raise GaussianError("body", f"truncated: {size} bytes, header needs {need} "
-                                            f"({n} vertices x {row} bytes + {header_len} header bytes)", where)
+            _check_body(path, n, props, header_len)
         try:
             ply = PlyData.read(str(path))
             vert = ply["vertex"].data
@@ -236,12 +228,9 @@ class Gaussians:
         bytes alone: a drive scene's tile (runtime.tiles) is one run of its scene.ply."""
         path = Path(path)
         where = _ply_where(path)
-        n, props, fmt, header_len = _read_ply_header(path)
-        if fmt != "binary_little_endian":
-            raise GaussianError("format", f"{fmt!r}: reading a run of vertices needs binary_little_endian", where)
+        n, dtype, header_len = ply_rows_layout(path, check_body=False)
         if not 0 <= start <= stop <= n:
             raise GaussianError("element vertex", f"rows {start}..{stop} outside the file's {n} vertices", where)
-        dtype = np.dtype([(name, _PLY_DTYPES[t]) for name, t in props])
         with open(path, "rb") as f:
             f.seek(header_len + start * dtype.itemsize)
             raw = f.read((stop - start) * dtype.itemsize)
@@ -360,6 +349,36 @@ def _ply_where(path: Path) -> str:
     return f"PLY {path.name!r}"
 
 
+def ply_rows_layout(path: Path, check_body: bool = True) -> tuple[int, np.dtype, int]:
+    """(vertex count, the record dtype, header bytes) of a binary little-endian PLY whose rows are read by position
+    (load_ply_rows; a drive's tiled scene.ply), from its header; ``check_body``: the file holds every row.
+    GaussianError naming the header entry or the body otherwise."""
+    n, props, fmt, header_len = _read_ply_header(path)
+    if fmt != "binary_little_endian":
+        raise GaussianError("format", f"{fmt!r}: reading vertices by position needs binary_little_endian",
+                            _ply_where(path))
+    dtype = _check_body(path, n, props, header_len) if check_body else _record_dtype(props)
+    return n, dtype, header_len
+
+
+def _record_dtype(props: list[tuple[str, str]]) -> np.dtype:
+    """The little-endian record of the vertex properties [(name, PLY type)] (the byte order's sizes alike)."""
+    return np.dtype([(name, _PLY_DTYPES[t]) for name, t in props])
+
+
+def _check_body(path: Path, n: int, props: list[tuple[str, str]], header_len: int) -> np.dtype:
+    """The record dtype of a binary PLY's vertices, after checking the file holds all ``n`` of them (GaussianError
+    "body" truncated, naming the sizes)."""
+    dtype = _record_dtype(props)
+    need = header_len + n * dtype.itemsize
+    size = path.stat().st_size
+    if size < need:
+        raise GaussianError("body", f"truncated: {size} bytes, header needs {need} "
+                                    f"({n} vertices x {dtype.itemsize} bytes + {header_len} header bytes)",
+                            _ply_where(path))
+    return dtype
+
+
 def _read_ply_header(path: Path) -> tuple[int, list[tuple[str, str]], str, int]:
     """Parse only the PLY header: (vertex count, vertex properties [(name, type)], format, header bytes)."""
     where = _ply_where(path)
@@ -395,7 +414,7 @@ def _read_ply_header(path: Path) -> tuple[int, list[tuple[str, str]], str, int]:
                 raise GaussianError("header", f"vertex property line {line!r} not understood", where)
             if tok[1] == "list":
                 raise GaussianError(tok[-1], "vertex property: list properties not supported", where)
-            if len(tok) != 3 or tok[1] not in _INT_TYPES:
+            if len(tok) != 3 or tok[1] not in _PLY_DTYPES:
                 raise GaussianError("header", f"vertex property line {line!r} not understood", where)
             props.append((tok[2], tok[1]))
     if fmt not in ("ascii", "binary_little_endian", "binary_big_endian"):

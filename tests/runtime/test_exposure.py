@@ -183,3 +183,26 @@ def test_a_rigs_cameras_are_harmonised_too(tmp_path, shipped):
     with pytest.raises(SceneError, match="positive") as e:
         Scene.load(tmp_path / "scene")
     assert e.value.field == "exposure.gains"
+
+
+def test_a_view_gets_the_gain_of_its_input_camera_in_a_rig_and_in_a_drive_of_one_keyframe():
+    """Scene.exposure_gain without a primary keyframe: a one-rig scene's exposure block, else a drive fused from one
+    keyframe (its drive.exposure); a view looking 90 degrees off every camera gets none."""
+    from xyzcyl.runtime.rig import load_rig
+    from xyzcyl.runtime.scene import Scene, rig_camera
+    from xyzcyl.testing import EXAMPLE_RIG
+
+    rig = load_rig(EXAMPLE_RIG)
+    gains = [[[1.0 + 0.1 * c, 1.0, 1.0 - 0.05 * c] for c in range(len(rig.cameras))]]
+    block = {"cameras": rig.names, "gains": gains}
+    g = Gaussians.empty()
+    one_rig = Scene(gaussians=g, background=None, rig=rig, exposure=block)
+    drive = Scene(gaussians=g, background=None, rig=rig,
+                  drive={"keyframes": [0], "trajectory": [np.eye(4).tolist()], "exposure": block})
+    for scene in (one_rig, drive):
+        assert scene.primary_keyframe(rig_camera(rig.cameras[2])) is None
+        np.testing.assert_allclose(scene.exposure_gain(rig_camera(rig.cameras[2]), None), gains[0][2])
+    cam = rig_camera(rig.cameras[0])
+    up = cam.replace(cam_to_ego=cam.cam_to_ego @ np.array([[1, 0, 0, 0], [0, 0, 1, 0], [0, -1, 0, 0], [0, 0, 0, 1]]))
+    assert one_rig.exposure_gain(up, None) is None
+    assert Scene(gaussians=g, background=None, rig=rig).exposure_gain(cam, None) is None
