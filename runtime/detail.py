@@ -726,14 +726,20 @@ class CameraDetail:
     conf: np.ndarray          # [h, w] int8: CONF_MEASURED / CONF_MODEL for kept cells, 0 elsewhere
     means: np.ndarray         # [M, 3] float64 metres, ego frame: the kept cells' centres
     rank: np.ndarray          # [M] float64 metres: the cells' footprint (cell_footprint)
+    colours: np.ndarray | None = None   # [h, w, 3] uint8 sRGB: the image at the grid (grid_colours), or None
 
     @classmethod
-    def build(cls, grid: Camera, depth: np.ndarray, keep: np.ndarray, measured: np.ndarray, means: np.ndarray
-              ) -> CameraDetail:
+    def build(cls, grid: Camera, depth: np.ndarray, keep: np.ndarray, measured: np.ndarray, means: np.ndarray,
+              colours: np.ndarray | None = None) -> CameraDetail:
         d = np.where(keep, depth, 0).astype(np.float32)
         conf = np.where(keep, np.where(measured, CONF_MEASURED, CONF_MODEL), 0).astype(np.int8)
         ys, xs = np.nonzero(keep)
-        return cls(grid, d, keep, conf, np.asarray(means, np.float64), cell_footprint(grid, xs, ys, d[ys, xs]))
+        c8 = None if colours is None else np.clip(np.rint(colours * 255.0), 0, 255).astype(np.uint8)
+        return cls(grid, d, keep, conf, np.asarray(means, np.float64), cell_footprint(grid, xs, ys, d[ys, xs]), c8)
+
+    def cell_colours(self) -> np.ndarray:
+        """[M, 3] uint8: the kept cells' colours (their grid pixel's), in Gaussian order."""
+        return self.colours[self.keep]
 
     def cell_conf(self) -> np.ndarray:
         """[M] int8: the kept cells' confidence, in Gaussian order."""
@@ -894,26 +900,98 @@ def carve_details(details: list[CameraDetail], tolerance: float, dedupe: float =
     return out
 
 
-def carve_against(dj: CameraDetail, others: list[CameraDetail], keep: np.ndarray, tolerance: float) -> None:
+def carve_against(dj: CameraDetail, others: list[CameraDetail], keep: np.ndarray, tolerance: float,
+                  photo: tuple[float, float] | None = None) -> None:
     """Clear keep[k] ([M_j] bool, camera j's cells) where one of ``others``' cameras saw through cell k (carve_details'
     free-space rule alone: a surface is never handed over here). runtime.drive carves a keyframe's cells with the
-    cameras of the neighbouring keyframes so."""
+    cameras of the neighbouring keyframes so. ``photo`` (abs, rel): and where that camera's image, within a cell of
+    the spot, shows no colour like the cell's (see_through_differs): what it saw there is not what the cell shows,
+    so the cell is gone from its ray; a like colour keeps it (the same surface at a depth the two measured apart:
+    glass, a fence, an edge). None (or a camera without colours): the depth alone decides."""
     if not len(dj.means):
         return
     conf_j = np.ascontiguousarray(dj.cell_conf())
+    use_photo = photo is not None and dj.colours is not None
+    col_j = np.ascontiguousarray(dj.cell_colours()) if use_photo else None
     for di in others:
-        if not di.grid.is_ideal:
-            _carve_lens(dj.means, conf_j, dj.rank, di, float(tolerance), 0.0, keep)
+        if not di.grid.is_ideal or (use_photo and di.colours is None):
+            _carve_lens(dj.means, conf_j, dj.rank, di, float(tolerance), 0.0, keep,
+                        (col_j, photo) if use_photo and di.colours is not None else None)
             continue
         K = di.grid.K
+        if use_photo:
+            _see_through_kernel(dj.means, conf_j, col_j, np.ascontiguousarray(di.grid.rotation.T),
+                                np.ascontiguousarray(di.grid.position), float(K[0, 0]), float(K[1, 1]),
+                                float(K[0, 2]), float(K[1, 2]), di.depth, di.conf, di.colours, float(tolerance),
+                                float(photo[0]), float(photo[1]), keep)
+            continue
         _carve_kernel(dj.means, conf_j, dj.rank, np.ascontiguousarray(di.grid.rotation.T),
                       np.ascontiguousarray(di.grid.position), float(K[0, 0]), float(K[1, 1]), float(K[0, 2]),
                       float(K[1, 2]), di.depth, di.conf, float(tolerance), 0.0, keep)
 
 
+def colour_seen(cell: np.ndarray, image: np.ndarray, u: np.ndarray, v: np.ndarray, photo: tuple[float, float]
+                ) -> np.ndarray:
+    """[N] bool: whether ``image`` ([h, w, 3] uint8) shows the colour of ``cell`` ([N, 3] uint8) at pixel (u, v)
+    or one of its 8 neighbours (a cell's slack for pose and edges): every channel within photo[0] + photo[1] x the
+    larger of the two values (sRGB 0..255; the relative part for the exposure that harmonising leaves). The
+    reference of _see_through_kernel's test."""
+    h, w = image.shape[:2]
+    a = cell.astype(np.float64)
+    seen = np.zeros(len(a), bool)
+    for dv in (-1, 0, 1):
+        for du in (-1, 0, 1):
+            uu, vv = u + du, v + dv
+            ok = (uu >= 0) & (uu < w) & (vv >= 0) & (vv < h)
+            b = np.zeros_like(a)
+            b[ok] = image[vv[ok], uu[ok]]
+            like = (np.abs(a - b) <= photo[0] + photo[1] * np.maximum(a, b)).all(axis=1)
+            seen |= ok & like
+    return seen
+
+
+@njit(cache=True, parallel=True, nogil=True)
+def _see_through_kernel(means, conf, colour, R, t, fx, fy, cx, cy, depth, cell_conf, image, tolerance, p_abs, p_rel,
+                        keep):
+    """carve_against's rule with colours: _carve_kernel's free-space test (dedupe 0), and the cell's colour [M, 3]
+    uint8 not seen in camera i's ``image`` [h, w, 3] uint8 at the pixel or its 8 neighbours (colour_seen)."""
+    h, w = depth.shape
+    for k in numba.prange(means.shape[0]):
+        if not keep[k]:
+            continue
+        px, py, pz = means[k, 0] - t[0], means[k, 1] - t[1], means[k, 2] - t[2]
+        z = R[2, 0] * px + R[2, 1] * py + R[2, 2] * pz
+        if z <= 1e-6:
+            continue
+        x = (R[0, 0] * px + R[0, 1] * py + R[0, 2] * pz) / z
+        y = (R[1, 0] * px + R[1, 1] * py + R[1, 2] * pz) / z
+        u = int(np.rint(fx * x + cx))
+        v = int(np.rint(fy * y + cy))
+        if u < 0 or u >= w or v < 0 or v >= h or cell_conf[v, u] == 0 or cell_conf[v, u] < conf[k]:
+            continue
+        if not z < depth[v, u] * (1.0 - tolerance):
+            continue
+        seen = False
+        for dv in range(-1, 2):
+            for du in range(-1, 2):
+                uu, vv = u + du, v + dv
+                if seen or uu < 0 or uu >= w or vv < 0 or vv >= h:
+                    continue
+                like = True
+                for c in range(3):
+                    a, b = float(colour[k, c]), float(image[vv, uu, c])
+                    if abs(a - b) > p_abs + p_rel * max(a, b):
+                        like = False
+                if like:
+                    seen = True
+        if not seen:
+            keep[k] = False
+
+
 def _carve_lens(means: np.ndarray, conf: np.ndarray, rank: np.ndarray, di: CameraDetail, tolerance: float,
-                dedupe: float, keep: np.ndarray) -> None:
-    """_carve_kernel's rule for a camera i with a lens (numpy; its cells found through Camera.project_depth)."""
+                dedupe: float, keep: np.ndarray, photo=None) -> None:
+    """_carve_kernel's rule for a camera i with a lens (numpy; its cells found through Camera.project_depth);
+    ``photo`` (the cells' colours [M, 3] uint8, (abs, rel)): _see_through_kernel's (see carve_against)."""
     idx, u, v, z = _grid_pixels(di.grid, means)
     c = di.conf[v, u]
     ok = keep[idx] & (c != 0) & (c >= conf[idx])
@@ -921,6 +999,9 @@ def _carve_lens(means: np.ndarray, conf: np.ndarray, rank: np.ndarray, di: Camer
     dc = di.depth[v, u].astype(np.float64)
     rank_i = cell_footprint(di.grid, u, v, dc)
     drop = (z < dc * (1.0 - tolerance)) | ((np.abs(z - dc) <= tolerance * dc) & (rank_i < dedupe * rank[idx]))
+    if photo is not None:
+        colours, p = photo
+        drop &= ~colour_seen(colours[idx], di.colours, u, v, p)
     keep[idx[drop]] = False
 
 
@@ -952,6 +1033,31 @@ def carve_details_reference(details: list[CameraDetail], tolerance: float, dedup
                     keep[k] = False
         out.append(keep)
     return out
+
+
+def carve_against_reference(dj: CameraDetail, others: list[CameraDetail], keep: np.ndarray, tolerance: float,
+                            photo: tuple[float, float] | None = None) -> None:
+    """`carve_against` cell by cell (slow, obviously correct; for the tests)."""
+    conf_j = dj.cell_conf()
+    col_j = dj.cell_colours() if photo is not None and dj.colours is not None else None
+    for k, m in enumerate(dj.means):
+        for di in others:
+            hit = _cell_of(di.grid, m)
+            if not keep[k] or hit is None or not di.keep[hit[1], hit[0]] or di.conf[hit[1], hit[0]] < conf_j[k]:
+                continue
+            u, v, z = hit
+            if not z < float(di.depth[v, u]) * (1.0 - tolerance):
+                continue
+            if col_j is not None and di.colours is not None:
+                like = False
+                for vv in range(v - 1, v + 2):
+                    for uu in range(u - 1, u + 2):
+                        if 0 <= uu < di.grid.width and 0 <= vv < di.grid.height:
+                            a, b = col_j[k].astype(float), di.colours[vv, uu].astype(float)
+                            like |= all(abs(a[c] - b[c]) <= photo[0] + photo[1] * max(a[c], b[c]) for c in range(3))
+                if like:
+                    continue
+            keep[k] = False
 
 
 # ------------------------------------------------------------------------------------------- one camera
@@ -1071,7 +1177,7 @@ def camera_detail(cam: Camera, image: np.ndarray, coarse: Gaussians, opts: Detai
     counts = {"lidar": int((keep & supported).sum()), "ground": int((keep & on_ground).sum()),
               "model": int((keep & from_model).sum()), "far": int((keep & far).sum()),
               "edge": int(((depth > 0) & ~keep).sum())}
-    return g, CameraDetail.build(grid, depth, keep, measured, g.means), counts
+    return g, CameraDetail.build(grid, depth, keep, measured, g.means, colours), counts
 
 
 def read_ego_mask(path, cam: Camera) -> np.ndarray:

@@ -85,6 +85,13 @@ VOXEL_CELLS = 4                # a voxel spans ~4 cells across: one keyframe own
 #                                cell a voxel, two keyframes' cells of one surface fell in different voxels and
 #                                both stayed, interleaved: the PandaSet drive kept 2.0x one frame's Gaussians)
 VIEWPOINT_RADIUS_M = 0.5       # keyframes whose ego stood within this of a group's first see from one viewpoint
+# _carve_pair: a neighbouring keyframe's camera sees through a cell only where its image shows no colour like the
+# cell's near that spot (runtime.detail.colour_seen: every channel within 12 + 0.15 x the larger value, sRGB
+# 0..255; the relative part covers the exposure that harmonising leaves between cameras, ~1.1x). Glass, fences and
+# edges, whose depth two LiDAR sweeps put apart, were carved (or drawn only around their keyframe's time) though
+# both images show them. 6 + 0.08 and 20 + 0.25 score within 0.06 dB of it (docs/results.md "Drives: seeing
+# through a cell needs another colour")
+SEE_THROUGH_PHOTO = (12.0, 0.15)
 TRACK_GROW = 1.1               # a moving object's box, grown by this factor, holds its Gaussians
 
 
@@ -1113,6 +1120,8 @@ def _carve_pair(a, b, tolerance: float) -> None:
     depth was measured (its keyframe had a LiDAR sweep). The model's depth from images alone is too far off to
     say that a camera of another keyframe sees through a cell: on the synthetic drive at 5 m/s without LiDAR,
     carving by it cut trees and signs into pieces and cost 1.8 dB (docs/results.md "Drives at city speed").
+    And b's camera must show, near where the cell lands, no colour like the cell's (SEE_THROUGH_PHOTO): a like
+    colour is the same surface that the two sweeps put at other depths (glass, a fence, an edge).
     A cell of a that a's own LiDAR placed (CONF_MEASURED) and b sees through was there at a's time and gone at
     b's: it moved away (a car, a pedestrian, tracked or not). It is marked in a's moved masks (the entry's last
     field) and drawn only around a's time (actors_of), not dropped."""
@@ -1124,7 +1133,7 @@ def _carve_pair(a, b, tolerance: float) -> None:
         return
     for d, keep, gone in zip(details_a, keep_a, moved_a):
         before = keep.copy() if measured_a else None
-        carve_against(d, details_b, keep, tolerance)
+        carve_against(d, details_b, keep, tolerance, SEE_THROUGH_PHOTO)
         if before is not None:
             gone |= before & ~keep & (d.cell_conf() == CONF_MEASURED)
 

@@ -19,6 +19,8 @@ from xyzcyl.runtime.detail import (
     DetailError,
     DetailOptions,
     camera_detail,
+    carve_against,
+    carve_against_reference,
     carve_details,
     carve_details_reference,
     cell_gaussians,
@@ -187,10 +189,11 @@ def test_edge_keep_matches_reference_and_by_hand():
     assert edge_keep(ramp, 0.1).tolist() == [[True, False, False, False, True, True]]
 
 
-def _random_details(seed: int, n_cams: int = 4, size=(48, 27)) -> list[CameraDetail]:
+def _random_details(seed: int, n_cams: int = 4, size=(48, 27), colours: bool = False) -> list[CameraDetail]:
     """Detail layers of ring-rig cameras looking at one shared surface (a sphere of 12 m about the ego) with
     per-cell depth jitter in [0.75, 1.3]x and random keep / confidence: same-surface, in-front and behind cases all
-    occur between overlapping cameras."""
+    occur between overlapping cameras. ``colours``: each camera's image random, from four grey levels (so that
+    a cell's colour is seen near its spot in another camera's image about half the time)."""
     rng = np.random.default_rng(seed)
     rig = ring_rig(n_cams, hfov_deg=110.0, width=size[0] * 2, height=size[1] * 2)
     out = []
@@ -203,7 +206,8 @@ def _random_details(seed: int, n_cams: int = 4, size=(48, 27)) -> list[CameraDet
         measured = rng.random(base.shape) < 0.5
         g = cell_gaussians(grid, np.full((*base.shape, 3), 0.5, np.float32), depth, np.full(base.shape, 0.9),
                            keep, 0.5, 0.1)
-        out.append(CameraDetail.build(grid, depth, keep, measured, g.means))
+        img = rng.choice([0.1, 0.35, 0.6, 0.9], base.shape)[..., None].repeat(3, 2) if colours else None
+        out.append(CameraDetail.build(grid, depth, keep, measured, g.means, img))
     return out
 
 
@@ -236,6 +240,24 @@ def test_carve_details_matches_reference(dedupe):
         np.testing.assert_array_equal(g, w)
     dropped = sum(int((~g).sum()) for g in got)
     assert dropped > 20 and all(g.sum() > 0.5 * len(g) for g in got)
+
+
+@pytest.mark.parametrize("photo", [None, (12.0, 0.15)])
+def test_carve_against_matches_reference(photo):
+    """runtime.detail.carve_against (the see-through rule of a neighbouring keyframe's cameras, with or without the
+    colour test) against its cell-by-cell reference; the colour test keeps cells the depth alone drops."""
+    details = _random_details(8, colours=True)
+    others = details[1:]
+    got = np.ones(len(details[0].means), bool)
+    carve_against(details[0], others, got, 0.15, photo)
+    want = np.ones_like(got)
+    carve_against_reference(details[0], others, want, 0.15, photo)
+    np.testing.assert_array_equal(got, want)
+    by_depth = np.ones_like(got)
+    carve_against(details[0], others, by_depth, 0.15)
+    assert (~by_depth).sum() > 20
+    if photo is not None:     # a subset of the depth's drops: those whose colour no neighbour pixel shows
+        assert (by_depth <= got).all() and 0 < (~got).sum() < (~by_depth).sum()
 
 
 # -- densify --------------------------------------------------------------------------------------------------------

@@ -11,6 +11,8 @@ from xyzcyl.runtime.detail import (
     CameraDetail,
     DetailOptions,
     camera_detail,
+    carve_against,
+    carve_against_reference,
     carve_details,
     carve_details_reference,
     cell_footprint,
@@ -127,8 +129,27 @@ def _lens_details(seed: int, lens) -> list[CameraDetail]:
         measured = rng.random(base.shape) < 0.5
         g = cell_gaussians(grid, np.full((*base.shape, 3), 0.5, np.float32), depth, np.full(base.shape, 0.9),
                            keep, 0.5, 0.1)
-        out.append(CameraDetail.build(grid, depth, keep, measured, g.means))
+        img = rng.choice([0.1, 0.35, 0.6, 0.9], base.shape)[..., None].repeat(3, 2)
+        out.append(CameraDetail.build(grid, depth, keep, measured, g.means, img))
     return out
+
+
+@LENSES
+def test_see_through_with_colours_through_lenses_matches_reference(lens):
+    """carve_against's colour test (runtime.detail.colour_seen) through a lens camera (and the one pinhole among
+    them) against its cell-by-cell reference."""
+    details = _lens_details(6, lens)
+    dropped = {None: 0, (12.0, 0.15): 0}
+    for j in (0, 1):
+        others = [d for i, d in enumerate(details) if i != j]
+        for photo in dropped:
+            got = np.ones(len(details[j].means), bool)
+            carve_against(details[j], others, got, 0.15, photo)
+            want = np.ones_like(got)
+            carve_against_reference(details[j], others, want, 0.15, photo)
+            np.testing.assert_array_equal(got, want)
+            dropped[photo] += int((~got).sum())
+    assert dropped[None] > dropped[(12.0, 0.15)] > 5      # both outcomes of both tests occur
 
 
 @LENSES

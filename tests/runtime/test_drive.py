@@ -348,17 +348,18 @@ def test_only_a_keyframe_with_measured_depth_carves_its_neighbours(monkeypatch):
     """runtime.drive._carve_pair: b's cameras carve a's cells when b had a LiDAR sweep, never on the model's depth
     alone (each of a's cameras against all of b's)."""
     from xyzcyl.runtime import detail
-    from xyzcyl.runtime.drive import _carve_pair
+    from xyzcyl.runtime.drive import SEE_THROUGH_PHOTO, _carve_pair
 
     calls = []
-    monkeypatch.setattr(detail, "carve_against", lambda d, others, keep, tol: calls.append((d, others, tol)))
+    monkeypatch.setattr(detail, "carve_against",
+                        lambda d, others, keep, tol, photo: calls.append((d, others, tol, photo)))
     a = (0, ["a0", "a1"], [], [np.ones(2, bool), np.ones(3, bool)], False, [np.zeros(2, bool), np.zeros(3, bool)])
     b_camera_only = (1, ["b0"], [], [np.ones(1, bool)], False, [np.zeros(1, bool)])
     b_lidar = (1, ["b0"], [], [np.ones(1, bool)], True, [np.zeros(1, bool)])
     _carve_pair(a, b_camera_only, 0.1)
     assert calls == []
     _carve_pair(a, b_lidar, 0.1)
-    assert calls == [("a0", ["b0"], 0.1), ("a1", ["b0"], 0.1)]
+    assert calls == [("a0", ["b0"], 0.1, SEE_THROUGH_PHOTO), ("a1", ["b0"], 0.1, SEE_THROUGH_PHOTO)]
 
 
 def test_measured_cells_a_neighbour_sees_through_moved_away(monkeypatch):
@@ -375,7 +376,7 @@ def test_measured_cells_a_neighbour_sees_through_moved_away(monkeypatch):
         def cell_conf(self):
             return self.conf
 
-    def see_through(d, others, keep, tol):         # b sees through a's first two cells
+    def see_through(d, others, keep, tol, photo):  # b sees through a's first two cells
         keep[:2] = False
 
     monkeypatch.setattr(detail, "carve_against", see_through)
