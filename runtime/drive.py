@@ -636,12 +636,11 @@ class _Kept:
     mask: what the fusion keeps in the scene's shared Gaussians (dedupe_frames over the shared cells so far: a cell
     another keyframe took over never comes back, so deduping the shared ones as each keyframe arrives keeps what
     deduping them all at once keeps; with ``owners``, a VoxelOwners, only the new keyframe's cells are looked at).
-    The rest stays only where it is a viewpoint group's first keyframe's (``heads``): runtime.viewpoints. With
+    The rest is each keyframe's own chunk (own_of): runtime.viewpoints. With
     ``spill`` (a folder), each part's Gaussians wait there (an .npz) and only their centres stay in memory (12 of a
     cell's 68 bytes): a drive's memory does not grow with every keyframe's every cell."""
 
     origins: np.ndarray             # [K, 3] metres: each keyframe's viewpoint (viewpoint_origins)
-    heads: np.ndarray               # [K] the first keyframe of each keyframe's viewpoint group (viewpoint_groups)
     spill: Path | None = None
     owners: VoxelOwners | None = None
     means: list[np.ndarray] = field(default_factory=list)          # [N_i, 3] per part
@@ -701,8 +700,6 @@ class _Kept:
             for i, j in enumerate(sel):
                 self.shared[i][j] = keep[start:start + len(j)]
                 start += len(j)
-                if len(self.frame[i]) and self.heads[self.frame[i][0]] != self.frame[i][0]:
-                    self.keep(i, self.shared[i])        # not a group's first keyframe: only its shared cells stay
             return
         # the parts added since: each keyframe's together (its cells never drop each other)
         new = list(range(self.deduped, len(self.store)))
@@ -717,12 +714,6 @@ class _Kept:
                 self.shared[i] = keep[at:at + len(self.means[i])].copy()
                 at += len(self.means[i])
             self._lose(lost)
-        for i in range(len(self.store)):
-            # not a group's first keyframe: only its shared cells stay, once a quarter of it has gone (each part
-            # is rewritten a few times at most)
-            if len(self.frame[i]) and self.heads[self.frame[i][0]] != self.frame[i][0] and \
-                    self.shared[i].sum() < 0.75 * len(self.shared[i]):
-                self.keep(i, self.shared[i])
 
     def _lose(self, ids: np.ndarray) -> None:
         """The cells ``ids`` (VoxelOwners' names: start + row as added) are no longer shared."""
@@ -748,10 +739,10 @@ class _Kept:
             out.append(g if s.all() else g.subset(s))
         return out, [f[s] for f, s in zip(self.frame, self.shared)]
 
-    def own_of(self, head: int) -> list[Gaussians]:
-        """Keyframe ``head``'s cells that the shared Gaussians keep from another keyframe (its parts' unshared)."""
+    def own_of(self, n: int) -> list[Gaussians]:
+        """Keyframe ``n``'s cells that the shared Gaussians keep from another keyframe (its parts' unshared)."""
         return [self.part(i).subset(~s) for i, (f, s) in enumerate(zip(self.frame, self.shared))
-                if len(f) and int(f[0]) == head and not s.all()]
+                if len(f) and int(f[0]) == n and not s.all()]
 
 
 _DEFAULT = object()
@@ -817,8 +808,8 @@ def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None,
     heads = viewpoint_groups(positions)
     origins = positions[heads]
     spill = tempfile.TemporaryDirectory(prefix="xyzcyl-drive-")      # removed when the scene lets go of it
-    detail_kept = _Kept(origins, heads, Path(spill.name), VoxelOwners(origins))
-    coarse_kept = _Kept(origins, heads)
+    detail_kept = _Kept(origins, Path(spill.name), VoxelOwners(origins))
+    coarse_kept = _Kept(origins)
     # (keyframe, details, parts, keep, whether its depth was measured: a LiDAR sweep, its measured cells that a
     # neighbouring keyframe saw through: they moved away (_carve_pair))
     window: list[tuple[int, list, list[Gaussians], list[np.ndarray], bool, list[np.ndarray]]] = []
@@ -908,11 +899,11 @@ def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None,
     gauss = _concat([p for p, _ in pieces])
     keyframe_of = np.concatenate([f for _, f in pieces]).astype(np.int16)
     del pieces
-    group_heads = sorted(set(map(int, heads)))
-    # each group's chunk written beside the spilled parts, one at a time, and read back when a view needs it
-    viewpoints = Viewpoints.spilled([np.flatnonzero(heads == h).tolist() for h in group_heads],
-                                    (_concat(coarse_kept.own_of(h) + detail_kept.own_of(h)) for h in group_heads),
-                                    spill) if len(keys) > 1 else None
+    # each keyframe's chunk (with its viewpoint group) written beside the spilled parts, one at a time, and read
+    # back when a view needs it
+    viewpoints = Viewpoints.spilled([[n] for n in range(len(keys))],
+                                    (_concat(coarse_kept.own_of(n) + detail_kept.own_of(n)) for n in range(len(keys))),
+                                    spill, [int(h) for h in heads]) if len(keys) > 1 else None
     timings["fusion"] = time.perf_counter() - t1
     timings["total"] = time.perf_counter() - t0
     counts.update({"coarse": n_coarse, "detail": n_detail, "moving_removed": moved_out,

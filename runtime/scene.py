@@ -352,15 +352,16 @@ class Scene:
         """(rgb [H, W, 3], depth [H, W], alpha [H, W]) float32 of this scene seen by ``camera`` at ``time_s``
         (render_view), over ``background`` ("scene": the scene's panorama; else the renderer's: None, an RGB or an
         image). A drive's scene of several keyframes is drawn in layers, each over what the ones before leave open
-        (I = I_1 + (1 - A_1) I_2, composite_layers): first the view's primary keyframe's (primary_keyframe) viewpoint
-        group as its first keyframe saw the scene, i.e. that keyframe's shared Gaussians and the group's own chunk
-        (runtime.viewpoints), and the moving objects; then the group's other keyframes' shared Gaussians and the two
-        neighbouring viewpoint groups, whole; last the other keyframes' shared Gaussians (these two layers only in the
+        (I = I_1 + (1 - A_1) I_2, composite_layers): first the view's primary keyframe (primary_keyframe) as it saw
+        the scene, i.e. its shared Gaussians and its own chunk (runtime.viewpoints), and the moving objects; then the
+        shared Gaussians of the other keyframes of its viewpoint group and of the two neighbouring groups, with those
+        groups' first keyframes' chunks; last the other keyframes' shared Gaussians (these two layers only in the
         tiles within runtime.tiles.HORIZON_M of the camera: beyond, the primary's alone). (An ego that stands still
-        is one group: its later keyframes add what its first did not see, and a surface both saw at slightly
-        different depths is not drawn as a patchwork of the two.) Each keyframe's cells agree with its own images,
-        and another keyframe's copy of the same wall a few centimetres off (its depth, its exposure) would otherwise
-        show through in patches; the nearer a keyframe stood, the closer its copy is to what the view sees. The
+        is one group: a view is drawn from its keyframe nearest the view's time, whole, and a surface two of its
+        keyframes saw at slightly different depths is not drawn as a patchwork of the two; a folder written before
+        the chunks were per keyframe draws its group's first keyframe whole.) Each keyframe's cells agree with its
+        own images, and another keyframe's copy of the same wall a few centimetres off (its depth, its exposure) would
+        otherwise show through in patches; the nearer a keyframe stood, the closer its copy is to what the view sees. The
         others fill what the primary one did not see: behind parked cars, the road it had not reached. A scene
         without chunks (written before them) draws the primary keyframe's shared Gaussians over the rest.
         ``actors``: the view's edits of the moving objects (moving_at)."""
@@ -452,12 +453,14 @@ class Scene:
             b = draw(runs([kk for kk in range(n_keys) if kk != k]) + fill, bg, a)
             return b.rgb, b.depth, b.alpha
         vp = self.viewpoints
-        i = vp.group_of(k)
-        near = [j for j in (i - 1, i + 1) if 0 <= j < len(vp)]
+        i = vp.group_of(k)                      # k's chunk (a folder written before: its group's)
         mine = vp.chunks[i].keyframes[0]
-        beside = sorted({kk for j in (i, *near) for kk in vp.chunks[j].keyframes} - {mine})
+        groups = vp.groups()
+        g = groups.index(vp.chunks[i].group)
+        near = [groups[j] for j in (g - 1, g + 1) if 0 <= j < len(groups)]     # neighbouring viewpoint groups
+        beside = sorted({kk for h in (groups[g], *near) for kk in vp.group_keyframes(h)} - {mine})
         a = draw(runs([mine], everywhere=True) + [vp.gaussians(i)] + moving, None)
-        b = draw(runs(beside) + [vp.gaussians(j) for j in near], None, a)
+        b = draw(runs(beside) + [vp.gaussians(vp.group_of(h)) for h in near], None, a)
         c = draw(runs([kk for kk in range(n_keys) if kk != mine and kk not in beside]) + fill, bg, b)
         return c.rgb, c.depth, c.alpha
 

@@ -4,16 +4,21 @@ A drive's scene keeps each surface once in its shared Gaussians (runtime.drive.d
 observation, as finely from nearer by). That set alone is a sieve from any one viewpoint: the keyframe a view is
 drawn from keeps only the cells it resolved best, and through the holes show other keyframes' copies of the same
 surfaces, seen from metres away (their discs edge-on, their depth a few centimetres off, their exposure). So each
-viewpoint group (runtime.drive.viewpoint_groups: keyframes whose ego stood within VIEWPOINT_RADIUS_M of the group's
-first) also keeps, in a chunk of its own, its first keyframe's cells that the dedupe gave to other keyframes. A
-view is drawn from its primary keyframe's group as the group's first keyframe saw it (that keyframe's shared cells
-and the chunk), over the group's other keyframes and the two neighbouring groups, over the other keyframes' shared
-cells (runtime.scene.Scene.render). An ego that stands still is one viewpoint: its chunk is what its first keyframe
-saw beyond the shared cells, and nothing grows with the frames; a moving ego adds a chunk per viewpoint, so the
-scene grows with the road.
+keyframe also keeps, in a chunk of its own, its cells that the dedupe gave to other keyframes. A
+view is drawn from its primary keyframe as that keyframe saw the scene (its shared cells and its chunk), over the
+other keyframes of its viewpoint group (runtime.drive.viewpoint_groups: keyframes whose ego stood within
+VIEWPOINT_RADIUS_M of the group's first; their shared cells) and the two neighbouring groups (their first
+keyframe's chunk and their keyframes' shared cells), over the other keyframes' shared cells
+(runtime.scene.Scene.render). An ego that stands still is one viewpoint group (its surfaces kept once in the shared
+cells, from its first keyframe) but each of its keyframes keeps its own chunk: a view is drawn from the keyframe
+nearest its time, which saw what moved, the light and the ego's pose then (the PandaSet drive's right-hand cameras
+were 1.5-1.8 dB behind one frame alone when a still ego's views were all drawn from its first keyframe). Keyframes
+are picked by distance and at least every 2 s (runtime.drive.pick_keyframes), so a still ego adds a chunk every 2 s
+and a moving one a chunk per keyframe. Scene folders written before kept one chunk per group (its first keyframe's
+cells), and are drawn as they were.
 
 On disk a chunk is a 3DGS PLY in the scene folder's ``viewpoints/`` (scene.json's ``viewpoints`` block: each
-chunk's file, keyframes, count and bounds); a loaded scene reads a chunk when a view first needs it and keeps the
+chunk's file, keyframes, viewpoint group, count and bounds); a loaded scene reads a chunk when a view first needs it and keeps the
 last CACHE_CHUNKS it used: a view reads at most three."""
 
 from __future__ import annotations
@@ -40,17 +45,26 @@ class ViewpointError(FieldError):
 
 @dataclass(frozen=True)
 class Chunk:
-    """One viewpoint group's own cells: ``keyframes`` the group's keyframes (indices into the drive's keyframes,
-    increasing), ``count`` its Gaussians, ``bbox`` the box of their centres ({"min", "max"}: metres, the scene's
-    frame; None when empty), ``file`` its PLY's path relative to the scene folder."""
+    """One keyframe's own cells (a folder written before: one viewpoint group's, its first keyframe's):
+    ``keyframes`` its keyframe (the group's keyframes; indices into the drive's keyframes, increasing), ``count`` its
+    Gaussians, ``bbox`` the box of their centres ({"min", "max"}: metres, the scene's frame; None when empty),
+    ``file`` its PLY's path relative to the scene folder, ``viewpoint`` the first keyframe of its viewpoint group
+    (None: the chunk's first keyframe, a group of its own)."""
 
     keyframes: tuple[int, ...]
     count: int
     bbox: dict[str, list[float]] | None
     file: str
+    viewpoint: int | None = None
+
+    @property
+    def group(self) -> int:
+        """The first keyframe of this chunk's viewpoint group."""
+        return self.keyframes[0] if self.viewpoint is None else self.viewpoint
 
     def to_dict(self) -> dict[str, Any]:
-        return {"file": self.file, "keyframes": list(self.keyframes), "count": self.count, "bbox": self.bbox}
+        return {"file": self.file, "keyframes": list(self.keyframes), "viewpoint": self.group, "count": self.count,
+                "bbox": self.bbox}
 
 
 def _bbox(g: Gaussians) -> dict[str, list[float]] | None:
@@ -76,21 +90,27 @@ class Viewpoints:
         self._tmp = None            # a temporary folder the chunks live in (spilled), removed with them
 
     @classmethod
-    def build(cls, groups: Sequence[Sequence[int]], gaussians: Sequence[Gaussians]) -> Viewpoints:
-        """From each group's keyframes and its chunk's Gaussians (in memory; files named group_NN.ply)."""
-        chunks = [Chunk(tuple(int(k) for k in ks), len(g), _bbox(g), f"{CHUNKS_DIR}/group_{i:03d}.ply")
+    def build(cls, groups: Sequence[Sequence[int]], gaussians: Sequence[Gaussians],
+              viewpoints: Sequence[int] | None = None) -> Viewpoints:
+        """From each chunk's keyframes and Gaussians (in memory; files named group_NN.ply); ``viewpoints``: each
+        keyframe's viewpoint group (its first keyframe; None: each chunk a group of its own)."""
+        chunks = [Chunk(tuple(int(k) for k in ks), len(g), _bbox(g), f"{CHUNKS_DIR}/group_{i:03d}.ply",
+                        None if viewpoints is None else int(viewpoints[ks[0]]))
                   for i, (ks, g) in enumerate(zip(groups, gaussians))]
         return cls(chunks, list(gaussians))
 
     @classmethod
-    def spilled(cls, groups: Sequence[Sequence[int]], gaussians: Iterable[Gaussians], tmp) -> Viewpoints:
-        """From each group's keyframes and its chunk's Gaussians, each written as it comes into the temporary folder
-        ``tmp`` (a tempfile.TemporaryDirectory, kept alive as long as these chunks) and read back when used."""
+    def spilled(cls, groups: Sequence[Sequence[int]], gaussians: Iterable[Gaussians], tmp,
+                viewpoints: Sequence[int] | None = None) -> Viewpoints:
+        """From each chunk's keyframes and Gaussians, each written as it comes into the temporary folder ``tmp`` (a
+        tempfile.TemporaryDirectory, kept alive as long as these chunks) and read back when used; ``viewpoints``:
+        each keyframe's viewpoint group (its first keyframe; None: each chunk a group of its own)."""
         folder = Path(tmp.name)
         (folder / CHUNKS_DIR).mkdir(exist_ok=True)
         chunks = []
         for i, (ks, g) in enumerate(zip(groups, gaussians)):
-            c = Chunk(tuple(int(k) for k in ks), len(g), _bbox(g), f"{CHUNKS_DIR}/group_{i:03d}.ply")
+            c = Chunk(tuple(int(k) for k in ks), len(g), _bbox(g), f"{CHUNKS_DIR}/group_{i:03d}.ply",
+                      None if viewpoints is None else int(viewpoints[ks[0]]))
             g.save_ply(folder / c.file)
             chunks.append(c)
         out = cls(chunks, [None] * len(chunks), folder)
@@ -106,8 +126,16 @@ class Viewpoints:
         return sum(c.count for c in self.chunks)
 
     def group_of(self, keyframe: int) -> int:
-        """The chunk (index) of the group holding ``keyframe`` (an index into the drive's keyframes)."""
+        """The chunk (index) holding ``keyframe`` (an index into the drive's keyframes)."""
         return self._group[int(keyframe)]
+
+    def groups(self) -> list[int]:
+        """The viewpoint groups (each its first keyframe), in drive order."""
+        return sorted({c.group for c in self.chunks})
+
+    def group_keyframes(self, group: int) -> list[int]:
+        """The keyframes of viewpoint group ``group`` (its first keyframe)."""
+        return sorted(k for c in self.chunks if c.group == group for k in c.keyframes)
 
     def gaussians(self, i: int) -> Gaussians:
         """Chunk i's Gaussians (scene frame): in memory, or read from its file (ViewpointError naming the file)."""
@@ -135,8 +163,8 @@ class Viewpoints:
 
     def to_json(self) -> dict[str, Any]:
         return {"dir": CHUNKS_DIR, "chunks": [c.to_dict() for c in self.chunks], "count": self.count,
-                "about": "per viewpoint group, its first keyframe's cells that the shared Gaussians keep from "
-                         "another keyframe: a view draws its primary keyframe's group whole, over the rest"}
+                "about": "per keyframe, its cells that the shared Gaussians keep from another keyframe, and its "
+                         "viewpoint group: a view draws its primary keyframe whole, over the rest"}
 
     def save(self, folder: Path) -> None:
         """Write every chunk's PLY into ``folder`` (a scene folder being written)."""
@@ -162,7 +190,7 @@ class Viewpoints:
             name = f"viewpoints.chunks[{i}]"
             if not isinstance(e, dict):
                 raise ViewpointError(name, "must be an object", where)
-            f, ks, n = e.get("file"), e.get("keyframes"), e.get("count")
+            f, ks, n, vpt = e.get("file"), e.get("keyframes"), e.get("count"), e.get("viewpoint")
             if not isinstance(f, str) or not f.startswith(CHUNKS_DIR + "/") or ".." in Path(f).parts:
                 raise ViewpointError(f"{name}.file", f"must be a file in {CHUNKS_DIR}/ (got {f!r})", where)
             if (not isinstance(ks, list) or not ks or not all(isinstance(k, int) and 0 <= k < keyframes for k in ks)
@@ -170,6 +198,9 @@ class Viewpoints:
                 raise ViewpointError(f"{name}.keyframes", f"must be increasing keyframe indices in 0.."
                                                           f"{keyframes - 1}, each in one chunk (got {ks!r})", where)
             seen |= set(ks)
+            if vpt is not None and (not isinstance(vpt, int) or isinstance(vpt, bool) or not 0 <= vpt <= ks[0]):
+                raise ViewpointError(f"{name}.viewpoint", f"must be the first keyframe of the chunk's viewpoint "
+                                                          f"group, an index in 0..{ks[0]} (got {vpt!r})", where)
             if not isinstance(n, int) or isinstance(n, bool) or n < 0:
                 raise ViewpointError(f"{name}.count", f"must be an integer >= 0 (got {n!r})", where)
             path = folder / f
@@ -181,11 +212,16 @@ class Viewpoints:
                 raise ViewpointError(f"{name}.file", f"{str(path)!r}: {exc}", where) from None
             if have != n:
                 raise ViewpointError(f"{name}.count", f"{str(path)!r} holds {have} Gaussians, not {n}", where)
-            chunks.append(Chunk(tuple(ks), n, e.get("bbox"), f))
+            chunks.append(Chunk(tuple(ks), n, e.get("bbox"), f, vpt))
         if seen != set(range(keyframes)):
             raise ViewpointError("viewpoints.chunks", f"must place each of the {keyframes} keyframes in a chunk "
                                                       f"(missing {sorted(set(range(keyframes)) - seen)})", where)
-        return cls(chunks, [None] * len(chunks), folder)
+        out = cls(chunks, [None] * len(chunks), folder)
+        for i, c in enumerate(chunks):      # a group's first keyframe is its own group's
+            if chunks[out.group_of(c.group)].group != c.group:
+                raise ViewpointError(f"viewpoints.chunks[{i}].viewpoint", f"keyframe {c.group} is not the first of "
+                                                                          "a viewpoint group", where)
+        return out
 
 
 __all__ = ["CACHE_CHUNKS", "CHUNKS_DIR", "Chunk", "ViewpointError", "Viewpoints"]

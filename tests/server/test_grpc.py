@@ -217,10 +217,8 @@ def test_a_drive_renders_at_the_middle_of_the_exposure(live):
     _, before = render(T0 - 100.0)
     _, after = render(T0 + 100.0)
     assert before != at0 and after != at1                       # no car outside its span: the static scene alone,
-    # whichever side; the two keyframes (the ego stood still) are drawn in the order of the view's time (the nearer
-    # first, Scene.primary_keyframe), the same street either way: far less change than the car's
-    still = np.abs(decode(before).astype(float) - decode(after).astype(float)).max(axis=2) > 8
-    assert still.mean() < 0.25 * moved.mean(), (still.mean(), moved.mean())
+    # whichever side (each time drawn from its nearest keyframe's copy first, Scene.primary_keyframe: the ego stood
+    # still, tests/runtime/render/test_render_drive_layers.py)
     _, static0 = render(T0, NAME)
     _, static1 = render(T0 + 1.0, NAME)
     assert static0 == static1

@@ -104,6 +104,39 @@ def test_with_viewpoint_chunks_the_primary_group_then_its_neighbours_then_the_re
     assert sorted(read) == [1, 2]
 
 
+def test_a_still_egos_view_is_drawn_from_its_keyframe_nearest_in_time():
+    """Keyframes 0 and 1 of one viewpoint group (the ego still), each with a chunk of its own (runtime.viewpoints):
+    a view at keyframe 1's time draws keyframe 1's chunk first, then the group's and the next group's shared
+    Gaussians; keyframe 0's chunk is not read. At keyframe 0's time, keyframe 0's."""
+    from xyzcyl.runtime.viewpoints import Viewpoints
+
+    rng = np.random.default_rng(6)
+    a = random_gaussians(rng, 100, lo=(-2, -1.5, 2), hi=(2, 1.5, 4))          # camera frame: 2-4 m ahead
+    b = random_gaussians(rng, 100, lo=(-2, -1.5, 2), hi=(2, 1.5, 4))          # the same place, another time
+    s0 = random_gaussians(rng, 100, lo=(-3, -2, 6), hi=(3, 2, 10))            # keyframe 0's shared cells
+    s2 = random_gaussians(rng, 100, lo=(-4, -3, 12), hi=(4, 3, 16))           # keyframe 2's (30 m on)
+    drive = _drive([0.0, 0.0, 30.0], [0.0, 2.0, 4.0], [0, 1, 2])
+    vp = Viewpoints.build([[0], [1], [2]], [a, b, random_gaussians(rng, 0)], viewpoints=[0, 0, 2])
+    scene = Scene(gaussians=concat(s0, s2), background=None, rig=load_rig(EXAMPLE_RIG), drive=drive,
+                  keyframe_of=np.r_[np.zeros(100), np.full(100, 2)].astype(np.int16), viewpoints=vp)
+    assert vp.groups() == [0, 2] and vp.group_keyframes(0) == [0, 1]
+    cam = pinhole(c2w=np.eye(4))
+    read = []
+    chunk = vp.gaussians
+    vp.gaussians = lambda i: read.append(i) or chunk(i)
+    assert scene.primary_keyframe(cam, 102.0) == 1 and scene.primary_keyframe(cam, 100.0) == 0
+    rgb, _, alpha = scene.render(cam, 102.0)
+    e_rgb, _, e_alpha = composite_layers(render(b, cam), render(concat(s0, s2), cam))
+    np.testing.assert_allclose(rgb, e_rgb, atol=LAYERED_ATOL)               # render's behind (first test)
+    np.testing.assert_allclose(alpha, e_alpha, atol=LAYERED_ATOL)
+    assert sorted(read) == [1, 2]
+    read.clear()
+    rgb0, _, _ = scene.render(cam, 100.0)
+    e_rgb0, _, _ = composite_layers(render(concat(a, s0), cam), render(s2, cam))
+    np.testing.assert_allclose(rgb0, e_rgb0, atol=LAYERED_ATOL)
+    assert sorted(read) == [0, 2] and np.abs(rgb0 - rgb).max() > 0.1
+
+
 def test_the_primary_keyframe_is_the_nearest_and_a_still_egos_by_time():
     g = random_gaussians(np.random.default_rng(0), 4)
     moving = _scene(g, [0, 1, 2, 2], _drive([0.0, 5.0, 10.0], [0.0, 0.5, 1.0], [0, 1, 2]))

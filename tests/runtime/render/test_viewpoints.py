@@ -52,6 +52,11 @@ def test_chunks_through_the_scene_folder_read_when_used(tmp_path, monkeypatch):
     (lambda m, d: (d / m["viewpoints"]["chunks"][2]["file"]).unlink(), "viewpoints.chunks[2].file"),
     (lambda m, d: m.update(viewpoints={"chunks": "x"}), "viewpoints.chunks"),
     (lambda m, d: m.pop("keyframe_of"), "viewpoints"),
+    (lambda m, d: m["viewpoints"]["chunks"][1].update(viewpoint=2), "viewpoints.chunks[1].viewpoint"),
+    (lambda m, d: m["viewpoints"]["chunks"][1].update(viewpoint="0"), "viewpoints.chunks[1].viewpoint"),
+    # keyframe 1 is of group 0, so it cannot be the first of chunk 2's group
+    (lambda m, d: [m["viewpoints"]["chunks"][i].update(viewpoint=v) for i, v in ((1, 0), (2, 1))],
+     "viewpoints.chunks[2].viewpoint"),
 ])
 def test_a_viewpoints_block_that_does_not_match_its_files_is_refused(tmp_path, edit, field):
     d = tmp_path / "s"
@@ -62,6 +67,21 @@ def test_a_viewpoints_block_that_does_not_match_its_files_is_refused(tmp_path, e
     with pytest.raises(SceneError) as e:
         Scene.load(d)
     assert e.value.field == field, str(e.value)
+
+
+def test_viewpoint_groups_through_the_scene_folder_and_a_folder_written_before_them(tmp_path):
+    d = tmp_path / "s"
+    _scene().save(d)
+    meta = json.loads((d / "scene.json").read_text())
+    assert [c["viewpoint"] for c in meta["viewpoints"]["chunks"]] == [0, 1, 2]
+    meta["viewpoints"]["chunks"][2]["viewpoint"] = 1                # keyframes 1 and 2: one viewpoint group
+    (d / "scene.json").write_text(json.dumps(meta))
+    back = Scene.load(d).viewpoints
+    assert back.groups() == [0, 1] and back.group_keyframes(1) == [1, 2]
+    for c in meta["viewpoints"]["chunks"]:                          # written before: each chunk its own group
+        c.pop("viewpoint")
+    (d / "scene.json").write_text(json.dumps(meta))
+    assert Scene.load(d).viewpoints.groups() == [0, 1, 2]
 
 
 def test_a_chunk_changed_after_loading_is_an_error_naming_it(tmp_path):
