@@ -905,9 +905,11 @@ def carve_against(dj: CameraDetail, others: list[CameraDetail], keep: np.ndarray
     """Clear keep[k] ([M_j] bool, camera j's cells) where one of ``others``' cameras saw through cell k (carve_details'
     free-space rule alone: a surface is never handed over here). runtime.drive carves a keyframe's cells with the
     cameras of the neighbouring keyframes so. ``photo`` (abs, rel): and where that camera's image, within a cell of
-    the spot, shows no colour like the cell's (see_through_differs): what it saw there is not what the cell shows,
-    so the cell is gone from its ray; a like colour keeps it (the same surface at a depth the two measured apart:
-    glass, a fence, an edge). None (or a camera without colours): the depth alone decides."""
+    the spot, shows no colour like the cell's (colour_seen): what it saw there is not what the cell shows, so the
+    cell is gone from its ray; a like colour keeps it (the same surface at a depth the two measured apart: glass, a
+    fence, an edge). None (or a camera without colours): the depth alone decides. (Among one keyframe's own cameras,
+    carve_details, the colour test was tried: +0.02 dB on the PandaSet drive with and without LiDAR, -0.09 dB on the
+    synthetic drive; not used.)"""
     if not len(dj.means):
         return
     conf_j = np.ascontiguousarray(dj.cell_conf())
