@@ -856,7 +856,10 @@ def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None,
             # cameras; later against its neighbours' (see-through, by a keyframe with a LiDAR sweep: _carve_pair)
             if details and len(coarse):
                 coarse = coarse.subset(cull_covered(coarse, details, tol))
-            own = carve_details(details, tol, detail.dedupe) if details else []
+            # without a sweep the cameras' depths are the model's (scaled per camera to a few stereo points), up to
+            # 2x apart: one camera sees through another's cell only where it also sees another colour there
+            own = carve_details(details, tol, detail.dedupe, SEE_THROUGH_PHOTO if points is None else None) \
+                if details else []
             boxes = moving_boxes(drive, k)
             if boxes:                       # what moves is not the static scene's: each object's copy, in its box
                 geo = [(inv, half) for _, inv, half in boxes]
