@@ -85,12 +85,12 @@ VOXEL_CELLS = 4                # a voxel spans ~4 cells across: one keyframe own
 #                                cell a voxel, two keyframes' cells of one surface fell in different voxels and
 #                                both stayed, interleaved: the PandaSet drive kept 2.0x one frame's Gaussians)
 VIEWPOINT_RADIUS_M = 0.5       # keyframes whose ego stood within this of a group's first see from one viewpoint
-# _carve_pair: a neighbouring keyframe's camera sees through a cell only where its image shows no colour like the
-# cell's near that spot (runtime.detail.colour_seen: every channel within 12 + 0.15 x the larger value, sRGB
-# 0..255; the relative part covers the exposure that harmonising leaves between cameras, ~1.1x). Glass, fences and
-# edges, whose depth two LiDAR sweeps put apart, were carved (or drawn only around their keyframe's time) though
-# both images show them. 6 + 0.08 and 20 + 0.25 score within 0.06 dB of it (docs/results.md "Drives: seeing
-# through a cell needs another colour")
+# _carve_pair (and, in a keyframe without a LiDAR sweep, its own cameras' carving): a camera sees through another's
+# cell only where its image shows no colour like the cell's near that spot (runtime.detail.colour_seen: every
+# channel within 12 + 0.15 x the larger value, sRGB 0..255; the relative part covers the exposure that harmonising
+# leaves between cameras, ~1.1x). Glass, fences and edges, whose depth two LiDAR sweeps put apart, were carved (or
+# drawn only around their keyframe's time) though both images show them. 6 + 0.08 and 20 + 0.25 score within 0.06 dB
+# of it (docs/results.md "Drives: seeing through a cell needs another colour")
 SEE_THROUGH_PHOTO = (12.0, 0.15)
 TRACK_GROW = 1.1               # a moving object's box, grown by this factor, holds its Gaussians
 
