@@ -360,9 +360,9 @@ class Scene:
         is one group: a view is drawn from its keyframe nearest the view's time, whole, and a surface two of its
         keyframes saw at slightly different depths is not drawn as a patchwork of the two; a folder written before
         the chunks were per keyframe draws its group's first keyframe whole.) Each keyframe's cells agree with its
-        own images, and another keyframe's copy of the same wall a few centimetres off (its depth, its exposure) would
-        otherwise show through in patches; the nearer a keyframe stood, the closer its copy is to what the view sees. The
-        others fill what the primary one did not see: behind parked cars, the road it had not reached. A scene
+        own images, and another keyframe's copy of the same wall a few centimetres off (its depth, its exposure)
+        would otherwise show through in patches; the nearer a keyframe stood, the closer its copy is to what the view
+        sees. The others fill what the primary one did not see: behind parked cars, the road it had not reached. A scene
         without chunks (written before them) draws the primary keyframe's shared Gaussians over the rest.
         ``actors``: the view's edits of the moving objects (moving_at)."""
         if isinstance(background, str) and background == "scene":

@@ -4,22 +4,23 @@ A drive's scene keeps each surface once in its shared Gaussians (runtime.drive.d
 observation, as finely from nearer by). That set alone is a sieve from any one viewpoint: the keyframe a view is
 drawn from keeps only the cells it resolved best, and through the holes show other keyframes' copies of the same
 surfaces, seen from metres away (their discs edge-on, their depth a few centimetres off, their exposure). So each
-keyframe also keeps, in a chunk of its own, its cells that the dedupe gave to other keyframes. A
-view is drawn from its primary keyframe as that keyframe saw the scene (its shared cells and its chunk), over the
+keyframe also keeps, in a chunk of its own, its cells that the dedupe gave to other keyframes. A view is drawn from
+its primary keyframe as that keyframe saw the scene (its shared cells and its chunk), over the
 other keyframes of its viewpoint group (runtime.drive.viewpoint_groups: keyframes whose ego stood within
 VIEWPOINT_RADIUS_M of the group's first; their shared cells) and the two neighbouring groups (their first
 keyframe's chunk and their keyframes' shared cells), over the other keyframes' shared cells
 (runtime.scene.Scene.render). An ego that stands still is one viewpoint group (its surfaces kept once in the shared
 cells, from its first keyframe) but each of its keyframes keeps its own chunk: a view is drawn from the keyframe
-nearest its time, which saw what moved, the light and the ego's pose then (the PandaSet drive's right-hand cameras
-were 1.5-1.8 dB behind one frame alone when a still ego's views were all drawn from its first keyframe). Keyframes
+nearest its time, which saw what moved, the light and the ego's pose then (the PandaSet drive's right camera was
+1.5-1.8 dB behind one frame alone at frames 6-18 when a still ego's views were all drawn from its first keyframe:
+docs/results.md "Drives: a still ego drawn from its keyframe nearest in time"). Keyframes
 are picked by distance and at least every 2 s (runtime.drive.pick_keyframes), so a still ego adds a chunk every 2 s
 and a moving one a chunk per keyframe. Scene folders written before kept one chunk per group (its first keyframe's
 cells), and are drawn as they were.
 
 On disk a chunk is a 3DGS PLY in the scene folder's ``viewpoints/`` (scene.json's ``viewpoints`` block: each
-chunk's file, keyframes, viewpoint group, count and bounds); a loaded scene reads a chunk when a view first needs it and keeps the
-last CACHE_CHUNKS it used: a view reads at most three."""
+chunk's file, keyframes, viewpoint group, count and bounds); a loaded scene reads a chunk when a view first needs it
+and keeps the last CACHE_CHUNKS it used: a view reads at most three."""
 
 from __future__ import annotations
 
