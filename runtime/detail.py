@@ -844,10 +844,13 @@ def _cell_of(grid: Camera, m: np.ndarray) -> tuple[int, int, float] | None:
 
 
 @njit(cache=True, parallel=True, nogil=True)
-def _carve_kernel(means, conf, rank, R, t, fx, fy, cx, cy, depth, cell_conf, tolerance, dedupe, keep):
+def _carve_kernel(means, conf, rank, R, t, fx, fy, cx, cy, depth, cell_conf, tolerance, dedupe, keep, photo, colour,
+                  image, p_abs, p_rel):
     """Clear keep[k] for the cells ``means`` [M, 3] (ego; confidence conf [M], footprint rank [M]) that camera i
     (world-to-camera rotation R = rotation^T [3, 3], centre t [3], pinhole fx fy cx cy; its cell maps depth [h, w]
-    and cell_conf [h, w], 0 = no cell) contradicts: see carve_details."""
+    and cell_conf [h, w], 0 = no cell) contradicts: see carve_details. ``photo``: the free-space drop only where the
+    cell's colour (colour [M, 3] uint8) is not seen in camera i's ``image`` [h, w, 3] uint8 at the pixel or its 8
+    neighbours, within p_abs + p_rel x the larger value (colour_seen is its reference)."""
     h, w = depth.shape
     for k in numba.prange(means.shape[0]):
         if not keep[k]:
@@ -864,12 +867,36 @@ def _carve_kernel(means, conf, rank, R, t, fx, fy, cx, cy, depth, cell_conf, tol
             continue
         dc = depth[v, u]
         if z < dc * (1.0 - tolerance):
-            keep[k] = False
+            if not photo or not _seen_near(colour, k, image, u, v, p_abs, p_rel):
+                keep[k] = False
         elif abs(z - dc) <= tolerance * dc:
             xi, yi = (u - cx) / fx, (v - cy) / fy
             rank_i = dc * math.sqrt(1.0 + xi * xi + yi * yi) / (0.5 * (fx + fy))
             if rank_i < dedupe * rank[k]:
                 keep[k] = False
+
+
+_NO_COLOUR = np.zeros((0, 3), np.uint8)      # _carve_kernel's colour and image when it has no colour test
+_NO_IMAGE = np.zeros((1, 1, 3), np.uint8)
+
+
+@njit(inline="always")
+def _seen_near(colour, k, image, u, v, p_abs, p_rel):
+    """Whether ``image`` shows cell k's colour at pixel (u, v) or one of its 8 neighbours (_carve_kernel's photo)."""
+    h, w = image.shape[0], image.shape[1]
+    for dv in range(-1, 2):
+        for du in range(-1, 2):
+            uu, vv = u + du, v + dv
+            if uu < 0 or uu >= w or vv < 0 or vv >= h:
+                continue
+            like = True
+            for c in range(3):
+                a, b = float(colour[k, c]), float(image[vv, uu, c])
+                if abs(a - b) > p_abs + p_rel * max(a, b):
+                    like = False
+            if like:
+                return True
+    return False
 
 
 def carve_details(details: list[CameraDetail], tolerance: float, dedupe: float = 1.0,
@@ -919,13 +946,12 @@ def _carve_by(dj: CameraDetail, others: list[CameraDetail], keep: np.ndarray, to
             continue
         K = di.grid.K
         R, t = np.ascontiguousarray(di.grid.rotation.T), np.ascontiguousarray(di.grid.position)
+        args = (dj.means, conf_j, dj.rank, R, t, float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]),
+                di.depth, di.conf, float(tolerance), float(dedupe), keep)
         if with_photo:
-            _see_through_kernel(dj.means, conf_j, dj.rank, col_j, R, t, float(K[0, 0]), float(K[1, 1]),
-                                float(K[0, 2]), float(K[1, 2]), di.depth, di.conf, di.colours, float(tolerance),
-                                float(dedupe), float(photo[0]), float(photo[1]), keep)
+            _carve_kernel(*args, True, col_j, di.colours, float(photo[0]), float(photo[1]))
         else:
-            _carve_kernel(dj.means, conf_j, dj.rank, R, t, float(K[0, 0]), float(K[1, 1]), float(K[0, 2]),
-                          float(K[1, 2]), di.depth, di.conf, float(tolerance), float(dedupe), keep)
+            _carve_kernel(*args, False, _NO_COLOUR, _NO_IMAGE, 0.0, 0.0)
 
 
 def colour_seen(cell: np.ndarray, image: np.ndarray, u: np.ndarray, v: np.ndarray, photo: tuple[float, float]
@@ -933,7 +959,7 @@ def colour_seen(cell: np.ndarray, image: np.ndarray, u: np.ndarray, v: np.ndarra
     """[N] bool: whether ``image`` ([h, w, 3] uint8) shows the colour of ``cell`` ([N, 3] uint8) at pixel (u, v)
     or one of its 8 neighbours (a cell's slack for pose and edges): every channel within photo[0] + photo[1] x the
     larger of the two values (sRGB 0..255; the relative part for the exposure that harmonising leaves). The
-    reference of _see_through_kernel's test."""
+    reference of _carve_kernel's colour test."""
     h, w = image.shape[:2]
     a = cell.astype(np.float64)
     seen = np.zeros(len(a), bool)
@@ -948,56 +974,10 @@ def colour_seen(cell: np.ndarray, image: np.ndarray, u: np.ndarray, v: np.ndarra
     return seen
 
 
-@njit(cache=True, parallel=True, nogil=True)
-def _see_through_kernel(means, conf, rank, colour, R, t, fx, fy, cx, cy, depth, cell_conf, image, tolerance, dedupe,
-                        p_abs, p_rel, keep):
-    """_carve_kernel's rules with colours: its free-space drop only where the cell's colour [M, 3] uint8 is not seen
-    in camera i's ``image`` [h, w, 3] uint8 at the pixel or its 8 neighbours (colour_seen); its same-surface rule
-    as it is."""
-    h, w = depth.shape
-    for k in numba.prange(means.shape[0]):
-        if not keep[k]:
-            continue
-        px, py, pz = means[k, 0] - t[0], means[k, 1] - t[1], means[k, 2] - t[2]
-        z = R[2, 0] * px + R[2, 1] * py + R[2, 2] * pz
-        if z <= 1e-6:
-            continue
-        x = (R[0, 0] * px + R[0, 1] * py + R[0, 2] * pz) / z
-        y = (R[1, 0] * px + R[1, 1] * py + R[1, 2] * pz) / z
-        u = int(np.rint(fx * x + cx))
-        v = int(np.rint(fy * y + cy))
-        if u < 0 or u >= w or v < 0 or v >= h or cell_conf[v, u] == 0 or cell_conf[v, u] < conf[k]:
-            continue
-        dc = depth[v, u]
-        if abs(z - dc) <= tolerance * dc:
-            xi, yi = (u - cx) / fx, (v - cy) / fy
-            rank_i = dc * math.sqrt(1.0 + xi * xi + yi * yi) / (0.5 * (fx + fy))
-            if rank_i < dedupe * rank[k]:
-                keep[k] = False
-            continue
-        if not z < dc * (1.0 - tolerance):
-            continue
-        seen = False
-        for dv in range(-1, 2):
-            for du in range(-1, 2):
-                uu, vv = u + du, v + dv
-                if seen or uu < 0 or uu >= w or vv < 0 or vv >= h:
-                    continue
-                like = True
-                for c in range(3):
-                    a, b = float(colour[k, c]), float(image[vv, uu, c])
-                    if abs(a - b) > p_abs + p_rel * max(a, b):
-                        like = False
-                if like:
-                    seen = True
-        if not seen:
-            keep[k] = False
-
-
 def _carve_lens(means: np.ndarray, conf: np.ndarray, rank: np.ndarray, di: CameraDetail, tolerance: float,
                 dedupe: float, keep: np.ndarray, photo=None) -> None:
     """_carve_kernel's rule for a camera i with a lens (numpy; its cells found through Camera.project_depth);
-    ``photo`` (the cells' colours [M, 3] uint8, (abs, rel)): _see_through_kernel's (see carve_against)."""
+    ``photo`` (the cells' colours [M, 3] uint8, (abs, rel)): _carve_kernel's colour test (see carve_against)."""
     idx, u, v, z = _grid_pixels(di.grid, means)
     c = di.conf[v, u]
     ok = keep[idx] & (c != 0) & (c >= conf[idx])
