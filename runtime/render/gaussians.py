@@ -268,9 +268,11 @@ class Gaussians:
             sh[:, 1:, :] = rest.reshape(n, 3, k - 1).transpose(0, 2, 1)
         arrays = dict(means=col("x", "y", "z"), quats=col("rot_0", "rot_1", "rot_2", "rot_3"),
                       log_scales=col("scale_0", "scale_1", "scale_2"),
-                      # a contiguous copy: the PLY's column is a strided view (one record apart), which every
-                      # render gathered again (~20 ms a drive view)
-                      opacity_logits=np.ascontiguousarray(vert["opacity"], dtype=np.float32), sh=sh)
+                      # a copy: the PLY's column is a strided view (one record apart), which every render
+                      # gathered again (~20 ms a drive view); always a copy, as the other fields are: a run of one
+                      # row read with load_ply_rows is already contiguous, and its read-only buffer made numba
+                      # compile the projection again for read-only opacities (6 s, mid-service)
+                      opacity_logits=np.array(vert["opacity"], dtype=np.float32), sh=sh)
         for name, arr in arrays.items():
             bad = int(np.count_nonzero(~np.isfinite(arr)))
             if bad:

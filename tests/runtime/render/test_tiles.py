@@ -145,6 +145,10 @@ def test_rows_of_a_ply_read_alone(tmp_path):
     for f in ("means", "quats", "log_scales", "opacity_logits", "sh"):
         np.testing.assert_array_equal(getattr(part, f), getattr(whole, f)[7:31])
     assert len(Gaussians.load_ply_rows(tmp_path / "g.ply", 50, 50)) == 0
+    # every field its own writeable array, a run of one row too (a read-only one is another numba specialisation
+    # of the projection: a second compile in a running service)
+    for rows in (part, Gaussians.load_ply_rows(tmp_path / "g.ply", 3, 4)):
+        assert all(getattr(rows, f).flags.writeable for f in ("means", "quats", "log_scales", "opacity_logits", "sh"))
     with pytest.raises(GaussianError, match="outside the file's 50") as e:
         Gaussians.load_ply_rows(tmp_path / "g.ply", 40, 51)
     assert e.value.field == "element vertex"
