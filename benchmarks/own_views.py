@@ -49,8 +49,11 @@ def main(argv: list[str] | None = None) -> int:
         img = images[k]
         gt = img.astype(np.float32) / (255.0 if img.dtype == np.uint8 else 65535.0 if img.dtype == np.uint16 else 1.0)
         bg = scene.background.render(c) if scene.background is not None else None
-        fused = render(scene.gaussians, c, background=bg).rgb
-        own = render(scene.gaussians_for(c), c, background=bg).rgb
+        # the camera's exposure gain back, as Scene.render gives it (the cells were divided by it: runtime.exposure)
+        gain_c = scene.exposure_gain(c, None)
+        gain_c = np.ones(3, np.float32) if gain_c is None else gain_c.astype(np.float32)
+        fused = render(scene.gaussians, c, background=bg).rgb * gain_c
+        own = render(scene.gaussians_for(c), c, background=bg).rgb * gain_c
         rows[cam.name] = {"fused": image_metrics(fused, gt), "own": image_metrics(own, gt)}
         gain = rows[cam.name]["own"]["psnr"] - rows[cam.name]["fused"]["psnr"]
         if best is None or gain > best[0]:
