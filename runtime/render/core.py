@@ -168,10 +168,13 @@ def as_parts(gaussians: Gaussians | Sequence[Gaussians]) -> list[Gaussians]:
     return parts
 
 
-def _prepare(g: Gaussians | Sequence[Gaussians], camera, opts: RenderOptions, cull_chunks: bool = True):
+def _prepare(g: Gaussians | Sequence[Gaussians], camera, opts: RenderOptions, cull_chunks: bool = True,
+             covered: np.ndarray | None = None):
     """Project, sort and bin ``g`` (one set, or several drawn exactly as their concatenation in order, without
     copying them: each part is projected into its own run of slots, so slots still increase with the index in the
-    concatenation and the depth order breaks ties the same way; gid holds that index)."""
+    concatenation and the depth order breaks ties the same way; gid holds that index). covered [ntiles] bool or
+    None: tiles the raster will not draw (render's cover); a Gaussian that touches no other tile is not sorted or
+    binned."""
     W, H = camera.width, camera.height
     ntx, nty = (W + K.TILE - 1) // K.TILE, (H + K.TILE - 1) // K.TILE
     if ntx > 0x7FFF or nty > 0x7FFF:  # tile ranges are packed as two 16-bit fields in an int32
@@ -210,6 +213,10 @@ def _prepare(g: Gaussians | Sequence[Gaussians], camera, opts: RenderOptions, cu
         offset += len(p)
     t1 = time.perf_counter()
     visible = K.visible_slots(counts, base)
+    if covered is not None and covered.any():
+        sat = np.zeros((nty + 1, ntx + 1), np.int64)
+        sat[1:, 1:] = np.cumsum(np.cumsum(~covered.reshape(nty, ntx), axis=0), axis=1)
+        visible = K.open_slots(visible, trange, sat, ntx)
     # depth order: float32 depths (positive: near > 0, so their bit patterns order like the values), ties by
     # Gaussian index (slots increase with it); the reference sorts the same keys
     order = K.depth_order(visible, dep[visible].astype(np.float32).view(np.uint32))
@@ -219,7 +226,7 @@ def _prepare(g: Gaussians | Sequence[Gaussians], camera, opts: RenderOptions, cu
 
 
 def render(gaussians: Gaussians | Sequence[Gaussians], camera, background=None, behind: RenderResult | None = None,
-           behind_inplace: bool = False, **options) -> RenderResult:
+           behind_inplace: bool = False, cover: float = 0.0, **options) -> RenderResult:
     """Render Gaussians from a runtime.camera.Camera: pinhole or equirectangular, a pinhole with a lens
     (runtime.lenses: opencv, opencv_fisheye, ftheta) drawn through the lens.
 
@@ -230,6 +237,10 @@ def render(gaussians: Gaussians | Sequence[Gaussians], camera, background=None, 
     in the raster, which skips the pixels the earlier one already covered (render_backward cannot follow it).
     behind_inplace: draw into ``behind``'s own arrays instead of copies of them (``behind`` is then this render's
     result too: for layers whose earlier results are not kept, runtime.scene; saves three image copies a layer).
+    cover (with ``behind``): a 16x16 tile of the image where ``behind`` left no pixel more than this fraction of its
+    light is finished as ``behind`` drew it, its colour and alpha-weighted depth divided by its alpha (alpha 1), and
+    nothing of these Gaussians is drawn there (runtime.scene.composite_layers's ``cover``, its reference); 0: the
+    exact composite, every tile drawn.
 
     background: None (black), an RGB triple, or an image [H, W, 3] (0..1). Options: see RenderOptions.
     Returns RenderResult(rgb [H, W, 3], alpha [H, W], depth [H, W]) float32; depth is the expected camera z
@@ -239,17 +250,23 @@ def render(gaussians: Gaussians | Sequence[Gaussians], camera, background=None, 
     opts = RenderOptions.from_kwargs(options)
     W, H = camera.width, camera.height
     check_render_size(W, H)                   # before any allocation (a clear error, not numpy's MemoryError)
+    if isinstance(cover, bool) or not isinstance(cover, (int, float)) or not 0.0 <= cover < 1.0:
+        raise ValueError(f"cover: must be a number in [0, 1), got {cover!r}")
+    if behind is not None and (behind.alpha.shape != (H, W) or not isinstance(behind.state, _State)
+                               or behind.state.bg.any()):
+        raise ValueError(f"behind: must be a render of this {W}x{H} camera with no background")
     bg = background_image(background, H, W)
-    ntx, start, ids, rows, gid, timings = _prepare(gaussians, camera, opts)
+    ntx, nty = (W + K.TILE - 1) // K.TILE, (H + K.TILE - 1) // K.TILE
+    covered = np.zeros(ntx * nty, bool)
+    if behind is not None and cover > 0:
+        covered = K.covered_tiles(behind.alpha, ntx, nty, np.float32(cover))
+    ntx, start, ids, rows, gid, timings = _prepare(gaussians, camera, opts, covered=covered)
     t0 = time.perf_counter()
     if behind is None:
         rgb = np.empty((H, W, 3), np.float32)
         alpha = np.empty((H, W), np.float32)
         depth = np.empty((H, W), np.float32)
     else:
-        st = behind.state
-        if behind.alpha.shape != (H, W) or not isinstance(st, _State) or st.bg.any():
-            raise ValueError(f"behind: must be a render of this {W}x{H} camera with no background")
         if behind_inplace:
             rgb, alpha, depth = behind.rgb, behind.alpha, behind.depth
         else:
@@ -260,7 +277,7 @@ def render(gaussians: Gaussians | Sequence[Gaussians], camera, background=None, 
     model, lp = lens_params(camera)
     plane, offsets, kk, tilex, rowy = _plane_args(camera)
     K.raster_forward(start, ids, rows, ntx, W, H, camera.is_equirect, plane, offsets, kk, tilex, rowy, bg, rgb,
-                     alpha, depth, last, t_final, row_evals, behind is not None)
+                     alpha, depth, last, t_final, row_evals, behind is not None, covered)
     if model in (lensmap.FISHEYE, lensmap.FTHETA):   # no ray reaches the pixels outside the image circle
         k = camera.K
         lensmap.clear_outside_circle(model, lp, k[0, 0], k[1, 1], k[0, 2], k[1, 2], bg, rgb, alpha, depth, last,

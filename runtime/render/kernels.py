@@ -1027,7 +1027,7 @@ def _blend_one(fb, j, jj, px, py, T, c0, c1, c2, dd, lst, wrap, plane, wf, inv_w
 
 @njit(cache=True, parallel=True, nogil=True, fastmath=RASTER_MATH)
 def raster_forward(start, ids, rows, ntx, width, height, wrap, plane, offsets, kk, tilex, rowy, bg, rgb, alpha, depth,
-                   last, t_final, row_evals, resume):
+                   last, t_final, row_evals, resume, covered):
     """Front-to-back blend per tile. bg [H, W, 3] f32. Outputs rgb [H, W, 3], alpha, depth [H, W] f32,
     last [H, W] int32 (index of the last blended instance, -1 if none), t_final [H, W] f32, row_evals [ntiles]
     int64 (16-pixel tile rows evaluated: the work done, for benchmarks).
@@ -1041,11 +1041,17 @@ def raster_forward(start, ids, rows, ntx, width, height, wrap, plane, offsets, k
     resume: rgb, alpha and depth hold on entry what was drawn in front of these Gaussians over black (an earlier
     render's outputs with no background), and the blend goes on from there, as if those Gaussians had come first
     in the sort: a pixel starts at T = 1 - alpha with its colour and alpha-weighted depth, and one already at or
-    below T_RESUME starts stopped."""
+    below T_RESUME starts stopped. covered [ntiles] bool (with resume; covered_tiles): a covered tile is finished as
+    the earlier render drew it, each pixel's colour and alpha-weighted depth divided by its alpha (alpha 1), none of
+    these Gaussians drawn there."""
     ntiles = start.shape[0] - 1
     for k in prange(SPREAD * ((ntiles + SPREAD - 1) // SPREAD)):
         t = _spread(k, ntiles)
         if t < 0:
+            continue
+        if resume and covered[t]:
+            _finish_tile(t, ntx, rgb, alpha, last, t_final)
+            row_evals[t] = 0
             continue
         px = np.empty(TILE_PIX, np.float32)
         py = np.empty(TILE_PIX, np.float32)
@@ -1069,6 +1075,71 @@ def raster_forward(start, ids, rows, ntx, width, height, wrap, plane, offsets, k
                     py[r * TILE + q] = np.float32(r) + offsets[y0 + r, x0 + q, 1]
         _raster_tile(t, start, ids, rows, ntx, width, height, wrap, plane, kk, tilex, rowy, bg, rgb, alpha, depth,
                      last, t_final, row_evals, px, py, T, c0, c1, c2, dd, lst, fb, resume, live)
+
+
+@njit(inline="always")
+def _finish_tile(t, ntx, rgb, alpha, last, t_final):
+    """A covered tile of raster_forward: each pixel's colour divided by its alpha, alpha 1 (its depth, the
+    alpha-weighted mean, stays), no instance blended (last -1, t_final 0)."""
+    x0 = (t % ntx) * TILE
+    y0 = (t // ntx) * TILE
+    for yy in range(y0, min(y0 + TILE, alpha.shape[0])):
+        for xx in range(x0, min(x0 + TILE, alpha.shape[1])):
+            al = alpha[yy, xx]
+            if al != F1 and al > F0:
+                inv = F1 / al
+                rgb[yy, xx, 0] *= inv
+                rgb[yy, xx, 1] *= inv
+                rgb[yy, xx, 2] *= inv
+                alpha[yy, xx] = F1
+            last[yy, xx] = -1
+            t_final[yy, xx] = F0
+
+
+@njit(cache=True, parallel=True, nogil=True)
+def covered_tiles(alpha, ntx, nty, cover):
+    """[nty * ntx] bool: the 16x16 tiles (row-major) none of whose pixels (the image's part of the tile) has more
+    than ``cover`` of its light left, 1 - alpha <= cover (cover 0: a tile whose alpha is 1 throughout)."""
+    out = np.empty(ntx * nty, np.bool_)
+    for t in prange(ntx * nty):
+        x0 = (t % ntx) * TILE
+        y0 = (t // ntx) * TILE
+        ok = True
+        for r in range(min(TILE, alpha.shape[0] - y0)):
+            for q in range(min(TILE, alpha.shape[1] - x0)):
+                ok &= F1 - alpha[y0 + r, x0 + q] <= cover
+        out[t] = ok
+    return out
+
+
+@njit(cache=True, nogil=True)
+def _rect_sum(sat, x0, x1, y0, y1):
+    return sat[y1 + 1, x1 + 1] - sat[y0, x1 + 1] - sat[y1 + 1, x0] + sat[y0, x0]
+
+
+@njit(cache=True, nogil=True)
+def open_slots(visible, trange, sat, ntx):
+    """The slots of ``visible`` (ascending, kept so) whose footprint's tile range (trange, see project_kernel; a
+    range that wraps the equirect seam, tx1 < tx0, in its two pieces) touches a tile counted in ``sat``
+    ([nty + 1, ntx + 1] summed-area table of the open tiles, sat[y, x] = the count in rows < y, columns < x)."""
+    out = np.empty(visible.shape[0], np.int32)
+    n = 0
+    for k in range(visible.shape[0]):
+        i = visible[k]
+        tx0 = trange[i, 0] & 0xFFFF
+        tx1 = trange[i, 0] >> 16
+        ty0 = trange[i, 1] & 0xFFFF
+        ty1 = trange[i, 1] >> 16
+        if ty1 < ty0:               # no tile row (bin_kernel lists it nowhere)
+            continue
+        if tx1 >= tx0:
+            c = _rect_sum(sat, tx0, tx1, ty0, ty1)
+        else:
+            c = _rect_sum(sat, tx0, ntx - 1, ty0, ty1) + _rect_sum(sat, 0, tx1, ty0, ty1)
+        if c > 0:
+            out[n] = i
+            n += 1
+    return out[:n]
 
 
 @njit(inline="always", fastmath=RASTER_MATH)

@@ -119,6 +119,12 @@ def test_a_tracked_actor_leaves_nothing_in_the_static_scene_and_edits_change_onl
     np.testing.assert_allclose(hidden, away, atol=1e-5)    # hidden = drawn where no camera sees it
     moved, _, _ = scene.render(cam, 0.0, actors=actor_edits([{"id": "car-1", "offset": [0, 1.5, 0]}]))
     assert np.abs(moved - shown).max() > 1e-2
+    # a time's moving objects are made once for the views that share its edits (a rig's cameras), not for others
+    m = scene.moving_at(0.0)
+    assert scene.moving_at(0.0) is m and len(m) == len(scene.actors.copy_of(0, 0.0))
+    assert scene.moving_at(0.0, actor_edits([{"id": "car-1", "hide": True}])) is None
+    np.testing.assert_array_equal(scene.moving_at(0.0).means, m.means)
+    assert scene.moving_at(2.5) is not m
     # the request carries the edits: another edit, another ETag; a scene without actors refuses them
     plain = request(validated({"camera": "CAM_FRONT", "time": 0.0}), scene.rig)
     edited = request(validated({"camera": "CAM_FRONT", "time": 0.0, "actors": [{"id": "car-1", "hide": True}]}),

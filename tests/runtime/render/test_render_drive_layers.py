@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 from render_scenes import concat, look_at, pinhole, random_gaussians
 from test_render_parts import LAYERED_ATOL
-from xyzcyl.runtime.render import render
+from xyzcyl.runtime.render import Gaussians, render
 from xyzcyl.runtime.rig import load_rig
-from xyzcyl.runtime.scene import Scene, SceneError, composite_layers
+from xyzcyl.runtime.scene import LAYER_COVER, Scene, SceneError, composite_layers
 from xyzcyl.testing import EXAMPLE_RIG
 from xyzcyl.testing.drives import pose
 
@@ -48,13 +48,15 @@ def test_the_primary_layer_drawn_first_over_the_rest():
     scene = _scene(g, keyframe_of, _drive([0.0, 30.0], [0.0, 1.0], [0, 1]))
     assert scene.primary_keyframe(cam) == 0
     s_rgb, s_depth, s_alpha = scene.render(cam)
-    # Scene draws each layer behind the ones before in the raster (render's behind): the composite's to LAYERED_ATOL
-    np.testing.assert_allclose(s_rgb, rgb, atol=LAYERED_ATOL)
-    np.testing.assert_allclose(s_alpha, alpha, atol=LAYERED_ATOL)
+    # Scene draws each layer behind the ones before in the raster (render's behind, the tiles those in front covered
+    # theirs: LAYER_COVER): the composite's to LAYERED_ATOL
+    c_rgb, _, c_alpha = composite_layers(a, b, cover=LAYER_COVER)
+    np.testing.assert_allclose(s_rgb, c_rgb, atol=LAYERED_ATOL)
+    np.testing.assert_allclose(s_alpha, c_alpha, atol=LAYERED_ATOL)
     # the far keyframe primary: its Gaussians cover the near ones where they are opaque (not what one pass draws)
     flipped = _scene(g, 1 - keyframe_of, _drive([0.0, 30.0], [0.0, 1.0], [0, 1]))
     f_rgb, _, _ = flipped.render(cam)
-    b_rgb, _, _ = composite_layers(b, a)
+    b_rgb, _, _ = composite_layers(b, a, cover=LAYER_COVER)
     np.testing.assert_allclose(f_rgb, b_rgb, atol=LAYERED_ATOL)
     assert np.abs(f_rgb - whole.rgb).max() > 0.1
 
@@ -83,7 +85,7 @@ def test_with_viewpoint_chunks_the_primary_group_then_its_neighbours_then_the_re
         s = scene(order)
         assert s.primary_keyframe(cam) == 0
         rgb, depth, alpha = s.render(cam)
-        e_rgb, e_depth, e_alpha = composite_layers(*(layers[i] for i in order))
+        e_rgb, e_depth, e_alpha = composite_layers(*(layers[i] for i in order), cover=LAYER_COVER)
         np.testing.assert_allclose(rgb, e_rgb, atol=LAYERED_ATOL)           # render's behind (first test)
         np.testing.assert_allclose(alpha, e_alpha, atol=LAYERED_ATOL)
         np.testing.assert_allclose(depth, e_depth, atol=LAYERED_ATOL * 16)  # metres: x the farthest, 16 m
@@ -125,14 +127,16 @@ def test_a_still_egos_view_is_drawn_from_its_keyframe_nearest_in_time():
     chunk = vp.gaussians
     vp.gaussians = lambda i: read.append(i) or chunk(i)
     assert scene.primary_keyframe(cam, 102.0) == 1 and scene.primary_keyframe(cam, 100.0) == 0
+    nothing = render(Gaussians.empty(), cam)     # the third layer (no keyframe left): it still finishes covered tiles
     rgb, _, alpha = scene.render(cam, 102.0)
-    e_rgb, _, e_alpha = composite_layers(render(b, cam), render(concat(s0, s2), cam))
+    e_rgb, _, e_alpha = composite_layers(render(b, cam), render(concat(s0, s2), cam), nothing,
+                                       cover=LAYER_COVER)
     np.testing.assert_allclose(rgb, e_rgb, atol=LAYERED_ATOL)               # render's behind (first test)
     np.testing.assert_allclose(alpha, e_alpha, atol=LAYERED_ATOL)
     assert sorted(read) == [1, 2]
     read.clear()
     rgb0, _, _ = scene.render(cam, 100.0)
-    e_rgb0, _, _ = composite_layers(render(concat(a, s0), cam), render(s2, cam))
+    e_rgb0, _, _ = composite_layers(render(concat(a, s0), cam), render(s2, cam), nothing, cover=LAYER_COVER)
     np.testing.assert_allclose(rgb0, e_rgb0, atol=LAYERED_ATOL)
     assert sorted(read) == [0, 2] and np.abs(rgb0 - rgb).max() > 0.1
 

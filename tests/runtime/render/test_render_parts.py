@@ -112,3 +112,91 @@ def test_rows_that_stopped_are_skipped_and_the_rest_drawn_exactly():
     assert (got.state.row_evals[mixed] <= alone.state.row_evals[mixed]).all()
     assert got.state.row_evals[mixed].sum() < 0.9 * alone.state.row_evals[mixed].sum()
     assert got.state.row_evals.sum() < alone.state.row_evals.sum()
+
+
+def test_tiles_the_layers_in_front_cover_are_finished_as_they_drew_them():
+    """render(..., behind=a, cover=c): a tile where a left no pixel more than c of its light is a's alone, its colour
+    and depth divided by its alpha (alpha 1), and none of the set behind is drawn there; every other tile is the
+    composite as before. Checked against composite_layers(..., cover=c), the reference, for two layers behind a
+    half-transparent wall (each pixel of it keeps ~4 % of its light, as a drive's detail cells do) whose edge
+    crosses tiles."""
+    ys, xs = np.meshgrid(np.arange(-1.6, 0.21, 0.05), np.arange(-2.2, 2.21, 0.05), indexing="ij")
+    means = np.stack([xs.ravel(), ys.ravel(), np.full(xs.size, 3.0)], 1).astype(np.float32)
+    n = len(means)
+    rng = np.random.default_rng(5)
+    wall = Gaussians(means, np.tile(np.float32([1, 0, 0, 0]), (n, 1)), np.full((n, 3), np.log(0.03), np.float32),
+                     np.full(n, 1.2, np.float32), rng.uniform(-0.5, 0.5, (n, 1, 3)).astype(np.float32))
+    mid = random_gaussians(rng, 500, lo=(-3, -2, 5), hi=(3, 2, 7))
+    back = random_gaussians(rng, 500, lo=(-3, -2, 8), hi=(3, 2, 12))
+    cam = pinhole()
+    a = render(wall, cam)
+    left = 1.0 - a.alpha
+    assert 0.01 < np.median(left[left < 0.5]) < 0.1        # the wall: a few % of the light left, not opaque
+    cover = 0.1
+    b = render(mid, cam, behind=render(wall, cam), cover=cover)
+    got = render(back, cam, background=(0.2, 0.5, 0.9), behind=b, cover=cover)
+    e_rgb, e_depth, e_alpha = composite_layers(a, render(mid, cam), render(back, cam, background=(0.2, 0.5, 0.9)),
+                                               cover=cover)
+    np.testing.assert_allclose(got.rgb, e_rgb, atol=LAYERED_ATOL)
+    np.testing.assert_allclose(got.alpha, e_alpha, atol=LAYERED_ATOL)
+    np.testing.assert_allclose(got.depth, e_depth, atol=LAYERED_ATOL * 10)    # metres, as above
+    # the covered tiles: a's pixels renormalised exactly (float32 division), nothing behind drawn there
+    th, tw = cam.height // K.TILE, cam.width // K.TILE
+    covered = (left[: th * K.TILE, : tw * K.TILE].reshape(th, K.TILE, tw, K.TILE).max(axis=(1, 3)) <= cover)
+    assert 0.1 < covered.mean() < 0.9                       # some tiles covered, some not
+    px = np.repeat(np.repeat(covered, K.TILE, 0), K.TILE, 1)
+    H, W = px.shape
+    np.testing.assert_allclose(got.rgb[:H, :W][px], a.rgb[:H, :W][px] / a.alpha[:H, :W][px][:, None], rtol=1e-6)
+    assert (got.alpha[:H, :W][px] == 1).all()
+    np.testing.assert_array_equal(got.depth[:H, :W][px], a.depth[:H, :W][px])
+    assert (got.state.row_evals.reshape(-1)[: th * tw].reshape(th, -1)[:, :tw][covered] == 0).all()
+    # elsewhere (one layer behind the wall) what the exact composite gives: the light the wall leaves shows what
+    # lies behind
+    one = render(back, cam, background=(0.2, 0.5, 0.9), behind=render(wall, cam), cover=cover)
+    exact = render(back, cam, background=(0.2, 0.5, 0.9), behind=render(wall, cam))
+    np.testing.assert_array_equal(one.rgb[:H, :W][~px], exact.rgb[:H, :W][~px])
+    np.testing.assert_array_equal(one.rgb[:H, :W][px], got.rgb[:H, :W][px])
+    assert np.abs(exact.rgb[:H, :W][px] - one.rgb[:H, :W][px]).max() > 1e-3     # the rule changed those pixels
+    with pytest.raises(ValueError, match="cover"):
+        render(back, cam, behind=a, cover=1.0)
+    # the Gaussians that touch only covered tiles are not sorted or binned (kernels.open_slots): every open tile
+    # lists the same Gaussians in the same order as without the cull, and fewer instances are made in all
+    ntx, nty = -(-cam.width // K.TILE), -(-cam.height // K.TILE)
+    tiles = K.covered_tiles(a.alpha, ntx, nty, np.float32(cover))
+    assert tiles.any() and not tiles.all()
+    culled, whole = _prepare(back, cam, RenderOptions(), covered=tiles), _prepare(back, cam, RenderOptions())
+    for t in np.flatnonzero(~tiles):
+        np.testing.assert_array_equal(culled[4][culled[2][culled[1][t]:culled[1][t + 1]]],
+                                      whole[4][whole[2][whole[1][t]:whole[1][t + 1]]])
+    assert len(culled[2]) < len(whole[2])
+
+
+def test_covered_tiles_of_an_equirect_view_across_its_seam():
+    """render's cover in a panorama: the front layer a shell around the camera on one side only (its x > -1 part:
+    the seam at azimuth 180 degrees, behind, stays open); the Gaussians behind it whose tile range wraps the seam are
+    kept where they touch an open tile (kernels.open_slots, both pieces), and the view equals the reference."""
+    from render_scenes import sphere_shell
+    from xyzcyl.runtime.camera import Camera
+
+    rng = np.random.default_rng(8)
+    shell = sphere_shell(3.0, (0, 0, 0), 60, rng)
+    front = shell.subset(shell.means[:, 0] > -1.0)
+    back = sphere_shell(8.0, (0, 0, 0), 40, rng)
+    cam = Camera(model="equirectangular", cam_to_ego=np.eye(4), width=192, height=96)
+    a = render(front, cam)
+    cover = 0.1
+    got = render(back, cam, background=(0.2, 0.5, 0.9), behind=render(front, cam), cover=cover)
+    e_rgb, _, e_alpha = composite_layers(a, render(back, cam, background=(0.2, 0.5, 0.9)), cover=cover)
+    np.testing.assert_allclose(got.rgb, e_rgb, atol=LAYERED_ATOL)
+    np.testing.assert_allclose(got.alpha, e_alpha, atol=LAYERED_ATOL)
+    ntx, nty = -(-cam.width // K.TILE), -(-cam.height // K.TILE)
+    tiles = K.covered_tiles(a.alpha, ntx, nty, np.float32(cover))
+    assert 0.2 < tiles.mean() < 0.8
+    culled, whole = _prepare(back, cam, RenderOptions(), covered=tiles), _prepare(back, cam, RenderOptions())
+    ids_in = [set(culled[4][culled[2][culled[1][t]:culled[1][t + 1]]].tolist()) for t in range(ntx * nty)]
+    col = [set().union(*(ids_in[r * ntx + c] for r in range(nty))) for c in (0, ntx - 1)]
+    assert col[0] & col[1]                  # Gaussians whose footprint wraps the seam, kept
+    for t in np.flatnonzero(~tiles):
+        np.testing.assert_array_equal(culled[4][culled[2][culled[1][t]:culled[1][t + 1]]],
+                                      whole[4][whole[2][whole[1][t]:whole[1][t + 1]]])
+    assert len(culled[2]) < len(whole[2])
