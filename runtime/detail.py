@@ -591,12 +591,19 @@ def _cells_row(depth, keep, y, i, rays, f, scale, Rce, tce, qcell, footprint, th
             b = tv[0] * e1x + tv[1] * e1y + tv[2] * e1z
             cc = tv[0] * e2x + tv[1] * e2y + tv[2] * e2z
             m00, m11, m01 = a * a + b * b, cc * cc, b * cc
-            phi = 0.5 * math.atan2(2 * m01, m00 - m11)
             mid = 0.5 * (m00 + m11)
             rad = math.sqrt((0.5 * (m00 - m11)) ** 2 + m01 * m01)
+            # the reference's phi = atan2(2 m01, m00 - m11) / 2 in (-pi/2, pi/2], by the half-angle formulas from
+            # cos 2phi = (m00 - m11) / (2 rad) (cos phi >= 0; sin phi takes 2 m01's sign, a signed zero as atan2
+            # does): two square roots for atan2, cos and sin
+            if rad > 0:
+                c2 = min(max(0.5 * (m00 - m11) / rad, -1.0), 1.0)
+                cp = math.sqrt(0.5 * (1.0 + c2))
+                sp = math.copysign(math.sqrt(0.5 * (1.0 - c2)), m01)
+            else:
+                cp, sp = 1.0, 0.0
             sd1 = math.sqrt(max(mid + rad, 1e-24))
             sd2 = math.sqrt(max(mid - rad, 1e-24))
-            cp, sp = math.cos(phi), math.sin(phi)
             Rl[0, 0], Rl[1, 0], Rl[2, 0] = cp * e1x + sp * e2x, cp * e1y + sp * e2y, cp * e1z + sp * e2z
             Rl[0, 1], Rl[1, 1], Rl[2, 1] = -sp * e1x + cp * e2x, -sp * e1y + cp * e2y, -sp * e1z + cp * e2z
             Rl[0, 2], Rl[1, 2], Rl[2, 2] = nx, ny, nz
