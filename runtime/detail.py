@@ -37,6 +37,7 @@ steps and settings; docs/results.md "Detail Gaussians" the measurements behind t
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, fields
 
 import numba
@@ -745,12 +746,19 @@ class CameraDetail:
         return cls(grid, d, keep, conf, np.asarray(means, np.float64), cell_footprint(grid, xs, ys, d[ys, xs]), c8)
 
     def cell_colours(self) -> np.ndarray:
-        """[M, 3] uint8: the kept cells' colours (their grid pixel's), in Gaussian order."""
-        return self.colours[self.keep]
+        """[M, 3] uint8: the kept cells' colours (their grid pixel's), in Gaussian order (made once: the maps are
+        not changed after build, dataclasses.replace makes a new detail)."""
+        return self._once("_cell_colours", lambda: self.colours[self.keep])
 
     def cell_conf(self) -> np.ndarray:
-        """[M] int8: the kept cells' confidence, in Gaussian order."""
-        return self.conf[self.keep]
+        """[M] int8: the kept cells' confidence, in Gaussian order (made once, as cell_colours)."""
+        return self._once("_cell_conf", lambda: self.conf[self.keep])
+
+    def _once(self, key: str, make: Callable[[], np.ndarray]) -> np.ndarray:
+        v = self.__dict__.get(key)
+        if v is None:
+            v = self.__dict__[key] = make()     # a frozen dataclass: its __dict__ holds the memo
+        return v
 
     def max_pyramid(self) -> list[np.ndarray]:
         """[PYRAMID_LEVELS] of [h, w] float32: level L holds the largest kept-cell depth within 2^L cells (square
@@ -794,21 +802,28 @@ def coarse_radius_cells(log_scales: np.ndarray, grid: Camera, z: np.ndarray, u: 
     return sigma3 * f / np.maximum(z, 1e-6)
 
 
-def cull_covered(coarse: Gaussians, details: list[CameraDetail], tolerance: float) -> np.ndarray:
+def cull_covered(coarse: Gaussians, details: list[CameraDetail], tolerance: float,
+                 pyramids: list[np.ndarray] | None = None) -> np.ndarray:
     """[N] bool: the coarse Gaussians to keep. A Gaussian is culled when, in some input camera, its centre projects
     onto the image and a kept detail cell within its footprint (3 sigma, as a window of 2^L cells, at most 64) lies
     behind it or within ``tolerance`` of it (its camera z < (1 + tolerance) x that cell's depth): composited in
     front of that cell, it would veil or blur a surface the camera saw sharply. What is left lies behind every
-    detail surface its footprint touches (disocclusions) or where no camera has detail."""
+    detail surface its footprint touches (disocclusions) or where no camera has detail. pyramids: detail_pyramids
+    of ``details``, when several sets are culled against the same details (else made here)."""
     keep = np.ones(len(coarse), bool)
-    for d in details:
+    for i, d in enumerate(details):
         idx, u, v, z = _grid_pixels(d.grid, coarse.means)
         level = np.clip(np.ceil(np.log2(np.maximum(coarse_radius_cells(coarse.log_scales[idx], d.grid, z, u, v),
                                                    1.0))), 0, PYRAMID_LEVELS - 1).astype(np.int64)
-        pyr = np.stack(d.max_pyramid())
+        pyr = pyramids[i] if pyramids is not None else np.stack(d.max_pyramid())
         dmax = pyr[level, v, u]
         keep[idx[(dmax > 0) & (z < dmax * (1.0 + tolerance))]] = False
     return keep
+
+
+def detail_pyramids(details: list[CameraDetail]) -> list[np.ndarray]:
+    """[PYRAMID_LEVELS, h, w] float32 per detail: its max_pyramid stacked, as cull_covered takes them."""
+    return [np.stack(d.max_pyramid()) for d in details]
 
 
 def cull_covered_reference(coarse: Gaussians, details: list[CameraDetail], tolerance: float) -> np.ndarray:

@@ -645,6 +645,7 @@ class _Kept:
     owners: VoxelOwners | None = None
     means: list[np.ndarray] = field(default_factory=list)          # [N_i, 3] per part
     store: list[Gaussians | Path] = field(default_factory=list)    # the part, or its .npz in ``spill``
+    rows: list[np.ndarray | None] = field(default_factory=list)    # a spilled part: its file's rows kept (None: all)
     level: list[np.ndarray] = field(default_factory=list)
     frame: list[np.ndarray] = field(default_factory=list)
     shared: list[np.ndarray] = field(default_factory=list)
@@ -653,10 +654,10 @@ class _Kept:
     deduped: int = 0                                    # parts before this one have been through dedupe
     next_id: int = 0
 
-    def _put(self, i: int | None, g: Gaussians) -> Gaussians | Path:
+    def _put(self, g: Gaussians) -> Gaussians | Path:
         if self.spill is None:
             return g
-        path = self.spill / f"part_{len(self.store) if i is None else i:05d}.npz"
+        path = self.spill / f"part_{len(self.store):05d}.npz"
         np.savez(path, means=g.means, quats=g.quats, log_scales=g.log_scales, opacity_logits=g.opacity_logits,
                  sh=g.sh)
         return path
@@ -666,13 +667,15 @@ class _Kept:
         if isinstance(s, Gaussians):
             return s
         with np.load(s) as z:
-            return Gaussians(**{k: z[k] for k in ("means", "quats", "log_scales", "opacity_logits", "sh")})
+            g = Gaussians(**{k: z[k] for k in ("means", "quats", "log_scales", "opacity_logits", "sh")})
+        return g if self.rows[i] is None else g.subset(self.rows[i])
 
     def add(self, g: Gaussians, level: np.ndarray, n: int) -> None:
         self.start.append(self.next_id)
         self.next_id += len(g)
         self.now.append(None)
-        self.store.append(self._put(None, g))
+        self.store.append(self._put(g))
+        self.rows.append(None)
         self.means.append(np.array(g.means, np.float32))
         self.level.append(level)
         self.frame.append(np.full(len(g), n, np.int32))
@@ -681,7 +684,14 @@ class _Kept:
     def keep(self, i: int, m: np.ndarray) -> None:
         """Part i keeps only the cells ``m`` selects (shared or not)."""
         if not m.all():
-            self.store[i] = self._put(i, self.part(i).subset(m))
+            if isinstance(self.store[i], Gaussians):
+                self.store[i] = self.store[i].subset(m)
+            else:       # a spilled part is not written again: the rows of its file it keeps
+                r = self.rows[i]
+                if r is None:
+                    self.rows[i] = m.copy()
+                else:
+                    r[np.flatnonzero(r)[~m]] = False
             self.means[i], self.level[i] = self.means[i][m], self.level[i][m]
             self.frame[i], self.shared[i] = self.frame[i][m], self.shared[i][m]
             row = np.where(m, np.cumsum(m) - 1, -1)
@@ -766,7 +776,7 @@ def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None,
     keyframes are made instead of ``workers`` (`xyzcyl batch`: on Ray actors): an iterator of make_keyframe(rec,
     drive, k, **opts) for each of ``keys`` in order; ``rec`` is then only asked for ``scene_model()``, and a
     one-frame drive is refused (make it with Reconstructor.reconstruct)."""
-    from .detail import carve_details, cull_covered
+    from .detail import carve_details, cull_covered, detail_pyramids
     from .exposure import Harmoniser
     from .inference import DEFAULT_DETAIL
     from .scene import Scene
@@ -824,10 +834,11 @@ def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None,
         n, details, parts, keep, _, gone = entry
         if any(m.any() for m in gone):       # drawn only around this keyframe's time (actors_of)
             moved.append((n, _concat([g.subset(m) for g, m in zip(parts, gone) if m.any()])))
+        pyramids = detail_pyramids(details) if details and len(coarse_kept.store) else None    # once for all
         for i in range(len(coarse_kept.store)):
             g = coarse_kept.part(i)
             if details and len(g):
-                coarse_kept.keep(i, cull_covered(g, details, tol))
+                coarse_kept.keep(i, cull_covered(g, details, tol, pyramids))
         for g, k in zip(parts, keep):
             g = g.subset(k)
             detail_kept.add(g, voxel_levels(_cell_footprint_of(g)), n)

@@ -176,6 +176,42 @@ def test_voxel_owners_keep_what_dedupe_frames_keeps_as_keyframes_arrive(seed):
     assert 0 < alive.sum() < n
 
 
+def test_spilled_parts_keep_the_rows_they_keep_in_memory(tmp_path):
+    """A drive's kept cells spilled to disk (runtime.drive._Kept with a spill folder) are written once; each keep()
+    after that narrows the rows of the file that part() reads: the same Gaussians as parts kept in memory."""
+    from xyzcyl.runtime.drive import _Kept
+    from xyzcyl.runtime.render import Gaussians
+
+    rng = np.random.default_rng(2)
+
+    def random_gaussians(rng, n):
+        return Gaussians(rng.normal(size=(n, 3)).astype(np.float32), rng.normal(size=(n, 4)).astype(np.float32),
+                         rng.normal(size=(n, 3)).astype(np.float32), rng.normal(size=n).astype(np.float32),
+                         rng.normal(size=(n, 1, 3)).astype(np.float32))
+
+    origins = np.zeros((1, 3))
+    mem, disk = _Kept(origins), _Kept(origins, tmp_path)
+    parts = [random_gaussians(rng, n) for n in (50, 80)]
+    for k in (mem, disk):
+        for g in parts:
+            k.add(g, np.zeros(len(g), np.int8), 0)
+    written = {p.name: p.stat().st_mtime_ns for p in tmp_path.iterdir()}
+    masks = [rng.random(50) < 0.7, rng.random(80) < 0.5]
+    for i, m in enumerate(masks):
+        mem.keep(i, m)
+        disk.keep(i, m)
+    for i, m in enumerate(masks):       # a second narrowing, of what the first kept
+        again = rng.random(int(m.sum())) < 0.6
+        mem.keep(i, again)
+        disk.keep(i, again)
+    for i in range(2):
+        a, b = mem.part(i), disk.part(i)
+        for name in ("means", "quats", "log_scales", "opacity_logits", "sh"):
+            np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
+    assert len(disk.part(1)) == int(again.sum()) < 40
+    assert {p.name: p.stat().st_mtime_ns for p in tmp_path.iterdir()} == written and len(written) == 2
+
+
 def test_dedupe_frames_prefers_the_nearer_viewpoint_among_equally_fine_cells():
     # one voxel seen as finely by three keyframes: the ones at the origin stood still (one viewpoint: the earlier
     # keeps it), the third drove 10 m on, next to the voxel, and takes it over; a coarser cell never does
