@@ -209,7 +209,7 @@ def _prepare(g: Gaussians | Sequence[Gaussians], camera, opts: RenderOptions, cu
                                     campos, cam, ptab, bool(opts.antialiased), opts.radius_mode == "opacity",
                                     pre[a:b], base[a:b], rows, trange, dep, gid, counts[a:b])
             if offset:                  # the part's own indices -> indices in the concatenation
-                gid[K.visible_slots(counts[a:b], base[a:b])] += offset
+                K.offset_slots(gid, counts[a:b], base[a:b], offset)
         offset += len(p)
     t1 = time.perf_counter()
     visible = K.visible_slots(counts, base)
@@ -219,7 +219,7 @@ def _prepare(g: Gaussians | Sequence[Gaussians], camera, opts: RenderOptions, cu
         visible = K.open_slots(visible, trange, sat, ntx)
     # depth order: float32 depths (positive: near > 0, so their bit patterns order like the values), ties by
     # Gaussian index (slots increase with it); the reference sorts the same keys
-    order = K.depth_order(visible, dep[visible].astype(np.float32).view(np.uint32))
+    order = K.depth_order(visible, K.depth_keys(dep, visible))
     start, ids = K.bin_kernel(order, trange, ntx, nty, numba.get_num_threads())
     t2 = time.perf_counter()
     return ntx, start, ids, rows, gid, {"project": t1 - t0, "sort_bin": t2 - t1}

@@ -629,6 +629,23 @@ def visible_slots(counts, base):
 
 
 @njit(cache=True, nogil=True)
+def offset_slots(gid, counts, base, offset):
+    """gid[s] += offset for the written slots of chunks (counts, base; as visible_slots lists them)."""
+    for ch in range(counts.shape[0]):
+        for j in range(counts[ch]):
+            gid[base[ch] + j] += offset
+
+
+@njit(cache=True, nogil=True)
+def depth_keys(dep, visible):
+    """[n] uint32: the bit patterns of float32(dep[visible]) (positive depths: they order like the values)."""
+    out = np.empty(visible.shape[0], np.float32)
+    for k in range(visible.shape[0]):
+        out[k] = np.float32(dep[visible[k]])
+    return out.view(np.uint32)
+
+
+@njit(cache=True, nogil=True)
 def depth_order(visible, keys):
     """Stable LSD radix sort of `visible` (slot ids, ascending) by keys [n] uint32 (the bit patterns of
     positive float32 depths, which order like the values): three passes of 11, 11 and 10 bits (2048-bin
