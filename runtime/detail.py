@@ -37,7 +37,7 @@ steps and settings; docs/results.md "Detail Gaussians" the measurements behind t
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, fields
 
 import numba
@@ -1099,9 +1099,44 @@ def model_grid_depth(coarse: Gaussians, grid: Camera, max_width: int = 480) -> t
     return r.depth, r.alpha
 
 
+MIN_COMMON_CELLS = 20   # cells with a depth sample and the model's depth before the samples scale the model's depth
+#                         (runtime.lidar.fuse_depth's rule: fewer give no trustworthy scale)
+
+
+def depth_samples(grid: Camera, coarse: Gaussians, points: np.ndarray | None, opts: DetailOptions
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """(the model's depth [h, w] float32 at ``grid``'s cells, where it has one [h, w] bool, the points' nearest
+    depth per cell [h, w] (lidar_grid_depth; 0 where none) or None without points): what camera_detail places its
+    cells by. points [P, 3] metres, ego frame."""
+    m_depth, m_alpha = model_grid_depth(coarse, grid)
+    has_model = (m_alpha >= 0.5) & (m_depth > 0)
+    sparse = None
+    if points is not None and len(points):
+        sparse = lidar_grid_depth(points, grid, opts.occlusion_deg, opts.min_depth, opts.max_depth)
+    return m_depth, has_model, sparse
+
+
+def rig_depth_scale(cameras: Sequence[Camera], coarse: Gaussians, points: np.ndarray, opts: DetailOptions
+                    ) -> float | None:
+    """One factor for the model's depth in all of a keyframe's ``cameras`` from stereo points (runtime.stereo;
+    [P, 3] metres, ego frame): the median of point depth over model depth on all the cameras' cells that have both,
+    pooled (None below MIN_COMMON_CELLS). The model's scale error is the model's, one a frame, while one camera's
+    points can be a dozen on one car: on the PandaSet drive the front-left camera's 21-24 points said 1.14-1.22, its
+    neighbours' 44-193 said 1.01-1.07, and the front camera (8-14 points, too few) kept 1; one factor for all put
+    every camera above one frame alone (docs/results.md "Drives, camera only: one depth scale for the rig")."""
+    ratios = []
+    for cam in cameras:
+        m_depth, has_model, sparse = depth_samples(grid_camera(cam, opts.stride), coarse, points, opts)
+        if sparse is not None:
+            both = (sparse > 0) & has_model
+            ratios.append(sparse[both] / m_depth[both])
+    r = np.concatenate(ratios) if ratios else np.zeros(0)
+    return float(np.median(r)) if len(r) >= MIN_COMMON_CELLS else None
+
+
 def camera_detail(cam: Camera, image: np.ndarray, coarse: Gaussians, opts: DetailOptions,
                   lidar: np.ndarray | None = None, ego_mask: np.ndarray | None = None,
-                  ground: np.ndarray | None = None, sweep: bool = True
+                  ground: np.ndarray | None = None, sweep: bool = True, depth_scale: float | None = None
                   ) -> tuple[Gaussians, CameraDetail, dict[str, int]]:
     """The detail Gaussians of one input camera.
 
@@ -1112,27 +1147,27 @@ def camera_detail(cam: Camera, image: np.ndarray, coarse: Gaussians, opts: Detai
     returns spread over the image say where a surface stands clearly in front of the ground. False: the ground is
     the model's, and ``lidar`` (if any) a few hundred points triangulated between frames (runtime.stereo) that
     place only the cells near them: spread over a whole image from a dozen points on one car they would tell every
-    road cell beyond that car that it is behind a surface.
+    road cell beyond that car that it is behind a surface. depth_scale: the factor for the model's depth (None: the
+    median of the samples' depth over the model's on this camera's cells that have both, at least MIN_COMMON_CELLS of
+    them, else 1; stereo points get rig_depth_scale's, the rig's).
     Returns (Gaussians, the camera's CameraDetail, counts {"lidar": cells placed by LiDAR, "ground": by the ground
     plane, "model": by the model's depth, "far": at far_depth, "edge": dropped at depth edges})."""
     import cv2
 
     grid = grid_camera(cam, opts.stride)
     colours = grid_colours(image, grid, opts.sharpen, opts.footprint)
-    m_depth, m_alpha = model_grid_depth(coarse, grid)
-    has_model = (m_alpha >= 0.5) & (m_depth > 0)
+    m_depth, has_model, sparse = depth_samples(grid, coarse, lidar, opts)
     depth = np.zeros((grid.height, grid.width), np.float32)
     supported = np.zeros(depth.shape, bool)
     dense = np.zeros_like(depth)   # the LiDAR spread over the whole image (beyond the supported cells too)
-    scale = 1.0
-    if lidar is not None and len(lidar):
-        sparse = lidar_grid_depth(lidar, grid, opts.occlusion_deg, opts.min_depth, opts.max_depth)
+    scale = 1.0 if depth_scale is None else float(depth_scale)
+    if sparse is not None:
         supported = support_mask(sparse, _angle_pixels(grid, opts.support_deg))
         dense = densify(sparse, colours, opts.smooth_lambda, opts.smooth_sigma)
         supported &= dense > 0
         depth[supported] = dense[supported]
         both = (sparse > 0) & has_model
-        if both.sum() >= 20:   # the fuse_depth rule: fewer common cells give no trustworthy scale
+        if depth_scale is None and both.sum() >= MIN_COMMON_CELLS:   # fewer give no trustworthy scale
             scale = float(np.median(sparse[both] / m_depth[both]))
     md = np.zeros_like(depth)
     if opts.model_depth and (~supported & has_model).any():

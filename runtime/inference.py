@@ -427,7 +427,7 @@ class Reconstructor:
         a camera's own ego_mask file wins. lidar_is_sweep=False (``lidar`` is a few hundred stereo points, on walls
         and cars rather than the road: no plane fits them): the ground plane and its trust are the model's, as
         camera only, and the points place only the cells near them (runtime.detail.camera_detail's ``sweep``)."""
-        from .detail import camera_detail, fit_ground, model_ground, read_ego_mask
+        from .detail import camera_detail, fit_ground, model_ground, read_ego_mask, rig_depth_scale
 
         parts, details, owners = [], [], []
         c = {f"detail_{k}": 0 for k in ("lidar", "ground", "model", "far", "edge")}
@@ -435,6 +435,9 @@ class Reconstructor:
         swept = lidar is not None and lidar_is_sweep
         if opts.ground:       # the LiDAR's ground, else (camera only, stereo points) the model's
             plane = fit_ground(lidar) if swept else model_ground(coarse)
+        # stereo points: one depth scale for the rig's cameras (rig_depth_scale); a sweep: each camera its own
+        rig_scale = rig_depth_scale([c for c in rig.cameras if c.model == "pinhole"], coarse, lidar, opts) \
+            if lidar is not None and not lidar_is_sweep else None
         for img, cam in zip(images, rig.cameras):
             if cam.model != "pinhole":
                 continue
@@ -442,7 +445,7 @@ class Reconstructor:
             mask = read_ego_mask(rig.path(mask_file), cam) if mask_file is not None else \
                 (ego_masks or {}).get(cam.name)
             g, d, n = camera_detail(cam, as_rgb(img, cam), coarse, opts, lidar, mask, plane,
-                                    sweep=swept)
+                                    sweep=swept, depth_scale=rig_scale)
             parts.append(g)
             details.append(d)
             owners.append(rig.names.index(cam.name))

@@ -7,10 +7,12 @@ nearer than that must sit on the ground, not on the far sphere."""
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from xyzcyl.runtime.camera import Camera
 from xyzcyl.runtime.detail import (
     DetailOptions,
     camera_detail,
+    depth_samples,
     fuse_details,
     grid_camera,
     ground_depth,
@@ -109,3 +111,49 @@ def test_stereo_points_keep_the_model_ground_and_the_road_beyond_them():
     assert stereo[0]["detail_ground"] >= 0.95 * only[0]["detail_ground"]  # the points hide only the cells they cover
     assert stereo[0]["detail_lidar"] > 0                                   # ... and place the cells near them
     assert np.all(stereo[1].conf[stereo[1].keep] == 1)                     # stereo cells are not as trusted as LiDAR's
+
+
+def _wall_camera(yaw_deg: float) -> Camera:
+    """An OpenCV camera at (0, 0, 1) ego, level, turned ``yaw_deg`` left of ego x, 160x90 px."""
+    a = np.radians(yaw_deg)
+    fwd = np.array([np.cos(a), np.sin(a), 0.0])
+    right = np.array([np.sin(a), -np.cos(a), 0.0])
+    T = np.eye(4)
+    T[:3, :3] = np.stack([right, np.cross(fwd, right), fwd], axis=1)
+    T[:3, 3] = (0.0, 0.0, 1.0)
+    return Camera(K=np.array([[80.0, 0, 79.5], [0, 80.0, 44.5], [0, 0, 1.0]]), cam_to_ego=T, width=160, height=90,
+                  name=f"yaw{yaw_deg:g}")
+
+
+def test_stereo_points_scale_every_camera_of_the_rig_by_one_factor():
+    """Camera only, stereo points (lidar_is_sweep=False) scale the model's depth of all the rig's cameras by one
+    factor, the median over all their cells (runtime.detail.rig_depth_scale): a camera that sees none of the points
+    is scaled as the one that sees them all (the model's scale error is the model's). A sweep keeps each camera's
+    own. The model: an opaque wall 10 m ahead (x = 10); the points: 60 on the wall's rays at 12.5 m (1.25x), all in
+    the first camera's view; the second camera looks 70 degrees to the left at the same wall."""
+    ys, zs = np.meshgrid(np.arange(-12.0, 12.0, 0.1), np.arange(-3.0, 5.0, 0.1))
+    n = ys.size
+    wall = Gaussians(np.stack([np.full(n, 10.0), ys.ravel(), zs.ravel()], 1).astype(np.float32),
+                     np.tile(np.float32([1, 0, 0, 0]), (n, 1)), np.tile(np.log(np.float32([0.01, 0.1, 0.1])), (n, 1)),
+                     np.full(n, 6.0, np.float32), np.full((n, 1, 3), 0.2, np.float32))
+    rng = np.random.default_rng(0)
+    on_wall = np.stack([np.full(60, 10.0), rng.uniform(-2, 2, 60), rng.uniform(0.0, 2.0, 60)], 1)
+    origin = np.array([0.0, 0.0, 1.0])
+    pts = origin + 1.25 * (on_wall - origin)
+    ahead, left = _wall_camera(0.0), _wall_camera(70.0)
+    opts = DetailOptions(ground=False)
+    img = np.full((90, 160, 3), 0.4, np.float32)
+    rig = Rig(cameras=(ahead, left))
+    g_left = grid_camera(left, opts.stride)
+    uv, _, front = g_left.project_depth(pts)
+    assert not (front & g_left.inside(uv)).any()                       # none of the points in the left camera
+    m_depth, has_model, _ = depth_samples(g_left, wall, None, opts)
+    assert has_model.sum() > 500                                       # it sees the wall
+    ratio = {}
+    for name, sweep in (("stereo", False), ("sweep", True)):
+        _, details, _ = Reconstructor.camera_details(None, rig, [img, img], wall, pts, opts, {}, None, sweep)
+        d = details[1]
+        on = d.keep & has_model
+        ratio[name] = float(np.median(d.depth[on] / m_depth[on]))
+    assert ratio["stereo"] == pytest.approx(1.25, rel=0.03)           # the rig's factor, from the other camera
+    assert ratio["sweep"] == pytest.approx(1.0, rel=0.03)             # a sweep: its own (no return in view: 1)
