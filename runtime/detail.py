@@ -1116,17 +1116,15 @@ def depth_samples(grid: Camera, coarse: Gaussians, points: np.ndarray | None, op
     return m_depth, has_model, sparse
 
 
-def rig_depth_scale(cameras: Sequence[Camera], coarse: Gaussians, points: np.ndarray, opts: DetailOptions
-                    ) -> float | None:
-    """One factor for the model's depth in all of a keyframe's ``cameras`` from stereo points (runtime.stereo;
-    [P, 3] metres, ego frame): the median of point depth over model depth on all the cameras' cells that have both,
-    pooled (None below MIN_COMMON_CELLS). The model's scale error is the model's, one a frame, while one camera's
+def rig_depth_scale(samples: Sequence[tuple[np.ndarray, np.ndarray, np.ndarray | None]]) -> float | None:
+    """One factor for the model's depth in all of a keyframe's cameras from stereo points (runtime.stereo), given
+    each camera's depth_samples: the median of point depth over model depth on all the cameras' cells that have
+    both, pooled (None below MIN_COMMON_CELLS). The model's scale error is the model's, one a frame, while one camera's
     points can be a dozen on one car: on the PandaSet drive the front-left camera's 21-24 points said 1.14-1.22, its
     neighbours' 44-193 said 1.01-1.07, and the front camera (8-14 points, too few) kept 1; one factor for all put
     every camera above one frame alone (docs/results.md "Drives, camera only: one depth scale for the rig")."""
     ratios = []
-    for cam in cameras:
-        m_depth, has_model, sparse = depth_samples(grid_camera(cam, opts.stride), coarse, points, opts)
+    for m_depth, has_model, sparse in samples:
         if sparse is not None:
             both = (sparse > 0) & has_model
             ratios.append(sparse[both] / m_depth[both])
@@ -1136,7 +1134,8 @@ def rig_depth_scale(cameras: Sequence[Camera], coarse: Gaussians, points: np.nda
 
 def camera_detail(cam: Camera, image: np.ndarray, coarse: Gaussians, opts: DetailOptions,
                   lidar: np.ndarray | None = None, ego_mask: np.ndarray | None = None,
-                  ground: np.ndarray | None = None, sweep: bool = True, depth_scale: float | None = None
+                  ground: np.ndarray | None = None, sweep: bool = True, depth_scale: float | None = None,
+                  samples: tuple[np.ndarray, np.ndarray, np.ndarray | None] | None = None
                   ) -> tuple[Gaussians, CameraDetail, dict[str, int]]:
     """The detail Gaussians of one input camera.
 
@@ -1149,14 +1148,15 @@ def camera_detail(cam: Camera, image: np.ndarray, coarse: Gaussians, opts: Detai
     place only the cells near them: spread over a whole image from a dozen points on one car they would tell every
     road cell beyond that car that it is behind a surface. depth_scale: the factor for the model's depth (None: the
     median of the samples' depth over the model's on this camera's cells that have both, at least MIN_COMMON_CELLS of
-    them, else 1; stereo points get rig_depth_scale's, the rig's).
+    them, else 1; stereo points get rig_depth_scale's, the rig's). samples: depth_samples of this camera's grid
+    with ``lidar``, when already made (for rig_depth_scale).
     Returns (Gaussians, the camera's CameraDetail, counts {"lidar": cells placed by LiDAR, "ground": by the ground
     plane, "model": by the model's depth, "far": at far_depth, "edge": dropped at depth edges})."""
     import cv2
 
     grid = grid_camera(cam, opts.stride)
     colours = grid_colours(image, grid, opts.sharpen, opts.footprint)
-    m_depth, has_model, sparse = depth_samples(grid, coarse, lidar, opts)
+    m_depth, has_model, sparse = samples if samples is not None else depth_samples(grid, coarse, lidar, opts)
     depth = np.zeros((grid.height, grid.width), np.float32)
     supported = np.zeros(depth.shape, bool)
     dense = np.zeros_like(depth)   # the LiDAR spread over the whole image (beyond the supported cells too)

@@ -427,7 +427,15 @@ class Reconstructor:
         a camera's own ego_mask file wins. lidar_is_sweep=False (``lidar`` is a few hundred stereo points, on walls
         and cars rather than the road: no plane fits them): the ground plane and its trust are the model's, as
         camera only, and the points place only the cells near them (runtime.detail.camera_detail's ``sweep``)."""
-        from .detail import camera_detail, fit_ground, model_ground, read_ego_mask, rig_depth_scale
+        from .detail import (
+            camera_detail,
+            depth_samples,
+            fit_ground,
+            grid_camera,
+            model_ground,
+            read_ego_mask,
+            rig_depth_scale,
+        )
 
         parts, details, owners = [], [], []
         c = {f"detail_{k}": 0 for k in ("lidar", "ground", "model", "far", "edge")}
@@ -435,9 +443,14 @@ class Reconstructor:
         swept = lidar is not None and lidar_is_sweep
         if opts.ground:       # the LiDAR's ground, else (camera only, stereo points) the model's
             plane = fit_ground(lidar) if swept else model_ground(coarse)
-        # stereo points: one depth scale for the rig's cameras (rig_depth_scale); a sweep: each camera its own
-        rig_scale = rig_depth_scale([c for c in rig.cameras if c.model == "pinhole"], coarse, lidar, opts) \
-            if lidar is not None and not lidar_is_sweep else None
+        # stereo points: one depth scale for the rig's cameras (rig_depth_scale, from each camera's samples, made
+        # once and handed to camera_detail); a sweep: each camera its own
+        samples: dict[str, tuple] = {}
+        rig_scale = None
+        if lidar is not None and not lidar_is_sweep:
+            samples = {c.name: depth_samples(grid_camera(c, opts.stride), coarse, lidar, opts)
+                       for c in rig.cameras if c.model == "pinhole"}
+            rig_scale = rig_depth_scale(list(samples.values()))
         for img, cam in zip(images, rig.cameras):
             if cam.model != "pinhole":
                 continue
@@ -445,7 +458,7 @@ class Reconstructor:
             mask = read_ego_mask(rig.path(mask_file), cam) if mask_file is not None else \
                 (ego_masks or {}).get(cam.name)
             g, d, n = camera_detail(cam, as_rgb(img, cam), coarse, opts, lidar, mask, plane,
-                                    sweep=swept, depth_scale=rig_scale)
+                                    sweep=swept, depth_scale=rig_scale, samples=samples.get(cam.name))
             parts.append(g)
             details.append(d)
             owners.append(rig.names.index(cam.name))

@@ -68,6 +68,13 @@ class Chunk:
                 "bbox": self.bbox}
 
 
+def _chunk(i: int, keyframes: Sequence[int], g: Gaussians, viewpoints: Sequence[int] | None) -> Chunk:
+    """Chunk i (file group_NNN.ply) of ``keyframes`` holding ``g``; its viewpoint group from ``viewpoints`` (each
+    keyframe's group's first keyframe; None: its own)."""
+    return Chunk(tuple(int(k) for k in keyframes), len(g), _bbox(g), f"{CHUNKS_DIR}/group_{i:03d}.ply",
+                 None if viewpoints is None else int(viewpoints[keyframes[0]]))
+
+
 def _bbox(g: Gaussians) -> dict[str, list[float]] | None:
     if not len(g):
         return None
@@ -95,9 +102,7 @@ class Viewpoints:
               viewpoints: Sequence[int] | None = None) -> Viewpoints:
         """From each chunk's keyframes and Gaussians (in memory; files named group_NN.ply); ``viewpoints``: each
         keyframe's viewpoint group (its first keyframe; None: each chunk a group of its own)."""
-        chunks = [Chunk(tuple(int(k) for k in ks), len(g), _bbox(g), f"{CHUNKS_DIR}/group_{i:03d}.ply",
-                        None if viewpoints is None else int(viewpoints[ks[0]]))
-                  for i, (ks, g) in enumerate(zip(groups, gaussians))]
+        chunks = [_chunk(i, ks, g, viewpoints) for i, (ks, g) in enumerate(zip(groups, gaussians))]
         return cls(chunks, list(gaussians))
 
     @classmethod
@@ -110,8 +115,7 @@ class Viewpoints:
         (folder / CHUNKS_DIR).mkdir(exist_ok=True)
         chunks = []
         for i, (ks, g) in enumerate(zip(groups, gaussians)):
-            c = Chunk(tuple(int(k) for k in ks), len(g), _bbox(g), f"{CHUNKS_DIR}/group_{i:03d}.ply",
-                      None if viewpoints is None else int(viewpoints[ks[0]]))
+            c = _chunk(i, ks, g, viewpoints)
             g.save_ply(folder / c.file)
             chunks.append(c)
         out = cls(chunks, [None] * len(chunks), folder)
