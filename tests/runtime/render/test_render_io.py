@@ -68,6 +68,22 @@ def test_ply_rows_equal_a_field_by_field_reference(degree, dtype):
     assert ref.tobytes() == rows.tobytes()
 
 
+@pytest.mark.parametrize("degree", [0, 2])
+def test_ply_written_in_blocks_is_plyfiles_file_byte_for_byte(tmp_path, degree, monkeypatch):
+    """save_ply writes its header and then PLY_WRITE_ROWS rows at a time (no copy of the whole scene): the same
+    bytes as plyfile writes from the whole structured array, across block boundaries and for no rows."""
+    import xyzcyl.runtime.render.gaussians as G
+    from plyfile import PlyElement
+
+    monkeypatch.setattr(G, "PLY_WRITE_ROWS", 64)
+    for n in (0, 64, 1000):
+        g = random_gaussians(np.random.default_rng(n), n, degree=degree) if n else Gaussians.empty(degree)
+        g.save_ply(tmp_path / "ours.ply")
+        PlyData([PlyElement.describe(g.ply_rows(), "vertex")], text=False, byte_order="<").write(
+            str(tmp_path / "plyfile.ply"))
+        assert (tmp_path / "ours.ply").read_bytes() == (tmp_path / "plyfile.ply").read_bytes()
+
+
 def test_ply_properties_by_name_in_any_order(tmp_path):
     rng = np.random.default_rng(2)
     n = 5
