@@ -38,7 +38,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, fields, replace
 
 import numba
 import numpy as np
@@ -46,10 +46,11 @@ from xyzcyl.common.wire import detail_stride_error
 
 from .camera import Camera
 from .errors import FieldError, plain
+from .imageio import LUMA_BT601
 from .numba_cache import njit
 from .render import Gaussians
 from .render.gaussians import SH_C0
-from .rotations import rotmat_to_quat, rotmats_to_quats
+from .rotations import quat_to_rotmat, rotmat_to_quat, rotmats_to_quats
 
 
 class DetailError(FieldError):
@@ -70,6 +71,9 @@ class DetailOptions:
     #                                 road's discs are then slivers with gaps: contour-line moire)
     sharpen: float = 0.5            # unsharp mask of the cell colours (amount; its blur = the disc's footprint):
     #                                 pre-compensates the blur of overlapping discs
+    split: float = 0.03             # a cell with a quarter whose luma strays from the cell's by more than this
+    #                                 (BT.601 of sRGB 0..1) is drawn as its four quarters on the cell's disc
+    #                                 (split_cells; at stride 2 the pixels); 0: never
     opacity: float = 0.95           # opacity of a cell whose depth LiDAR supports
     model_opacity: float = 0.95     # opacity of a cell placed by the model's depth alone
     model_depth: bool = True        # give cells without LiDAR support the model's (scaled) depth; False: no cell
@@ -115,7 +119,7 @@ class DetailOptions:
             if not 0 < getattr(self, name) < 1:
                 raise bad(name, "must be in (0, 1)")
         for name in ("edge_ratio", "cull_tolerance", "far_depth", "ground_max", "sharpen", "dedupe",
-                     "surface_stretch"):
+                     "surface_stretch", "split"):
             if getattr(self, name) < 0:
                 raise bad(name, "must be >= 0")
         if self.max_depth <= self.min_depth:
@@ -695,24 +699,199 @@ def cell_gaussians_reference(grid: Camera, colours: np.ndarray, depth: np.ndarra
 
 def concat_gaussians(parts: list[Gaussians], masks: list[np.ndarray | None] | None = None) -> Gaussians:
     """The Gaussians of ``parts`` in order, each restricted to its boolean mask ([N_i] or None = all): one copy of
-    each field (the highest SH degree; lower-degree parts padded with zeros)."""
+    each field, written in place (the highest SH degree; lower-degree parts padded with zeros)."""
     masks = masks if masks is not None else [None] * len(parts)
     deg = max(p.sh_degree for p in parts)
     n_sh = (deg + 1) ** 2
+    sizes = [len(p) if m is None else int(np.count_nonzero(m)) for p, m in zip(parts, masks)]
+    total = sum(sizes)
+    out = {name: np.empty((total, *getattr(parts[0], name).shape[1:]), np.float32)
+           for name in ("means", "quats", "log_scales", "opacity_logits")}
+    out["sh"] = np.zeros((total, n_sh, 3), np.float32)
+    at = 0
+    for p, m, n in zip(parts, masks, sizes):
+        for name, dst in out.items():
+            a = getattr(p, name)
+            to = dst[at:at + n, :a.shape[1]] if name == "sh" else dst[at:at + n]
+            if m is None:
+                to[...] = a
+            elif a.dtype == np.float32 and name != "sh":
+                np.compress(m, a, axis=0, out=to)        # straight into place, no temporary
+            else:
+                to[...] = a[m]
+        at += n
+    return Gaussians.joined(**out)          # rows of checked Gaussians: not checked again
 
-    def take(a: np.ndarray, m: np.ndarray | None) -> np.ndarray:
-        return a if m is None else a[m]
 
-    sh = []
-    for p, m in zip(parts, masks):
-        part = take(p.sh, m)
-        if part.shape[1] < n_sh:
-            part = np.concatenate([part, np.zeros((len(part), n_sh - part.shape[1], 3), part.dtype)], axis=1)
-        sh.append(part.astype(np.float32, copy=False))
-    fields_ = {name: np.concatenate([take(getattr(p, name), m).astype(np.float32, copy=False)
-                                     for p, m in zip(parts, masks)])
-               for name in ("means", "quats", "log_scales", "opacity_logits")}
-    return Gaussians(**fields_, sh=np.concatenate(sh))
+@dataclass(frozen=True, eq=False)
+class SplitCells:
+    """The kept cells of one camera's detail layer that are drawn as their four quarters (split_cells): a cell at
+    stride s holds s x s pixels, and where its quarters differ the cell's one colour (their mean) loses their detail
+    (at stride 2 the quarters are the pixels)."""
+
+    index: np.ndarray     # [S] int64: the cells, as indices into the detail's Gaussians (np.nonzero(keep) order)
+    means: np.ndarray     # [S, 4, 3] float32 metres, ego frame: each quarter's ray met with its cell's disc plane
+    colours: np.ndarray   # [S, 4, 3] float32 sRGB 0..1: the quarters' colours (unsharp as the cells'), rows first
+
+    def moved(self, T: np.ndarray) -> SplitCells:
+        """These cells moved by the rigid [4, 4] ``T`` (metres)."""
+        R = np.asarray(T[:3, :3], np.float64)
+        m = (self.means.astype(np.float64) @ R.T + np.asarray(T[:3, 3], np.float64)).astype(np.float32)
+        return replace(self, means=m)
+
+    def divided(self, gain: np.ndarray) -> SplitCells:
+        """These cells with their colours divided by ``gain`` ([3] per channel; runtime.exposure.apply_gain's)."""
+        return replace(self, colours=(self.colours / np.asarray(gain, np.float32)).astype(np.float32))
+
+
+def split_cells(cam: Camera, image: np.ndarray, grid: Camera, g: Gaussians, keep: np.ndarray, threshold: float,
+                sharpen: float, footprint: float) -> SplitCells | None:
+    """The kept cells of ``grid`` (cam's grid_camera at an even stride s) whose four quarters (s/2 x s/2 pixel
+    blocks of ``image``, [H, W, 3] float32 0..1, cam's) hold one whose area mean's luma (BT.601: cameras and JPEG
+    keep colour at half the luma's resolution, and the eye and the sharpness ratio look at luma) is farther than
+    ``threshold`` from the four's mean; None when there are none, s is odd, or the grid does not tile the image in whole
+    blocks (cam's size not s x the grid's). ``g``: the cells' Gaussians (ego frame, np.nonzero(keep) order). Each
+    quarter sits where its ray (cam's grid at stride s/2, through the quarter's centre) meets the plane of its cell's
+    disc (the disc's third axis its normal), or, where that is more than a quarter off the cell's distance (a ray
+    grazing the plane), at the cell's distance along the ray; its colour is grid_colours at stride s/2 (the unsharp
+    mask of amount ``sharpen``, its blur ``footprint`` quarters, as the cells')."""
+    s = int(round(cam.width / grid.width))
+    h, w = grid.height, grid.width
+    if threshold <= 0 or s < 2 or s % 2 or cam.width != s * w or cam.height != s * h or not len(g):
+        return None
+    import cv2
+
+    fine = grid_camera(cam, s // 2)                                 # 2w x 2h: the quarters
+    quarters = grid_colours(image, fine)
+    stray = _stray_kernel(quarters, np.ascontiguousarray(keep, bool), np.float32(threshold), LUMA_BT601)
+    idx = np.flatnonzero(stray[keep])
+    if not len(idx):
+        return None
+    ys, xs = np.nonzero(stray)
+    qy = ys[:, None] * 2 + np.array([0, 0, 1, 1])[None, :]          # [S, 4] the quarters, rows first
+    qx = xs[:, None] * 2 + np.array([0, 1, 0, 1])[None, :]
+    colours = quarters[qy, qx]
+    if sharpen > 0:          # grid_colours' unsharp mask at the quarters, evaluated only where they are drawn
+        blur = cv2.GaussianBlur(quarters, (0, 0), footprint, borderType=cv2.BORDER_REFLECT)[qy, qx]
+        colours = np.clip(colours + np.float32(sharpen) * (colours - blur), 0.0, 1.0)
+    if fine.is_ideal:           # the pinhole's rays (x, y, 1) at the quarters' centres, turned to ego
+        K = fine.K
+        rays = np.stack([(qx - K[0, 2]) / K[0, 0], (qy - K[1, 2]) / K[1, 1], np.ones(qx.shape)], axis=-1) @ \
+            fine.rotation.T
+    else:                       # a lens: its true rays (NaN where none)
+        rays = fine.pixel_rays(np.stack([qx, qy], axis=-1).astype(np.float64))[1]
+    means = np.empty((len(idx), 4, 3), np.float32)
+    _quarters_kernel(np.ascontiguousarray(g.means[idx], np.float64), np.ascontiguousarray(g.quats[idx], np.float64),
+                     np.ascontiguousarray(rays, np.float64), np.ascontiguousarray(cam.position, np.float64), means)
+    return SplitCells(index=idx.astype(np.int64), means=means, colours=colours.astype(np.float32))
+
+
+@njit(cache=True, parallel=True, nogil=True)
+def _quarters_kernel(centre, quats, rays, origin, means):
+    """split_cells' quarter centres: means[s, k] (float32) where rays[s, k] from ``origin`` (any length; ego frame)
+    meets the plane through centre[s] normal to the third axis of quats[s] (wxyz), unless that is more than a
+    quarter off the centre's distance (then at that distance along the ray); no ray (NaN): the centre."""
+    for s in numba.prange(centre.shape[0]):
+        w, x, y, z = quats[s, 0], quats[s, 1], quats[s, 2], quats[s, 3]
+        nq = w * w + x * x + y * y + z * z
+        n0, n1, n2 = 2.0 * (x * z + w * y) / nq, 2.0 * (y * z - w * x) / nq, 1.0 - 2.0 * (x * x + y * y) / nq
+        c0, c1, c2 = centre[s, 0] - origin[0], centre[s, 1] - origin[1], centre[s, 2] - origin[2]
+        dist = math.sqrt(c0 * c0 + c1 * c1 + c2 * c2)
+        across = n0 * c0 + n1 * c1 + n2 * c2
+        for k in range(4):
+            r0, r1, r2 = rays[s, k, 0], rays[s, k, 1], rays[s, k, 2]
+            length = math.sqrt(r0 * r0 + r1 * r1 + r2 * r2)
+            if not (length > 0.0):                   # NaN (no ray) or zero
+                for a in range(3):
+                    means[s, k, a] = centre[s, a]
+                continue
+            dn = n0 * r0 + n1 * r1 + n2 * r2
+            t = dist / length
+            if dn != 0.0:
+                tp = across / dn
+                if abs(tp * length - dist) <= 0.25 * dist:
+                    t = tp
+            means[s, k, 0] = origin[0] + t * r0
+            means[s, k, 1] = origin[1] + t * r1
+            means[s, k, 2] = origin[2] + t * r2
+
+
+@njit(cache=True, parallel=True, nogil=True)
+def _stray_kernel(quarters, keep, threshold, luma):
+    """[h, w] bool: the kept cells with a quarter (quarters [2h, 2w, 3], each cell's four in its 2x2 block) whose
+    luma (weights ``luma`` [3]) is farther than ``threshold`` from the four's mean (split_cells)."""
+    h, w = keep.shape
+    out = np.zeros((h, w), np.bool_)
+    for y in numba.prange(h):
+        v = np.empty(4, np.float32)             # the row's own (one per task: rows run in parallel)
+        for x in range(w):
+            if not keep[y, x]:
+                continue
+            for k in range(4):
+                yy, xx = 2 * y + k // 2, 2 * x + k % 2
+                v[k] = luma[0] * quarters[yy, xx, 0] + luma[1] * quarters[yy, xx, 1] + luma[2] * quarters[yy, xx, 2]
+            m = np.float32(0.25) * (v[0] + v[1] + v[2] + v[3])
+            out[y, x] = max(abs(v[0] - m), abs(v[1] - m), abs(v[2] - m), abs(v[3] - m)) > threshold
+    return out
+
+
+def stray_reference(quarters: np.ndarray, keep: np.ndarray, threshold: float) -> np.ndarray:
+    """_stray_kernel in numpy (slow, obviously correct; tests)."""
+    h, w = keep.shape
+    y = (np.asarray(quarters, np.float32) @ LUMA_BT601).reshape(h, 2, w, 2)
+    mean = y.mean(axis=(1, 3), keepdims=True)
+    return (np.abs(y - mean).max(axis=(1, 3)) > threshold) & keep
+
+
+def quarters_reference(centre: np.ndarray, quats: np.ndarray, rays: np.ndarray, origin: np.ndarray) -> np.ndarray:
+    """_quarters_kernel in numpy (slow, obviously correct; tests): [S, 4, 3] float32."""
+    centre = np.asarray(centre, np.float64)
+    normal = quat_to_rotmat(quats)[:, :, 2]                         # the disc's normal: its third axis
+    dist = np.linalg.norm(centre - origin, axis=1)[:, None]         # [S, 1]
+    length = np.linalg.norm(rays, axis=-1)                          # [S, 4]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        tp = np.einsum("nk,nk->n", normal, centre - origin)[:, None] / np.einsum("nk,nsk->ns", normal, rays)
+        t = np.where(np.abs(tp * length - dist) <= 0.25 * dist, tp, dist / length)
+    means = origin + rays * t[..., None]
+    no_ray = ~(length > 0)
+    means[no_ray] = np.broadcast_to(centre[:, None, :], means.shape)[no_ray]
+    return means.astype(np.float32)
+
+
+def expand_split(g: Gaussians, d: CameraDetail, keep: np.ndarray | None = None) -> Gaussians:
+    """One camera's detail Gaussians ``g`` (d's cells, in order) where ``keep`` ([M] bool, None: all) holds, each of
+    d.split's cells replaced by its four quarters (expand_rows): the non-split cells first, in order, then the
+    quarters."""
+    keep = np.ones(len(g), bool) if keep is None else np.asarray(keep, bool)
+    sp = d.split
+    if sp is None or not len(sp.index):
+        return g.subset(keep)
+    return expand_rows(g.subset(keep), split_rows(len(g), sp)[keep], sp.means, sp.colours)
+
+
+def split_rows(n: int, sp: SplitCells) -> np.ndarray:
+    """[n] int32: for each of a camera's n cells, its row in ``sp``'s arrays, -1 for a cell that does not split."""
+    rows = np.full(n, -1, np.int32)
+    rows[sp.index] = np.arange(len(sp.index), dtype=np.int32)
+    return rows
+
+
+def expand_rows(g: Gaussians, rows: np.ndarray, means: np.ndarray, colours: np.ndarray) -> Gaussians:
+    """Cells ``g`` with each one whose ``rows`` ([N] int, -1: none) names a row of SplitCells arrays ``means`` /
+    ``colours`` ([S, 4, 3]) replaced by its four quarters (the cell's rotation, opacity and SH degree, half its
+    scales, the quarter's colour as the DC term): the other cells first, in order, then the quarters, cell by
+    cell."""
+    split = rows >= 0
+    if not split.any():
+        return g
+    r = rows[split]
+    cells = np.flatnonzero(split)
+    sh = np.zeros((len(r) * 4, g.sh.shape[1], 3), np.float32)
+    sh[:, 0, :] = (colours[r].reshape(-1, 3) - 0.5) / SH_C0
+    quarters = Gaussians(means=means[r].reshape(-1, 3), quats=np.repeat(g.quats[cells], 4, axis=0),
+                         log_scales=np.repeat(g.log_scales[cells], 4, axis=0) - np.float32(math.log(2.0)),
+                         opacity_logits=np.repeat(g.opacity_logits[cells], 4), sh=sh)
+    return concat_gaussians([g, quarters], [~split, None])
 
 
 # ------------------------------------------------------------------------------------------- fusion
@@ -735,15 +914,17 @@ class CameraDetail:
     means: np.ndarray         # [M, 3] float64 metres, ego frame: the kept cells' centres
     rank: np.ndarray          # [M] float64 metres: the cells' footprint (cell_footprint)
     colours: np.ndarray | None = None   # [h, w, 3] uint8 sRGB: the image at the grid (grid_colours), or None
+    split: SplitCells | None = None     # the cells drawn one Gaussian per input pixel (split_cells), or None
 
     @classmethod
     def build(cls, grid: Camera, depth: np.ndarray, keep: np.ndarray, measured: np.ndarray, means: np.ndarray,
-              colours: np.ndarray | None = None) -> CameraDetail:
+              colours: np.ndarray | None = None, split: SplitCells | None = None) -> CameraDetail:
         d = np.where(keep, depth, 0).astype(np.float32)
         conf = np.where(keep, np.where(measured, CONF_MEASURED, CONF_MODEL), 0).astype(np.int8)
         ys, xs = np.nonzero(keep)
         c8 = None if colours is None else np.clip(np.rint(colours * 255.0), 0, 255).astype(np.uint8)
-        return cls(grid, d, keep, conf, np.asarray(means, np.float64), cell_footprint(grid, xs, ys, d[ys, xs]), c8)
+        return cls(grid, d, keep, conf, np.asarray(means, np.float64), cell_footprint(grid, xs, ys, d[ys, xs]), c8,
+                   split)
 
     def cell_colours(self) -> np.ndarray:
         """[M, 3] uint8: the kept cells' colours (their grid pixel's), in Gaussian order (made once: the maps are
@@ -1212,10 +1393,11 @@ def camera_detail(cam: Camera, image: np.ndarray, coarse: Gaussians, opts: Detai
     opacity = np.where(measured, opts.opacity, opts.model_opacity).astype(np.float64)
     g = cell_gaussians(grid, colours, depth, opacity, keep, opts.footprint, opts.thickness,
                        surface_stretch=opts.surface_stretch)
+    split = split_cells(cam, image, grid, g, keep, opts.split, opts.sharpen, opts.footprint)
     counts = {"lidar": int((keep & supported).sum()), "ground": int((keep & on_ground).sum()),
               "model": int((keep & from_model).sum()), "far": int((keep & far).sum()),
               "edge": int(((depth > 0) & ~keep).sum())}
-    return g, CameraDetail.build(grid, depth, keep, measured, g.means, colours), counts
+    return g, CameraDetail.build(grid, depth, keep, measured, g.means, colours, split), counts
 
 
 def read_ego_mask(path, cam: Camera) -> np.ndarray:
@@ -1426,28 +1608,69 @@ def own_view_hide_reference(details: list[CameraDetail], kept: list[np.ndarray],
     return out
 
 
+def _shown_split(d: CameraDetail, shown: np.ndarray) -> np.ndarray:
+    """[M] bool: d's split cells (SplitCells) among the ``shown`` ones."""
+    m = np.zeros(len(shown), bool)
+    if d.split is not None:
+        m[d.split.index] = True
+    return m & shown
+
+
+def _split_positions(first: int, split: list[np.ndarray], pieces: int = 4) -> Callable[[np.ndarray], list]:
+    """Where the cells of the cameras' detail layers end up when each camera's ``split`` cells ([M_j] bool) leave
+    their run for ``pieces`` Gaussians each (their quarters) after every camera's cells (fuse_details): a function
+    of positions counted with every cell in its run (runs from ``first``) that gives a list of position arrays, a
+    moved cell's as its pieces'."""
+    n = [len(m) for m in split]
+    old = first + np.concatenate([[0], np.cumsum(n)]).astype(np.int64)
+    left = [len(m) - int(m.sum()) for m in split]
+    new_run = first + np.concatenate([[0], np.cumsum(left)]).astype(np.int64)
+    px_run = new_run[-1] + np.concatenate([[0], np.cumsum([int(m.sum()) * pieces for m in split])]).astype(np.int64)
+
+    def where(pos: np.ndarray) -> list:
+        pos = np.asarray(pos, np.int64)
+        out = [pos[pos < first]]
+        for j, m in enumerate(split):
+            i = pos[(pos >= old[j]) & (pos < old[j + 1])] - old[j]
+            before = np.cumsum(m) - m                # split cells before each cell of camera j
+            moved = m[i]
+            out.append(new_run[j] + i[~moved] - before[i[~moved]])
+            r = before[i[moved]]                     # the moved cell's rank among camera j's split cells
+            out.append((px_run[j] + r[:, None] * pieces + np.arange(pieces)[None, :]).ravel())
+        return out
+
+    return where
+
+
 def fuse_details(coarse: Gaussians, parts: list[Gaussians], details: list[CameraDetail], owners: list[int],
                  cameras: tuple[str, ...], opts: DetailOptions) -> tuple[Gaussians, OwnViews, dict[str, int]]:
     """The scene's Gaussians from the model's (``coarse``) and the cameras' detail layers (parts[j], details[j] of
     rig camera owners[j]; ``cameras`` the rig's names): the coarse Gaussians a detail cell covers culled
     (cull_covered), then every camera's cells in order, those the fusion drops (carve_details) hidden at
-    HIDDEN_LOGIT; with their OwnViews and the counts {detail (cells shown), carved (cells hidden), coarse, culled,
-    total}."""
+    HIDDEN_LOGIT, the shown cells that split (SplitCells) taken out of their run and drawn as their pixels after
+    every camera's cells (expand_split); with their OwnViews and the counts {detail (cells shown), carved (cells
+    hidden), split (shown cells drawn as pixels), coarse, culled, total}."""
     keep = cull_covered(coarse, details, opts.cull_tolerance)
     carved = carve_details(details, opts.cull_tolerance, opts.dedupe)
     starts = (int(keep.sum()) + np.concatenate([[0], np.cumsum([len(g) for g in parts])[:-1]])).astype(int).tolist()
     shown = [g.with_opacity_logits(np.where(k, g.opacity_logits, HIDDEN_LOGIT)) for g, k in zip(parts, carved)]
-    out = concat_gaussians([coarse, *shown], [keep, *[None] * len(shown)])
+    # a shown split cell is its quarters' Gaussians (expand_split), after every camera's cells; hidden ones stay cells
+    split = [_shown_split(d, k) for d, k in zip(details, carved)]
+    quarters = [expand_split(g, d, m) for g, d, m in zip(parts, details, split)]
+    out = concat_gaussians([coarse, *shown, *quarters], [keep, *[~m for m in split], *[None] * len(quarters)])
+    where = _split_positions(int(keep.sum()), split)
     per_camera = [np.zeros(0, np.int64)] * len(cameras)
     for owner, h in zip(owners, own_view_hide(details, carved, starts)):
-        per_camera[owner] = h
+        per_camera[owner] = np.sort(np.concatenate(where(h))) if len(h) else h
     own = OwnViews(cameras=cameras,
-                   index=np.concatenate([s0 + np.flatnonzero(~k) for s0, k in zip(starts, carved)]).astype(np.int64),
+                   index=np.concatenate(where(np.concatenate([s0 + np.flatnonzero(~k)
+                                                              for s0, k in zip(starts, carved)]))).astype(np.int64),
                    logit=np.concatenate([g.opacity_logits[~k] for g, k in zip(parts, carved)]).astype(np.float32),
                    owner=np.concatenate([np.full(int((~k).sum()), o, np.int16) for o, k in zip(owners, carved)]),
                    hide=np.concatenate(per_camera).astype(np.int64),
                    hide_offsets=np.concatenate([[0], np.cumsum([len(h) for h in per_camera])]).astype(np.int64))
     own.check(len(out), "reconstruction")
     counts = {"detail": int(sum(k.sum() for k in carved)), "carved": int(sum(k.size - k.sum() for k in carved)),
-              "coarse": int(keep.sum()), "culled": int(keep.size - keep.sum()), "total": len(out)}
+              "split": int(sum(m.sum() for m in split)), "coarse": int(keep.sum()),
+              "culled": int(keep.size - keep.sum()), "total": len(out)}
     return out, own, counts

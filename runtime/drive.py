@@ -47,9 +47,11 @@ Gaussians are kept in spatial tiles that views read and draw as they need them: 
 
 from __future__ import annotations
 
+import functools
 import json
 import math
 import os
+import sys
 import tempfile
 import time
 from collections.abc import Callable, Sequence
@@ -299,7 +301,8 @@ def transform_detail(d, T: np.ndarray):
     """A runtime.detail.CameraDetail moved by the rigid [4, 4] ``T`` (its grid camera's pose and its cells'
     centres; depths and footprints are the camera's own and stay)."""
     R = np.asarray(T[:3, :3], np.float64)
-    return replace(d, grid=d.grid.replace(cam_to_ego=T @ d.grid.cam_to_ego), means=d.means @ R.T + T[:3, 3])
+    return replace(d, grid=d.grid.replace(cam_to_ego=T @ d.grid.cam_to_ego), means=d.means @ R.T + T[:3, 3],
+                   split=None if d.split is None else d.split.moved(T))
 
 
 def moving_tracks(drive: Drive) -> list[int]:
@@ -646,6 +649,10 @@ class _Kept:
     means: list[np.ndarray] = field(default_factory=list)          # [N_i, 3] per part
     store: list[Gaussians | Path] = field(default_factory=list)    # the part, or its .npz in ``spill``
     rows: list[np.ndarray | None] = field(default_factory=list)    # a spilled part: its file's rows kept (None: all)
+    split: list[np.ndarray | None] = field(default_factory=list)   # [N_i] int32: each cell's row of its part's split
+    #                                                                cells (runtime.detail.split_rows), or None
+    quarters: list[tuple | None] = field(default_factory=list)     # (means, colours) [S, 4, 3] of a part's split
+    #                                                                cells in memory (None: none, or in its .npz)
     level: list[np.ndarray] = field(default_factory=list)
     frame: list[np.ndarray] = field(default_factory=list)
     shared: list[np.ndarray] = field(default_factory=list)
@@ -654,13 +661,14 @@ class _Kept:
     deduped: int = 0                                    # parts before this one have been through dedupe
     next_id: int = 0
 
-    def _put(self, g: Gaussians) -> Gaussians | Path:
+    def _put(self, g: Gaussians, quarters: tuple | None) -> tuple[Gaussians | Path, tuple | None]:
         if self.spill is None:
-            return g
+            return g, quarters
         path = self.spill / f"part_{len(self.store):05d}.npz"
+        more = {} if quarters is None else {"split_means": quarters[0], "split_colours": quarters[1]}
         np.savez(path, means=g.means, quats=g.quats, log_scales=g.log_scales, opacity_logits=g.opacity_logits,
-                 sh=g.sh)
-        return path
+                 sh=g.sh, **more)
+        return path, None
 
     def part(self, i: int) -> Gaussians:
         s = self.store[i]
@@ -670,11 +678,17 @@ class _Kept:
             g = Gaussians(**{k: z[k] for k in ("means", "quats", "log_scales", "opacity_logits", "sh")})
         return g if self.rows[i] is None else g.subset(self.rows[i])
 
-    def add(self, g: Gaussians, level: np.ndarray, n: int) -> None:
+    def add(self, g: Gaussians, level: np.ndarray, n: int, split: tuple | None = None) -> None:
+        """Keyframe n's part ``g`` (cells or model Gaussians) with its voxel levels; ``split``: (each cell's row of
+        the part's split cells or -1 [N], their quarters' means and colours [S, 4, 3]) or None. Split cells are
+        deduped as cells and drawn as their quarters (runtime.detail.expand_rows: shared_parts, own_of)."""
         self.start.append(self.next_id)
         self.next_id += len(g)
         self.now.append(None)
-        self.store.append(self._put(g))
+        stored, quarters = self._put(g, None if split is None else split[1:])
+        self.store.append(stored)
+        self.quarters.append(quarters)
+        self.split.append(None if split is None else np.asarray(split[0], np.int32))
         self.rows.append(None)
         self.means.append(np.array(g.means, np.float32))
         self.level.append(level)
@@ -694,6 +708,8 @@ class _Kept:
                     r[np.flatnonzero(r)[~m]] = False
             self.means[i], self.level[i] = self.means[i][m], self.level[i][m]
             self.frame[i], self.shared[i] = self.frame[i][m], self.shared[i][m]
+            if self.split[i] is not None:
+                self.split[i] = self.split[i][m]
             row = np.where(m, np.cumsum(m) - 1, -1)
             old = self.now[i]
             self.now[i] = row if old is None else np.where(old >= 0, row[np.maximum(old, 0)], -1)
@@ -741,17 +757,37 @@ class _Kept:
     def count(self) -> int:
         return sum(int(s.sum()) for s in self.shared)
 
+    def release(self) -> None:
+        """Forget every part (its spilled file removed) and the voxel owners: the parts have been drawn."""
+        for s in self.store:
+            if isinstance(s, Path):
+                s.unlink(missing_ok=True)
+        for name in ("means", "store", "rows", "split", "quarters", "level", "frame", "shared", "start", "now"):
+            getattr(self, name).clear()
+        self.owners = None
+
+    def drawn(self, i: int, m: np.ndarray) -> Gaussians:
+        """Part i's Gaussians where ``m`` ([N_i] bool) holds, its split cells as their quarters (expand_rows)."""
+        g = self.part(i)
+        g = g if m.all() else g.subset(m)
+        if self.split[i] is None:
+            return g
+        from .detail import expand_rows
+
+        quarters = self.quarters[i]
+        if quarters is None:                            # in the part's .npz
+            with np.load(self.store[i]) as z:
+                quarters = (z["split_means"], z["split_colours"])
+        return expand_rows(g, self.split[i][m], *quarters)
+
     def shared_parts(self) -> tuple[list[Gaussians], list[np.ndarray]]:
         """(each part's shared Gaussians, their keyframes)."""
-        out = []
-        for i, s in enumerate(self.shared):
-            g = self.part(i)
-            out.append(g if s.all() else g.subset(s))
-        return out, [f[s] for f, s in zip(self.frame, self.shared)]
+        out = [self.drawn(i, s) for i, s in enumerate(self.shared)]
+        return out, [np.full(len(g), f[0] if len(f) else 0, f.dtype) for g, f in zip(out, self.frame)]
 
     def own_of(self, n: int) -> list[Gaussians]:
         """Keyframe ``n``'s cells that the shared Gaussians keep from another keyframe (its parts' unshared)."""
-        return [self.part(i).subset(~s) for i, (f, s) in enumerate(zip(self.frame, self.shared))
+        return [self.drawn(i, ~s) for i, (f, s) in enumerate(zip(self.frame, self.shared))
                 if len(f) and int(f[0]) == n and not s.all()]
 
 
@@ -776,7 +812,7 @@ def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None,
     keyframes are made instead of ``workers`` (`xyzcyl batch`: on Ray actors): an iterator of make_keyframe(rec,
     drive, k, **opts) for each of ``keys`` in order; ``rec`` is then only asked for ``scene_model()``, and a
     one-frame drive is refused (make it with Reconstructor.reconstruct)."""
-    from .detail import carve_details, cull_covered, detail_pyramids
+    from .detail import carve_details, cull_covered, detail_pyramids, split_rows
     from .exposure import Harmoniser
     from .inference import DEFAULT_DETAIL
     from .scene import Scene
@@ -839,10 +875,12 @@ def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None,
             g = coarse_kept.part(i)
             if details and len(g):
                 coarse_kept.keep(i, cull_covered(g, details, tol, pyramids))
-        for g, k in zip(parts, keep):
-            g = g.subset(k)
-            detail_kept.add(g, voxel_levels(_cell_footprint_of(g)), n)
+        for g, d, k in zip(parts, details, keep):
+            g = g.subset(k)             # deduped as cells; a split cell drawn as its quarters (_Kept.drawn)
+            split = None if d.split is None else (split_rows(len(k), d.split)[k], d.split.means, d.split.colours)
+            detail_kept.add(g, voxel_levels(_cell_footprint_of(g)), n, split)
         detail_kept.dedupe()
+        release_heap()
 
     opts = dict(lidar=lidar, stereo=stereo, detail=detail, masks=found.masks)
     made = _keyframes_made(rec, drive, keys, n_workers, opts, say) if make_keyframes is None else \
@@ -861,6 +899,7 @@ def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None,
             if harmoniser is not None and parts:
                 t_x = time.perf_counter()
                 parts = harmoniser.add(details, parts, kf.owners)
+                details = harmoniser.details(details, kf.owners)
                 coarse = harmoniser.coarse(coarse)
                 timings["exposure"] = timings.get("exposure", 0.0) + time.perf_counter() - t_x
             # this keyframe as one rig: its model Gaussians under its cells culled, its cells carved against its own
@@ -878,9 +917,11 @@ def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None,
                     parts = [_snapped(g, d.grid.cam_to_ego[:3, 3], geo) for g, d in zip(parts, details)]
                 c_mem = box_members(coarse.means, geo)
                 p_mem = [box_members(g.means, geo) for g in parts]
+                # each part's members by box: one sort of the few members, not a mask over all cells per box
+                by_box = [_by_box(coarse, c_mem >= 0, c_mem, len(boxes))] + \
+                    [_by_box(g, keep & (m >= 0), m, len(boxes)) for g, keep, m in zip(parts, own, p_mem)]
                 for b, (t, inv, _) in enumerate(boxes):
-                    pieces = [coarse.subset(c_mem == b)]
-                    pieces += [g.subset(keep & (m == b)) for g, keep, m in zip(parts, own, p_mem)]
+                    pieces = [pieces_of[b] for pieces_of in by_box]
                     copies.append((t, fr.timestamp_s, transform_gaussians(_concat(pieces), inv)))
                 moved_out += int((c_mem >= 0).sum())
                 coarse = coarse.subset(c_mem < 0)
@@ -895,7 +936,7 @@ def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None,
             window.append(entry)
             while len(window) > CARVE_WINDOW:
                 commit(window.pop(0))
-            say(f"fused: {detail_kept.count()} detail Gaussians so far")
+            say(f"fused: {detail_kept.count()} detail cells so far")
     finally:
         made.close()              # a failed keyframe: the workers stop
     t1 = time.perf_counter()
@@ -915,9 +956,15 @@ def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None,
     del pieces
     # each keyframe's chunk (with its viewpoint group) written beside the spilled parts, one at a time, and read
     # back when a view needs it
-    viewpoints = Viewpoints.spilled([[n] for n in range(len(keys))],
-                                    (_concat(coarse_kept.own_of(n) + detail_kept.own_of(n)) for n in range(len(keys))),
-                                    spill, [int(h) for h in heads]) if len(keys) > 1 else None
+    def chunk(n: int) -> Gaussians:
+        release_heap()                          # the chunk before was written and let go of
+        return _concat(coarse_kept.own_of(n) + detail_kept.own_of(n))
+
+    viewpoints = Viewpoints.spilled([[n] for n in range(len(keys))], (chunk(n) for n in range(len(keys))), spill,
+                                    [int(h) for h in heads]) if len(keys) > 1 else None
+    for kept in (detail_kept, coarse_kept):     # every cell is in the scene or a chunk now: their files and maps go
+        kept.release()
+    release_heap()
     timings["fusion"] = time.perf_counter() - t1
     timings["total"] = time.perf_counter() - t0
     counts.update({"coarse": n_coarse, "detail": n_detail, "moving_removed": moved_out,
@@ -1153,6 +1200,38 @@ def _snapped(g: Gaussians, origin: np.ndarray, boxes) -> Gaussians:
     scales = np.array(g.log_scales, copy=True)
     scales[moved] += np.log(factor[moved])[:, None].astype(scales.dtype)
     return replace(g, means=means.astype(g.means.dtype), log_scales=scales)
+
+
+def release_heap() -> None:
+    """Hand the C heap's free memory back to the system (glibc's malloc_trim; nothing elsewhere). A drive's fusion
+    frees arrays of every size, keyframe after keyframe; glibc keeps what was freed for the next allocations and its
+    mmap threshold rises with every large block freed, so without this the process held ~1.3 GB it no longer used
+    (20 PandaSet keyframes: peak 6.6 GB, 5.3 GB with it: docs/results.md "Split cells")."""
+    trim = _malloc_trim()
+    if trim is not None:
+        trim(0)
+
+
+@functools.cache
+def _malloc_trim():
+    import ctypes
+    import ctypes.util
+
+    if sys.platform != "linux":
+        return None
+    try:
+        return ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6").malloc_trim
+    except (OSError, AttributeError):            # not glibc (musl has no malloc_trim)
+        return None
+
+
+def _by_box(g: Gaussians, inside: np.ndarray, member: np.ndarray, n_boxes: int) -> list[Gaussians]:
+    """[n_boxes] the Gaussians of ``g`` where ``inside`` ([N] bool) holds, by their box ``member`` ([N] int, its
+    index), each box's in index order."""
+    idx = np.flatnonzero(inside)
+    idx = idx[np.argsort(member[idx], kind="stable")]
+    bounds = np.searchsorted(member[idx], np.arange(n_boxes + 1))
+    return [g.subset(idx[bounds[b]:bounds[b + 1]]) for b in range(n_boxes)]
 
 
 def _concat(parts: list[Gaussians]) -> Gaussians:

@@ -21,6 +21,7 @@ its keyframe's cameras whose view holds it (Harmoniser.coarse).
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import replace
 from functools import cached_property
 
 import numpy as np
@@ -202,6 +203,12 @@ class Harmoniser:
         self._prev = [_View(d, colours[i] / np.exp(x[i])) for i, d in enumerate(details)]
         self._last = ([d.grid for d in details], x)
         return out
+
+    def details(self, details: Sequence, owners: Sequence[int]) -> list:
+        """The last added keyframe's detail layers (runtime.detail.CameraDetail, as given to ``add``) with their split
+        cells' colours divided by their camera's gain, as ``add`` divided its Gaussians'."""
+        gains = self.gains[-1]
+        return [d if d.split is None else replace(d, split=d.split.divided(gains[o])) for d, o in zip(details, owners)]
 
     def coarse(self, g: Gaussians) -> Gaussians:
         """The last added keyframe's model Gaussians ``g`` (scene frame) harmonised: each divided by the geometric

@@ -9,6 +9,8 @@ from pathlib import Path
 
 import numpy as np
 
+LUMA_BT601 = np.array([0.299, 0.587, 0.114], np.float32)   # ITU-R BT.601 luma weights (JPEG's Y of sRGB values)
+
 
 def read_exr(path: str | os.PathLike) -> np.ndarray:
     """[H, W, C] float32 of an EXR (or any float image OpenImageIO reads); OSError naming the file."""

@@ -297,17 +297,18 @@ class Reconstructor:
         gauss, own_views, gains = kf.coarse, None, None
         if kf.details:
             t0 = time.perf_counter()
-            coarse, parts = kf.coarse, kf.parts
+            coarse, parts, details = kf.coarse, kf.parts, kf.details
             if exposure and len(kf.details) > 1:
                 from .exposure import Harmoniser
 
                 h = Harmoniser(len(rig.cameras))
                 parts = h.add(kf.details, parts, kf.owners)
+                details = h.details(kf.details, kf.owners)
                 coarse = h.coarse(coarse)
                 gains = h.to_json(rig.names)
                 kf.timings["exposure"] = time.perf_counter() - t0
                 t0 = time.perf_counter()
-            gauss, own_views, fused = fuse_details(coarse, parts, kf.details, kf.owners, tuple(rig.names),
+            gauss, own_views, fused = fuse_details(coarse, parts, details, kf.owners, tuple(rig.names),
                                                    detail)
             kf.counts.update(fused)
             kf.timings["detail"] += time.perf_counter() - t0

@@ -27,9 +27,10 @@ from typing import Any
 
 import numpy as np
 
+from .imageio import LUMA_BT601
 from .rig import EGO_POSE_KEYS, Rig, RigError, load_rig
 
-LUMA = np.array([0.299, 0.587, 0.114], np.float32)  # ITU-R BT.601 luminance weights
+LUMA = LUMA_BT601                                    # ITU-R BT.601 luminance weights
 
 
 # ------------------------------------------------------------------------------------------- metrics

@@ -84,7 +84,7 @@ def _psnr(a: np.ndarray, b: np.ndarray) -> float:
     ("thickness", -0.1), ("smooth_lambda", 0), ("smooth_sigma", 0), ("support_deg", 0), ("occlusion_deg", -1),
     ("min_depth", 0), ("opacity", 0.0), ("opacity", 1.0), ("model_opacity", 1.5),
     ("edge_ratio", -0.01), ("cull_tolerance", -1), ("far_depth", -1), ("ground_max", -1), ("sharpen", -0.5),
-    ("dedupe", -1), ("surface_stretch", -0.5), ("max_depth", float("inf")), ("max_depth", 1.0), ("far_depth", 150.0), ("far_depth", 100.0),
+    ("dedupe", -1), ("surface_stretch", -0.5), ("split", -0.01), ("split", float("nan")), ("max_depth", float("inf")), ("max_depth", 1.0), ("far_depth", 150.0), ("far_depth", 100.0),
 ])
 def test_options_reject_bad_fields(field, value):
     with pytest.raises(DetailError, match=re.escape(f"detail.{field}:")):

@@ -79,7 +79,8 @@ def test_add_detail_uses_the_model_ground_without_lidar():
     counts.update(fused)
     assert counts["detail_ground"] > 200 and own is not None
     grid = grid_camera(cam, opts.stride)
-    uv, z, front = grid.project_depth(scene_g.means[-counts["detail"] - counts["carved"]:].astype(np.float64))
+    cells = counts["detail"] + counts["carved"] + 3 * counts["split"]       # the cells and split quarters, last
+    uv, z, front = grid.project_depth(scene_g.means[-cells:].astype(np.float64))
     assert np.percentile(z[front], 5) < 5.0                                 # road cells a few metres ahead
 
 

@@ -212,6 +212,39 @@ def test_spilled_parts_keep_the_rows_they_keep_in_memory(tmp_path):
     assert {p.name: p.stat().st_mtime_ns for p in tmp_path.iterdir()} == written and len(written) == 2
 
 
+def test_kept_split_cells_are_deduped_as_cells_and_drawn_as_their_quarters(tmp_path):
+    """A keyframe's split cells (runtime.detail.SplitCells) join a drive's kept cells as cells (one row each: the
+    dedupe and every keep() see cells) and come out of shared_parts / own_of as their quarters, in memory and
+    spilled: what expand_rows makes of the rows kept."""
+    from xyzcyl.runtime.detail import expand_rows
+    from xyzcyl.runtime.drive import _Kept
+    from xyzcyl.runtime.render import Gaussians
+
+    rng = np.random.default_rng(3)
+    n, s = 60, 20
+    g = Gaussians(rng.normal(size=(n, 3)).astype(np.float32), rng.normal(size=(n, 4)).astype(np.float32),
+                  rng.normal(size=(n, 3)).astype(np.float32), rng.normal(size=n).astype(np.float32),
+                  rng.normal(size=(n, 1, 3)).astype(np.float32))
+    rows = np.full(n, -1, np.int32)
+    rows[rng.choice(n, s, replace=False)] = np.arange(s, dtype=np.int32)
+    quarters = (rng.normal(size=(s, 4, 3)).astype(np.float32), rng.random((s, 4, 3)).astype(np.float32))
+    for k in (_Kept(np.zeros((1, 3))), _Kept(np.zeros((1, 3)), tmp_path)):
+        k.add(g, np.zeros(n, np.int8), 0, (rows, *quarters))
+        m = rng.random(n) < 0.7
+        k.keep(0, m)
+        assert len(k.part(0)) == m.sum() == k.count()          # cells, not quarters
+        shared = rng.random(int(m.sum())) < 0.5
+        k.shared[0] = shared.copy()
+        (got,), (frames,) = k.shared_parts()
+        want = expand_rows(g.subset(m).subset(shared), rows[m][shared], *quarters)
+        (own,) = k.own_of(0)
+        want_own = expand_rows(g.subset(m).subset(~shared), rows[m][~shared], *quarters)
+        for a, b in ((got, want), (own, want_own)):
+            for name in ("means", "quats", "log_scales", "opacity_logits", "sh"):
+                np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
+        assert len(got) == shared.sum() + 3 * (rows[m][shared] >= 0).sum() and len(frames) == len(got)
+
+
 def test_dedupe_frames_prefers_the_nearer_viewpoint_among_equally_fine_cells():
     # one voxel seen as finely by three keyframes: the ones at the origin stood still (one viewpoint: the earlier
     # keeps it), the third drove 10 m on, next to the voxel, and takes it over; a coarser cell never does
@@ -661,3 +694,22 @@ def test_keyframes_made_in_a_worker_process_give_the_same_scene(tmp_path, shippe
     for workers in (1, 0):
         with pytest.raises(RigError, match="image"):
             reconstruct_drive(shipped, broken, detail=opts, keyframes=[0, 1, 2], workers=workers)
+
+
+def test_by_box_gives_each_boxs_members_in_order():
+    """runtime.drive._by_box (one sort of a part's box members) against a mask per box: the same Gaussians in the
+    same order."""
+    from xyzcyl.runtime.drive import _by_box
+    from xyzcyl.runtime.render import Gaussians
+
+    rng = np.random.default_rng(5)
+    n = 300
+    g = Gaussians(rng.normal(size=(n, 3)).astype(np.float32), rng.normal(size=(n, 4)).astype(np.float32),
+                  rng.normal(size=(n, 3)).astype(np.float32), rng.normal(size=n).astype(np.float32),
+                  rng.normal(size=(n, 1, 3)).astype(np.float32))
+    member = rng.integers(-1, 5, n)                 # -1: in no box; box 5 of 6 holds nothing
+    keep = rng.random(n) < 0.8
+    got = _by_box(g, keep & (member >= 0), member, 6)
+    for b in range(6):
+        np.testing.assert_array_equal(got[b].means, g.subset(keep & (member == b)).means)
+    assert len(got[5]) == 0 and sum(map(len, got)) == int((keep & (member >= 0)).sum())

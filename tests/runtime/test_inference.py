@@ -103,7 +103,7 @@ def test_counts_and_metadata(rec):
     ds = rec.reconstruct(rig, _images(rig))
     d = ds.counts
     # the cells the fusion drops stay in the scene, hidden, for their camera's own view (runtime.detail.OwnViews)
-    assert d["total"] == len(ds.gaussians) == d["coarse"] + d["detail"] + d["carved"]
+    assert d["total"] == len(ds.gaussians) == d["coarse"] + d["detail"] + d["carved"] + 3 * d["split"]
     assert d["coarse"] + d["culled"] == c["total"] and len(ds.own_views.index) == d["carved"]
     assert d["detail"] + d["carved"] == sum(d[f"detail_{k}"] for k in ("lidar", "ground", "model", "far")) > 0
 

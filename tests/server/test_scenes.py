@@ -404,7 +404,7 @@ def test_post_detail_stride_and_detail_false(client, env):
     s8 = r.json()
     c = s8["counts"]
     assert s8["detail"] == {"enabled": True, "stride": 8} and client.get(f"/v1/scenes/{s8['id']}").json() == s8
-    assert 0 < c["detail"] <= 6 * 100 * 57 < plain["counts"]["detail"] and c["total"] == c["coarse"] + c["detail"] + c["carved"]
+    assert 0 < c["detail"] <= 6 * 100 * 57 < plain["counts"]["detail"] and c["total"] == c["coarse"] + c["detail"] + c["carved"] + 3 * c["split"]
     r = client.post("/v1/scenes?wait=60&detail=false", files=rig_files())
     assert r.status_code == 201, r.text
     off = r.json()
