@@ -1,9 +1,10 @@
 """Split cells (runtime.detail.split_cells, expand_split): at stride 2 a detail cell is one colour for 2x2 input
 pixels, so a render at the input camera keeps ~2/3 of the image's gradient energy (PandaSet's own views: sharpness
-0.67). A cell whose pixels differ from their mean by more than DetailOptions.split becomes one Gaussian per pixel on
-the cell's disc. Checked here: which cells split, where their pixels sit (on their rays and on the disc's plane),
-their colours and shapes, the render that resolves a pixel checker the cells blur, the fusion's positions (the
-own views of two cameras with split cells), a drive's transform and the exposure gain."""
+0.67). A cell with a quarter (at stride 2 a pixel) whose luma strays from the four's mean by more than
+DetailOptions.split becomes one Gaussian per quarter on the cell's disc. Checked here: which cells split, where
+their quarters sit (on their rays and on the disc's plane), their colours and shapes, the render that resolves a
+pixel texture the cells blur, the kernels against their references, the fusion's positions (the own views of two
+cameras with split cells), a drive's transform and the exposure gain."""
 
 from __future__ import annotations
 
