@@ -891,7 +891,7 @@ def expand_rows(g: Gaussians, rows: np.ndarray, means: np.ndarray, colours: np.n
     quarters = Gaussians(means=means[r].reshape(-1, 3), quats=np.repeat(g.quats[cells], 4, axis=0),
                          log_scales=np.repeat(g.log_scales[cells], 4, axis=0) - np.float32(math.log(2.0)),
                          opacity_logits=np.repeat(g.opacity_logits[cells], 4), sh=sh)
-    return concat_gaussians([g, quarters], [~split, None])
+    return quarters if len(cells) == len(g) else concat_gaussians([g, quarters], [~split, None])
 
 
 # ------------------------------------------------------------------------------------------- fusion
@@ -1610,10 +1610,7 @@ def own_view_hide_reference(details: list[CameraDetail], kept: list[np.ndarray],
 
 def _shown_split(d: CameraDetail, shown: np.ndarray) -> np.ndarray:
     """[M] bool: d's split cells (SplitCells) among the ``shown`` ones."""
-    m = np.zeros(len(shown), bool)
-    if d.split is not None:
-        m[d.split.index] = True
-    return m & shown
+    return shown & (split_rows(len(shown), d.split) >= 0) if d.split is not None else np.zeros(len(shown), bool)
 
 
 def _split_positions(first: int, split: list[np.ndarray], pieces: int = 4) -> Callable[[np.ndarray], list]:

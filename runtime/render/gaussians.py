@@ -120,11 +120,8 @@ class Gaussians:
         bad = int(np.count_nonzero(~np.isfinite(a)))
         if bad:
             raise GaussianError("opacity_logits", f"{bad} non-finite values")
-        out = object.__new__(Gaussians)
-        for name in ("means", "quats", "log_scales", "sh"):
-            object.__setattr__(out, name, getattr(self, name))
-        object.__setattr__(out, "opacity_logits", a)
-        return out
+        return Gaussians.joined(means=self.means, quats=self.quats, log_scales=self.log_scales, opacity_logits=a,
+                                sh=self.sh)
 
     def transformed(self, T: np.ndarray) -> Gaussians:
         """The Gaussians moved by the rigid [4, 4] ``T`` (frame -> another frame, metres): means and rotations. SH
@@ -155,8 +152,8 @@ class Gaussians:
 
     @classmethod
     def joined(cls, **fields: np.ndarray) -> Gaussians:
-        """Gaussians of the given arrays (every field by name), not checked again: rows of checked Gaussians put
-        together (runtime.detail.concat_gaussians; a drive's millions)."""
+        """Gaussians of the given arrays (every field by name), not checked again: rows of checked Gaussians taken
+        or put together (subset, with_opacity_logits, runtime.detail.concat_gaussians; a drive's millions)."""
         out = object.__new__(cls)
         for name in ("means", "quats", "log_scales", "opacity_logits", "sh"):
             object.__setattr__(out, name, fields[name])
@@ -165,10 +162,8 @@ class Gaussians:
     def _taken(self, index) -> Gaussians:
         """These Gaussians indexed by ``index`` along N, not checked again: a selection of checked Gaussians (the
         drive's fusion takes thousands of subsets of millions)."""
-        out = object.__new__(Gaussians)
-        for name in ("means", "quats", "log_scales", "opacity_logits", "sh"):
-            object.__setattr__(out, name, getattr(self, name)[index])
-        return out
+        return Gaussians.joined(**{name: getattr(self, name)[index]
+                                   for name in ("means", "quats", "log_scales", "opacity_logits", "sh")})
 
     def astype(self, dtype) -> Gaussians:
         return Gaussians(*(np.asarray(getattr(self, f), dtype=dtype) for f in
