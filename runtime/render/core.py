@@ -187,12 +187,16 @@ def _prepare(g: Gaussians | Sequence[Gaussians], camera, opts: RenderOptions, cu
     model, (*cargs, ptab) = _camera_args(camera)
     cam = (*cargs, W, H, float(opts.near), float(opts.far), float(opts.low_pass))   # kernels: the camera tuple
     planes = chunk_planes(camera, opts) if cull_chunks else np.zeros((0, 5))
+    sat = np.zeros((0, 0), np.int64)       # the open tiles' summed-area table (kernels.open_slots); empty: all open
+    if covered is not None and covered.any():
+        sat = np.zeros((nty + 1, ntx + 1), np.int64)
+        sat[1:, 1:] = np.cumsum(np.cumsum(~covered.reshape(nty, ntx), axis=0), axis=1)
     pre = np.zeros(nch, np.int64)
     for p, a, b in zip(parts, ch0[:-1], ch0[1:]):
         if b > a:
             # pass 1: an upper bound of the visible Gaussians per chunk, so the outputs are allocated to fit (a
             # slot per Gaussian made the kernel zero up to 64 bytes x N of fresh huge pages per render)
-            K.precull_counts(model)(_c(p.means), _c(p.log_scales), cam, ptab, planes, pre[a:b])
+            K.precull_counts(model)(_c(p.means), _c(p.log_scales), cam, ptab, planes, sat, pre[a:b])
     base = np.zeros(nch, np.int64)
     np.cumsum(pre[:-1], out=base[1:])
     m = int(pre.sum())
@@ -206,16 +210,14 @@ def _prepare(g: Gaussians | Sequence[Gaussians], camera, opts: RenderOptions, cu
     for p, a, b in zip(parts, ch0[:-1], ch0[1:]):
         if b > a and pre[a:b].any():
             K.project_kernel(model)(_c(p.means), _c(p.quats), _c(p.log_scales), _c(p.opacity_logits), _c(p.sh),
-                                    campos, cam, ptab, bool(opts.antialiased), opts.radius_mode == "opacity",
+                                    campos, cam, ptab, sat, bool(opts.antialiased), opts.radius_mode == "opacity",
                                     pre[a:b], base[a:b], rows, trange, dep, gid, counts[a:b])
             if offset:                  # the part's own indices -> indices in the concatenation
                 K.offset_slots(gid, counts[a:b], base[a:b], offset)
         offset += len(p)
     t1 = time.perf_counter()
     visible = K.visible_slots(counts, base)
-    if covered is not None and covered.any():
-        sat = np.zeros((nty + 1, ntx + 1), np.int64)
-        sat[1:, 1:] = np.cumsum(np.cumsum(~covered.reshape(nty, ntx), axis=0), axis=1)
+    if sat.shape[0]:    # the exact test on each footprint's tile range (a pinhole's projection kept only a bound's)
         visible = K.open_slots(visible, trange, sat, ntx)
     # depth order: float32 depths (positive: near > 0, so their bit patterns order like the values), ties by
     # Gaussian index (slots increase with it); the reference sorts the same keys

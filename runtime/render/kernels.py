@@ -106,10 +106,13 @@ def _alpha(dx, dy, A, B, C, op, pmax):
 # ------------------------------------------------------------------------------------------------ projection
 @njit(inline="always")
 def _precull(means, log_scales, i, Rw, tw, model, lp, fx, fy, cx, cy, lxn, lxp, lyn, lyp, ptab, width,
-             height, near, far, low_pass):
+             height, near, far, low_pass, sat):
     """(keep, x, y, z): Gaussian i's camera-frame mean (float64) and whether it survives the cheap conservative
     culls: depth (camera z, equirect: distance) within [near, far]; pinhole: its box of 3.34 x (the largest
-    scale through the clamped Jacobian's row norms, plus the low-pass) reaches the image; an opencv lens: the
+    scale through the clamped Jacobian's row norms, plus the low-pass) reaches the image and, with ``sat`` (the
+    summed-area table of a render's open tiles, [nty + 1, ntx + 1] int64, see open_slots; [0, 0]: every tile open),
+    touches an open tile (a Gaussian of a later layer that falls wholly on tiles the layers before it covered is
+    never projected: open_slots would drop it after projecting it); an opencv lens: the
     box on its undistorted image plane of a disc of 3.34 x (the largest scale, plus the low-pass through the
     lens) on the mean's tangent plane (lensmap.opencv_plane_reach) meets the plane's extent of a pixel column
     and of a pixel row (_plane_span). Every Gaussian the full projection keeps is kept here (the full test
@@ -126,14 +129,29 @@ def _precull(means, log_scales, i, Rw, tw, model, lp, fx, fy, cx, cy, lxn, lxp, 
         u = fx * sx + cx
         v = fy * sy + cy
         if u >= 0.0 and u <= width - 1 and v >= 0.0 and v <= height - 1:
-            return True, x, y, z            # the mean is on the image: its box reaches it (no exp, no sqrt)
+            # the mean is on the image: its box reaches it (no exp, no sqrt), and it touches the mean's tile
+            if sat.shape[0] == 0:
+                return True, x, y, z
+            tx = int(u) // TILE
+            ty = int(v) // TILE
+            if _rect_sum(sat, tx, tx, ty, ty) > 0:
+                return True, x, y, z
         sxc = min(max(sx, -lxn), lxp)
         syc = min(max(sy, -lyn), lyp)
         smax = math.exp(max(np.float64(log_scales[i, 0]), np.float64(log_scales[i, 1]),
                             np.float64(log_scales[i, 2])))
         ru = 3.34 * math.sqrt((fx / z) ** 2 * (1.0 + sxc * sxc) * smax * smax + low_pass)
         rv = 3.34 * math.sqrt((fy / z) ** 2 * (1.0 + syc * syc) * smax * smax + low_pass)
-        return not (u - ru > width - 1 or u + ru < 0.0 or v - rv > height - 1 or v + rv < 0.0), x, y, z
+        if u - ru > width - 1 or u + ru < 0.0 or v - rv > height - 1 or v + rv < 0.0:
+            return False, x, y, z
+        if sat.shape[0] == 0:
+            return True, x, y, z
+        # the tiles of that box (it holds the projection's exact tile range, so nothing open_slots keeps is lost)
+        tx0 = int(max(u - ru, 0.0)) // TILE
+        tx1 = int(min(u + ru, width - 1.0)) // TILE
+        ty0 = int(max(v - rv, 0.0)) // TILE
+        ty1 = int(min(v + rv, height - 1.0)) // TILE
+        return _rect_sum(sat, tx0, tx1, ty0, ty1) > 0, x, y, z
     if model == 1:
         r = math.sqrt(x * x + y * y + z * z)
         return r >= near and r <= far, x, y, z
@@ -243,7 +261,7 @@ def _chunk_functions(model: int):
     model (the closure's `model`)."""
     model = int(model)
 
-    def precull_chunk(means, log_scales, cam, ptab, planes, ch):
+    def precull_chunk(means, log_scales, cam, ptab, planes, sat, ch):
         """How many Gaussians of chunk ch survive _precull (0 when the chunk's box lies outside one of planes)."""
         Rw, tw, lp, fx, fy, cx, cy, lxn, lxp, lyn, lyp, width, height, near, far, low_pass = cam
         i0 = ch * PROJ_CHUNK
@@ -253,12 +271,12 @@ def _chunk_functions(model: int):
         c = 0
         for i in range(i0, i1):
             keep, _, _, _ = _precull(means, log_scales, i, Rw, tw, model, lp, fx, fy, cx, cy, lxn, lxp, lyn, lyp,
-                                     ptab, width, height, near, far, low_pass)
+                                     ptab, width, height, near, far, low_pass, sat)
             c += keep
         return c
 
-    def project_chunk(means, quats, log_scales, opacity_logits, sh, campos, cam, ptab, antialiased, opacity_mode,
-                      rows, trange, depth_out, gid, ch, slot0, ntx):
+    def project_chunk(means, quats, log_scales, opacity_logits, sh, campos, cam, ptab, sat, antialiased,
+                      opacity_mode, rows, trange, depth_out, gid, ch, slot0, ntx):
         """One chunk of project_kernel, writing from slot slot0 on; returns the number of visible Gaussians
         written."""
         Rw, tw, lp, fx, fy, cx, cy, lxn, lxp, lyn, lyp, width, height, near, far, low_pass = cam
@@ -267,7 +285,7 @@ def _chunk_functions(model: int):
         s = slot0
         for i in range(i0, i1):
             keep, x, y, z = _precull(means, log_scales, i, Rw, tw, model, lp, fx, fy, cx, cy, lxn, lxp, lyn, lyp,
-                                     ptab, width, height, near, far, low_pass)
+                                     ptab, width, height, near, far, low_pass, sat)
             if not keep:
                 continue
             mxw, myw, mzw = np.float64(means[i, 0]), np.float64(means[i, 1]), np.float64(means[i, 2])
@@ -457,57 +475,58 @@ def _chunk_functions(model: int):
     return chunk_fn(per_model(precull_chunk, model)), chunk_fn(per_model(project_chunk, model))
 
 
-def _precull_chunk_call(model, means, log_scales, cam, ptab, planes, ch):
+def _precull_chunk_call(model, means, log_scales, cam, ptab, planes, sat, ch):
     """(numba only) the precull chunk function of `model` (a compile-time constant)."""
     raise NotImplementedError("called from numba kernels only")
 
 
 @overload(_precull_chunk_call)
-def _ol_precull_chunk_call(model, means, log_scales, cam, ptab, planes, ch):
+def _ol_precull_chunk_call(model, means, log_scales, cam, ptab, planes, sat, ch):
     if not isinstance(model, types.IntegerLiteral):
         return None
     fn = _chunk_functions(model.literal_value)[0]
 
-    def impl(model, means, log_scales, cam, ptab, planes, ch):
-        return fn(means, log_scales, cam, ptab, planes, ch)
+    def impl(model, means, log_scales, cam, ptab, planes, sat, ch):
+        return fn(means, log_scales, cam, ptab, planes, sat, ch)
     return per_model(impl, model.literal_value)
 
 
-def _project_chunk_call(model, means, quats, log_scales, opacity_logits, sh, campos, cam, ptab, antialiased,
+def _project_chunk_call(model, means, quats, log_scales, opacity_logits, sh, campos, cam, ptab, sat, antialiased,
                         opacity_mode, rows, trange, depth_out, gid, ch, slot0, ntx):
     """(numba only) the project chunk function of `model` (a compile-time constant)."""
     raise NotImplementedError("called from numba kernels only")
 
 
 @overload(_project_chunk_call)
-def _ol_project_chunk_call(model, means, quats, log_scales, opacity_logits, sh, campos, cam, ptab, antialiased,
+def _ol_project_chunk_call(model, means, quats, log_scales, opacity_logits, sh, campos, cam, ptab, sat, antialiased,
                            opacity_mode, rows, trange, depth_out, gid, ch, slot0, ntx):
     if not isinstance(model, types.IntegerLiteral):
         return None
     fn = _chunk_functions(model.literal_value)[1]
 
-    def impl(model, means, quats, log_scales, opacity_logits, sh, campos, cam, ptab, antialiased, opacity_mode,
+    def impl(model, means, quats, log_scales, opacity_logits, sh, campos, cam, ptab, sat, antialiased, opacity_mode,
              rows, trange, depth_out, gid, ch, slot0, ntx):
-        return fn(means, quats, log_scales, opacity_logits, sh, campos, cam, ptab, antialiased, opacity_mode, rows,
-                  trange, depth_out, gid, ch, slot0, ntx)
+        return fn(means, quats, log_scales, opacity_logits, sh, campos, cam, ptab, sat, antialiased, opacity_mode,
+                  rows, trange, depth_out, gid, ch, slot0, ntx)
     return per_model(impl, model.literal_value)
 
 
 @functools.cache
 def precull_counts(model: int):
-    """The pre-cull kernel of one camera model (see above): kernel(means, log_scales, cam, ptab, planes, counts):
-    counts[c] = how many Gaussians of chunk c (PROJ_CHUNK Gaussians each) survive _precull; 0 for a chunk whose
-    bounding box lies wholly outside one of `planes` (chunk_planes), without looking at its Gaussians. An upper
-    bound of what project_kernel keeps, so its outputs can be allocated to fit."""
+    """The pre-cull kernel of one camera model (see above): kernel(means, log_scales, cam, ptab, planes, sat,
+    counts): counts[c] = how many Gaussians of chunk c (PROJ_CHUNK Gaussians each) survive _precull (``sat``: its
+    open tiles); 0 for a chunk whose bounding box lies wholly outside one of `planes` (chunk_planes), without looking
+    at its Gaussians. An upper bound of what project_kernel (given the same ``sat``) keeps, so its outputs can be
+    allocated to fit."""
     model = int(model)
 
-    def precull_counts_kernel(means, log_scales, cam, ptab, planes, counts):
+    def precull_counts_kernel(means, log_scales, cam, ptab, planes, sat, counts):
         nch = (means.shape[0] + PROJ_CHUNK - 1) // PROJ_CHUNK
         for k in prange(SPREAD * ((nch + SPREAD - 1) // SPREAD)):
             ch = _spread(k, nch)
             if ch < 0:
                 continue
-            counts[ch] = _precull_chunk_call(model, means, log_scales, cam, ptab, planes, ch)
+            counts[ch] = _precull_chunk_call(model, means, log_scales, cam, ptab, planes, sat, ch)
 
     return njit(cache=True, parallel=True, nogil=True)(per_model(precull_counts_kernel, model))
 
@@ -515,7 +534,7 @@ def precull_counts(model: int):
 @functools.cache
 def project_kernel(model: int):
     """The projection kernel of one camera model (see above): kernel(means, quats, log_scales, opacity_logits, sh,
-    campos, cam, ptab, antialiased, opacity_mode, pre, base, rows, trange, depth_out, gid, counts): project the
+    campos, cam, ptab, sat, antialiased, opacity_mode, pre, base, rows, trange, depth_out, gid, counts): project the
     Gaussians (float64), parallel over chunks of PROJ_CHUNK Gaussians. Chunk c (pre[c] > 0: its precull_counts)
     writes its visible Gaussians, in index order, to slots base[c], base[c] + 1, ... (base: the exclusive prefix
     sum of pre) and their number (<= pre[c]) to counts[c]; per slot s: rows[s] = the 64-byte float32 row
@@ -525,7 +544,7 @@ def project_kernel(model: int):
     index, so sorting slots is sorting indices."""
     model = int(model)
 
-    def project_kernel_model(means, quats, log_scales, opacity_logits, sh, campos, cam, ptab, antialiased,
+    def project_kernel_model(means, quats, log_scales, opacity_logits, sh, campos, cam, ptab, sat, antialiased,
                              opacity_mode, pre, base, rows, trange, depth_out, gid, counts):
         nch = (means.shape[0] + PROJ_CHUNK - 1) // PROJ_CHUNK
         ntx = (cam[11] + TILE - 1) // TILE
@@ -536,8 +555,8 @@ def project_kernel(model: int):
             counts[ch] = 0
             if pre[ch] > 0:
                 counts[ch] = _project_chunk_call(model, means, quats, log_scales, opacity_logits, sh, campos, cam,
-                                                 ptab, antialiased, opacity_mode, rows, trange, depth_out, gid, ch,
-                                                 base[ch], ntx)
+                                                 ptab, sat, antialiased, opacity_mode, rows, trange, depth_out, gid,
+                                                 ch, base[ch], ntx)
 
     return njit(cache=True, parallel=True, nogil=True)(per_model(project_kernel_model, model))
 
@@ -1129,7 +1148,7 @@ def covered_tiles(alpha, ntx, nty, cover):
     return out
 
 
-@njit(cache=True, nogil=True)
+@njit(inline="always")
 def _rect_sum(sat, x0, x1, y0, y1):
     return sat[y1 + 1, x1 + 1] - sat[y0, x1 + 1] - sat[y1 + 1, x0] + sat[y0, x0]
 

@@ -169,6 +169,7 @@ def test_tiles_the_layers_in_front_cover_are_finished_as_they_drew_them():
         np.testing.assert_array_equal(culled[4][culled[2][culled[1][t]:culled[1][t + 1]]],
                                       whole[4][whole[2][whole[1][t]:whole[1][t + 1]]])
     assert len(culled[2]) < len(whole[2])
+    assert len(culled[3]) < len(whole[3])       # a pinhole's pre-cull: fewer Gaussians projected (kernels._precull)
 
 
 def test_covered_tiles_of_an_equirect_view_across_its_seam():
