@@ -28,13 +28,12 @@ from xyzcyl.common.wire import ActorEdit, ViewError
 
 from .camera import check_pose
 from .errors import CameraError, FieldError
-from .render import Gaussians
+from .render import FIELDS, Gaussians
 from .rotations import quat_to_rotmat, rotmats_to_quats
 
 ACTORS_NAME = "actors.npz"
 CLEARED_TOL = (0.05, 1.0)  # (metres, degrees): an actor placed within this of where it is has not been taken away
 MOVED_LABEL = "moved"          # the label of a keyframe's cells that moved away without a track (runtime.drive)
-FIELDS = ("means", "quats", "log_scales", "opacity_logits", "sh")
 
 
 class ActorsError(FieldError):

@@ -51,6 +51,7 @@ import functools
 import json
 import math
 import os
+import shutil
 import sys
 import tempfile
 import time
@@ -69,7 +70,7 @@ from .egobody import EgoBody
 from .errors import FieldError, RigError
 from .groundfill import fill_under
 from .numba_cache import njit
-from .render import Gaussians
+from .render import FIELDS, Gaussians
 from .rig import Rig, load_rig
 
 MAX_SPEED_MPS = 100.0          # an ego faster than this between two frames is a pose error (360 km/h)
@@ -640,19 +641,20 @@ class _Kept:
     another keyframe took over never comes back, so deduping the shared ones as each keyframe arrives keeps what
     deduping them all at once keeps; with ``owners``, a VoxelOwners, only the new keyframe's cells are looked at).
     The rest is each keyframe's own chunk (own_of): runtime.viewpoints. With
-    ``spill`` (a folder), each part's Gaussians wait there (an .npz) and only their centres stay in memory (12 of a
-    cell's 68 bytes): a drive's memory does not grow with every keyframe's every cell."""
+    ``spill`` (a folder), each part's Gaussians wait there (a folder of .npy files: no archive, whose CRC of every
+    byte cost 1.3 s of 10 keyframes) and only their centres stay in memory (12 of a cell's 68 bytes): a drive's memory
+    does not grow with every keyframe's every cell."""
 
     origins: np.ndarray             # [K, 3] metres: each keyframe's viewpoint (viewpoint_origins)
     spill: Path | None = None
     owners: VoxelOwners | None = None
     means: list[np.ndarray] = field(default_factory=list)          # [N_i, 3] per part
-    store: list[Gaussians | Path] = field(default_factory=list)    # the part, or its .npz in ``spill``
+    store: list[Gaussians | Path] = field(default_factory=list)    # the part, or its folder in ``spill``
     rows: list[np.ndarray | None] = field(default_factory=list)    # a spilled part: its file's rows kept (None: all)
     split: list[np.ndarray | None] = field(default_factory=list)   # [N_i] int32: each cell's row of its part's split
     #                                                                cells (runtime.detail.split_rows), or None
     quarters: list[tuple | None] = field(default_factory=list)     # (means, colours) [S, 4, 3] of a part's split
-    #                                                                cells in memory (None: none, or in its .npz)
+    #                                                                cells in memory (None: none, or in its folder)
     level: list[np.ndarray] = field(default_factory=list)
     frame: list[np.ndarray] = field(default_factory=list)
     shared: list[np.ndarray] = field(default_factory=list)
@@ -664,18 +666,19 @@ class _Kept:
     def _put(self, g: Gaussians, quarters: tuple | None) -> tuple[Gaussians | Path, tuple | None]:
         if self.spill is None:
             return g, quarters
-        path = self.spill / f"part_{len(self.store):05d}.npz"
+        path = self.spill / f"part_{len(self.store):05d}"
+        path.mkdir()
         more = {} if quarters is None else {"split_means": quarters[0], "split_colours": quarters[1]}
-        np.savez(path, means=g.means, quats=g.quats, log_scales=g.log_scales, opacity_logits=g.opacity_logits,
-                 sh=g.sh, **more)
+        for name, a in {**{k: getattr(g, k) for k in FIELDS}, **more}.items():
+            np.save(path / f"{name}.npy", a, allow_pickle=False)
         return path, None
 
     def part(self, i: int) -> Gaussians:
         s = self.store[i]
         if isinstance(s, Gaussians):
             return s
-        with np.load(s) as z:
-            g = Gaussians(**{k: z[k] for k in ("means", "quats", "log_scales", "opacity_logits", "sh")})
+        # the rows of checked Gaussians as written: not checked again
+        g = Gaussians.joined(**{k: np.load(s / f"{k}.npy", allow_pickle=False) for k in FIELDS})
         return g if self.rows[i] is None else g.subset(self.rows[i])
 
     def add(self, g: Gaussians, level: np.ndarray, n: int, split: tuple | None = None) -> None:
@@ -761,7 +764,7 @@ class _Kept:
         """Forget every part (its spilled file removed) and the voxel owners: the parts have been drawn."""
         for s in self.store:
             if isinstance(s, Path):
-                s.unlink(missing_ok=True)
+                shutil.rmtree(s, ignore_errors=True)
         for name in ("means", "store", "rows", "split", "quarters", "level", "frame", "shared", "start", "now"):
             getattr(self, name).clear()
         self.owners = None
@@ -775,9 +778,9 @@ class _Kept:
         from .detail import expand_rows
 
         quarters = self.quarters[i]
-        if quarters is None:                            # in the part's .npz
-            with np.load(self.store[i]) as z:
-                quarters = (z["split_means"], z["split_colours"])
+        if quarters is None:                            # in the part's folder
+            quarters = tuple(np.load(self.store[i] / f"split_{k}.npy", allow_pickle=False)
+                             for k in ("means", "colours"))
         return expand_rows(g, self.split[i][m], *quarters)
 
     def shared_parts(self) -> tuple[list[Gaussians], list[np.ndarray]]:

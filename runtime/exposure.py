@@ -20,7 +20,7 @@ its keyframe's cameras whose view holds it (Harmoniser.coarse).
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import replace
 from functools import cached_property
 
@@ -65,17 +65,26 @@ def match_cells(a_detail, a_colours: np.ndarray, b_detail, b_colours: np.ndarray
     """(ca [M, 3], cb [M, 3]): the colours of the cells of view a that land on a kept cell of view b at the same
     depth (within MATCH_DEPTH of it), and that cell's colour. a_detail, b_detail: runtime.detail.CameraDetail in one
     frame (the scene's); a_colours [Ma, 3], b_colours [Mb, 3]: their cells' colours in Gaussian order."""
-    return _View(a_detail, a_colours, seed).onto(_View(b_detail, b_colours, seed))
+    return _View(a_detail, a_colours.__getitem__, seed).onto(_View(b_detail, b_colours.__getitem__, seed))
+
+
+def _dc_colours(dc: np.ndarray, gain: np.ndarray | None = None):
+    """rows -> [n, 3] float64 base colours (base_colours) of the cells with SH DC ``dc`` [M, 3], divided by ``gain``
+    ([3] or None): only the rows a match looks at are computed, not a keyframe's millions."""
+    def colours(rows: np.ndarray) -> np.ndarray:
+        c = 0.5 + SH_C0 * dc[rows].astype(np.float64)
+        return c if gain is None else c / gain
+    return colours
 
 
 class _View:
     """A view's cells as match_cells uses them, prepared once for all the pairs a keyframe's views make: a subset of
     at most MAX_SOURCE_CELLS of them (random, ``seed``) to project into the other views, and each kept cell's row
-    among the cells (raster order of its grid, the Gaussians' order)."""
+    among the cells (raster order of its grid, the Gaussians' order). colours: rows [n] -> their colours [n, 3]."""
 
-    def __init__(self, detail, colours: np.ndarray, seed: int = 0):
+    def __init__(self, detail, colours: Callable[[np.ndarray], np.ndarray], seed: int = 0):
         self.detail, self.colours, self.seed = detail, colours, seed
-        self.row = np.cumsum(detail.keep.ravel()) - 1          # [h w]: a kept cell's row among the kept cells
+        self.row = np.cumsum(detail.keep.ravel()) - 1          # [h w]: a kept cell's row among the cells
 
     @cached_property
     def source(self) -> np.ndarray:
@@ -85,16 +94,23 @@ class _View:
             idx = np.sort(np.random.default_rng(self.seed).choice(len(idx), MAX_SOURCE_CELLS, replace=False))
         return idx
 
+    @cached_property
+    def source_means(self) -> np.ndarray:
+        """[S, 3] the centres of the source cells (projected into every other view)."""
+        return self.detail.means[self.source]
+
     def onto(self, b: _View) -> tuple[np.ndarray, np.ndarray]:
         """match_cells(self's cells, b's)."""
         grid, bd = b.detail.grid, b.detail
-        uv, z, front = grid.project_depth(self.detail.means[self.source])
+        uv, z, front = grid.project_depth(self.source_means)
         ok = front & grid.inside(uv)
-        u = np.clip(np.rint(uv[:, 0]).astype(np.int64), 0, grid.width - 1)
-        v = np.clip(np.rint(uv[:, 1]).astype(np.int64), 0, grid.height - 1)
-        ok &= bd.keep[v, u]
-        ok &= np.abs(bd.depth[v, u] - z) <= MATCH_DEPTH * np.maximum(z, 1e-6)
-        return self.colours[self.source[ok]], b.colours[b.row[v[ok] * grid.width + u[ok]]]
+        k = np.flatnonzero(ok)                                  # the rest never read a cell
+        u = np.clip(np.rint(uv[k, 0]).astype(np.int64), 0, grid.width - 1)
+        v = np.clip(np.rint(uv[k, 1]).astype(np.int64), 0, grid.height - 1)
+        cell = v * grid.width + u
+        zk = z[k]
+        ok = bd.keep.ravel()[cell] & (np.abs(bd.depth.ravel()[cell] - zk) <= MATCH_DEPTH * np.maximum(zk, 1e-6))
+        return self.colours(self.source[k[ok]]), b.colours(b.row[cell[ok]])
 
 
 def pair_offset(ca: np.ndarray, cb: np.ndarray, seed: int = 0) -> tuple[np.ndarray, int] | None:
@@ -156,14 +172,18 @@ def solve_log_gains(n: int, pairs: Sequence[tuple[int, int | None, np.ndarray, i
 
 
 def apply_gain(g: Gaussians, gain: np.ndarray) -> Gaussians:
-    """``g`` with its colours divided by ``gain`` ([3] per channel, or [N, 3] per Gaussian): the SH DC term so
-    that 0.5 + SH_C0 dc is divided, the higher bands divided."""
+    """``g`` with its colours divided by ``gain`` ([3] per channel, or [N, 3] per Gaussian; positive): the SH DC term
+    so that 0.5 + SH_C0 dc is divided, the higher bands divided (in float64, stored in the SH's dtype)."""
     gain = np.asarray(gain, np.float64)
-    sh = g.sh.astype(np.float64).copy()
-    sh[:, 0, :] = ((0.5 + SH_C0 * sh[:, 0, :]) / gain - 0.5) / SH_C0
-    sh[:, 1:, :] /= gain[..., None, :] if gain.ndim == 2 else gain
-    return Gaussians(means=g.means, quats=g.quats, log_scales=g.log_scales, opacity_logits=g.opacity_logits,
-                     sh=sh.astype(g.sh.dtype))
+    if not np.all(np.isfinite(gain)) or np.any(gain <= 0):
+        raise ValueError("gain: must be finite and positive")
+    sh = g.sh.copy()
+    sh[:, 0, :] = ((0.5 + SH_C0 * sh[:, 0, :].astype(np.float64)) / gain - 0.5) / SH_C0
+    if sh.shape[1] > 1:
+        sh[:, 1:, :] = sh[:, 1:, :].astype(np.float64) / (gain[..., None, :] if gain.ndim == 2 else gain)
+    # the rows of checked Gaussians, their colours divided by a finite positive gain: not checked again
+    return Gaussians.joined(means=g.means, quats=g.quats, log_scales=g.log_scales, opacity_logits=g.opacity_logits,
+                            sh=sh)
 
 
 class Harmoniser:
@@ -178,8 +198,8 @@ class Harmoniser:
         self._prev: list[_View] = []               # the previous keyframe's views, harmonised colours
 
     def add(self, details: Sequence, parts: Sequence[Gaussians], owners: Sequence[int]) -> list[Gaussians]:
-        colours = [base_colours(g) for g in parts]
-        views = [_View(d, c) for d, c in zip(details, colours)]
+        dcs = [g.sh[:, 0, :] for g in parts]
+        views = [_View(d, _dc_colours(dc)) for d, dc in zip(details, dcs)]
         pairs = []
         n = len(parts)
         for i in range(n):
@@ -200,7 +220,7 @@ class Harmoniser:
             out.append(apply_gain(g, np.exp(x[i])))
         self.gains.append(gains)
         self.pairs.append(len(pairs))
-        self._prev = [_View(d, colours[i] / np.exp(x[i])) for i, d in enumerate(details)]
+        self._prev = [_View(d, _dc_colours(dcs[i], np.exp(x[i]))) for i, d in enumerate(details)]
         self._last = ([d.grid for d in details], x)
         return out
 

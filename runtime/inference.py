@@ -41,11 +41,11 @@ from .model_folder import (  # re-exported: part of runtime.inference's API befo
     read_model_info,
     verify_model,
 )
-from .render import Gaussians
+from .render import FIELDS, Gaussians
 from .rig import Rig
 from .scene import Background, Scene, bake_grid
 
-GAUSSIAN_KEYS = ("means", "quats", "log_scales", "opacity_logits", "sh")
+GAUSSIAN_KEYS = FIELDS
 # a Gaussian whose opacity is below this never contributes (the renderer skips alpha < 1/255 and alpha <= o);
 # 0.99: margin for float rounding between numpy's and the kernel's sigmoid
 PRUNE_OPACITY = 0.99 / 255.0

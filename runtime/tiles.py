@@ -27,7 +27,7 @@ from typing import Any
 import numpy as np
 
 from .errors import FieldError
-from .render import GaussianError, Gaussians
+from .render import FIELDS, GaussianError, Gaussians
 
 TILE_M = 25.0               # metres: a tile's side on the scene's ground plane (x, y). A 1920x1080 camera on a drive
                             # sees ~200 m ahead; 25 m tiles leave a side or back camera out of most of the road ahead
@@ -284,7 +284,7 @@ class Tiles:
 
 
 def _nbytes(g: Gaussians) -> int:
-    return sum(getattr(g, f).nbytes for f in ("means", "quats", "log_scales", "opacity_logits", "sh"))
+    return sum(getattr(g, f).nbytes for f in FIELDS)
 
 
 __all__ = ["CACHE_BYTES", "HORIZON_M", "TILE_M", "Tile", "TileError", "Tiles", "build_tiles", "tile_order"]

@@ -8,7 +8,7 @@ See docs/renderer.md for conventions, options and the algorithm."""
 
 from ..compile_notice import install as _install_compile_notice
 from .core import render, render_backward
-from .gaussians import DEFAULT_MAX_POINTS, GaussianError, Gaussians
+from .gaussians import DEFAULT_MAX_POINTS, FIELDS, GaussianError, Gaussians
 from .projection import RenderOptions
 from .reference import render_reference
 from .result import GaussianGrads, RenderResult
@@ -17,6 +17,7 @@ _install_compile_notice()      # one stderr line when a kernel compiles (not whe
 
 __all__ = [
            "DEFAULT_MAX_POINTS",
+           "FIELDS",
            "GaussianError",
            "GaussianGrads",
            "Gaussians",

@@ -40,6 +40,9 @@ def _n_rest_to_degree(n_rest: int) -> int | None:
     return None
 
 
+FIELDS = ("means", "quats", "log_scales", "opacity_logits", "sh")     # a Gaussians' arrays, in order
+
+
 @dataclass(frozen=True)
 class Gaussians:
     """N anisotropic 3D Gaussians in a world frame (the ego frame in this project).
@@ -62,7 +65,7 @@ class Gaussians:
 
     def __post_init__(self) -> None:
         fields = {}
-        for name in ("means", "quats", "log_scales", "opacity_logits", "sh"):
+        for name in FIELDS:
             arr = np.asarray(getattr(self, name))
             if not np.issubdtype(arr.dtype, np.floating):
                 arr = arr.astype(np.float32)
@@ -155,7 +158,7 @@ class Gaussians:
         """Gaussians of the given arrays (every field by name), not checked again: rows of checked Gaussians taken
         or put together (subset, with_opacity_logits, runtime.detail.concat_gaussians; a drive's millions)."""
         out = object.__new__(cls)
-        for name in ("means", "quats", "log_scales", "opacity_logits", "sh"):
+        for name in FIELDS:
             object.__setattr__(out, name, fields[name])
         return out
 
@@ -163,11 +166,11 @@ class Gaussians:
         """These Gaussians indexed by ``index`` along N, not checked again: a selection of checked Gaussians (the
         drive's fusion takes thousands of subsets of millions)."""
         return Gaussians.joined(**{name: getattr(self, name)[index]
-                                   for name in ("means", "quats", "log_scales", "opacity_logits", "sh")})
+                                   for name in FIELDS})
 
     def astype(self, dtype) -> Gaussians:
         return Gaussians(*(np.asarray(getattr(self, f), dtype=dtype) for f in
-                           ("means", "quats", "log_scales", "opacity_logits", "sh")))
+                           FIELDS))
 
     # ---------------------------------------------------------------------------------------- PLY (INRIA)
     def ply_names(self) -> list[str]:

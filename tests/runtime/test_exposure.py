@@ -69,6 +69,12 @@ def test_apply_gain_divides_the_colour_of_every_band():
     h = X.apply_gain(g, gain)
     np.testing.assert_allclose(X.base_colours(h) * gain, X.base_colours(g), rtol=1e-5)   # float32 storage
     np.testing.assert_allclose(h.sh[:, 1:] * gain, g.sh[:, 1:], rtol=1e-5)
+    assert h.sh.dtype == g.sh.dtype and np.shares_memory(h.means, g.means) and not np.shares_memory(h.sh, g.sh)
+    per = rng.uniform(0.6, 1.6, size=(n, 3))                   # one gain per Gaussian (Harmoniser.coarse)
+    np.testing.assert_allclose(X.base_colours(X.apply_gain(g, per)) * per, X.base_colours(g), rtol=1e-5)
+    for bad in ([1.0, 0.0, 1.0], [1.0, np.nan, 1.0], [-1.0, 1.0, 1.0]):
+        with pytest.raises(ValueError, match="gain"):        # it would make colours that are not finite
+            X.apply_gain(g, np.array(bad))
 
 
 @pytest.fixture(scope="module")
