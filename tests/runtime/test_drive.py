@@ -153,6 +153,21 @@ def test_dedupe_frames_matches_its_reference_and_does_not_depend_on_the_order(wi
     assert dedupe_frames(two, np.array([2, 2]), np.array([1, 0])).tolist() == [False, True]
 
 
+def test_voxel_distance_kernel_gives_the_reference_bits():
+    """The dedupe's voxel-to-viewpoint distance in numba equals its numpy reference exactly: the ties between the
+    keyframes of one viewpoint group (the earliest keeps the voxel) rest on equal values."""
+    from xyzcyl.runtime.drive import _voxel_distance, _voxel_distance_reference
+
+    rng = np.random.default_rng(11)
+    coords = rng.integers(-200000, 200000, (5000, 3))
+    origins = rng.normal(scale=300.0, size=(7, 3))
+    frame = rng.integers(0, 7, 5000)
+    for size in (0.02, 0.02 * 2 ** 7, 40.96):
+        got = _voxel_distance(coords, size, frame, origins)
+        np.testing.assert_array_equal(got, _voxel_distance_reference(coords, size, frame, origins))
+    assert not _voxel_distance(coords, 0.02, frame, None).any()
+
+
 @pytest.mark.parametrize("seed", range(6))
 def test_voxel_owners_keep_what_dedupe_frames_keeps_as_keyframes_arrive(seed):
     """VoxelOwners (the fusion's dedupe, one keyframe's cells at a time) against dedupe_frames over all of them:
