@@ -24,6 +24,7 @@ and keeps the last CACHE_CHUNKS it used: a view reads at most three."""
 
 from __future__ import annotations
 
+import os
 import shutil
 import threading
 from collections import OrderedDict
@@ -38,6 +39,19 @@ from .render import GaussianError, Gaussians
 CHUNKS_DIR = "viewpoints"
 CACHE_CHUNKS = 4            # chunks a loaded scene keeps in memory: a view's group and its two neighbours, and one
                             # more, so that a camera moving along the drive reads one new chunk per group it enters
+
+
+def _link_or_copy(src: Path, dst: Path) -> None:
+    """``dst`` made to hold ``src``'s bytes: a hard link where both lie on one file system (a chunk's file is written
+    once and never changed: 20 PandaSet keyframes' chunks are 4 GB that a copy read and wrote again), else a copy. An
+    existing ``dst`` is replaced (never written through: it may be ``src`` itself, linked by an earlier save)."""
+    if dst.exists() and dst.samefile(src):
+        return
+    dst.unlink(missing_ok=True)
+    try:
+        os.link(src, dst)
+    except OSError:                 # another file system, or one without hard links
+        shutil.copyfile(src, dst)
 
 
 class ViewpointError(FieldError):
@@ -175,8 +189,8 @@ class Viewpoints:
         """Write every chunk's PLY into ``folder`` (a scene folder being written)."""
         (folder / CHUNKS_DIR).mkdir(exist_ok=True)
         for i, c in enumerate(self.chunks):
-            if self._given[i] is None:              # on disk already: copied, not read
-                shutil.copyfile(self._folder / c.file, folder / c.file)
+            if self._given[i] is None:              # on disk already: linked or copied, not read
+                _link_or_copy(self._folder / c.file, folder / c.file)
             else:
                 self._given[i].save_ply(folder / c.file)
 

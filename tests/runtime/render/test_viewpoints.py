@@ -44,6 +44,31 @@ def test_chunks_through_the_scene_folder_read_when_used(tmp_path, monkeypatch):
     assert back.viewpoints.chunks[1].bbox == scene.viewpoints.chunks[1].bbox
 
 
+def test_chunks_on_disk_are_linked_into_a_new_folder_and_survive_a_second_save(tmp_path, monkeypatch):
+    """A scene whose chunks lie on disk (a loaded folder, or a drive's spilled chunks) writes them by a hard link where
+    it can (viewpoints._link_or_copy), a copy where the file system refuses one, and saving again (into the same
+    folder: the link is its own file) keeps them whole."""
+    _scene().save(tmp_path / "a")
+    src = Scene.load(tmp_path / "a")
+    want = [src.viewpoints.gaussians(i).means.copy() for i in range(3)]
+    src.save(tmp_path / "b")
+    name = src.viewpoints.chunks[0].file
+    assert (tmp_path / "b" / name).samefile(tmp_path / "a" / name)          # one file, not a copy
+    src.save(tmp_path / "b")                                                 # again: links onto themselves
+    assert (tmp_path / "b" / name).stat().st_nlink == 2
+
+    def no_link(a, b):
+        raise OSError(18, "Invalid cross-device link")
+
+    monkeypatch.setattr(vp.os, "link", no_link)
+    src.save(tmp_path / "c")
+    assert not (tmp_path / "c" / name).samefile(tmp_path / "a" / name)     # copied
+    for d in ("b", "c"):
+        back = Scene.load(tmp_path / d)
+        for i in range(3):
+            np.testing.assert_array_equal(back.viewpoints.gaussians(i).means, want[i])
+
+
 @pytest.mark.parametrize("edit, field", [
     (lambda m, d: m["viewpoints"]["chunks"][0].update(count=99), "viewpoints.chunks[0].count"),
     (lambda m, d: m["viewpoints"]["chunks"][1].update(keyframes=[0]), "viewpoints.chunks[1].keyframes"),
