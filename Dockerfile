@@ -57,6 +57,12 @@ FROM ${PYTHON_IMAGE}
 LABEL org.opencontainers.image.title="xyzcyl" \
       org.opencontainers.image.description="XYZCylinder CPU inference service (xyzcyl serve), no torch" \
       org.opencontainers.image.licenses="Apache-2.0"
+# libgomp1: numba's OpenMP threading layer. Without it (python:3.11-slim and a minbase Debian have none) numba falls
+# back to its workqueue layer, which aborts the process when two threads run kernels at once: the service would
+# render one request at a time and make a drive's keyframes one at a time (runtime.numba_cache.threadsafe)
+RUN apt-get update \
+ && DEBIAN_FRONTEND=noninteractive apt-get install -y --no-install-recommends libgomp1 \
+ && rm -rf /var/lib/apt/lists/*
 RUN groupadd --gid 10001 xyzcyl \
  && useradd --uid 10001 --gid 10001 --no-create-home --home-dir /nonexistent --shell /usr/sbin/nologin xyzcyl \
  && mkdir -p /data/store /tmp/numba-cache \

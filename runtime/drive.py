@@ -69,7 +69,7 @@ from .camera import check_pose
 from .egobody import EgoBody
 from .errors import FieldError, RigError
 from .groundfill import fill_under
-from .numba_cache import njit
+from .numba_cache import njit, threadsafe
 from .render import FIELDS, Gaussians
 from .rig import Rig, load_rig
 
@@ -1104,6 +1104,16 @@ def _keyframes_made(rec, drive: Drive, keys: Sequence[int], workers: int, opts: 
     if len(keys) < 2:
         for k in keys:
             yield make_keyframe(rec, drive, k, **opts, progress=say)
+        return
+    if workers == 0 and not threadsafe():
+        # numba's workqueue layer (no libgomp, no TBB): two threads' kernels at once would abort the process, so
+        # each keyframe is made when the caller asks for it (numba_cache.threadsafe)
+        if say:
+            say("keyframes made one at a time: numba has no thread-safe threading layer here (install libgomp1 "
+                "or `pip install tbb`)")
+        for k in keys:
+            yield make_keyframe(rec, drive, k, **opts,
+                                progress=(lambda m, k=k: say(f"frame {k}: {m}")) if say else None)
         return
     if workers == 0:
         # the next keyframe is made while the caller fuses this one: onnxruntime, the numba kernels and numpy's big

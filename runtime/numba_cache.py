@@ -203,3 +203,23 @@ def njit(*args, **options):
 
 
 __all__ = ["CheckedFunctionCache", "CheckedIndexDataCacheFile", "njit", "source_files", "source_stamp"]
+
+
+THREADSAFE_LAYERS = ("tbb", "omp")      # numba threading layers that let several threads launch parallel kernels
+
+
+@functools.cache
+def threadsafe() -> bool:
+    """Whether numba's threading layer lets two threads run parallel kernels at once: TBB or OpenMP (GNU's libgomp).
+    Where neither loads (a slim container image has no libgomp1; no tbb wheel) numba falls back to its workqueue
+    layer, which aborts the whole process the moment two threads launch parallel kernels together. Those that would
+    (runtime.drive's keyframe made ahead in a thread, the service's render pool) run one at a time instead when this
+    is False. Starts numba's threads (what the first parallel kernel does anyway)."""
+    try:
+        from numba.np.ufunc import parallel
+
+        parallel._launch_threads()
+        return numba.threading_layer() in THREADSAFE_LAYERS
+    except Exception:       # numba's internals moved, or no layer loads: assume the worst
+        return False
+

@@ -421,16 +421,30 @@ class Reconstructions:
             log.warning("could not write the failure of %s (%s): %s", job.sid, code, e)
 
 
+def render_threads(asked: int) -> int:
+    """The render pool's threads: ``asked`` (Settings.render_threads), or 1 where numba has no thread-safe threading
+    layer (runtime.numba_cache.threadsafe: its workqueue layer aborts the process when two renders run kernels at
+    once), with a warning in the log."""
+    from xyzcyl.runtime.numba_cache import threadsafe
+
+    if asked > 1 and not threadsafe():
+        log.warning("render_threads %d -> 1: numba has no thread-safe threading layer here (its workqueue layer "
+                    "aborts when two threads run kernels at once); install libgomp1 or `pip install tbb`", asked)
+        return 1
+    return asked
+
+
 class Renders:
     """A bounded thread pool for renders and other CPU work of the request path."""
 
     def __init__(self, settings, metrics):
         self.settings = settings
         self.metrics = metrics
-        self.limit = settings.render_threads + settings.render_queue
+        self.threads = render_threads(settings.render_threads)
+        self.limit = self.threads + settings.render_queue
         self.inflight = 0
         # renders run nicer than the event loop (compute_nice): health and admission are answered at once under load
-        self.pool = cf.ThreadPoolExecutor(settings.render_threads, thread_name_prefix="render",
+        self.pool = cf.ThreadPoolExecutor(self.threads, thread_name_prefix="render",
                                           initializer=lower_priority, initargs=(settings.compute_nice,))
 
     def busy(self) -> bool:
