@@ -62,7 +62,8 @@ LABEL org.opencontainers.image.title="xyzcyl" \
 # render one request at a time and make a drive's keyframes one at a time (runtime.numba_cache.threadsafe)
 RUN apt-get update \
  && DEBIAN_FRONTEND=noninteractive apt-get install -y --no-install-recommends libgomp1 \
- && rm -rf /var/lib/apt/lists/*
+ && apt-get clean \
+ && rm -rf /var/lib/apt/lists/* /var/cache/apt/*.bin
 RUN groupadd --gid 10001 xyzcyl \
  && useradd --uid 10001 --gid 10001 --no-create-home --home-dir /nonexistent --shell /usr/sbin/nologin xyzcyl \
  && mkdir -p /data/store /tmp/numba-cache \
