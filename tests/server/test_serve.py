@@ -61,6 +61,39 @@ def test_serve_subprocess_restart_same_bytes(tmp_path):
         raise
 
 
+@pytest.mark.slow
+def test_serve_under_numbas_workqueue_layer_renders_side_by_side_requests_one_at_a_time(tmp_path):
+    """Where numba has only its workqueue layer (no libgomp, no TBB: a slim container), two renders whose kernels
+    ran at once aborted the whole server ("Numba workqueue threading layer is terminating: Concurrent access has
+    been detected"; eight renders at once against the tree before: no answer to any, the process gone). Now the
+    render pool has one thread there, says so, and answers every request."""
+    import os
+    from concurrent.futures import ThreadPoolExecutor
+
+    log = tmp_path / "serve.log"
+    env = {**os.environ, "NUMBA_THREADING_LAYER": "workqueue", "XYZCYL_RENDER_THREADS": "2"}
+    try:
+        with serve(tmp_path / "store", log, env=env) as server:
+            server.wait_ready()
+            with httpx.Client(base_url=server.url, timeout=120.0) as c:
+                r = c.post("/v1/scenes", params={"wait": 90}, files=rig_files())
+                assert r.status_code == 201, r.text
+                sid = r.json()["id"]
+                cams = ["CAM_FRONT", "CAM_BACK", "CAM_FRONT_LEFT", "CAM_BACK_LEFT"] * 2
+
+                def get(cam: str) -> int:
+                    return c.get(f"/v1/scenes/{sid}/render", params={"camera": cam, "width": 800}).status_code
+
+                with ThreadPoolExecutor(len(cams)) as pool:
+                    assert list(pool.map(get, cams)) == [200] * len(cams)
+            assert server.stop() == 0
+        assert "render_threads 2 -> 1" in log.read_text()
+    except BaseException:
+        if log.is_file():
+            sys.stderr.write(f"--- xyzcyl serve output ({log}) ---\n{log.read_text(errors='replace')[-8000:]}\n")
+        raise
+
+
 def test_print_settings_shows_the_resolved_model(tmp_path, monkeypatch, capsys):
     """--print-settings names the model folder the server would load, not `null` (issue 27, defect 7): the shipped
     one by default, $XYZCYL_MODEL or --model (absolute) when given."""
