@@ -1658,7 +1658,8 @@ def fuse_details(coarse: Gaussians, parts: list[Gaussians], details: list[Camera
     where = _split_positions(int(keep.sum()), split)
     per_camera = [np.zeros(0, np.int64)] * len(cameras)
     for owner, h in zip(owners, own_view_hide(details, carved, starts)):
-        per_camera[owner] = np.sort(np.concatenate(where(h))) if len(h) else h
+        # where(h): a dozen ascending runs (each camera's kept cells, its quarters): a merge, not a quicksort
+        per_camera[owner] = np.sort(np.concatenate(where(h)), kind="stable") if len(h) else h
     own = OwnViews(cameras=cameras,
                    index=np.concatenate(where(np.concatenate([s0 + np.flatnonzero(~k)
                                                               for s0, k in zip(starts, carved)]))).astype(np.int64),
