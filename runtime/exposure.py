@@ -84,7 +84,7 @@ class _View:
 
     def __init__(self, detail, colours: Callable[[np.ndarray], np.ndarray], seed: int = 0):
         self.detail, self.colours, self.seed = detail, colours, seed
-        self.row = np.cumsum(detail.keep.ravel()) - 1          # [h w]: a kept cell's row among the cells
+        self.row = np.cumsum(detail.keep.ravel()) - 1          # [h w]: a kept cell's row among the kept cells
 
     @cached_property
     def source(self) -> np.ndarray:

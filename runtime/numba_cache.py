@@ -202,9 +202,6 @@ def njit(*args, **options):
     return wrap
 
 
-__all__ = ["CheckedFunctionCache", "CheckedIndexDataCacheFile", "njit", "source_files", "source_stamp"]
-
-
 THREADSAFE_LAYERS = ("tbb", "omp")      # numba threading layers that let several threads launch parallel kernels
 
 
@@ -222,4 +219,8 @@ def threadsafe() -> bool:
         return numba.threading_layer() in THREADSAFE_LAYERS
     except Exception:       # numba's internals moved, or no layer loads: assume the worst
         return False
+
+
+__all__ = ["CheckedFunctionCache", "CheckedIndexDataCacheFile", "THREADSAFE_LAYERS", "njit", "source_files",
+           "source_stamp", "threadsafe"]
 
