@@ -1101,28 +1101,26 @@ def _keyframes_made(rec, drive: Drive, keys: Sequence[int], workers: int, opts: 
     ahead of the one the caller fuses), else in that many worker processes (spawned: no onnxruntime or numba threads
     are forked) with at most ``workers`` keyframes ahead. An error making a keyframe is raised here, the others
     cancelled. ``say``: the stages' progress lines, each led by its frame (here only)."""
-    if len(keys) < 2:
-        for k in keys:
-            yield make_keyframe(rec, drive, k, **opts, progress=say)
-        return
-    if workers == 0 and not threadsafe():
+    def make(k: int, led: bool = True):
+        """Keyframe k made here, its progress lines led by its frame (``led``)."""
+        return make_keyframe(rec, drive, k, **opts,
+                             progress=(lambda m: say(f"frame {k}: {m}")) if say and led else say)
+
+    alone = len(keys) < 2
+    if alone or (workers == 0 and not threadsafe()):
         # numba's workqueue layer (no libgomp, no TBB): two threads' kernels at once would abort the process, so
         # each keyframe is made when the caller asks for it (numba_cache.threadsafe)
-        if say:
+        if say and not alone:
             say("keyframes made one at a time: numba has no thread-safe threading layer here (install libgomp1 "
                 "or `pip install tbb`)")
         for k in keys:
-            yield make_keyframe(rec, drive, k, **opts,
-                                progress=(lambda m, k=k: say(f"frame {k}: {m}")) if say else None)
+            yield make(k, led=not alone)
         return
     if workers == 0:
         # the next keyframe is made while the caller fuses this one: onnxruntime, the numba kernels and numpy's big
         # operations release the GIL, and a keyframe's making and its fusion each leave a core idle part of the
         # time (one keyframe's cells more in memory; the service renders from threads the same way)
         from concurrent.futures import ThreadPoolExecutor
-
-        def make(k: int):
-            return make_keyframe(rec, drive, k, **opts, progress=(lambda m: say(f"frame {k}: {m}")) if say else None)
 
         ahead = ThreadPoolExecutor(1, thread_name_prefix="keyframe")
         try:
