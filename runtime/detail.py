@@ -697,30 +697,63 @@ def cell_gaussians_reference(grid: Camera, colours: np.ndarray, depth: np.ndarra
                      sh=sh)
 
 
+@njit(cache=True, parallel=True, nogil=True)
+def _put_rows(src, rows, dst, at):
+    """dst[at + i] = src[rows[i]] over src's columns, the rest of dst's row zero; src [N, C], dst [M, >= C] (both
+    2-D, any strides); rows [n] int64."""
+    c, cd = src.shape[1], dst.shape[1]
+    for i in numba.prange(rows.shape[0]):
+        r = rows[i]
+        for k in range(c):
+            dst[at + i, k] = src[r, k]
+        for k in range(c, cd):
+            dst[at + i, k] = 0
+
+
+@njit(cache=True, parallel=True, nogil=True)
+def _put_all(src, dst, at):
+    """_put_rows of every row of src, in order."""
+    c, cd = src.shape[1], dst.shape[1]
+    for i in numba.prange(src.shape[0]):
+        for k in range(c):
+            dst[at + i, k] = src[i, k]
+        for k in range(c, cd):
+            dst[at + i, k] = 0
+
+
 def concat_gaussians(parts: list[Gaussians], masks: list[np.ndarray | None] | None = None) -> Gaussians:
     """The Gaussians of ``parts`` in order, each restricted to its boolean mask ([N_i] or None = all): one copy of
-    each field, written in place (the highest SH degree; lower-degree parts padded with zeros)."""
+    each field, written in place by one parallel pass a field and part (the highest SH degree; lower-degree parts
+    padded with zeros). concat_gaussians_reference is its numpy definition (tested: the same bits)."""
     masks = masks if masks is not None else [None] * len(parts)
     deg = max(p.sh_degree for p in parts)
     n_sh = (deg + 1) ** 2
-    sizes = [len(p) if m is None else int(np.count_nonzero(m)) for p, m in zip(parts, masks)]
+    rows = [None if m is None else np.flatnonzero(m) for m in masks]
+    sizes = [len(p) if r is None else len(r) for p, r in zip(parts, rows)]
     total = sum(sizes)
     out = {name: np.empty((total, *getattr(parts[0], name).shape[1:]), np.float32)
            for name in ("means", "quats", "log_scales", "opacity_logits")}
-    out["sh"] = np.zeros((total, n_sh, 3), np.float32)
+    out["sh"] = np.empty((total, n_sh, 3), np.float32)
     at = 0
-    for p, m, n in zip(parts, masks, sizes):
-        for name, dst in out.items():
-            a = getattr(p, name)
-            to = dst[at:at + n, :a.shape[1]] if name == "sh" else dst[at:at + n]
-            if m is None:
-                to[...] = a
-            elif a.dtype == np.float32 and name != "sh":
-                np.compress(m, a, axis=0, out=to)        # straight into place, no temporary
-            else:
-                to[...] = a[m]
+    for p, r, n in zip(parts, rows, sizes):
+        if n:
+            for name, dst in out.items():
+                a = getattr(p, name)
+                a2, d2 = np.asarray(a, np.float32).reshape(len(a), -1), dst.reshape(total, -1)
+                _put_all(a2, d2, at) if r is None else _put_rows(a2, r, d2, at)
         at += n
     return Gaussians.joined(**out)          # rows of checked Gaussians: not checked again
+
+
+def concat_gaussians_reference(parts: list[Gaussians], masks: list[np.ndarray | None] | None = None) -> Gaussians:
+    """concat_gaussians in numpy: each part's masked rows, the SH padded with zeros to the highest degree."""
+    masks = masks if masks is not None else [None] * len(parts)
+    n_sh = (max(p.sh_degree for p in parts) + 1) ** 2
+    taken = [p if m is None else p.subset(np.asarray(m, bool)) for p, m in zip(parts, masks)]
+    sh = [np.concatenate([t.sh, np.zeros((len(t), n_sh - t.sh.shape[1], 3), np.float32)], axis=1) for t in taken]
+    return Gaussians.joined(**{name: np.concatenate([np.asarray(getattr(t, name), np.float32) for t in taken])
+                               for name in ("means", "quats", "log_scales", "opacity_logits")},
+                            sh=np.concatenate(sh))
 
 
 @dataclass(frozen=True, eq=False)
@@ -1423,6 +1456,7 @@ __all__ = [
     "cell_gaussians",
     "cell_gaussians_reference",
     "concat_gaussians",
+    "concat_gaussians_reference",
     "cull_covered",
     "cull_covered_reference",
     "densify",

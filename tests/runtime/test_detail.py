@@ -26,6 +26,7 @@ from xyzcyl.runtime.detail import (
     cell_gaussians,
     cell_gaussians_reference,
     concat_gaussians,
+    concat_gaussians_reference,
     cull_covered,
     cull_covered_reference,
     densify,
@@ -73,6 +74,33 @@ def _discs(means, sigma, colour, opacity=0.99, thin=None) -> Gaussians:
 
 def _psnr(a: np.ndarray, b: np.ndarray) -> float:
     return float(-10 * np.log10(np.mean((np.asarray(a, np.float64) - b) ** 2)))
+
+
+def _random_gaussians(rng, n: int, sh_degree: int) -> Gaussians:
+    return Gaussians(rng.normal(size=(n, 3)).astype(np.float32), rng.normal(size=(n, 4)).astype(np.float32),
+                     rng.normal(size=(n, 3)).astype(np.float32), rng.normal(size=n).astype(np.float32),
+                     rng.normal(size=(n, (sh_degree + 1) ** 2, 3)).astype(np.float32))
+
+
+def test_concat_gaussians_gives_its_references_bits():
+    """concat_gaussians (a parallel copy per field and part, straight into place) against its numpy definition: parts
+    of SH degree 0 and 2 (the lower padded with zeros), masked and whole, an empty part, an all-False mask, a part
+    whose fields are strided views (rows of a larger array)."""
+    rng = np.random.default_rng(3)
+    big = _random_gaussians(rng, 900, 0)
+    strided = Gaussians.joined(**{f: getattr(big, f)[::3] for f in ("means", "quats", "log_scales",
+                                                                  "opacity_logits", "sh")})
+    parts = [_random_gaussians(rng, 500, 0), _random_gaussians(rng, 0, 0), _random_gaussians(rng, 300, 2),
+             strided, _random_gaussians(rng, 40, 0)]
+    masks = [rng.random(500) < 0.6, None, None, rng.random(300) < 0.5, np.zeros(40, bool)]
+    for m in (masks, None):
+        got, want = concat_gaussians(parts, m), concat_gaussians_reference(parts, m)
+        for f in ("means", "quats", "log_scales", "opacity_logits", "sh"):
+            a, b = getattr(got, f), getattr(want, f)
+            assert a.dtype == b.dtype == np.float32 and a.shape == b.shape, f
+            np.testing.assert_array_equal(a, b, err_msg=f)
+    assert concat_gaussians(parts, m).sh.shape == (500 + 300 + 300 + 40, 9, 3)
+    assert len(concat_gaussians([parts[1]])) == 0
 
 
 # -- options ------------------------------------------------------------------------------------------------------
