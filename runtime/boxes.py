@@ -5,8 +5,10 @@ point inside what moves)."""
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 
+import numba
 import numpy as np
 
 from .numba_cache import njit
@@ -60,7 +62,60 @@ def snap_into_boxes(means: np.ndarray, origin: np.ndarray, boxes: Sequence[tuple
     distance d with SNAP_NEAR e <= d <= SNAP_FAR x (the model's depth is that far off: AbsRel ~0.5 on real
     cameras), is moved along its ray to e + min(SNAP_INTO_M, (x - e) / 2), the object's near side; ``factor`` is
     its new distance over its old (1 for the others; a cell's size scales with it). Cells already inside a box,
-    and those no box's ray passes through, stay; the first box along the list wins."""
+    and those no box's ray passes through, stay; the first box along the list wins; a camera within a box's
+    bounding sphere has no near side of it to snap to. One numba pass over the cells, each tested only against the
+    boxes whose bounding cone holds its ray (snap_into_boxes_reference is the numpy definition; tested)."""
+    p = np.ascontiguousarray(means, np.float64).reshape(-1, 3)
+    o = np.asarray(origin, np.float64).reshape(3)
+    out, factor = p.copy(), np.ones(len(p))
+    if not len(p) or not boxes:
+        return out, factor
+    inv = np.ascontiguousarray([np.asarray(b[0], np.float64)[:3] for b in boxes])     # [B, 3, 4]
+    half = np.ascontiguousarray([np.asarray(b[1], np.float64) for b in boxes])         # [B, 3]
+    centre = -np.einsum("bji,bj->bi", inv[:, :, :3], inv[:, :, 3])                    # [B, 3] the boxes' centres
+    to_c = centre - o
+    r = np.linalg.norm(to_c, axis=1)
+    reach = np.linalg.norm(half, axis=1)
+    use = r > reach                    # the camera outside the box's bounding sphere (a near side to snap to)
+    if not use.any():
+        return out, factor
+    axis = to_c[use] / r[use, None]
+    cos_cone = np.sqrt(np.maximum(0.0, 1.0 - (reach[use] / r[use]) ** 2))       # the box's bounding cone
+    _snap_kernel(p, o, np.ascontiguousarray(inv[use]), np.ascontiguousarray(half[use]), axis, cos_cone,
+                 SNAP_NEAR, SNAP_FAR, SNAP_INTO_M, out, factor)
+    return out, factor
+
+
+@njit(cache=True, parallel=True, nogil=True)
+def _snap_kernel(p, o, inv, half, axis, cos_cone, near, far, into, out, factor):
+    for i in numba.prange(p.shape[0]):
+        dx, dy, dz = p[i, 0] - o[0], p[i, 1] - o[1], p[i, 2] - o[2]
+        dist = math.sqrt(dx * dx + dy * dy + dz * dz)
+        ux, uy, uz = dx / max(dist, 1e-9), dy / max(dist, 1e-9), dz / max(dist, 1e-9)
+        for b in range(inv.shape[0]):
+            if ux * axis[b, 0] + uy * axis[b, 1] + uz * axis[b, 2] < cos_cone[b]:
+                continue
+            t_in, t_out = -np.inf, np.inf
+            for a in range(3):
+                ob = inv[b, a, 0] * o[0] + inv[b, a, 1] * o[1] + inv[b, a, 2] * o[2] + inv[b, a, 3]
+                v = inv[b, a, 0] * ux + inv[b, a, 1] * uy + inv[b, a, 2] * uz
+                t1, t2 = (-half[b, a] - ob) / v, (half[b, a] - ob) / v        # +-inf (or nan) for v == 0
+                if t1 == t1 and t2 == t2:           # the reference's nan_to_num: a nan bound does not count
+                    t_in = max(t_in, min(t1, t2))
+                    t_out = min(t_out, max(t1, t2))
+            t_in = max(t_in, 0.0)
+            if not (t_out > t_in and dist >= near * t_in and dist <= far * t_out):
+                continue
+            if dist < t_in or dist > t_out:
+                nd = t_in + min(into, 0.5 * (t_out - t_in))
+                out[i, 0], out[i, 1], out[i, 2] = o[0] + ux * nd, o[1] + uy * nd, o[2] + uz * nd
+                factor[i] = nd / dist
+            break
+
+
+def snap_into_boxes_reference(means: np.ndarray, origin: np.ndarray, boxes: Sequence[tuple[np.ndarray, np.ndarray]]
+                              ) -> tuple[np.ndarray, np.ndarray]:
+    """snap_into_boxes in numpy: box after box, the cells in its bounding cone that no box before took."""
     p = np.asarray(means, np.float64).reshape(-1, 3)
     o = np.asarray(origin, np.float64).reshape(3)
     out, factor = p.copy(), np.ones(len(p))
@@ -100,4 +155,4 @@ def snap_into_boxes(means: np.ndarray, origin: np.ndarray, boxes: Sequence[tuple
     return out, factor
 
 
-__all__ = ["box_members", "inside_boxes", "snap_into_boxes"]
+__all__ = ["box_members", "inside_boxes", "snap_into_boxes", "snap_into_boxes_reference"]

@@ -82,3 +82,25 @@ def test_cells_near_a_box_along_their_rays_are_snapped_into_it():
     np.testing.assert_array_equal(out[[0, 2, 4, 5]], np.vstack([cells, missing])[[0, 2, 4, 5]])
     # the camera inside the box: nothing to snap to
     assert np.all(snap_into_boxes(cells, np.array([12.0, 0.0, 1.0]), [(inv, half)])[1] == 1.0)
+
+
+def test_snap_into_boxes_kernel_against_its_numpy_reference():
+    """snap_into_boxes (one numba pass, each cell against the boxes whose bounding cone holds its ray) against
+    snap_into_boxes_reference (box after box in numpy) on random cells and boxes, a box the camera stands in among
+    them: the same cells moved, to the same place."""
+    from xyzcyl.runtime.boxes import snap_into_boxes, snap_into_boxes_reference
+
+    rng = np.random.default_rng(4)
+    boxes = [(np.linalg.inv(np.array(_pose(*rng.uniform(-20, 20, 2), rng.uniform(0, 360)), float)),
+              rng.uniform(0.5, 3.0, 3)) for _ in range(25)]
+    boxes.insert(7, (np.linalg.inv(np.array(_pose(0.5, 0.0, 20.0), float)), np.array([2.0, 1.0, 1.0])))
+    cells = rng.uniform([-40, -40, -3], [40, 40, 3], (40000, 3))
+    origin = np.array([0.2, 0.1, 0.3])
+    out, factor = snap_into_boxes(cells, origin, boxes)
+    want, want_f = snap_into_boxes_reference(cells, origin, boxes)
+    assert 1000 < int((want_f != 1.0).sum()) < len(cells)          # many snapped, not all
+    np.testing.assert_array_equal(factor != 1.0, want_f != 1.0)
+    # the same arithmetic but for the order of a 3-term dot product (BLAS in the reference): ulps
+    np.testing.assert_allclose(out, want, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(factor, want_f, rtol=1e-12)
+    assert snap_into_boxes(cells[:0], origin, boxes)[0].shape == (0, 3)
