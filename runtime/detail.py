@@ -710,21 +710,11 @@ def _put_rows(src, rows, dst, at):
             dst[at + i, k] = 0
 
 
-@njit(cache=True, parallel=True, nogil=True)
-def _put_all(src, dst, at):
-    """_put_rows of every row of src, in order."""
-    c, cd = src.shape[1], dst.shape[1]
-    for i in numba.prange(src.shape[0]):
-        for k in range(c):
-            dst[at + i, k] = src[i, k]
-        for k in range(c, cd):
-            dst[at + i, k] = 0
-
-
 def concat_gaussians(parts: list[Gaussians], masks: list[np.ndarray | None] | None = None) -> Gaussians:
     """The Gaussians of ``parts`` in order, each restricted to its boolean mask ([N_i] or None = all): one copy of
-    each field, written in place by one parallel pass a field and part (the highest SH degree; lower-degree parts
-    padded with zeros). concat_gaussians_reference is its numpy definition (tested: the same bits)."""
+    each field, written in place (a masked part's rows by one parallel pass a field: np.compress of [N, 3] rows
+    took 0.2 s of a PandaSet frame's fusion) (the highest SH degree; lower-degree parts padded with zeros).
+    concat_gaussians_reference is its numpy definition (tested: the same bits)."""
     masks = masks if masks is not None else [None] * len(parts)
     deg = max(p.sh_degree for p in parts)
     n_sh = (deg + 1) ** 2
@@ -740,7 +730,11 @@ def concat_gaussians(parts: list[Gaussians], masks: list[np.ndarray | None] | No
             for name, dst in out.items():
                 a = getattr(p, name)
                 a2, d2 = np.asarray(a, np.float32).reshape(len(a), -1), dst.reshape(total, -1)
-                _put_all(a2, d2, at) if r is None else _put_rows(a2, r, d2, at)
+                if r is not None:
+                    _put_rows(a2, r, d2, at)
+                else:                       # a whole part: one block copy (numpy's is as fast as memory)
+                    d2[at:at + n, :a2.shape[1]] = a2
+                    d2[at:at + n, a2.shape[1]:] = 0
         at += n
     return Gaussians.joined(**out)          # rows of checked Gaussians: not checked again
 
