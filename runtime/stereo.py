@@ -25,9 +25,11 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
+import numba
 import numpy as np
 
 from .boxes import inside_boxes
+from .numba_cache import njit
 
 STEREO_BASELINE_M = 1.0     # the partner frames: the nearest frames at least this far from the keyframe, each side
 STEREO_WIDTH = 960          # features are found on images resized to this width (2x faster than 1920, enough texture)
@@ -108,7 +110,58 @@ def _features(img: np.ndarray, mask: np.ndarray | None, width: int):
 
 def match(fa, fb) -> tuple[np.ndarray, np.ndarray]:
     """(i [M], j [M]): the indices of the features ``fa`` and ``fb`` (_features) that pass the ratio test both ways
-    (a's best in b, and b's best in a, is each other)."""
+    (a's best in b, and b's best in a, is each other). The squared distances of every pair as |a|^2 + |b|^2 - 2 a.b
+    (one float32 matrix product), each row's nearest two and each column's nearest in one parallel pass over it
+    (match_reference is OpenCV's brute-force matcher, which took 0.15 s a pair of 3500-feature images, twice over
+    every pair: a camera-only keyframe matches twelve; tested against it)."""
+    (_, da), (_, db) = fa, fb
+    if len(da) < 2 or len(db) < 2:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    da, db = np.ascontiguousarray(da, np.float32), np.ascontiguousarray(db, np.float32)
+    g = da @ db.T                                       # [Na, Nb] float32
+    best, d0, d1, col = _nearest(g, (da * da).sum(axis=1), (db * db).sum(axis=1))
+    r = np.arange(len(da))
+    # Lowe's ratio on the distances (not their squares); a distance below 0 is float32 rounding of 0
+    ok = (np.sqrt(np.maximum(d0, 0)) < RATIO * np.sqrt(np.maximum(d1, 0))) & (col[best] == r)
+    return r[ok].astype(np.int64), best[ok].astype(np.int64)
+
+
+@njit(cache=True, parallel=True, nogil=True)
+def _nearest(g, na, nb):
+    """From g [Na, Nb] = a.b and the squared norms na [Na], nb [Nb]: each row's nearest column (the first of equals)
+    and the two smallest squared distances, and each column's nearest row (the first of equals): rows in blocks,
+    each block's column minima kept apart, then merged in block order."""
+    n_a, n_b = g.shape
+    blocks = min(n_a, 64)
+    best = np.empty(n_a, np.int64)
+    d0 = np.empty(n_a, np.float32)
+    d1 = np.empty(n_a, np.float32)
+    cmin = np.full((blocks, n_b), np.inf, np.float32)
+    carg = np.zeros((blocks, n_b), np.int64)
+    for b in numba.prange(blocks):
+        for i in range(b * n_a // blocks, (b + 1) * n_a // blocks):
+            m0, m1, j0 = np.float32(np.inf), np.float32(np.inf), 0
+            for j in range(n_b):
+                d = na[i] + nb[j] - np.float32(2.0) * g[i, j]
+                if d < m0:
+                    m1, m0, j0 = m0, d, j
+                elif d < m1:
+                    m1 = d
+                if d < cmin[b, j]:
+                    cmin[b, j], carg[b, j] = d, i
+            best[i], d0[i], d1[i] = j0, m0, m1
+    col = np.empty(n_b, np.int64)
+    for j in numba.prange(n_b):
+        m, a = cmin[0, j], carg[0, j]
+        for b in range(1, blocks):
+            if cmin[b, j] < m:
+                m, a = cmin[b, j], carg[b, j]
+        col[j] = a
+    return best, d0, d1, col
+
+
+def match_reference(fa, fb) -> tuple[np.ndarray, np.ndarray]:
+    """match by OpenCV's brute-force matcher: a's two nearest in b (knnMatch), b's nearest in a."""
     import cv2
 
     (_, da), (_, db) = fa, fb

@@ -29,6 +29,26 @@ def test_triangulate_matches_its_reference():
     assert g[0] < 1e-12
 
 
+def test_match_finds_what_opencvs_brute_force_matcher_finds():
+    """stereo.match (one matrix product, a parallel pass for each row's nearest two and each column's nearest)
+    against match_reference (OpenCV's BFMatcher, knnMatch both ways): the same pairs. SIFT-like descriptors (0..255,
+    128-D); b holds a's first 300 with a little noise (each should match), shuffled among others; the ratio test
+    also turns down a's 20 that have two near twins in b."""
+    rng = np.random.default_rng(5)
+    a = rng.uniform(0, 255, (600, 128)).astype(np.float32)
+    twins = np.repeat(a[300:320], 2, axis=0) + rng.normal(0, 2.0, (40, 128)).astype(np.float32)
+    b = np.concatenate([a[:300] + rng.normal(0, 3.0, (300, 128)).astype(np.float32), twins,
+                        rng.uniform(0, 255, (400, 128)).astype(np.float32)])
+    perm = rng.permutation(len(b))
+    fa, fb = (np.zeros((len(a), 2)), a), (np.zeros((len(b), 2)), b[perm])
+    i, j = S.match(fa, fb)
+    ri, rj = S.match_reference(fa, fb)
+    assert sorted(zip(i.tolist(), j.tolist())) == sorted(zip(ri.tolist(), rj.tolist()))
+    assert set(i.tolist()) == set(range(300))                        # each of a's first 300 found, none of the twins
+    np.testing.assert_array_equal(perm[j[np.argsort(i)]], np.arange(300))   # ... at its copy in b
+    assert len(S.match((np.zeros((1, 2)), a[:1]), fb)[0]) == 0             # fewer than two features: no matches
+
+
 def test_partner_frames_about_a_baseline_away_on_each_side():
     xs = np.array([0.0, 0.4, 0.8, 1.2, 1.6, 2.0, 2.4])
     P = np.stack([xs, 0 * xs, 0 * xs], axis=1)
