@@ -96,6 +96,7 @@ VIEWPOINT_RADIUS_M = 0.5       # keyframes whose ego stood within this of a grou
 # of it (docs/results.md "Drives: seeing through a cell needs another colour")
 SEE_THROUGH_PHOTO = (12.0, 0.15)
 TRACK_GROW = 1.1               # a moving object's box, grown by this factor, holds its Gaussians
+SPILL_MIN_M = 0.25             # spill_boxes' least margin (a box's annotation is a few centimetres off the object)
 
 
 class DriveError(FieldError):
@@ -323,6 +324,40 @@ def moving_boxes(drive: Drive, k: int) -> list[tuple[int, np.ndarray, np.ndarray
         box_to_scene = np.linalg.inv(E0) @ t.poses[k]
         out.append((i, np.linalg.inv(box_to_scene), 0.5 * TRACK_GROW * np.asarray(t.size)))
     return out
+
+
+def track_speed(drive: Drive, track: Track, k: int) -> float:
+    """Metres per second: how fast ``track`` moves at frame k, from its annotated poses at the frames nearest before
+    and after k (k's own when it has no pose on one side); 0 with fewer than two."""
+    frames = sorted(track.poses)
+    before = [f for f in frames if f < k]
+    after = [f for f in frames if f > k]
+    a = before[-1] if before else (k if k in track.poses else None)
+    b = after[0] if after else (k if k in track.poses else None)
+    if a is None or b is None or a == b:
+        return 0.0
+    dt = drive.frames[b].timestamp_s - drive.frames[a].timestamp_s
+    return float(np.linalg.norm(track.poses[b][:3, 3] - track.poses[a][:3, 3]) / dt) if dt > 0 else 0.0
+
+
+def spill_boxes(drive: Drive, k: int) -> list[tuple[np.ndarray, np.ndarray]]:
+    """(scene frame -> box [4, 4], half-sizes [3]) of the objects that move at frame k (moving_boxes), each grown on
+    every side by how far it moves in one frame interval (track_speed x the drive's frame_interval), at least
+    SPILL_MIN_M: where a keyframe's sweep and cameras put cells of the object outside its box. A sweep takes a frame
+    interval to turn (a PandaSet Pandar64: 0.1 s), and a camera fires at one moment of it: a car at 10 m/s has moved
+    a metre between the returns that met it and the pixels that saw it, so cells placed by the returns land beside
+    it, on its colour. Cells that moved away (_carve_pair) within these are that spill, not something that stood
+    there: runtime.drive leaves them out of the keyframe's moved cells (an object is drawn from its copy, in its box)."""
+    from .actors import frame_interval
+
+    dt = frame_interval([f.timestamp_s for f in drive.frames])
+    return [(inv, half + max(SPILL_MIN_M, track_speed(drive, drive.tracks[i], k) * dt))
+            for i, inv, half in moving_boxes(drive, k)]
+
+
+def without_spill(g: Gaussians, boxes: Sequence[tuple[np.ndarray, np.ndarray]]) -> Gaussians:
+    """The Gaussians of ``g`` (scene frame) in none of ``boxes`` (spill_boxes)."""
+    return g if not boxes or not len(g) else g.subset(box_members(g.means, boxes) < 0)
 
 
 def moved_spans(times: Sequence[float], first_s: float, last_s: float, slack_s: float) -> list[tuple[float, float]]:
@@ -896,7 +931,9 @@ def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None,
         model's Gaussians so far that would veil one of its cameras' surfaces go (as in one frame)."""
         n, details, parts, keep, _, gone = entry
         if any(m.any() for m in gone):       # drawn only around this keyframe's time (actors_of)
-            moved.append((n, _concat([g.subset(m) for g, m in zip(parts, gone) if m.any()])))
+            # not the spill of a tracked object's cells beside its box: it is drawn from its copy
+            moved.append((n, without_spill(_concat([g.subset(m) for g, m in zip(parts, gone) if m.any()]),
+                                           spill_boxes(drive, keys[n]))))
         pyramids = detail_pyramids(details) if details and len(coarse_kept.store) else None    # once for all
         for i in range(len(coarse_kept.store)):
             g = coarse_kept.part(i)
@@ -1292,5 +1329,5 @@ __all__ = ["DEFAULT_MAX_GAP_S", "DEFAULT_SPACING_M", "Drive", "DriveError", "Dri
            "VoxelOwners", "dedupe_frames", "dedupe_frames_reference", "drive_meta", "drive_of_rig",
            "find_drive_ego_body", "inside_boxes", "is_drive_file", "load_drive", "load_tracks",
            "make_keyframe", "moving_boxes", "one_rig", "pick_keyframes", "reconstruct_drive",
-           "save_drive_scene", "transform_detail", "transform_gaussians", "viewpoint_groups",
-           "viewpoint_origins", "voxel_levels"]
+           "save_drive_scene", "spill_boxes", "track_speed", "transform_detail", "transform_gaussians",
+           "viewpoint_groups", "viewpoint_origins", "voxel_levels", "without_spill"]

@@ -502,6 +502,54 @@ def test_measured_cells_a_neighbour_sees_through_moved_away(monkeypatch):
         assert gone.tolist() == want
 
 
+def test_cells_that_moved_away_beside_a_moving_objects_box_are_its_spill():
+    """spill_boxes: a moving object's box at a frame grown by how far it moves in a frame interval (track_speed from
+    its poses at the frames before and after; one side at the ends; SPILL_MIN_M at least); without_spill leaves out
+    the moved-away cells inside one (a sweep turning while the car drives puts its returns beside it), keeping the
+    rest; a stationary track has none."""
+    from pathlib import Path
+
+    from xyzcyl.runtime.drive import (
+        SPILL_MIN_M,
+        TRACK_GROW,
+        Drive,
+        DriveFrame,
+        Track,
+        spill_boxes,
+        track_speed,
+        without_spill,
+    )
+    from xyzcyl.runtime.render import Gaussians
+
+    frames = tuple(DriveFrame(index=i, rig_path=Path("rig.json"), rig=None, timestamp_s=5.0 + 0.1 * i,
+                              ego_to_world=np.eye(4)) for i in range(6))
+    fast = Track("car", "Car", (4.0, 2.0, 1.5), False, {i: np.array(_pose(10.0 + 1.2 * i, 0.0)) for i in range(6)})
+    slow = Track("walker", "Pedestrian", (0.6, 0.6, 1.8), False, {2: np.array(_pose(0.0, 8.0)),
+                                                                  3: np.array(_pose(0.1, 8.0))})
+    parked = Track("parked", "Car", (4.0, 2.0, 1.5), True, {i: np.array(_pose(0.0, -8.0)) for i in range(6)})
+    drive = Drive(path=None, frames=frames, tracks=(fast, slow, parked))
+    assert track_speed(drive, fast, 2) == pytest.approx(12.0)          # 2.4 m over frames 1..3
+    assert track_speed(drive, fast, 0) == pytest.approx(12.0)          # frames 0..1 at the start
+    assert track_speed(drive, slow, 2) == pytest.approx(1.0)
+    assert track_speed(drive, slow, 4) == 0.0                          # no pose there or after
+    boxes = spill_boxes(drive, 2)
+    assert len(boxes) == 2                                            # the parked car is static scene
+    (inv_car, half_car), (_, half_walker) = boxes
+    np.testing.assert_allclose(half_car, 0.5 * TRACK_GROW * np.array([4.0, 2.0, 1.5]) + 1.2)
+    np.testing.assert_allclose(half_walker, 0.5 * TRACK_GROW * np.array([0.6, 0.6, 1.8]) + SPILL_MIN_M)
+    centre = -inv_car[:3, :3].T @ inv_car[:3, 3]                       # the car at frame 2: x = 12.4
+    np.testing.assert_allclose(centre, [12.4, 0.0, 0.0])
+    means = np.array([[12.4 + 2.2 + 1.0, 0, 0.5],                    # a metre behind the box: spill
+                      [12.4 + 2.2 + 1.5, 0, 0.5],                    # beyond the car's reach in a frame
+                      [0.0, 8.0 + 0.33 + 0.2, 0.5],                  # beside the walker, within the least margin
+                      [0.0, -8.0, 0.5]], np.float32)                 # at the parked car: not spill
+    n = len(means)
+    g = Gaussians(means, np.tile(np.float32([1, 0, 0, 0]), (n, 1)), np.full((n, 3), -3.0, np.float32),
+                  np.zeros(n, np.float32), np.zeros((n, 1, 3), np.float32))
+    np.testing.assert_array_equal(without_spill(g, boxes).means, means[[1, 3]])
+    assert without_spill(g, []) is g
+
+
 def test_moved_away_cells_are_drawn_only_around_their_keyframes_time():
     """actors_of: one object a keyframe for its cells that moved away, in the scene's frame, drawn from halfway to
     the keyframe before to halfway to the one after (moved_spans), so that one keyframe's are drawn at any time."""
