@@ -732,13 +732,21 @@ class _Kept:
             np.save(path / f"{name}.npy", a, allow_pickle=False)
         return path, None
 
-    def part(self, i: int) -> Gaussians:
+    def part(self, i: int, m: np.ndarray | None = None) -> Gaussians:
+        """Part i's Gaussians (where ``m``, [N_i] bool over the rows it keeps, holds): a spilled part's rows taken
+        from its files in one pass (mapped, not read whole and then taken again)."""
         s = self.store[i]
+        some = m is not None and not m.all()
         if isinstance(s, Gaussians):
-            return s
+            return s.subset(m) if some else s
+        rows = None if self.rows[i] is None else np.flatnonzero(self.rows[i])
+        if some:
+            rows = np.flatnonzero(m) if rows is None else rows[m]
         # the rows of checked Gaussians as written: not checked again
-        g = Gaussians.joined(**{k: np.load(s / f"{k}.npy", allow_pickle=False) for k in FIELDS})
-        return g if self.rows[i] is None else g.subset(self.rows[i])
+        if rows is None:
+            return Gaussians.joined(**{k: np.load(s / f"{k}.npy", allow_pickle=False) for k in FIELDS})
+        return Gaussians.joined(**{k: np.load(s / f"{k}.npy", mmap_mode="r", allow_pickle=False)[rows]
+                                   for k in FIELDS})
 
     def add(self, g: Gaussians, level: np.ndarray, n: int, split: tuple | None = None) -> None:
         """Keyframe n's part ``g`` (cells or model Gaussians) with its voxel levels; ``split``: (each cell's row of
@@ -830,8 +838,7 @@ class _Kept:
 
     def drawn(self, i: int, m: np.ndarray) -> Gaussians:
         """Part i's Gaussians where ``m`` ([N_i] bool) holds, its split cells as their quarters (expand_rows)."""
-        g = self.part(i)
-        g = g if m.all() else g.subset(m)
+        g = self.part(i, m)
         if self.split[i] is None:
             return g
         from .detail import expand_rows
