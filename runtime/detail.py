@@ -712,9 +712,9 @@ def _put_rows(src, rows, dst, at):
 
 def concat_gaussians(parts: list[Gaussians], masks: list[np.ndarray | None] | None = None) -> Gaussians:
     """The Gaussians of ``parts`` in order, each restricted to its boolean mask ([N_i] or None = all): one copy of
-    each field, written in place (a masked part's rows by one parallel pass a field: np.compress of [N, 3] rows
-    took 0.2 s of a PandaSet frame's fusion) (the highest SH degree; lower-degree parts padded with zeros).
-    concat_gaussians_reference is its numpy definition (tested: the same bits)."""
+    each field, written in place: a masked part's rows by one parallel pass a field (np.compress of [N, 3] rows took
+    0.16 s of a PandaSet frame's fusion), a whole part by one block copy; the highest SH degree, lower-degree parts
+    padded with zeros. concat_gaussians_reference is its numpy definition (tested: the same bits)."""
     masks = masks if masks is not None else [None] * len(parts)
     deg = max(p.sh_degree for p in parts)
     n_sh = (deg + 1) ** 2

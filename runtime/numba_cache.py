@@ -223,4 +223,3 @@ def threadsafe() -> bool:
 
 __all__ = ["CheckedFunctionCache", "CheckedIndexDataCacheFile", "THREADSAFE_LAYERS", "njit", "source_files",
            "source_stamp", "threadsafe"]
-
