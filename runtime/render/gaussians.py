@@ -433,6 +433,8 @@ def _read_ply_header(path: Path) -> tuple[int, list[tuple[str, str]], str, int]:
                 raise GaussianError(tok[-1], "vertex property: list properties not supported", where)
             if len(tok) != 3 or tok[1] not in _PLY_DTYPES:
                 raise GaussianError("header", f"vertex property line {line!r} not understood", where)
+            if any(name == tok[2] for name, _ in props):     # a record cannot hold two (numpy's ValueError)
+                raise GaussianError(tok[2], "vertex property given twice", where)
             props.append((tok[2], tok[1]))
     if fmt not in ("ascii", "binary_little_endian", "binary_big_endian"):
         raise GaussianError("format", f"{fmt!r} not supported", where)

@@ -195,6 +195,16 @@ def test_mutated_ply_is_read_or_refused_with_a_gaussian_error(ply_bytes, data, t
     assert np.all(np.isfinite(g.means))
 
 
+def test_ply_header_naming_a_property_twice_is_refused_naming_it(tmp_path, ply_bytes):
+    """The case the mutation test above found (a header byte turned 'rot_2' into a second 'rot_1'): a GaussianError
+    naming the property, not numpy's ValueError from the record type."""
+    p = tmp_path / "twice.ply"
+    p.write_bytes(ply_bytes.replace(b"property float rot_2\n", b"property float rot_1\n", 1))
+    with pytest.raises(GaussianError) as e:
+        Gaussians.load_ply(p)
+    assert e.value.field == "rot_1" and "twice" in str(e.value)
+
+
 def test_ply_header_claiming_a_billion_vertices_is_refused_before_reading(tmp_path, ply_bytes):
     p = tmp_path / "huge.ply"
     p.write_bytes(ply_bytes.replace(b"element vertex 20", b"element vertex 1000000000", 1))
