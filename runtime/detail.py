@@ -896,6 +896,21 @@ def expand_split(g: Gaussians, d: CameraDetail, keep: np.ndarray | None = None) 
     return expand_rows(g.subset(keep), split_rows(len(g), sp)[keep], sp.means, sp.colours)
 
 
+def expand_split_parts(g: Gaussians, d: CameraDetail, keep: np.ndarray) -> list[Gaussians]:
+    """expand_split's Gaussians as the parts of their concatenation, not joined (each copied once: a drive writes
+    them to a camera layer's file, runtime.cameralayers): the kept cells that do not split, then the quarters of
+    those that do (a part left out when empty)."""
+    keep = np.asarray(keep, bool)
+    sp = d.split
+    if sp is None or not len(sp.index):
+        return [g.subset(keep)]
+    rows = split_rows(len(g), sp)
+    whole = keep & (rows < 0)
+    out = [g.subset(whole)] if whole.any() else []
+    quarters = _quarters(g, keep & (rows >= 0), rows, sp.means, sp.colours)
+    return out + ([quarters] if len(quarters) else [])
+
+
 def split_rows(n: int, sp: SplitCells) -> np.ndarray:
     """[n] int32: for each of a camera's n cells, its row in ``sp``'s arrays, -1 for a cell that does not split."""
     rows = np.full(n, -1, np.int32)
@@ -911,14 +926,20 @@ def expand_rows(g: Gaussians, rows: np.ndarray, means: np.ndarray, colours: np.n
     split = rows >= 0
     if not split.any():
         return g
+    quarters = _quarters(g, split, rows, means, colours)
+    return quarters if split.all() else concat_gaussians([g, quarters], [~split, None])
+
+
+def _quarters(g: Gaussians, split: np.ndarray, rows: np.ndarray, means: np.ndarray, colours: np.ndarray) -> Gaussians:
+    """The quarters (expand_rows) of the cells of ``g`` where ``split`` ([N] bool) holds, cell by cell; ``rows`` [N]
+    their rows of the SplitCells arrays ``means`` / ``colours`` [S, 4, 3]."""
     r = rows[split]
     cells = np.flatnonzero(split)
     sh = np.zeros((len(r) * 4, g.sh.shape[1], 3), np.float32)
     sh[:, 0, :] = (colours[r].reshape(-1, 3) - 0.5) / SH_C0
-    quarters = Gaussians(means=means[r].reshape(-1, 3), quats=np.repeat(g.quats[cells], 4, axis=0),
-                         log_scales=np.repeat(g.log_scales[cells], 4, axis=0) - np.float32(math.log(2.0)),
-                         opacity_logits=np.repeat(g.opacity_logits[cells], 4), sh=sh)
-    return quarters if len(cells) == len(g) else concat_gaussians([g, quarters], [~split, None])
+    return Gaussians(means=means[r].reshape(-1, 3), quats=np.repeat(g.quats[cells], 4, axis=0),
+                     log_scales=np.repeat(g.log_scales[cells], 4, axis=0) - np.float32(math.log(2.0)),
+                     opacity_logits=np.repeat(g.opacity_logits[cells], 4), sh=sh)
 
 
 # ------------------------------------------------------------------------------------------- fusion

@@ -881,6 +881,7 @@ def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None,
     keyframes are made instead of ``workers`` (`xyzcyl batch`: on Ray actors): an iterator of make_keyframe(rec,
     drive, k, **opts) for each of ``keys`` in order; ``rec`` is then only asked for ``scene_model()``, and a
     one-frame drive is refused (make it with Reconstructor.reconstruct)."""
+    from .cameralayers import CameraLayers
     from .detail import carve_details, cull_covered, detail_pyramids, split_rows
     from .exposure import Harmoniser
     from .inference import DEFAULT_DETAIL
@@ -925,6 +926,7 @@ def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None,
     spill = tempfile.TemporaryDirectory(prefix="xyzcyl-drive-")      # removed when the scene lets go of it
     detail_kept = _Kept(origins, Path(spill.name), VoxelOwners(origins))
     coarse_kept = _Kept(origins)
+    layers = CameraLayers.spill(drive.frames[0].rig.names, spill) if detail is not None else None
     # (keyframe, details, parts, keep, whether its depth was measured: a LiDAR sweep, its measured cells that a
     # neighbouring keyframe saw through: they moved away (_carve_pair))
     window: list[tuple[int, list, list[Gaussians], list[np.ndarray], bool, list[np.ndarray]]] = []
@@ -979,8 +981,10 @@ def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None,
                 coarse = coarse.subset(cull_covered(coarse, details, tol))
             # without a sweep the cameras' depths are the model's (scaled per camera to a few stereo points), up to
             # 2x apart: one camera sees through another's cell only where it also sees another colour there
-            own = carve_details(details, tol, detail.dedupe, SEE_THROUGH_PHOTO if points is None else None) \
-                if details else []
+            photo = SEE_THROUGH_PHOTO if points is None else None
+            own = carve_details(details, tol, detail.dedupe, photo) if details else []
+            # each camera's camera layer: its cells that no other camera of the keyframe saw through (no dedupe)
+            seen = carve_details(details, tol, 0.0, photo) if details and layers is not None else []
             boxes = moving_boxes(drive, k)
             if boxes:                       # what moves is not the static scene's: each object's copy, in its box
                 geo = [(inv, half) for _, inv, half in boxes]
@@ -999,6 +1003,12 @@ def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None,
                 for i, m in enumerate(p_mem):
                     moved_out += int((own[i] & (m >= 0)).sum())
                     own[i] &= m < 0
+                    if seen:
+                        seen[i] &= m < 0
+            if seen:
+                t_l = time.perf_counter()
+                layers.add(_layer_parts(parts, details, seen, kf.owners, len(layers.cameras)))
+                timings["camera_layers"] = timings.get("camera_layers", 0.0) + time.perf_counter() - t_l
             coarse_kept.add(coarse, voxel_levels(_coarse_footprint(coarse)), n)
             entry = (n, details, parts, own, points is not None, [np.zeros(len(k), bool) for k in own])
             for prev in window:
@@ -1042,6 +1052,14 @@ def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None,
                    "moved_away": int(sum(len(g) for _, g in moved)), "total": len(gauss)})
     if viewpoints is not None:
         counts.update({"viewpoints": len(viewpoints), "viewpoint_gaussians": viewpoints.count})
+    if layers is not None:
+        t_l = time.perf_counter()
+        layers.finish()                         # the last keyframe's written
+        timings["camera_layers"] = timings.get("camera_layers", 0.0) + time.perf_counter() - t_l
+        if len(layers) == len(keys):
+            counts["camera_layer_gaussians"] = layers.count
+        else:                                   # keyframes without a detail layer
+            layers = None
     actors = actors_of(drive, copies, moved, keys)
     if actors is not None:
         counts.update({"actors": len(actors), "actor_copies": len(actors.copy_track),
@@ -1060,10 +1078,24 @@ def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None,
     scene = Scene(gaussians=gauss, background=background, rig=drive.frames[0].rig, model=rec.scene_model(),
                   counts=counts, timings={key: round(v, 6) for key, v in timings.items()}, actors=actors,
                   keyframe_of=keyframe_of if len(keyframe_of) == len(gauss) else None, viewpoints=viewpoints,
-                  ego_body=found if ego_body else None, drive=drive_meta(drive, keys))   # tiles: Scene
+                  camera_layers=layers, ego_body=found if ego_body else None,
+                  drive=drive_meta(drive, keys))   # tiles: Scene
     if harmoniser is not None:
         scene.drive["exposure"] = harmoniser.to_json(drive.frames[0].rig.names)
     return scene
+
+
+def _layer_parts(parts: list[Gaussians], details: list, keep: list[np.ndarray], owners: list[int],
+                 n_cameras: int) -> list[list[Gaussians]]:
+    """A keyframe's camera layers (runtime.cameralayers) in the rig's camera order: each camera's detail Gaussians
+    ``parts`` where ``keep`` holds, its split cells as their quarters (expand_split_parts); ``owners``: each part's
+    camera (an index into the rig); a camera without a detail layer has none."""
+    from .detail import expand_split_parts
+
+    out: list[list[Gaussians]] = [[] for _ in range(n_cameras)]
+    for g, d, m, c in zip(parts, details, keep, owners):
+        out[c] = expand_split_parts(g, d, m)
+    return out
 
 
 def one_rig(drive: Drive, keys: Sequence[int]) -> bool:

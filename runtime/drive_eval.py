@@ -223,6 +223,7 @@ def evaluate_drive(rec, drive: Drive, keys: Sequence[int], scored: Sequence[int]
         "width": width, "cameras": list(cameras) if cameras is not None else None, "ego_masked": ego_masked,
         "gaussians": {"drive": len(whole.gaussians) + (whole.viewpoints.count if whole.viewpoints else 0),
                       "drive_shared": len(whole.gaussians),
+                      "drive_camera_layers": whole.camera_layers.count if whole.camera_layers else 0,
                       "one_frame": {str(first + k): v for k, v in singles_n.items()}},
         "seconds": {"drive": round(t_drive, 2), "one_frame_each": [round(t, 2) for t in t_single.values()],
                     "drive_stages": whole.timings},

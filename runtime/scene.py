@@ -36,6 +36,7 @@ from xyzcyl.common.wire import ActorEdit, ViewError
 
 from .actors import Actors, ActorsError
 from .camera import Camera, rig_camera
+from .cameralayers import CAMERA_LAYER_DEG, CAMERA_LAYER_M, CameraLayerError, CameraLayers
 from .cylinder import CylinderSpec
 from .detail import DetailError, OwnViews
 from .egobody import EgoBody
@@ -314,6 +315,8 @@ class Scene:
     keyframe_of: np.ndarray | None = field(default=None, repr=False)
     # a drive's viewpoint chunks (runtime.viewpoints): each viewpoint group's own cells beyond the shared Gaussians
     viewpoints: Viewpoints | None = field(default=None, repr=False)
+    # a drive's camera layers (runtime.cameralayers): per keyframe and camera, the camera's cells as it saw them
+    camera_layers: CameraLayers | None = field(default=None, repr=False)
     # a drive's ego body found over its frames (runtime.egobody): its masks and what was looked at
     ego_body: EgoBody | None = field(default=None, repr=False)
     # a drive's shared Gaussians in spatial tiles (runtime.tiles): a view draws (and a loaded scene reads) only the
@@ -360,7 +363,9 @@ class Scene:
         (render_view), over ``background`` ("scene": the scene's panorama; else the renderer's: None, an RGB or an
         image). A drive's scene of several keyframes is drawn in layers, each over what the ones before leave open
         (I = I_1 + (1 - A_1) I_2, composite_layers): first the view's primary keyframe (primary_keyframe) as it saw
-        the scene, i.e. its shared Gaussians and its own chunk (runtime.viewpoints), and the moving objects; then the
+        the scene, i.e. its shared Gaussians and its own chunk (runtime.viewpoints), and the moving objects (a view
+        standing at one of that keyframe's cameras draws that camera's cells first, with the moving objects: its camera
+        layer, runtime.cameralayers, camera_layer); then the
         shared Gaussians of the other keyframes of its viewpoint group and of the two neighbouring groups, with those
         groups' first keyframes' chunks; last the other keyframes' shared Gaussians (these two layers only in the
         tiles within runtime.tiles.HORIZON_M of the camera: beyond, the primary's alone). (An ego that stands still
@@ -456,9 +461,15 @@ class Scene:
 
         n_keys = tiles.n_keys
         # each layer drawn behind the ones before it, in the raster (render's behind: composite_layers' sum, but a
-        # pixel the layers before covered is not drawn again)
+        # pixel the layers before covered is not drawn again); first the camera layer of a keyframe's camera the
+        # view stands at, with the moving objects (runtime.cameralayers)
+        front = None
+        layer = self.camera_layer(camera, k)
+        if layer is not None:
+            front = draw([layer] + moving, None)
+            moving = []
         if self.viewpoints is None:
-            a = draw(runs([k], everywhere=True) + moving, None)
+            a = draw(runs([k], everywhere=True) + moving, None, front)
             b = draw(runs([kk for kk in range(n_keys) if kk != k]) + fill, bg, a)
             return b.rgb, b.depth, b.alpha
         vp = self.viewpoints
@@ -468,10 +479,32 @@ class Scene:
         g = groups.index(vp.chunks[i].group)
         near = [groups[j] for j in (g - 1, g + 1) if 0 <= j < len(groups)]     # neighbouring viewpoint groups
         beside = sorted({kk for h in (groups[g], *near) for kk in vp.group_keyframes(h)} - {mine})
-        a = draw(runs([mine], everywhere=True) + [vp.gaussians(i)] + moving, None)
+        a = draw(runs([mine], everywhere=True) + [vp.gaussians(i)] + moving, None, front)
         b = draw(runs(beside) + [vp.gaussians(vp.group_of(h)) for h in near], None, a)
         c = draw(runs([kk for kk in range(n_keys) if kk != mine and kk not in beside]) + fill, bg, b)
         return c.rgb, c.depth, c.alpha
+
+    def camera_layer(self, camera, k: int) -> Gaussians | None:
+        """The camera layer (runtime.cameralayers) a view of ``camera`` draws first when its primary keyframe is
+        ``k`` (an index into drive.keyframes): of the rig's cameras at that keyframe, the one whose optical axis is
+        nearest the view's, within CAMERA_LAYER_DEG, when its centre stood within CAMERA_LAYER_M of the view's; None
+        when none did, its layer is empty or the scene has no camera layers."""
+        if self.camera_layers is None or not 0 <= k < len(self.camera_layers):
+            return None
+        key = int(self.drive["keyframes"][k])
+        pose = np.asarray(self.drive["trajectory"], np.float64).reshape(-1, 4, 4)[key]
+        view = np.asarray(camera.cam_to_ego, np.float64)
+        axis = view[:3, 2] / max(float(np.linalg.norm(view[:3, 2])), 1e-12)
+        best, cos_best = None, math.cos(math.radians(CAMERA_LAYER_DEG))
+        for c, cam in enumerate(self.rig.cameras):
+            T = pose @ np.asarray(cam.cam_to_ego, np.float64)
+            cos = float(T[:3, 2] @ axis / max(float(np.linalg.norm(T[:3, 2])), 1e-12))
+            if cos >= cos_best and float(np.linalg.norm(T[:3, 3] - view[:3, 3])) <= CAMERA_LAYER_M:
+                best, cos_best = c, cos
+        if best is None:
+            return None
+        g = self.camera_layers.layer(k, best)
+        return g if len(g) else None
 
     def primary_keyframe(self, camera, time_s: float | None = None) -> int | None:
         """The keyframe a view of ``camera`` draws first (Scene.render): of a drive's scene with keyframe_of, the
@@ -629,6 +662,8 @@ class Scene:
                                                                                     self.actors.filled_m2()) if v > 0}
         if self.viewpoints is not None:
             out["viewpoints"] = self.viewpoints.to_json()
+        if self.camera_layers is not None:
+            out["camera_layers"] = self.camera_layers.to_json()
         if self.tiles is not None:
             out["tiles"] = self.tiles.to_json()
         if self.exposure is not None:
@@ -663,6 +698,8 @@ class Scene:
                 self.actors.save(tmp / ACTORS_NAME)
             if self.viewpoints is not None:
                 self.viewpoints.save(tmp)
+            if self.camera_layers is not None:
+                self.camera_layers.save(tmp)
             if self.ego_body is not None and self.ego_body.masks:
                 _save_masks(tmp / EGO_BODY_DIR, self.ego_body.masks)
             if self.keyframe_of is not None:
@@ -749,6 +786,12 @@ class Scene:
                                                   len((meta.get("drive") or {}).get("keyframes") or ()))
             except ViewpointError as e:
                 raise SceneError(e.field, e.message, e.where) from None
+        layers = None
+        if meta.get("camera_layers"):
+            try:
+                layers = CameraLayers.from_json(meta["camera_layers"], d, n_keys, rig.names)
+            except CameraLayerError as e:
+                raise SceneError(e.field, e.message, e.where) from None
         ego_body = _load_ego_body(d, meta["ego_body"], rig) if meta.get("ego_body") else None
         if (meta.get("drive") or {}).get("exposure") is not None:
             _check_exposure(meta["drive"]["exposure"], len(meta["drive"].get("keyframes") or ()), rig, jp)
@@ -769,7 +812,8 @@ class Scene:
                     counts=meta.get("counts") or {}, timings=meta.get("timings") or {},
                     lifting_cached=bool(meta.get("lifting_cached", False)), created=meta.get("created", ""),
                     own_views=own, drive=meta.get("drive"), actors=actors, keyframe_of=keyframe_of,
-                    viewpoints=viewpoints, ego_body=ego_body, tiles=tiles, exposure=meta.get("exposure"))
+                    viewpoints=viewpoints, camera_layers=layers, ego_body=ego_body, tiles=tiles,
+                    exposure=meta.get("exposure"))
         if tiles is not None and isinstance(meta.get("bbox"), dict):
             scene._saved_bbox = meta["bbox"]
         return scene

@@ -41,7 +41,7 @@ CACHE_CHUNKS = 4            # chunks a loaded scene keeps in memory: a view's gr
                             # more, so that a camera moving along the drive reads one new chunk per group it enters
 
 
-def _link_or_copy(src: Path, dst: Path) -> None:
+def link_or_copy(src: Path, dst: Path) -> None:
     """``dst`` made to hold ``src``'s bytes: a hard link where both lie on one file system (a chunk's file is written
     once and never changed: 20 PandaSet keyframes' chunks are 4 GB that a copy read and wrote again), else a copy. An
     existing ``dst`` is replaced (never written through: it may be ``src`` itself, linked by an earlier save)."""
@@ -52,6 +52,19 @@ def _link_or_copy(src: Path, dst: Path) -> None:
         os.link(src, dst)
     except OSError:                 # another file system, or one without hard links
         shutil.copyfile(src, dst)
+
+
+def ply_count(path: Path, field: str, error: type[FieldError], where: str) -> int:
+    """The vertex count in the header of a scene folder's PLY ``path`` (a chunk, a camera layer): ``error`` naming
+    ``field`` when the file is missing or its header unreadable."""
+    from .render.gaussians import _read_ply_header
+
+    if not path.is_file():
+        raise error(field, f"{str(path)!r} is missing", where)
+    try:
+        return _read_ply_header(path)[0]
+    except GaussianError as exc:
+        raise error(field, f"{str(path)!r}: {exc}", where) from None
 
 
 class ViewpointError(FieldError):
@@ -190,7 +203,7 @@ class Viewpoints:
         (folder / CHUNKS_DIR).mkdir(exist_ok=True)
         for i, c in enumerate(self.chunks):
             if self._given[i] is None:              # on disk already: linked or copied, not read
-                _link_or_copy(self._folder / c.file, folder / c.file)
+                link_or_copy(self._folder / c.file, folder / c.file)
             else:
                 self._given[i].save_ply(folder / c.file)
 
@@ -198,8 +211,6 @@ class Viewpoints:
     def from_json(cls, block: Any, folder: Path, keyframes: int) -> Viewpoints:
         """A scene folder's viewpoints (scene.json's block) over ``keyframes`` keyframes: each chunk's entry checked
         and its file's header read (ViewpointError naming the entry); the Gaussians are read when first used."""
-        from .render.gaussians import _read_ply_header
-
         where = f"scene {str(folder)!r}"
         entries = block.get("chunks") if isinstance(block, dict) else None
         if not isinstance(entries, list) or not entries:
@@ -222,15 +233,9 @@ class Viewpoints:
                                                           f"group, an index in 0..{ks[0]} (got {vpt!r})", where)
             if not isinstance(n, int) or isinstance(n, bool) or n < 0:
                 raise ViewpointError(f"{name}.count", f"must be an integer >= 0 (got {n!r})", where)
-            path = folder / f
-            if not path.is_file():
-                raise ViewpointError(f"{name}.file", f"{str(path)!r} is missing", where)
-            try:
-                have = _read_ply_header(path)[0]
-            except GaussianError as exc:
-                raise ViewpointError(f"{name}.file", f"{str(path)!r}: {exc}", where) from None
+            have = ply_count(folder / f, f"{name}.file", ViewpointError, where)
             if have != n:
-                raise ViewpointError(f"{name}.count", f"{str(path)!r} holds {have} Gaussians, not {n}", where)
+                raise ViewpointError(f"{name}.count", f"{str(folder / f)!r} holds {have} Gaussians, not {n}", where)
             chunks.append(Chunk(tuple(ks), n, e.get("bbox"), f, vpt))
         if seen != set(range(keyframes)):
             raise ViewpointError("viewpoints.chunks", f"must place each of the {keyframes} keyframes in a chunk "

@@ -531,14 +531,16 @@ class Service:
         return data
 
     def _reading(self, sid: str, fn, *args):
-        """fn(*args) for a loaded scene that reads its tiles and chunks as views need them (runtime.tiles,
-        runtime.viewpoints): NotFound when the scene was deleted meanwhile and its files with it."""
+        """fn(*args) for a loaded scene that reads its tiles, chunks and camera layers as views need them
+        (runtime.tiles, runtime.viewpoints, runtime.cameralayers): NotFound when the scene was deleted meanwhile and
+        its files with it."""
+        from xyzcyl.runtime.cameralayers import CameraLayerError
         from xyzcyl.runtime.tiles import TileError
         from xyzcyl.runtime.viewpoints import ViewpointError
 
         try:
             return fn(*args)
-        except (TileError, ViewpointError):
+        except (TileError, ViewpointError, CameraLayerError):
             rec = self.store.get(sid)
             if rec is None or rec.state != "ready":
                 self.scenes.drop(sid)

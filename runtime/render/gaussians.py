@@ -8,6 +8,7 @@ term (colour = SH_C0 * dc + 0.5 + higher bands, clamped at 0). See docs/renderer
 from __future__ import annotations
 
 import os
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -205,13 +206,7 @@ class Gaussians:
         """Write the INRIA 3DGS layout: binary little endian, float32, properties
         x y z nx ny nz f_dc_0..2 f_rest_0.. opacity scale_0..2 rot_0..3; f_rest channel-major
         (f_rest index = c * ((d+1)^2 - 1) + k for colour channel c and SH coefficient k >= 1)."""
-        names = self.ply_names()
-        header = "".join(["ply\nformat binary_little_endian 1.0\n", f"element vertex {len(self)}\n",
-                          *(f"property float {name}\n" for name in names), "end_header\n"])
-        with open(path, "wb") as f:
-            f.write(header.encode("ascii"))
-            for a in range(0, len(self), PLY_WRITE_ROWS):    # a block at a time: no copy of the whole scene
-                f.write(self.ply_rows(a, a + PLY_WRITE_ROWS).tobytes())
+        save_ply_parts(path, [self])
 
     @classmethod
     def load_ply(cls, path: str | os.PathLike, max_points: int = DEFAULT_MAX_POINTS) -> Gaussians:
@@ -359,6 +354,25 @@ class Gaussians:
         if size // 32 > max_points:
             raise GaussianError("splat", f"{path.name!r} has {size // 32} records, more than the maximum {max_points}")
         return cls.from_splat_bytes(path.read_bytes(), max_points)
+
+
+def save_ply_parts(path: str | os.PathLike, parts: Sequence[Gaussians]) -> None:
+    """Write ``parts`` (one SH degree) as one 3DGS PLY of their concatenation, in order (Gaussians.save_ply's
+    layout), a block of each at a time: the parts are never joined in memory (a drive's camera layers:
+    runtime.cameralayers)."""
+    parts = list(parts)
+    if not parts:
+        raise ValueError("parts: at least one Gaussians")
+    if len({p.sh.shape[1] for p in parts}) > 1:
+        raise ValueError("parts: one SH degree for all")
+    names = parts[0].ply_names()
+    header = "".join(["ply\nformat binary_little_endian 1.0\n", f"element vertex {sum(map(len, parts))}\n",
+                      *(f"property float {name}\n" for name in names), "end_header\n"])
+    with open(path, "wb") as f:
+        f.write(header.encode("ascii"))
+        for p in parts:
+            for a in range(0, len(p), PLY_WRITE_ROWS):      # a block at a time: no copy of the whole scene
+                f.write(p.ply_rows(a, a + PLY_WRITE_ROWS).tobytes())
 
 
 def _ply_where(path: Path) -> str:

@@ -99,6 +99,13 @@ def test_a_drive_reaches_a_ready_scene_that_records_its_frames(env, client, tmp_
         env.service._reading(sid, gone)
     with pytest.raises(TileError):         # a ready scene's unreadable tile is the store's fault: not hidden
         env.service._reading(env.sid, gone)
+    from xyzcyl.runtime.cameralayers import CameraLayerError
+
+    def gone_layer():                      # a camera layer's file (runtime.cameralayers) alike
+        raise CameraLayerError("camera_layers.keyframes[0]", "rows 0..10: [Errno 2] No such file or directory")
+
+    with pytest.raises(NotFound, match="deleted"):
+        env.service._reading(sid, gone_layer)
 
 
 def test_the_client_posts_a_drive_file_with_its_keyframe_knobs(env, tmp_path, small):

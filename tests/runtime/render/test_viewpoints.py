@@ -46,7 +46,7 @@ def test_chunks_through_the_scene_folder_read_when_used(tmp_path, monkeypatch):
 
 def test_chunks_on_disk_are_linked_into_a_new_folder_and_survive_a_second_save(tmp_path, monkeypatch):
     """A scene whose chunks lie on disk (a loaded folder, or a drive's spilled chunks) writes them by a hard link where
-    it can (viewpoints._link_or_copy), a copy where the file system refuses one, and saving again (into the same
+    it can (viewpoints.link_or_copy), a copy where the file system refuses one, and saving again (into the same
     folder: the link is its own file) keeps them whole."""
     _scene().save(tmp_path / "a")
     src = Scene.load(tmp_path / "a")
