@@ -238,6 +238,10 @@ def run(args: argparse.Namespace) -> int:
             seen = scene.tiles.visible(cam, antialiased=args.antialiased)
             n = sum(scene.tiles.tiles[t].count for t in seen)
             chunks = f" (the {len(seen)} of {len(scene.tiles)} tiles the view sees)" + chunks
+            k = scene.primary_keyframe(cam, req.time_s)
+            layer = scene.camera_layer(cam, k) if k is not None else None
+            if layer is not None:           # drawn first: the view stands at a keyframe's camera
+                chunks += f", over them the camera layer of the camera it stands at ({len(layer)} Gaussians)"
         else:
             n = len(scene.gaussians)
         print(f"rendered {n} Gaussians{chunks} -> {out} ({cam.width}x{cam.height}, "

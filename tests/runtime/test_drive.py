@@ -687,8 +687,10 @@ def test_render_time_flag_draws_the_objects_of_that_time(tmp_path, shipped, caps
     capsys.readouterr()
     assert cli.main(["render", str(tmp_path / "scene"), "--camera", "CAM_FRONT", "--width", "160",
                      "--out", str(tmp_path / "v.png")]) == 0
+    # the view stands at keyframe 0's front camera: its camera layer is drawn first (runtime.cameralayers)
     assert re.match(r"rendered \d+ Gaussians \(the \d+ of \d+ tiles the view sees\) and the view's viewpoint "
-                    r"chunks -> ", capsys.readouterr().out)
+                    r"chunks, over them the camera layer of the camera it stands at \(\d+ Gaussians\) -> ",
+                    capsys.readouterr().out)
     scene = Scene.load(tmp_path / "scene")
     from xyzcyl.runtime.scene import rig_camera
     from xyzcyl.runtime.views import ViewRequest, encode_view
