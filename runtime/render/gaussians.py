@@ -267,7 +267,21 @@ class Gaussians:
             if f"f_rest_{i}" not in names:
                 raise GaussianError(f"f_rest_{i}", "vertex property missing", where)
 
+        fields = vert.dtype.fields or {}
+        order = list(vert.dtype.names or ())
+        # every property a little-endian float32 packed one after the other (as save_ply writes them): the records
+        # are one [N, P] float32 block, and a run of columns is one strided copy (a field-by-field stack took 41 of
+        # the 113 ms of 0.7 M rows of a drive's camera layer)
+        block = None
+        if (vert.flags.c_contiguous and vert.dtype.itemsize == 4 * len(order)
+                and all(fields[p][0] == np.dtype("<f4") and fields[p][1] == 4 * i for i, p in enumerate(order))):
+            block = vert.view("<f4").reshape(n, len(order))
+
         def col(*ps):
+            if block is not None:
+                at = [order.index(p) for p in ps]
+                if at == list(range(at[0], at[0] + len(at))):
+                    return np.array(block[:, at[0]:at[0] + len(at)])
             return np.stack([np.asarray(vert[p], dtype=np.float32) for p in ps], axis=1)
 
         k = (degree + 1) ** 2

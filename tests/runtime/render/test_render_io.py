@@ -99,6 +99,24 @@ def test_ply_properties_by_name_in_any_order(tmp_path):
     assert g.sh_degree == 0 and np.array_equal(g.sh[:, 0, 2], data["f_dc_2"])
 
 
+@pytest.mark.parametrize("degree", [0, 3])
+def test_packed_float32_records_read_as_one_block_equal_the_field_by_field_read(tmp_path, degree):
+    """The records save_ply writes (float32 properties packed in order) are read as one [N, P] block, a run of columns
+    at a time; records of any other layout (here a float64 property added) field by field: the same Gaussians."""
+    g = random_gaussians(np.random.default_rng(4), 300, degree=degree)
+    g.save_ply(tmp_path / "g.ply")
+    fast = Gaussians.load_ply_rows(tmp_path / "g.ply", 10, 290)
+    names = g.ply_names()
+    rec = np.frombuffer(g.ply_rows().tobytes(), dtype=[(nm, "<f4") for nm in names])[10:290]
+    other = np.zeros(len(rec), dtype=[(nm, "<f4") for nm in names] + [("extra", "<f8")])
+    for nm in names:
+        other[nm] = rec[nm]
+    slow = Gaussians._from_vertices(other, "test")
+    for f in ("means", "quats", "log_scales", "opacity_logits", "sh"):
+        np.testing.assert_array_equal(getattr(fast, f), getattr(slow, f))
+        assert getattr(fast, f).flags.writeable and getattr(fast, f).flags.c_contiguous
+
+
 def _write(tmp_path, g, name="g.ply"):
     path = tmp_path / name
     g.save_ply(path)
