@@ -6,7 +6,8 @@ per case:
   20 keyframes of six 1920x1080 cameras + LiDAR): seconds in all and per keyframe, the scene's stage times
   (scene.json timings), Gaussians, peak RSS.
 - ``render``: the scene seen by each input camera of the keyframes at 10 places along the drive, at 1920x1080, at the
-  keyframe's time and halfway to the next (Scene.render, what `xyzcyl render` and the service draw): median, max.
+  keyframe's time and halfway to the next (Scene.render, what `xyzcyl render` and the service draw): median, max;
+  after the file system's dirty pages are written (os.sync: the scene was written just before).
 
     .venv/bin/python benchmarks/drive_bench.py [--drive D] [--every 2] [--work /tmp/xyzcyl-drive-bench]
         [--threads 2] [--workers N] [--baseline DIR]
@@ -107,6 +108,10 @@ def main() -> None:
     for name, tree in trees:
         out = args.work / name
         for case in ("reconstruct", "render"):
+            if case == "render":
+                # the scene just written (~9 GB for 20 keyframes) flushed to disk first: the kernel's writeback of
+                # it made the views 0.61 s instead of 0.48-0.50 (docs/results.md "Drives: camera layers")
+                os.sync()
             r = run(tree, case, args, out)
             r["tree"] = name
             results[(name, case)] = r
