@@ -196,7 +196,10 @@ def _drive(args: argparse.Namespace, detail, out: Path, model_dir: Path, say) ->
     except OSError as exc:
         return _fail(f"--out: {exc}")
     c, t = scene.counts, scene.timings
-    chunks = f" (+ {c['viewpoint_gaussians']} in {c['viewpoints']} viewpoint chunks)" if c.get("viewpoints") else ""
+    chunks = f" (+ {c['viewpoint_gaussians']} in {c['viewpoints']} viewpoint chunks" if c.get("viewpoints") else ""
+    if c.get("camera_layer_gaussians"):     # runtime.cameralayers
+        chunks += f"{', ' if chunks else ' ('}+ {c['camera_layer_gaussians']} in its keyframes' camera layers"
+    chunks += ")" if chunks else ""
     print(f"{out}: {c['total']} Gaussians{chunks} from {len(keys)} keyframes of {len(drive)} frames, model "
           f"{rec.info.name} {rec.info.version}")
     if scene.ego_body is not None and scene.ego_body.masks:

@@ -226,3 +226,25 @@ def test_a_bad_workers_count_is_refused_before_any_work(tmp_path, capsys):
     assert "--workers: goes with a drive file" in capsys.readouterr().err
     assert cli.main(["reconstruct", str(EXAMPLE_RIG), "--out", str(tmp_path / "s"), "--stationary-actors"]) == 2
     assert "--stationary-actors: goes with a drive file" in capsys.readouterr().err
+
+
+def test_a_drives_summary_line_counts_its_chunks_and_camera_layers(tmp_path, capsys):
+    """`reconstruct DRIVE` (two keyframes 3 m apart) prints the shared Gaussians, then the viewpoint chunks' and the
+    camera layers' (runtime.cameralayers) as scene.json counts them; the folder holds the layers' files."""
+    import re
+
+    from xyzcyl.testing.drives import pose, write_drive
+
+    E = np.array(pose(7, 3, 20))
+    drive = write_drive(tmp_path / "d", [E, E @ np.array(pose(3.0, 0.0))], [0.0, 0.5])
+    out = tmp_path / "s"
+    assert cli.main(["reconstruct", str(drive), "--out", str(out), "--detail-stride", "16", "--no-stereo",
+                     "--workers", "0", "--quiet"]) == 0
+    c = json.loads((out / "scene.json").read_text())["counts"]
+    line = capsys.readouterr().out.splitlines()[0]
+    m = re.match(r".*: (\d+) Gaussians \(\+ (\d+) in (\d+) viewpoint chunks, \+ (\d+) in its keyframes' camera "
+                 r"layers\) from 2 keyframes of 2 frames", line)
+    assert m is not None, line
+    assert [int(v) for v in m.groups()] == [c["total"], c["viewpoint_gaussians"], c["viewpoints"],
+                                            c["camera_layer_gaussians"]], (line, c)
+    assert sorted(p.name for p in (out / "cameras").iterdir()) == ["keyframe_000.ply", "keyframe_001.ply"]
