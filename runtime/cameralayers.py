@@ -21,8 +21,6 @@ keeps the last CACHE_LAYERS it used."""
 
 from __future__ import annotations
 
-import threading
-from collections import OrderedDict
 from collections.abc import Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
@@ -32,7 +30,7 @@ from typing import Any
 from .errors import FieldError
 from .render import GaussianError, Gaussians
 from .render.gaussians import save_ply_parts
-from .viewpoints import link_or_copy, ply_count
+from .viewpoints import Recent, link_or_copy, ply_count
 
 LAYERS_DIR = "cameras"
 CACHE_LAYERS = 12           # camera layers a loaded scene keeps in memory (~40 MB each at 1920x1080, stride 2): two
@@ -75,8 +73,7 @@ class CameraLayers:
         self.keyframes = list(keyframes)
         self._folder = Path(folder)
         self._tmp = tmp
-        self._cache: OrderedDict[tuple[int, int], Gaussians] = OrderedDict()
-        self._lock = threading.Lock()
+        self._cache = Recent()
         self._writer: ThreadPoolExecutor | None = None      # add's thread, and the write it is doing
         self._pending: Future | None = None
 
@@ -132,10 +129,9 @@ class CameraLayers:
         key = (int(k), int(c))
         if self._pending is not None:       # still being written (a reconstruction's scene)
             self.finish()
-        with self._lock:
-            if key in self._cache:
-                self._cache.move_to_end(key)
-                return self._cache[key]
+        kept = self._cache.get(key)
+        if kept is not None:
+            return kept
         entry = self.keyframes[k]
         start, n = entry.runs[c]
         path = self._folder / entry.file
@@ -144,10 +140,7 @@ class CameraLayers:
         except (GaussianError, OSError) as e:
             raise CameraLayerError(f"camera_layers.keyframes[{k}]", f"{entry.file!r} rows {start}..{start + n}: "
                                                                      f"{e}", f"scene {str(self._folder)!r}") from None
-        with self._lock:
-            self._cache[key] = g
-            while len(self._cache) > CACHE_LAYERS:
-                self._cache.popitem(last=False)
+        self._cache.put(key, g, CACHE_LAYERS)
         return g
 
     def to_json(self) -> dict[str, Any]:

@@ -54,6 +54,36 @@ def link_or_copy(src: Path, dst: Path) -> None:
         shutil.copyfile(src, dst)
 
 
+class Recent:
+    """The values last put, by key (thread-safe): ``get`` a kept one (now the most recent) or None, ``put`` one and
+    keep at most ``size`` (the least recently used let go): a loaded scene's chunks, its camera layers."""
+
+    def __init__(self):
+        self._items: OrderedDict[Any, Any] = OrderedDict()
+        self._lock = threading.Lock()
+
+    def get(self, key: Any) -> Any:
+        with self._lock:
+            if key not in self._items:
+                return None
+            self._items.move_to_end(key)
+            return self._items[key]
+
+    def put(self, key: Any, value: Any, size: int) -> None:
+        with self._lock:
+            self._items[key] = value
+            while len(self._items) > size:
+                self._items.popitem(last=False)
+
+    def __len__(self) -> int:
+        return len(self._items)
+
+    def __iter__(self):
+        """The keys kept, least recently used first."""
+        with self._lock:
+            return iter(list(self._items))
+
+
 def ply_count(path: Path, field: str, error: type[FieldError], where: str) -> int:
     """The vertex count in the header of a scene folder's PLY ``path`` (a chunk, a camera layer): ``error`` naming
     ``field`` when the file is missing or its header unreadable."""
@@ -120,8 +150,7 @@ class Viewpoints:
         self._group = {k: i for i, c in enumerate(self.chunks) for k in c.keyframes}
         self._given = list(gaussians)
         self._folder = folder
-        self._cache: OrderedDict[int, Gaussians] = OrderedDict()
-        self._lock = threading.Lock()
+        self._cache = Recent()
         self._tmp = None            # a temporary folder the chunks live in (spilled), removed with them
 
     @classmethod
@@ -174,10 +203,9 @@ class Viewpoints:
         given = self._given[i]
         if given is not None:
             return given
-        with self._lock:
-            if i in self._cache:
-                self._cache.move_to_end(i)
-                return self._cache[i]
+        kept = self._cache.get(i)
+        if kept is not None:
+            return kept
         c = self.chunks[i]
         path = self._folder / c.file
         try:
@@ -187,10 +215,7 @@ class Viewpoints:
         if len(g) != c.count:
             raise ViewpointError("viewpoints", f"chunk {c.file!r} holds {len(g)} Gaussians, scene.json says "
                                                f"{c.count}", f"scene {str(self._folder)!r}")
-        with self._lock:
-            self._cache[i] = g
-            while len(self._cache) > CACHE_CHUNKS:
-                self._cache.popitem(last=False)
+        self._cache.put(i, g, CACHE_CHUNKS)
         return g
 
     def to_json(self) -> dict[str, Any]:
