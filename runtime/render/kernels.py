@@ -268,6 +268,9 @@ def _chunk_functions(model: int):
         i1 = min(means.shape[0], i0 + PROJ_CHUNK)
         if planes.shape[0] and _chunk_outside(means, log_scales, planes, i0, i1):
             return 0
+        if model == 0 and sat.shape[0] and _chunk_closed(means, log_scales, i0, i1, Rw, tw, fx, fy, cx, cy, lxn,
+                                                         lxp, lyn, lyp, width, height, near, low_pass, sat):
+            return 0
         c = 0
         for i in range(i0, i1):
             keep, _, _, _ = _precull(means, log_scales, i, Rw, tw, model, lp, fx, fy, cx, cy, lxn, lxp, lyn, lyp,
@@ -572,11 +575,9 @@ def _write_mean(rows, s, u, v):
     rows[s, 3] = np.float32(v - np.float64(hi))
 
 
-@njit(cache=True, nogil=True)
-def _chunk_outside(means, log_scales, planes, i0, i1):
-    """True when the axis-aligned box of means[i0:i1] (world frame, float64) lies wholly on the outer side of
-    one of planes [k, 5] float64 (a0, a1, a2, offset, kscale; see chunk_planes): max over the box of a.x + offset
-    < -kscale * exp(max log scale of the chunk)."""
+@njit(inline="always")
+def _chunk_box(means, log_scales, i0, i1):
+    """(lo0, hi0, lo1, hi1, lo2, hi2, largest log scale) of means[i0:i1] (float64; i1 > i0)."""
     lo0 = hi0 = np.float64(means[i0, 0])
     lo1 = hi1 = np.float64(means[i0, 1])
     lo2 = hi2 = np.float64(means[i0, 2])
@@ -592,6 +593,15 @@ def _chunk_outside(means, log_scales, planes, i0, i1):
         lo2 = min(lo2, m2)
         hi2 = max(hi2, m2)
         ls = max(ls, np.float64(log_scales[i, 0]), np.float64(log_scales[i, 1]), np.float64(log_scales[i, 2]))
+    return lo0, hi0, lo1, hi1, lo2, hi2, ls
+
+
+@njit(cache=True, nogil=True)
+def _chunk_outside(means, log_scales, planes, i0, i1):
+    """True when the axis-aligned box of means[i0:i1] (world frame, float64) lies wholly on the outer side of
+    one of planes [k, 5] float64 (a0, a1, a2, offset, kscale; see chunk_planes): max over the box of a.x + offset
+    < -kscale * exp(max log scale of the chunk)."""
+    lo0, hi0, lo1, hi1, lo2, hi2, ls = _chunk_box(means, log_scales, i0, i1)
     smax = math.exp(ls)
     c0, c1, c2 = 0.5 * (lo0 + hi0), 0.5 * (lo1 + hi1), 0.5 * (lo2 + hi2)
     h0, h1, h2 = 0.5 * (hi0 - lo0), 0.5 * (hi1 - lo1), 0.5 * (hi2 - lo2)
@@ -601,6 +611,56 @@ def _chunk_outside(means, log_scales, planes, i0, i1):
         if top < -planes[k, 4] * smax:
             return True
     return False
+
+
+@njit(cache=True, nogil=True)
+def _chunk_closed(means, log_scales, i0, i1, Rw, tw, fx, fy, cx, cy, lxn, lxp, lyn, lyp, width, height, near,
+                  low_pass, sat):
+    """(pinhole) True when no Gaussian of means[i0:i1] can pass _precull's open-tile test: the box of their
+    camera-frame means lies wholly in front of the near plane (a box that reaches behind it: False, not tested),
+    and the pixels its eight corners project to (every mean of the box projects inside their range: the
+    projection of a box in front of the camera is the hull of its corners'), widened by the largest pre-cull
+    radius any of them can have (3.34 x the chunk's largest scale through the clamped Jacobian's row norm at the
+    box's nearest depth, plus the low-pass), touch no tile counted in ``sat`` (summed-area table of the open
+    tiles, see open_slots). A chunk of a later layer that falls wholly on tiles the layers before covered is then
+    skipped without testing its Gaussians one by one."""
+    lo0, hi0, lo1, hi1, lo2, hi2, ls = _chunk_box(means, log_scales, i0, i1)
+    umin = vmin = np.inf
+    umax = vmax = -np.inf
+    zmin = np.inf
+    for c in range(8):
+        px = hi0 if c & 1 else lo0
+        py = hi1 if c & 2 else lo1
+        pz = hi2 if c & 4 else lo2
+        x = Rw[0, 0] * px + Rw[0, 1] * py + Rw[0, 2] * pz + tw[0]
+        y = Rw[1, 0] * px + Rw[1, 1] * py + Rw[1, 2] * pz + tw[1]
+        z = Rw[2, 0] * px + Rw[2, 1] * py + Rw[2, 2] * pz + tw[2]
+        if not z >= near:
+            return False
+        zmin = min(zmin, z)
+        u = fx * (x / z) + cx
+        v = fy * (y / z) + cy
+        umin = min(umin, u)
+        umax = max(umax, u)
+        vmin = min(vmin, v)
+        vmax = max(vmax, v)
+    smax = math.exp(ls)
+    # _precull's radii at depth z >= zmin, with (1 + sxc^2) <= 1 + max(lxn, lxp)^2 (sxc is clamped to the limits)
+    kx = 1.0 + max(lxn, lxp) ** 2
+    ky = 1.0 + max(lyn, lyp) ** 2
+    ru = 3.34 * math.sqrt((fx / zmin) ** 2 * kx * smax * smax + low_pass) + 1.0    # +1 px: rounding
+    rv = 3.34 * math.sqrt((fy / zmin) ** 2 * ky * smax * smax + low_pass) + 1.0
+    umin -= ru
+    umax += ru
+    vmin -= rv
+    vmax += rv
+    if umin > width - 1 or umax < 0.0 or vmin > height - 1 or vmax < 0.0:
+        return True
+    tx0 = int(max(umin, 0.0)) // TILE
+    tx1 = int(min(umax, width - 1.0)) // TILE
+    ty0 = int(max(vmin, 0.0)) // TILE
+    ty1 = int(min(vmax, height - 1.0)) // TILE
+    return _rect_sum(sat, tx0, tx1, ty0, ty1) == 0
 
 
 @njit(inline="always")

@@ -234,6 +234,52 @@ def test_chunk_culling_skips_only_chunks_that_would_be_culled_anyway():
     assert np.abs(fast.rgb - ref.rgb).max() <= TOL
 
 
+def test_a_chunk_over_covered_tiles_only_is_skipped_and_no_gaussian_it_held_reaches_an_open_tile():
+    """kernels._chunk_closed (a later layer's run of PROJ_CHUNK Gaussians whose box falls on tiles the layers in
+    front covered): clusters in front of, across and beside the image, half the tiles covered (a block and a
+    checkerboard corner); every chunk it skips lists none of its Gaussians in an open tile of the projection
+    without cover (what the per-Gaussian test would keep); it skips some, and the covered projection lists the
+    same Gaussians in the open tiles as the projection without cover."""
+    from xyzcyl.runtime.render import core
+    from xyzcyl.runtime.render.projection import RenderOptions as Opts
+
+    rng = np.random.default_rng(5)
+    cam = pinhole(160, 96, f=90.0)
+    opts = Opts(far=60.0)
+    c = kernels.PROJ_CHUNK
+    parts = []
+    for k in range(64):
+        z = rng.choice([rng.uniform(0.05, 0.5), rng.uniform(1.0, 40.0)], p=[0.1, 0.9])
+        u, v = rng.uniform(-40.0, 200.0), rng.uniform(-30.0, 126.0)
+        centre = np.array([(u - 79.5) * z / 90.0, (v - 47.5) * z / 90.0, z])
+        spread = rng.uniform(0.01, 0.4)
+        g = random_gaussians(rng, c, lo=tuple(centre - spread), hi=tuple(centre + spread),
+                             scale=(0.003, 0.03) if k % 2 else (0.03, 0.2), opacity=(-2.0, 3.0))
+        parts.append(g)
+    g = concat(*parts)
+    ntx, nty = 10, 6
+    covered = np.zeros((nty, ntx), bool)
+    covered[:, :6] = True                            # the left 96 px
+    covered[3:, 6:] = (np.add.outer(np.arange(3), np.arange(4)) % 2).astype(bool)
+    covered = covered.ravel()
+    sat = np.zeros((nty + 1, ntx + 1), np.int64)
+    sat[1:, 1:] = np.cumsum(np.cumsum(~covered.reshape(nty, ntx), axis=0), axis=1)
+    model, (*cargs, ptab) = core._camera_args(cam)
+    Rw, tw, lp, fx, fy, cx, cy, lxn, lxp, lyn, lyp = cargs
+    closed = [k for k in range(64) if kernels._chunk_closed(g.means, g.log_scales, k * c, (k + 1) * c, Rw, tw, fx, fy,
+                                                            cx, cy, lxn, lxp, lyn, lyp, 160, 96, opts.near,
+                                                            opts.low_pass, sat)]
+    _, start, ids, _, gid, _ = core._prepare(g, cam, opts)
+    reach = set()                                    # chunks with a Gaussian listed in an open tile
+    for t in np.flatnonzero(~covered):
+        reach |= set((gid[ids[start[t]:start[t + 1]]] // c).tolist())
+    assert 8 <= len(closed) <= 48, len(closed)       # both outcomes exercised
+    assert not reach & set(closed)
+    _, start2, ids2, _, gid2, _ = core._prepare(g, cam, opts, covered=covered)
+    for t in np.flatnonzero(~covered):
+        np.testing.assert_array_equal(gid2[ids2[start2[t]:start2[t + 1]]], gid[ids[start[t]:start[t + 1]]])
+
+
 def test_ellipse_rows_cover_every_pixel_the_footprint_reaches():
     """kernels._ellipse_rows narrows a tile instance's rows to where its footprint ellipse meets the tile's
     columns. Against brute force on the 16x16 pixel centres: never a row with a pixel inside the ellipse left out
