@@ -719,6 +719,11 @@ class _Kept:
     shared: list[np.ndarray] = field(default_factory=list)
     start: list[int] = field(default_factory=list)      # the id of each part's first cell as added (VoxelOwners)
     now: list[np.ndarray | None] = field(default_factory=list)      # a part's row as added -> its row now (-1: gone)
+    layer: list[np.ndarray | None] = field(default_factory=list)    # [N_i] int64: each cell's row in its keyframe's
+    #                                                                 camera layer file (a split cell's first
+    #                                                                 quarter's), or None (drive._layer_rows)
+    source: Callable[[int], Path] | None = None     # keyframe n -> its camera layer file: a part with layer rows is
+    #                                                 not kept (nor spilled) but read there when drawn
     deduped: int = 0                                    # parts before this one have been through dedupe
     next_id: int = 0
 
@@ -748,18 +753,24 @@ class _Kept:
         return Gaussians.joined(**{k: np.load(s / f"{k}.npy", mmap_mode="r", allow_pickle=False)[rows]
                                    for k in FIELDS})
 
-    def add(self, g: Gaussians, level: np.ndarray, n: int, split: tuple | None = None) -> None:
+    def add(self, g: Gaussians, level: np.ndarray, n: int, split: tuple | None = None,
+            layer: np.ndarray | None = None) -> None:
         """Keyframe n's part ``g`` (cells or model Gaussians) with its voxel levels; ``split``: (each cell's row of
         the part's split cells or -1 [N], their quarters' means and colours [S, 4, 3]) or None. Split cells are
-        deduped as cells and drawn as their quarters (runtime.detail.expand_rows: shared_parts, own_of)."""
+        deduped as cells and drawn as their quarters (runtime.detail.expand_rows: shared_parts, own_of). ``layer``:
+        each cell's row in its keyframe's camera layer file ([N] int64, _layer_rows), or None."""
         self.start.append(self.next_id)
         self.next_id += len(g)
         self.now.append(None)
-        stored, quarters = self._put(g, None if split is None else split[1:])
+        if layer is not None and self.source is not None:
+            stored, quarters = None, None       # its rows of the keyframe's camera layer file hold it (_from_layers)
+        else:
+            stored, quarters = self._put(g, None if split is None else split[1:])
         self.store.append(stored)
         self.quarters.append(quarters)
         self.split.append(None if split is None else np.asarray(split[0], np.int32))
         self.rows.append(None)
+        self.layer.append(None if layer is None else np.asarray(layer, np.int64))
         self.means.append(np.array(g.means, np.float32))
         self.level.append(level)
         self.frame.append(np.full(len(g), n, np.int32))
@@ -780,6 +791,8 @@ class _Kept:
             self.frame[i], self.shared[i] = self.frame[i][m], self.shared[i][m]
             if self.split[i] is not None:
                 self.split[i] = self.split[i][m]
+            if self.layer[i] is not None:
+                self.layer[i] = self.layer[i][m]
             row = np.where(m, np.cumsum(m) - 1, -1)
             old = self.now[i]
             self.now[i] = row if old is None else np.where(old >= 0, row[np.maximum(old, 0)], -1)
@@ -832,12 +845,15 @@ class _Kept:
         for s in self.store:
             if isinstance(s, Path):
                 shutil.rmtree(s, ignore_errors=True)
-        for name in ("means", "store", "rows", "split", "quarters", "level", "frame", "shared", "start", "now"):
+        for name in ("means", "store", "rows", "split", "quarters", "level", "frame", "shared", "start", "now",
+                     "layer"):
             getattr(self, name).clear()
         self.owners = None
 
     def drawn(self, i: int, m: np.ndarray) -> Gaussians:
         """Part i's Gaussians where ``m`` ([N_i] bool) holds, its split cells as their quarters (expand_rows)."""
+        if self.store[i] is None:
+            return self._from_layers([(i, m)])[0]
         g = self.part(i, m)
         if self.split[i] is None:
             return g
@@ -849,15 +865,69 @@ class _Kept:
                              for k in ("means", "colours"))
         return expand_rows(g, self.split[i][m], *quarters)
 
+    def _from_layers(self, items: list[tuple[int, np.ndarray]]) -> list[Gaussians]:
+        """drawn(i, m) of each (i, m) of ``items``, parts whose Gaussians are rows of their keyframe's camera layer
+        file (``source``): each keyframe's file read once for all its parts (Gaussians.load_ply_take)."""
+        out: list[Gaussians | None] = [None] * len(items)
+        by_key: dict[int, list[int]] = {}
+        for j, (i, _) in enumerate(items):
+            by_key.setdefault(int(self.frame[i][0]) if len(self.frame[i]) else -1, []).append(j)
+        for n, js in by_key.items():
+            rows = [self._layer_take(*items[j], centres=False)[0] for j in js]
+            if n < 0 or not sum(map(len, rows)):
+                g = Gaussians.empty()
+            else:
+                g = Gaussians.load_ply_take(self.source(n), np.concatenate(rows))
+            at = 0
+            for j, r in zip(js, rows):
+                out[j] = g.slice(at, at + len(r)) if len(r) else Gaussians.empty()
+                at += len(r)
+        return out
+
     def shared_parts(self) -> tuple[list[Gaussians], list[np.ndarray]]:
         """(each part's shared Gaussians, their keyframes)."""
-        out = [self.drawn(i, s) for i, s in enumerate(self.shared)]
+        read = [i for i, s in enumerate(self.store) if s is None]
+        got = dict(zip(read, self._from_layers([(i, self.shared[i]) for i in read])))
+        out = [got[i] if i in got else self.drawn(i, s) for i, s in enumerate(self.shared)]
         return out, [np.full(len(g), f[0] if len(f) else 0, f.dtype) for g, f in zip(out, self.frame)]
+
+    def _own(self, n: int) -> list[int]:
+        """Keyframe ``n``'s parts that hold cells the shared Gaussians keep from another keyframe."""
+        return [i for i, (f, s) in enumerate(zip(self.frame, self.shared)) if len(f) and int(f[0]) == n
+                and not s.all()]
 
     def own_of(self, n: int) -> list[Gaussians]:
         """Keyframe ``n``'s cells that the shared Gaussians keep from another keyframe (its parts' unshared)."""
-        return [self.drawn(i, ~s) for i, (f, s) in enumerate(zip(self.frame, self.shared))
-                if len(f) and int(f[0]) == n and not s.all()]
+        return [self.drawn(i, ~self.shared[i]) for i in self._own(n)]
+
+    def own_layer_rows(self, n: int) -> tuple[np.ndarray, np.ndarray] | None:
+        """own_of(n)'s Gaussians (in its order: a split cell as its four quarters) as rows of keyframe ``n``'s
+        camera layer file ([M] int64) and the centres of their cells ([M, 3] float32, metres, the scene's frame: a
+        quarter's its cell's); None when one of its parts has no rows there."""
+        rows, centres = [], []
+        for i in self._own(n):
+            if self.layer[i] is None:
+                return None
+            r, c = self._layer_take(i, ~self.shared[i])
+            rows.append(r)
+            centres.append(c)
+        if not rows:
+            return np.zeros(0, np.int64), np.zeros((0, 3), np.float32)
+        return np.concatenate(rows), np.concatenate(centres)
+
+    def _layer_take(self, i: int, m: np.ndarray, centres: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
+        """Part i's cells where ``m`` ([N_i] bool) holds as rows of its keyframe's camera layer file, in drawn's
+        order (the cells that do not split, then the quarters, cell by cell), and (``centres``) their cells'
+        centres."""
+        r = self.layer[i][m]
+        c = self.means[i][m] if centres else None
+        if self.split[i] is not None:
+            q = self.split[i][m] >= 0
+            if q.any():
+                r = np.concatenate([r[~q], (r[q][:, None] + np.arange(4)).ravel()])
+                if centres:
+                    c = np.concatenate([c[~q], np.repeat(c[q], 4, axis=0)])
+        return r, c
 
 
 _DEFAULT = object()
@@ -886,7 +956,7 @@ def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None,
     from .exposure import Harmoniser
     from .inference import DEFAULT_DETAIL
     from .scene import Scene
-    from .viewpoints import Viewpoints
+    from .viewpoints import LayerRows, Viewpoints, spatial_order
 
     say = progress or (lambda msg: None)
     detail = DEFAULT_DETAIL if detail is _DEFAULT else detail
@@ -927,9 +997,12 @@ def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None,
     detail_kept = _Kept(origins, Path(spill.name), VoxelOwners(origins))
     coarse_kept = _Kept(origins)
     layers = CameraLayers.spill(drive.frames[0].rig.names, spill) if detail is not None else None
+    if layers is not None:      # a keyframe's kept cells are rows of its layers' file: read there, not spilled again
+        detail_kept.source = lambda n: Path(spill.name) / layers.keyframes[n].file
     # (keyframe, details, parts, keep, whether its depth was measured: a LiDAR sweep, its measured cells that a
-    # neighbouring keyframe saw through: they moved away (_carve_pair))
-    window: list[tuple[int, list, list[Gaussians], list[np.ndarray], bool, list[np.ndarray]]] = []
+    # neighbouring keyframe saw through: they moved away (_carve_pair), each part's cells' rows in its camera layer
+    # file or None (_layer_rows))
+    window: list[tuple[int, list, list[Gaussians], list[np.ndarray], bool, list[np.ndarray], list | None]] = []
     moved: list[tuple[int, Gaussians]] = []
     background = None
     moved_out = 0
@@ -938,7 +1011,7 @@ def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None,
     def commit(entry) -> None:
         """A keyframe leaves the carving window: its kept cells join the scene (deduped across keyframes), and the
         model's Gaussians so far that would veil one of its cameras' surfaces go (as in one frame)."""
-        n, details, parts, keep, _, gone = entry
+        n, details, parts, keep, _, gone, lrows = entry
         if any(m.any() for m in gone):       # drawn only around this keyframe's time (actors_of)
             # not the spill of a tracked object's cells beside its box: it is drawn from its copy
             moved.append((n, without_spill(_concat([g.subset(m) for g, m in zip(parts, gone) if m.any()]),
@@ -948,10 +1021,16 @@ def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None,
             g = coarse_kept.part(i)
             if details and len(g):
                 coarse_kept.keep(i, cull_covered(g, details, tol, pyramids))
-        for g, d, k in zip(parts, details, keep):
+        # the kept cells' rows in the keyframe's camera layer file (a chunk is rows of it): each kept cell is one
+        # its cameras kept (carve_details with the dedupe keeps fewer than without; the boxes and the neighbours
+        # only take more away)
+        at = None if lrows is None else [r[k] for r, k in zip(lrows, keep)]
+        if at is not None and any((r < 0).any() for r in at):
+            at = None                   # (never met: then the keyframe's chunk is written whole)
+        for i, (g, d, k) in enumerate(zip(parts, details, keep)):
             g = g.subset(k)             # deduped as cells; a split cell drawn as its quarters (_Kept.drawn)
             split = None if d.split is None else (split_rows(len(k), d.split)[k], d.split.means, d.split.colours)
-            detail_kept.add(g, voxel_levels(_cell_footprint_of(g)), n, split)
+            detail_kept.add(g, voxel_levels(_cell_footprint_of(g)), n, split, None if at is None else at[i])
         detail_kept.dedupe()
         release_heap()
 
@@ -1005,12 +1084,15 @@ def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None,
                     own[i] &= m < 0
                     if seen:
                         seen[i] &= m < 0
-            if seen:
+            lrows = None
+            if layers is not None:      # every keyframe has its layers (none: no cells), so chunks can point there
                 t_l = time.perf_counter()
                 layers.add(_layer_parts(parts, details, seen, kf.owners, len(layers.cameras)))
+                runs = layers.keyframes[-1].runs
+                lrows = [_layer_rows(m, d, runs[c][0]) for m, d, c in zip(seen, details, kf.owners)]
                 timings["camera_layers"] = timings.get("camera_layers", 0.0) + time.perf_counter() - t_l
             coarse_kept.add(coarse, voxel_levels(_coarse_footprint(coarse)), n)
-            entry = (n, details, parts, own, points is not None, [np.zeros(len(k), bool) for k in own])
+            entry = (n, details, parts, own, points is not None, [np.zeros(len(k), bool) for k in own], lrows)
             for prev in window:
                 _carve_pair(entry, prev, tol)
                 _carve_pair(prev, entry, tol)
@@ -1021,6 +1103,10 @@ def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None,
     finally:
         made.close()              # a failed keyframe: the workers stop
     t1 = time.perf_counter()
+    if layers is not None:
+        t_l = time.perf_counter()
+        layers.finish()                         # the last keyframe's written: the scene's cells are read there
+        timings["camera_layers"] = timings.get("camera_layers", 0.0) + time.perf_counter() - t_l
     while window:
         commit(window.pop(0))
     coarse_kept.dedupe()
@@ -1036,10 +1122,15 @@ def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None,
     keyframe_of = np.concatenate([f for _, f in pieces]).astype(np.int16)
     del pieces
     # each keyframe's chunk (with its viewpoint group) written beside the spilled parts, one at a time, and read
-    # back when a view needs it
-    def chunk(n: int) -> Gaussians:
+    # back when a view needs it: its model Gaussians, and its cells as rows of its camera layer file, in an order
+    # that keeps neighbours together (spatial_order: a view's projection skips runs of them whole)
+    def chunk(n: int) -> Gaussians | tuple[Gaussians, LayerRows]:
         release_heap()                          # the chunk before was written and let go of
-        return _concat(coarse_kept.own_of(n) + detail_kept.own_of(n))
+        own = detail_kept.own_layer_rows(n) if layers is not None else None
+        if own is None:
+            return _concat(coarse_kept.own_of(n) + detail_kept.own_of(n))
+        rows, centres = own
+        return _concat(coarse_kept.own_of(n)), LayerRows(layers.keyframes[n].file, rows[spatial_order(centres)])
 
     viewpoints = Viewpoints.spilled([[n] for n in range(len(keys))], (chunk(n) for n in range(len(keys))), spill,
                                     [int(h) for h in heads]) if len(keys) > 1 else None
@@ -1053,13 +1144,7 @@ def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None,
     if viewpoints is not None:
         counts.update({"viewpoints": len(viewpoints), "viewpoint_gaussians": viewpoints.count})
     if layers is not None:
-        t_l = time.perf_counter()
-        layers.finish()                         # the last keyframe's written
-        timings["camera_layers"] = timings.get("camera_layers", 0.0) + time.perf_counter() - t_l
-        if len(layers) == len(keys):
-            counts["camera_layer_gaussians"] = layers.count
-        else:                                   # keyframes without a detail layer
-            layers = None
+        counts["camera_layer_gaussians"] = layers.count
     actors = actors_of(drive, copies, moved, keys)
     if actors is not None:
         counts.update({"actors": len(actors), "actor_copies": len(actors.copy_track),
@@ -1095,6 +1180,24 @@ def _layer_parts(parts: list[Gaussians], details: list, keep: list[np.ndarray], 
     out: list[list[Gaussians]] = [[] for _ in range(n_cameras)]
     for g, d, m, c in zip(parts, details, keep, owners):
         out[c] = expand_split_parts(g, d, m)
+    return out
+
+
+def _layer_rows(seen: np.ndarray, d, start: int) -> np.ndarray:
+    """[N] int64: each of a camera's N cells' row in its keyframe's camera layer file (the rows _layer_parts wrote,
+    the camera's run from ``start``), -1 where ``seen`` ([N] bool) left it out; a split cell's first quarter's
+    (its four follow): the cells that do not split first, in order, then the quarters, cell by cell
+    (expand_split_parts)."""
+    from .detail import split_rows
+
+    seen = np.asarray(seen, bool)
+    split = split_rows(len(seen), d.split) >= 0 if d.split is not None and len(d.split.index) else \
+        np.zeros(len(seen), bool)
+    whole, quartered = seen & ~split, seen & split
+    out = np.full(len(seen), -1, np.int64)
+    n_whole = int(whole.sum())
+    out[whole] = start + np.arange(n_whole)
+    out[quartered] = start + n_whole + 4 * np.arange(int(quartered.sum()))
     return out
 
 
@@ -1286,12 +1389,12 @@ def _carve_pair(a, b, tolerance: float) -> None:
     And b's camera must show, near where the cell lands, no colour like the cell's (SEE_THROUGH_PHOTO): a like
     colour is the same surface that the two sweeps put at other depths (glass, a fence, an edge).
     A cell of a that a's own LiDAR placed (CONF_MEASURED) and b sees through was there at a's time and gone at
-    b's: it moved away (a car, a pedestrian, tracked or not). It is marked in a's moved masks (the entry's last
+    b's: it moved away (a car, a pedestrian, tracked or not). It is marked in a's moved masks (the entry's sixth
     field) and drawn only around a's time (actors_of), not dropped."""
     from .detail import CONF_MEASURED, carve_against
 
-    _, details_a, _, keep_a, measured_a, moved_a = a
-    _, details_b, _, _, measured, _ = b
+    _, details_a, _, keep_a, measured_a, moved_a = a[:6]
+    _, details_b, _, _, measured, _ = b[:6]
     if not measured:
         return
     for d, keep, gone in zip(details_a, keep_a, moved_a):

@@ -20,7 +20,11 @@ cells), and are drawn as they were.
 
 On disk a chunk is a 3DGS PLY in the scene folder's ``viewpoints/`` (scene.json's ``viewpoints`` block: each
 chunk's file, keyframes, viewpoint group, count and bounds); a loaded scene reads a chunk when a view first needs it
-and keeps the last CACHE_CHUNKS it used: a view reads at most three."""
+and keeps the last CACHE_CHUNKS it used: a view reads at most three. A drive with camera layers (runtime.cameralayers)
+holds every cell of a keyframe's chunk in that keyframe's layers already (the cells its cameras kept, of which the
+fusion kept fewer): such a chunk's PLY holds only the model's Gaussians, and its ``layer_rows`` entry names a
+``.npy`` of the rows of the keyframe's layer file that follow them (LayerRows; int32, in the chunk's order): a
+PandaSet keyframe's chunk is 12 MB of rows instead of 170 MB of Gaussians, written in a fraction of the time."""
 
 from __future__ import annotations
 
@@ -31,9 +35,12 @@ from collections import OrderedDict
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
+
+import numpy as np
 
 from .errors import FieldError
+from .numba_cache import njit
 from .render import GaussianError, Gaussians
 
 CHUNKS_DIR = "viewpoints"
@@ -101,19 +108,76 @@ class ViewpointError(FieldError):
     """A scene's viewpoints block or chunk file is invalid: ``field`` names the entry."""
 
 
+SPATIAL_BITS = 10          # bits per axis of spatial_order's Morton code: 1024 steps across a chunk's box
+
+
+def spatial_order(means: np.ndarray) -> np.ndarray:
+    """[N] int32: the order of points ``means`` ([N, 3] metres) along a Morton (Z-order) curve over their box,
+    SPATIAL_BITS bits an axis, ties in index order. A chunk's cells in this order lie together in runs, so that
+    the projection skips a run of them as a whole (runtime.render.kernels: a run of PROJ_CHUNK Gaussians whose
+    box is outside the view, or over tiles the layers in front already covered); a keyframe's cells come camera
+    after camera in image rows, each run of a thousand a strip across the image from the road to the sky."""
+    from .render import kernels as K
+
+    m = np.ascontiguousarray(means, np.float32)
+    if not len(m):
+        return np.zeros(0, np.int32)
+    return K.depth_order(np.arange(len(m), dtype=np.int32), _morton_codes(m, SPATIAL_BITS))
+
+
+@njit(cache=True, nogil=True)
+def _morton_codes(means, bits):
+    """[N] uint32: each point's cell in the box of all (``bits`` an axis: floor((x - lo) * step), step =
+    2^bits / (hi - lo), clamped) with the bits interleaved, x lowest (spatial_order; its test holds the plain
+    definition)."""
+    lo = np.full(3, np.inf)
+    hi = np.full(3, -np.inf)
+    for i in range(means.shape[0]):
+        for a in range(3):
+            x = np.float64(means[i, a])
+            lo[a] = min(lo[a], x)
+            hi[a] = max(hi[a], x)
+    step = np.empty(3)
+    for a in range(3):
+        step[a] = (1 << bits) / max(hi[a] - lo[a], 1e-9)
+    top = (1 << bits) - 1
+    out = np.empty(means.shape[0], np.uint32)
+    for i in range(means.shape[0]):
+        code = 0
+        for a in range(3):
+            q = min(max(int((np.float64(means[i, a]) - lo[a]) * step[a]), 0), top)
+            for b in range(bits):
+                code |= ((q >> b) & 1) << (3 * b + a)
+        out[i] = code
+    return out
+
+
+class LayerRows(NamedTuple):
+    """A chunk's Gaussians that are rows of a camera layer file: ``file`` (relative to the scene folder, a keyframe's
+    runtime.cameralayers file) and ``rows`` ([M] int32, the rows in the chunk's order)."""
+
+    file: str
+    rows: np.ndarray
+
+
 @dataclass(frozen=True)
 class Chunk:
     """One keyframe's own cells (a folder written before: one viewpoint group's, its first keyframe's):
     ``keyframes`` its keyframe (the group's keyframes; indices into the drive's keyframes, increasing), ``count`` its
     Gaussians, ``bbox`` the box of their centres ({"min", "max"}: metres, the scene's frame; None when empty),
     ``file`` its PLY's path relative to the scene folder, ``viewpoint`` the first keyframe of its viewpoint group
-    (None: the chunk's first keyframe, a group of its own)."""
+    (None: the chunk's first keyframe, a group of its own); ``rows`` the file of its rows of a camera layer
+    (``layer``, relative to the scene folder; ``layer_count`` rows) that follow the PLY's Gaussians, None when the
+    PLY holds them all (module docstring)."""
 
     keyframes: tuple[int, ...]
     count: int
     bbox: dict[str, list[float]] | None
     file: str
     viewpoint: int | None = None
+    rows: str | None = None
+    layer: str | None = None
+    layer_count: int = 0
 
     @property
     def group(self) -> int:
@@ -121,22 +185,56 @@ class Chunk:
         return self.keyframes[0] if self.viewpoint is None else self.viewpoint
 
     def to_dict(self) -> dict[str, Any]:
-        return {"file": self.file, "keyframes": list(self.keyframes), "viewpoint": self.group, "count": self.count,
-                "bbox": self.bbox}
+        out = {"file": self.file, "keyframes": list(self.keyframes), "viewpoint": self.group, "count": self.count,
+               "bbox": self.bbox}
+        if self.rows is not None:
+            out["layer_rows"] = {"file": self.rows, "of": self.layer, "count": self.layer_count}
+        return out
 
 
-def _chunk(i: int, keyframes: Sequence[int], g: Gaussians, viewpoints: Sequence[int] | None) -> Chunk:
-    """Chunk i (file group_NNN.ply) of ``keyframes`` holding ``g``; its viewpoint group from ``viewpoints`` (each
-    keyframe's group's first keyframe; None: its own)."""
-    return Chunk(tuple(int(k) for k in keyframes), len(g), _bbox(g), f"{CHUNKS_DIR}/group_{i:03d}.ply",
-                 None if viewpoints is None else int(viewpoints[keyframes[0]]))
+def _chunk(i: int, keyframes: Sequence[int], g: Gaussians, viewpoints: Sequence[int] | None,
+           rows: LayerRows | None = None, folder: Path | None = None) -> Chunk:
+    """Chunk i (file group_NNN.ply) of ``keyframes`` holding ``g`` and, with ``rows``, those rows of a camera
+    layer in ``folder``; its viewpoint group from ``viewpoints`` (each keyframe's group's first keyframe; None: its
+    own)."""
+    vpt = None if viewpoints is None else int(viewpoints[keyframes[0]])
+    ks, file = tuple(int(k) for k in keyframes), f"{CHUNKS_DIR}/group_{i:03d}.ply"
+    if rows is None:
+        return Chunk(ks, len(g), _bbox(g.means), file, vpt)
+    from .render.gaussians import ply_rows_layout
+
+    n, dtype, header = ply_rows_layout(folder / rows.file)
+    at = np.asarray(rows.rows, np.int64)
+    box = np.array([[np.inf] * 3, [-np.inf] * 3])
+    if len(at):
+        if int(at.min()) < 0 or int(at.max()) >= n:
+            raise ValueError(f"rows of {rows.file!r} outside its {n} rows")
+        x = dtype.names.index("x")
+        if dtype.names[x:x + 3] != ("x", "y", "z") or any(dtype.fields[k][0] != np.dtype("<f4") for k in "xyz"):
+            raise ValueError(f"{rows.file!r}: x, y, z are not float32 one after the other")
+        # only the means of the rows, through a map of the file (its records as [n, P/4] float32 words)
+        words = np.memmap(folder / rows.file, "<u1", mode="r", offset=header, shape=(n * dtype.itemsize,))
+        _rows_box(words.view("<f4").reshape(n, dtype.itemsize // 4), dtype.fields["x"][1] // 4, at, box)
+    means = np.concatenate([g.means.astype(np.float64), box]) if len(at) else g.means
+    return Chunk(ks, len(g) + len(at), _bbox(means), file, vpt, f"{CHUNKS_DIR}/group_{i:03d}_rows.npy", rows.file,
+                 len(at))
 
 
-def _bbox(g: Gaussians) -> dict[str, list[float]] | None:
-    if not len(g):
+@njit(cache=True, nogil=True)
+def _rows_box(block, col, rows, box):
+    """box [2, 3] (min; max) widened to hold block[r, col:col + 3] of each of ``rows``."""
+    for r in rows:
+        for a in range(3):
+            v = np.float64(block[r, col + a])
+            box[0, a] = min(box[0, a], v)
+            box[1, a] = max(box[1, a], v)
+
+
+def _bbox(means: np.ndarray) -> dict[str, list[float]] | None:
+    if not len(means):
         return None
-    return {"min": [float(g.means[:, c].min()) for c in range(3)],
-            "max": [float(g.means[:, c].max()) for c in range(3)]}
+    return {"min": [float(means[:, c].min()) for c in range(3)],
+            "max": [float(means[:, c].max()) for c in range(3)]}
 
 
 class Viewpoints:
@@ -162,17 +260,22 @@ class Viewpoints:
         return cls(chunks, list(gaussians))
 
     @classmethod
-    def spilled(cls, groups: Sequence[Sequence[int]], gaussians: Iterable[Gaussians], tmp,
-                viewpoints: Sequence[int] | None = None) -> Viewpoints:
+    def spilled(cls, groups: Sequence[Sequence[int]], gaussians: Iterable[Gaussians | tuple[Gaussians, LayerRows]],
+                tmp, viewpoints: Sequence[int] | None = None) -> Viewpoints:
         """From each chunk's keyframes and Gaussians, each written as it comes into the temporary folder ``tmp`` (a
-        tempfile.TemporaryDirectory, kept alive as long as these chunks) and read back when used; ``viewpoints``:
-        each keyframe's viewpoint group (its first keyframe; None: each chunk a group of its own)."""
+        tempfile.TemporaryDirectory, kept alive as long as these chunks) and read back when used; a chunk given as
+        (Gaussians, LayerRows) is those Gaussians followed by rows of a camera layer file already in ``tmp``
+        (module docstring); ``viewpoints``: each keyframe's viewpoint group (its first keyframe; None: each chunk a
+        group of its own)."""
         folder = Path(tmp.name)
         (folder / CHUNKS_DIR).mkdir(exist_ok=True)
         chunks = []
         for i, (ks, g) in enumerate(zip(groups, gaussians)):
-            c = _chunk(i, ks, g, viewpoints)
+            g, rows = g if isinstance(g, tuple) else (g, None)
+            c = _chunk(i, ks, g, viewpoints, rows, folder)
             g.save_ply(folder / c.file)
+            if rows is not None:
+                np.save(folder / c.rows, np.asarray(rows.rows, np.int32), allow_pickle=False)
             chunks.append(c)
         out = cls(chunks, [None] * len(chunks), folder)
         out._tmp = tmp
@@ -209,8 +312,17 @@ class Viewpoints:
         c = self.chunks[i]
         path = self._folder / c.file
         try:
-            g = Gaussians.load_ply(path, max_points=max(1, c.count))
-        except (GaussianError, OSError) as e:
+            g = Gaussians.load_ply(path, max_points=max(1, c.count - c.layer_count))
+            if c.rows is not None:
+                rows = np.load(self._folder / c.rows, allow_pickle=False)
+                if rows.shape != (c.layer_count,):
+                    raise GaussianError("rows", f"{c.rows!r} holds {rows.shape} rows, scene.json says "
+                                                f"{c.layer_count}")
+                from .detail import concat_gaussians
+
+                parts = [p for p in (g, Gaussians.load_ply_take(self._folder / c.layer, rows)) if len(p)]
+                g = concat_gaussians(parts) if len(parts) > 1 else (parts or [g])[0]
+        except (GaussianError, OSError, ValueError) as e:
             raise ViewpointError("viewpoints", f"chunk {c.file!r}: {e}", f"scene {str(self._folder)!r}") from None
         if len(g) != c.count:
             raise ViewpointError("viewpoints", f"chunk {c.file!r} holds {len(g)} Gaussians, scene.json says "
@@ -229,6 +341,8 @@ class Viewpoints:
         for i, c in enumerate(self.chunks):
             if self._given[i] is None:              # on disk already: linked or copied, not read
                 link_or_copy(self._folder / c.file, folder / c.file)
+                if c.rows is not None:              # (its camera layer's file: CameraLayers.save)
+                    link_or_copy(self._folder / c.rows, folder / c.rows)
             else:
                 self._given[i].save_ply(folder / c.file)
 
@@ -258,10 +372,12 @@ class Viewpoints:
                                                           f"group, an index in 0..{ks[0]} (got {vpt!r})", where)
             if not isinstance(n, int) or isinstance(n, bool) or n < 0:
                 raise ViewpointError(f"{name}.count", f"must be an integer >= 0 (got {n!r})", where)
+            rows = _layer_rows_entry(e.get("layer_rows"), f"{name}.layer_rows", folder, where)
             have = ply_count(folder / f, f"{name}.file", ViewpointError, where)
-            if have != n:
-                raise ViewpointError(f"{name}.count", f"{str(folder / f)!r} holds {have} Gaussians, not {n}", where)
-            chunks.append(Chunk(tuple(ks), n, e.get("bbox"), f, vpt))
+            if have + rows[2] != n:
+                raise ViewpointError(f"{name}.count", f"{str(folder / f)!r} holds {have} Gaussians" +
+                                     (f" and {rows[2]} layer rows" if rows[0] else "") + f", not {n}", where)
+            chunks.append(Chunk(tuple(ks), n, e.get("bbox"), f, vpt, *rows))
         if seen != set(range(keyframes)):
             raise ViewpointError("viewpoints.chunks", f"must place each of the {keyframes} keyframes in a chunk "
                                                       f"(missing {sorted(set(range(keyframes)) - seen)})", where)
@@ -273,4 +389,33 @@ class Viewpoints:
         return out
 
 
-__all__ = ["CACHE_CHUNKS", "CHUNKS_DIR", "Chunk", "ViewpointError", "Viewpoints"]
+def _layer_rows_entry(block: Any, name: str, folder: Path, where: str) -> tuple[str | None, str | None, int]:
+    """A chunk entry's ``layer_rows`` block (None: absent) checked: (its rows file, the layer file, the row count);
+    the rows file's header read (its shape and type), the layer file's existence (each row is checked against it
+    when the chunk is read: Gaussians.load_ply_take)."""
+    if block is None:
+        return None, None, 0
+    if not isinstance(block, dict):
+        raise ViewpointError(name, "must be an object", where)
+    f, of, n = block.get("file"), block.get("of"), block.get("count")
+    for key, v, top in (("file", f, CHUNKS_DIR), ("of", of, None)):
+        if not isinstance(v, str) or (top and not v.startswith(top + "/")) or ".." in Path(v).parts \
+                or Path(v).is_absolute():
+            raise ViewpointError(f"{name}.{key}", f"must be a file in the scene folder{f' under {top}/' if top else ''}"
+                                                  f" (got {v!r:.200})", where)
+        if not (folder / v).is_file():
+            raise ViewpointError(f"{name}.{key}", f"{str(folder / v)!r} is missing", where)
+    if not isinstance(n, int) or isinstance(n, bool) or n < 0:
+        raise ViewpointError(f"{name}.count", f"must be an integer >= 0 (got {n!r})", where)
+    try:
+        rows = np.load(folder / f, mmap_mode="r", allow_pickle=False)
+    except (OSError, ValueError) as exc:
+        raise ViewpointError(f"{name}.file", f"{str(folder / f)!r}: {exc}", where) from None
+    if rows.shape != (n,) or not np.issubdtype(rows.dtype, np.integer):
+        raise ViewpointError(f"{name}.file", f"{str(folder / f)!r} holds {rows.dtype} {list(rows.shape)}, not {n} "
+                                             "integer rows", where)
+    return f, of, n
+
+
+__all__ = ["CACHE_CHUNKS", "CHUNKS_DIR", "SPATIAL_BITS", "Chunk", "LayerRows", "ViewpointError", "Viewpoints",
+           "spatial_order"]

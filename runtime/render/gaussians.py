@@ -249,6 +249,34 @@ class Gaussians:
         return cls._from_vertices(np.frombuffer(raw, dtype), where)
 
     @classmethod
+    def load_ply_take(cls, path: str | os.PathLike, rows: np.ndarray) -> Gaussians:
+        """Vertices ``rows`` ([M] integers, in that order, repeats allowed) of a binary little-endian 3DGS PLY
+        (load_ply's checks on them), read through a map of the file: a drive's viewpoint chunk is rows of its
+        keyframe's camera layers (runtime.viewpoints). GaussianError "rows" for a row outside the file."""
+        path = Path(path)
+        where = _ply_where(path)
+        n, dtype, header_len = ply_rows_layout(path)
+        rows = np.asarray(rows)
+        if rows.ndim != 1 or not (np.issubdtype(rows.dtype, np.integer) or rows.size == 0):
+            raise GaussianError("rows", f"must be a 1-D array of integers, got {rows.dtype} {list(rows.shape)}", where)
+        if rows.size and (int(rows.min()) < 0 or int(rows.max()) >= n):
+            raise GaussianError("rows", f"rows {int(rows.min())}..{int(rows.max())} outside the file's {n} vertices",
+                                where)
+        if n == 0:
+            return cls._from_vertices(np.zeros(0, dtype), where)
+        rows = rows.astype(np.intp, copy=False)
+        p = len(dtype.names or ())
+        if dtype.itemsize == 4 * p and all(dtype.fields[k][0] == np.dtype("<f4") for k in dtype.names):
+            # packed float32 records (what save_ply writes): the file read in one pass and its rows taken as a
+            # [n, P] block (3.4 M rows of a 3.7 M-row camera layer: 0.1 s; through a map of the records, 0.4-0.7)
+            block = np.fromfile(path, "<f4", count=n * p, offset=header_len)
+            if block.size != n * p:
+                raise GaussianError("body", f"truncated: {block.size // p} of {n} rows", where)
+            return cls._from_vertices(np.take(block.reshape(n, p), rows, axis=0).view(dtype).reshape(-1), where)
+        body = np.memmap(path, dtype, mode="r", offset=header_len, shape=(n,))
+        return cls._from_vertices(body[rows], where)
+
+    @classmethod
     def _from_vertices(cls, vert: np.ndarray, where: str) -> Gaussians:
         """Gaussians from a PLY's vertex records [N] (structured: the 3DGS properties by name), checked
         (GaussianError naming the property or field, at ``where``)."""

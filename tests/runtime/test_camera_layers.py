@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import shutil
 import tempfile
 
 import numpy as np
@@ -211,3 +212,87 @@ def test_a_drive_keeps_each_keyframes_camera_layers_and_a_view_at_a_camera_draws
     before = Scene.load(tmp_path / "scene")
     assert before.camera_layers is None and before.camera_layer(at, 1) is None
     assert np.isfinite(before.render(at, time_s=drive.frames[1].timestamp_s)[0]).all()
+
+
+def _same_chunk(rows: np.ndarray, whole: np.ndarray, head: int) -> None:
+    """A chunk of layer rows against the chunk written whole: its first ``head`` rows (the model's Gaussians) the
+    same, in order; the rest the same rows in another order (spatial_order), and not already in the whole's."""
+    np.testing.assert_array_equal(rows[:head], whole[:head])
+    a, b = rows[head:], whole[head:]
+    np.testing.assert_array_equal(a[np.lexsort(a.T[::-1])], b[np.lexsort(b.T[::-1])])
+    assert not np.array_equal(a, b)
+
+
+def test_a_drives_chunks_are_rows_of_its_camera_layers_the_same_gaussians_as_written_whole(
+        tmp_path, shipped, monkeypatch):
+    """A keyframe's kept cells are cells its cameras kept, so the fusion reads them from the keyframe's camera
+    layer file (not spilled again), and a chunk is written as the model's Gaussians and rows of that file
+    (runtime.viewpoints.LayerRows): the scene's shared Gaussians bit for bit those of cells spilled and read back,
+    each chunk the same Gaussians as the chunk written whole (the fusion's own cells, own_of: the model's first, in
+    the same order; the cells in spatial order), in memory and through the scene folder; every refusal of a chunk's
+    layer_rows block names its field."""
+    from xyzcyl.runtime import drive as D
+    from xyzcyl.runtime.detail import DetailOptions
+    from xyzcyl.runtime.drive import load_drive, reconstruct_drive
+    from xyzcyl.runtime.scene import Scene, SceneError
+    from xyzcyl.runtime.viewpoints import ViewpointError
+
+    E = np.array(_pose(7, 3, 20))
+    drive = load_drive(write_drive(tmp_path, [E.tolist(), (E @ np.array(_pose(3.0, 0.0))).tolist()], [0.0, 0.5]))
+    # stride 10 tiles the 800x450 images in whole blocks, so cells split into quarters (a low split threshold:
+    # many), which a layer holds after the cells that do not split
+    opts = DetailOptions(stride=10, split=0.005)
+    quartered = []
+    real = D._layer_rows
+
+    def spy(seen, d, start):
+        quartered.append(d.split is not None and bool(seen[d.split.index].any()))
+        return real(seen, d, start)
+
+    monkeypatch.setattr(D, "_layer_rows", spy)
+    scene = reconstruct_drive(shipped, drive, detail=opts)
+    assert any(quartered)
+    # no cell found in the layers (the fallback): the cells spilled and read back, the chunks written whole
+    monkeypatch.setattr(D, "_layer_rows", lambda seen, d, start: np.full(len(seen), -1, np.int64))
+    whole = reconstruct_drive(shipped, drive, detail=opts)
+    np.testing.assert_array_equal(_rows(scene.gaussians), _rows(whole.gaussians))     # the shared set, bit for bit
+    vp, wv = scene.viewpoints, whole.viewpoints
+    assert len(vp) == len(wv) == 2
+    for i in range(2):
+        c = vp.chunks[i]
+        assert c.rows is not None and c.layer == scene.camera_layers.keyframes[i].file and c.layer_count > 0
+        assert wv.chunks[i].rows is None and c.count == wv.chunks[i].count and c.bbox == wv.chunks[i].bbox
+        assert c.count > c.layer_count                   # the model's Gaussians in its PLY, then the rows
+        _same_chunk(_rows(vp.gaussians(i)), _rows(wv.gaussians(i)), c.count - c.layer_count)
+
+    scene.save(tmp_path / "scene")
+    back = Scene.load(tmp_path / "scene")
+    for i in range(2):
+        _same_chunk(_rows(back.viewpoints.gaussians(i)), _rows(wv.gaussians(i)), vp.chunks[i].count - vp.chunks[i].layer_count)
+    meta = json.loads((tmp_path / "scene" / "scene.json").read_text())
+    assert meta["viewpoints"]["chunks"][0]["layer_rows"]["file"] == vp.chunks[0].rows
+
+    def broken(edit, field, rows=None):
+        folder = tmp_path / f"broken_{len(list(tmp_path.glob('broken_*')))}"
+        shutil.copytree(tmp_path / "scene", folder)
+        m = json.loads((folder / "scene.json").read_text())
+        edit(m["viewpoints"]["chunks"][1]["layer_rows"])
+        (folder / "scene.json").write_text(json.dumps(m))
+        if rows is not None:
+            np.save(folder / vp.chunks[1].rows, rows)
+        return folder
+
+    for edit, field in [(lambda b: b.update(file="../../etc/passwd"), "layer_rows.file"),
+                        (lambda b: b.update(file="viewpoints/missing.npy"), "layer_rows.file"),
+                        (lambda b: b.update(of="/etc/passwd"), "layer_rows.of"),
+                        (lambda b: b.update(of="cameras/missing.ply"), "layer_rows.of"),
+                        (lambda b: b.update(count=-1), "layer_rows.count"),
+                        (lambda b: b.update(count=b["count"] + 1), "layer_rows.file")]:
+        with pytest.raises(SceneError) as e:
+            Scene.load(broken(edit, field))
+        assert e.value.field == f"viewpoints.chunks[1].{field}", (field, e.value)
+    # a row past the layer file's end: refused when the chunk is read, naming the chunk (a view answers it)
+    n = vp.chunks[1].layer_count
+    bad = Scene.load(broken(lambda b: None, "rows", rows=np.full(n, 10**8, np.int32)))
+    with pytest.raises(ViewpointError, match="outside the file"):
+        bad.viewpoints.gaussians(1)
