@@ -174,11 +174,13 @@ def test_keyframe_of_through_the_scene_folder_and_its_refusals(tmp_path):
 
 
 def test_a_drives_gaussians_are_kept_in_tile_order():
-    """Scene keeps a drive's Gaussians tile after tile, each tile's keyframe after keyframe, stably (runtime.tiles
-    .tile_order): a scene folder written in another order reads back so, and a view draws the same."""
+    """Scene keeps a drive's Gaussians tile after tile, each tile's keyframe after keyframe, each run in spatial order
+    (runtime.tiles.tile_order; here along x): a scene folder written in another order reads back so, and a view
+    draws the same."""
     g = random_gaussians(np.random.default_rng(5), 8, lo=(-30, -5, 0), hi=(30, 5, 2))
     g.means[:, 0] = [30.0, -10.0, 5.0, 40.0, -20.0, 10.0, 12.0, -1.0]     # tiles (x // 25): 1 -1 0 1 -1 0 0 -1
     g.means[:, 1] = 1.0
+    g.means[:, 2] = 1.0
     drive = _drive([0.0, 5.0, 10.0], [0.0, 0.5, 1.0], [0, 1, 2])
     scene = _scene(g, [2, 0, 1, 0, 2, 1, 0, 0], drive)
     order = [1, 7, 4, 6, 2, 5, 3, 0]        # tile -1: keyframes 0 0 2; tile 0: 0 1 1; tile 1: 0 2

@@ -40,7 +40,7 @@ def _cameras() -> dict[str, Camera]:
     return cams
 
 
-def test_tile_order_puts_tiles_then_keyframes_and_keeps_the_rest():
+def test_tile_order_puts_tiles_then_keyframes_then_neighbours_together():
     means = np.array([[30, 0, 0], [-1, 0, 0], [5, 60, 0], [24.9, 1, 0], [26, -3, 0], [-30, 0, 0]], np.float32)
     kf = np.array([0, 1, 0, 1, 0, 0], np.int16)
     order, cells = tile_order(means, kf)
@@ -53,10 +53,13 @@ def test_tile_order_puts_tiles_then_keyframes_and_keeps_the_rest():
     assert [(t.cell, t.start, t.count) for t in tiles] == [((-2, 0), 0, 1), ((-1, 0), 1, 1), ((0, 0), 2, 1),
                                                            ((0, 2), 3, 1), ((1, -1), 4, 1), ((1, 0), 5, 1)]
     assert tiles[2].lo == (24.899, 1.0, 0.0) and tiles[2].hi == (24.9, 1.0, 0.0)      # mm, rounded outwards
-    # within a tile, keyframe after keyframe, and each keyframe's in their order
+    # within a tile, keyframe after keyframe, and each keyframe's in spatial order (runtime.viewpoints.spatial_order:
+    # along x here, whatever their order before)
     means = np.array([[1, 1, 0], [2, 1, 0], [3, 1, 0], [4, 1, 0]], np.float32)
     order, _ = tile_order(means, np.array([1, 0, 1, 0], np.int16))
     assert order.tolist() == [1, 3, 0, 2]
+    order, _ = tile_order(means[::-1].copy(), np.array([1, 0, 1, 0], np.int16))
+    assert order.tolist() == [3, 1, 2, 0]
 
 
 @pytest.mark.parametrize("name", list(_cameras()))
