@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import FieldError
+from ..numba_cache import njit
 
 SH_C0 = 0.28209479177387814
 PLY_WRITE_ROWS = 1 << 18         # rows a PLY is written in at a time (18 MB of them at SH degree 0)
@@ -128,22 +129,26 @@ class Gaussians:
                                 sh=self.sh)
 
     def transformed(self, T: np.ndarray) -> Gaussians:
-        """The Gaussians moved by the rigid [4, 4] ``T`` (frame -> another frame, metres): means and rotations. SH
-        of degree 0 (a colour) does not turn with the Gaussian; higher degrees would (GaussianError: not
-        implemented)."""
+        """The Gaussians moved by the rigid [4, 4] ``T`` (frame -> another frame, metres): means and rotations, in
+        one numba pass (transformed_reference is its numpy definition: the same quaternions bit for bit, the means
+        within a rounding; tested). SH of degree 0 (a colour) does not turn with the Gaussian; higher degrees would
+        (GaussianError: not implemented). The other fields are shared, not copied; GaussianError naming the field
+        when a result is not finite (a T with non-finite or huge entries)."""
         if self.sh_degree > 0:
             raise GaussianError("sh", f"moving Gaussians needs SH degree 0 (got degree {self.sh_degree}): rotating "
                                       "higher SH bands is not implemented")
-        R = np.asarray(T, np.float64)[:3, :3]
-        means = (self.means.astype(np.float64) @ R.T + np.asarray(T, np.float64)[:3, 3]).astype(self.means.dtype)
         from ..rotations import rotmats_to_quats
 
-        w1, x1, y1, z1 = rotmats_to_quats(R[None])[0]
-        q = self.quats.astype(np.float64)
-        w2, x2, y2, z2 = q[:, 0], q[:, 1], q[:, 2], q[:, 3]
-        quats = np.stack([w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2, w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
-                          w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2, w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2], axis=1)
-        return Gaussians(means, quats.astype(self.quats.dtype), self.log_scales, self.opacity_logits, self.sh)
+        T = np.asarray(T, np.float64)
+        q1 = np.ascontiguousarray(rotmats_to_quats(T[None, :3, :3])[0], np.float64)
+        means, quats = np.empty_like(self.means), np.empty_like(self.quats)
+        bad_m, bad_q = _rigid_kernel(np.ascontiguousarray(self.means), np.ascontiguousarray(self.quats),
+                                     np.ascontiguousarray(T[:3, :3]), np.ascontiguousarray(T[:3, 3]), q1, means, quats)
+        for name, bad in (("means", bad_m), ("quats", bad_q)):
+            if bad:
+                raise GaussianError(name, f"{bad} non-finite values")
+        return Gaussians.joined(means=means, quats=quats, log_scales=self.log_scales,
+                                opacity_logits=self.opacity_logits, sh=self.sh)
 
     def slice(self, start: int, stop: int) -> Gaussians:
         """Gaussians start..stop - 1 as views of these arrays (no copy; Scene draws a drive's keyframes this way,
@@ -501,3 +506,45 @@ def _read_ply_header(path: Path) -> tuple[int, list[tuple[str, str]], str, int]:
     if before:
         raise GaussianError("element vertex", "must come first", where)
     return n, props, fmt, header_len
+
+
+def transformed_reference(g: Gaussians, T: np.ndarray) -> Gaussians:
+    """Gaussians.transformed in numpy: means R x + t in float64 (back to their dtype), quaternions q_R q (the
+    Hamilton product, wxyz, float64, back to their dtype); the Gaussians checked again."""
+    from ..rotations import rotmats_to_quats
+
+    R = np.asarray(T, np.float64)[:3, :3]
+    means = (g.means.astype(np.float64) @ R.T + np.asarray(T, np.float64)[:3, 3]).astype(g.means.dtype)
+    w1, x1, y1, z1 = rotmats_to_quats(R[None])[0]
+    q = g.quats.astype(np.float64)
+    w2, x2, y2, z2 = q[:, 0], q[:, 1], q[:, 2], q[:, 3]
+    quats = np.stack([w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2, w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
+                      w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2, w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2], axis=1)
+    return Gaussians(means, quats.astype(g.quats.dtype), g.log_scales, g.opacity_logits, g.sh)
+
+
+@njit(cache=True, nogil=True)
+def _rigid_kernel(means, quats, R, t, q1, out_means, out_quats):
+    """out_means = R means + t and out_quats = q1 quats (Hamilton, wxyz), row by row in float64, stored in the
+    outputs' dtype (transformed_reference's arithmetic); returns (non-finite means values, non-finite quaternion
+    values) written."""
+    bad_m = 0
+    bad_q = 0
+    w1, x1, y1, z1 = q1[0], q1[1], q1[2], q1[3]
+    for i in range(means.shape[0]):
+        m0, m1, m2 = np.float64(means[i, 0]), np.float64(means[i, 1]), np.float64(means[i, 2])
+        for a in range(3):
+            v = R[a, 0] * m0 + R[a, 1] * m1 + R[a, 2] * m2 + t[a]
+            out_means[i, a] = v
+            if not np.isfinite(out_means[i, a]):
+                bad_m += 1
+        w2, x2, y2, z2 = (np.float64(quats[i, 0]), np.float64(quats[i, 1]), np.float64(quats[i, 2]),
+                          np.float64(quats[i, 3]))
+        out_quats[i, 0] = w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2
+        out_quats[i, 1] = w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2
+        out_quats[i, 2] = w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2
+        out_quats[i, 3] = w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2
+        for a in range(4):
+            if not np.isfinite(out_quats[i, a]):
+                bad_q += 1
+    return bad_m, bad_q
