@@ -719,7 +719,7 @@ class _Kept:
     shared: list[np.ndarray] = field(default_factory=list)
     start: list[int] = field(default_factory=list)      # the id of each part's first cell as added (VoxelOwners)
     now: list[np.ndarray | None] = field(default_factory=list)      # a part's row as added -> its row now (-1: gone)
-    layer: list[np.ndarray | None] = field(default_factory=list)    # [N_i] int64: each cell's row in its keyframe's
+    layer: list[np.ndarray | None] = field(default_factory=list)    # [N_i] int32: each cell's row in its keyframe's
     #                                                                 camera layer file (a split cell's first
     #                                                                 quarter's), or None (drive._layer_rows)
     source: Callable[[int], Path] | None = None     # keyframe n -> its camera layer file: a part with layer rows is
@@ -758,7 +758,7 @@ class _Kept:
         """Keyframe n's part ``g`` (cells or model Gaussians) with its voxel levels; ``split``: (each cell's row of
         the part's split cells or -1 [N], their quarters' means and colours [S, 4, 3]) or None. Split cells are
         deduped as cells and drawn as their quarters (runtime.detail.expand_rows: shared_parts, own_of). ``layer``:
-        each cell's row in its keyframe's camera layer file ([N] int64, _layer_rows), or None."""
+        each cell's row in its keyframe's camera layer file ([N] int32, _layer_rows), or None."""
         self.start.append(self.next_id)
         self.next_id += len(g)
         self.now.append(None)
@@ -770,7 +770,7 @@ class _Kept:
         self.quarters.append(quarters)
         self.split.append(None if split is None else np.asarray(split[0], np.int32))
         self.rows.append(None)
-        self.layer.append(None if layer is None else np.asarray(layer, np.int64))
+        self.layer.append(None if layer is None else np.asarray(layer, np.int32))     # (a file's rows < 2^31)
         self.means.append(np.array(g.means, np.float32))
         self.level.append(level)
         self.frame.append(np.full(len(g), n, np.int32))
@@ -902,7 +902,7 @@ class _Kept:
 
     def own_layer_rows(self, n: int) -> tuple[np.ndarray, np.ndarray] | None:
         """own_of(n)'s Gaussians (in its order: a split cell as its four quarters) as rows of keyframe ``n``'s
-        camera layer file ([M] int64) and the centres of their cells ([M, 3] float32, metres, the scene's frame: a
+        camera layer file ([M] int32) and the centres of their cells ([M, 3] float32, metres, the scene's frame: a
         quarter's its cell's); None when one of its parts has no rows there."""
         rows, centres = [], []
         for i in self._own(n):
@@ -912,7 +912,7 @@ class _Kept:
             rows.append(r)
             centres.append(c)
         if not rows:
-            return np.zeros(0, np.int64), np.zeros((0, 3), np.float32)
+            return np.zeros(0, np.int32), np.zeros((0, 3), np.float32)
         return np.concatenate(rows), np.concatenate(centres)
 
     def _layer_take(self, i: int, m: np.ndarray, centres: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
@@ -924,7 +924,7 @@ class _Kept:
         if self.split[i] is not None:
             q = self.split[i][m] >= 0
             if q.any():
-                r = np.concatenate([r[~q], (r[q][:, None] + np.arange(4)).ravel()])
+                r = np.concatenate([r[~q], (r[q][:, None] + np.arange(4, dtype=r.dtype)).ravel()])
                 if centres:
                     c = np.concatenate([c[~q], np.repeat(c[q], 4, axis=0)])
         return r, c
