@@ -410,16 +410,26 @@ class Scene:
         else:
             key = int(self.drive["keyframes"][k])
             pose = np.asarray(self.drive["trajectory"], np.float64).reshape(-1, 4, 4)[key]
-        view = np.asarray(camera.cam_to_ego, np.float64)[:3, 2]
-        best, cos_best = None, math.cos(math.radians(EXPOSURE_CONE_DEG))
-        for cam in self.rig.cameras:
-            axis = pose[:3, :3] @ np.asarray(cam.cam_to_ego, np.float64)[:3, 2]
-            cos = float(axis @ view / max(np.linalg.norm(axis) * np.linalg.norm(view), 1e-12))
-            if cos >= cos_best and cam.name in ex["cameras"]:
-                best, cos_best = cam.name, cos
+        best = self._rig_camera_along(camera, pose, EXPOSURE_CONE_DEG, names=ex["cameras"])
         if best is None:
             return None
-        return np.asarray(ex["gains"][k][ex["cameras"].index(best)], np.float64)
+        return np.asarray(ex["gains"][k][ex["cameras"].index(self.rig.cameras[best].name)], np.float64)
+
+    def _rig_camera_along(self, camera, pose: np.ndarray, cone_deg: float, within_m: float | None = None,
+                          names: Sequence[str] | None = None) -> int | None:
+        """The index of the rig camera, its rig at ego pose ``pose`` ([4, 4], the scene's frame), whose optical axis
+        is nearest ``camera``'s, within ``cone_deg`` degrees; only cameras whose centre stood within ``within_m``
+        metres of ``camera``'s (None: any) and named in ``names`` (None: any). None when no camera is."""
+        view = np.asarray(camera.cam_to_ego, np.float64)
+        axis = view[:3, 2] / max(float(np.linalg.norm(view[:3, 2])), 1e-12)
+        best, cos_best = None, math.cos(math.radians(cone_deg))
+        for c, cam in enumerate(self.rig.cameras):
+            T = pose @ np.asarray(cam.cam_to_ego, np.float64)
+            cos = float(T[:3, 2] @ axis / max(float(np.linalg.norm(T[:3, 2])), 1e-12))
+            if (cos >= cos_best and (names is None or cam.name in names)
+                    and (within_m is None or float(np.linalg.norm(T[:3, 3] - view[:3, 3])) <= within_m)):
+                best, cos_best = c, cos
+        return best
 
     def _layers(self, camera: Camera, k: int, time_s: float | None, bg: Any, options: dict,
                 actors: Sequence[ActorEdit] = ()) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -493,14 +503,7 @@ class Scene:
             return None
         key = int(self.drive["keyframes"][k])
         pose = np.asarray(self.drive["trajectory"], np.float64).reshape(-1, 4, 4)[key]
-        view = np.asarray(camera.cam_to_ego, np.float64)
-        axis = view[:3, 2] / max(float(np.linalg.norm(view[:3, 2])), 1e-12)
-        best, cos_best = None, math.cos(math.radians(CAMERA_LAYER_DEG))
-        for c, cam in enumerate(self.rig.cameras):
-            T = pose @ np.asarray(cam.cam_to_ego, np.float64)
-            cos = float(T[:3, 2] @ axis / max(float(np.linalg.norm(T[:3, 2])), 1e-12))
-            if cos >= cos_best and float(np.linalg.norm(T[:3, 3] - view[:3, 3])) <= CAMERA_LAYER_M:
-                best, cos_best = c, cos
+        best = self._rig_camera_along(camera, pose, CAMERA_LAYER_DEG, within_m=CAMERA_LAYER_M)
         if best is None:
             return None
         g = self.camera_layers.layer(k, best)
