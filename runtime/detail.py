@@ -37,6 +37,7 @@ steps and settings; docs/results.md "Detail Gaussians" the measurements behind t
 from __future__ import annotations
 
 import math
+import threading
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, fields, replace
 
@@ -154,14 +155,48 @@ class CellGeometry:
     across: np.ndarray     # [h, w] float64: the cell's size across its ray per metre of depth (cell_footprint)
 
 
-_GEOMETRY: dict[int, tuple[Camera, CellGeometry]] = {}
+_GEOMETRY: dict[tuple, CellGeometry] = {}                     # by geometry_key, the last GEOMETRY_CACHE
+_RAYS: dict[tuple, tuple[np.ndarray, np.ndarray]] = {}       # grid_rays by geometry_key, the last RAYS_CACHE
+_CACHE_LOCK = threading.Lock()          # the cameras of a rig are made in threads (Reconstructor.camera_details)
+GEOMETRY_CACHE = 16     # grid cameras whose CellGeometry is kept: two rigs of up to 8 (~21 MB each at 960 x 540)
+RAYS_CACHE = 8          # and whose grid_rays are kept (16 MB each at 960 x 540): a rig of up to 8 cameras
+
+
+def geometry_key(grid: Camera) -> tuple:
+    """What a grid camera's cell geometry and rays depend on, by value: its model, size, K, lens and cam_to_ego (a
+    drive's keyframes make new grid cameras of the same rig: their geometry is made once, not once a keyframe)."""
+    K = b"" if grid.K is None else np.ascontiguousarray(grid.K, np.float64).tobytes()
+    return (grid.model, grid.width, grid.height, grid.distortion, K,
+            np.ascontiguousarray(grid.cam_to_ego, np.float64).tobytes())
+
+
+def _cached(table: dict, size: int, key: tuple, make: Callable[[], object]):
+    """table[key], made by ``make`` when missing (outside the lock: two threads may both make it, one is kept); the
+    oldest entries dropped beyond ``size``."""
+    with _CACHE_LOCK:
+        hit = table.get(key)
+    if hit is not None:
+        return hit
+    value = make()
+    with _CACHE_LOCK:
+        table[key] = value
+        while len(table) > size:
+            table.pop(next(iter(table)))
+    return value
+
+
+def _frozen(*arrays: np.ndarray) -> None:
+    """Mark cached arrays read-only: every caller shares them."""
+    for a in arrays:
+        a.flags.writeable = False
 
 
 def cell_geometry(grid: Camera) -> CellGeometry:
-    """The CellGeometry of a grid camera (the last 16 kept, keyed by the camera object)."""
-    hit = _GEOMETRY.get(id(grid))
-    if hit is not None and hit[0] is grid:
-        return hit[1]
+    """The CellGeometry of a grid camera (cached by its values: geometry_key)."""
+    return _cached(_GEOMETRY, GEOMETRY_CACHE, geometry_key(grid), lambda: _make_geometry(grid))
+
+
+def _make_geometry(grid: Camera) -> CellGeometry:
     h, w = grid.height, grid.width
     fx, fy = grid.paraxial_focal
     f = 0.5 * (fx + fy)
@@ -183,11 +218,8 @@ def cell_geometry(grid: Camera) -> CellGeometry:
         scale = f * across
         R = np.einsum("ij,hwjk->hwik", grid.rotation, _facing(rays / length[..., None]))
         quats = rotmats_to_quats(R.reshape(-1, 3, 3)).reshape(h, w, 4)
-    geo = CellGeometry(rays, has, f, scale, quats, across)
-    _GEOMETRY[id(grid)] = (grid, geo)
-    while len(_GEOMETRY) > 16:
-        _GEOMETRY.pop(next(iter(_GEOMETRY)))
-    return geo
+    _frozen(rays, has, scale, quats, across)
+    return CellGeometry(rays, has, f, scale, quats, across)
 
 
 def _cell_angles(grid: Camera) -> np.ndarray:
@@ -393,18 +425,24 @@ def model_ground(coarse: Gaussians, min_opacity: float = 0.5) -> np.ndarray | No
 def grid_rays(grid: Camera) -> tuple[np.ndarray, np.ndarray]:
     """(unit directions [h, w, 3] float64, ego frame, of the cells' rays; cos [h, w]: the factor that turns a
     distance along the ray into the camera's depth: the cosine with the optical axis (camera z), 1 for a camera
-    whose depth is the distance). NaN where a lens cell has no ray."""
+    whose depth is the distance). NaN where a lens cell has no ray. Cached by the camera's values (read-only)."""
+    return _cached(_RAYS, RAYS_CACHE, geometry_key(grid), lambda: _make_rays(grid))
+
+
+def _make_rays(grid: Camera) -> tuple[np.ndarray, np.ndarray]:
     if not grid.is_ideal:
         rays = cell_geometry(grid).rays
         n = np.linalg.norm(rays, axis=-1)
-        return (rays / n[..., None]) @ grid.rotation.T, 1.0 / n
-    K = grid.K
-    x = (np.arange(grid.width) - K[0, 2]) / K[0, 0]
-    y = (np.arange(grid.height) - K[1, 2]) / K[1, 1]
-    q = np.empty((grid.height, grid.width, 3))
-    q[..., 0], q[..., 1], q[..., 2] = x[None, :], y[:, None], 1.0
-    n = np.sqrt(x[None, :] ** 2 + y[:, None] ** 2 + 1.0)
-    return (q / n[..., None]) @ grid.rotation.T, 1.0 / n
+    else:
+        K = grid.K
+        x = (np.arange(grid.width) - K[0, 2]) / K[0, 0]
+        y = (np.arange(grid.height) - K[1, 2]) / K[1, 1]
+        rays = np.empty((grid.height, grid.width, 3))
+        rays[..., 0], rays[..., 1], rays[..., 2] = x[None, :], y[:, None], 1.0
+        n = np.sqrt(x[None, :] ** 2 + y[:, None] ** 2 + 1.0)
+    d, cos = (rays / n[..., None]) @ grid.rotation.T, 1.0 / n
+    _frozen(d, cos)
+    return d, cos
 
 
 def sphere_depth(grid: Camera, radius: float, rays: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:

@@ -194,3 +194,34 @@ def test_camera_detail_on_a_fisheye_camera():
     dist = np.linalg.norm(g.means - cam.position, axis=1)
     assert np.median(np.abs(dist - 12.0)) < 0.3
     assert (((g.means - cam.position) @ cam.rotation)[:, 2] < -1.0).any()
+
+
+def test_cell_geometry_and_rays_are_cached_by_the_cameras_values():
+    """A drive's keyframes make new grid cameras of the same rig: equal values share one CellGeometry and one
+    grid_rays (read-only arrays); a camera that differs in its pose, K or lens gets its own, equal to a fresh one."""
+    from xyzcyl.runtime.detail import _make_geometry, grid_rays
+
+    cam = lens_rig(FISHEYE).cameras[1]
+    twin = cam.replace(name="other")                         # the same values in a new object
+    assert cell_geometry(cam) is cell_geometry(twin)
+    assert grid_rays(cam)[0] is grid_rays(twin)[0]
+    geo = cell_geometry(cam)
+    for a in (geo.rays, geo.scale, geo.across, geo.has_ray, *grid_rays(cam)):
+        assert not a.flags.writeable
+    T = np.array(cam.cam_to_ego)
+    T[:3, 3] += [0.5, 0.0, 0.0]
+    K = np.array(cam.K)
+    K[0, 0] *= 1.1
+    for other in (cam.replace(cam_to_ego=T), cam.replace(K=K), cam.replace(distortion=FTHETA),
+                  cam.replace(distortion=None)):
+        g = cell_geometry(other)
+        assert g is not geo
+        d, cos = grid_rays(other)
+        assert d is not grid_rays(cam)[0]
+    R = np.array(cam.cam_to_ego)
+    R[:3, :3] = quat_to_rotmat(np.array([0.9, 0.1, -0.2, 0.3])) @ R[:3, :3]
+    turned = cam.replace(cam_to_ego=R)
+    assert not np.allclose(grid_rays(turned)[0], grid_rays(cam)[0], equal_nan=True)    # ego-frame rays turn
+    np.testing.assert_array_equal(cell_geometry(turned).rays, geo.rays)      # camera-frame rays do not
+    fresh = _make_geometry(turned)
+    np.testing.assert_array_equal(cell_geometry(turned).quats, fresh.quats)
