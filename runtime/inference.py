@@ -41,6 +41,7 @@ from .model_folder import (  # re-exported: part of runtime.inference's API befo
     read_model_info,
     verify_model,
 )
+from .numba_cache import threadsafe
 from .render import FIELDS, Gaussians
 from .rig import Rig
 from .scene import Background, Scene, bake_grid
@@ -51,6 +52,7 @@ GAUSSIAN_KEYS = FIELDS
 PRUNE_OPACITY = 0.99 / 255.0
 DEFAULT_BAKE_SCALE = 4
 DEFAULT_DETAIL = DetailOptions()   # the detail layer is on by default (docs/inference.md, "Detail Gaussians")
+DETAIL_THREADS = 2                 # cameras whose detail layer is made at once (Reconstructor.camera_details)
 
 
 class InferenceError(FieldError):
@@ -293,7 +295,7 @@ class Reconstructor:
         exposure and white balance (runtime.exposure, as a drive's keyframe: each camera's detail cells divided by its
         gain, a view near an input camera drawn with its gain back; with the detail layer and two cameras or more).
         Errors name the camera (RigError) or the model file (ModelError)."""
-        kf = self.keyframe(rig, images, depths, progress, lidar, detail)
+        kf = self.keyframe(rig, images, depths, progress, lidar, detail, detail_threads=DETAIL_THREADS)
         gauss, own_views, gains = kf.coarse, None, None
         if kf.details:
             t0 = time.perf_counter()
@@ -325,13 +327,16 @@ class Reconstructor:
                  depths: Sequence[np.ndarray | None] | None = None,
                  progress: Callable[[str], None] | None = None,
                  lidar: np.ndarray | None = None, detail: DetailOptions | None = DEFAULT_DETAIL,
-                 ego_masks: Mapping[str, np.ndarray] | None = None, lidar_is_sweep: bool = True) -> Keyframe:
+                 ego_masks: Mapping[str, np.ndarray] | None = None, lidar_is_sweep: bool = True,
+                 detail_threads: int = 1) -> Keyframe:
         """One timestamp of ``rig`` up to, not including, the fusion of its cameras' detail layers (reconstruct's
         arguments): the model's Gaussians, each pinhole camera's detail Gaussians and cell maps, the background.
         reconstruct fuses one; runtime.drive fuses the keyframes of a drive. ego_masks: camera name -> [H, W] bool
         (True: the ego's own body, no cells there) for cameras whose rig gives no ego_mask file (runtime.egobody
         finds them over a drive). lidar_is_sweep=False: ``lidar`` holds sparse points triangulated between frames
-        (runtime.stereo), not a sweep: the detail layer keeps the model's ground plane and trust (camera_details)."""
+        (runtime.stereo), not a sweep: the detail layer keeps the model's ground plane and trust (camera_details).
+        detail_threads: cameras whose detail is made at once (camera_details; a drive makes its next keyframe while
+        it fuses this one and keeps 1)."""
         say = progress or (lambda msg: None)
         t: dict[str, float] = {}
         t_all = time.perf_counter()
@@ -370,7 +375,7 @@ class Reconstructor:
         if detail is not None:
             say(f"detail Gaussians (stride {detail.stride})")
             parts, details, owners = timed("detail", self.camera_details, rig, images, gauss, lidar, detail, counts,
-                                           ego_masks, lidar_is_sweep)
+                                           ego_masks, lidar_is_sweep, detail_threads)
 
         background = None
         app_plane = enc.get("app_plane")
@@ -417,8 +422,8 @@ class Reconstructor:
 
     def camera_details(self, rig: Rig, images: Sequence[np.ndarray], coarse: Gaussians, lidar: np.ndarray | None,
                        opts: DetailOptions, counts: dict[str, int],
-                       ego_masks: Mapping[str, np.ndarray] | None = None, lidar_is_sweep: bool = True
-                       ) -> tuple[list[Gaussians], list, list[int]]:
+                       ego_masks: Mapping[str, np.ndarray] | None = None, lidar_is_sweep: bool = True,
+                       threads: int = 1) -> tuple[list[Gaussians], list, list[int]]:
         """Each pinhole camera's detail layer (any lens: on its cells' true rays), not fused: (its Gaussians, its
         runtime.detail.CameraDetail, its index in the rig) per camera. images: the full-resolution inputs in rig
         order; coarse: the model's Gaussians; lidar [P, 3] metres, ego frame, or None. Adds to ``counts``:
@@ -427,7 +432,11 @@ class Reconstructor:
         depth edges). runtime.detail.fuse_details fuses them with ``coarse`` (reconstruct). ego_masks: keyframe's;
         a camera's own ego_mask file wins. lidar_is_sweep=False (``lidar`` is a few hundred stereo points, on walls
         and cars rather than the road: no plane fits them): the ground plane and its trust are the model's, as
-        camera only, and the points place only the cells near them (runtime.detail.camera_detail's ``sweep``)."""
+        camera only, and the points place only the cells near them (runtime.detail.camera_detail's ``sweep``).
+        threads > 1: that many cameras at a time (where numba's threading layer is thread-safe): a camera's detail
+        is numba kernels (parallel, the GIL released) between numpy and OpenCV steps on one core, which a second
+        camera fills (one PandaSet frame with LiDAR, warm: 2.48 -> 2.08 s; its peak memory holds two cameras'
+        full-resolution work, ~0.5 GB more)."""
         from .detail import (
             camera_detail,
             depth_samples,
@@ -452,14 +461,24 @@ class Reconstructor:
             samples = {c.name: depth_samples(grid_camera(c, opts.stride), coarse, lidar, opts)
                        for c in rig.cameras if c.model == "pinhole"}
             rig_scale = rig_depth_scale(list(samples.values()))
-        for img, cam in zip(images, rig.cameras):
-            if cam.model != "pinhole":
-                continue
+
+        def one(img, cam):
+            """A camera's detail: (the camera, camera_detail's Gaussians, CameraDetail, counts)."""
             mask_file = cam.extra.get("ego_mask")
             mask = read_ego_mask(rig.path(mask_file), cam) if mask_file is not None else \
                 (ego_masks or {}).get(cam.name)
-            g, d, n = camera_detail(cam, as_rgb(img, cam), coarse, opts, lidar, mask, plane,
-                                    sweep=swept, depth_scale=rig_scale, samples=samples.get(cam.name))
+            return cam, camera_detail(cam, as_rgb(img, cam), coarse, opts, lidar, mask, plane,
+                                      sweep=swept, depth_scale=rig_scale, samples=samples.get(cam.name))
+
+        todo = [(img, cam) for img, cam in zip(images, rig.cameras) if cam.model == "pinhole"]
+        if threads > 1 and len(todo) > 1 and threadsafe():
+            from concurrent.futures import ThreadPoolExecutor
+
+            with ThreadPoolExecutor(threads, thread_name_prefix="xyzcyl-detail") as pool:
+                done = list(pool.map(lambda a: one(*a), todo))
+        else:
+            done = [one(*a) for a in todo]
+        for cam, (g, d, n) in done:
             parts.append(g)
             details.append(d)
             owners.append(rig.names.index(cam.name))
