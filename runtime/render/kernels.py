@@ -266,11 +266,14 @@ def _chunk_functions(model: int):
         Rw, tw, lp, fx, fy, cx, cy, lxn, lxp, lyn, lyp, width, height, near, far, low_pass = cam
         i0 = ch * PROJ_CHUNK
         i1 = min(means.shape[0], i0 + PROJ_CHUNK)
-        if planes.shape[0] and _chunk_outside(means, log_scales, planes, i0, i1):
-            return 0
-        if model == 0 and sat.shape[0] and _chunk_closed(means, log_scales, i0, i1, Rw, tw, fx, fy, cx, cy, lxn,
-                                                         lxp, lyn, lyp, width, height, near, low_pass, sat):
-            return 0
+        closing = model == 0 and sat.shape[0] > 0
+        if planes.shape[0] or closing:          # the chunk's box, read once for both tests
+            box = _chunk_box(means, log_scales, i0, i1)
+            if planes.shape[0] and _box_outside(box, planes):
+                return 0
+            if closing and _box_closed(box, Rw, tw, fx, fy, cx, cy, lxn, lxp, lyn, lyp, width, height, near,
+                                       low_pass, sat):
+                return 0
         c = 0
         for i in range(i0, i1):
             keep, _, _, _ = _precull(means, log_scales, i, Rw, tw, model, lp, fx, fy, cx, cy, lxn, lxp, lyn, lyp,
@@ -578,22 +581,22 @@ def _write_mean(rows, s, u, v):
 @njit(inline="always")
 def _chunk_box(means, log_scales, i0, i1):
     """(lo0, hi0, lo1, hi1, lo2, hi2, largest log scale) of means[i0:i1] (float64; i1 > i0)."""
-    lo0 = hi0 = np.float64(means[i0, 0])
-    lo1 = hi1 = np.float64(means[i0, 1])
-    lo2 = hi2 = np.float64(means[i0, 2])
-    ls = np.float64(log_scales[i0, 0])
+    # compared in the arrays' own dtype (a float32 scene: half the width; float64 of the extremes is the same)
+    lo0 = hi0 = means[i0, 0]
+    lo1 = hi1 = means[i0, 1]
+    lo2 = hi2 = means[i0, 2]
+    ls = log_scales[i0, 0]
     for i in range(i0, i1):
-        m0 = np.float64(means[i, 0])
-        m1 = np.float64(means[i, 1])
-        m2 = np.float64(means[i, 2])
+        m0, m1, m2 = means[i, 0], means[i, 1], means[i, 2]
         lo0 = min(lo0, m0)
         hi0 = max(hi0, m0)
         lo1 = min(lo1, m1)
         hi1 = max(hi1, m1)
         lo2 = min(lo2, m2)
         hi2 = max(hi2, m2)
-        ls = max(ls, np.float64(log_scales[i, 0]), np.float64(log_scales[i, 1]), np.float64(log_scales[i, 2]))
-    return lo0, hi0, lo1, hi1, lo2, hi2, ls
+        ls = max(ls, max(log_scales[i, 0], max(log_scales[i, 1], log_scales[i, 2])))
+    return (np.float64(lo0), np.float64(hi0), np.float64(lo1), np.float64(hi1), np.float64(lo2), np.float64(hi2),
+            np.float64(ls))
 
 
 @njit(cache=True, nogil=True)
@@ -601,7 +604,13 @@ def _chunk_outside(means, log_scales, planes, i0, i1):
     """True when the axis-aligned box of means[i0:i1] (world frame, float64) lies wholly on the outer side of
     one of planes [k, 5] float64 (a0, a1, a2, offset, kscale; see chunk_planes): max over the box of a.x + offset
     < -kscale * exp(max log scale of the chunk)."""
-    lo0, hi0, lo1, hi1, lo2, hi2, ls = _chunk_box(means, log_scales, i0, i1)
+    return _box_outside(_chunk_box(means, log_scales, i0, i1), planes)
+
+
+@njit(cache=True, nogil=True)
+def _box_outside(box, planes):
+    """_chunk_outside's test on the chunk's box (_chunk_box's tuple)."""
+    lo0, hi0, lo1, hi1, lo2, hi2, ls = box
     smax = math.exp(ls)
     c0, c1, c2 = 0.5 * (lo0 + hi0), 0.5 * (lo1 + hi1), 0.5 * (lo2 + hi2)
     h0, h1, h2 = 0.5 * (hi0 - lo0), 0.5 * (hi1 - lo1), 0.5 * (hi2 - lo2)
@@ -624,7 +633,14 @@ def _chunk_closed(means, log_scales, i0, i1, Rw, tw, fx, fy, cx, cy, lxn, lxp, l
     box's nearest depth, plus the low-pass), touch no tile counted in ``sat`` (summed-area table of the open
     tiles, see open_slots). A chunk of a later layer that falls wholly on tiles the layers before covered is then
     skipped without testing its Gaussians one by one."""
-    lo0, hi0, lo1, hi1, lo2, hi2, ls = _chunk_box(means, log_scales, i0, i1)
+    return _box_closed(_chunk_box(means, log_scales, i0, i1), Rw, tw, fx, fy, cx, cy, lxn, lxp, lyn, lyp, width,
+                       height, near, low_pass, sat)
+
+
+@njit(cache=True, nogil=True)
+def _box_closed(box, Rw, tw, fx, fy, cx, cy, lxn, lxp, lyn, lyp, width, height, near, low_pass, sat):
+    """_chunk_closed's test on the chunk's box (_chunk_box's tuple)."""
+    lo0, hi0, lo1, hi1, lo2, hi2, ls = box
     umin = vmin = np.inf
     umax = vmax = -np.inf
     zmin = np.inf
