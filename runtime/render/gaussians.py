@@ -279,15 +279,15 @@ class Gaussians:
             block = np.fromfile(path, "<f4", count=n * p, offset=header_len)
             if block.size != n * p:
                 raise GaussianError("body", f"truncated: {block.size // p} of {n} rows", where)
-            return cls._from_vertices(np.take(block.reshape(n, p), rows, axis=0).view(dtype).reshape(-1), where)
+            return cls._from_vertices(block.view(dtype).reshape(-1), where, rows)
         body = np.memmap(path, dtype, mode="r", offset=header_len, shape=(n,))
         return cls._from_vertices(body[rows], where)
 
     @classmethod
-    def _from_vertices(cls, vert: np.ndarray, where: str) -> Gaussians:
+    def _from_vertices(cls, vert: np.ndarray, where: str, rows: np.ndarray | None = None) -> Gaussians:
         """Gaussians from a PLY's vertex records [N] (structured: the 3DGS properties by name), checked
-        (GaussianError naming the property or field, at ``where``)."""
-        n = len(vert)
+        (GaussianError naming the property or field, at ``where``); ``rows`` ([M] in 0..N-1, checked by the caller):
+        those records, in that order (None: all)."""
         names = set(vert.dtype.names or ())
         required = ["x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity",
                     "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
@@ -304,22 +304,20 @@ class Gaussians:
 
         fields = vert.dtype.fields or {}
         order = list(vert.dtype.names or ())
-        # every property a little-endian float32 packed one after the other (as save_ply writes them): the records
-        # are one [N, P] float32 block, and a run of columns is one strided copy (a field-by-field stack took 41 of
-        # the 113 ms of 0.7 M rows of a drive's camera layer)
-        block = None
+        k = (degree + 1) ** 2
         if (vert.flags.c_contiguous and vert.dtype.itemsize == 4 * len(order)
                 and all(fields[p][0] == np.dtype("<f4") and fields[p][1] == 4 * i for i, p in enumerate(order))):
-            block = vert.view("<f4").reshape(n, len(order))
+            # packed float32 records (what save_ply writes; plyfile's too): one pass that takes the rows, splits
+            # them into the fields and counts what the checks count (numpy: a strided copy a column group, a take,
+            # the checks twice: 0.9 s of a 3 M-row drive chunk)
+            return _unpacked(vert.view("<f4").reshape(len(vert), len(order)), order, k, rows, where)
+        if rows is not None:
+            vert = vert[rows]
+        n = len(vert)
 
         def col(*ps):
-            if block is not None:
-                at = [order.index(p) for p in ps]
-                if at == list(range(at[0], at[0] + len(at))):
-                    return np.array(block[:, at[0]:at[0] + len(at)])
             return np.stack([np.asarray(vert[p], dtype=np.float32) for p in ps], axis=1)
 
-        k = (degree + 1) ** 2
         sh = np.empty((n, k, 3), np.float32)
         sh[:, 0, :] = col("f_dc_0", "f_dc_1", "f_dc_2")
         if k > 1:
@@ -328,9 +326,8 @@ class Gaussians:
         arrays = dict(means=col("x", "y", "z"), quats=col("rot_0", "rot_1", "rot_2", "rot_3"),
                       log_scales=col("scale_0", "scale_1", "scale_2"),
                       # a copy: the PLY's column is a strided view (one record apart), which every render
-                      # gathered again (~20 ms a drive view); always a copy, as the other fields are: a run of one
-                      # row read with load_ply_rows is already contiguous, and its read-only buffer made numba
-                      # compile the projection again for read-only opacities (6 s, mid-service)
+                      # gathered again (~20 ms a drive view); a read-only buffer made numba compile the projection
+                      # again for read-only opacities (6 s, mid-service)
                       opacity_logits=np.array(vert["opacity"], dtype=np.float32), sh=sh)
         for name, arr in arrays.items():
             bad = int(np.count_nonzero(~np.isfinite(arr)))
@@ -508,6 +505,75 @@ def _read_ply_header(path: Path) -> tuple[int, list[tuple[str, str]], str, int]:
     if before:
         raise GaussianError("element vertex", "must come first", where)
     return n, props, fmt, header_len
+
+
+def ply_columns(order: Sequence[str], k: int) -> np.ndarray:
+    """[11 + 3 k] int64: the column of a PLY record (its properties ``order``) that each value of a Gaussian comes
+    from, in _unpack_kernel's order: x y z, rot_0..3, scale_0..2, opacity, then SH coefficient j's channels c
+    (f_dc_c for j = 0; f_rest_{c (k - 1) + j - 1}, channel-major, above)."""
+    names = ["x", "y", "z", "rot_0", "rot_1", "rot_2", "rot_3", "scale_0", "scale_1", "scale_2", "opacity"]
+    names += [f"f_dc_{c}" if j == 0 else f"f_rest_{c * (k - 1) + j - 1}" for j in range(k) for c in range(3)]
+    at = {p: i for i, p in enumerate(order)}
+    return np.array([at[p] for p in names], np.int64)
+
+
+def _unpacked(block: np.ndarray, order: Sequence[str], k: int, rows: np.ndarray | None, where: str) -> Gaussians:
+    """Gaussians of a PLY's packed float32 records ``block`` [N, P] (properties ``order``; rows ``rows`` or all),
+    k SH coefficients, by _unpack_kernel; GaussianError naming the field that holds non-finite values (their
+    count) or zero quaternions, as the Gaussians' own checks do."""
+    m = len(block) if rows is None else len(rows)
+    take = np.zeros(0, np.int64) if rows is None else np.asarray(rows, np.int64)
+    out = dict(means=np.empty((m, 3), np.float32), quats=np.empty((m, 4), np.float32),
+               log_scales=np.empty((m, 3), np.float32), opacity_logits=np.empty(m, np.float32),
+               sh=np.empty((m, k, 3), np.float32))
+    bad = _unpack_kernel(block, take, rows is not None, ply_columns(order, k), out["means"], out["quats"],
+                         out["log_scales"], out["opacity_logits"], out["sh"].reshape(m, 3 * k))
+    for name, count in zip(FIELDS, bad[:5]):
+        if count:
+            raise GaussianError(name, f"{int(count)} non-finite values", where)
+    if bad[5]:
+        raise GaussianError("quats", f"{int(bad[5])} quaternions with zero norm", where)
+    return Gaussians.joined(**out)
+
+
+@njit(cache=True, parallel=True, nogil=True)
+def _unpack_kernel(block, take, taking, cols, means, quats, scales, opacity, sh):
+    """Row i of the outputs from record take[i] of block [N, P] float32 (``taking``; else record i), each value
+    from its column in ``cols`` (ply_columns); returns [6] int64: the non-finite values written to means, quats,
+    log scales, opacities, SH, and the quaternions whose float64 squared norm is below 1e-20 (the Gaussians'
+    checks)."""
+    m = means.shape[0]
+    nsh = sh.shape[1]
+    b_m = b_q = b_s = b_o = b_sh = b_z = 0
+    for i in prange(m):
+        r = np.int64(i)
+        if taking:
+            r = take[i]
+        for c in range(3):
+            v = block[r, cols[c]]
+            means[i, c] = v
+            b_m += not np.isfinite(v)
+        qq = 0.0
+        for c in range(4):
+            v = block[r, cols[3 + c]]
+            quats[i, c] = v
+            b_q += not np.isfinite(v)
+            qq += np.float64(v) * np.float64(v)
+        b_z += qq < 1e-20
+        for c in range(3):
+            v = block[r, cols[7 + c]]
+            scales[i, c] = v
+            b_s += not np.isfinite(v)
+        v = block[r, cols[10]]
+        opacity[i] = v
+        b_o += not np.isfinite(v)
+        for c in range(nsh):
+            v = block[r, cols[11 + c]]
+            sh[i, c] = v
+            b_sh += not np.isfinite(v)
+    out = np.empty(6, np.int64)
+    out[0], out[1], out[2], out[3], out[4], out[5] = b_m, b_q, b_s, b_o, b_sh, b_z
+    return out
 
 
 TAKE_ROWS_MIN = 1 << 15     # rows taken below which numpy's indexing is as fast as take_rows' kernel (its launch)
