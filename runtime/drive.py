@@ -60,6 +60,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
+import numba
 import numpy as np
 from xyzcyl.common.wire import is_drive_file
 
@@ -478,16 +479,51 @@ def _owners_up(owners: tuple, points: np.ndarray, level: np.ndarray, frame: np.n
     if L:
         oc = np.floor_divide(oc, 2)
     size = VOXEL_BASE_M * 2.0 ** L
-    cc = np.floor(np.asarray(points, np.float64) / size).astype(np.int64)
-    coords = np.concatenate([oc, cc])
+    n_o, n = len(oc), len(points)
+    coords = np.empty((n_o + n, 3), np.int64)
+    coords[:n_o] = oc
+    dists = np.empty(n_o + n, np.float64)
+    dists[:n_o] = odist
+    keys = np.empty(n_o + n, np.int64)
+    keys[:n_o] = _pack(oc)
+    # this level's cells: voxel, packed key and distance in one pass (_cell_voxels; the numpy of _pack and
+    # _voxel_distance_reference, the same bits)
+    _cell_voxels(np.ascontiguousarray(points), size, np.ascontiguousarray(frame, np.int64),
+                 _NO_ORIGINS if origins is None else np.ascontiguousarray(origins, np.float64), origins is not None,
+                 coords[n_o:], keys[n_o:], dists[n_o:])
     levs = np.concatenate([olev, level])
-    dists = np.concatenate([odist, _voxel_distance(cc, size, frame, origins)])
     frames = np.concatenate([oframe, frame])
-    keys = _pack(coords)
     order = np.argsort(keys, kind="stable")
     k_sorted = keys[order]
     win = _best_of_runs(order, k_sorted, levs, dists, frames)
     return (coords[win], levs[win], dists[win], frames[win]), keys[win], keys[len(oc):]
+
+
+_NO_ORIGINS = np.zeros((0, 3), np.float64)
+
+
+@njit(cache=True, parallel=True, nogil=True)
+def _cell_voxels(points, size, frame, origins, with_origins, coords, keys, dists):
+    """For each point [N, 3] (metres): its voxel coords = floor(point / size) (float64), its _pack key and its
+    distance to its keyframe's origin (frame [N], origins [K, 3]; _voxel_distance_reference; 0 without origins),
+    written to coords [N, 3], keys [N], dists [N] (the numpy's operations
+    and order: the same bits)."""
+    lim = (1 << 21) - 1
+    for i in numba.prange(points.shape[0]):
+        key = 0
+        for a in range(3):
+            c = np.int64(math.floor(np.float64(points[i, a]) / size))
+            coords[i, a] = c
+            key = (key << 21) | min(max(c + (1 << 20), 0), lim)
+        keys[i] = key
+        if with_origins:
+            o = frame[i]
+            dx = (np.float64(coords[i, 0]) + 0.5) * size - origins[o, 0]
+            dy = (np.float64(coords[i, 1]) + 0.5) * size - origins[o, 1]
+            dz = (np.float64(coords[i, 2]) + 0.5) * size - origins[o, 2]
+            dists[i] = math.sqrt(dx * dx + dy * dy + dz * dz)
+        else:
+            dists[i] = 0.0
 
 
 @njit(cache=True, nogil=True)
@@ -544,8 +580,11 @@ class VoxelOwners:
             return keep, np.zeros(0, np.int64)
         f = np.full(len(level), int(frame), np.int64)
         owners = _NO_OWNERS                         # this keyframe's own owners so far (as dedupe_frames)
+        # the cells level by level, each level's in index order (a stable sort of the levels, 0..11: a radix sort)
+        by_level = np.argsort(level.astype(np.uint8), kind="stable")
+        starts = np.searchsorted(level[by_level], np.arange(VOXEL_LEVELS + 1))
         for L in range(VOXEL_LEVELS):
-            here = np.flatnonzero(level == L)
+            here = by_level[starts[L]:starts[L + 1]]
             owners, nk, mine = _owners_up(owners, points[here], level[here], f[here], L, self.origins)
             if not len(nk):
                 continue
@@ -601,34 +640,12 @@ def _ranges(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
     return starts + np.arange(int(n.sum()))
 
 
-def _voxel_distance(coords: np.ndarray, size: float, frame: np.ndarray, origins: np.ndarray | None) -> np.ndarray:
-    """[N] metres from the centres of voxels ``coords`` [N, 3] (integer, of edge ``size`` metres) to the origins of
-    keyframes ``frame`` [N] (0 without origins). Cells of one viewpoint group in one voxel get the same value
-    exactly (the same centre, the same origin): their tie goes to the earliest keyframe. One numba pass
-    (_voxel_distance_kernel; the numpy reference _voxel_distance_reference gives the same bits)."""
-    if origins is None:
-        return np.zeros(len(coords), np.float64)
-    out = np.empty(len(coords), np.float64)
-    _voxel_distance_kernel(np.ascontiguousarray(coords, np.int64), float(size), np.ascontiguousarray(frame, np.int64),
-                           np.ascontiguousarray(origins, np.float64), out)
-    return out
-
-
-@njit(cache=True, nogil=True)
-def _voxel_distance_kernel(coords, size, frame, origins, out):
-    """out[i] = |(coords[i] + 0.5) size - origins[frame[i]]|, the reference's operations in its order (no fused
-    multiply-add: numba contracts nothing without fastmath)."""
-    for i in range(coords.shape[0]):
-        o = frame[i]
-        dx = (np.float64(coords[i, 0]) + 0.5) * size - origins[o, 0]
-        dy = (np.float64(coords[i, 1]) + 0.5) * size - origins[o, 1]
-        dz = (np.float64(coords[i, 2]) + 0.5) * size - origins[o, 2]
-        out[i] = math.sqrt(dx * dx + dy * dy + dz * dz)
-
-
 def _voxel_distance_reference(coords: np.ndarray, size: float, frame: np.ndarray,
                               origins: np.ndarray | None) -> np.ndarray:
-    """_voxel_distance in numpy (for the tests)."""
+    """[N] metres from the centres of voxels ``coords`` [N, 3] (integer, of edge ``size`` metres) to the origins of
+    keyframes ``frame`` [N] (0 without origins): what _cell_voxels computes (its test). Cells of one viewpoint group
+    in one voxel get the same value exactly (the same centre, the same origin): their tie goes to the earliest
+    keyframe."""
     if origins is None:
         return np.zeros(len(coords), np.float64)
     centre = (coords.astype(np.float64) + 0.5) * size

@@ -153,19 +153,26 @@ def test_dedupe_frames_matches_its_reference_and_does_not_depend_on_the_order(wi
     assert dedupe_frames(two, np.array([2, 2]), np.array([1, 0])).tolist() == [False, True]
 
 
-def test_voxel_distance_kernel_gives_the_reference_bits():
-    """The dedupe's voxel-to-viewpoint distance in numba equals its numpy reference exactly: the ties between the
-    keyframes of one viewpoint group (the earliest keeps the voxel) rest on equal values."""
-    from xyzcyl.runtime.drive import _voxel_distance, _voxel_distance_reference
+def test_cell_voxels_kernel_gives_the_reference_bits():
+    """The dedupe's voxel of each cell (floor of point / size), its packed key and its voxel-to-viewpoint distance in
+    one numba pass equal their numpy references exactly: the ties between the keyframes of one viewpoint group (the
+    earliest keeps the voxel) rest on equal values; points beyond the packed range clamp as _pack does."""
+    from xyzcyl.runtime.drive import _NO_ORIGINS, _cell_voxels, _pack, _voxel_distance_reference
 
     rng = np.random.default_rng(11)
-    coords = rng.integers(-200000, 200000, (5000, 3))
+    points = rng.normal(scale=400.0, size=(5000, 3)).astype(np.float32)
+    points[:3] = [[1e5, -1e5, 0.0], [-0.0, 0.02, -0.02], [0.019999, 40.96, -40.96]]   # clamped; on voxel edges
     origins = rng.normal(scale=300.0, size=(7, 3))
     frame = rng.integers(0, 7, 5000)
     for size in (0.02, 0.02 * 2 ** 7, 40.96):
-        got = _voxel_distance(coords, size, frame, origins)
-        np.testing.assert_array_equal(got, _voxel_distance_reference(coords, size, frame, origins))
-    assert not _voxel_distance(coords, 0.02, frame, None).any()
+        coords, keys, dists = np.empty((5000, 3), np.int64), np.empty(5000, np.int64), np.empty(5000)
+        _cell_voxels(points, size, frame, origins, True, coords, keys, dists)
+        want = np.floor(points.astype(np.float64) / size).astype(np.int64)
+        np.testing.assert_array_equal(coords, want)
+        np.testing.assert_array_equal(keys, _pack(want))
+        np.testing.assert_array_equal(dists, _voxel_distance_reference(want, size, frame, origins))
+        _cell_voxels(points, size, frame, _NO_ORIGINS, False, coords, keys, dists)
+        assert not dists.any()
 
 
 @pytest.mark.parametrize("seed", range(6))
