@@ -134,12 +134,20 @@ def warm_render(folder: str | Path, models: str = "all") -> float:
     """Save the tiny scene into ``folder`` / "scene", load it back (Scene.load, as the server's scene cache does)
     and render and encode every view_requests(scene, models) view with runtime.views.render_request. Returns the
     seconds. A failing render raises (the caller must not report ready over a renderer that fails)."""
+    from .render import Gaussians
+    from .render.gaussians import TAKE_ROWS_MIN, take_rows
     from .scene import Scene
     from .views import render_request
 
     t0 = time.perf_counter()
     path = tiny_scene().save(Path(folder) / "scene")
     scene = Scene.load(path)
+    # a drive scene's readers (its tiles' and camera layers' runs, its chunks' rows) and the gather of large
+    # subsets: numba kernels the tiny one-rig scene does not reach
+    n = len(scene.gaussians)
+    Gaussians.load_ply_rows(Path(path) / "scene.ply", 0, n)
+    Gaussians.load_ply_take(Path(path) / "scene.ply", np.arange(n - 1, -1, -1))
+    take_rows([np.zeros((TAKE_ROWS_MIN, 3), np.float32)], np.ones(TAKE_ROWS_MIN, bool))
     for req in view_requests(scene, models):
         data = render_request(scene, req)
         if not data:

@@ -248,12 +248,15 @@ class Gaussians:
         n, dtype, header_len = ply_rows_layout(path, check_body=False)
         if not 0 <= start <= stop <= n:
             raise GaussianError("element vertex", f"rows {start}..{stop} outside the file's {n} vertices", where)
+        # read into a writable array (np.frombuffer of bytes is read-only: another signature of the numba reader,
+        # compiled on a drive's first view in a service warmed up on a one-rig scene)
+        raw = np.empty(stop - start, dtype)
         with open(path, "rb") as f:
             f.seek(header_len + start * dtype.itemsize)
-            raw = f.read((stop - start) * dtype.itemsize)
-        if len(raw) != (stop - start) * dtype.itemsize:
+            got = f.readinto(memoryview(raw).cast("B"))
+        if got != raw.nbytes:
             raise GaussianError("body", f"truncated: rows {start}..{stop} end past the file's end", where)
-        return cls._from_vertices(np.frombuffer(raw, dtype), where)
+        return cls._from_vertices(raw, where)
 
     @classmethod
     def load_ply_take(cls, path: str | os.PathLike, rows: np.ndarray) -> Gaussians:
@@ -522,7 +525,7 @@ def _unpacked(block: np.ndarray, order: Sequence[str], k: int, rows: np.ndarray 
     k SH coefficients, by _unpack_kernel; GaussianError naming the field that holds non-finite values (their
     count) or zero quaternions, as the Gaussians' own checks do."""
     m = len(block) if rows is None else len(rows)
-    take = np.zeros(0, np.int64) if rows is None else np.asarray(rows, np.int64)
+    take = np.zeros(0, np.int64) if rows is None else np.ascontiguousarray(rows, np.int64)    # one signature
     out = dict(means=np.empty((m, 3), np.float32), quats=np.empty((m, 4), np.float32),
                log_scales=np.empty((m, 3), np.float32), opacity_logits=np.empty(m, np.float32),
                sh=np.empty((m, k, 3), np.float32))
