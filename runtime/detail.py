@@ -50,7 +50,7 @@ from .errors import FieldError, plain
 from .imageio import LUMA_BT601
 from .numba_cache import njit
 from .render import Gaussians
-from .render.gaussians import SH_C0
+from .render.gaussians import SH_C0, put_rows
 from .rotations import quat_to_rotmat, rotmat_to_quat, rotmats_to_quats
 
 
@@ -735,19 +735,6 @@ def cell_gaussians_reference(grid: Camera, colours: np.ndarray, depth: np.ndarra
                      sh=sh)
 
 
-@njit(cache=True, parallel=True, nogil=True)
-def _put_rows(src, rows, dst, at):
-    """dst[at + i] = src[rows[i]] over src's columns, the rest of dst's row zero; src [N, C], dst [M, >= C] (both
-    2-D, any strides); rows [n] int64."""
-    c, cd = src.shape[1], dst.shape[1]
-    for i in numba.prange(rows.shape[0]):
-        r = rows[i]
-        for k in range(c):
-            dst[at + i, k] = src[r, k]
-        for k in range(c, cd):
-            dst[at + i, k] = 0
-
-
 def concat_gaussians(parts: list[Gaussians], masks: list[np.ndarray | None] | None = None) -> Gaussians:
     """The Gaussians of ``parts`` in order, each restricted to its boolean mask ([N_i] or None = all): one copy of
     each field, written in place: a masked part's rows by one parallel pass a field (np.compress of [N, 3] rows took
@@ -769,7 +756,7 @@ def concat_gaussians(parts: list[Gaussians], masks: list[np.ndarray | None] | No
                 a = getattr(p, name)
                 a2, d2 = np.asarray(a, np.float32).reshape(len(a), -1), dst.reshape(total, -1)
                 if r is not None:
-                    _put_rows(a2, r, d2, at)
+                    put_rows(a2, r, d2, at)
                 else:                       # a whole part: one block copy (numpy's is as fast as memory)
                     d2[at:at + n, :a2.shape[1]] = a2
                     d2[at:at + n, a2.shape[1]:] = 0

@@ -601,18 +601,22 @@ def take_rows(arrays: Sequence[np.ndarray], index: np.ndarray) -> list[np.ndarra
     out = []
     for a in arrays:
         got = np.empty((len(rows),) + a.shape[1:], a.dtype)
-        _take_rows_kernel(a.reshape(n, -1), rows, got.reshape(len(rows), -1))
+        put_rows(a.reshape(n, -1), rows, got.reshape(len(rows), -1), 0)
         out.append(got)
     return out
 
 
 @njit(cache=True, parallel=True, nogil=True)
-def _take_rows_kernel(src, rows, out):
-    """out[i] = src[rows[i]] for src [N, C], rows [M] in 0..N-1, out [M, C] (take_rows)."""
+def put_rows(src, rows, dst, at):
+    """dst[at + i] = src[rows[i]] over src's columns, the rest of dst's row zero; src [N, C], dst [M, >= C] (both
+    2-D, any strides); rows [n] int64 (take_rows; runtime.detail.concat_gaussians)."""
+    c, cd = src.shape[1], dst.shape[1]
     for i in prange(rows.shape[0]):
-        j = rows[i]
-        for c in range(src.shape[1]):
-            out[i, c] = src[j, c]
+        r = rows[i]
+        for k in range(c):
+            dst[at + i, k] = src[r, k]
+        for k in range(c, cd):
+            dst[at + i, k] = 0
 
 
 def transformed_reference(g: Gaussians, T: np.ndarray) -> Gaussians:

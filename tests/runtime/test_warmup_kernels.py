@@ -16,7 +16,7 @@ import json, sys, tempfile
 from xyzcyl.runtime.render import gaussians as G, kernels as K
 from xyzcyl.runtime.warmup import warm_render
 kernels = {"open_slots": K.open_slots, "covered_tiles": K.covered_tiles, "offset_slots": K.offset_slots,
-           "_rigid_kernel": G._rigid_kernel, "_unpack_kernel": G._unpack_kernel, "_take_rows_kernel": G._take_rows_kernel}
+           "_rigid_kernel": G._rigid_kernel, "_unpack_kernel": G._unpack_kernel, "put_rows": G.put_rows}
 before = {k: len(d.signatures) for k, d in kernels.items()}
 with tempfile.TemporaryDirectory() as tmp:
     warm_render(tmp, "pinhole")

@@ -194,6 +194,22 @@ def test_concurrent_renders_from_threads_equal_sequential_renders():
         np.testing.assert_array_equal(r.depth, s.depth)
 
 
+def _chunk_clusters(rng, n: int, depth, u_range, v_range, centre_px, f: float, spread_max: float,
+                    big: tuple[float, float]) -> Gaussians:
+    """n clusters of kernels.PROJ_CHUNK Gaussians each (one projection chunk apiece): cluster k around the point at
+    depth ``depth()`` (metres, camera z) seen at a pixel uniform in u_range x v_range (principal point
+    ``centre_px``, focal f), a cube of half-side up to spread_max; small scales for odd k, ``big`` for even."""
+    parts = []
+    for k in range(n):
+        z = depth()
+        u, v = rng.uniform(*u_range), rng.uniform(*v_range)
+        centre = np.array([(u - centre_px[0]) * abs(z) / f, (v - centre_px[1]) * abs(z) / f, z])
+        spread = rng.uniform(0.01, spread_max)
+        parts.append(random_gaussians(rng, kernels.PROJ_CHUNK, lo=tuple(centre - spread), hi=tuple(centre + spread),
+                                      scale=(0.003, 0.03) if k % 2 else big, opacity=(-2.0, 3.0)))
+    return concat(*parts)
+
+
 def test_chunk_culling_skips_only_chunks_that_would_be_culled_anyway():
     """The projection skips a chunk of kernels.PROJ_CHUNK Gaussians whose bounding box lies outside the camera's
     frustum planes (core.chunk_planes). Clusters of one chunk each are placed around the image edges (inside,
@@ -207,18 +223,10 @@ def test_chunk_culling_skips_only_chunks_that_would_be_culled_anyway():
     cam = pinhole(83, 61, f=60.0)
     opts = Opts(far=30.0)
     c = kernels.PROJ_CHUNK
-    parts = []
-    for k in range(48):
-        z = rng.choice([rng.uniform(-3.0, 0.5), rng.uniform(1.0, 25.0), rng.uniform(28.0, 40.0)], p=[0.2, 0.6, 0.2])
-        u = rng.uniform(-60.0, 143.0)     # pixels: the image is 0..82, so many clusters straddle or miss it
-        v = rng.uniform(-50.0, 111.0)
-        centre = np.array([(u - 41.3) * abs(z) / 60.0, (v - 30.3) * abs(z) / 60.0, z])
-        spread = rng.uniform(0.01, 0.6)
-        scale = (0.003, 0.03) if k % 2 else (0.05, 0.4)
-        g = random_gaussians(rng, c, lo=tuple(centre - spread), hi=tuple(centre + spread), scale=scale,
-                             opacity=(-2.0, 3.0))
-        parts.append(g)
-    g = concat(*parts)
+    # pixels: the image is 0..82 x 0..60, so many clusters straddle or miss it
+    g = _chunk_clusters(rng, 48, lambda: rng.choice([rng.uniform(-3.0, 0.5), rng.uniform(1.0, 25.0),
+                                                     rng.uniform(28.0, 40.0)], p=[0.2, 0.6, 0.2]),
+                        (-60.0, 143.0), (-50.0, 111.0), (41.3, 30.3), 60.0, 0.6, (0.05, 0.4))
     a = core._prepare(g, cam, opts, cull_chunks=False)
     b = core._prepare(g, cam, opts, cull_chunks=True)
     planes = core.chunk_planes(cam, opts)
@@ -247,16 +255,8 @@ def test_a_chunk_over_covered_tiles_only_is_skipped_and_no_gaussian_it_held_reac
     cam = pinhole(160, 96, f=90.0)
     opts = Opts(far=60.0)
     c = kernels.PROJ_CHUNK
-    parts = []
-    for k in range(64):
-        z = rng.choice([rng.uniform(0.05, 0.5), rng.uniform(1.0, 40.0)], p=[0.1, 0.9])
-        u, v = rng.uniform(-40.0, 200.0), rng.uniform(-30.0, 126.0)
-        centre = np.array([(u - 79.5) * z / 90.0, (v - 47.5) * z / 90.0, z])
-        spread = rng.uniform(0.01, 0.4)
-        g = random_gaussians(rng, c, lo=tuple(centre - spread), hi=tuple(centre + spread),
-                             scale=(0.003, 0.03) if k % 2 else (0.03, 0.2), opacity=(-2.0, 3.0))
-        parts.append(g)
-    g = concat(*parts)
+    g = _chunk_clusters(rng, 64, lambda: rng.choice([rng.uniform(0.05, 0.5), rng.uniform(1.0, 40.0)], p=[0.1, 0.9]),
+                        (-40.0, 200.0), (-30.0, 126.0), (79.5, 47.5), 90.0, 0.4, (0.03, 0.2))
     ntx, nty = 10, 6
     covered = np.zeros((nty, ntx), bool)
     covered[:, :6] = True                            # the left 96 px
