@@ -157,6 +157,9 @@ class CellGeometry:
 
 _GEOMETRY: dict[tuple, CellGeometry] = {}                     # by geometry_key, the last GEOMETRY_CACHE
 _RAYS: dict[tuple, tuple[np.ndarray, np.ndarray]] = {}       # grid_rays by geometry_key, the last RAYS_CACHE
+_UNIT: dict[tuple, tuple[np.ndarray, np.ndarray]] = {}       # their camera-frame unit rays by lens_key, as many
+_PINHOLE: dict[tuple, tuple] = {}                             # an ideal pinhole's CellGeometry but its quats, by
+#                                                               lens_key, as many as GEOMETRY_CACHE
 _CACHE_LOCK = threading.Lock()          # the cameras of a rig are made in threads (Reconstructor.camera_details)
 GEOMETRY_CACHE = 16     # grid cameras whose CellGeometry is kept: two rigs of up to 8 (~21 MB each at 960 x 540)
 RAYS_CACHE = 8          # and whose grid_rays are kept (16 MB each at 960 x 540): a rig of up to 8 cameras
@@ -165,9 +168,15 @@ RAYS_CACHE = 8          # and whose grid_rays are kept (16 MB each at 960 x 540)
 def geometry_key(grid: Camera) -> tuple:
     """What a grid camera's cell geometry and rays depend on, by value: its model, size, K, lens and cam_to_ego (a
     drive's keyframes make new grid cameras of the same rig: their geometry is made once, not once a keyframe)."""
+    return lens_key(grid) + (np.ascontiguousarray(grid.cam_to_ego, np.float64).tobytes(),)
+
+
+def lens_key(grid: Camera) -> tuple:
+    """What a grid camera's rays in its own frame depend on, by value: its model, size, K and lens. A recorded
+    drive's extrinsics move by millimetres from frame to frame (PandaSet's are calibrated per frame), so its
+    keyframes' grid cameras share these and not geometry_key."""
     K = b"" if grid.K is None else np.ascontiguousarray(grid.K, np.float64).tobytes()
-    return (grid.model, grid.width, grid.height, grid.distortion, K,
-            np.ascontiguousarray(grid.cam_to_ego, np.float64).tobytes())
+    return (grid.model, grid.width, grid.height, grid.distortion, K)
 
 
 def _cached(table: dict, size: int, key: tuple, make: Callable[[], object]):
@@ -201,25 +210,34 @@ def _make_geometry(grid: Camera) -> CellGeometry:
     fx, fy = grid.paraxial_focal
     f = 0.5 * (fx + fy)
     if grid.is_ideal:
-        K = grid.K
-        x = (np.arange(w) - K[0, 2]) / K[0, 0]
-        y = (np.arange(h) - K[1, 2]) / K[1, 1]
-        rays = np.empty((h, w, 3))
-        rays[..., 0], rays[..., 1], rays[..., 2] = x[None, :], y[:, None], 1.0
-        scale = np.ones((h, w))
-        quats = np.broadcast_to(rotmat_to_quat(grid.rotation), (h, w, 4))
-        across = np.sqrt(1.0 + x[None, :] ** 2 + y[:, None] ** 2) / f
-        has = np.ones((h, w), bool)
-    else:
-        rays = grid.depth_rays()
-        has = np.all(np.isfinite(rays), axis=-1)
-        length = np.linalg.norm(rays, axis=-1)
-        across = np.where(has, length * _cell_angles(grid), 1.0 / f)   # finite on cells a point may round onto
-        scale = f * across
-        R = np.einsum("ij,hwjk->hwik", grid.rotation, _facing(rays / length[..., None]))
-        quats = rotmats_to_quats(R.reshape(-1, 3, 3)).reshape(h, w, 4)
+        rays, scale, across, has = _cached(_PINHOLE, GEOMETRY_CACHE, lens_key(grid), lambda: _pinhole_cells(grid))
+        quats = np.broadcast_to(rotmat_to_quat(grid.rotation), (h, w, 4))      # a read-only view
+        return CellGeometry(rays, has, f, scale, quats, across)
+    rays = grid.depth_rays()
+    has = np.all(np.isfinite(rays), axis=-1)
+    length = np.linalg.norm(rays, axis=-1)
+    across = np.where(has, length * _cell_angles(grid), 1.0 / f)   # finite on cells a point may round onto
+    scale = f * across
+    R = np.einsum("ij,hwjk->hwik", grid.rotation, _facing(rays / length[..., None]))
+    quats = rotmats_to_quats(R.reshape(-1, 3, 3)).reshape(h, w, 4)
     _frozen(rays, has, scale, quats, across)
     return CellGeometry(rays, has, f, scale, quats, across)
+
+
+def _pinhole_cells(grid: Camera) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """An ideal pinhole grid camera's CellGeometry rays, scale, across and has_ray (read-only): its intrinsics'."""
+    h, w = grid.height, grid.width
+    fx, fy = grid.paraxial_focal
+    K = grid.K
+    x = (np.arange(w) - K[0, 2]) / K[0, 0]
+    y = (np.arange(h) - K[1, 2]) / K[1, 1]
+    rays = np.empty((h, w, 3))
+    rays[..., 0], rays[..., 1], rays[..., 2] = x[None, :], y[:, None], 1.0
+    scale = np.ones((h, w))
+    across = np.sqrt(1.0 + x[None, :] ** 2 + y[:, None] ** 2) / (0.5 * (fx + fy))
+    has = np.ones((h, w), bool)
+    _frozen(rays, scale, across, has)
+    return rays, scale, across, has
 
 
 def _cell_angles(grid: Camera) -> np.ndarray:
@@ -430,19 +448,24 @@ def grid_rays(grid: Camera) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _make_rays(grid: Camera) -> tuple[np.ndarray, np.ndarray]:
+    unit, cos = _cached(_UNIT, RAYS_CACHE, lens_key(grid), lambda: _unit_rays(grid))
+    d = unit @ grid.rotation.T
+    _frozen(d)
+    return d, cos
+
+
+def _unit_rays(grid: Camera) -> tuple[np.ndarray, np.ndarray]:
+    """(unit directions [h, w, 3] float64, camera frame, of a grid camera's cells' rays; cos [h, w]: grid_rays'),
+    read-only: its intrinsics'."""
+    rays = cell_geometry(grid).rays
     if not grid.is_ideal:
-        rays = cell_geometry(grid).rays
         n = np.linalg.norm(rays, axis=-1)
     else:
-        K = grid.K
-        x = (np.arange(grid.width) - K[0, 2]) / K[0, 0]
-        y = (np.arange(grid.height) - K[1, 2]) / K[1, 1]
-        rays = np.empty((grid.height, grid.width, 3))
-        rays[..., 0], rays[..., 1], rays[..., 2] = x[None, :], y[:, None], 1.0
+        x, y = rays[0, :, 0], rays[:, 0, 1]         # (u - cx) / fx along a row, (v - cy) / fy down a column
         n = np.sqrt(x[None, :] ** 2 + y[:, None] ** 2 + 1.0)
-    d, cos = (rays / n[..., None]) @ grid.rotation.T, 1.0 / n
-    _frozen(d, cos)
-    return d, cos
+    unit, cos = rays / n[..., None], 1.0 / n
+    _frozen(unit, cos)
+    return unit, cos
 
 
 def sphere_depth(grid: Camera, radius: float, rays: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
@@ -1002,11 +1025,11 @@ class CameraDetail:
     def cell_colours(self) -> np.ndarray:
         """[M, 3] uint8: the kept cells' colours (their grid pixel's), in Gaussian order (made once: the maps are
         not changed after build, dataclasses.replace makes a new detail)."""
-        return self._once("_cell_colours", lambda: self.colours[self.keep])
+        return self._once("_cell_colours", lambda: _at_cells(self.colours, self.keep))
 
     def cell_conf(self) -> np.ndarray:
         """[M] int8: the kept cells' confidence, in Gaussian order (made once, as cell_colours)."""
-        return self._once("_cell_conf", lambda: self.conf[self.keep])
+        return self._once("_cell_conf", lambda: _at_cells(self.conf, self.keep))
 
     def _once(self, key: str, make: Callable[[], np.ndarray]) -> np.ndarray:
         v = self.__dict__.get(key)
@@ -1021,6 +1044,12 @@ class CameraDetail:
 
         return [cv2.dilate(self.depth, np.ones((2 * 2 ** L + 1, 2 * 2 ** L + 1), np.uint8),
                            borderType=cv2.BORDER_CONSTANT, borderValue=0) for L in range(PYRAMID_LEVELS)]
+
+
+def _at_cells(a: np.ndarray, keep: np.ndarray) -> np.ndarray:
+    """a[keep] for a map ``a`` [h, w, ...] and a mask ``keep`` [h, w]: the same values in the same (row-major) order,
+    gathered by flat index (np.take: a quarter of the time of numpy's boolean indexing of a [h, w, 3] map)."""
+    return np.take(a.reshape(keep.size, *a.shape[2:]), np.flatnonzero(keep), axis=0)
 
 
 def cell_footprint(grid: Camera, u: np.ndarray, v: np.ndarray, z: np.ndarray) -> np.ndarray:
@@ -1120,59 +1149,111 @@ def _cell_of(grid: Camera, m: np.ndarray) -> tuple[int, int, float] | None:
 
 
 @njit(cache=True, parallel=True, nogil=True)
-def _carve_kernel(means, conf, rank, R, t, fx, fy, cx, cy, depth, cell_conf, tolerance, dedupe, keep, photo, colour,
-                  image, p_abs, p_rel):
-    """Clear keep[k] for the cells ``means`` [M, 3] (ego; confidence conf [M], footprint rank [M]) that camera i
-    (world-to-camera rotation R = rotation^T [3, 3], centre t [3], pinhole fx fy cx cy; its cell maps depth [h, w]
-    and cell_conf [h, w], 0 = no cell) contradicts: see carve_details. ``photo``: the free-space drop only where the
-    cell's colour (colour [M, 3] uint8) is not seen in camera i's ``image`` [h, w, 3] uint8 at the pixel or its 8
-    neighbours, within p_abs + p_rel x the larger value (colour_seen is its reference)."""
-    h, w = depth.shape
+def _carve_kernel(means, conf, rank, keep, photo, colour, R, t, K, hw, off, depth, cell_conf, image, has_image,
+                  skip, tolerance, dedupe, p_abs, p_rel):
+    """Clear keep[k] for the cells ``means`` [M, 3] (ego; confidence conf [M], footprint rank [M]) that one of the
+    pinhole cameras c of a CarveCameras stack contradicts (see carve_details), camera ``skip`` left out (-1: none):
+    world-to-camera rotations R [C, 3, 3] (rotation^T), centres t [C, 3], K [C, 4] (fx, fy, cx, cy), sizes hw [C, 2];
+    their cell maps depth (float32) and cell_conf (int8, 0 = no cell) and images [.., 3] uint8 flat, camera c's
+    pixel (u, v) at off[c] + v w + u. A cell dropped by one camera is not tested against the next (the tests are
+    independent). ``photo``: the free-space drop only where the cell's colour (colour [M, 3] uint8) is not seen in
+    camera c's image (has_image[c]) at the pixel or its 8 neighbours, within p_abs + p_rel x the larger value
+    (colour_seen is its reference). One pass over the cells for all the cameras: each cell read once, not once a
+    camera."""
     for k in numba.prange(means.shape[0]):
         if not keep[k]:
             continue
-        px, py, pz = means[k, 0] - t[0], means[k, 1] - t[1], means[k, 2] - t[2]
-        z = R[2, 0] * px + R[2, 1] * py + R[2, 2] * pz
-        if z <= 1e-6:
-            continue
-        x = (R[0, 0] * px + R[0, 1] * py + R[0, 2] * pz) / z
-        y = (R[1, 0] * px + R[1, 1] * py + R[1, 2] * pz) / z
-        u = int(np.rint(fx * x + cx))
-        v = int(np.rint(fy * y + cy))
-        if u < 0 or u >= w or v < 0 or v >= h or cell_conf[v, u] == 0 or cell_conf[v, u] < conf[k]:
-            continue
-        dc = depth[v, u]
-        if z < dc * (1.0 - tolerance):
-            if not photo or not _seen_near(colour, k, image, u, v, p_abs, p_rel):
-                keep[k] = False
-        elif abs(z - dc) <= tolerance * dc:
-            xi, yi = (u - cx) / fx, (v - cy) / fy
-            rank_i = dc * math.sqrt(1.0 + xi * xi + yi * yi) / (0.5 * (fx + fy))
-            if rank_i < dedupe * rank[k]:
-                keep[k] = False
+        for c in range(R.shape[0]):
+            if c == skip:
+                continue
+            px, py, pz = means[k, 0] - t[c, 0], means[k, 1] - t[c, 1], means[k, 2] - t[c, 2]
+            z = R[c, 2, 0] * px + R[c, 2, 1] * py + R[c, 2, 2] * pz
+            if z <= 1e-6:
+                continue
+            x = (R[c, 0, 0] * px + R[c, 0, 1] * py + R[c, 0, 2] * pz) / z
+            y = (R[c, 1, 0] * px + R[c, 1, 1] * py + R[c, 1, 2] * pz) / z
+            fx, fy, cx, cy = K[c, 0], K[c, 1], K[c, 2], K[c, 3]
+            h, w = hw[c, 0], hw[c, 1]
+            u = int(np.rint(fx * x + cx))
+            v = int(np.rint(fy * y + cy))
+            if u < 0 or u >= w or v < 0 or v >= h:
+                continue
+            at = off[c] + v * w + u
+            if cell_conf[at] == 0 or cell_conf[at] < conf[k]:
+                continue
+            dc = depth[at]
+            if z < dc * (1.0 - tolerance):
+                if not (photo and has_image[c]) or not _seen_near(colour, k, image, off[c], h, w, u, v, p_abs,
+                                                                  p_rel):
+                    keep[k] = False
+                    break
+            elif abs(z - dc) <= tolerance * dc:
+                xi, yi = (u - cx) / fx, (v - cy) / fy
+                rank_i = dc * math.sqrt(1.0 + xi * xi + yi * yi) / (0.5 * (fx + fy))
+                if rank_i < dedupe * rank[k]:
+                    keep[k] = False
+                    break
 
 
-_NO_COLOUR = np.zeros((0, 3), np.uint8)      # _carve_kernel's colour and image when it has no colour test
-_NO_IMAGE = np.zeros((1, 1, 3), np.uint8)
+_NO_COLOUR = np.zeros((0, 3), np.uint8)      # _carve_kernel's colour when it has no colour test
 
 
 @njit(inline="always")
-def _seen_near(colour, k, image, u, v, p_abs, p_rel):
-    """Whether ``image`` shows cell k's colour at pixel (u, v) or one of its 8 neighbours (_carve_kernel's photo)."""
-    h, w = image.shape[0], image.shape[1]
+def _seen_near(colour, k, image, off, h, w, u, v, p_abs, p_rel):
+    """Whether a camera's image (its pixel (uu, vv) at image[off + vv w + uu], [h, w]) shows cell k's colour at pixel
+    (u, v) or one of its 8 neighbours (_carve_kernel's photo)."""
     for dv in range(-1, 2):
         for du in range(-1, 2):
             uu, vv = u + du, v + dv
             if uu < 0 or uu >= w or vv < 0 or vv >= h:
                 continue
             like = True
+            at = off + vv * w + uu
             for c in range(3):
-                a, b = float(colour[k, c]), float(image[vv, uu, c])
+                a, b = float(colour[k, c]), float(image[at, c])
                 if abs(a - b) > p_abs + p_rel * max(a, b):
                     like = False
             if like:
                 return True
     return False
+
+
+@dataclass(frozen=True, eq=False)
+class CarveCameras:
+    """Detail layers that carve others' cells (carve_details, carve_against), stacked for _carve_kernel: the ideal
+    pinholes' poses, intrinsics and cell maps in flat arrays (built once, used for each carved camera), the lens
+    cameras as they are (_carve_lens)."""
+
+    pinholes: tuple[CameraDetail, ...]
+    lenses: tuple[CameraDetail, ...]
+    R: np.ndarray          # [C, 3, 3] float64: each pinhole's world-to-camera rotation (its rotation^T)
+    t: np.ndarray          # [C, 3] float64 metres, ego frame: its centre
+    K: np.ndarray          # [C, 4] float64 pixels: fx, fy, cx, cy
+    hw: np.ndarray         # [C, 2] int64: its grid's height, width
+    off: np.ndarray        # [C] int64: where its maps start in the flat arrays
+    depth: np.ndarray      # [sum h w] float32: the cell maps' depths, camera after camera, row-major
+    conf: np.ndarray       # [sum h w] int8
+    image: np.ndarray      # [sum h w, 3] uint8: their colours (zeros for a camera without)
+    has_image: np.ndarray  # [C] bool
+
+    @classmethod
+    def of(cls, details: Sequence[CameraDetail]) -> CarveCameras:
+        pin = tuple(d for d in details if d.grid.is_ideal)
+        sizes = np.array([d.depth.size for d in pin], np.int64)
+        off = np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.int64) if len(pin) else np.zeros(0, np.int64)
+        image = np.zeros((int(sizes.sum()), 3), np.uint8)
+        for d, o in zip(pin, off):
+            if d.colours is not None:
+                image[o:o + d.depth.size] = d.colours.reshape(-1, 3)
+        return cls(pin, tuple(d for d in details if not d.grid.is_ideal),
+                   np.array([d.grid.rotation.T for d in pin], np.float64).reshape(-1, 3, 3),
+                   np.array([d.grid.position for d in pin], np.float64).reshape(-1, 3),
+                   np.array([[d.grid.K[0, 0], d.grid.K[1, 1], d.grid.K[0, 2], d.grid.K[1, 2]] for d in pin],
+                            np.float64).reshape(-1, 4),
+                   np.array([d.depth.shape for d in pin], np.int64).reshape(-1, 2), off,
+                   np.concatenate([d.depth.ravel() for d in pin]) if pin else np.zeros(0, np.float32),
+                   np.concatenate([d.conf.ravel() for d in pin]) if pin else np.zeros(0, np.int8), image,
+                   np.array([d.colours is not None for d in pin], bool))
 
 
 def carve_details(details: list[CameraDetail], tolerance: float, dedupe: float = 1.0,
@@ -1188,46 +1269,45 @@ def carve_details(details: list[CameraDetail], tolerance: float, dedupe: float =
     A cell dropped by one camera is not tested against the next (the order does not matter: the tests are
     independent of each other)."""
     out = []
-    for j, dj in enumerate(details):
+    stack = CarveCameras.of(details)
+    for dj in details:
         keep = np.ones(len(dj.means), bool)
         if len(dj.means):
-            _carve_by(dj, [di for i, di in enumerate(details) if i != j], keep, tolerance, dedupe, photo)
+            _carve_by(dj, stack, keep, tolerance, dedupe, photo)
         out.append(keep)
     return out
 
 
-def carve_against(dj: CameraDetail, others: list[CameraDetail], keep: np.ndarray, tolerance: float,
-                  photo: tuple[float, float] | None = None) -> None:
+def carve_against(dj: CameraDetail, others: Sequence[CameraDetail] | CarveCameras, keep: np.ndarray,
+                  tolerance: float, photo: tuple[float, float] | None = None) -> None:
     """Clear keep[k] ([M_j] bool, camera j's cells) where one of ``others``' cameras saw through cell k (carve_details'
     free-space rule alone: a surface is never handed over here). runtime.drive carves a keyframe's cells with the
     cameras of the neighbouring keyframes so. ``photo`` (abs, rel): and where that camera's image, within a cell of
     the spot, shows no colour like the cell's (colour_seen): what it saw there is not what the cell shows, so the
     cell is gone from its ray; a like colour keeps it (the same surface at a depth the two measured apart: glass, a
-    fence, an edge). None (or a camera without colours): the depth alone decides."""
+    fence, an edge). None (or a camera without colours): the depth alone decides. ``others`` as CarveCameras.of
+    them when several cameras are carved by the same ones."""
     if len(dj.means):
-        _carve_by(dj, others, keep, tolerance, 0.0, photo)
+        _carve_by(dj, others if isinstance(others, CarveCameras) else CarveCameras.of(others), keep, tolerance, 0.0,
+                  photo)
 
 
-def _carve_by(dj: CameraDetail, others: list[CameraDetail], keep: np.ndarray, tolerance: float, dedupe: float,
+def _carve_by(dj: CameraDetail, others: CarveCameras, keep: np.ndarray, tolerance: float, dedupe: float,
               photo: tuple[float, float] | None) -> None:
-    """carve_details' rules for camera j's cells against each of ``others`` (the colour test on the free-space rule
-    where ``photo`` is given and both cameras have colours)."""
+    """carve_details' rules for camera j's cells against each of ``others`` but j itself (the colour test on the
+    free-space rule where ``photo`` is given and both cameras have colours)."""
     conf_j = np.ascontiguousarray(dj.cell_conf())
     col_j = np.ascontiguousarray(dj.cell_colours()) if photo is not None and dj.colours is not None else None
-    for di in others:
-        with_photo = col_j is not None and di.colours is not None
-        if not di.grid.is_ideal:
+    if len(others.pinholes):
+        skip = next((c for c, d in enumerate(others.pinholes) if d is dj), -1)
+        _carve_kernel(dj.means, conf_j, dj.rank, keep, col_j is not None, _NO_COLOUR if col_j is None else col_j,
+                      others.R, others.t, others.K, others.hw, others.off, others.depth, others.conf, others.image,
+                      others.has_image, skip, float(tolerance), float(dedupe),
+                      0.0 if photo is None else float(photo[0]), 0.0 if photo is None else float(photo[1]))
+    for di in others.lenses:
+        if di is not dj:
             _carve_lens(dj.means, conf_j, dj.rank, di, float(tolerance), float(dedupe), keep,
-                        (col_j, photo) if with_photo else None)
-            continue
-        K = di.grid.K
-        R, t = np.ascontiguousarray(di.grid.rotation.T), np.ascontiguousarray(di.grid.position)
-        args = (dj.means, conf_j, dj.rank, R, t, float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]),
-                di.depth, di.conf, float(tolerance), float(dedupe), keep)
-        if with_photo:
-            _carve_kernel(*args, True, col_j, di.colours, float(photo[0]), float(photo[1]))
-        else:
-            _carve_kernel(*args, False, _NO_COLOUR, _NO_IMAGE, 0.0, 0.0)
+                        (col_j, photo) if col_j is not None and di.colours is not None else None)
 
 
 def colour_seen(cell: np.ndarray, image: np.ndarray, u: np.ndarray, v: np.ndarray, photo: tuple[float, float]

@@ -177,10 +177,18 @@ def apply_gain(g: Gaussians, gain: np.ndarray) -> Gaussians:
     gain = np.asarray(gain, np.float64)
     if not np.all(np.isfinite(gain)) or np.any(gain <= 0):
         raise ValueError("gain: must be finite and positive")
-    sh = g.sh.copy()
-    sh[:, 0, :] = ((0.5 + SH_C0 * sh[:, 0, :].astype(np.float64)) / gain - 0.5) / SH_C0
+    sh = np.empty_like(g.sh)
+    # ((0.5 + SH_C0 dc) / gain - 0.5) / SH_C0 in float64, step by step in one buffer (the same operations in the
+    # same order: the same bits as the one expression, in half its time)
+    dc = g.sh[:, 0, :].astype(np.float64)
+    dc *= SH_C0
+    dc += 0.5
+    dc /= gain
+    dc -= 0.5
+    dc /= SH_C0
+    sh[:, 0, :] = dc
     if sh.shape[1] > 1:
-        sh[:, 1:, :] = sh[:, 1:, :].astype(np.float64) / (gain[..., None, :] if gain.ndim == 2 else gain)
+        sh[:, 1:, :] = g.sh[:, 1:, :].astype(np.float64) / (gain[..., None, :] if gain.ndim == 2 else gain)
     # the rows of checked Gaussians, their colours divided by a finite positive gain: not checked again
     return Gaussians.joined(means=g.means, quats=g.quats, log_scales=g.log_scales, opacity_logits=g.opacity_logits,
                             sh=sh)

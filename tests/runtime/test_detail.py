@@ -270,6 +270,26 @@ def test_carve_details_matches_reference(dedupe):
     assert dropped > 20 and all(g.sum() > 0.5 * len(g) for g in got)
 
 
+def test_carve_details_with_the_colour_test_matches_reference():
+    """carve_details' free-space rule with the colour test (a keyframe without a sweep), one camera without an image
+    among them (its cells have no colour to test, and it tests none: the depth alone decides there), against the
+    cell-by-cell reference; the cameras come in one stack (CarveCameras), each carved by all but itself."""
+    from dataclasses import replace
+
+    details = _random_details(9, n_cams=5, colours=True)
+    details[2] = replace(details[2], colours=None)
+    photo = (12.0, 0.15)
+    for dedupe in (0.0, 1.0):
+        got = carve_details(details, 0.15, dedupe, photo)
+        want = carve_details_reference(details, 0.15, dedupe, photo)
+        for g, w in zip(got, want):
+            np.testing.assert_array_equal(g, w)
+        by_depth = carve_details(details, 0.15, dedupe)
+        assert all((b <= g).all() for b, g in zip(by_depth, got))      # the colour test only keeps more
+        assert sum(int((~g).sum()) for g in got) < sum(int((~b).sum()) for b in by_depth)
+        assert (~got[2]).sum() > 0
+
+
 @pytest.mark.parametrize("photo", [None, (12.0, 0.15)])
 def test_carve_against_matches_reference(photo):
     """runtime.detail.carve_against (the see-through rule of a neighbouring keyframe's cameras, with or without the

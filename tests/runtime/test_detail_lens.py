@@ -225,3 +225,45 @@ def test_cell_geometry_and_rays_are_cached_by_the_cameras_values():
     np.testing.assert_array_equal(cell_geometry(turned).rays, geo.rays)      # camera-frame rays do not
     fresh = _make_geometry(turned)
     np.testing.assert_array_equal(cell_geometry(turned).quats, fresh.quats)
+
+
+def test_a_pinhole_moved_by_its_calibration_shares_its_camera_frame_rays():
+    """A recorded drive's extrinsics move by millimetres from frame to frame: a pinhole grid camera that differs only
+    in its pose shares the camera-frame arrays (lens_key) and gets its own pose's quats and ego-frame rays, the same
+    bits as made from scratch: ((u - cx) / fx, (v - cy) / fy, 1) normalised, turned into the ego frame."""
+    from xyzcyl.runtime.detail import grid_rays
+
+    cam = lens_rig(None).cameras[2]
+    T = np.array(cam.cam_to_ego)
+    T[:3, :3] = quat_to_rotmat(np.array([0.99, 0.02, -0.01, 0.03])) @ T[:3, :3]
+    T[:3, 3] += [0.003, -0.001, 0.0]
+    moved = cam.replace(cam_to_ego=T)
+    a, b = cell_geometry(cam), cell_geometry(moved)
+    assert a is not b and a.rays is b.rays and a.across is b.across and a.scale is b.scale
+    K = np.asarray(cam.K)
+    x = (np.arange(cam.width) - K[0, 2]) / K[0, 0]
+    y = (np.arange(cam.height) - K[1, 2]) / K[1, 1]
+    rays = np.empty((cam.height, cam.width, 3))
+    rays[..., 0], rays[..., 1], rays[..., 2] = x[None, :], y[:, None], 1.0
+    n = np.sqrt(x[None, :] ** 2 + y[:, None] ** 2 + 1.0)
+    for c in (cam, moved):
+        d, cos = grid_rays(c)
+        np.testing.assert_array_equal(d, (rays / n[..., None]) @ c.rotation.T)
+        np.testing.assert_array_equal(cos, 1.0 / n)
+        assert not d.flags.writeable and not cos.flags.writeable
+    np.testing.assert_array_equal(b.rays, rays)
+    assert not np.allclose(b.quats, a.quats) and np.allclose(b.quats[5, 7], b.quats[0, 0])
+
+
+def test_a_detail_layers_cell_values_are_its_maps_at_its_kept_cells():
+    """CameraDetail.cell_colours / cell_conf: the maps at the kept cells in row-major order (map[keep]), gathered by
+    flat index."""
+    from xyzcyl.runtime.detail import _at_cells
+
+    rng = np.random.default_rng(4)
+    keep = rng.random((37, 53)) < 0.7
+    for a in (rng.integers(0, 255, (37, 53, 3), dtype=np.uint8), rng.integers(0, 3, (37, 53)).astype(np.int8)):
+        got = _at_cells(a, keep)
+        np.testing.assert_array_equal(got, a[keep])
+        assert got.dtype == a.dtype
+    assert _at_cells(np.zeros((4, 5, 3), np.uint8), np.zeros((4, 5), bool)).shape == (0, 3)

@@ -285,10 +285,20 @@ def test_voxel_levels_and_boxes():
 
     f = np.array([0.01, 0.02, 0.021, 0.04, 100.0]) / VOXEL_CELLS       # footprints: VOXEL_CELLS of them a voxel
     assert voxel_levels(f).tolist() == [0, 0, 1, 1, 11]
+    # a Gaussian's footprint: twice its largest standard deviation (the largest log-scale, then exp: the same bits
+    # as the largest of the exps)
+    from xyzcyl.runtime.drive import _footprint
+    from xyzcyl.runtime.render import Gaussians
+
+    rng = np.random.default_rng(5)
+    ls = rng.normal(-2.0, 1.0, (1000, 3)).astype(np.float32)
+    g = Gaussians(means=np.zeros((1000, 3)), quats=np.tile([1.0, 0, 0, 0], (1000, 1)), log_scales=ls,
+                  opacity_logits=np.zeros(1000), sh=np.zeros((1000, 1, 3)))
+    np.testing.assert_array_equal(_footprint(g), 2.0 * np.sort(np.exp(ls.astype(np.float64)), axis=1)[:, 2])
     box = (np.linalg.inv(np.array(_pose(10, 0, 90))), np.array([2.0, 1.0, 1.0]))
     pts = np.array([[10, 1.9, 0], [10, 2.1, 0], [11.5, 0, 0], [10, 0, 1.5]])
     assert inside_boxes(pts, [box]).tolist() == [True, False, False, False]
-    # box_members (only the points within a box's reach along x tested, in a kernel) against the direct test
+    # box_members (only the points within a box's reach along x and y tested, in a kernel) against the direct test
     from xyzcyl.runtime.drive import box_members
 
     rng = np.random.default_rng(2)
@@ -472,6 +482,7 @@ def test_only_a_keyframe_with_measured_depth_carves_its_neighbours(monkeypatch):
     calls = []
     monkeypatch.setattr(detail, "carve_against",
                         lambda d, others, keep, tol, photo: calls.append((d, others, tol, photo)))
+    monkeypatch.setattr(detail.CarveCameras, "of", staticmethod(list))      # b's cameras as they are, to compare
     a = (0, ["a0", "a1"], [], [np.ones(2, bool), np.ones(3, bool)], False, [np.zeros(2, bool), np.zeros(3, bool)])
     b_camera_only = (1, ["b0"], [], [np.ones(1, bool)], False, [np.zeros(1, bool)])
     b_lidar = (1, ["b0"], [], [np.ones(1, bool)], True, [np.zeros(1, bool)])
@@ -499,6 +510,7 @@ def test_measured_cells_a_neighbour_sees_through_moved_away(monkeypatch):
         keep[:2] = False
 
     monkeypatch.setattr(detail, "carve_against", see_through)
+    monkeypatch.setattr(detail.CarveCameras, "of", staticmethod(list))
     M, C = detail.CONF_MEASURED, detail.CONF_MODEL
     b = (1, ["b0"], [], [np.ones(1, bool)], True, [np.zeros(1, bool)])
     for measured, want in ((True, [True, False, False, False]), (False, [False] * 4)):
