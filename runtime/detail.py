@@ -36,6 +36,7 @@ steps and settings; docs/results.md "Detail Gaussians" the measurements behind t
 
 from __future__ import annotations
 
+import functools
 import math
 import threading
 from collections.abc import Callable, Sequence
@@ -316,13 +317,27 @@ def _guide(image: np.ndarray) -> np.ndarray:
     return np.clip(np.rint(np.asarray(image, np.float32) * 255), 0, 255).astype(np.uint8)
 
 
+@functools.cache
+def one_thread_opencv():
+    """The cv2 module, its thread pool set to one thread for the whole process (cv2.setNumThreads(1)), once.
+    OpenCV's fast global smoother (densify) gives another result for each way its pool splits the image: one
+    thread's, two threads', and, when another thread's OpenCV work holds the pool, the caller's alone (measured:
+    9 of 20 calls from two threads at once differed, 20 of 20 beside another thread's blur). A keyframe's cameras
+    are made two at a time, and a drive's next keyframe beside its fusion: with one OpenCV thread, the same bits
+    every time (0 of 30), and no measured cost (the threads are the parallelism; a PandaSet frame 2.49 / 2.51 s)."""
+    import cv2
+
+    cv2.setNumThreads(1)
+    return cv2
+
+
 def densify(sparse: np.ndarray, image: np.ndarray, smooth_lambda: float, smooth_sigma: float) -> np.ndarray:
     """[h, w] float32: ``sparse`` (0 = no value) spread edge-aware over the image ([h, w, 3] float 0..1) by
     normalised fast global smoothing: FGS(values) / FGS(mask). The smoothing stops at colour edges, so a depth is
     carried along a surface and not across an image edge. Log depth is smoothed (a near and a far value mix in
-    ratio, not metres). Cells the smoothing does not reach get 0."""
-    import cv2
-
+    ratio, not metres). Cells the smoothing does not reach get 0. OpenCV runs one thread from the first call on
+    (one_thread_opencv)."""
+    cv2 = one_thread_opencv()
     m = (sparse > 0).astype(np.float32)
     if not m.any():
         return np.zeros_like(sparse, np.float32)
@@ -412,7 +427,10 @@ def fit_ground(points: np.ndarray, min_points: int = 200, seed: int = 0) -> np.n
     if not ok.any():
         return None
     n, d = n[ok], d[ok]
-    score = (np.abs(sample @ n.T + d) <= GROUND_BAND).sum(axis=0)
+    dist = sample @ n.T                                      # [S, planes]: in place, counted without a sum
+    dist += d                                                # of bools (the same values: 3-6x less time)
+    np.abs(dist, out=dist)
+    score = np.count_nonzero(dist <= GROUND_BAND, axis=0)
     best = int(np.argmax(score))
     if score[best] < GROUND_SHARE * len(sample):
         return None                                          # no plane carries the sweep: not a road
@@ -618,6 +636,7 @@ def _cells_row(depth, keep, y, i, rays, f, scale, Rce, tce, qcell, footprint, th
                log_scales):
     """One image row of _cells_kernel, its first kept cell at index i."""
     w = keep.shape[1]
+    per_cell = 0 if qcell.shape[0] * qcell.shape[1] == 1 else 1     # [1, 1, 4]: one quat for every cell
     c = np.empty(3)
     tu = np.empty(3)
     tv = np.empty(3)
@@ -683,7 +702,7 @@ def _cells_row(depth, keep, y, i, rays, f, scale, Rce, tce, qcell, footprint, th
             log_scales[i, 1] = math.log(footprint * sd2)
         else:
             for k in range(4):
-                quats[i, k] = qcell[y, x, k]
+                quats[i, k] = qcell[y * per_cell, x * per_cell, k]
             log_scales[i, 0] = math.log(s)
             log_scales[i, 1] = math.log(s)
         log_scales[i, 2] = math.log(thickness * s)
@@ -696,9 +715,8 @@ def cell_gaussians(grid: Camera, colours: np.ndarray, depth: np.ndarray, opacity
     """cell_gaussians_reference, its geometry in one numba pass over the cells (the same Gaussians, in the same
     order; tested against it)."""
     keep = np.ascontiguousarray(keep, bool)
-    ys, xs = np.nonzero(keep)
-    n = len(ys)
     counts = keep.sum(axis=1)
+    n = int(counts.sum())
     row_start = np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int64)
     # float32 written by the kernel (its float64 values rounded on assignment, as astype(np.float32) rounds them)
     means = np.empty((n, 3), np.float32)
@@ -708,12 +726,20 @@ def cell_gaussians(grid: Camera, colours: np.ndarray, depth: np.ndarray, opacity
     if n:
         _cells_kernel(np.ascontiguousarray(depth, np.float64), keep, row_start, np.ascontiguousarray(geo.rays),
                       float(geo.f), np.ascontiguousarray(geo.scale), np.ascontiguousarray(grid.rotation, np.float64),
-                      np.ascontiguousarray(grid.position, np.float64), np.ascontiguousarray(geo.quats, np.float64),
+                      np.ascontiguousarray(grid.position, np.float64), _cell_quats(geo.quats),
                       float(footprint), float(thickness), float(surface_stretch), means, quats, log_s)
     sh = np.zeros((n, (sh_degree + 1) ** 2, 3), np.float32)
-    sh[:, 0, :] = (colours[ys, xs] - 0.5) / SH_C0
+    sh[:, 0, :] = (_at_cells(colours, keep) - 0.5) / SH_C0
     return Gaussians(means=means, quats=quats, log_scales=log_s,
-                     opacity_logits=_logit(opacity[ys, xs]).astype(np.float32), sh=sh)
+                     opacity_logits=_logit(_at_cells(opacity, keep)).astype(np.float32), sh=sh)
+
+
+def _cell_quats(quats: np.ndarray) -> np.ndarray:
+    """CellGeometry.quats for _cells_kernel: [h, w, 4] float64 contiguous, or [1, 1, 4] when every cell has the
+    same one (a pinhole's: a broadcast view, not made into 16 MB of copies)."""
+    if quats.strides[:2] == (0, 0):
+        return np.array(quats[:1, :1], np.float64)          # a writable copy: one signature of the kernel
+    return np.ascontiguousarray(quats, np.float64)
 
 
 def cell_gaussians_reference(grid: Camera, colours: np.ndarray, depth: np.ndarray, opacity: np.ndarray,

@@ -82,6 +82,7 @@ DEFAULT_MAX_GAP_S = 2.0        # a keyframe at least this often, moving or not
 # want both cores, and each keyframe's cells cross a pipe), and a script that starts workers needs the
 # `if __name__ == "__main__":` guard of every multiprocessing program; machines with cores to spare ask for them
 DEFAULT_WORKERS = 0            # 0: keyframes made in this process, one ahead in a thread (_keyframes_made)
+CHUNKS_AHEAD = 2               # keyframes' chunks made at once at the end (_in_order): two cores
 CARVE_WINDOW = 2               # keyframes before and after whose cameras may carve a keyframe's cells
 VOXEL_BASE_M = 0.02            # dedupe_frames: the finest voxel (2 cm); a cell's voxel is the power of two above
 VOXEL_LEVELS = 12              # VOXEL_CELLS x its footprint, up to 2 cm x 2^11 = 41 m
@@ -861,6 +862,12 @@ class _Kept:
     def count(self) -> int:
         return sum(int(s.sum()) for s in self.shared)
 
+    def deduped_all(self) -> None:
+        """The last keyframe is deduped: the voxel owners and the parts' voxel levels go (what is shared and what
+        is each keyframe's own stays)."""
+        self.owners = None
+        self.level = [np.zeros(0, np.int8)] * len(self.level)
+
     def release(self) -> None:
         """Forget every part (its spilled file removed) and the voxel owners: the parts have been drawn."""
         for s in self.store:
@@ -1133,6 +1140,8 @@ def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None,
     coarse_kept.dedupe()
     coarse_parts, coarse_frames = coarse_kept.shared_parts()
     detail_parts, detail_frames = detail_kept.shared_parts()
+    for kept in (detail_kept, coarse_kept):
+        kept.deduped_all()
     n_coarse, n_detail = sum(map(len, coarse_parts)), sum(map(len, detail_parts))
     # one run per keyframe (its model Gaussians, then its cells); Scene puts them in tiles, each tile's keyframes
     # one run each, which a view draws without a copy
@@ -1153,12 +1162,46 @@ def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None,
         rows, centres = own
         return _concat(coarse_kept.own_of(n)), LayerRows(layers.keyframes[n].file, rows[spatial_order(centres)])
 
-    viewpoints = Viewpoints.spilled([[n] for n in range(len(keys))], (chunk(n) for n in range(len(keys))), spill,
-                                    [int(h) for h in heads]) if len(keys) > 1 else None
-    for kept in (detail_kept, coarse_kept):     # every cell is in the scene or a chunk now: their files and maps go
-        kept.release()
-    release_heap()
-    timings["fusion"] = time.perf_counter() - t1
+    def write_chunks() -> Viewpoints | None:
+        out = Viewpoints.spilled([[n] for n in range(len(keys))], _in_order(chunk, len(keys), CHUNKS_AHEAD), spill,
+                                 [int(h) for h in heads]) if len(keys) > 1 else None
+        for kept in (detail_kept, coarse_kept):     # every cell is in the scene or a chunk now: their files and
+            kept.release()                          # maps go
+        release_heap()
+        return out
+
+    # the chunks are written in a thread while this one makes the moving objects, fills the ground under them and
+    # puts the shared Gaussians in tiles (Scene): the keyframes are all made, the two cores are this work's (each
+    # side is mostly numpy and numba, which release the GIL); one after the other where numba's threading layer
+    # cannot run two threads' kernels at once (numba_cache.threadsafe)
+    from concurrent.futures import ThreadPoolExecutor
+
+    with ThreadPoolExecutor(1, thread_name_prefix="xyzcyl-chunks") as pool:
+        written = pool.submit(write_chunks) if threadsafe() else None
+        viewpoints = write_chunks() if written is None else None
+        actors = actors_of(drive, copies, moved, keys)
+        fill_s, fill_counts = None, {}
+        if actors is not None:
+            # the ground under the tracked objects that no keyframe saw: filled, drawn where a view hides or moves one
+            t_f = time.perf_counter()
+            tracked = actors.pose_track < len(moving_tracks(drive))
+            fill, fill_track, filled = fill_under(gauss, [(int(a), T, actors.track_size[a]) for a, T in
+                                                          zip(actors.pose_track[tracked], actors.pose[tracked])],
+                                                  len(actors))
+            if len(fill):
+                actors = replace(actors, fill=fill, fill_track=fill_track)
+            fill_counts = {"ground_filled": len(fill), "ground_filled_m2": round(float(filled.sum()), 2)}
+            fill_s = time.perf_counter() - t_f
+        scene = Scene(gaussians=gauss, background=background, rig=drive.frames[0].rig, model=rec.scene_model(),
+                      actors=actors, keyframe_of=keyframe_of if len(keyframe_of) == len(gauss) else None,
+                      camera_layers=layers, ego_body=found if ego_body else None,
+                      drive=drive_meta(drive, keys))   # tiles: Scene (its __post_init__ reads no chunk)
+        if written is not None:
+            viewpoints = written.result()
+    scene.viewpoints = viewpoints
+    timings["fusion"] = time.perf_counter() - t1 - (fill_s or 0.0)
+    if fill_s is not None:
+        timings["ground_fill"] = fill_s
     timings["total"] = time.perf_counter() - t0
     counts.update({"coarse": n_coarse, "detail": n_detail, "moving_removed": moved_out,
                    "moved_away": int(sum(len(g) for _, g in moved)), "total": len(gauss)})
@@ -1166,26 +1209,10 @@ def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None,
         counts.update({"viewpoints": len(viewpoints), "viewpoint_gaussians": viewpoints.count})
     if layers is not None:
         counts["camera_layer_gaussians"] = layers.count
-    actors = actors_of(drive, copies, moved, keys)
     if actors is not None:
         counts.update({"actors": len(actors), "actor_copies": len(actors.copy_track),
-                       "actor_gaussians": len(actors.gaussians)})
-        # the ground under the tracked objects that no keyframe saw: filled, drawn where a view hides or moves one
-        t_f = time.perf_counter()
-        tracked = actors.pose_track < len(moving_tracks(drive))
-        fill, fill_track, filled = fill_under(gauss, [(int(a), T, actors.track_size[a]) for a, T in
-                                                      zip(actors.pose_track[tracked], actors.pose[tracked])],
-                                              len(actors))
-        if len(fill):
-            actors = replace(actors, fill=fill, fill_track=fill_track)
-        counts.update({"ground_filled": len(fill), "ground_filled_m2": round(float(filled.sum()), 2)})
-        timings["ground_fill"] = time.perf_counter() - t_f
-        timings["total"] += timings["ground_fill"]
-    scene = Scene(gaussians=gauss, background=background, rig=drive.frames[0].rig, model=rec.scene_model(),
-                  counts=counts, timings={key: round(v, 6) for key, v in timings.items()}, actors=actors,
-                  keyframe_of=keyframe_of if len(keyframe_of) == len(gauss) else None, viewpoints=viewpoints,
-                  camera_layers=layers, ego_body=found if ego_body else None,
-                  drive=drive_meta(drive, keys))   # tiles: Scene
+                       "actor_gaussians": len(actors.gaussians), **fill_counts})
+    scene.counts, scene.timings = counts, {key: round(v, 6) for key, v in timings.items()}
     if harmoniser is not None:
         scene.drive["exposure"] = harmoniser.to_json(drive.frames[0].rig.names)
     return scene
@@ -1263,16 +1290,17 @@ def _stereo_sweep(drive: Drive, k: int, masks: dict[str, np.ndarray]):
 
 
 def make_keyframe(rec, drive: Drive, k: int, lidar: bool, stereo: bool, detail, masks: dict[str, np.ndarray],
-                   progress: Callable[[str], None] | None = None):
+                   progress: Callable[[str], None] | None = None, detail_threads: int = 1):
     """Keyframe k up to its fusion (a worker's job): (its LiDAR sweep or None, the runtime.inference.Keyframe,
-    its model Gaussians, detail Gaussians and cell maps moved into the scene's frame, a note for the progress)."""
+    its model Gaussians, detail Gaussians and cell maps moved into the scene's frame, a note for the progress).
+    detail_threads: cameras whose detail is made at once (Reconstructor.keyframe; 1 beside a running fusion)."""
     points, images, note = _sweep(drive, k, lidar), None, ""
     guide, t_s = points, time.perf_counter()
     if points is None and stereo:
         guide, images, note = _stereo_sweep(drive, k, masks)
     t_s = time.perf_counter() - t_s
     kf = rec.keyframe(drive.frames[k].rig, images, progress=progress, lidar=guide, detail=detail, ego_masks=masks,
-                      lidar_is_sweep=points is not None)
+                      lidar_is_sweep=points is not None, detail_threads=detail_threads)
     if stereo and points is None:
         kf.timings["stereo"] = t_s
     kf.app_plane = None                 # baked into kf.background already; not sent back from a worker
@@ -1301,10 +1329,11 @@ def _keyframes_made(rec, drive: Drive, keys: Sequence[int], workers: int, opts: 
     ahead of the one the caller fuses), else in that many worker processes (spawned: no onnxruntime or numba threads
     are forked) with at most ``workers`` keyframes ahead. An error making a keyframe is raised here, the others
     cancelled. ``say``: the stages' progress lines, each led by its frame (here only)."""
-    def make(k: int, led: bool = True):
-        """Keyframe k made here, its progress lines led by its frame (``led``)."""
+    def make(k: int, led: bool = True, threads: int = 1):
+        """Keyframe k made here, its progress lines led by its frame (``led``), ``threads`` cameras at once."""
         return make_keyframe(rec, drive, k, **opts,
-                             progress=(lambda m: say(f"frame {k}: {m}")) if say and led else say)
+                             progress=(lambda m: say(f"frame {k}: {m}")) if say and led else say,
+                             detail_threads=threads)
 
     alone = len(keys) < 2
     if alone or (workers == 0 and not threadsafe()):
@@ -1322,9 +1351,12 @@ def _keyframes_made(rec, drive: Drive, keys: Sequence[int], workers: int, opts: 
         # time (one keyframe's cells more in memory; the service renders from threads the same way)
         from concurrent.futures import ThreadPoolExecutor
 
+        from .inference import DETAIL_THREADS
+
         ahead = ThreadPoolExecutor(1, thread_name_prefix="keyframe")
         try:
-            nxt = ahead.submit(make, keys[0])
+            # the first keyframe with nothing to fuse beside it: its cameras two at a time, as one rig's
+            nxt = ahead.submit(make, keys[0], True, DETAIL_THREADS)
             for i in range(len(keys)):
                 got = nxt.result()
                 if i + 1 < len(keys):
@@ -1462,6 +1494,29 @@ def _by_box(g: Gaussians, inside: np.ndarray, member: np.ndarray, n_boxes: int) 
     idx = idx[np.argsort(member[idx], kind="stable")]
     bounds = np.searchsorted(member[idx], np.arange(n_boxes + 1))
     return [g.subset(idx[bounds[b]:bounds[b + 1]]) for b in range(n_boxes)]
+
+
+def _in_order(make: Callable[[int], Any], count: int, ahead: int):
+    """make(0), make(1), ..., make(count - 1), yielded in order, up to ``ahead`` of them made at once in threads
+    (those not yet yielded: memory stays bounded); where numba's threading layer cannot run two threads' kernels
+    at once (numba_cache.threadsafe), one after the other here."""
+    if ahead < 2 or not threadsafe():
+        yield from (make(i) for i in range(count))
+        return
+    from collections import deque
+    from concurrent.futures import ThreadPoolExecutor
+
+    with ThreadPoolExecutor(ahead, thread_name_prefix="xyzcyl-chunk") as pool:
+        waiting = deque(pool.submit(make, i) for i in range(min(ahead, count)))
+        try:
+            for i in range(count):
+                got = waiting.popleft().result()
+                if i + ahead < count:
+                    waiting.append(pool.submit(make, i + ahead))
+                yield got
+        finally:
+            for f in waiting:
+                f.cancel()
 
 
 def _concat(parts: list[Gaussians]) -> Gaussians:

@@ -44,6 +44,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -71,6 +72,7 @@ RUN_STILL = 0.6             # a column taken from its neighbour: this share of i
 PROFILE_CLOSE = 15          # analysis pixels: the body's top edge is smooth; narrower notches are closed
 RUN_REACH = 0.7             # ... and it must reach this share of the neighbour's height (a curved edge)
 BODY_RANGE_M = 5.0          # a LiDAR return farther than this from the camera is the world (the body is closer)
+EGO_THREADS = 2             # frames read at once (two cores: a frame's decoding beside another's resizing)
 
 
 @dataclass(frozen=True)
@@ -229,18 +231,30 @@ def find_ego_body(cameras: Sequence[Camera], images_of, positions: np.ndarray, p
     grids = {i: cameras[i].resized(ANALYSIS_WIDTH, max(1, round(cameras[i].height * ANALYSIS_WIDTH
                                                                  / cameras[i].width))) for i in searched}
     far = {i: np.zeros((g.height, g.width), bool) for i, g in grids.items()}
-    for f in frames:
+
+    def shrunk(f: int) -> tuple[dict[int, np.ndarray], dict[int, np.ndarray]]:
+        """Frame f's images at the analysis size and the pixels [P, 2] (column, row) where its LiDAR saw beyond
+        BODY_RANGE_M, per searched camera."""
         imgs = images_of(f)
         pts = lidar_of(f) if lidar_of is not None else None
+        out, hits = {}, {}
         for i in searched:
             g = grids[i]
-            small[i].append(cv2.resize(np.asarray(imgs[i], np.float32), (g.width, g.height),
-                                       interpolation=cv2.INTER_AREA))
+            out[i] = cv2.resize(np.asarray(imgs[i], np.float32), (g.width, g.height), interpolation=cv2.INTER_AREA)
             if pts is not None and len(pts):
                 uv, _, front = g.project(pts)
                 ok = front & g.inside(uv) & (np.linalg.norm(pts - g.position, axis=1) > BODY_RANGE_M)
-                ij = np.clip(np.rint(uv[ok]).astype(int), 0, [g.width - 1, g.height - 1])
-                far[i][ij[:, 1], ij[:, 0]] = True
+                hits[i] = np.clip(np.rint(uv[ok]).astype(int), 0, [g.width - 1, g.height - 1])
+        return out, hits
+
+    # two frames at a time: decoding and resizing release the GIL (the drive's keyframes wait for these masks);
+    # map keeps the frames in order
+    with ThreadPoolExecutor(EGO_THREADS) as pool:
+        for out, hits in pool.map(shrunk, frames):
+            for i in searched:
+                small[i].append(out[i])
+                if i in hits:
+                    far[i][hits[i][:, 1], hits[i][:, 0]] = True
     masks, fractions, notes = {}, {}, {}
     for i in searched:
         c, g = cameras[i], grids[i]

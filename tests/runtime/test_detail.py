@@ -331,6 +331,38 @@ def test_densify_does_not_interpolate_across_a_colour_edge():
     assert not densify(np.zeros((h, w), np.float32), img, 200.0, 6.0).any()
 
 
+def test_densify_gives_the_same_bits_from_threads_beside_other_opencv_work():
+    """A keyframe's cameras are made two at a time and a drive's next keyframe beside its fusion's OpenCV work:
+    OpenCV's fast global smoother gave another result when another thread's work held its thread pool (20 of 20
+    calls differed beside a blur); densify runs OpenCV on one thread (one_thread_opencv), the same every time."""
+    import threading
+    from concurrent.futures import ThreadPoolExecutor
+
+    import cv2
+
+    rng = np.random.default_rng(8)
+    img = cv2.GaussianBlur(rng.random((270, 480, 3)).astype(np.float32), (0, 0), 2)
+    sparse = np.where(rng.random((270, 480)) < 0.05, rng.uniform(2.0, 40.0, (270, 480)), 0).astype(np.float32)
+    ref = densify(sparse, img, 200.0, 6.0)
+    big = rng.random((1080, 1920, 3)).astype(np.float32)
+    stop = threading.Event()
+
+    def blur():
+        while not stop.is_set():
+            cv2.GaussianBlur(big, (0, 0), 5)
+
+    other = threading.Thread(target=blur)
+    other.start()
+    try:
+        with ThreadPoolExecutor(2) as pool:
+            got = list(pool.map(lambda _: densify(sparse, img, 200.0, 6.0), range(8)))
+    finally:
+        stop.set()
+        other.join()
+    for d in got:
+        np.testing.assert_array_equal(d, ref)
+
+
 def test_support_mask_marks_cells_near_samples():
     sparse = np.zeros((40, 60), np.float32)
     sparse[20, 10] = 5.0
