@@ -41,12 +41,18 @@ class Command:
 # of Python 3.14's argparse (gh-124823). Python 3.11-3.13 use '^-\d+$|^-\d*\.\d+$', which takes "-1e-05" (how
 # numpy prints poses) for an option: `--cam-to-world ... -1e-05 ...` -> "expected 16 arguments".
 NEGATIVE_NUMBER = re.compile(r"-\.?\d")
+# A scene id that starts with "-" (22 URL-safe characters: 1 id in 64 did, before the service stopped making them;
+# `xyzcyl batch` keys still may) is a value too: `xyzcyl client render -Ab3... --camera X` read it as an unknown
+# option ("the following arguments are required: SCENE_ID"), and "-hAb3..." as -h with an argument. No option of
+# ours has that form (a test holds it).
+SCENE_ID_LIKE = re.compile(r"-[A-Za-z0-9_-]{21}$")
 
 
 class Parser(argparse.ArgumentParser):
     """The parser of every xyzcyl command (sub-parsers inherit the class):
 
-    - negative numbers in any float notation are values (``--forward -2e0``, ``--cam-to-world ... -1e-05 ...``);
+    - negative numbers in any float notation are values (``--forward -2e0``, ``--cam-to-world ... -1e-05 ...``),
+      and so is a scene id that starts with "-" (SCENE_ID_LIKE);
     - ``--opt=V1 V2 ...`` for an option taking several values is read as ``--opt V1 V2 ...`` (argparse gives the
       ``=`` form one value only), so ``--cam-to-world=0 0 1 5 ...`` works as written;
     - an option whose action has ``numbers = N`` (a matrix flag, common/poses.py) takes N numbers
@@ -65,6 +71,13 @@ class Parser(argparse.ArgumentParser):
     def parse_known_args(self, args=None, namespace=None):
         args = list(sys.argv[1:] if args is None else args)
         return super().parse_known_args(self._prepare(args), namespace)
+
+    def _parse_optional(self, arg_string):
+        # a scene id that starts with "-" is a positional value, before argparse tries it as a short option with
+        # its argument attached (-h, -q) or as an unknown option (argparse's own method; no public API)
+        if SCENE_ID_LIKE.match(arg_string) and arg_string not in self._option_string_actions:
+            return None
+        return super()._parse_optional(arg_string)
 
     def add_subparsers(self, **kwargs):
         kwargs.setdefault("parser_class", SubParser)
@@ -149,5 +162,5 @@ def run_command(cmd: Command, argv: list[str]) -> int:
         return 2
 
 
-__all__ = ["NEGATIVE_NUMBER", "Command", "Parser", "SubParser", "command_parser", "is_ours", "missing_dependency",
-           "run_command"]
+__all__ = ["NEGATIVE_NUMBER", "SCENE_ID_LIKE", "Command", "Parser", "SubParser", "command_parser",
+           "is_ours", "missing_dependency", "run_command"]

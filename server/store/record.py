@@ -32,8 +32,12 @@ SCENE_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._:/+=@-]{0,199}$")
 
 
 def new_scene_id() -> str:
-    """22 URL-safe characters, 128 random bits (unguessable, not enumerable)."""
-    return secrets.token_urlsafe(16)
+    """22 URL-safe characters, 128 random bits (unguessable, not enumerable), never starting with "-" (a command
+    line takes such a word for an option: the client's CLI accepts one, other tools may not)."""
+    while True:
+        sid = secrets.token_urlsafe(16)
+        if not sid.startswith("-"):
+            return sid
 
 
 def valid_id(sid: Any) -> bool:

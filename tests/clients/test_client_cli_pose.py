@@ -90,3 +90,54 @@ def test_matrix_errors(sent, tmp_path, capsys, value, message):
     assert rc == 2 and not sent
     lines = err.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("xyzcyl client: --cam-to-world: ") and message in lines[0], err
+
+
+@pytest.mark.parametrize("sid", ["-" + "Ab3_" * 5 + "x", "--" + "Zq9" * 6 + "zz", "-h" + "Ab3_" * 5,
+                                 "-q" + "Ab3_" * 5, "-1" + "Ab3_" * 5])
+def test_a_scene_id_that_starts_with_a_dash_is_the_scene(monkeypatch, tmp_path, capsys, sid):
+    """1 scene id in 64 started with "-" (URL-safe base64): `xyzcyl client render -Ab3...` took it for an unknown
+    option and refused with "the following arguments are required: SCENE_ID", "-hAb3..." for -h with an argument
+    (common.command.SCENE_ID_LIKE)."""
+    from xyzcyl import cli
+
+    paths = []
+    real = httpx.Client
+
+    def handler(request):
+        paths.append(request.url.path)
+        return httpx.Response(200, content=PNG, headers={"content-type": "image/png"})
+
+    monkeypatch.setattr(httpx, "Client", lambda **kw: real(transport=httpx.MockTransport(handler), **kw))
+    monkeypatch.delenv("XYZCYL_API_KEY", raising=False)
+    assert len(sid) == 22
+    rc = cli.main(["client", "render", sid, "--server", "http://test", "--quiet", "--camera", "CAM_FRONT",
+                   "--width", "80", "--out", str(tmp_path / "v.png")])
+    assert rc == 0, capsys.readouterr().err
+    assert paths and f"/{sid}/" in paths[-1]
+
+
+def test_no_option_of_a_command_looks_like_a_scene_id():
+    """A scene id that starts with "-" is a value wherever it stands (common.command.SCENE_ID_LIKE): an option of that
+    form would be one a user could not abbreviate, and a negative-number-like option would make argparse take every
+    negative number for an option in its parser."""
+    import argparse
+
+    from xyzcyl.cli import COMMANDS
+    from xyzcyl.common.command import NEGATIVE_NUMBER, SCENE_ID_LIKE, command_parser
+
+    seen = []
+
+    def walk(parser):
+        for a in parser._actions:
+            seen.extend(a.option_strings)
+            if isinstance(a, argparse._SubParsersAction):
+                for sub in a.choices.values():
+                    walk(sub)
+
+    for cmd in COMMANDS:
+        try:
+            walk(command_parser(cmd)[0])
+        except ModuleNotFoundError:      # an extra not installed here: its options are not checked
+            continue
+    assert len(seen) > 300
+    assert [o for o in seen if SCENE_ID_LIKE.match(o) or NEGATIVE_NUMBER.match(o)] == []
