@@ -1259,17 +1259,18 @@ class CarveCameras:
     off: np.ndarray        # [C] int64: where its maps start in the flat arrays
     depth: np.ndarray      # [sum h w] float32: the cell maps' depths, camera after camera, row-major
     conf: np.ndarray       # [sum h w] int8
-    image: np.ndarray      # [sum h w, 3] uint8: their colours (zeros for a camera without)
+    image: np.ndarray      # [sum h w, 3] uint8: their colours (zeros for a camera without; [0, 3] without images)
     has_image: np.ndarray  # [C] bool
 
     @classmethod
-    def of(cls, details: Sequence[CameraDetail]) -> CarveCameras:
+    def of(cls, details: Sequence[CameraDetail], images: bool = True) -> CarveCameras:
+        """``details`` stacked; ``images``: their colours too (the colour test's; False: no camera has one)."""
         pin = tuple(d for d in details if d.grid.is_ideal)
         sizes = np.array([d.depth.size for d in pin], np.int64)
         off = np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.int64) if len(pin) else np.zeros(0, np.int64)
-        image = np.zeros((int(sizes.sum()), 3), np.uint8)
+        image = np.zeros((int(sizes.sum()) if images else 0, 3), np.uint8)
         for d, o in zip(pin, off):
-            if d.colours is not None:
+            if images and d.colours is not None:
                 image[o:o + d.depth.size] = d.colours.reshape(-1, 3)
         return cls(pin, tuple(d for d in details if not d.grid.is_ideal),
                    np.array([d.grid.rotation.T for d in pin], np.float64).reshape(-1, 3, 3),
@@ -1279,7 +1280,7 @@ class CarveCameras:
                    np.array([d.depth.shape for d in pin], np.int64).reshape(-1, 2), off,
                    np.concatenate([d.depth.ravel() for d in pin]) if pin else np.zeros(0, np.float32),
                    np.concatenate([d.conf.ravel() for d in pin]) if pin else np.zeros(0, np.int8), image,
-                   np.array([d.colours is not None for d in pin], bool))
+                   np.array([images and d.colours is not None for d in pin], bool))
 
 
 def carve_details(details: list[CameraDetail], tolerance: float, dedupe: float = 1.0,
@@ -1295,7 +1296,7 @@ def carve_details(details: list[CameraDetail], tolerance: float, dedupe: float =
     A cell dropped by one camera is not tested against the next (the order does not matter: the tests are
     independent of each other)."""
     out = []
-    stack = CarveCameras.of(details)
+    stack = CarveCameras.of(details, images=photo is not None)
     for dj in details:
         keep = np.ones(len(dj.means), bool)
         if len(dj.means):

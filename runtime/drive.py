@@ -55,7 +55,9 @@ import shutil
 import sys
 import tempfile
 import time
+from collections import deque
 from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -1174,8 +1176,6 @@ def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None,
     # puts the shared Gaussians in tiles (Scene): the keyframes are all made, the two cores are this work's (each
     # side is mostly numpy and numba, which release the GIL); one after the other where numba's threading layer
     # cannot run two threads' kernels at once (numba_cache.threadsafe)
-    from concurrent.futures import ThreadPoolExecutor
-
     with ThreadPoolExecutor(1, thread_name_prefix="xyzcyl-chunks") as pool:
         written = pool.submit(write_chunks) if threadsafe() else None
         viewpoints = write_chunks() if written is None else None
@@ -1349,8 +1349,6 @@ def _keyframes_made(rec, drive: Drive, keys: Sequence[int], workers: int, opts: 
         # the next keyframe is made while the caller fuses this one: onnxruntime, the numba kernels and numpy's big
         # operations release the GIL, and a keyframe's making and its fusion each leave a core idle part of the
         # time (one keyframe's cells more in memory; the service renders from threads the same way)
-        from concurrent.futures import ThreadPoolExecutor
-
         from .inference import DETAIL_THREADS
 
         ahead = ThreadPoolExecutor(1, thread_name_prefix="keyframe")
@@ -1503,9 +1501,6 @@ def _in_order(make: Callable[[int], Any], count: int, ahead: int):
     if ahead < 2 or not threadsafe():
         yield from (make(i) for i in range(count))
         return
-    from collections import deque
-    from concurrent.futures import ThreadPoolExecutor
-
     with ThreadPoolExecutor(ahead, thread_name_prefix="xyzcyl-chunk") as pool:
         waiting = deque(pool.submit(make, i) for i in range(min(ahead, count)))
         try:
