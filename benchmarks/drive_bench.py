@@ -8,9 +8,14 @@ per case:
 - ``render``: the scene seen by each input camera of the keyframes at 10 places along the drive, at 1920x1080, at the
   keyframe's time and halfway to the next (Scene.render, what `xyzcyl render` and the service draw): median, max;
   after the file system's dirty pages are written (os.sync: the scene was written just before).
+- ``sequence``: what a simulator replaying the drive asks: the six input cameras at every frame, in time order, at
+  the frame's time (1920x1080): median, p90, p99, max, views over 0.6 s and the loop's seconds. A view whose primary
+  keyframe changed reads that keyframe's viewpoint chunk (runtime.viewpoints): the spikes are those reads.
+
+With ``--cases render,sequence`` a scene already in WORK/now (and WORK/baseline) is drawn again without rebuilding it.
 
     .venv/bin/python benchmarks/drive_bench.py [--drive D] [--every 2] [--work /tmp/xyzcyl-drive-bench]
-        [--threads 2] [--workers N] [--baseline DIR]
+        [--threads 2] [--workers N] [--baseline DIR] [--cases reconstruct,render,sequence]
 
 With --baseline DIR (DIR/xyzcyl: an older tree, e.g. `git archive <commit> | tar -x -C DIR/xyzcyl`), both cases run
 again with that tree right after, and a ``ratio`` line gives baseline / now.
@@ -27,6 +32,7 @@ import tempfile
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
+CASES = ("reconstruct", "render", "sequence")
 DEFAULT_DRIVE = HERE.parent.parent / "shared" / "data" / "real" / "pandaset_002_drive" / "drive.json"
 
 CHILD = r"""
@@ -62,14 +68,27 @@ else:
             c = dataclasses.replace(cam, cam_to_ego=T @ np.asarray(cam.cam_to_ego))
             cams.append(c if (c.width, c.height) == (1920, 1080) else c.resized(1920, 1080))
             times.append(0.5 * (d.frames[k].timestamp_s + t_next))
+    if case == "sequence":          # every frame's six cameras in time order, at the frame's time
+        cams, times = [], []
+        for f in range(len(d)):
+            T = d.relative(f)
+            for cam in d.frames[f].rig.cameras:
+                c = dataclasses.replace(cam, cam_to_ego=T @ np.asarray(cam.cam_to_ego))
+                cams.append(c if (c.width, c.height) == (1920, 1080) else c.resized(1920, 1080))
+                times.append(d.frames[f].timestamp_s)
     scene.render(cams[0], time_s=times[0])          # warm-up: kernels loaded, chunks read
+    t_all = time.perf_counter()
     ts = []
     for c, t in zip(cams, times):
         t0 = time.perf_counter()
         scene.render(c, time_s=t)
         ts.append(time.perf_counter() - t0)
-    r = {"case": "render", "views": len(ts), "width": 1920, "height": 1080,
+    r = {"case": case, "views": len(ts), "width": 1920, "height": 1080,
          "median_s": round(statistics.median(ts), 4), "max_s": round(max(ts), 4), "min_s": round(min(ts), 4)}
+    if case == "sequence":
+        q = np.percentile(ts, [90, 99])
+        r |= {"p90_s": round(float(q[0]), 4), "p99_s": round(float(q[1]), 4),
+              "over_0_6_s": sum(t > 0.6 for t in ts), "loop_s": round(time.perf_counter() - t_all, 2)}
 r["peak_rss_gb"] = round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6, 2)
 print(json.dumps(r))
 """
@@ -98,7 +117,15 @@ def main() -> None:
     ap.add_argument("--workers", type=int, default=None,
                     help="keyframe worker processes (default: the runtime's; not passed to --baseline)")
     ap.add_argument("--baseline", type=Path, default=None, help="DIR with an older tree in DIR/xyzcyl")
+    ap.add_argument("--cases", default="reconstruct,render,sequence",
+                    help="comma-separated, in this order: reconstruct (writes WORK/now, WORK/baseline), render, "
+                         "sequence (default: all three)")
     args = ap.parse_args()
+    cases = [c.strip() for c in args.cases.split(",") if c.strip()]
+    unknown = sorted(set(cases) - set(CASES))
+    if unknown or not cases:
+        raise SystemExit(f"--cases: {', '.join(unknown) or 'none given'}; choose from {', '.join(CASES)}")
+    cases = [c for c in CASES if c in cases]
     if not args.drive.exists():
         raise SystemExit(f"no drive at {args.drive} (--drive)")
     trees: list[tuple[str, Path | None]] = [("now", None)]
@@ -107,8 +134,10 @@ def main() -> None:
     results = {}
     for name, tree in trees:
         out = args.work / name
-        for case in ("reconstruct", "render"):
-            if case == "render":
+        if "reconstruct" not in cases and not (out / "scene.json").is_file():
+            raise SystemExit(f"--cases without reconstruct: no scene in {out}")
+        for case in cases:
+            if case != "reconstruct":
                 # the scene just written (~9 GB for 20 keyframes) flushed to disk first: the kernel's writeback of
                 # it made the views 0.61 s instead of 0.48-0.50 (docs/results.md "Drives: camera layers")
                 os.sync()
@@ -117,11 +146,11 @@ def main() -> None:
             results[(name, case)] = r
             print(json.dumps(r), flush=True)
     if args.baseline is not None:
-        ratio = {"case": "ratio", "what": "baseline / now",
-                 "reconstruct_s": round(results[("baseline", "reconstruct")]["seconds"]
-                                        / results[("now", "reconstruct")]["seconds"], 2),
-                 "render_median_s": round(results[("baseline", "render")]["median_s"]
-                                          / results[("now", "render")]["median_s"], 2)}
+        ratio = {"case": "ratio", "what": "baseline / now"}
+        for case, key in (("reconstruct", "seconds"), ("render", "median_s"), ("sequence", "median_s"),
+                          ("sequence", "p99_s"), ("sequence", "max_s"), ("sequence", "loop_s")):
+            if case in cases:
+                ratio[f"{case}_{key}"] = round(results[("baseline", case)][key] / results[("now", case)][key], 2)
         print(json.dumps(ratio), flush=True)
 
 

@@ -318,10 +318,7 @@ class Viewpoints:
                 if rows.shape != (c.layer_count,):
                     raise GaussianError("rows", f"{c.rows!r} holds {rows.shape} rows, scene.json says "
                                                 f"{c.layer_count}")
-                from .detail import concat_gaussians
-
-                parts = [p for p in (g, Gaussians.load_ply_take(self._folder / c.layer, rows)) if len(p)]
-                g = concat_gaussians(parts) if len(parts) > 1 else (parts or [g])[0]
+                g = Gaussians.load_ply_take(self._folder / c.layer, rows, head=g)     # g's rows first
         except (GaussianError, OSError, ValueError) as e:
             raise ViewpointError("viewpoints", f"chunk {c.file!r}: {e}", f"scene {str(self._folder)!r}") from None
         if len(g) != c.count:

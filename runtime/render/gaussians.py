@@ -248,21 +248,26 @@ class Gaussians:
         n, dtype, header_len = ply_rows_layout(path, check_body=False)
         if not 0 <= start <= stop <= n:
             raise GaussianError("element vertex", f"rows {start}..{stop} outside the file's {n} vertices", where)
-        # read into a writable array (np.frombuffer of bytes is read-only: another signature of the numba reader,
-        # compiled on a drive's first view in a service warmed up on a one-rig scene)
-        raw = np.empty(stop - start, dtype)
-        with open(path, "rb") as f:
-            f.seek(header_len + start * dtype.itemsize)
-            got = f.readinto(memoryview(raw).cast("B"))
-        if got != raw.nbytes:
+        if stop == start:
+            return cls._from_vertices(np.zeros(0, dtype), where)
+        if path.stat().st_size < header_len + stop * dtype.itemsize:
             raise GaussianError("body", f"truncated: rows {start}..{stop} end past the file's end", where)
-        return cls._from_vertices(raw, where)
+        # the rows through a copy-on-write map of the file (load_ply_take: no fresh copy of them to fault in; a
+        # writable array: np.frombuffer of bytes is read-only, another signature of the numba reader, compiled on
+        # a drive's first view in a service warmed up on a one-rig scene)
+        try:
+            raw = np.memmap(path, dtype, mode="c", offset=header_len + start * dtype.itemsize, shape=(stop - start,))
+        except (ValueError, OSError) as exc:    # cut short since its size was read
+            raise GaussianError("body", f"truncated: {exc}", where) from None
+        return cls._from_vertices(np.asarray(raw), where)
 
     @classmethod
-    def load_ply_take(cls, path: str | os.PathLike, rows: np.ndarray) -> Gaussians:
+    def load_ply_take(cls, path: str | os.PathLike, rows: np.ndarray, head: Gaussians | None = None) -> Gaussians:
         """Vertices ``rows`` ([M] integers, in that order, repeats allowed) of a binary little-endian 3DGS PLY
         (load_ply's checks on them), read through a map of the file: a drive's viewpoint chunk is rows of its
-        keyframe's camera layers (runtime.viewpoints). GaussianError "rows" for a row outside the file."""
+        keyframe's camera layers (runtime.viewpoints). GaussianError "rows" for a row outside the file. ``head``:
+        Gaussians put before them (the chunk's own; the result is their concatenation, runtime.detail
+        .concat_gaussians), written into the same arrays when their SH degree is the file's."""
         path = Path(path)
         where = _ply_where(path)
         n, dtype, header_len = ply_rows_layout(path)
@@ -272,25 +277,43 @@ class Gaussians:
         if rows.size and (int(rows.min()) < 0 or int(rows.max()) >= n):
             raise GaussianError("rows", f"rows {int(rows.min())}..{int(rows.max())} outside the file's {n} vertices",
                                 where)
-        if n == 0:
-            return cls._from_vertices(np.zeros(0, dtype), where)
         rows = rows.astype(np.intp, copy=False)
         p = len(dtype.names or ())
-        if dtype.itemsize == 4 * p and all(dtype.fields[k][0] == np.dtype("<f4") for k in dtype.names):
-            # packed float32 records (what save_ply writes): the file read in one pass and its rows taken as a
-            # [n, P] block (3.4 M rows of a 3.7 M-row camera layer: 0.1 s; through a map of the records, 0.4-0.7)
-            block = np.fromfile(path, "<f4", count=n * p, offset=header_len)
-            if block.size != n * p:
-                raise GaussianError("body", f"truncated: {block.size // p} of {n} rows", where)
-            return cls._from_vertices(block.view(dtype).reshape(-1), where, rows)
-        body = np.memmap(path, dtype, mode="r", offset=header_len, shape=(n,))
-        return cls._from_vertices(body[rows], where)
+        names = dtype.names or ()
+        packed = n > 0 and dtype.itemsize == 4 * p and all(dtype.fields[k][0] == np.dtype("<f4") for k in names)
+        degree = _n_rest_to_degree(sum(1 for k in names if k.startswith("f_rest_"))) or 0
+        # head's rows written into the result's arrays by the unpacking (one allocation, no concatenation after)
+        fused = packed and head is not None and len(head) > 0 and head.sh.shape[1] == (degree + 1) ** 2
+        if packed:
+            # packed float32 records (what save_ply writes): the rows taken from a [n, P] map of the records by the
+            # unpacking kernel, straight into the result. Not read into memory first: in a service that has drawn a
+            # while, a fresh 250 MB block cost 0.3-0.65 s of page faults (huge pages compacted) where the file's own
+            # cached pages cost none; copy-on-write: a writable array, the kernel's one signature. (Through a map of
+            # the structured records, 0.4-0.7 s.)
+            try:
+                block = np.memmap(path, "<f4", mode="c", offset=header_len, shape=(n * p,))
+            except (ValueError, OSError) as exc:    # shorter than its header says (changed since checked)
+                raise GaussianError("body", f"truncated: {exc}", where) from None
+            taken = cls._from_vertices(np.asarray(block).view(dtype).reshape(-1), where, rows, head if fused else None)
+        elif n == 0:
+            taken = cls._from_vertices(np.zeros(0, dtype), where)
+        else:
+            body = np.memmap(path, dtype, mode="r", offset=header_len, shape=(n,))
+            taken = cls._from_vertices(body[rows], where)
+        if fused or head is None or not len(head):
+            return taken
+        # other SH degrees (the lower padded), or records not packed: concatenated
+        from ..detail import concat_gaussians
+
+        return concat_gaussians([head, taken]) if len(taken) else head
 
     @classmethod
-    def _from_vertices(cls, vert: np.ndarray, where: str, rows: np.ndarray | None = None) -> Gaussians:
+    def _from_vertices(cls, vert: np.ndarray, where: str, rows: np.ndarray | None = None,
+                       head: Gaussians | None = None) -> Gaussians:
         """Gaussians from a PLY's vertex records [N] (structured: the 3DGS properties by name), checked
         (GaussianError naming the property or field, at ``where``); ``rows`` ([M] in 0..N-1, checked by the caller):
-        those records, in that order (None: all)."""
+        those records, in that order (None: all); ``head``: Gaussians of the records' SH degree put before them, in
+        the same arrays (load_ply_take; packed float32 records only)."""
         names = set(vert.dtype.names or ())
         required = ["x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity",
                     "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
@@ -313,7 +336,9 @@ class Gaussians:
             # packed float32 records (what save_ply writes; plyfile's too): one pass that takes the rows, splits
             # them into the fields and counts what the checks count (numpy: a strided copy a column group, a take,
             # the checks twice: 0.9 s of a 3 M-row drive chunk)
-            return _unpacked(vert.view("<f4").reshape(len(vert), len(order)), order, k, rows, where)
+            return _unpacked(vert.view("<f4").reshape(len(vert), len(order)), order, k, rows, where, head)
+        if head is not None:
+            raise ValueError("head: only with packed float32 records")
         if rows is not None:
             vert = vert[rows]
         n = len(vert)
@@ -520,17 +545,23 @@ def ply_columns(order: Sequence[str], k: int) -> np.ndarray:
     return np.array([at[p] for p in names], np.int64)
 
 
-def _unpacked(block: np.ndarray, order: Sequence[str], k: int, rows: np.ndarray | None, where: str) -> Gaussians:
+def _unpacked(block: np.ndarray, order: Sequence[str], k: int, rows: np.ndarray | None, where: str,
+              head: Gaussians | None = None) -> Gaussians:
     """Gaussians of a PLY's packed float32 records ``block`` [N, P] (properties ``order``; rows ``rows`` or all),
     k SH coefficients, by _unpack_kernel; GaussianError naming the field that holds non-finite values (their
-    count) or zero quaternions, as the Gaussians' own checks do."""
+    count) or zero quaternions, as the Gaussians' own checks do. ``head`` (k SH coefficients too): checked
+    Gaussians copied in front, in the same arrays."""
     m = len(block) if rows is None else len(rows)
+    h = 0 if head is None else len(head)
     take = np.zeros(0, np.int64) if rows is None else np.ascontiguousarray(rows, np.int64)    # one signature
-    out = dict(means=np.empty((m, 3), np.float32), quats=np.empty((m, 4), np.float32),
-               log_scales=np.empty((m, 3), np.float32), opacity_logits=np.empty(m, np.float32),
-               sh=np.empty((m, k, 3), np.float32))
-    bad = _unpack_kernel(block, take, rows is not None, ply_columns(order, k), out["means"], out["quats"],
-                         out["log_scales"], out["opacity_logits"], out["sh"].reshape(m, 3 * k))
+    out = dict(means=np.empty((h + m, 3), np.float32), quats=np.empty((h + m, 4), np.float32),
+               log_scales=np.empty((h + m, 3), np.float32), opacity_logits=np.empty(h + m, np.float32),
+               sh=np.empty((h + m, k, 3), np.float32))
+    if h:
+        for name, dst in out.items():
+            dst[:h] = getattr(head, name)
+    bad = _unpack_kernel(block, take, rows is not None, ply_columns(order, k), out["means"][h:], out["quats"][h:],
+                         out["log_scales"][h:], out["opacity_logits"][h:], out["sh"][h:].reshape(m, 3 * k))
     for name, count in zip(FIELDS, bad[:5]):
         if count:
             raise GaussianError(name, f"{int(count)} non-finite values", where)

@@ -74,3 +74,35 @@ def test_bad_records_are_refused_as_by_the_numpy_path(field, column, value, mess
     # a bad record not taken is not read
     rows = np.delete(np.arange(len(vert)), 17)
     assert len(Gaussians._from_vertices(vert, "test", rows)) == len(vert) - 1
+
+
+@pytest.mark.parametrize("head_degree,file_degree,n_head", [(1, 1, 300), (0, 0, 1), (2, 1, 40), (0, 3, 25), (1, 1, 0)])
+def test_take_with_a_head_is_the_head_then_the_rows(tmp_path, head_degree, file_degree, n_head):
+    """load_ply_take(head=...) (a drive's viewpoint chunk: its own Gaussians, then rows of its camera layers, read
+    in one set of arrays) is concat_gaussians([head, the rows]) bit for bit, also where the SH degrees differ (the
+    lower padded with zeros) and with an empty head."""
+    from xyzcyl.runtime.detail import concat_gaussians
+
+    rng = np.random.default_rng(5 + head_degree + 7 * file_degree)
+    g = _gaussians(rng, 4000, file_degree)
+    path = tmp_path / "layer.ply"
+    g.save_ply(path)
+    head = _gaussians(rng, n_head, head_degree)
+    rows = rng.permutation(len(g))[:2500]
+    got = Gaussians.load_ply_take(path, rows, head=head)
+    want = concat_gaussians([p for p in (head, g.subset(rows)) if len(p)])
+    _same(got, want)
+    assert len(got) == n_head + 2500
+
+
+def test_take_from_a_cut_file_is_refused(tmp_path):
+    """A camera layer cut short after it was checked: a GaussianError naming the body, not a crash."""
+    rng = np.random.default_rng(2)
+    g = _gaussians(rng, 1000, 0)
+    path = tmp_path / "layer.ply"
+    g.save_ply(path)
+    data = path.read_bytes()
+    path.write_bytes(data[: len(data) - 68 * 10])
+    with pytest.raises(GaussianError) as e:
+        Gaussians.load_ply_take(path, np.arange(5))
+    assert e.value.field in ("body", "element vertex")
