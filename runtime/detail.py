@@ -51,7 +51,7 @@ from .errors import FieldError, plain
 from .imageio import LUMA_BT601
 from .numba_cache import njit
 from .render import Gaussians
-from .render.gaussians import SH_C0, put_rows
+from .render.gaussians import SH_C0, concat_gaussians, concat_gaussians_reference
 from .rotations import quat_to_rotmat, rotmat_to_quat, rotmats_to_quats
 
 
@@ -782,46 +782,6 @@ def cell_gaussians_reference(grid: Camera, colours: np.ndarray, depth: np.ndarra
     return Gaussians(means=means.astype(np.float32), quats=np.ascontiguousarray(quat, np.float32),
                      log_scales=log_s.astype(np.float32), opacity_logits=_logit(opacity[ys, xs]).astype(np.float32),
                      sh=sh)
-
-
-def concat_gaussians(parts: list[Gaussians], masks: list[np.ndarray | None] | None = None) -> Gaussians:
-    """The Gaussians of ``parts`` in order, each restricted to its boolean mask ([N_i] or None = all): one copy of
-    each field, written in place: a masked part's rows by one parallel pass a field (np.compress of [N, 3] rows took
-    0.16 s of a PandaSet frame's fusion), a whole part by one block copy; the highest SH degree, lower-degree parts
-    padded with zeros. concat_gaussians_reference is its numpy definition (tested: the same bits)."""
-    masks = masks if masks is not None else [None] * len(parts)
-    deg = max(p.sh_degree for p in parts)
-    n_sh = (deg + 1) ** 2
-    rows = [None if m is None else np.flatnonzero(m) for m in masks]
-    sizes = [len(p) if r is None else len(r) for p, r in zip(parts, rows)]
-    total = sum(sizes)
-    out = {name: np.empty((total, *getattr(parts[0], name).shape[1:]), np.float32)
-           for name in ("means", "quats", "log_scales", "opacity_logits")}
-    out["sh"] = np.empty((total, n_sh, 3), np.float32)
-    at = 0
-    for p, r, n in zip(parts, rows, sizes):
-        if n:
-            for name, dst in out.items():
-                a = getattr(p, name)
-                a2, d2 = np.asarray(a, np.float32).reshape(len(a), -1), dst.reshape(total, -1)
-                if r is not None:
-                    put_rows(a2, r, d2, at)
-                else:                       # a whole part: one block copy (numpy's is as fast as memory)
-                    d2[at:at + n, :a2.shape[1]] = a2
-                    d2[at:at + n, a2.shape[1]:] = 0
-        at += n
-    return Gaussians.joined(**out)          # rows of checked Gaussians: not checked again
-
-
-def concat_gaussians_reference(parts: list[Gaussians], masks: list[np.ndarray | None] | None = None) -> Gaussians:
-    """concat_gaussians in numpy: each part's masked rows, the SH padded with zeros to the highest degree."""
-    masks = masks if masks is not None else [None] * len(parts)
-    n_sh = (max(p.sh_degree for p in parts) + 1) ** 2
-    taken = [p if m is None else p.subset(np.asarray(m, bool)) for p, m in zip(parts, masks)]
-    sh = [np.concatenate([t.sh, np.zeros((len(t), n_sh - t.sh.shape[1], 3), np.float32)], axis=1) for t in taken]
-    return Gaussians.joined(**{name: np.concatenate([np.asarray(getattr(t, name), np.float32) for t in taken])
-                               for name in ("means", "quats", "log_scales", "opacity_logits")},
-                            sh=np.concatenate(sh))
 
 
 @dataclass(frozen=True, eq=False)

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from render_scenes import random_gaussians
 from xyzcyl.runtime.render import GaussianError, Gaussians
-from xyzcyl.runtime.render.gaussians import FIELDS
+from xyzcyl.runtime.render.gaussians import FIELDS, concat_gaussians
 
 
 def _gaussians(rng, n: int, degree: int) -> Gaussians:
@@ -81,8 +81,6 @@ def test_take_with_a_head_is_the_head_then_the_rows(tmp_path, head_degree, file_
     """load_ply_take(head=...) (a drive's viewpoint chunk: its own Gaussians, then rows of its camera layers, read
     in one set of arrays) is concat_gaussians([head, the rows]) bit for bit, also where the SH degrees differ (the
     lower padded with zeros) and with an empty head."""
-    from xyzcyl.runtime.detail import concat_gaussians
-
     rng = np.random.default_rng(5 + head_degree + 7 * file_degree)
     g = _gaussians(rng, 4000, file_degree)
     path = tmp_path / "layer.ply"
