@@ -201,3 +201,22 @@ def test_covered_tiles_of_an_equirect_view_across_its_seam():
         np.testing.assert_array_equal(culled[4][culled[2][culled[1][t]:culled[1][t + 1]]],
                                       whole[4][whole[2][whole[1][t]:whole[1][t + 1]]])
     assert len(culled[2]) < len(whole[2])
+
+
+def test_a_render_without_background_shares_one_black_image_and_draws_as_with_black():
+    """background=None: one [H, W, 3] zeros per size shared by the renders (core._black; a drive view's layers draw
+    with none), never written, and the same pixels as an explicit black; a later layer's check that the one in
+    front had no background still refuses one that had."""
+    rng = np.random.default_rng(4)
+    g = random_gaussians(rng, 400)
+    cam = pinhole(width=83, height=61)
+    a, b = render(g, cam), render(g, cam, background=(0.0, 0.0, 0.0))
+    for x, y in ((a.rgb, b.rgb), (a.alpha, b.alpha), (a.depth, b.depth)):
+        np.testing.assert_array_equal(x, y)
+    c = render(g, cam)
+    assert c.state.bg is a.state.bg and not a.state.bg.any()
+    assert render(g, pinhole(width=84, height=61)).state.bg is not a.state.bg
+    behind = render(g, cam, behind=c, behind_inplace=True)       # behind a shared black one: allowed
+    assert behind.rgb is c.rgb and not a.state.bg.any()          # drawn into c's arrays; the black image untouched
+    with pytest.raises(ValueError, match="no background"):
+        render(g, cam, behind=render(g, cam, background=(0.5, 0.5, 0.5)))
