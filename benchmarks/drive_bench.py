@@ -60,22 +60,18 @@ if case == "reconstruct":
          "timings": scene.timings}
 else:
     scene = Scene.load(out)
+    if case == "sequence":          # every frame's six cameras in time order, at the frame's time
+        places = [(f, d.frames[f].timestamp_s) for f in range(len(d))]
+    else:                           # 10 keyframes, halfway to the next keyframe's time
+        places = [(k, 0.5 * (d.frames[k].timestamp_s + d.frames[min(k + every, len(d) - 1)].timestamp_s))
+                  for k in keys[:: max(1, len(keys) // 10)]]
     cams, times = [], []
-    for k in keys[:: max(1, len(keys) // 10)]:
-        T = d.relative(k)
-        t_next = d.frames[min(k + every, len(d) - 1)].timestamp_s
-        for cam in d.frames[k].rig.cameras:
+    for f, t in places:
+        T = d.relative(f)
+        for cam in d.frames[f].rig.cameras:
             c = dataclasses.replace(cam, cam_to_ego=T @ np.asarray(cam.cam_to_ego))
             cams.append(c if (c.width, c.height) == (1920, 1080) else c.resized(1920, 1080))
-            times.append(0.5 * (d.frames[k].timestamp_s + t_next))
-    if case == "sequence":          # every frame's six cameras in time order, at the frame's time
-        cams, times = [], []
-        for f in range(len(d)):
-            T = d.relative(f)
-            for cam in d.frames[f].rig.cameras:
-                c = dataclasses.replace(cam, cam_to_ego=T @ np.asarray(cam.cam_to_ego))
-                cams.append(c if (c.width, c.height) == (1920, 1080) else c.resized(1920, 1080))
-                times.append(d.frames[f].timestamp_s)
+            times.append(t)
     scene.render(cams[0], time_s=times[0])          # warm-up: kernels loaded, chunks read
     t_all = time.perf_counter()
     ts = []

@@ -266,8 +266,8 @@ class Gaussians:
         """Vertices ``rows`` ([M] integers, in that order, repeats allowed) of a binary little-endian 3DGS PLY
         (load_ply's checks on them), read through a map of the file: a drive's viewpoint chunk is rows of its
         keyframe's camera layers (runtime.viewpoints). GaussianError "rows" for a row outside the file. ``head``:
-        Gaussians put before them (the chunk's own; the result is their concatenation, runtime.detail
-        .concat_gaussians), written into the same arrays when their SH degree is the file's."""
+        Gaussians put before them (the chunk's own; the result is their concatenation, concat_gaussians), written
+        into the same arrays when their SH degree is the file's."""
         path = Path(path)
         where = _ply_where(path)
         n, dtype, header_len = ply_rows_layout(path)
