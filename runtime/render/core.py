@@ -36,6 +36,9 @@ class _State:
     timings: dict         # seconds per stage: project, sort_bin, raster
     row_evals: np.ndarray  # [ntiles] int64 16-pixel rows the raster evaluated per tile (16 Gaussian-pixel each)
     resumed: bool = False  # drawn behind an earlier result (render's behind): no backward pass
+    # [ntiles] bool: the tiles a render drawn behind another with cover left finished (alpha 1 throughout: render's
+    # cover), which a render behind this one leaves as they are; None: none finished
+    finished: np.ndarray | None = None
 
 
 def _read_only(a: np.ndarray) -> np.ndarray:
@@ -208,11 +211,16 @@ def _prepare(g: Gaussians | Sequence[Gaussians], camera, opts: RenderOptions, cu
         sat = np.zeros((nty + 1, ntx + 1), np.int64)
         sat[1:, 1:] = np.cumsum(np.cumsum(~covered.reshape(nty, ntx), axis=0), axis=1)
     pre = np.zeros(nch, np.int64)
+    # each Gaussian's pre-cull verdict (precull_counts), read by the projection instead of testing it again
+    keep = _scratch("keep", (sum(len(p) for p in parts),), np.uint8)
+    offset = 0
     for p, a, b in zip(parts, ch0[:-1], ch0[1:]):
         if b > a:
             # pass 1: an upper bound of the visible Gaussians per chunk, so the outputs are allocated to fit (a
             # slot per Gaussian made the kernel zero up to 64 bytes x N of fresh huge pages per render)
-            K.precull_counts(model)(_c(p.means), _c(p.log_scales), cam, ptab, planes, sat, pre[a:b])
+            K.precull_counts(model)(_c(p.means), _c(p.log_scales), cam, ptab, planes, sat, pre[a:b],
+                                    keep[offset:offset + len(p)])
+        offset += len(p)
     base = np.zeros(nch, np.int64)
     np.cumsum(pre[:-1], out=base[1:])
     m = int(pre.sum())
@@ -226,8 +234,9 @@ def _prepare(g: Gaussians | Sequence[Gaussians], camera, opts: RenderOptions, cu
     for p, a, b in zip(parts, ch0[:-1], ch0[1:]):
         if b > a and pre[a:b].any():
             K.project_kernel(model)(_c(p.means), _c(p.quats), _c(p.log_scales), _c(p.opacity_logits), _c(p.sh),
-                                    campos, cam, ptab, sat, bool(opts.antialiased), opts.radius_mode == "opacity",
-                                    pre[a:b], base[a:b], rows, trange, dep, gid, counts[a:b])
+                                    campos, cam, ptab, keep[offset:offset + len(p)], bool(opts.antialiased),
+                                    opts.radius_mode == "opacity", pre[a:b], base[a:b], rows, trange, dep, gid,
+                                    counts[a:b])
             if offset:                  # the part's own indices -> indices in the concatenation
                 K.offset_slots(gid, counts[a:b], base[a:b], offset)
         offset += len(p)
@@ -276,8 +285,11 @@ def render(gaussians: Gaussians | Sequence[Gaussians], camera, background=None, 
     bg = _black(H, W) if background is None else background_image(background, H, W)
     ntx, nty = (W + K.TILE - 1) // K.TILE, (H + K.TILE - 1) // K.TILE
     covered = np.zeros(ntx * nty, bool)
+    done = np.zeros(0, bool)        # tiles the layer in front finished already (_State.finished): not again
     if behind is not None and cover > 0:
-        covered = K.covered_tiles(behind.alpha, ntx, nty, np.float32(cover))
+        if behind.state.finished is not None:
+            done = behind.state.finished
+        covered = K.covered_tiles(behind.alpha, ntx, nty, np.float32(cover), done)
     ntx, start, ids, rows, gid, timings = _prepare(gaussians, camera, opts, covered=covered)
     t0 = time.perf_counter()
     if behind is None:
@@ -295,13 +307,14 @@ def render(gaussians: Gaussians | Sequence[Gaussians], camera, background=None, 
     model, lp = lens_params(camera)
     plane, offsets, kk, tilex, rowy = _plane_args(camera)
     K.raster_forward(start, ids, rows, ntx, W, H, camera.is_equirect, plane, offsets, kk, tilex, rowy, bg, rgb,
-                     alpha, depth, last, t_final, row_evals, behind is not None, covered)
+                     alpha, depth, last, t_final, row_evals, behind is not None, covered, done)
     if model in (lensmap.FISHEYE, lensmap.FTHETA):   # no ray reaches the pixels outside the image circle
         k = camera.K
         lensmap.clear_outside_circle(model, lp, k[0, 0], k[1, 1], k[0, 2], k[1, 2], bg, rgb, alpha, depth, last,
                                      t_final)
     timings["raster"] = time.perf_counter() - t0
-    state = _State(opts, ntx, start, ids, rows, gid, bg, last, t_final, timings, row_evals, behind is not None)
+    state = _State(opts, ntx, start, ids, rows, gid, bg, last, t_final, timings, row_evals, behind is not None,
+                   covered if behind is not None and cover > 0 else None)
     return RenderResult(rgb, alpha, depth, state)
 
 

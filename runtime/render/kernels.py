@@ -32,6 +32,8 @@ ROW_PAD = 1e-3  # px added to ry when choosing the tile rows a Gaussian is evalu
 STOP_CHECK = 16  # the raster tests for a fully stopped tile every this many instances (a power of 2)
 PROJ_CHUNK = 1024  # Gaussians per projection chunk: the unit of the frustum test on bounding boxes, of the
 #                   parallel schedule and of the output's compaction (chunk c writes from its offset on)
+SUB_CHUNK = 128  # a projection chunk's runs tested by their own box against the covered tiles (_box_closed) before
+#                 their Gaussians one by one (a drive view's later layers: a quarter to a third of those tested)
 SPREAD = 16  # parallel loops visit their items in a G-strided order (_spread): numba splits a prange into one
 #             contiguous block per thread (numba.parallel_chunksize did not balance here), and the work is clustered
 #             (dense tiles in parts of the image, the visible Gaussians in stretches of the array)
@@ -105,6 +107,16 @@ def _alpha(dx, dy, A, B, C, op, pmax):
 
 # ------------------------------------------------------------------------------------------------ projection
 @njit(inline="always")
+def _camera_point(means, i, Rw, tw):
+    """Gaussian i's mean in the camera frame (float64): Rw m + tw."""
+    mxw, myw, mzw = np.float64(means[i, 0]), np.float64(means[i, 1]), np.float64(means[i, 2])
+    x = Rw[0, 0] * mxw + Rw[0, 1] * myw + Rw[0, 2] * mzw + tw[0]
+    y = Rw[1, 0] * mxw + Rw[1, 1] * myw + Rw[1, 2] * mzw + tw[1]
+    z = Rw[2, 0] * mxw + Rw[2, 1] * myw + Rw[2, 2] * mzw + tw[2]
+    return x, y, z
+
+
+@njit(inline="always")
 def _precull(means, log_scales, i, Rw, tw, model, lp, fx, fy, cx, cy, lxn, lxp, lyn, lyp, ptab, width,
              height, near, far, low_pass, sat):
     """(keep, x, y, z): Gaussian i's camera-frame mean (float64) and whether it survives the cheap conservative
@@ -117,10 +129,7 @@ def _precull(means, log_scales, i, Rw, tw, model, lp, fx, fy, cx, cy, lxn, lxp, 
     lens) on the mean's tangent plane (lensmap.opencv_plane_reach) meets the plane's extent of a pixel column
     and of a pixel row (_plane_span). Every Gaussian the full projection keeps is kept here (the full test
     bounds the footprint by <= 3.33 sigma of a covariance no larger than this)."""
-    mxw, myw, mzw = np.float64(means[i, 0]), np.float64(means[i, 1]), np.float64(means[i, 2])
-    x = Rw[0, 0] * mxw + Rw[0, 1] * myw + Rw[0, 2] * mzw + tw[0]
-    y = Rw[1, 0] * mxw + Rw[1, 1] * myw + Rw[1, 2] * mzw + tw[1]
-    z = Rw[2, 0] * mxw + Rw[2, 1] * myw + Rw[2, 2] * mzw + tw[2]
+    x, y, z = _camera_point(means, i, Rw, tw)
     if model == 0:
         if not (z >= near and z <= far):
             return False, x, y, z
@@ -261,8 +270,10 @@ def _chunk_functions(model: int):
     model (the closure's `model`)."""
     model = int(model)
 
-    def precull_chunk(means, log_scales, cam, ptab, planes, sat, ch):
-        """How many Gaussians of chunk ch survive _precull (0 when the chunk's box lies outside one of planes)."""
+    def precull_chunk(means, log_scales, cam, ptab, planes, sat, ch, keep_out):
+        """How many Gaussians of chunk ch survive _precull (0 when the chunk's box lies outside one of planes);
+        keep_out[i] = 1 for each that does, 0 for each that does not (left unwritten for a chunk whose box alone
+        returns 0)."""
         Rw, tw, lp, fx, fy, cx, cy, lxn, lxp, lyn, lyp, width, height, near, far, low_pass = cam
         i0 = ch * PROJ_CHUNK
         i1 = min(means.shape[0], i0 + PROJ_CHUNK)
@@ -275,25 +286,33 @@ def _chunk_functions(model: int):
                                        low_pass, sat):
                 return 0
         c = 0
-        for i in range(i0, i1):
-            keep, _, _, _ = _precull(means, log_scales, i, Rw, tw, model, lp, fx, fy, cx, cy, lxn, lxp, lyn, lyp,
-                                     ptab, width, height, near, far, low_pass, sat)
-            c += keep
+        for s0 in range(i0, i1, SUB_CHUNK):
+            s1 = min(i1, s0 + SUB_CHUNK)
+            # (pinhole, behind a layer) a run of the chunk on covered tiles alone: none of it tested one by one
+            if closing and _box_closed(_chunk_box(means, log_scales, s0, s1), Rw, tw, fx, fy, cx, cy, lxn, lxp, lyn,
+                                       lyp, width, height, near, low_pass, sat):
+                for i in range(s0, s1):
+                    keep_out[i] = 0
+                continue
+            for i in range(s0, s1):
+                keep, _, _, _ = _precull(means, log_scales, i, Rw, tw, model, lp, fx, fy, cx, cy, lxn, lxp, lyn,
+                                         lyp, ptab, width, height, near, far, low_pass, sat)
+                keep_out[i] = keep
+                c += keep
         return c
 
-    def project_chunk(means, quats, log_scales, opacity_logits, sh, campos, cam, ptab, sat, antialiased,
+    def project_chunk(means, quats, log_scales, opacity_logits, sh, campos, cam, ptab, keep, antialiased,
                       opacity_mode, rows, trange, depth_out, gid, ch, slot0, ntx):
-        """One chunk of project_kernel, writing from slot slot0 on; returns the number of visible Gaussians
-        written."""
+        """One chunk of project_kernel, writing from slot slot0 on, of the Gaussians its pre-cull kept (keep[i]:
+        precull_counts' verdicts, not tested again); returns the number of visible Gaussians written."""
         Rw, tw, lp, fx, fy, cx, cy, lxn, lxp, lyn, lyp, width, height, near, far, low_pass = cam
         i0 = ch * PROJ_CHUNK
         i1 = min(means.shape[0], i0 + PROJ_CHUNK)
         s = slot0
         for i in range(i0, i1):
-            keep, x, y, z = _precull(means, log_scales, i, Rw, tw, model, lp, fx, fy, cx, cy, lxn, lxp, lyn, lyp,
-                                     ptab, width, height, near, far, low_pass, sat)
-            if not keep:
+            if not keep[i]:
                 continue
+            x, y, z = _camera_point(means, i, Rw, tw)
             mxw, myw, mzw = np.float64(means[i, 0]), np.float64(means[i, 1]), np.float64(means[i, 2])
             if model == 0:
                 depth = z
@@ -481,38 +500,38 @@ def _chunk_functions(model: int):
     return chunk_fn(per_model(precull_chunk, model)), chunk_fn(per_model(project_chunk, model))
 
 
-def _precull_chunk_call(model, means, log_scales, cam, ptab, planes, sat, ch):
+def _precull_chunk_call(model, means, log_scales, cam, ptab, planes, sat, ch, keep):
     """(numba only) the precull chunk function of `model` (a compile-time constant)."""
     raise NotImplementedError("called from numba kernels only")
 
 
 @overload(_precull_chunk_call)
-def _ol_precull_chunk_call(model, means, log_scales, cam, ptab, planes, sat, ch):
+def _ol_precull_chunk_call(model, means, log_scales, cam, ptab, planes, sat, ch, keep):
     if not isinstance(model, types.IntegerLiteral):
         return None
     fn = _chunk_functions(model.literal_value)[0]
 
-    def impl(model, means, log_scales, cam, ptab, planes, sat, ch):
-        return fn(means, log_scales, cam, ptab, planes, sat, ch)
+    def impl(model, means, log_scales, cam, ptab, planes, sat, ch, keep):
+        return fn(means, log_scales, cam, ptab, planes, sat, ch, keep)
     return per_model(impl, model.literal_value)
 
 
-def _project_chunk_call(model, means, quats, log_scales, opacity_logits, sh, campos, cam, ptab, sat, antialiased,
+def _project_chunk_call(model, means, quats, log_scales, opacity_logits, sh, campos, cam, ptab, keep, antialiased,
                         opacity_mode, rows, trange, depth_out, gid, ch, slot0, ntx):
     """(numba only) the project chunk function of `model` (a compile-time constant)."""
     raise NotImplementedError("called from numba kernels only")
 
 
 @overload(_project_chunk_call)
-def _ol_project_chunk_call(model, means, quats, log_scales, opacity_logits, sh, campos, cam, ptab, sat, antialiased,
+def _ol_project_chunk_call(model, means, quats, log_scales, opacity_logits, sh, campos, cam, ptab, keep, antialiased,
                            opacity_mode, rows, trange, depth_out, gid, ch, slot0, ntx):
     if not isinstance(model, types.IntegerLiteral):
         return None
     fn = _chunk_functions(model.literal_value)[1]
 
-    def impl(model, means, quats, log_scales, opacity_logits, sh, campos, cam, ptab, sat, antialiased, opacity_mode,
+    def impl(model, means, quats, log_scales, opacity_logits, sh, campos, cam, ptab, keep, antialiased, opacity_mode,
              rows, trange, depth_out, gid, ch, slot0, ntx):
-        return fn(means, quats, log_scales, opacity_logits, sh, campos, cam, ptab, sat, antialiased, opacity_mode,
+        return fn(means, quats, log_scales, opacity_logits, sh, campos, cam, ptab, keep, antialiased, opacity_mode,
                   rows, trange, depth_out, gid, ch, slot0, ntx)
     return per_model(impl, model.literal_value)
 
@@ -520,19 +539,22 @@ def _ol_project_chunk_call(model, means, quats, log_scales, opacity_logits, sh, 
 @functools.cache
 def precull_counts(model: int):
     """The pre-cull kernel of one camera model (see above): kernel(means, log_scales, cam, ptab, planes, sat,
-    counts): counts[c] = how many Gaussians of chunk c (PROJ_CHUNK Gaussians each) survive _precull (``sat``: its
-    open tiles); 0 for a chunk whose bounding box lies wholly outside one of `planes` (chunk_planes), without looking
-    at its Gaussians. An upper bound of what project_kernel (given the same ``sat``) keeps, so its outputs can be
-    allocated to fit."""
+    counts, keep): counts[c] = how many Gaussians of chunk c (PROJ_CHUNK Gaussians each) survive _precull (``sat``:
+    its open tiles); 0 for a chunk whose bounding box lies wholly outside one of `planes` (chunk_planes), or
+    (pinhole) falls wholly on covered tiles (_box_closed), without looking at its Gaussians; likewise (pinhole) each
+    run of SUB_CHUNK Gaussians of a chunk whose own box falls on covered tiles alone. keep [N] uint8: 1 for
+    each Gaussian that survives, 0 for each that does not (a chunk counted 0 without a look is left unwritten): the
+    projection (project_kernel) visits only these. An upper bound of what project_kernel keeps, so its outputs can
+    be allocated to fit."""
     model = int(model)
 
-    def precull_counts_kernel(means, log_scales, cam, ptab, planes, sat, counts):
+    def precull_counts_kernel(means, log_scales, cam, ptab, planes, sat, counts, keep):
         nch = (means.shape[0] + PROJ_CHUNK - 1) // PROJ_CHUNK
         for k in prange(SPREAD * ((nch + SPREAD - 1) // SPREAD)):
             ch = _spread(k, nch)
             if ch < 0:
                 continue
-            counts[ch] = _precull_chunk_call(model, means, log_scales, cam, ptab, planes, sat, ch)
+            counts[ch] = _precull_chunk_call(model, means, log_scales, cam, ptab, planes, sat, ch, keep)
 
     return njit(cache=True, parallel=True, nogil=True)(per_model(precull_counts_kernel, model))
 
@@ -540,8 +562,9 @@ def precull_counts(model: int):
 @functools.cache
 def project_kernel(model: int):
     """The projection kernel of one camera model (see above): kernel(means, quats, log_scales, opacity_logits, sh,
-    campos, cam, ptab, sat, antialiased, opacity_mode, pre, base, rows, trange, depth_out, gid, counts): project the
-    Gaussians (float64), parallel over chunks of PROJ_CHUNK Gaussians. Chunk c (pre[c] > 0: its precull_counts)
+    campos, cam, ptab, keep, antialiased, opacity_mode, pre, base, rows, trange, depth_out, gid, counts): project
+    the Gaussians that precull_counts kept (keep, pre: its outputs for the same camera and tiles; the pre-cull is not
+    done again), in float64, parallel over chunks of PROJ_CHUNK Gaussians. Chunk c (pre[c] > 0)
     writes its visible Gaussians, in index order, to slots base[c], base[c] + 1, ... (base: the exclusive prefix
     sum of pre) and their number (<= pre[c]) to counts[c]; per slot s: rows[s] = the 64-byte float32 row
     (layout: NCG), trange[s] [., 2] int32 = (tx0 | tx1 << 16, ty0 | ty1 << 16) the tiles its bounding box touches
@@ -550,7 +573,7 @@ def project_kernel(model: int):
     index, so sorting slots is sorting indices."""
     model = int(model)
 
-    def project_kernel_model(means, quats, log_scales, opacity_logits, sh, campos, cam, ptab, sat, antialiased,
+    def project_kernel_model(means, quats, log_scales, opacity_logits, sh, campos, cam, ptab, keep, antialiased,
                              opacity_mode, pre, base, rows, trange, depth_out, gid, counts):
         nch = (means.shape[0] + PROJ_CHUNK - 1) // PROJ_CHUNK
         ntx = (cam[11] + TILE - 1) // TILE
@@ -561,7 +584,7 @@ def project_kernel(model: int):
             counts[ch] = 0
             if pre[ch] > 0:
                 counts[ch] = _project_chunk_call(model, means, quats, log_scales, opacity_logits, sh, campos, cam,
-                                                 ptab, sat, antialiased, opacity_mode, rows, trange, depth_out, gid,
+                                                 ptab, keep, antialiased, opacity_mode, rows, trange, depth_out, gid,
                                                  ch, base[ch], ntx)
 
     return njit(cache=True, parallel=True, nogil=True)(per_model(project_kernel_model, model))
@@ -1139,7 +1162,7 @@ def _blend_one(fb, j, jj, px, py, T, c0, c1, c2, dd, lst, wrap, plane, wf, inv_w
 
 @njit(cache=True, parallel=True, nogil=True, fastmath=RASTER_MATH)
 def raster_forward(start, ids, rows, ntx, width, height, wrap, plane, offsets, kk, tilex, rowy, bg, rgb, alpha, depth,
-                   last, t_final, row_evals, resume, covered):
+                   last, t_final, row_evals, resume, covered, done):
     """Front-to-back blend per tile. bg [H, W, 3] f32. Outputs rgb [H, W, 3], alpha, depth [H, W] f32,
     last [H, W] int32 (index of the last blended instance, -1 if none), t_final [H, W] f32, row_evals [ntiles]
     int64 (16-pixel tile rows evaluated: the work done, for benchmarks).
@@ -1155,14 +1178,17 @@ def raster_forward(start, ids, rows, ntx, width, height, wrap, plane, offsets, k
     in the sort: a pixel starts at T = 1 - alpha with its colour and alpha-weighted depth, and one already at or
     below T_RESUME starts stopped. covered [ntiles] bool (with resume; covered_tiles): a covered tile is finished as
     the earlier render drew it, each pixel's colour and alpha-weighted depth divided by its alpha (alpha 1), none of
-    these Gaussians drawn there."""
+    these Gaussians drawn there; done [ntiles] bool (or empty): covered tiles an earlier layer finished already (alpha
+    1 throughout: finishing them again would change nothing), left as they are, their last and t_final unwritten (a
+    resumed render has no backward pass to read them)."""
     ntiles = start.shape[0] - 1
     for k in prange(SPREAD * ((ntiles + SPREAD - 1) // SPREAD)):
         t = _spread(k, ntiles)
         if t < 0:
             continue
         if resume and covered[t]:
-            _finish_tile(t, ntx, rgb, alpha, last, t_final)
+            if not (done.shape[0] and done[t]):
+                _finish_tile(t, ntx, rgb, alpha, last, t_final)
             row_evals[t] = 0
             continue
         px = np.empty(TILE_PIX, np.float32)
@@ -1209,11 +1235,15 @@ def _finish_tile(t, ntx, rgb, alpha, last, t_final):
 
 
 @njit(cache=True, parallel=True, nogil=True)
-def covered_tiles(alpha, ntx, nty, cover):
+def covered_tiles(alpha, ntx, nty, cover, known):
     """[nty * ntx] bool: the 16x16 tiles (row-major) none of whose pixels (the image's part of the tile) has more
-    than ``cover`` of its light left, 1 - alpha <= cover (cover 0: a tile whose alpha is 1 throughout)."""
+    than ``cover`` of its light left, 1 - alpha <= cover (cover 0: a tile whose alpha is 1 throughout). known
+    [nty * ntx] bool (or empty): tiles known to have alpha 1 throughout (raster_forward's done), not read again."""
     out = np.empty(ntx * nty, np.bool_)
     for t in prange(ntx * nty):
+        if known.shape[0] and known[t]:
+            out[t] = True
+            continue
         x0 = (t % ntx) * TILE
         y0 = (t // ntx) * TILE
         ok = True

@@ -108,14 +108,17 @@ def test_the_precull_bounds_the_projection_of_every_model_in_any_order():
         half[1:, 1:] = np.cumsum(np.cumsum(rng.random((nty, ntx)) < 0.5, axis=0), axis=1)
         seen = []
         for sat in (np.zeros((0, 0), np.int64), half):
-            pre = np.zeros(nch, np.int64)
-            kernels.precull_counts(model)(g.means, g.log_scales, camt, ptab, core.chunk_planes(cam, opts), sat, pre)
+            pre, keep = np.zeros(nch, np.int64), np.zeros(len(g), np.uint8)
+            kernels.precull_counts(model)(g.means, g.log_scales, camt, ptab, core.chunk_planes(cam, opts), sat, pre,
+                                          keep)
+            assert [int(keep[c * kernels.PROJ_CHUNK:(c + 1) * kernels.PROJ_CHUNK].sum()) for c in range(nch)] \
+                == list(pre), MODELS[k]             # the verdicts the projection reads agree with the counts
             base = np.concatenate([[0], np.cumsum(pre)[:-1]]).astype(np.int64)
             m = int(pre.sum())
             rows, dep = np.zeros((m, kernels.NCG), np.float32), np.zeros(m)
             trange, gid, counts = np.zeros((m, 2), np.int32), np.zeros(m, np.int32), np.zeros(nch, np.int64)
             kernels.project_kernel(model)(g.means, g.quats, g.log_scales, g.opacity_logits, g.sh,
-                                          np.ascontiguousarray(cam.cam_to_ego[:3, 3]), camt, ptab, sat, True, True,
+                                          np.ascontiguousarray(cam.cam_to_ego[:3, 3]), camt, ptab, keep, True, True,
                                           pre, base, rows, trange, dep, gid, counts)
             assert np.all(counts <= pre), MODELS[k]
             assert counts.sum() > 0, MODELS[k]

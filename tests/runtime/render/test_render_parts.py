@@ -3,6 +3,8 @@ set behind an earlier result (``behind``): what a drive's layered view (runtime.
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 from render_scenes import pinhole, random_gaussians
@@ -11,6 +13,7 @@ from xyzcyl.runtime.render import Gaussians, render, render_backward
 from xyzcyl.runtime.render import kernels as K
 from xyzcyl.runtime.render.core import _prepare
 from xyzcyl.runtime.render.projection import RenderOptions
+from xyzcyl.runtime.render.result import RenderResult
 from xyzcyl.runtime.scene import composite_layers
 
 # render(behind=a) against composite_layers(a, render alone): the layered raster stops a pixel once a's and b's
@@ -150,6 +153,14 @@ def test_tiles_the_layers_in_front_cover_are_finished_as_they_drew_them():
     assert (got.alpha[:H, :W][px] == 1).all()
     np.testing.assert_array_equal(got.depth[:H, :W][px], a.depth[:H, :W][px])
     assert (got.state.row_evals.reshape(-1)[: th * tw].reshape(th, -1)[:, :tw][covered] == 0).all()
+    # the tiles the layer in front finished (its state's finished: alpha 1 throughout) are left as they are, not
+    # finished again: the same pixels as behind a copy of b that does not say so, and still finished after
+    assert b.state.finished is not None and b.state.finished.any() and not b.state.finished.all()
+    plain = RenderResult(b.rgb, b.alpha, b.depth, dataclasses.replace(b.state, finished=None))
+    again = render(back, cam, background=(0.2, 0.5, 0.9), behind=plain, cover=cover)
+    for x, y in ((got.rgb, again.rgb), (got.alpha, again.alpha), (got.depth, again.depth)):
+        np.testing.assert_array_equal(x, y)
+    assert (got.state.finished >= b.state.finished).all()
     # elsewhere (one layer behind the wall) what the exact composite gives: the light the wall leaves shows what
     # lies behind
     one = render(back, cam, background=(0.2, 0.5, 0.9), behind=render(wall, cam), cover=cover)
@@ -162,7 +173,7 @@ def test_tiles_the_layers_in_front_cover_are_finished_as_they_drew_them():
     # the Gaussians that touch only covered tiles are not sorted or binned (kernels.open_slots): every open tile
     # lists the same Gaussians in the same order as without the cull, and fewer instances are made in all
     ntx, nty = -(-cam.width // K.TILE), -(-cam.height // K.TILE)
-    tiles = K.covered_tiles(a.alpha, ntx, nty, np.float32(cover))
+    tiles = K.covered_tiles(a.alpha, ntx, nty, np.float32(cover), np.zeros(0, bool))
     assert tiles.any() and not tiles.all()
     culled, whole = _prepare(back, cam, RenderOptions(), covered=tiles), _prepare(back, cam, RenderOptions())
     for t in np.flatnonzero(~tiles):
@@ -191,7 +202,7 @@ def test_covered_tiles_of_an_equirect_view_across_its_seam():
     np.testing.assert_allclose(got.rgb, e_rgb, atol=LAYERED_ATOL)
     np.testing.assert_allclose(got.alpha, e_alpha, atol=LAYERED_ATOL)
     ntx, nty = -(-cam.width // K.TILE), -(-cam.height // K.TILE)
-    tiles = K.covered_tiles(a.alpha, ntx, nty, np.float32(cover))
+    tiles = K.covered_tiles(a.alpha, ntx, nty, np.float32(cover), np.zeros(0, bool))
     assert 0.2 < tiles.mean() < 0.8
     culled, whole = _prepare(back, cam, RenderOptions(), covered=tiles), _prepare(back, cam, RenderOptions())
     ids_in = [set(culled[4][culled[2][culled[1][t]:culled[1][t + 1]]].tolist()) for t in range(ntx * nty)]
