@@ -301,6 +301,7 @@ def _store_state(store: Path) -> dict[str, tuple]:
     return out
 
 
+@pytest.mark.heavy      # Ray started three times in subprocesses: ~3 minutes of CI's 15 on 2 cores
 @pytest.mark.timeout(900)
 def test_batch_on_local_ray_killed_and_run_again(tmp_path):
     """Three drives, one broken, and a rig on a local Ray: the run is killed (SIGKILL to its process group: Ray's
