@@ -461,9 +461,9 @@ def dedupe_frames(points: np.ndarray, level: np.ndarray, frame: np.ndarray,
     owners = _NO_OWNERS
     for L in range(int(level.max()) + 1):      # level by level, fine to coarse (_owners_up)
         here = np.flatnonzero(level == L)
-        owners, okeys, mine = _owners_up(owners, points[here], level[here], frame[here], L, origins)
+        owners, _, _, at, _ = _owners_up(owners, points[here], level[here], frame[here], L, origins)
         if len(here):
-            keep[here] = owners[3][np.searchsorted(okeys, mine)] == frame[here]
+            keep[here] = owners[3][at] == frame[here]
     return keep
 
 
@@ -471,13 +471,15 @@ _NO_OWNERS = (np.zeros((0, 3), np.int64), np.zeros(0, np.int64), np.zeros(0, np.
 
 
 def _owners_up(owners: tuple, points: np.ndarray, level: np.ndarray, frame: np.ndarray, L: int,
-               origins: np.ndarray | None) -> tuple[tuple, np.ndarray, np.ndarray]:
+               origins: np.ndarray | None) -> tuple[tuple, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """One level of dedupe_frames, fine to coarse: a voxel's owner at level L is the best of its cells at this level
     and the owners of its eight children (the voxels of the level below: their coordinates halved), so each step
     sorts the owners so far and this level's cells, not every finer cell again; an owner keeps its (level,
     distance, keyframe). owners: (voxel coordinates [M, 3] at level L - 1 (ignored at L 0), level, distance,
     keyframe) of the level below; points [n, 3] metres, level, frame [n]: this level's cells. Returns (the owners of
-    level L's voxels, their packed keys (ascending, one per voxel), the packed keys of this level's cells)."""
+    level L's voxels, their packed keys (ascending, one per voxel), the packed keys of this level's cells [n], each
+    cell's voxel (its index in the owners) [n] int64, the cells in the order of their keys [n] int64 (a stable
+    order: np.argsort(their keys, kind="stable"), from the sort of all the keys))."""
     oc, olev, odist, oframe = owners
     if L:
         oc = np.floor_divide(oc, 2)
@@ -498,8 +500,10 @@ def _owners_up(owners: tuple, points: np.ndarray, level: np.ndarray, frame: np.n
     frames = np.concatenate([oframe, frame])
     order = np.argsort(keys, kind="stable")
     k_sorted = keys[order]
-    win = _best_of_runs(order, k_sorted, levs, dists, frames)
-    return (coords[win], levs[win], dists[win], frames[win]), keys[win], keys[len(oc):]
+    run_of = np.empty(len(keys), np.int64)
+    win = _best_of_runs(order, k_sorted, levs, dists, frames, run_of)
+    cells = order[order >= n_o] - n_o
+    return (coords[win], levs[win], dists[win], frames[win]), keys[win], keys[n_o:], run_of[n_o:], cells
 
 
 _NO_ORIGINS = np.zeros((0, 3), np.float64)
@@ -530,19 +534,22 @@ def _cell_voxels(points, size, frame, origins, with_origins, coords, keys, dists
 
 
 @njit(cache=True, nogil=True)
-def _best_of_runs(order, k_sorted, levs, dists, frames):
+def _best_of_runs(order, k_sorted, levs, dists, frames, run_of):
     """[V] int64: for each run of equal keys in ``k_sorted`` (= keys[order], ``order`` a stable argsort), the entry
     of the best rank (level, distance, keyframe), the earliest among equals: what the first of each run of
-    np.lexsort((frames, dists, levs, keys)) is, in one pass over the sorted keys."""
+    np.lexsort((frames, dists, levs, keys)) is, in one pass over the sorted keys. run_of [N] int64 (written): each
+    entry's run, its index in the result (what np.searchsorted(keys[result], keys) gives, without the search)."""
     n = len(order)
     out = np.empty(n, np.int64)
     v = 0
     i = 0
     while i < n:
         best = order[i]
+        run_of[best] = v
         j = i + 1
         while j < n and k_sorted[j] == k_sorted[i]:
             c = order[j]
+            run_of[c] = v
             if levs[c] < levs[best] or (levs[c] == levs[best] and (dists[c] < dists[best] or (
                     dists[c] == dists[best] and frames[c] < frames[best]))):
                 best = c
@@ -588,7 +595,8 @@ class VoxelOwners:
         starts = np.searchsorted(level[by_level], np.arange(VOXEL_LEVELS + 1))
         for L in range(VOXEL_LEVELS):
             here = by_level[starts[L]:starts[L + 1]]
-            owners, nk, mine = _owners_up(owners, points[here], level[here], f[here], L, self.origins)
+            owners, nk, mine, voxel, by_key = _owners_up(owners, points[here], level[here], f[here], L,
+                                                          self.origins)
             if not len(nk):
                 continue
             olev, odist = owners[1], owners[2]
@@ -623,14 +631,14 @@ class VoxelOwners:
                 self.dist[L] = np.insert(self.dist[L], at, odist[new])
                 self.frame[L] = np.insert(self.frame[L], at, frame)
             if len(here):
-                kept = wins[np.searchsorted(nk, mine)]
+                kept = wins[voxel]
                 keep[here] = kept
                 if kept.any():
-                    k_new, i_new = mine[kept], ids[here][kept]
-                    o = np.argsort(k_new, kind="stable")
-                    at = np.searchsorted(self.cell_keys[L], k_new[o], "right")
-                    self.cell_keys[L] = np.insert(self.cell_keys[L], at, k_new[o])
-                    self.cell_ids[L] = np.insert(self.cell_ids[L], at, i_new[o])
+                    o = by_key[kept[by_key]]            # the kept cells by key (stable): their keys ascending
+                    k_new = mine[o]
+                    at = np.searchsorted(self.cell_keys[L], k_new, "right")
+                    self.cell_keys[L] = np.insert(self.cell_keys[L], at, k_new)
+                    self.cell_ids[L] = np.insert(self.cell_ids[L], at, ids[here[o]])
         return keep, (np.concatenate(lost) if lost else np.zeros(0, np.int64))
 
 

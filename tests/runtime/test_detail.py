@@ -32,6 +32,7 @@ from xyzcyl.runtime.detail import (
     densify,
     edge_keep,
     edge_keep_reference,
+    edge_smoother,
     fit_ground,
     grid_camera,
     grid_colours,
@@ -329,6 +330,20 @@ def test_densify_does_not_interpolate_across_a_colour_edge():
     flat = densify(sparse, np.full_like(img, 0.5), 200.0, 6.0)
     assert np.abs(flat[:, 79:81] / truth[:, 79:81] - 1).max() > 0.2
     assert not densify(np.zeros((h, w), np.float32), img, 200.0, 6.0).any()
+
+
+def test_densify_with_one_smoother_for_an_image_gives_each_call_its_own_bits():
+    """camera_detail spreads the LiDAR and the model's depth over one camera's image with one edge_smoother: each
+    result is the one a smoother made for that call gives, bit for bit (the smoother keeps nothing of a call)."""
+    rng = np.random.default_rng(9)
+    img = cv2.GaussianBlur(rng.random((270, 480, 3)).astype(np.float32), (0, 0), 2)
+    a = np.where(rng.random((270, 480)) < 0.05, rng.uniform(2.0, 40.0, (270, 480)), 0).astype(np.float32)
+    b = np.where(rng.random((270, 480)) < 0.6, rng.uniform(1.0, 90.0, (270, 480)), 0).astype(np.float32)
+    shared = edge_smoother(img, 200.0, 6.0)
+    got = [densify(s, img, 200.0, 6.0, shared) for s in (a, b, a)]
+    for s, d in zip((a, b, a), got):
+        np.testing.assert_array_equal(d, densify(s, img, 200.0, 6.0))
+    assert not np.array_equal(got[0], got[1])        # two inputs, two results: the test compares something
 
 
 def test_densify_gives_the_same_bits_from_threads_beside_other_opencv_work():
