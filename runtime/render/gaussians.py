@@ -193,21 +193,25 @@ class Gaussians:
         little-endian float32), a view of one [n, P] float32 block filled a property group at a time (a
         field-by-field fill of a structured array, through float64, took 0.93 s of a 1.1 s save for 2.16 M
         Gaussians; this 0.1 s)."""
-        if start or stop is not None:
-            return self.slice(start, len(self) if stop is None else min(stop, len(self))).ply_rows()
-        n, k = len(self), self.sh.shape[1]
-        names = self.ply_names()
-        rows = np.empty((n, len(names)), "<f4")
-        rows[:, 0:3] = self.means
-        rows[:, 3:6] = 0.0                                       # normals: unused by 3DGS readers
-        rows[:, 6:9] = self.sh[:, 0, :]
+        stop = max(start, len(self) if stop is None else min(stop, len(self)))
+        rows = np.empty((stop - start, len(self.ply_names())), "<f4")
+        self._fill_ply_rows(start, stop, rows)
+        return rows.view(np.dtype([(name, "<f4") for name in self.ply_names()])).reshape(len(rows))
+
+    def _fill_ply_rows(self, start: int, stop: int, rows: np.ndarray) -> None:
+        """Write vertices start..stop - 1 (ply_rows' values) into rows[:stop - start] ([m, P] float32, P the count of
+        ply_names), a property group at a time."""
+        n, k = stop - start, self.sh.shape[1]
+        sh = self.sh[start:stop]
+        rows[:n, 0:3] = self.means[start:stop]
+        rows[:n, 3:6] = 0.0                                      # normals: unused by 3DGS readers
+        rows[:n, 6:9] = sh[:, 0, :]
         j = 9 + 3 * (k - 1)
         if k > 1:                                                # channel-major: c * (k - 1) + (coefficient - 1)
-            rows[:, 9:j] = self.sh[:, 1:, :].transpose(0, 2, 1).reshape(n, 3 * (k - 1))
-        rows[:, j] = self.opacity_logits
-        rows[:, j + 1:j + 4] = self.log_scales
-        rows[:, j + 4:j + 8] = self.quats
-        return rows.view(np.dtype([(name, "<f4") for name in names])).reshape(n)
+            rows[:n, 9:j] = sh[:, 1:, :].transpose(0, 2, 1).reshape(n, 3 * (k - 1))
+        rows[:n, j] = self.opacity_logits[start:stop]
+        rows[:n, j + 1:j + 4] = self.log_scales[start:stop]
+        rows[:n, j + 4:j + 8] = self.quats[start:stop]
 
     def save_ply(self, path: str | os.PathLike) -> None:
         """Write the INRIA 3DGS layout: binary little endian, float32, properties
@@ -439,11 +443,16 @@ def save_ply_parts(path: str | os.PathLike, parts: Sequence[Gaussians]) -> None:
     names = parts[0].ply_names()
     header = "".join(["ply\nformat binary_little_endian 1.0\n", f"element vertex {sum(map(len, parts))}\n",
                       *(f"property float {name}\n" for name in names), "end_header\n"])
+    # a block at a time through one buffer: no copy of the whole scene, and no fresh pages to fault in for each block
+    # (3.4 M Gaussians written, median of 7: 0.47 -> 0.43 s at SH degree 0, 0.98 -> 0.74 s at degree 3)
+    rows = np.empty((min(PLY_WRITE_ROWS, max(map(len, parts))), len(names)), "<f4")
     with open(path, "wb") as f:
         f.write(header.encode("ascii"))
         for p in parts:
-            for a in range(0, len(p), PLY_WRITE_ROWS):      # a block at a time: no copy of the whole scene
-                f.write(p.ply_rows(a, a + PLY_WRITE_ROWS).tobytes())
+            for a in range(0, len(p), PLY_WRITE_ROWS):
+                b = min(a + PLY_WRITE_ROWS, len(p))
+                p._fill_ply_rows(a, b, rows)
+                f.write(rows[:b - a])
 
 
 def _ply_where(path: Path) -> str:
