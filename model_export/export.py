@@ -10,6 +10,8 @@ The network is split where shapes depend on the data (torch.onnx dynamo exporter
   leaves the depth head's output bit-exact) and the rig's lifting inputs (runtime.lifting) -> occupancy logits,
   the volume CPFGs, the appearance plane and the pixel Gaussians (their count is fixed by the lattice). The
   camera axis N is dynamic (1..16).
+- ``encode_image.onnx`` and ``encode_depth.onnx``: the encode graph split where the depth enters (model_export.split:
+  the same outputs, bit for bit; a reconstruction with LiDAR runs only the second half again);
 - voxel selection: numpy in the runtime (``select_voxels``: argmax, then the ``max_voxels`` largest margins),
   the same rule as ``XYZCylinder.select_voxels``;
 - ``volume.onnx``: the selected voxels' Gaussians, dynamic voxel count M (0 allowed);
@@ -40,6 +42,7 @@ from xyzcyl.common.files import atomic_folder
 
 from .config import ModelConfig
 from .model import GAUSSIAN_KEYS, XYZCylinder
+from .split import DEPTH_GRAPH, IMAGE_GRAPH, split_encode
 
 OPSET = 20
 FORMAT = "xyzcyl-model"
@@ -216,6 +219,10 @@ def export_graphs(model: XYZCylinder, out: str | Path, n_cameras: int = 6, progr
     say("exporting encode.onnx")
     paths["encode"] = out / "encode.onnx"
     _export(enc, args, paths["encode"], enc.input_names, enc.output_names, dyn)
+    say("splitting encode.onnx where the depth enters")
+    halves = {IMAGE_GRAPH: out / f"{IMAGE_GRAPH}.onnx", DEPTH_GRAPH: out / f"{DEPTH_GRAPH}.onnx"}
+    if split_encode(paths["encode"], halves[IMAGE_GRAPH], halves[DEPTH_GRAPH]):
+        paths.update(halves)
     if model.use_volume:
         say("exporting volume.onnx")
         with torch.no_grad():
@@ -314,7 +321,9 @@ def model_card(meta: dict[str, Any], evals: Sequence[dict[str, Any]], notes: str
                 "no volume branch (trained and exported without it), ")
              + f"{meta['counts']['pixel']} pixel Gaussians; SH degree {cfg['sh_degree']}."),
              (f"- Graphs: {', '.join(f'`{g}.onnx`' for g in meta['graphs'])} "
-             f"({sum(f['bytes'] for k, f in meta['files'].items() if k.endswith('.onnx')) / 1e6:.1f} MB); "
+             f"({sum(f['bytes'] for k, f in meta['files'].items() if k.endswith('.onnx')) / 1e6:.1f} MB"
+             + ("; `encode_image` and `encode_depth` are `encode` split where the depth enters, run in its place"
+                if IMAGE_GRAPH in meta["graphs"] else "") + "); "
              "checksums in `model.json`, verified at load."), "",
              "## Training", ""]
     if ck:

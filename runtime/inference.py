@@ -53,6 +53,9 @@ PRUNE_OPACITY = 0.99 / 255.0
 DEFAULT_BAKE_SCALE = 4
 DEFAULT_DETAIL = DetailOptions()   # the detail layer is on by default (docs/inference.md, "Detail Gaussians")
 DETAIL_THREADS = 2                 # cameras whose detail layer is made at once (Reconstructor.camera_details)
+# the encode graph split where the depth enters (model_export.split): both halves in model.json, the runtime runs
+# them in turn instead of "encode" and a second pass with another depth (LiDAR) runs only the second
+ENCODE_SPLIT = ("encode_image", "encode_depth")
 
 
 class InferenceError(FieldError):
@@ -224,11 +227,15 @@ class Reconstructor:
         info = read_model_info(model_dir)
         blobs = {name: read_model_file(info, name, verify) for name in info.meta["files"]}
         sessions = {}
-        for g, entry in info.meta["graphs"].items():
+        graphs = info.meta["graphs"]
+        split = all(g in graphs for g in ENCODE_SPLIT)
+        for g, entry in graphs.items():
             if entry["file"] not in blobs:
                 raise ModelError(f"graphs.{g}.file", f"{entry['file']!r} is not listed in files", "model")
+            if g == "encode" and split:         # its halves compute it (no session: ~0.1 GB and its set-up saved)
+                continue
             sessions[g] = _session(blobs[entry["file"]], threads, entry["file"], spin)
-        if "encode" not in sessions:
+        if "encode" not in graphs:
             raise ModelError("graphs", f"{info.path / 'model.json'} has no 'encode' graph", "model")
         return cls(info, sessions, threads, cache_size, bake_scale)
 
@@ -252,10 +259,26 @@ class Reconstructor:
 
     # -- stages -------------------------------------------------------------------------------------------------
     def _run(self, graph: str, feed: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
+        if graph == "encode" and graph not in self.sessions:
+            return self.encode(feed)[0]
         s = self.sessions[graph]
         names = [o.name for o in s.get_outputs()]
         outs = s.run(names, {i.name: feed[i.name] for i in s.get_inputs()})
         return dict(zip(names, outs))
+
+    def encode(self, feed: Mapping[str, np.ndarray], image_part: Mapping[str, np.ndarray] | None = None
+               ) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray] | None]:
+        """(the encode graph's outputs for ``feed``, the image half's outputs to pass back as ``image_part``). With
+        the split graphs (ENCODE_SPLIT) the image half runs unless ``image_part`` (from an earlier call with the
+        same images and lifting inputs: only the depth inputs may differ) is given, then the depth half; else the
+        encode graph (image_part None)."""
+        if "encode" in self.sessions:
+            return self._run("encode", feed), None
+        image, depth = ENCODE_SPLIT
+        early = dict(image_part) if image_part is not None else self._run(image, feed)
+        out = self._run(depth, {**feed, **early})
+        return {o["name"]: (out[o["name"]] if o["name"] in out else early[o["name"]])
+                for o in self.info.meta["graphs"]["encode"]["outputs"]}, early
 
     def prepare(self, rig: Rig, images: Sequence[np.ndarray], depths: Sequence[np.ndarray | None] | None = None
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -359,14 +382,15 @@ class Reconstructor:
         imgs, depth, mask = timed("resize", self.prepare, rig, images, depths)
         lift, cached = timed("lifting", self.lifting, rig)
         say("encode")
-        enc = timed("encode", self._run, "encode", {"images": imgs, "depth": depth, "depth_mask": mask, **lift})
+        enc, image_part = timed("encode", self.encode, {"images": imgs, "depth": depth, "depth_mask": mask, **lift})
         gauss, counts = self._gaussians(enc, lift, t, say)
         if lidar is not None:
             say("LiDAR depth")
             depth, mask, scales = timed("lidar", self.lidar_depths, rig, gauss, lidar, depth, mask)
             say("encode with LiDAR depth")
-            enc = timed("encode_lidar", self._run, "encode",
-                        {"images": imgs, "depth": depth, "depth_mask": mask, **lift})
+            # the same images: with the split graphs only the depth half runs again
+            enc, _ = timed("encode_lidar", self.encode, {"images": imgs, "depth": depth, "depth_mask": mask, **lift},
+                           image_part)
             gauss, counts = self._gaussians(enc, lift, t, say)
             counts["lidar_cameras"] = int(sum(s is not None for s in scales))
         parts: list[Gaussians] = []

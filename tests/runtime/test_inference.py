@@ -41,8 +41,9 @@ def test_model_json_describes_the_folder(tiny_export):
     info = verify_model(tiny_export.dir)
     m = info.meta
     assert m["opset"] == 20 and m["name"] == "tiny-test" and m["version"] == "0.0.1"
-    assert set(m["graphs"]) == {"encode", "volume", "background"}
-    assert set(m["files"]) == {"encode.onnx", "volume.onnx", "background.onnx", "MODEL_CARD.md"}
+    assert set(m["graphs"]) == {"encode", "encode_image", "encode_depth", "volume", "background"}
+    assert set(m["files"]) == {"encode.onnx", "encode_image.onnx", "encode_depth.onnx", "volume.onnx",
+                               "background.onnx", "MODEL_CARD.md"}
     enc = {i["name"]: i["shape"] for i in m["graphs"]["encode"]["inputs"]}
     assert enc["images"] == ["N", 3, 64, 128] and enc["grid_occ"][0] == "N" and enc["depth_mask"] == ["N"]
     vol = {i["name"]: i["shape"] for i in m["graphs"]["volume"]["inputs"]}
@@ -204,6 +205,51 @@ def test_lidar_becomes_the_depth_input(rec):
     bad[0, 0] = np.nan
     with pytest.raises(InferenceError, match="lidar"):
         rec.reconstruct(rig, imgs, depths=[None] * 6, lidar=bad, detail=None)
+
+
+def _unsplit(src, dst):
+    """A copy of model folder ``src`` at ``dst`` without the split encode graph (a folder exported before it)."""
+    shutil.copytree(src, dst)
+    meta = json.loads((dst / "model.json").read_text())
+    for g in inference.ENCODE_SPLIT:
+        name = meta["graphs"].pop(g)["file"]
+        del meta["files"][name]
+        (dst / name).unlink()
+    (dst / "model.json").write_text(json.dumps(meta, indent=1))
+    return dst
+
+
+def test_the_split_encode_graph_reconstructs_as_the_whole_one(rec, tiny_export, tmp_path):
+    """With encode_image + encode_depth in the folder the reconstructor holds no session of "encode" and runs the
+    halves (the second pass with LiDAR only the depth half, given the first pass's image half): the same bits as a
+    folder without them, which runs "encode" twice."""
+    whole = Reconstructor.load(_unsplit(tiny_export.dir, tmp_path / "whole"), threads=1)
+    assert "encode" in whole.sessions and not set(inference.ENCODE_SPLIT) & set(whole.sessions)
+    assert "encode" not in rec.sessions and set(inference.ENCODE_SPLIT) <= set(rec.sessions)
+    rig = overlap_rig(6)
+    imgs = _images(rig, seed=5)
+    az, z = np.meshgrid(np.linspace(-np.pi, np.pi, 720, endpoint=False), np.linspace(-1.0, 4.0, 40))
+    wall = np.stack([12 * np.cos(az).ravel(), 12 * np.sin(az).ravel(), z.ravel()], axis=1)
+    for lidar in (None, wall):
+        a = rec.reconstruct(rig, imgs, lidar=lidar, detail=None)
+        b = whole.reconstruct(rig, imgs, lidar=lidar, detail=None)
+        for name in ("means", "quats", "log_scales", "opacity_logits", "sh"):
+            np.testing.assert_array_equal(getattr(a.gaussians, name), getattr(b.gaussians, name))
+        np.testing.assert_array_equal(a.background.image, b.background.image)
+    # the image half reused with another depth = both halves run again = the encode graph
+    x, depth, mask = rec.prepare(rig, imgs)
+    lift, _ = rec.lifting(rig)
+    feed = {"images": x, "depth": depth, "depth_mask": mask, **lift}
+    _, early = rec.encode(feed)
+    d2 = {**feed, "depth": np.random.default_rng(1).uniform(2, 30, depth.shape).astype(np.float32),
+          "depth_mask": np.ones_like(mask)}
+    reused, again = rec.encode(d2, early)[0], rec.encode(d2)[0]
+    ref, none = whole.encode(d2)
+    assert none is None and set(reused) == set(ref) == {o["name"] for o in rec.info.meta["graphs"]["encode"]["outputs"]}
+    for k in ref:
+        np.testing.assert_array_equal(reused[k], ref[k])
+        np.testing.assert_array_equal(again[k], ref[k])
+    np.testing.assert_array_equal(rec._run("encode", d2)["pixel_means"], ref["pixel_means"])
 
 
 def test_cameras_made_in_threads_give_the_one_thread_details(rec):

@@ -22,6 +22,8 @@ def test_shipped_model_checksums():
 
     info = verify_model(MODEL)   # every listed file present with its sha256
     assert info.name == "xyzcyl-cpu-v1" and "encode" in info.meta["graphs"]
+    # and its halves (model_export.split), which the runtime runs in its place: a LiDAR pass runs only the second
+    assert {"encode_image", "encode_depth"} <= set(info.meta["graphs"])
     # the volume graph is there exactly when the model has volume Gaussians (v1.1.0 and v1.2.0 ship without: CHANGELOG.md)
     assert ("volume" in info.meta["graphs"]) == (info.meta["counts"]["volume_per_voxel"] > 0)
     assert sum(f["bytes"] for f in info.meta["files"].values()) <= 60e6   # the budget for git
