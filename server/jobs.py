@@ -135,15 +135,16 @@ def _worker_init(model_dir: str, threads: int | None, server_pid: int | None = N
     global _RECONSTRUCTOR, _WARMED
     import threading
 
-    # first of all: every thread started later inherits it (numpy's OpenBLAS pool starts at the import below,
-    # onnxruntime's and numba's when the model loads)
+    # the server's pid as the server saw it: it may have died while this process was still starting. Started before
+    # the priority drops (a thread inherits its creator's nice value): niced, the watchdog can wait for a core on a
+    # busy machine (a CI run on a slow day found a worker still alive 5 s after the server's kill -9)
+    threading.Thread(target=_exit_with_parent, args=(server_pid or os.getppid(),), name="exit-with-parent",
+                     daemon=True).start()
+    # then, before anything else starts threads: every thread started later inherits it (numpy's OpenBLAS pool
+    # starts at the import below, onnxruntime's and numba's when the model loads)
     lower_priority(nice)
 
     from xyzcyl.runtime.inference import Reconstructor
-
-    # the server's pid as the server saw it: it may have died while this process was still starting
-    threading.Thread(target=_exit_with_parent, args=(server_pid or os.getppid(),), name="exit-with-parent",
-                     daemon=True).start()
 
     # verify=False: create_app already checked every file's sha256 (hashing 27 MB again per worker start is waste)
     _RECONSTRUCTOR = Reconstructor.load(model_dir, threads=threads, verify=False)

@@ -91,12 +91,15 @@ def test_worker_kill_and_server_kill9_then_restart(ctx):
             kids = R.children(proc.pid)
             os.kill(proc.pid, signal.SIGKILL)
             proc.wait(10)
-            deadline = time.monotonic() + 5
+            # the workers poll their parent every second; the bound leaves room for a machine that runs the suite's
+            # other worker beside this server (one CI run on a slow day found them alive after 5 s), and still tells
+            # "exits on its own" from "orphaned forever"
+            deadline = time.monotonic() + 15
             while any(R.alive(p) for p in kids) and time.monotonic() < deadline:
                 time.sleep(0.1)
             left = [R.cmdline(p) for p in kids if R.alive(p)]
             R.kill_all(p for p in kids if R.alive(p))
-            assert not left, f"processes of the killed server still alive after 5 s: {left}"
+            assert not left, f"processes of the killed server still alive after 15 s: {left}"
 
         with ctx.serve(store, flags) as (proc, url, _), R.client(url) as c:
             report = R.check_store(url, store, [running])
@@ -259,7 +262,8 @@ def _thread_nices(pid: int) -> dict[int, int]:
 def test_compute_runs_nicer_than_the_request_loop(guarded):
     """Regression (overload): renders and reconstructions ran at the event loop's CPU priority, so under 4x overload
     on 2 cores /v2/health/live took up to 0.12 s (p50 0.047 s). Render threads (and the numba threads they start)
-    and the reconstruction worker's threads now run `compute_nice` (default 5) steps nicer; the loop keeps its own."""
+    and the reconstruction worker's threads now run `compute_nice` (default 5) steps nicer (but its watchdog of the
+    server); the loop keeps its own."""
     with R.client(guarded.url, 60, AUTH) as c:           # a render: the pool's threads (and numba's) exist
         r = c.get(f"/v1/scenes/{guarded.sid}/render", params={"camera": "CAM_FRONT", "width": 96, "format": "jpeg"})
         assert r.status_code == 200
@@ -272,4 +276,7 @@ def test_compute_runs_nicer_than_the_request_loop(guarded):
     workers = R.worker_pids(guarded.pid)
     assert workers
     for w in workers:
-        assert set(_thread_nices(w).values()) == {min(base + 5, 19)}, (w, _thread_nices(w))
+        # all but one: the thread that watches for the server's death keeps the loop's priority (server.jobs
+        # _worker_init), so that a worker still exits at once on a busy machine
+        nices = sorted(_thread_nices(w).values())
+        assert nices[0] == base and set(nices[1:]) == {min(base + 5, 19)} and len(nices) > 2, (w, nices)
