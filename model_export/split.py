@@ -36,9 +36,10 @@ def _depth_dependent(graph) -> set[str]:
 
 def split_encode(src: str | Path, image_out: str | Path, depth_out: str | Path) -> bool:
     """Write the two halves of the encode graph ``src`` (module docstring). A Shape of ``depth_mask`` (or of
-    ``depth``) that reads the camera count N, its first dimension, reads it from ``images`` instead (the same N:
-    runtime.inference checks it); a graph that reads any other dimension of them, whose depth part is empty or whose
-    every output depends on nothing but depth is not split: returns False and writes nothing."""
+    ``depth``) that reads the camera count N, its first dimension, reads it from ``images`` instead (the same N: the
+    runtime makes all three for the same cameras, Reconstructor.prepare); a graph that reads any other dimension of
+    them, that lacks one of the three inputs, or in which no output depends on the depth is not split: returns False
+    and writes nothing."""
     import onnx
     from onnx.utils import Extractor
 
@@ -68,8 +69,8 @@ def split_encode(src: str | Path, image_out: str | Path, depth_out: str | Path) 
     # the halves' inputs and outputs need their types (value_info): the exporter writes them, a hand-made graph
     # may not
     ex = Extractor(onnx.shape_inference.infer_shapes(model))
-    image = ex.extract_model(sorted(inputs - set(DEPTH_INPUTS)),
-                             [c for c in crossing if c not in inputs] + early_out)
+    image = ex.extract_model(sorted(inputs - set(DEPTH_INPUTS)),   # (an output the depth half reads too: once)
+                             list(dict.fromkeys([c for c in crossing if c not in inputs] + early_out)))
     depth = ex.extract_model(crossing + list(DEPTH_INPUTS), late_out)
     for part in (image, depth):             # only the inputs a half reads (the extractor keeps all it was given)
         used = {i for n in part.graph.node for i in n.input}
