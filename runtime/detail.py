@@ -1023,11 +1023,15 @@ class CameraDetail:
 
     def max_pyramid(self) -> list[np.ndarray]:
         """[PYRAMID_LEVELS] of [h, w] float32: level L holds the largest kept-cell depth within 2^L cells (square
-        window; 0 where the window holds no kept cell)."""
+        window; 0 where the window holds no kept cell). Each level dilates the one below by 2^(L-1) cells (a max
+        of maxima: the same values as a window of 2^L around the depth, at half the kernel's width)."""
         import cv2
 
-        return [cv2.dilate(self.depth, np.ones((2 * 2 ** L + 1, 2 * 2 ** L + 1), np.uint8),
-                           borderType=cv2.BORDER_CONSTANT, borderValue=0) for L in range(PYRAMID_LEVELS)]
+        out = [cv2.dilate(self.depth, np.ones((3, 3), np.uint8), borderType=cv2.BORDER_CONSTANT, borderValue=0)]
+        for L in range(1, PYRAMID_LEVELS):
+            out.append(cv2.dilate(out[-1], np.ones((2 ** L + 1, 2 ** L + 1), np.uint8),
+                                  borderType=cv2.BORDER_CONSTANT, borderValue=0))
+        return out
 
 
 def _at_cells(a: np.ndarray, keep: np.ndarray) -> np.ndarray:
@@ -1719,7 +1723,7 @@ def own_view_hide(details: list[CameraDetail], kept: list[np.ndarray], starts: l
             if j == p or not len(cells[j]):
                 continue
             hide.append(starts[j] + cells[j][_own_cells(dp.grid, dp.keep, dj.means, cells[j])])
-        h = np.concatenate(hide).astype(np.int64) if hide else np.zeros(0, np.int64)
+        h = np.concatenate(hide).astype(np.int64, copy=False) if hide else np.zeros(0, np.int64)
         out.append(h if ordered else np.sort(h))
     return out
 
@@ -1753,28 +1757,29 @@ def _shown_split(d: CameraDetail, shown: np.ndarray) -> np.ndarray:
     return shown & (split_rows(len(shown), d.split) >= 0) if d.split is not None else np.zeros(len(shown), bool)
 
 
-def _split_positions(first: int, split: list[np.ndarray], pieces: int = 4) -> Callable[[np.ndarray], list]:
+def _split_positions(first: int, split: list[np.ndarray], pieces: int = 4) -> Callable[[np.ndarray], np.ndarray]:
     """Where the cells of the cameras' detail layers end up when each camera's ``split`` cells ([M_j] bool) leave
     their run for ``pieces`` Gaussians each (their quarters) after every camera's cells (fuse_details): a function
-    of positions counted with every cell in its run (runs from ``first``) that gives a list of position arrays, a
-    moved cell's as its pieces'."""
+    of positions counted with every cell in its run (runs from ``first``) that gives their positions in that layout,
+    a moved cell's as its pieces', in the layout's order: ascending when the given positions are (no sort needed)."""
     n = [len(m) for m in split]
     old = first + np.concatenate([[0], np.cumsum(n)]).astype(np.int64)
     left = [len(m) - int(m.sum()) for m in split]
     new_run = first + np.concatenate([[0], np.cumsum(left)]).astype(np.int64)
     px_run = new_run[-1] + np.concatenate([[0], np.cumsum([int(m.sum()) * pieces for m in split])]).astype(np.int64)
+    before = [np.cumsum(m) - m for m in split]       # split cells before each cell of camera j (made once)
 
-    def where(pos: np.ndarray) -> list:
+    def where(pos: np.ndarray) -> np.ndarray:
         pos = np.asarray(pos, np.int64)
-        out = [pos[pos < first]]
+        stay, moved_out = [pos[pos < first]], []
         for j, m in enumerate(split):
             i = pos[(pos >= old[j]) & (pos < old[j + 1])] - old[j]
-            before = np.cumsum(m) - m                # split cells before each cell of camera j
             moved = m[i]
-            out.append(new_run[j] + i[~moved] - before[i[~moved]])
-            r = before[i[moved]]                     # the moved cell's rank among camera j's split cells
-            out.append((px_run[j] + r[:, None] * pieces + np.arange(pieces)[None, :]).ravel())
-        return out
+            stay.append(new_run[j] + i[~moved] - before[j][i[~moved]])
+            r = before[j][i[moved]]                  # the moved cell's rank among camera j's split cells
+            moved_out.append((px_run[j] + r[:, None] * pieces + np.arange(pieces)[None, :]).ravel())
+        # the layout's order: the coarse Gaussians, every camera's cells that stay, then every camera's pieces
+        return np.concatenate(stay + moved_out)
 
     return where
 
@@ -1798,14 +1803,12 @@ def fuse_details(coarse: Gaussians, parts: list[Gaussians], details: list[Camera
     where = _split_positions(int(keep.sum()), split)
     per_camera = [np.zeros(0, np.int64)] * len(cameras)
     for owner, h in zip(owners, own_view_hide(details, carved, starts)):
-        # where(h): a dozen ascending runs (each camera's kept cells, its quarters): a merge, not a quicksort
-        per_camera[owner] = np.sort(np.concatenate(where(h)), kind="stable") if len(h) else h
+        per_camera[owner] = where(h) if len(h) else h      # h ascending (starts are): where(h) ascending too
     own = OwnViews(cameras=cameras,
-                   index=np.concatenate(where(np.concatenate([s0 + np.flatnonzero(~k)
-                                                              for s0, k in zip(starts, carved)]))).astype(np.int64),
+                   index=where(np.concatenate([s0 + np.flatnonzero(~k) for s0, k in zip(starts, carved)])),
                    logit=np.concatenate([g.opacity_logits[~k] for g, k in zip(parts, carved)]).astype(np.float32),
                    owner=np.concatenate([np.full(int((~k).sum()), o, np.int16) for o, k in zip(owners, carved)]),
-                   hide=np.concatenate(per_camera).astype(np.int64),
+                   hide=np.concatenate(per_camera).astype(np.int64, copy=False),
                    hide_offsets=np.concatenate([[0], np.cumsum([len(h) for h in per_camera])]).astype(np.int64))
     own.check(len(out), "reconstruction")
     counts = {"detail": int(sum(k.sum() for k in carved)), "carved": int(sum(k.size - k.sum() for k in carved)),

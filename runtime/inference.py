@@ -27,6 +27,7 @@ from typing import Any
 
 import numpy as np
 
+from .blas import one_blas_thread
 from .camera import Camera
 from .detail import CameraDetail, DetailOptions, fuse_details
 from .errors import FieldError, RigError
@@ -221,9 +222,11 @@ class Reconstructor:
              verify: bool = True, bake_scale: int = DEFAULT_BAKE_SCALE, spin: bool = False) -> Reconstructor:
         """Read model.json, check the sha256 of every listed file (ModelError naming a missing or altered file),
         create one onnxruntime session per graph with ``threads`` intra-op threads (None: onnxruntime's default,
-        all cores; ``spin``: let idle threads busy-wait, faster only on an otherwise idle machine)."""
+        all cores; ``spin``: let idle threads busy-wait, faster only on an otherwise idle machine). Limits numpy's
+        BLAS to one thread in this process (runtime.blas)."""
         if threads is not None and int(threads) < 1:
             raise ValueError(f"threads: must be >= 1, got {threads}")
+        one_blas_thread()           # numpy's BLAS threads would wait on the cores the reconstruction uses (runtime.blas)
         info = read_model_info(model_dir)
         blobs = {name: read_model_file(info, name, verify) for name in info.meta["files"]}
         sessions = {}

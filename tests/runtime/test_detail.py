@@ -7,6 +7,7 @@ the fusion with coarse Gaussians in front of, on and behind the detail surfaces.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import math
 import re
@@ -84,9 +85,9 @@ def _random_gaussians(rng, n: int, sh_degree: int) -> Gaussians:
 
 
 def test_concat_gaussians_gives_its_references_bits():
-    """concat_gaussians (a parallel copy per field and part, straight into place) against its numpy definition: parts
-    of SH degree 0 and 2 (the lower padded with zeros), masked and whole, an empty part, an all-False mask, a part
-    whose fields are strided views (rows of a larger array)."""
+    """concat_gaussians (a masked part's five fields copied in one parallel pass, straight into place) against its
+    numpy definition: parts of SH degree 0 and 2 (the lower padded with zeros), masked and whole, an empty part, an
+    all-False mask, a part whose fields are strided views (rows of a larger array: put_rows a field at a time)."""
     rng = np.random.default_rng(3)
     big = _random_gaussians(rng, 900, 0)
     strided = Gaussians.joined(**{f: getattr(big, f)[::3] for f in ("means", "quats", "log_scales",
@@ -94,7 +95,7 @@ def test_concat_gaussians_gives_its_references_bits():
     parts = [_random_gaussians(rng, 500, 0), _random_gaussians(rng, 0, 0), _random_gaussians(rng, 300, 2),
              strided, _random_gaussians(rng, 40, 0)]
     masks = [rng.random(500) < 0.6, None, None, rng.random(300) < 0.5, np.zeros(40, bool)]
-    for m in (masks, None):
+    for m in (masks, [masks[0], None, rng.random(300) < 0.7, None, None], None):
         got, want = concat_gaussians(parts, m), concat_gaussians_reference(parts, m)
         for f in ("means", "quats", "log_scales", "opacity_logits", "sh"):
             a, b = getattr(got, f), getattr(want, f)
@@ -256,6 +257,25 @@ def test_cull_covered_matches_reference():
         got = cull_covered(coarse, details, tol)
         np.testing.assert_array_equal(got, cull_covered_reference(coarse, details, tol))
         assert 0.1 * n < got.sum() < 0.9 * n          # both outcomes occur (the comparison is not trivial)
+
+
+def test_max_pyramid_is_each_windows_largest_depth():
+    """CameraDetail.max_pyramid (each level a dilation of the one below) against the window's maximum taken
+    directly: level L the largest kept depth within 2^L cells (0 outside the map), on a map with sparse cells and
+    one cell at a corner (the window crossing the border at every level)."""
+    d = _random_details(1, size=(40, 24))[0]
+    depth = np.where(np.random.default_rng(2).random(d.depth.shape) < 0.02, d.depth, 0).astype(np.float32)
+    depth[0, -1] = 50.0
+    d = dataclasses.replace(d, depth=depth)
+    h, w = depth.shape
+    for L, got in enumerate(d.max_pyramid()):
+        r = 2 ** L
+        pad = np.pad(depth, r)
+        want = np.zeros_like(depth)
+        for dy in range(2 * r + 1):
+            for dx in range(2 * r + 1):
+                want = np.maximum(want, pad[dy:dy + h, dx:dx + w])
+        np.testing.assert_array_equal(got, want, err_msg=f"level {L}")
 
 
 @pytest.mark.parametrize("dedupe", [0.0, 0.7, 1.0])
