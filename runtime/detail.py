@@ -49,7 +49,7 @@ from xyzcyl.common.wire import detail_stride_error
 from .camera import Camera
 from .errors import FieldError, plain
 from .imageio import LUMA_BT601
-from .numba_cache import njit
+from .numba_cache import njit, threadsafe
 from .render import Gaussians
 from .render.gaussians import SH_C0, concat_gaussians, concat_gaussians_reference
 from .rotations import quat_to_rotmat, rotmat_to_quat, rotmats_to_quats
@@ -1792,17 +1792,27 @@ def fuse_details(coarse: Gaussians, parts: list[Gaussians], details: list[Camera
     HIDDEN_LOGIT, the shown cells that split (SplitCells) taken out of their run and drawn as their pixels after
     every camera's cells (expand_split); with their OwnViews and the counts {detail (cells shown), carved (cells
     hidden), split (shown cells drawn as pixels), coarse, culled, total}."""
-    keep = cull_covered(coarse, details, opts.cull_tolerance)
-    carved = carve_details(details, opts.cull_tolerance, opts.dedupe)
-    starts = (int(keep.sum()) + np.concatenate([[0], np.cumsum([len(g) for g in parts])[:-1]])).astype(int).tolist()
-    shown = [g.with_opacity_logits(np.where(k, g.opacity_logits, HIDDEN_LOGIT)) for g, k in zip(parts, carved)]
-    # a shown split cell is its quarters' Gaussians (expand_split), after every camera's cells; hidden ones stay cells
-    split = [_shown_split(d, k) for d, k in zip(details, carved)]
-    quarters = [expand_split(g, d, m) for g, d, m in zip(parts, details, split)]
-    out = concat_gaussians([coarse, *shown, *quarters], [keep, *[~m for m in split], *[None] * len(quarters)])
+    from concurrent.futures import ThreadPoolExecutor
+
+    # two steps at a time on a second thread (numpy, OpenCV and the numba kernels release the GIL): the coarse cull
+    # (numpy and OpenCV) beside the carving, then the own views' hidden cells beside the split cells' quarters and the
+    # concatenation (two threads launching numba kernels at once: only on a thread-safe layer)
+    with ThreadPoolExecutor(1, thread_name_prefix="xyzcyl-fuse") as side:
+        culled = side.submit(cull_covered, coarse, details, opts.cull_tolerance)
+        carved = carve_details(details, opts.cull_tolerance, opts.dedupe)
+        keep = culled.result()
+        starts = (int(keep.sum()) + np.concatenate([[0], np.cumsum([len(g) for g in parts])[:-1]])).astype(int).tolist()
+        hidden = side.submit(own_view_hide, details, carved, starts) if threadsafe() else None
+        shown = [g.with_opacity_logits(np.where(k, g.opacity_logits, HIDDEN_LOGIT)) for g, k in zip(parts, carved)]
+        # a shown split cell is its quarters' Gaussians (expand_split), after every camera's cells; hidden ones stay
+        # cells
+        split = [_shown_split(d, k) for d, k in zip(details, carved)]
+        quarters = [expand_split(g, d, m) for g, d, m in zip(parts, details, split)]
+        out = concat_gaussians([coarse, *shown, *quarters], [keep, *[~m for m in split], *[None] * len(quarters)])
+        hide = hidden.result() if hidden is not None else own_view_hide(details, carved, starts)
     where = _split_positions(int(keep.sum()), split)
     per_camera = [np.zeros(0, np.int64)] * len(cameras)
-    for owner, h in zip(owners, own_view_hide(details, carved, starts)):
+    for owner, h in zip(owners, hide):
         per_camera[owner] = where(h) if len(h) else h      # h ascending (starts are): where(h) ascending too
     own = OwnViews(cameras=cameras,
                    index=where(np.concatenate([s0 + np.flatnonzero(~k) for s0, k in zip(starts, carved)])),

@@ -22,12 +22,14 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import replace
-from functools import cached_property
 
 import numpy as np
+from numba import prange
 
+from .numba_cache import njit
 from .render import Gaussians
 from .render.sh import SH_C0
+from .threads import in_threads
 
 MATCH_DEPTH = 0.03          # of the depth: a cell of another view within this is the same surface
 MIN_PAIRS = 200             # cells two views share before their ratio counts (a median of fewer is noise)
@@ -65,7 +67,7 @@ def match_cells(a_detail, a_colours: np.ndarray, b_detail, b_colours: np.ndarray
     """(ca [M, 3], cb [M, 3]): the colours of the cells of view a that land on a kept cell of view b at the same
     depth (within MATCH_DEPTH of it), and that cell's colour. a_detail, b_detail: runtime.detail.CameraDetail in one
     frame (the scene's); a_colours [Ma, 3], b_colours [Mb, 3]: their cells' colours in Gaussian order."""
-    return _View(a_detail, a_colours.__getitem__, seed).onto(_View(b_detail, b_colours.__getitem__, seed))
+    return _View(a_detail, a_colours.__getitem__, seed).onto(_View(b_detail, b_colours.__getitem__, seed, False))
 
 
 def _dc_colours(dc: np.ndarray, gain: np.ndarray | None = None):
@@ -79,25 +81,20 @@ def _dc_colours(dc: np.ndarray, gain: np.ndarray | None = None):
 
 class _View:
     """A view's cells as match_cells uses them, prepared once for all the pairs a keyframe's views make: a subset of
-    at most MAX_SOURCE_CELLS of them (random, ``seed``) to project into the other views, and each kept cell's row
-    among the cells (raster order of its grid, the Gaussians' order). colours: rows [n] -> their colours [n, 3]."""
+    at most MAX_SOURCE_CELLS of them (random, ``seed``) to project into the other views (``sources``: made here;
+    False for a view that is only matched against), and each kept cell's row among the cells (raster order of its
+    grid, the Gaussians' order). colours: rows [n] -> their colours [n, 3]."""
 
-    def __init__(self, detail, colours: Callable[[np.ndarray], np.ndarray], seed: int = 0):
+    def __init__(self, detail, colours: Callable[[np.ndarray], np.ndarray], seed: int = 0, sources: bool = True):
         self.detail, self.colours, self.seed = detail, colours, seed
         self.row = np.cumsum(detail.keep.ravel()) - 1          # [h w]: a kept cell's row among the kept cells
-
-    @cached_property
-    def source(self) -> np.ndarray:
-        """The rows of the cells projected into other views."""
-        idx = np.arange(len(self.detail.means))
-        if len(idx) > MAX_SOURCE_CELLS:
-            idx = np.sort(np.random.default_rng(self.seed).choice(len(idx), MAX_SOURCE_CELLS, replace=False))
-        return idx
-
-    @cached_property
-    def source_means(self) -> np.ndarray:
-        """[S, 3] the centres of the source cells (projected into every other view)."""
-        return self.detail.means[self.source]
+        self.source = self.source_means = None
+        if sources:
+            idx = np.arange(len(detail.means))
+            if len(idx) > MAX_SOURCE_CELLS:
+                idx = np.sort(np.random.default_rng(seed).choice(len(idx), MAX_SOURCE_CELLS, replace=False))
+            self.source = idx                                   # the rows of the cells projected into other views
+            self.source_means = detail.means[idx]              # [S, 3] their centres
 
     def onto(self, b: _View) -> tuple[np.ndarray, np.ndarray]:
         """match_cells(self's cells, b's)."""
@@ -178,20 +175,45 @@ def apply_gain(g: Gaussians, gain: np.ndarray) -> Gaussians:
     if not np.all(np.isfinite(gain)) or np.any(gain <= 0):
         raise ValueError("gain: must be finite and positive")
     sh = np.empty_like(g.sh)
-    # ((0.5 + SH_C0 dc) / gain - 0.5) / SH_C0 in float64, step by step in one buffer (the same operations in the
-    # same order: the same bits as the one expression, in half its time)
-    dc = g.sh[:, 0, :].astype(np.float64)
-    dc *= SH_C0
-    dc += 0.5
-    dc /= gain
-    dc -= 0.5
-    dc /= SH_C0
-    sh[:, 0, :] = dc
+    # ((0.5 + SH_C0 dc) / gain - 0.5) / SH_C0 in float64, the same operations in the same order as numpy's
+    # (apply_gain_reference: the same bits), in one parallel pass
+    _divide_dc(g.sh[:, 0, :], np.ascontiguousarray(gain.reshape(-1, 3)), sh[:, 0, :])
     if sh.shape[1] > 1:
         sh[:, 1:, :] = g.sh[:, 1:, :].astype(np.float64) / (gain[..., None, :] if gain.ndim == 2 else gain)
     # the rows of checked Gaussians, their colours divided by a finite positive gain: not checked again
     return Gaussians.joined(means=g.means, quats=g.quats, log_scales=g.log_scales, opacity_logits=g.opacity_logits,
                             sh=sh)
+
+
+def apply_gain_reference(g: Gaussians, gain: np.ndarray) -> Gaussians:
+    """apply_gain in numpy (tests: the same bits)."""
+    gain = np.asarray(gain, np.float64)
+    dc = g.sh[:, 0, :].astype(np.float64)
+    sh = np.empty_like(g.sh)
+    sh[:, 0, :] = ((dc * SH_C0 + 0.5) / gain - 0.5) / SH_C0
+    if sh.shape[1] > 1:
+        sh[:, 1:, :] = g.sh[:, 1:, :].astype(np.float64) / (gain[..., None, :] if gain.ndim == 2 else gain)
+    return Gaussians.joined(means=g.means, quats=g.quats, log_scales=g.log_scales, opacity_logits=g.opacity_logits,
+                            sh=sh)
+
+
+@njit(cache=True, parallel=True, nogil=True)
+def _divide_dc(dc, gain, out):
+    """out[i] = ((dc[i] SH_C0 + 0.5) / gain - 0.5) / SH_C0 per channel in float64, stored in out's dtype; dc, out
+    [N, 3] (any strides), gain [N, 3] or [1, 3] float64 (apply_gain)."""
+    step = 0 if gain.shape[0] == 1 else 1        # gain's row of Gaussian i: i x step
+    for i in prange(dc.shape[0]):
+        gi = i * step
+        for c in range(3):
+            v = np.float64(dc[i, c]) * SH_C0
+            v = v + 0.5
+            v = v / gain[gi, c]
+            v = v - 0.5
+            out[i, c] = v / SH_C0
+
+
+PAIR_THREADS = 2     # threads matching a keyframe's pairs of views: numpy releases the GIL in each pair's projection
+#                      and gathers (a PandaSet frame's 30 pairs 81 -> ~50 ms on 2 cores)
 
 
 class Harmoniser:
@@ -203,23 +225,18 @@ class Harmoniser:
         self.n_cameras = n_cameras
         self.gains: list[np.ndarray] = []          # per keyframe [C, 3]
         self.pairs: list[int] = []                 # per keyframe, the pairs that counted
-        self._prev: list[_View] = []               # the previous keyframe's views, harmonised colours
+        self._prev: tuple = ()                     # the previous keyframe's (details, DC terms, gains)
 
     def add(self, details: Sequence, parts: Sequence[Gaussians], owners: Sequence[int]) -> list[Gaussians]:
         dcs = [g.sh[:, 0, :] for g in parts]
         views = [_View(d, _dc_colours(dc)) for d, dc in zip(details, dcs)]
-        pairs = []
+        prev = self._prev_views()
         n = len(parts)
-        for i in range(n):
-            for j in range(n):
-                if i != j:
-                    r = pair_offset(*views[i].onto(views[j]))
-                    if r is not None:
-                        pairs.append((i, j, r[0], r[1]))
-            for prev in self._prev:
-                r = pair_offset(*views[i].onto(prev))
-                if r is not None:
-                    pairs.append((i, None, r[0], r[1]))
+        # every ordered pair of this keyframe's views, then each view against the previous keyframe's (harmonised)
+        jobs = [(i, j, views[j] if j is not None else p) for i in range(n)
+                for j, p in [*((j, None) for j in range(n) if j != i), *((None, p) for p in prev)]]
+        offsets = in_threads(lambda job: pair_offset(*views[job[0]].onto(job[2])), jobs, PAIR_THREADS)
+        pairs = [(i, j, r[0], r[1]) for (i, j, _), r in zip(jobs, offsets) if r is not None]
         x = solve_log_gains(n, pairs) if n else np.zeros((0, 3))
         gains = np.ones((self.n_cameras, 3))
         out = []
@@ -228,9 +245,16 @@ class Harmoniser:
             out.append(apply_gain(g, np.exp(x[i])))
         self.gains.append(gains)
         self.pairs.append(len(pairs))
-        self._prev = [_View(d, _dc_colours(dcs[i], np.exp(x[i]))) for i, d in enumerate(details)]
+        self._prev = (list(details), dcs, np.exp(x))   # their views made by the next add (one frame: never)
         self._last = ([d.grid for d in details], x)
         return out
+
+    def _prev_views(self) -> list[_View]:
+        """The previous keyframe's views, with its harmonised colours."""
+        if not self._prev:
+            return []
+        details, dcs, gains = self._prev
+        return [_View(d, _dc_colours(dc, gain), sources=False) for d, dc, gain in zip(details, dcs, gains)]
 
     def details(self, details: Sequence, owners: Sequence[int]) -> list:
         """The last added keyframe's detail layers (runtime.detail.CameraDetail, as given to ``add``) with their split

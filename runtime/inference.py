@@ -27,7 +27,6 @@ from typing import Any
 
 import numpy as np
 
-from .blas import one_blas_thread
 from .camera import Camera
 from .detail import CameraDetail, DetailOptions, fuse_details
 from .errors import FieldError, RigError
@@ -46,6 +45,7 @@ from .numba_cache import threadsafe
 from .render import FIELDS, Gaussians
 from .rig import Rig
 from .scene import Background, Scene, bake_grid
+from .threads import in_threads, one_blas_thread
 
 GAUSSIAN_KEYS = FIELDS
 # a Gaussian whose opacity is below this never contributes (the renderer skips alpha < 1/255 and alpha <= o);
@@ -54,6 +54,8 @@ PRUNE_OPACITY = 0.99 / 255.0
 DEFAULT_BAKE_SCALE = 4
 DEFAULT_DETAIL = DetailOptions()   # the detail layer is on by default (docs/inference.md, "Detail Gaussians")
 DETAIL_THREADS = 2                 # cameras whose detail layer is made at once (Reconstructor.camera_details)
+PREPARE_THREADS = 2                # cameras whose image is converted (as_rgb) and resized at once: numpy's conversion
+#                                    and OpenCV's resize run outside the GIL (Reconstructor.prepare, rgb_of)
 # the encode graph split where the depth enters (model_export.split): both halves in model.json, the runtime runs
 # them in turn instead of "encode" and a second pass with another depth (LiDAR) runs only the second
 ENCODE_SPLIT = ("encode_image", "encode_depth")
@@ -105,6 +107,20 @@ def as_rgb(img: np.ndarray, cam: Camera) -> np.ndarray:
 def rgb_images(rig: Rig) -> list[np.ndarray]:
     """Each camera's image of ``rig`` as as_rgb makes it ([H, W, 3] float32 0..1), in the rig's camera order."""
     return [as_rgb(img, cam) for img, cam in zip(rig.load_images(), rig.cameras)]
+
+
+class RgbImages(list):
+    """A rig's images already made [H, W, 3] float32 0..1 by as_rgb, in rig order (rgb_of): Reconstructor.prepare
+    and camera_details take them as they are instead of converting (and checking) each again."""
+
+
+def rgb_of(rig: Rig, images: Sequence[np.ndarray], threads: int = 1) -> RgbImages:
+    """as_rgb of each camera's image (``threads`` cameras at a time: numpy's conversion runs outside the GIL)."""
+    if isinstance(images, RgbImages):
+        return images
+    if len(images) != len(rig.cameras):
+        raise RigError("images", f"{len(rig.cameras)} cameras but {len(images)} images", "rig")
+    return RgbImages(in_threads(lambda k: as_rgb(images[k], rig.cameras[k]), range(len(images)), threads))
 
 
 def resize_area(img: np.ndarray, height: int, width: int) -> np.ndarray:
@@ -223,10 +239,10 @@ class Reconstructor:
         """Read model.json, check the sha256 of every listed file (ModelError naming a missing or altered file),
         create one onnxruntime session per graph with ``threads`` intra-op threads (None: onnxruntime's default,
         all cores; ``spin``: let idle threads busy-wait, faster only on an otherwise idle machine). Limits numpy's
-        BLAS to one thread in this process (runtime.blas)."""
+        BLAS to one thread in this process (runtime.threads)."""
         if threads is not None and int(threads) < 1:
             raise ValueError(f"threads: must be >= 1, got {threads}")
-        one_blas_thread()           # numpy's BLAS threads would wait on the cores the reconstruction uses (runtime.blas)
+        one_blas_thread()           # numpy's BLAS threads would wait on the cores the reconstruction uses (runtime.threads)
         info = read_model_info(model_dir)
         blobs = {name: read_model_file(info, name, verify) for name in info.meta["files"]}
         sessions = {}
@@ -285,12 +301,18 @@ class Reconstructor:
 
     def prepare(self, rig: Rig, images: Sequence[np.ndarray], depths: Sequence[np.ndarray | None] | None = None
                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Validated, resized network inputs: images [N, 3, H, W], depth [N, 1, h, w], depth_mask [N]."""
+        """Validated, resized network inputs: images [N, 3, H, W], depth [N, 1, h, w], depth_mask [N]. images: one
+        per camera as reconstruct takes them, or an RgbImages (rgb_of: already converted, taken as they are)."""
         if len(images) != len(rig.cameras):
             raise RigError("images", f"{len(rig.cameras)} cameras but {len(images)} images", "rig")
         H, W = self.info.input_size
-        imgs = np.stack([resize_area(as_rgb(img, cam), H, W).transpose(2, 0, 1)
-                         for img, cam in zip(images, rig.cameras)])
+        rgb = images if isinstance(images, RgbImages) else None
+
+        def small(k: int) -> np.ndarray:
+            a = rgb[k] if rgb is not None else as_rgb(images[k], rig.cameras[k])
+            return resize_area(a, H, W).transpose(2, 0, 1)
+
+        imgs = np.stack(in_threads(small, range(len(images)), PREPARE_THREADS))
         h, w = self.info.depth_size
         depth = np.zeros((len(rig.cameras), 1, h, w), np.float32)
         mask = np.zeros(len(rig.cameras), np.float32)
@@ -382,7 +404,11 @@ class Reconstructor:
             t[key] = time.perf_counter() - t0
             return out
 
-        imgs, depth, mask = timed("resize", self.prepare, rig, images, depths)
+        def inputs():
+            rgb = rgb_of(rig, images, PREPARE_THREADS)      # once for the network's inputs and the detail layer
+            return rgb, *self.prepare(rig, rgb, depths)
+
+        rgb, imgs, depth, mask = timed("resize", inputs)
         lift, cached = timed("lifting", self.lifting, rig)
         say("encode")
         enc, image_part = timed("encode", self.encode, {"images": imgs, "depth": depth, "depth_mask": mask, **lift})
@@ -401,7 +427,7 @@ class Reconstructor:
         owners: list[int] = []
         if detail is not None:
             say(f"detail Gaussians (stride {detail.stride})")
-            parts, details, owners = timed("detail", self.camera_details, rig, images, gauss, lidar, detail, counts,
+            parts, details, owners = timed("detail", self.camera_details, rig, rgb, gauss, lidar, detail, counts,
                                            ego_masks, lidar_is_sweep, detail_threads)
 
         background = None
@@ -453,7 +479,7 @@ class Reconstructor:
                        threads: int = 1) -> tuple[list[Gaussians], list, list[int]]:
         """Each pinhole camera's detail layer (any lens: on its cells' true rays), not fused: (its Gaussians, its
         runtime.detail.CameraDetail, its index in the rig) per camera. images: the full-resolution inputs in rig
-        order; coarse: the model's Gaussians; lidar [P, 3] metres, ego frame, or None. Adds to ``counts``:
+        order (an RgbImages: taken as they are; else each made so by as_rgb); coarse: the model's Gaussians; lidar [P, 3] metres, ego frame, or None. Adds to ``counts``:
         detail_lidar / detail_ground / detail_model / detail_far (cells placed by LiDAR, by the ground plane (the
         LiDAR's; camera only, the model's), by the model's depth, at the far depth), detail_edge (cells dropped at
         depth edges). runtime.detail.fuse_details fuses them with ``coarse`` (reconstruct). ego_masks: keyframe's;
@@ -494,17 +520,12 @@ class Reconstructor:
             mask_file = cam.extra.get("ego_mask")
             mask = read_ego_mask(rig.path(mask_file), cam) if mask_file is not None else \
                 (ego_masks or {}).get(cam.name)
-            return cam, camera_detail(cam, as_rgb(img, cam), coarse, opts, lidar, mask, plane,
+            rgb = img if isinstance(images, RgbImages) else as_rgb(img, cam)
+            return cam, camera_detail(cam, rgb, coarse, opts, lidar, mask, plane,
                                       sweep=swept, depth_scale=rig_scale, samples=samples.get(cam.name))
 
         todo = [(img, cam) for img, cam in zip(images, rig.cameras) if cam.model == "pinhole"]
-        if threads > 1 and len(todo) > 1 and threadsafe():
-            from concurrent.futures import ThreadPoolExecutor
-
-            with ThreadPoolExecutor(threads, thread_name_prefix="xyzcyl-detail") as pool:
-                done = list(pool.map(lambda a: one(*a), todo))
-        else:
-            done = [one(*a) for a in todo]
+        done = in_threads(lambda a: one(*a), todo, threads if threadsafe() else 1)
         for cam, (g, d, n) in done:
             parts.append(g)
             details.append(d)
@@ -577,6 +598,6 @@ class Reconstructor:
         return np.ascontiguousarray(out.transpose(1, 2, 0))
 
 
-__all__ = ["MODEL_FORMAT", "InferenceError", "ModelError", "ModelInfo", "Reconstructor", "calibration_key",
-           "default_model_dir", "read_model_file", "read_model_info", "scene_model_of", "select_voxels",
+__all__ = ["MODEL_FORMAT", "InferenceError", "ModelError", "ModelInfo", "Reconstructor", "RgbImages",
+           "calibration_key", "default_model_dir", "read_model_file", "read_model_info", "rgb_of", "scene_model_of", "select_voxels",
            "verify_model"]

@@ -1,5 +1,7 @@
-"""numpy's BLAS on one thread in the runtime's processes.
+"""The runtime's threads: numpy's BLAS on one thread, and a thread map for the steps that numpy, OpenCV and numba
+run outside the GIL.
 
+numpy's BLAS on one thread in the runtime's processes:
 numpy's OpenBLAS starts a pool of one thread per core and, after each call, lets its threads busy-wait for the next
 one. The runtime's BLAS calls are small products ([N, 3] rays by a rotation, a camera's projections) between
 numba kernels, onnxruntime and OpenCV, which run their own threads on the same cores; the waiting BLAS threads took
@@ -10,6 +12,7 @@ OpenBLAS's thread server (perf), and with one BLAS thread it ran 10-20 % faster 
 from __future__ import annotations
 
 import threading
+from collections.abc import Callable, Iterable
 
 _LOCK = threading.Lock()
 _DONE = False
@@ -29,4 +32,17 @@ def one_blas_thread() -> None:
         _DONE = True
 
 
-__all__ = ["one_blas_thread"]
+def in_threads(fn: Callable, items: Iterable, threads: int) -> list:
+    """[fn(item) for item in items], in order, on ``threads`` threads (1, or fewer than two items: in this one).
+    For work that releases the GIL (numpy's loops on large arrays, OpenCV, nogil numba kernels); an exception of fn
+    is raised here."""
+    items = list(items)
+    if threads <= 1 or len(items) < 2:
+        return [fn(it) for it in items]
+    from concurrent.futures import ThreadPoolExecutor
+
+    with ThreadPoolExecutor(min(threads, len(items)), thread_name_prefix="xyzcyl") as pool:
+        return list(pool.map(fn, items))
+
+
+__all__ = ["in_threads", "one_blas_thread"]

@@ -1,4 +1,4 @@
-"""numpy's BLAS on one thread wherever the runtime reconstructs (runtime.blas): its waiting threads took the cores
+"""numpy's BLAS on one thread wherever the runtime reconstructs (runtime.threads): its waiting threads took the cores
 from the reconstruction's own (docs/results.md "Speed, session of 2026-12-02 (night)")."""
 
 from __future__ import annotations
