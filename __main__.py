@@ -1,8 +1,6 @@
-"""``python -m xyzcyl``: the `xyzcyl` console script (xyzcyl.cli)."""
+"""``python -m xyzcyl``: the `xyzcyl` console script (xyzcyl.cli.entry)."""
 
-import sys
-
-from xyzcyl.cli import main
+from xyzcyl.cli import entry
 
 if __name__ == "__main__":         # not when a spawned worker process imports it (runtime.drive's keyframe workers)
-    sys.exit(main())
+    entry()

@@ -1,4 +1,4 @@
-"""The `xyzcyl` console script (``xyzcyl.cli:main``; ``python -m xyzcyl`` too): the subcommands that each layer
+"""The `xyzcyl` console script (``xyzcyl.cli:entry``, then ``main``; ``python -m xyzcyl`` too): the subcommands that each layer
 declares in its ``commands`` package, gathered in one parser.
 
     runtime/commands       cylinder, reconstruct, render, lidar-eval, eval-real, export    (base install)
@@ -105,7 +105,17 @@ def main(argv: list[str] | None = None) -> int:
     return run_command(table[argv[0]], argv[1:])
 
 
-__all__ = ["COMMANDS", "OLD_EXPORT_NOTICE", "Command", "Parser", "build_parser", "command_parser", "main",
+def entry() -> None:
+    """The `xyzcyl` console script (and ``python -m xyzcyl``): the C heap set to keep freed memory for reuse
+    (runtime.heap.keep_freed_memory: first thing, before numpy starts its threads, and for the processes this one
+    starts), then ``main``. Tests call ``main`` in their own process, which keeps its heap as it is."""
+    from xyzcyl.runtime.heap import keep_freed_memory
+
+    keep_freed_memory()
+    sys.exit(main())
+
+
+__all__ = ["COMMANDS", "OLD_EXPORT_NOTICE", "Command", "Parser", "build_parser", "command_parser", "entry", "main",
            "model_version", "version"]
 
 

@@ -37,6 +37,11 @@ DEFAULT_DRIVE = HERE.parent.parent / "shared" / "data" / "real" / "pandaset_002_
 
 CHILD = r"""
 import dataclasses, json, resource, statistics, sys, time
+try:                        # the C heap as the `xyzcyl` command sets it, before numpy starts threads (runtime.heap)
+    from xyzcyl.runtime.heap import keep_freed_memory
+    keep_freed_memory()
+except ImportError:         # an older tree: glibc's defaults
+    pass
 import numba
 import numpy as np
 case, drive, out, every, threads, workers = sys.argv[1], sys.argv[2], sys.argv[3], int(sys.argv[4]), int(sys.argv[5]), sys.argv[6]

@@ -47,12 +47,10 @@ Gaussians are kept in spatial tiles that views read and draw as they need them: 
 
 from __future__ import annotations
 
-import functools
 import json
 import math
 import os
 import shutil
-import sys
 import tempfile
 import time
 from collections import deque
@@ -72,6 +70,7 @@ from .camera import check_pose
 from .egobody import EgoBody
 from .errors import FieldError, RigError
 from .groundfill import fill_under
+from .heap import release_heap
 from .numba_cache import njit, threadsafe
 from .render import FIELDS, Gaussians
 from .rig import Rig, load_rig
@@ -1468,29 +1467,6 @@ def _snapped(g: Gaussians, origin: np.ndarray, boxes) -> Gaussians:
     scales = np.array(g.log_scales, copy=True)
     scales[moved] += np.log(factor[moved])[:, None].astype(scales.dtype)
     return replace(g, means=means.astype(g.means.dtype), log_scales=scales)
-
-
-def release_heap() -> None:
-    """Hand the C heap's free memory back to the system (glibc's malloc_trim; nothing elsewhere). A drive's fusion
-    frees arrays of every size, keyframe after keyframe; glibc keeps what was freed for the next allocations and its
-    mmap threshold rises with every large block freed, so without this the process held ~1.3 GB it no longer used
-    (20 PandaSet keyframes: peak 6.6 GB, 5.3 GB with it: docs/results.md "Split cells")."""
-    trim = _malloc_trim()
-    if trim is not None:
-        trim(0)
-
-
-@functools.cache
-def _malloc_trim():
-    import ctypes
-    import ctypes.util
-
-    if sys.platform != "linux":
-        return None
-    try:
-        return ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6").malloc_trim
-    except (OSError, AttributeError):            # not glibc (musl has no malloc_trim)
-        return None
 
 
 def _by_box(g: Gaussians, inside: np.ndarray, member: np.ndarray, n_boxes: int) -> list[Gaussians]:

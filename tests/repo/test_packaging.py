@@ -158,7 +158,7 @@ def test_the_wheel_holds_the_package_and_nothing_else(wheel):
             "xyzcyl/server/viewer/web/index.html", "xyzcyl/server/viewer/web/viewer.js",
             "xyzcyl/server/viewer/web/viewer.css"} <= set(names)
     dist = next(n.split("/")[0] for n in names if n.endswith(".dist-info/entry_points.txt"))
-    assert "xyzcyl = xyzcyl.cli:main" in (site / dist / "entry_points.txt").read_text()
+    assert "xyzcyl = xyzcyl.cli:entry" in (site / dist / "entry_points.txt").read_text()
 
 
 WHEEL_CHECK = r"""
