@@ -1,5 +1,5 @@
-"""The `xyzcyl` console script (``xyzcyl.cli:entry``, then ``main``; ``python -m xyzcyl`` too): the subcommands that each layer
-declares in its ``commands`` package, gathered in one parser.
+"""The `xyzcyl` console script (``xyzcyl.cli:entry``, then ``main``; ``python -m xyzcyl`` too): the subcommands
+that each layer declares in its ``commands`` package, gathered in one parser.
 
     runtime/commands       cylinder, reconstruct, render, lidar-eval, eval-real, export    (base install)
     model_export/commands  data, train, eval, export-model, import-model                    (train extra)

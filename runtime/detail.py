@@ -1801,7 +1801,8 @@ def fuse_details(coarse: Gaussians, parts: list[Gaussians], details: list[Camera
         culled = side.submit(cull_covered, coarse, details, opts.cull_tolerance)
         carved = carve_details(details, opts.cull_tolerance, opts.dedupe)
         keep = culled.result()
-        starts = (int(keep.sum()) + np.concatenate([[0], np.cumsum([len(g) for g in parts])[:-1]])).astype(int).tolist()
+        first = int(keep.sum())
+        starts = (first + np.concatenate([[0], np.cumsum([len(g) for g in parts])[:-1]])).astype(int).tolist()
         hidden = side.submit(own_view_hide, details, carved, starts) if threadsafe() else None
         shown = [g.with_opacity_logits(np.where(k, g.opacity_logits, HIDDEN_LOGIT)) for g, k in zip(parts, carved)]
         # a shown split cell is its quarters' Gaussians (expand_split), after every camera's cells; hidden ones stay
@@ -1810,7 +1811,7 @@ def fuse_details(coarse: Gaussians, parts: list[Gaussians], details: list[Camera
         quarters = [expand_split(g, d, m) for g, d, m in zip(parts, details, split)]
         out = concat_gaussians([coarse, *shown, *quarters], [keep, *[~m for m in split], *[None] * len(quarters)])
         hide = hidden.result() if hidden is not None else own_view_hide(details, carved, starts)
-    where = _split_positions(int(keep.sum()), split)
+    where = _split_positions(first, split)
     per_camera = [np.zeros(0, np.int64)] * len(cameras)
     for owner, h in zip(owners, hide):
         per_camera[owner] = where(h) if len(h) else h      # h ascending (starts are): where(h) ascending too

@@ -242,7 +242,7 @@ class Reconstructor:
         BLAS to one thread in this process (runtime.threads)."""
         if threads is not None and int(threads) < 1:
             raise ValueError(f"threads: must be >= 1, got {threads}")
-        one_blas_thread()           # numpy's BLAS threads would wait on the cores the reconstruction uses (runtime.threads)
+        one_blas_thread()           # its idle threads would wait on the reconstruction's cores (runtime.threads)
         info = read_model_info(model_dir)
         blobs = {name: read_model_file(info, name, verify) for name in info.meta["files"]}
         sessions = {}
@@ -479,7 +479,8 @@ class Reconstructor:
                        threads: int = 1) -> tuple[list[Gaussians], list, list[int]]:
         """Each pinhole camera's detail layer (any lens: on its cells' true rays), not fused: (its Gaussians, its
         runtime.detail.CameraDetail, its index in the rig) per camera. images: the full-resolution inputs in rig
-        order (an RgbImages: taken as they are; else each made so by as_rgb); coarse: the model's Gaussians; lidar [P, 3] metres, ego frame, or None. Adds to ``counts``:
+        order (an RgbImages: taken as they are; else each made so by as_rgb); coarse: the model's Gaussians; lidar
+        [P, 3] metres, ego frame, or None. Adds to ``counts``:
         detail_lidar / detail_ground / detail_model / detail_far (cells placed by LiDAR, by the ground plane (the
         LiDAR's; camera only, the model's), by the model's depth, at the far depth), detail_edge (cells dropped at
         depth edges). runtime.detail.fuse_details fuses them with ``coarse`` (reconstruct). ego_masks: keyframe's;
@@ -599,5 +600,5 @@ class Reconstructor:
 
 
 __all__ = ["MODEL_FORMAT", "InferenceError", "ModelError", "ModelInfo", "Reconstructor", "RgbImages",
-           "calibration_key", "default_model_dir", "read_model_file", "read_model_info", "rgb_of", "scene_model_of", "select_voxels",
-           "verify_model"]
+           "calibration_key", "default_model_dir", "read_model_file", "read_model_info", "rgb_of", "scene_model_of",
+           "select_voxels", "verify_model"]
