@@ -218,7 +218,8 @@ def _prepare(g: Gaussians | Sequence[Gaussians], camera, opts: RenderOptions, cu
         if b > a:
             # pass 1: an upper bound of the visible Gaussians per chunk, so the outputs are allocated to fit (a
             # slot per Gaussian made the kernel zero up to 64 bytes x N of fresh huge pages per render)
-            K.precull_counts(model)(_c(p.means), _c(p.log_scales), cam, ptab, planes, sat, pre[a:b],
+            boxes, phase = p.box_grid()
+            K.precull_counts(model)(_c(p.means), _c(p.log_scales), cam, ptab, planes, sat, boxes, phase, pre[a:b],
                                     keep[offset:offset + len(p)])
         offset += len(p)
     base = np.zeros(nch, np.int64)

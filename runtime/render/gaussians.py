@@ -153,8 +153,34 @@ class Gaussians:
 
     def slice(self, start: int, stop: int) -> Gaussians:
         """Gaussians start..stop - 1 as views of these arrays (no copy; Scene draws a drive's keyframes this way,
-        per render)."""
-        return self._taken(slice(start, stop))
+        per render). It draws with these Gaussians' pre-cull boxes (box_grid)."""
+        out = self._taken(slice(start, stop))
+        object.__setattr__(out, "_box_parent", (self, slice(start, stop).indices(len(self))[0]))
+        return out
+
+    def __getstate__(self) -> dict:
+        """The fields alone: a pickled slice (a worker's result, a process pool's argument) does not carry its
+        parent or the pre-cull boxes (box_grid, made again where they are needed)."""
+        return {f: getattr(self, f) for f in FIELDS}
+
+    def box_grid(self) -> tuple[np.ndarray, int]:
+        """(boxes [B, 7] float64, phase): the renderer's pre-cull boxes (kernels.sub_boxes: the box of each run of
+        kernels.SUB_CHUNK rows) of the set these Gaussians are rows phase .. of, read by each render instead of the
+        means (a drive's later layers test millions of Gaussians against the tiles the layers before covered). A
+        slice's are its parent's (made when first asked for); a set's are made once and kept with it: a set's
+        arrays are not changed once it is made (every change makes new Gaussians)."""
+        got = self.__dict__.get("_box_grid")
+        if got is None:
+            parent = self.__dict__.get("_box_parent")
+            if parent is not None:
+                boxes, phase = parent[0].box_grid()
+                got = (boxes, phase + parent[1])
+            else:
+                from .kernels import sub_boxes
+
+                got = (sub_boxes(np.ascontiguousarray(self.means), np.ascontiguousarray(self.log_scales)), 0)
+            object.__setattr__(self, "_box_grid", got)
+        return got
 
     def subset(self, keep: np.ndarray) -> Gaussians:
         """The Gaussians where ``keep`` ([N] bool, or indices) selects, in order."""

@@ -270,35 +270,51 @@ def _chunk_functions(model: int):
     model (the closure's `model`)."""
     model = int(model)
 
-    def precull_chunk(means, log_scales, cam, ptab, planes, sat, ch, keep_out):
+    def precull_chunk(means, log_scales, cam, ptab, planes, sat, boxes, phase, ch, keep_out):
         """How many Gaussians of chunk ch survive _precull (0 when the chunk's box lies outside one of planes);
         keep_out[i] = 1 for each that does, 0 for each that does not (left unwritten for a chunk whose box alone
-        returns 0)."""
+        returns 0). boxes (or empty: the boxes made here from the means): sub_boxes of a set whose row phase is
+        these Gaussians' row 0 (Gaussians.box_grid: a slice of a set keeps its parent's boxes), read instead of
+        the means; a run of the chunk is then the part of one of those boxes' rows within the chunk, tested with
+        the box of all its rows (a larger box: the same verdicts, the per-Gaussian test deciding where it does not
+        close)."""
         Rw, tw, lp, fx, fy, cx, cy, lxn, lxp, lyn, lyp, width, height, near, far, low_pass = cam
         i0 = ch * PROJ_CHUNK
         i1 = min(means.shape[0], i0 + PROJ_CHUNK)
         closing = model == 0 and sat.shape[0] > 0
+        given = boxes.shape[0] > 0
         if planes.shape[0] or closing:          # the chunk's box, read once for both tests
-            box = _chunk_box(means, log_scales, i0, i1)
+            if given:
+                box = _boxes_union(boxes, (i0 + phase) // SUB_CHUNK, (i1 - 1 + phase) // SUB_CHUNK + 1)
+            else:
+                box = _chunk_box(means, log_scales, i0, i1)
             if planes.shape[0] and _box_outside(box, planes):
                 return 0
             if closing and _box_closed(box, Rw, tw, fx, fy, cx, cy, lxn, lxp, lyn, lyp, width, height, near,
                                        low_pass, sat):
                 return 0
         c = 0
-        for s0 in range(i0, i1, SUB_CHUNK):
-            s1 = min(i1, s0 + SUB_CHUNK)
+        s0 = i0
+        while s0 < i1:
+            if given:                           # to the end of the box holding row s0
+                j = (s0 + phase) // SUB_CHUNK
+                s1 = min(i1, (j + 1) * SUB_CHUNK - phase)
+            else:
+                j = 0
+                s1 = min(i1, s0 + SUB_CHUNK)
             # (pinhole, behind a layer) a run of the chunk on covered tiles alone: none of it tested one by one
-            if closing and _box_closed(_chunk_box(means, log_scales, s0, s1), Rw, tw, fx, fy, cx, cy, lxn, lxp, lyn,
-                                       lyp, width, height, near, low_pass, sat):
+            if closing and _box_closed(_box_row(boxes, j) if given else _chunk_box(means, log_scales, s0, s1), Rw,
+                                       tw, fx, fy, cx, cy, lxn, lxp, lyn, lyp, width, height, near, low_pass, sat):
                 for i in range(s0, s1):
                     keep_out[i] = 0
+                s0 = s1
                 continue
             for i in range(s0, s1):
                 keep, _, _, _ = _precull(means, log_scales, i, Rw, tw, model, lp, fx, fy, cx, cy, lxn, lxp, lyn,
                                          lyp, ptab, width, height, near, far, low_pass, sat)
                 keep_out[i] = keep
                 c += keep
+            s0 = s1
         return c
 
     def project_chunk(means, quats, log_scales, opacity_logits, sh, campos, cam, ptab, keep, antialiased,
@@ -500,19 +516,19 @@ def _chunk_functions(model: int):
     return chunk_fn(per_model(precull_chunk, model)), chunk_fn(per_model(project_chunk, model))
 
 
-def _precull_chunk_call(model, means, log_scales, cam, ptab, planes, sat, ch, keep):
+def _precull_chunk_call(model, means, log_scales, cam, ptab, planes, sat, boxes, phase, ch, keep):
     """(numba only) the precull chunk function of `model` (a compile-time constant)."""
     raise NotImplementedError("called from numba kernels only")
 
 
 @overload(_precull_chunk_call)
-def _ol_precull_chunk_call(model, means, log_scales, cam, ptab, planes, sat, ch, keep):
+def _ol_precull_chunk_call(model, means, log_scales, cam, ptab, planes, sat, boxes, phase, ch, keep):
     if not isinstance(model, types.IntegerLiteral):
         return None
     fn = _chunk_functions(model.literal_value)[0]
 
-    def impl(model, means, log_scales, cam, ptab, planes, sat, ch, keep):
-        return fn(means, log_scales, cam, ptab, planes, sat, ch, keep)
+    def impl(model, means, log_scales, cam, ptab, planes, sat, boxes, phase, ch, keep):
+        return fn(means, log_scales, cam, ptab, planes, sat, boxes, phase, ch, keep)
     return per_model(impl, model.literal_value)
 
 
@@ -539,22 +555,25 @@ def _ol_project_chunk_call(model, means, quats, log_scales, opacity_logits, sh, 
 @functools.cache
 def precull_counts(model: int):
     """The pre-cull kernel of one camera model (see above): kernel(means, log_scales, cam, ptab, planes, sat,
-    counts, keep): counts[c] = how many Gaussians of chunk c (PROJ_CHUNK Gaussians each) survive _precull (``sat``:
-    its open tiles); 0 for a chunk whose bounding box lies wholly outside one of `planes` (chunk_planes), or
-    (pinhole) falls wholly on covered tiles (_box_closed), without looking at its Gaussians; likewise (pinhole) each
-    run of SUB_CHUNK Gaussians of a chunk whose own box falls on covered tiles alone. keep [N] uint8: 1 for
+    boxes, phase, counts, keep): counts[c] = how many Gaussians of chunk c (PROJ_CHUNK Gaussians each) survive
+    _precull (``sat``: its open tiles); 0 for a chunk whose bounding box lies wholly outside one of `planes`
+    (chunk_planes), or (pinhole) falls wholly on covered tiles (_box_closed), without looking at its Gaussians;
+    likewise (pinhole) each run of SUB_CHUNK Gaussians of a chunk whose own box falls on covered tiles alone. The
+    boxes: ``boxes`` [., 7] float64 (sub_boxes of the set these Gaussians are rows ``phase`` .. of; precull_chunk),
+    or [0, 7] (made here from the means). keep [N] uint8: 1 for
     each Gaussian that survives, 0 for each that does not (a chunk counted 0 without a look is left unwritten): the
     projection (project_kernel) visits only these. An upper bound of what project_kernel keeps, so its outputs can
     be allocated to fit."""
     model = int(model)
 
-    def precull_counts_kernel(means, log_scales, cam, ptab, planes, sat, counts, keep):
+    def precull_counts_kernel(means, log_scales, cam, ptab, planes, sat, boxes, phase, counts, keep):
         nch = (means.shape[0] + PROJ_CHUNK - 1) // PROJ_CHUNK
         for k in prange(SPREAD * ((nch + SPREAD - 1) // SPREAD)):
             ch = _spread(k, nch)
             if ch < 0:
                 continue
-            counts[ch] = _precull_chunk_call(model, means, log_scales, cam, ptab, planes, sat, ch, keep)
+            counts[ch] = _precull_chunk_call(model, means, log_scales, cam, ptab, planes, sat, boxes, phase, ch,
+                                             keep)
 
     return njit(cache=True, parallel=True, nogil=True)(per_model(precull_counts_kernel, model))
 
@@ -599,6 +618,43 @@ def _write_mean(rows, s, u, v):
     hi = np.float32(v)
     rows[s, 2] = hi
     rows[s, 3] = np.float32(v - np.float64(hi))
+
+
+@njit(inline="always")
+def _box_row(boxes, j):
+    """Box j of sub_boxes' [., 7] array as _chunk_box's tuple."""
+    return (boxes[j, 0], boxes[j, 1], boxes[j, 2], boxes[j, 3], boxes[j, 4], boxes[j, 5], boxes[j, 6])
+
+
+@njit(inline="always")
+def _boxes_union(boxes, j0, j1):
+    """The box of sub_boxes' boxes j0 .. j1 - 1 (j1 > j0) as _chunk_box's tuple: the box of all their Gaussians,
+    the same float64 values _chunk_box returns for them (min and max of the same float32 values)."""
+    lo0, hi0, lo1, hi1, lo2, hi2, ls = _box_row(boxes, j0)
+    for j in range(j0 + 1, j1):
+        lo0 = min(lo0, boxes[j, 0])
+        hi0 = max(hi0, boxes[j, 1])
+        lo1 = min(lo1, boxes[j, 2])
+        hi1 = max(hi1, boxes[j, 3])
+        lo2 = min(lo2, boxes[j, 4])
+        hi2 = max(hi2, boxes[j, 5])
+        ls = max(ls, boxes[j, 6])
+    return lo0, hi0, lo1, hi1, lo2, hi2, ls
+
+
+@njit(cache=True, parallel=True, nogil=True)
+def sub_boxes(means, log_scales):
+    """[ceil(N / SUB_CHUNK), 7] float64: the box of each run of SUB_CHUNK Gaussians (rows j SUB_CHUNK ..), as
+    _chunk_box gives it (lo0, hi0, lo1, hi1, lo2, hi2, largest log scale): precull_counts reads these instead of
+    the means of a set drawn again and again (Gaussians.sub_boxes)."""
+    n = means.shape[0]
+    nb = (n + SUB_CHUNK - 1) // SUB_CHUNK
+    out = np.empty((nb, 7), np.float64)
+    for j in prange(nb):
+        box = _chunk_box(means, log_scales, j * SUB_CHUNK, min(n, (j + 1) * SUB_CHUNK))
+        for c in range(7):
+            out[j, c] = box[c]
+    return out
 
 
 @njit(inline="always")

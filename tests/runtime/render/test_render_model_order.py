@@ -109,8 +109,8 @@ def test_the_precull_bounds_the_projection_of_every_model_in_any_order():
         seen = []
         for sat in (np.zeros((0, 0), np.int64), half):
             pre, keep = np.zeros(nch, np.int64), np.zeros(len(g), np.uint8)
-            kernels.precull_counts(model)(g.means, g.log_scales, camt, ptab, core.chunk_planes(cam, opts), sat, pre,
-                                          keep)
+            kernels.precull_counts(model)(g.means, g.log_scales, camt, ptab, core.chunk_planes(cam, opts), sat,
+                                          np.zeros((0, 7)), 0, pre, keep)
             assert [int(keep[c * kernels.PROJ_CHUNK:(c + 1) * kernels.PROJ_CHUNK].sum()) for c in range(nch)] \
                 == list(pre), MODELS[k]             # the verdicts the projection reads agree with the counts
             base = np.concatenate([[0], np.cumsum(pre)[:-1]]).astype(np.int64)
