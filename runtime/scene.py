@@ -285,6 +285,16 @@ def _bg_dirs(pano, dome, v0, v1, cx, cy, cz, R, Zu, T, d, out):
                     R, Zu, out, y, x)
 
 
+@njit(parallel=True, cache=True, nogil=True)
+def _scale_rgb(rgb, gain):
+    """rgb [H, W, 3] float32 *= gain [3] float32, in place, rows in parallel (numpy's broadcast over the last axis of
+    3 took 5-8 ms of a 1920x1080 view; the same float32 products)."""
+    for y in numba.prange(rgb.shape[0]):
+        for x in range(rgb.shape[1]):
+            for k in range(3):
+                rgb[y, x, k] *= gain[k]
+
+
 # ------------------------------------------------------------------------------------------- scene
 
 
@@ -392,7 +402,7 @@ class Scene:
             rgb, depth, alpha = self._layers(camera, k, time_s, bg, options, actors)
         gain = self.exposure_gain(camera, k)
         if gain is not None:
-            rgb *= gain.astype(np.float32)      # rgb is this view's own array (the render's result)
+            _scale_rgb(rgb, gain.astype(np.float32))    # rgb is this view's own array (the render's result)
         return rgb, depth, alpha
 
     def exposure_gain(self, camera, k: int | None) -> np.ndarray | None:
