@@ -14,9 +14,9 @@ keyframe's cameras and looking within CAMERA_LAYER_DEG of its axis draws that ca
 layers behind it (runtime.scene.Scene.render). Farther away the fused set is the better one (the synthetic drive at
 5 m/s: views 0.5 m from a keyframe's camera +0.16 dB with its layer first, 1 m away -0.84 dB).
 
-On disk: ``cameras/keyframe_NNN.ply`` per keyframe, its cameras' cells camera after camera; scene.json's
-``camera_layers`` block names the cameras and, per keyframe, its file and each camera's run of its rows
-([start, count]). A loaded scene reads one camera's run when a view first needs it (Gaussians.load_ply_rows) and
+On disk: ``cameras/keyframe_NNN.ply`` per keyframe (a 3DGS PLY without nx ny nz), its cameras' cells camera after
+camera; scene.json's ``camera_layers`` block names the cameras and, per keyframe, its file and each camera's run of
+its rows ([start, count]). A loaded scene reads one camera's run when a view first needs it (Gaussians.load_ply_rows) and
 keeps the last CACHE_LAYERS it used."""
 
 from __future__ import annotations
@@ -101,7 +101,9 @@ class CameraLayers:
             self._pending.result()
         if self._writer is None:
             self._writer = ThreadPoolExecutor(1, thread_name_prefix="xyzcyl-camera-layers")
-        self._pending = self._writer.submit(save_ply_parts, self._folder / file, parts or [Gaussians.empty()])
+        # without normals (nx ny nz, zeros that no reader uses): a sixth of the drive's largest files
+        self._pending = self._writer.submit(save_ply_parts, self._folder / file, parts or [Gaussians.empty()],
+                                            normals=False)
         self.keyframes.append(KeyframeLayers(file, tuple(runs)))
 
     def finish(self) -> None:

@@ -207,10 +207,11 @@ class Gaussians:
                            FIELDS))
 
     # ---------------------------------------------------------------------------------------- PLY (INRIA)
-    def ply_names(self) -> list[str]:
-        """The PLY's vertex properties, in order: x y z nx ny nz f_dc_0..2 f_rest_0.. opacity scale_0..2 rot_0..3."""
+    def ply_names(self, normals: bool = True) -> list[str]:
+        """The PLY's vertex properties, in order: x y z nx ny nz f_dc_0..2 f_rest_0.. opacity scale_0..2 rot_0..3
+        (``normals`` False: without nx ny nz, which 3DGS readers do not use)."""
         k = self.sh.shape[1]
-        return (["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"]
+        return (["x", "y", "z", *(("nx", "ny", "nz") if normals else ()), "f_dc_0", "f_dc_1", "f_dc_2"]
                 + [f"f_rest_{i}" for i in range(3 * (k - 1))]
                 + ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"])
 
@@ -225,17 +226,20 @@ class Gaussians:
         self._fill_ply_rows(start, stop, rows)
         return rows.view(np.dtype([(name, "<f4") for name in names])).reshape(len(rows))
 
-    def _fill_ply_rows(self, start: int, stop: int, rows: np.ndarray) -> None:
+    def _fill_ply_rows(self, start: int, stop: int, rows: np.ndarray, normals: bool = True) -> None:
         """Write vertices start..stop - 1 (ply_rows' values) into rows[:stop - start] ([m, P] float32, P the count of
-        ply_names), a property group at a time."""
+        ply_names(normals)), a property group at a time."""
         n, k = stop - start, self.sh.shape[1]
         sh = self.sh[start:stop]
         rows[:n, 0:3] = self.means[start:stop]
-        rows[:n, 3:6] = 0.0                                      # normals: unused by 3DGS readers
-        rows[:n, 6:9] = sh[:, 0, :]
-        j = 9 + 3 * (k - 1)
+        d = 3
+        if normals:
+            rows[:n, 3:6] = 0.0                                  # normals: unused by 3DGS readers
+            d = 6
+        rows[:n, d:d + 3] = sh[:, 0, :]
+        j = d + 3 + 3 * (k - 1)
         if k > 1:                                                # channel-major: c * (k - 1) + (coefficient - 1)
-            rows[:n, 9:j] = sh[:, 1:, :].transpose(0, 2, 1).reshape(n, 3 * (k - 1))
+            rows[:n, d + 3:j] = sh[:, 1:, :].transpose(0, 2, 1).reshape(n, 3 * (k - 1))
         rows[:n, j] = self.opacity_logits[start:stop]
         rows[:n, j + 1:j + 4] = self.log_scales[start:stop]
         rows[:n, j + 4:j + 8] = self.quats[start:stop]
@@ -458,16 +462,16 @@ class Gaussians:
         return cls.from_splat_bytes(path.read_bytes(), max_points)
 
 
-def save_ply_parts(path: str | os.PathLike, parts: Sequence[Gaussians]) -> None:
+def save_ply_parts(path: str | os.PathLike, parts: Sequence[Gaussians], normals: bool = True) -> None:
     """Write ``parts`` (one SH degree) as one 3DGS PLY of their concatenation, in order (Gaussians.save_ply's
-    layout), a block of each at a time: the parts are never joined in memory (a drive's camera layers:
-    runtime.cameralayers)."""
+    layout; ``normals`` False: without nx ny nz, a sixth fewer bytes at SH degree 0), a block of each at a time: the
+    parts are never joined in memory (a drive's camera layers: runtime.cameralayers)."""
     parts = list(parts)
     if not parts:
         raise ValueError("parts: at least one Gaussians")
     if len({p.sh.shape[1] for p in parts}) > 1:
         raise ValueError("parts: one SH degree for all")
-    names = parts[0].ply_names()
+    names = parts[0].ply_names(normals)
     header = "".join(["ply\nformat binary_little_endian 1.0\n", f"element vertex {sum(map(len, parts))}\n",
                       *(f"property float {name}\n" for name in names), "end_header\n"])
     # a block at a time through one buffer: no copy of the whole scene, and no fresh pages to fault in for each block
@@ -478,7 +482,7 @@ def save_ply_parts(path: str | os.PathLike, parts: Sequence[Gaussians]) -> None:
         for p in parts:
             for a in range(0, len(p), PLY_WRITE_ROWS):
                 b = min(a + PLY_WRITE_ROWS, len(p))
-                p._fill_ply_rows(a, b, rows)
+                p._fill_ply_rows(a, b, rows, normals)
                 f.write(rows[:b - a])
 
 

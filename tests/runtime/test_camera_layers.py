@@ -18,7 +18,7 @@ from xyzcyl.runtime.cameralayers import (
     CameraLayers,
 )
 from xyzcyl.runtime.render import Gaussians
-from xyzcyl.runtime.render.gaussians import save_ply_parts
+from xyzcyl.runtime.render.gaussians import ply_rows_layout, save_ply_parts
 from xyzcyl.testing.drives import pose as _pose
 from xyzcyl.testing.drives import write_drive
 
@@ -36,6 +36,11 @@ def _rows(g: Gaussians) -> np.ndarray:
     return np.concatenate([g.means, g.quats, g.log_scales, g.opacity_logits[:, None], g.sh.reshape(len(g), 3 * g.sh.shape[1])], 1)
 
 
+def block_file(layers):
+    """The first keyframe's layer file (relative to the scene folder)."""
+    return layers.keyframes[0].file
+
+
 def _joined(parts):
     return np.concatenate([_rows(p) for p in parts]) if parts else np.zeros((0, 14), np.float32)
 
@@ -49,6 +54,14 @@ def test_save_ply_parts_writes_the_bytes_of_the_joined_set(tmp_path):
     assert (tmp_path / "parts.ply").read_bytes() == (tmp_path / "joined.ply").read_bytes()
     with pytest.raises(ValueError, match="SH degree"):
         save_ply_parts(tmp_path / "x.ply", [_random(2, 0), Gaussians.empty(sh_degree=1)])
+    # without normals: three columns fewer, the same Gaussians read back (whole, by rows, by taking rows)
+    save_ply_parts(tmp_path / "bare.ply", parts[:1] + parts[2:], normals=False)
+    n, dtype, _ = ply_rows_layout(tmp_path / "bare.ply")
+    assert n == 300_006 and dtype.names[:4] == ("x", "y", "z", "f_dc_0") and "nx" not in dtype.names
+    assert dtype.itemsize == ply_rows_layout(tmp_path / "joined.ply")[1].itemsize - 12
+    for got in (Gaussians.load_ply(tmp_path / "bare.ply"), Gaussians.load_ply_rows(tmp_path / "bare.ply", 0, n),
+                Gaussians.load_ply_take(tmp_path / "bare.ply", np.arange(n))):
+        np.testing.assert_array_equal(_rows(got), _rows(joined))
 
 
 def test_layers_are_written_by_camera_and_read_back_by_run(tmp_path):
@@ -67,6 +80,7 @@ def test_layers_are_written_by_camera_and_read_back_by_run(tmp_path):
     folder = tmp_path / "scene"
     folder.mkdir()
     layers.save(folder)
+    assert "nx" not in ply_rows_layout(folder / block_file(layers))[1].names     # written without normals
     block = json.loads(json.dumps(layers.to_json()))
     assert block["keyframes"][0]["runs"] == [[0, 10], [10, 0], [10, 11]]
     back = CameraLayers.from_json(block, folder, 2, ["a", "b", "c"])
@@ -80,7 +94,7 @@ def test_a_failed_write_is_raised_when_the_layers_are_finished(tmp_path, monkeyp
     reconstruction), not lost with the thread."""
     from xyzcyl.runtime import cameralayers
 
-    def fail(path, parts):
+    def fail(path, parts, normals=True):
         raise OSError(28, "No space left on device")
 
     monkeypatch.setattr(cameralayers, "save_ply_parts", fail)
