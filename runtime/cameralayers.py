@@ -16,8 +16,8 @@ layers behind it (runtime.scene.Scene.render). Farther away the fused set is the
 
 On disk: ``cameras/keyframe_NNN.ply`` per keyframe (a 3DGS PLY without nx ny nz), its cameras' cells camera after
 camera; scene.json's ``camera_layers`` block names the cameras and, per keyframe, its file and each camera's run of
-its rows ([start, count]). A loaded scene reads one camera's run when a view first needs it (Gaussians.load_ply_rows) and
-keeps the last CACHE_LAYERS it used."""
+its rows ([start, count]). A loaded scene reads one camera's run when a view first needs it
+(Gaussians.load_ply_rows) and keeps the last CACHE_LAYERS it used."""
 
 from __future__ import annotations
 

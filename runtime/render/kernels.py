@@ -646,7 +646,7 @@ def _boxes_union(boxes, j0, j1):
 def sub_boxes(means, log_scales):
     """[ceil(N / SUB_CHUNK), 7] float64: the box of each run of SUB_CHUNK Gaussians (rows j SUB_CHUNK ..), as
     _chunk_box gives it (lo0, hi0, lo1, hi1, lo2, hi2, largest log scale): precull_counts reads these instead of
-    the means of a set drawn again and again (Gaussians.sub_boxes)."""
+    the means of a set drawn again and again (Gaussians.box_grid)."""
     n = means.shape[0]
     nb = (n + SUB_CHUNK - 1) // SUB_CHUNK
     out = np.empty((nb, 7), np.float64)
@@ -1234,9 +1234,9 @@ def raster_forward(start, ids, rows, ntx, width, height, wrap, plane, offsets, k
     in the sort: a pixel starts at T = 1 - alpha with its colour and alpha-weighted depth, and one already at or
     below T_RESUME starts stopped. covered [ntiles] bool (with resume; covered_tiles): a covered tile is finished as
     the earlier render drew it, each pixel's colour and alpha-weighted depth divided by its alpha (alpha 1), none of
-    these Gaussians drawn there (_finish_tile; its last and t_final unwritten); done [ntiles] bool (or empty): covered tiles an earlier layer finished already (alpha
-    1 throughout: finishing them again would change nothing), left as they are, their last and t_final unwritten (a
-    resumed render has no backward pass to read them)."""
+    these Gaussians drawn there (_finish_tile; its last and t_final unwritten); done [ntiles] bool (or empty):
+    covered tiles an earlier layer finished already (alpha 1 throughout: finishing them again would change nothing),
+    left as they are, their last and t_final unwritten (a resumed render has no backward pass to read them)."""
     ntiles = start.shape[0] - 1
     for k in prange(SPREAD * ((ntiles + SPREAD - 1) // SPREAD)):
         t = _spread(k, ntiles)
