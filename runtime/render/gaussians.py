@@ -13,13 +13,11 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from llvmlite import ir
-from numba import prange, types
-from numba.core import cgutils
-from numba.extending import intrinsic
+from numba import prange
 
 from ..errors import FieldError
 from ..numba_cache import njit
+from .kernels import prefetch_row
 
 SH_C0 = 0.28209479177387814
 PLY_WRITE_ROWS = 1 << 18         # rows a PLY is written in at a time (18 MB of them at SH degree 0)
@@ -616,31 +614,6 @@ PREFETCH_ROWS = 32      # _unpack_kernel asks the CPU for the record this many r
                         # copy alone, a PandaSet keyframe's chunk; 8 rows ahead: 29 ms, 64: as 32)
 
 
-@intrinsic
-def _prefetch_row(typingctx, arr, row):
-    """(numba only) ``_prefetch_row(arr, row)``: a hint that row ``row`` of the 2-D array ``arr`` will be read soon
-    (LLVM's prefetch: a read, kept in every cache level); it never faults and changes no value (a row index
-    outside the array is the caller's to avoid all the same)."""
-    if not (isinstance(arr, types.Array) and arr.ndim == 2 and isinstance(row, types.Integer)):
-        return None
-    sig = types.void(arr, row)
-
-    def codegen(context, builder, signature, args):
-        aryty, rowty = signature.args
-        ary = context.make_array(aryty)(context, builder, args[0])
-        zero = context.get_constant(rowty, 0)
-        ptr = cgutils.get_item_pointer(context, builder, aryty, ary, [args[1], zero], wraparound=False)
-        i8p = ir.IntType(8).as_pointer()
-        i32 = ir.IntType(32)
-        fn = builder.module.declare_intrinsic("llvm.prefetch", fnty=ir.FunctionType(ir.VoidType(),
-                                                                                      [i8p, i32, i32, i32]))
-        # read (0), locality 3 (keep in all levels), data cache (1)
-        builder.call(fn, [builder.bitcast(ptr, i8p), i32(0), i32(3), i32(1)])
-        return context.get_dummy_value()
-
-    return sig, codegen
-
-
 @njit(cache=True, parallel=True, nogil=True)
 def _unpack_kernel(block, take, taking, cols, means, quats, scales, opacity, sh):
     """Row i of the outputs from record take[i] of block [N, P] float32 (``taking``; else record i), each value
@@ -655,7 +628,7 @@ def _unpack_kernel(block, take, taking, cols, means, quats, scales, opacity, sh)
         if taking:
             r = take[i]
             if i + PREFETCH_ROWS < m:
-                _prefetch_row(block, take[i + PREFETCH_ROWS])
+                prefetch_row(block, take[i + PREFETCH_ROWS])
         for c in range(3):
             v = block[r, cols[c]]
             means[i, c] = v

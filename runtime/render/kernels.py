@@ -16,8 +16,10 @@ import functools
 import math
 
 import numpy as np
+from llvmlite import ir
 from numba import prange, types
-from numba.extending import overload
+from numba.core import cgutils
+from numba.extending import intrinsic, overload
 
 from ..numba_cache import njit
 from .lensmap import lens_project, opencv_plane_box, opencv_plane_footprint, opencv_plane_reach, plane_weights
@@ -37,6 +39,7 @@ SUB_CHUNK = 128  # a projection chunk's runs tested by their own box against the
 SPREAD = 16  # parallel loops visit their items in a G-strided order (_spread): numba splits a prange into one
 #             contiguous block per thread (numba.parallel_chunksize did not balance here), and the work is clustered
 #             (dense tiles in parts of the image, the visible Gaussians in stretches of the array)
+GATHER_AHEAD = 16  # the raster's gather asks for the projected row this many instances ahead
 GATHER = 128  # instances gathered per batch into the raster's per-tile buffer (8 KB: stays in L1)
 NFEAT = 16  # per-instance features (one 64-byte row): mx, my (tile-local px), A = a/2, B = b, C = c/2 (conic),
 #             opacity, pmax, r, g, b, depth, first row, last row (tile-local rows the footprint can touch),
@@ -67,6 +70,32 @@ def _fit_exp_coefficients():
 
 E5, E4, E3, E2, E1, E0 = _fit_exp_coefficients()
 RASTER_MATH = {"contract"}  # allow FMA contraction in the raster kernels (forward and backward alike)
+
+
+@intrinsic
+def prefetch_row(typingctx, arr, row):
+    """(numba only) ``prefetch_row(arr, row)``: a hint that row ``row`` of the 2-D array ``arr`` will be read soon
+    (LLVM's prefetch: a read, kept in every cache level); it never faults and changes no value (a row index
+    outside the array is the caller's to avoid all the same)."""
+    if not (isinstance(arr, types.Array) and arr.ndim == 2 and isinstance(row, types.Integer)):
+        return None
+    sig = types.void(arr, row)
+
+    def codegen(context, builder, signature, args):
+        aryty, rowty = signature.args
+        ary = context.make_array(aryty)(context, builder, args[0])
+        row = context.cast(builder, args[1], rowty, types.intp)       # an int32 index too (the raster's ids)
+        zero = context.get_constant(types.intp, 0)
+        ptr = cgutils.get_item_pointer(context, builder, aryty, ary, [row, zero], wraparound=False)
+        i8p = ir.IntType(8).as_pointer()
+        i32 = ir.IntType(32)
+        fn = builder.module.declare_intrinsic("llvm.prefetch", fnty=ir.FunctionType(ir.VoidType(),
+                                                                                      [i8p, i32, i32, i32]))
+        # read (0), locality 3 (keep in all levels), data cache (1)
+        builder.call(fn, [builder.bitcast(ptr, i8p), i32(0), i32(3), i32(1)])
+        return context.get_dummy_value()
+
+    return sig, codegen
 
 
 @njit(inline="always")
@@ -1386,6 +1415,8 @@ def _raster_tile(t, start, ids, rows, ntx, width, height, wrap, plane, kk, tilex
             break
         nb = min(GATHER, start[t + 1] - b0)
         for jb in range(nb):  # gather this batch's features into a small contiguous buffer
+            if jb + GATHER_AHEAD < nb:      # the rows are in depth order, all over the projected rows
+                prefetch_row(rows, ids[b0 + jb + GATHER_AHEAD])
             gather_row(rows, ids[b0 + jb], x0, y0, width, wrap, plane, kk, tilex, rowy, fb, jb)
         for jb in range(nb):
             if wrap:
