@@ -58,7 +58,7 @@ def places(drive_json: Path, every: int, width: int, height: int) -> list[dict]:
 
 def server_render(c) -> tuple[float, float]:
     """(sum, count) of the server's render-and-encode histogram."""
-    from server_bench import metric
+    from server_bench import metric     # benchmarks/: the script's own folder, first on sys.path
 
     text = c.get("/metrics").text
     return metric(text, "xyzcyl_render_duration_seconds_sum"), metric(text, "xyzcyl_render_duration_seconds_count")
@@ -89,7 +89,6 @@ def main() -> int:
         ap.error(f"--size: WIDTHxHEIGHT, got {args.size!r}")
     if not args.drive.is_file():
         ap.error(f"--drive: {args.drive} is not a file")
-    sys.path.insert(0, str(HERE))
     import httpx
     from xyzcyl.testing.serve import XYZCYL, serve
 
