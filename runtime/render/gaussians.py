@@ -127,8 +127,10 @@ class Gaussians:
         bad = int(np.count_nonzero(~np.isfinite(a)))
         if bad:
             raise GaussianError("opacity_logits", f"{bad} non-finite values")
-        return Gaussians.joined(means=self.means, quats=self.quats, log_scales=self.log_scales, opacity_logits=a,
-                                sh=self.sh)
+        out = Gaussians.joined(means=self.means, quats=self.quats, log_scales=self.log_scales, opacity_logits=a,
+                               sh=self.sh)
+        object.__setattr__(out, "_box_parent", (self, 0))      # the same means and scales: the same boxes
+        return out
 
     def transformed(self, T: np.ndarray) -> Gaussians:
         """The Gaussians moved by the rigid [4, 4] ``T`` (frame -> another frame, metres): means and rotations, in
@@ -168,7 +170,8 @@ class Gaussians:
         """(boxes [B, 7] float64, phase): the renderer's pre-cull boxes (kernels.sub_boxes: the box of each run of
         kernels.SUB_CHUNK rows) of the set these Gaussians are rows phase .. of, read by each render instead of the
         means (a drive's later layers test millions of Gaussians against the tiles the layers before covered). A
-        slice's are its parent's (made when first asked for); a set's are made once and kept with it: a set's
+        slice's are its parent's (made when first asked for), and so are those of the same Gaussians with other
+        opacities (with_opacity_logits: an input camera's own view); a set's are made once and kept with it: a set's
         arrays are not changed once it is made (every change makes new Gaussians)."""
         got = self.__dict__.get("_box_grid")
         if got is None:

@@ -38,6 +38,14 @@ def test_sub_boxes_are_each_runs_box():
     assert K.sub_boxes(g.means[:0], g.log_scales[:0]).shape == (0, 7)
 
 
+def test_other_opacities_keep_the_sets_boxes():
+    g = random_gaussians(np.random.default_rng(4), 3 * K.SUB_CHUNK)
+    grid, phase = g.box_grid()
+    other = g.with_opacity_logits(np.zeros(len(g), np.float32))
+    assert other.box_grid()[0] is grid and other.box_grid()[1] == phase == 0
+    np.testing.assert_array_equal(grid, K.sub_boxes(other.means, other.log_scales))
+
+
 def _precull(g, cam, sat, boxes, phase):
     opts = RenderOptions()
     model, (*cargs, ptab) = _camera_args(cam)
