@@ -58,7 +58,7 @@ def places(drive_json: Path, every: int, width: int, height: int) -> list[dict]:
 
 def server_render(c) -> tuple[float, float]:
     """(sum, count) of the server's render-and-encode histogram."""
-    from server_bench import metric     # benchmarks/: the script's own folder, first on sys.path
+    from server_bench import metric  # benchmarks/: the script's own folder, first on sys.path
 
     text = c.get("/metrics").text
     return metric(text, "xyzcyl_render_duration_seconds_sum"), metric(text, "xyzcyl_render_duration_seconds_count")
