@@ -99,6 +99,10 @@ VIEWPOINT_RADIUS_M = 0.5       # keyframes whose ego stood within this of a grou
 # of it (docs/results.md "Drives: seeing through a cell needs another colour")
 SEE_THROUGH_PHOTO = (12.0, 0.15)
 TRACK_GROW = 1.1               # a moving object's box, grown by this factor, holds its Gaussians
+# commit: the C heap handed back between keyframes only when it holds more than this free (runtime.heap). Each
+# keyframe allocates and frees ~0.5 GB of the same sizes: handed back every time, they were fresh pages to fault
+# in and zero at the next (20 PandaSet keyframes: ~1/3 of the drive's CPU time in the kernel)
+HEAP_KEPT_BYTES = 1 << 30
 SPILL_MIN_M = 0.25             # spill_boxes' least margin (a box's annotation is a few centimetres off the object)
 
 
@@ -1069,7 +1073,7 @@ def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None,
             split = None if d.split is None else (split_rows(len(k), d.split)[k], d.split.means, d.split.colours)
             detail_kept.add(g, voxel_levels(_footprint(g)), n, split, None if at is None else at[i])
         detail_kept.dedupe()
-        release_heap()
+        release_heap(HEAP_KEPT_BYTES)
 
     opts = dict(lidar=lidar, stereo=stereo, detail=detail, masks=found.masks)
     made = _keyframes_made(rec, drive, keys, n_workers, opts, say) if make_keyframes is None else \
@@ -1140,6 +1144,7 @@ def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None,
     finally:
         made.close()              # a failed keyframe: the workers stop
     t1 = time.perf_counter()
+    release_heap()              # the fusion below allocates other sizes: what the keyframes freed goes back
     if layers is not None:
         t_l = time.perf_counter()
         layers.finish()                         # the last keyframe's written: the scene's cells are read there

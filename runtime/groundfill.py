@@ -15,8 +15,10 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
+import numba
 import numpy as np
 
+from .numba_cache import njit
 from .render import Gaussians
 
 FILL_SPACING_M = 0.2     # the lattice over a footprint (metres)
@@ -73,15 +75,8 @@ def fill_under(static: Gaussians, footprints: Sequence[tuple[int, np.ndarray, np
     packed, key, z, owner, inner = packed[first], key[pick], z[pick], owner[pick], inner[pick]
 
     # the static Gaussians on the ground of a lattice cell (within GROUND_TOL_M of its height)
-    p = np.asarray(static.means, np.float64)
     lo, hi = key.min(axis=0) * s, (key.max(axis=0) + 1) * s
-    cand = np.flatnonzero(np.all((p[:, :2] >= lo) & (p[:, :2] < hi), axis=1))
-    pk = _pack(np.floor(p[cand, :2] / s).astype(np.int64))
-    i = np.minimum(np.searchsorted(packed, pk), len(packed) - 1)
-    hit = packed[i] == pk
-    cand, j = cand[hit], i[hit]
-    ground = np.abs(p[cand, 2] - z[j]) <= GROUND_TOL_M
-    cand, j = cand[ground], j[ground]
+    cand, j = ground_cells(static.means, lo, hi, s, packed, z)
     # a cell is covered by a Gaussian on its own ground or on one of the 8 around it
     covered = np.zeros(len(packed), bool)
     seen = np.unique(j)
@@ -113,4 +108,50 @@ def fill_under(static: Gaussians, footprints: Sequence[tuple[int, np.ndarray, np
     return fill, owner[keep], area
 
 
-__all__ = ["FILL_SPACING_M", "fill_under"]
+def ground_cells_reference(means: np.ndarray, lo: np.ndarray, hi: np.ndarray, s: float, packed: np.ndarray,
+                           z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """ground_cells with numpy (obviously correct; for the tests)."""
+    p = np.asarray(means, np.float64)
+    cand = np.flatnonzero(np.all((p[:, :2] >= lo) & (p[:, :2] < hi), axis=1))
+    pk = _pack(np.floor(p[cand, :2] / s).astype(np.int64))
+    i = np.minimum(np.searchsorted(packed, pk), len(packed) - 1)
+    hit = packed[i] == pk
+    cand, j = cand[hit], i[hit]
+    ground = np.abs(p[cand, 2] - z[j]) <= GROUND_TOL_M
+    return cand[ground], j[ground]
+
+
+def ground_cells(means: np.ndarray, lo: np.ndarray, hi: np.ndarray, s: float, packed: np.ndarray, z: np.ndarray
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """(the static Gaussians on the ground of a lattice cell [M] int64 ascending, that cell [M] int64) of ``means``
+    ([N, 3] float32 metres, scene frame): those within [lo, hi) ([2] metres, x y), whose lattice cell (floor(x / s),
+    floor(y / s); ``s`` metres) is one of ``packed`` ([L] int64 ascending: _pack'ed cells), within GROUND_TOL_M of
+    that cell's ground height ``z`` ([L] metres). One pass over the Gaussians (a drive's ~9 M: the numpy of
+    ground_cells_reference made seven arrays of them, 0.7 s warm, 2.4 s cold, the most of fill_under)."""
+    lo, hi = np.asarray(lo, np.float64), np.asarray(hi, np.float64)
+    at = _ground_kernel(np.ascontiguousarray(means, np.float32), float(lo[0]), float(lo[1]), float(hi[0]),
+                        float(hi[1]), float(s), np.ascontiguousarray(packed, np.int64),
+                        np.ascontiguousarray(z, np.float64), float(GROUND_TOL_M))
+    cand = np.flatnonzero(at >= 0)
+    return cand, at[cand].astype(np.int64)
+
+
+@njit(cache=True, parallel=True, nogil=True)
+def _ground_kernel(means, lo_x, lo_y, hi_x, hi_y, s, packed, z, tol):
+    """[N] int32: the lattice cell (row of ``packed``) whose ground each Gaussian lies on, or -1 (ground_cells;
+    the same float64 arithmetic as ground_cells_reference, so the same cells)."""
+    n, m = means.shape[0], packed.shape[0]
+    out = np.full(n, -1, np.int32)
+    for k in numba.prange(n):
+        x, y = np.float64(means[k, 0]), np.float64(means[k, 1])
+        if not (x >= lo_x and y >= lo_y and x < hi_x and y < hi_y):
+            continue
+        kx, ky = np.int64(np.floor(x / s)), np.int64(np.floor(y / s))
+        pk = kx * (np.int64(1) << 32) + (ky & np.int64(0xFFFFFFFF))
+        i = min(np.searchsorted(packed, pk), m - 1)
+        if packed[i] == pk and abs(np.float64(means[k, 2]) - z[i]) <= tol:
+            out[k] = i
+    return out
+
+
+__all__ = ["FILL_SPACING_M", "fill_under", "ground_cells", "ground_cells_reference"]

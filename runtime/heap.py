@@ -71,14 +71,40 @@ def keep_freed_memory() -> bool:
     return ok
 
 
-def release_heap() -> None:
-    """Hand the C heap's free memory back to the system (glibc's malloc_trim; nothing elsewhere). A drive's fusion
-    frees arrays of every size, keyframe after keyframe; glibc keeps what was freed for the next allocations and its
-    mmap threshold rises with every large block freed, so without this the process held ~1.3 GB it no longer used
-    (20 PandaSet keyframes: peak 6.6 GB, 5.3 GB with it: docs/results.md "Split cells")."""
+class _Mallinfo2(ctypes.Structure):
+    """glibc's struct mallinfo2 (malloc.h, glibc >= 2.33): sizes in bytes."""
+    _fields_ = [(name, ctypes.c_size_t) for name in ("arena", "ordblks", "smblks", "hblks", "hblkhd", "usmblks",
+                                                      "fsmblks", "uordblks", "fordblks", "keepcost")]
+
+
+def heap_free_bytes() -> int | None:
+    """Bytes the C heap holds free (glibc's mallinfo2 fordblks: freed, kept for the next allocations), or None (no
+    glibc, or one older than 2.33)."""
     libc = _libc()
-    if libc is not None:
-        libc.malloc_trim(0)
+    fn = getattr(libc, "mallinfo2", None) if libc is not None else None
+    if fn is None:
+        return None
+    fn.restype = _Mallinfo2
+    return int(fn().fordblks)
 
 
-__all__ = ["SETTINGS", "keep_freed_memory", "release_heap", "tunables"]
+def release_heap(above: int = 0) -> bool:
+    """Hand the C heap's free memory back to the system (glibc's malloc_trim; nothing elsewhere) when it holds more
+    than ``above`` bytes free (0: always; heap_free_bytes; where that cannot be read, always). A drive's fusion frees
+    arrays of every size, keyframe after keyframe; glibc keeps what was freed for the next allocations and its mmap
+    threshold rises with every large block freed, so without this the process held ~1.3 GB it no longer used (20
+    PandaSet keyframes: peak 6.6 GB, 5.3 GB with it: docs/results.md "Split cells"). But each page handed back is
+    a fresh page to fault in and zero again at the next keyframe: ``above`` keeps that much for reuse. True when it
+    trimmed."""
+    libc = _libc()
+    if libc is None:
+        return False
+    if above > 0:
+        free = heap_free_bytes()
+        if free is not None and free <= above:
+            return False
+    libc.malloc_trim(0)
+    return True
+
+
+__all__ = ["SETTINGS", "heap_free_bytes", "keep_freed_memory", "release_heap", "tunables"]

@@ -104,3 +104,34 @@ def test_snap_into_boxes_kernel_against_its_numpy_reference():
     np.testing.assert_allclose(out, want, rtol=0, atol=1e-9)
     np.testing.assert_allclose(factor, want_f, rtol=1e-12)
     assert snap_into_boxes(cells[:0], origin, boxes)[0].shape == (0, 3)
+
+
+def test_ground_cells_kernel_equals_its_numpy_reference():
+    """The one-pass kernel picks exactly the reference's Gaussians and cells: points on the lattice's lines, outside
+    its box, off the ground by more or less than the tolerance, on cells that are not in the lattice."""
+    from xyzcyl.runtime.groundfill import GROUND_TOL_M, _pack, ground_cells, ground_cells_reference
+
+    rng = np.random.default_rng(3)
+    s = 0.2
+    cells = np.unique(rng.integers(-40, 40, size=(900, 2)), axis=0)
+    packed = np.sort(_pack(cells))
+    z = rng.uniform(-1, 1, len(packed))
+    keys = np.stack([packed >> 32, (packed & 0xFFFFFFFF).astype(np.int32)], axis=1)     # _pack's inverse
+    n = 20_000
+    pick = rng.integers(0, len(packed), n)
+    xy = (keys[pick] + rng.uniform(0, 1, (n, 2))) * s
+    xy[: n // 10] = np.round(xy[: n // 10] / s) * s                        # on the lattice's lines
+    xy[n // 10: n // 5] = rng.uniform(-12, 12, (n // 10, 2))               # anywhere: cells not in it, outside it
+    dz = rng.uniform(-2 * GROUND_TOL_M, 2 * GROUND_TOL_M, n)
+    dz[n // 5: n // 4] = GROUND_TOL_M                                       # at the tolerance
+    means = np.column_stack([xy, z[pick] + dz]).astype(np.float32)
+    lo, hi = keys.min(axis=0) * s, (keys.max(axis=0) + 1) * s
+    got, want = ground_cells(means, lo, hi, s, packed, z), ground_cells_reference(means, lo, hi, s, packed, z)
+    assert len(want[0]) > n // 4                    # (not a test of nothing: many on the ground, many not)
+    np.testing.assert_array_equal(got[0], want[0])
+    np.testing.assert_array_equal(got[1], want[1])
+    # a narrower box: the points outside it are not looked up
+    got, want = ground_cells(means, lo + 1.0, hi - 1.0, s, packed, z), ground_cells_reference(means, lo + 1.0,
+                                                                                                hi - 1.0, s, packed, z)
+    np.testing.assert_array_equal(got[0], want[0])
+    np.testing.assert_array_equal(got[1], want[1])

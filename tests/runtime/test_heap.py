@@ -64,3 +64,30 @@ def test_a_freed_array_is_reused_without_fresh_pages():
 def test_xyzcyl_malloc_default_leaves_the_heap_as_it_is():
     got = _run("keep", XYZCYL_MALLOC="default")
     assert got["ok"] is False and got["faults"] >= 50 and got["child"] == ""
+
+
+TRIM_CHILD = r"""
+import json
+from xyzcyl.runtime.heap import heap_free_bytes, keep_freed_memory, release_heap
+keep_freed_memory()
+import numpy as np
+a = np.ones((300 << 20) // 8)
+b = np.ones(1000)                       # keeps the freed block below the heap's top: only malloc_trim gives it back
+del a
+free = heap_free_bytes()
+kept = release_heap(1 << 30)            # 300 MB free, under the bound: kept
+after_kept = heap_free_bytes()
+trimmed = release_heap(100 << 20)       # over this bound: handed back
+print(json.dumps({"free": free, "kept": kept, "after_kept": after_kept, "trimmed": trimmed}))
+"""
+
+
+@GLIBC
+def test_release_heap_keeps_free_memory_under_its_bound_and_trims_above():
+    out = subprocess.run([sys.executable, "-c", TRIM_CHILD], capture_output=True, text=True, timeout=120, check=True)
+    got = json.loads(out.stdout.strip().splitlines()[-1])
+    if got["free"] is None:
+        pytest.skip("glibc without mallinfo2 (< 2.33): release_heap always trims")
+    assert got["free"] >= 300 << 20, got                # the freed array is held by the heap
+    assert got["kept"] is False and got["after_kept"] == got["free"], got
+    assert got["trimmed"] is True, got
