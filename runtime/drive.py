@@ -563,95 +563,116 @@ def _best_of_runs(order, k_sorted, levs, dists, frames, run_of):
     return out[:v]
 
 
+SCRATCH_CELLS = 8          # VoxelOwners: a keyframe's cells per voxel it first sizes its own table for (~10 seen)
+
+
 class VoxelOwners:
     """dedupe_frames kept up to date as keyframes arrive, at a cost that follows each keyframe's cells rather than
     all the cells so far: per voxel level, the owner of every voxel that holds a kept cell (its rank: level, distance,
     keyframe; the best of the kept cells in it at that level or finer) and the kept cells at exactly that level by
-    voxel. A keyframe's cells take a voxel over where their best beats its owner; the kept cells at that level in it
-    are then lost. Owners are never lost (a lost cell ranks below its voxel's new owner, and so below every coarser
-    voxel's), so this keeps what dedupe_frames keeps over all the cells added, whatever the order (the tests)."""
+    voxel, in hash tables (runtime.voxelhash). A keyframe's cells take a voxel over where their best beats its owner;
+    the kept cells at that level in it are then lost. Owners are never lost (a lost cell ranks below its voxel's new
+    owner, and so below every coarser voxel's), so this keeps what dedupe_frames keeps over all the cells added,
+    whatever the order (the tests)."""
 
     def __init__(self, origins: np.ndarray | None = None):
+        from .voxelhash import capacity, empty_table
+
         self.origins = None if origins is None else np.asarray(origins, np.float64)
-        n = VOXEL_LEVELS
-        self.keys = [np.zeros(0, np.int64) for _ in range(n)]      # per level: voxels with an owner, sorted
-        self.lev = [np.zeros(0, np.int64) for _ in range(n)]       # their owner's rank: level, distance, keyframe
-        self.dist = [np.zeros(0, np.float64) for _ in range(n)]
-        self.frame = [np.zeros(0, np.int64) for _ in range(n)]
-        self.cell_keys = [np.zeros(0, np.int64) for _ in range(n)]  # per level: the kept cells there, by voxel
-        self.cell_ids = [np.zeros(0, np.int64) for _ in range(n)]
+        slots = capacity(0)
+        # per level: the voxels with an owner (keys), their owner's rank (level, distance, keyframe) and the first of
+        # their kept cells at that level (an entry, -1: none; a free slot's is not read)
+        self.keys = [empty_table(slots) for _ in range(VOXEL_LEVELS)]
+        self.lev = [np.zeros(slots, np.int8) for _ in range(VOXEL_LEVELS)]
+        self.dist = [np.zeros(slots, np.float64) for _ in range(VOXEL_LEVELS)]
+        self.frame = [np.zeros(slots, np.int64) for _ in range(VOXEL_LEVELS)]
+        self.head = [np.zeros(slots, np.int64) for _ in range(VOXEL_LEVELS)]
+        self.voxels = [0] * VOXEL_LEVELS
+        self.ent_id = np.zeros(1024, np.int64)      # the entries: a kept cell's id, the next entry of its voxel
+        self.nxt = np.zeros(1024, np.int64)
+        self.n_ent = 0
+        self.live = 0                               # entries a chain reaches (kept cells); the rest were lost
+        self.scratch = empty_table(capacity(0))     # a keyframe's own owners at one level (voxelhash.local_owners)
+        self.scratch_v = np.zeros(len(self.scratch), np.int64)
+
+    def _room(self, L: int, more: int) -> None:
+        """Level L's table with room for ``more`` keys (a load of at most one half)."""
+        from .voxelhash import capacity, empty_table, rehash
+
+        need = capacity(self.voxels[L] + more)
+        if need <= len(self.keys[L]):
+            return
+        new = (empty_table(need), np.zeros(need, np.int8), np.zeros(need, np.float64), np.zeros(need, np.int64),
+               np.zeros(need, np.int64))
+        rehash(self.keys[L], self.lev[L], self.dist[L], self.frame[L], self.head[L], *new)
+        self.keys[L], self.lev[L], self.dist[L], self.frame[L], self.head[L] = new
+
+    def _entries(self, more: int) -> None:
+        """Room for ``more`` entries; the lost ones dropped first when they are most of them."""
+        from .voxelhash import compact
+
+        if self.n_ent + more <= len(self.ent_id):
+            return
+        size = max(2 * len(self.ent_id), 2 * (self.live + more))
+        new_id, new_nxt = np.empty(size, np.int64), np.empty(size, np.int64)
+        if self.n_ent > 2 * self.live:
+            n = 0
+            for keys, head in zip(self.keys, self.head):
+                n = compact(keys, head, self.ent_id, self.nxt, new_id, new_nxt, n)
+            self.n_ent = n
+        else:
+            new_id[:self.n_ent], new_nxt[:self.n_ent] = self.ent_id[:self.n_ent], self.nxt[:self.n_ent]
+        self.ent_id, self.nxt = new_id, new_nxt
 
     def add(self, points: np.ndarray, level: np.ndarray, frame: int, ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """One keyframe's cells (points [M, 3] metres, level [M] voxel_levels, all of keyframe ``frame``, ``ids`` [M]
         int64 the caller's names for them) -> (keep [M] bool: the cells that own their voxel, the ids of cells added
         before that are lost to them)."""
+        from .voxelhash import capacity, empty_table, local_owners, take_over
+
         level = np.clip(np.asarray(level, np.int64), 0, VOXEL_LEVELS - 1)
-        ids = np.asarray(ids, np.int64)
+        ids = np.ascontiguousarray(ids, np.int64)
+        points = np.ascontiguousarray(points)
         keep = np.zeros(len(level), bool)
-        lost: list[np.ndarray] = []
         if not len(level):
             return keep, np.zeros(0, np.int64)
-        f = np.full(len(level), int(frame), np.int64)
-        owners = _NO_OWNERS                         # this keyframe's own owners so far (as dedupe_frames)
+        origin = self.origins[int(frame)] if self.origins is not None else np.zeros(3)
+        lost = np.empty(self.live, np.int64)        # at most every kept cell
+        n_lost = 0
+        self._entries(len(level))
         # the cells level by level, each level's in index order (a stable sort of the levels, 0..11: a radix sort)
         by_level = np.argsort(level.astype(np.uint8), kind="stable")
         starts = np.searchsorted(level[by_level], np.arange(VOXEL_LEVELS + 1))
+        prev = (np.zeros((0, 3), np.int64), np.zeros(0, np.int8), np.zeros(0, np.float64))
         for L in range(VOXEL_LEVELS):
             here = by_level[starts[L]:starts[L + 1]]
-            owners, nk, mine, voxel, by_key = _owners_up(owners, points[here], level[here], f[here], L,
-                                                          self.origins)
-            if not len(nk):
+            n_in = len(prev[1]) + len(here)
+            if not n_in:
                 continue
-            olev, odist = owners[1], owners[2]
-            # against the owners so far: a voxel is taken over where this keyframe's best ranks lower
-            T = self.keys[L]
-            pos = np.searchsorted(T, nk)
-            exists = np.zeros(len(nk), bool)
-            if len(T):
-                exists = T[np.minimum(pos, len(T) - 1)] == nk
-            p = pos[exists]
-            el, ed = olev[exists], odist[exists]
-            tl, td, tf = self.lev[L][p], self.dist[L][p], self.frame[L][p]
-            better = (el < tl) | ((el == tl) & ((ed < td) | ((ed == td) & (frame < tf))))
-            wins = np.ones(len(nk), bool)
-            wins[exists] = better
-            taken = p[better]
-            if len(taken):
-                self.lev[L][taken], self.dist[L][taken] = el[better], ed[better]
-                self.frame[L][taken] = frame
-                lo = np.searchsorted(self.cell_keys[L], nk[exists][better], "left")
-                hi = np.searchsorted(self.cell_keys[L], nk[exists][better], "right")
-                if (hi > lo).any():
-                    gone = np.zeros(len(self.cell_keys[L]), bool)
-                    gone[_ranges(lo, hi)] = True
-                    lost.append(self.cell_ids[L][gone])
-                    self.cell_keys[L], self.cell_ids[L] = self.cell_keys[L][~gone], self.cell_ids[L][~gone]
-            new = ~exists
-            if new.any():
-                at = pos[new]
-                self.keys[L] = np.insert(T, at, nk[new])
-                self.lev[L] = np.insert(self.lev[L], at, olev[new])
-                self.dist[L] = np.insert(self.dist[L], at, odist[new])
-                self.frame[L] = np.insert(self.frame[L], at, frame)
-            if len(here):
-                kept = wins[voxel]
-                keep[here] = kept
-                if kept.any():
-                    o = by_key[kept[by_key]]            # the kept cells by key (stable): their keys ascending
-                    k_new = mine[o]
-                    at = np.searchsorted(self.cell_keys[L], k_new, "right")
-                    self.cell_keys[L] = np.insert(self.cell_keys[L], at, k_new)
-                    self.cell_ids[L] = np.insert(self.cell_ids[L], at, ids[here[o]])
-        return keep, (np.concatenate(lost) if lost else np.zeros(0, np.int64))
-
-
-def _ranges(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
-    """The integers of the half-open ranges [lo_i, hi_i), concatenated."""
-    n = hi - lo
-    if not n.sum():
-        return np.zeros(0, np.int64)
-    starts = np.repeat(lo - np.concatenate([[0], np.cumsum(n)[:-1]]), n)
-    return starts + np.arange(int(n.sum()))
+            oc, ol, od, ok = (np.empty((n_in, 3), np.int64), np.empty(n_in, np.int8), np.empty(n_in, np.float64),
+                              np.empty(n_in, np.int64))
+            owner = np.empty(len(here), np.int64)
+            # a table for a voxel per SCRATCH_CELLS cells first (it stays in cache), for one per cell if that is short
+            v = -1
+            for slots in (capacity(n_in // SCRATCH_CELLS), capacity(n_in)):
+                if slots > len(self.scratch):
+                    self.scratch, self.scratch_v = empty_table(slots), np.zeros(slots, np.int64)
+                v = local_owners(*prev, points, here, VOXEL_BASE_M * 2.0 ** L, L, origin, self.origins is not None,
+                                 self.scratch[:slots], self.scratch_v[:slots], oc, ol, od, ok, owner)
+                if v >= 0:
+                    break
+            self._room(L, v)
+            kept = np.empty(len(here), bool)
+            added, self.n_ent, n_lost = take_over(
+                self.keys[L], self.lev[L], self.dist[L], self.frame[L], self.head[L], ok, ol, od, v, int(frame),
+                owner, ids[here], self.ent_id, self.nxt, self.n_ent, lost, n_lost, np.empty(v, bool),
+                np.empty(v, np.int64), kept)
+            self.voxels[L] += added
+            keep[here] = kept
+            prev = (oc[:v], ol[:v], od[:v])
+        n_kept = int(keep.sum())
+        self.live += n_kept - n_lost
+        return keep, lost[:n_lost].copy()
 
 
 def _voxel_distance_reference(coords: np.ndarray, size: float, frame: np.ndarray,

@@ -198,6 +198,35 @@ def test_voxel_owners_keep_what_dedupe_frames_keeps_as_keyframes_arrive(seed):
     assert 0 < alive.sum() < n
 
 
+@pytest.mark.parametrize("box_m, frames, per", [(0.5, 4, 3000), (0.06, 40, 1000)])
+def test_voxel_owners_grow_their_tables_and_drop_lost_cells_entries(box_m, frames, per):
+    """VoxelOwners' hash tables (runtime.voxelhash) past their first sizes, with 2 cm voxels: in a 0.5 m box (~two
+    cells a voxel: many voxels) a level's table is rehashed and a keyframe's own table is too small for its voxels
+    at first (SCRATCH_CELLS); in a 6 cm box (27 voxels: each keyframe takes some over, most cells are lost) the
+    entries of lost cells are compacted away. What it keeps is still dedupe_frames' over all the cells."""
+    rng = np.random.default_rng(3)
+    pts = rng.uniform(0, box_m, (frames * per, 3)).astype(np.float32)
+    frame = np.repeat(np.arange(frames), per)
+    level = rng.integers(0, 2, len(pts)).astype(np.int8)
+    origins = viewpoint_origins(rng.uniform(-3, 3, (frames, 3)))
+    owners = VoxelOwners(origins)
+    alive = np.zeros(len(pts), bool)
+    added = 0
+    for f in range(frames):
+        idx = np.flatnonzero(frame == f)
+        keep, lost = owners.add(pts[idx], level[idx], f, idx)
+        assert alive[lost].all()
+        alive[idx[keep]] = True
+        alive[lost] = False
+        added += int(keep.sum())
+    np.testing.assert_array_equal(alive, dedupe_frames(pts, level, frame, origins))
+    assert owners.live == alive.sum()
+    if box_m > 0.1:
+        assert len(owners.keys[0]) > 1024 and owners.voxels[0] > 512         # rehashed past its first size
+    else:
+        assert owners.n_ent < added                                        # lost cells' entries compacted
+
+
 def test_spilled_parts_keep_the_rows_they_keep_in_memory(tmp_path):
     """A drive's kept cells spilled to disk (runtime.drive._Kept with a spill folder) are written once; each keep()
     after that narrows the rows of the file that part() reads: the same Gaussians as parts kept in memory."""
