@@ -1018,6 +1018,7 @@ def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None,
     from .exposure import Harmoniser
     from .inference import DEFAULT_DETAIL
     from .scene import Scene
+    from .tiles import in_tile_order
     from .viewpoints import LayerRows, Viewpoints, spatial_order
 
     say = progress or (lambda msg: None)
@@ -1178,14 +1179,12 @@ def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None,
     for kept in (detail_kept, coarse_kept):
         kept.deduped_all()
     n_coarse, n_detail = sum(map(len, coarse_parts)), sum(map(len, detail_parts))
-    # one run per keyframe (its model Gaussians, then its cells); Scene puts them in tiles, each tile's keyframes
-    # one run each, which a view draws without a copy
+    # one run per keyframe (its model Gaussians, then its cells); in_tile_order puts them in tiles, each tile's
+    # keyframes one run each, which a view draws without a copy
     pieces = sorted(zip(coarse_parts + detail_parts, coarse_frames + detail_frames),
                     key=lambda p: int(p[1][0]) if len(p[1]) else -1)
     del coarse_parts, detail_parts
-    gauss = _concat([p for p, _ in pieces])
     keyframe_of = np.concatenate([f for _, f in pieces]).astype(np.int16)
-    del pieces
     # each keyframe's chunk (with its viewpoint group) written beside the spilled parts, one at a time, and read
     # back when a view needs it: its model Gaussians, and its cells as rows of its camera layer file, in an order
     # that keeps neighbours together (spatial_order: a view's projection skips runs of them whole)
@@ -1205,13 +1204,20 @@ def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None,
         release_heap()
         return out
 
-    # the chunks are written in a thread while this one makes the moving objects, fills the ground under them and
-    # puts the shared Gaussians in tiles (Scene): the keyframes are all made, the two cores are this work's (each
+    # the chunks are written in a thread while this one puts the shared Gaussians in tiles, makes the moving objects
+    # and fills the ground under them: the keyframes are all made, the two cores are this work's (each
     # side is mostly numpy and numba, which release the GIL); one after the other where numba's threading layer
     # cannot run two threads' kernels at once (numba_cache.threadsafe)
     with ThreadPoolExecutor(1, thread_name_prefix="xyzcyl-chunks") as pool:
         written = pool.submit(write_chunks) if threadsafe() else None
         viewpoints = write_chunks() if written is None else None
+        tiles = None
+        if len(keys) > 1 and len(keyframe_of):
+            # put in tiles as they are joined (one copy; Scene would take them again): runtime.tiles.in_tile_order
+            gauss, keyframe_of, tiles = in_tile_order([p for p, _ in pieces if len(p)], keyframe_of, len(keys))
+        else:
+            gauss = _concat([p for p, _ in pieces])
+        del pieces
         actors = actors_of(drive, copies, moved, keys)
         fill_s, fill_counts = None, {}
         if actors is not None:
@@ -1227,8 +1233,8 @@ def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None,
             fill_s = time.perf_counter() - t_f
         scene = Scene(gaussians=gauss, background=background, rig=drive.frames[0].rig, model=rec.scene_model(),
                       actors=actors, keyframe_of=keyframe_of if len(keyframe_of) == len(gauss) else None,
-                      camera_layers=layers, ego_body=found if ego_body else None,
-                      drive=drive_meta(drive, keys))   # tiles: Scene (its __post_init__ reads no chunk)
+                      camera_layers=layers, ego_body=found if ego_body else None, tiles=tiles,
+                      drive=drive_meta(drive, keys))
         if written is not None:
             viewpoints = written.result()
     scene.viewpoints = viewpoints
@@ -1326,7 +1332,7 @@ def make_keyframe(rec, drive: Drive, k: int, lidar: bool, stereo: bool, detail, 
                    progress: Callable[[str], None] | None = None, detail_threads: int = 1):
     """Keyframe k up to its fusion (a worker's job): (its LiDAR sweep or None, the runtime.inference.Keyframe,
     its model Gaussians, detail Gaussians and cell maps moved into the scene's frame, a note for the progress).
-    detail_threads: cameras whose detail is made at once (Reconstructor.keyframe; 1 beside a running fusion)."""
+    detail_threads: cameras whose detail is made at once (Reconstructor.keyframe)."""
     points, images, note = _sweep(drive, k, lidar), None, ""
     guide, t_s = points, time.perf_counter()
     if points is None and stereo:
@@ -1386,12 +1392,14 @@ def _keyframes_made(rec, drive: Drive, keys: Sequence[int], workers: int, opts: 
 
         ahead = ThreadPoolExecutor(1, thread_name_prefix="keyframe")
         try:
-            # the first keyframe with nothing to fuse beside it: its cameras two at a time, as one rig's
+            # each keyframe's cameras two at a time, as one rig's, also beside a fusion: with the voxel owners in
+            # hash tables the fusion waited for the next keyframe 0.2-0.5 s of each (20 PandaSet keyframes: 46-49
+            # s with two, 49-54 s with one; docs/results.md "Speed, session of 2026-12-03 (afternoon)")
             nxt = ahead.submit(make, keys[0], True, DETAIL_THREADS)
             for i in range(len(keys)):
                 got = nxt.result()
                 if i + 1 < len(keys):
-                    nxt = ahead.submit(make, keys[i + 1])
+                    nxt = ahead.submit(make, keys[i + 1], True, DETAIL_THREADS)
                 yield got
         finally:
             ahead.shutdown(wait=True, cancel_futures=True)

@@ -45,7 +45,7 @@ from .files import read_json_doc
 from .numba_cache import njit
 from .render import Gaussians, render
 from .rig import Rig
-from .tiles import HORIZON_M, TileError, Tiles, build_tiles, tile_order
+from .tiles import HORIZON_M, TileError, Tiles, in_tile_order
 from .viewpoints import ViewpointError, Viewpoints
 
 SCENE_FORMAT = "xyzcyl-scene"
@@ -348,11 +348,8 @@ class Scene:
         if (self.tiles is not None or kf is None or not self.drive or len(self.drive.get("keyframes", ())) < 2
                 or self.own_views is not None):
             return
-        kf = np.asarray(kf, np.int16)
-        order, cells = tile_order(self.gaussians.means, kf)
-        g = self.gaussians if np.array_equal(order, np.arange(len(order))) else self.gaussians.subset(order)
-        self.gaussians, self.keyframe_of = g, kf[order]
-        self.tiles = Tiles(build_tiles(g, cells), self.keyframe_of, len(self.drive["keyframes"]), source=g)
+        self.gaussians, self.keyframe_of, self.tiles = in_tile_order([self.gaussians], kf,
+                                                                     len(self.drive["keyframes"]))
 
     def own_camera(self, camera) -> int | None:
         """The index of the input camera whose pose ``camera`` (runtime.camera.Camera) has (OWN_POSE_TOL), when

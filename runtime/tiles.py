@@ -88,6 +88,27 @@ def tile_order(means: np.ndarray, keyframe_of: np.ndarray, size: float = TILE_M)
     return order, cells[order]
 
 
+def in_tile_order(parts: Sequence[Gaussians], keyframe_of: np.ndarray, n_keys: int
+                  ) -> tuple[Gaussians, np.ndarray, Tiles]:
+    """The Gaussians of ``parts`` (joined in order; each one's keyframe ``keyframe_of`` [N]) in tile order
+    (tile_order), their keyframes in that order ([N] int16) and their Tiles (``n_keys`` keyframes; in memory): the
+    parts joined straight into place (concat_gaussians' ``to``), one copy; one set is taken in that order (its
+    dtype kept), not copied when it is in order already."""
+    from .render.gaussians import concat_gaussians
+
+    kf = np.asarray(keyframe_of, np.int16)
+    means = parts[0].means if len(parts) == 1 else np.concatenate([p.means for p in parts])
+    order, cells = tile_order(means, kf)
+    if len(parts) == 1:
+        g = parts[0] if np.array_equal(order, np.arange(len(order))) else parts[0].subset(order)
+    else:
+        to = np.empty(len(order), np.int64)
+        to[order] = np.arange(len(order))
+        g = concat_gaussians(list(parts), to=to)
+    kf = kf[order]
+    return g, kf, Tiles(build_tiles(g, cells), kf, n_keys, source=g)
+
+
 def build_tiles(g: Gaussians, cells: np.ndarray) -> list[Tile]:
     """The tiles of Gaussians ``g`` already in tile order (tile_order) with their ``cells`` [N, 2]."""
     if not len(g):
@@ -295,4 +316,5 @@ def _nbytes(g: Gaussians) -> int:
     return sum(getattr(g, f).nbytes for f in FIELDS)
 
 
-__all__ = ["CACHE_BYTES", "HORIZON_M", "TILE_M", "Tile", "TileError", "Tiles", "build_tiles", "tile_order"]
+__all__ = ["CACHE_BYTES", "HORIZON_M", "TILE_M", "Tile", "TileError", "Tiles", "build_tiles", "in_tile_order",
+           "tile_order"]

@@ -741,17 +741,27 @@ def _rigid_kernel(means, quats, R, t, q1, out_means, out_quats):
     return bad_m, bad_q
 
 
-def concat_gaussians(parts: list[Gaussians], masks: list[np.ndarray | None] | None = None) -> Gaussians:
+def concat_gaussians(parts: list[Gaussians], masks: list[np.ndarray | None] | None = None,
+                     to: np.ndarray | None = None) -> Gaussians:
     """The Gaussians of ``parts`` in order, each restricted to its boolean mask ([N_i] or None = all): one copy of
     each field, written in place: a masked part's rows by one parallel pass a field (np.compress of [N, 3] rows took
     0.16 s of a PandaSet frame's fusion), a whole part by one block copy; the highest SH degree, lower-degree parts
-    padded with zeros. concat_gaussians_reference is its numpy definition (tested: the same bits)."""
+    padded with zeros. ``to`` ([N] int64, a permutation of 0..N-1; parts without masks): row i of the concatenation
+    is put at row to[i] instead, in the same one copy (a drive's Gaussians put in tile order as they are joined, not
+    joined and then taken again). concat_gaussians_reference is its numpy definition (tested: the same bits)."""
     masks = masks if masks is not None else [None] * len(parts)
+    if to is not None and any(m is not None for m in masks):
+        raise ValueError("concat_gaussians: `to` places whole parts (no masks)")
     deg = max(p.sh_degree for p in parts)
     n_sh = (deg + 1) ** 2
     rows = [None if m is None else np.flatnonzero(m) for m in masks]
     sizes = [len(p) if r is None else len(r) for p, r in zip(parts, rows)]
     total = sum(sizes)
+    if to is not None:          # checked before it is written through
+        to = np.asarray(to, np.int64)
+        if to.shape != (total,) or (total and (to.min() < 0 or to.max() >= total or
+                                               np.bincount(to, minlength=total).max() != 1)):
+            raise ValueError(f"concat_gaussians: `to` must be a permutation of the {total} rows")
     out = {name: np.empty((total, *getattr(parts[0], name).shape[1:]), np.float32)
            for name in ("means", "quats", "log_scales", "opacity_logits")}
     out["sh"] = np.empty((total, n_sh, 3), np.float32)
@@ -765,12 +775,28 @@ def concat_gaussians(parts: list[Gaussians], masks: list[np.ndarray | None] | No
             elif r is not None:
                 for a2, d2 in zip(src, dst):
                     put_rows(a2, r, d2, at)
+            elif to is not None:            # a whole part, each row to its place
+                for a2, d2 in zip(src, dst):
+                    scatter_rows(a2, to[at:at + n], d2)
             else:                           # a whole part: one block copy (numpy's is as fast as memory)
                 for a2, d2 in zip(src, dst):
                     d2[at:at + n, :a2.shape[1]] = a2
                     d2[at:at + n, a2.shape[1]:] = 0
         at += n
     return Gaussians.joined(**out)          # rows of checked Gaussians: not checked again
+
+
+@njit(cache=True, parallel=True, nogil=True)
+def scatter_rows(src, to, dst):
+    """dst[to[i]] = src[i] over src's columns, the rest of dst's row zero; src [n, C], dst [M, >= C] (both 2-D,
+    any strides); to [n] int64 in 0..M-1 (concat_gaussians' ``to``)."""
+    c, cd = src.shape[1], dst.shape[1]
+    for i in prange(to.shape[0]):
+        j = to[i]
+        for k in range(c):
+            dst[j, k] = src[i, k]
+        for k in range(c, cd):
+            dst[j, k] = 0
 
 
 @njit(cache=True, parallel=True, nogil=True)
@@ -795,12 +821,20 @@ def put_gaussian_rows(means, quats, log_scales, opacity, sh, rows, o_means, o_qu
             o_sh[j, k] = 0
 
 
-def concat_gaussians_reference(parts: list[Gaussians], masks: list[np.ndarray | None] | None = None) -> Gaussians:
-    """concat_gaussians in numpy: each part's masked rows, the SH padded with zeros to the highest degree."""
+def concat_gaussians_reference(parts: list[Gaussians], masks: list[np.ndarray | None] | None = None,
+                               to: np.ndarray | None = None) -> Gaussians:
+    """concat_gaussians in numpy: each part's masked rows, the SH padded with zeros to the highest degree; with
+    ``to``, row i of that at row to[i]."""
     masks = masks if masks is not None else [None] * len(parts)
     n_sh = (max(p.sh_degree for p in parts) + 1) ** 2
     taken = [p if m is None else p.subset(np.asarray(m, bool)) for p, m in zip(parts, masks)]
     sh = [np.concatenate([t.sh, np.zeros((len(t), n_sh - t.sh.shape[1], 3), np.float32)], axis=1) for t in taken]
-    return Gaussians.joined(**{name: np.concatenate([np.asarray(getattr(t, name), np.float32) for t in taken])
-                               for name in ("means", "quats", "log_scales", "opacity_logits")},
-                            sh=np.concatenate(sh))
+    fields = {name: np.concatenate([np.asarray(getattr(t, name), np.float32) for t in taken])
+              for name in ("means", "quats", "log_scales", "opacity_logits")}
+    fields["sh"] = np.concatenate(sh)
+    if to is not None:
+        for name, a in fields.items():
+            placed = np.empty_like(a)
+            placed[np.asarray(to)] = a
+            fields[name] = placed
+    return Gaussians.joined(**fields)

@@ -103,6 +103,17 @@ def test_concat_gaussians_gives_its_references_bits():
             np.testing.assert_array_equal(a, b, err_msg=f)
     assert concat_gaussians(parts, m).sh.shape == (500 + 300 + 300 + 40, 9, 3)
     assert len(concat_gaussians([parts[1]])) == 0
+    # whole parts put in a given order as they are joined (scatter_rows; the strided part a field at a time)
+    to = rng.permutation(500 + 300 + 300 + 40)
+    got, want = concat_gaussians(parts, to=to), concat_gaussians_reference(parts, to=to)
+    for f in ("means", "quats", "log_scales", "opacity_logits", "sh"):
+        np.testing.assert_array_equal(getattr(got, f), getattr(want, f), err_msg=f)
+    np.testing.assert_array_equal(got.means[to[:500]], parts[0].means)
+    for bad in (to[:-1], np.r_[to[:-1], to[0]], np.r_[to[:-1], len(to)]):     # short, a row twice, out of range
+        with pytest.raises(ValueError, match="permutation"):
+            concat_gaussians(parts, to=bad)
+    with pytest.raises(ValueError, match="no masks"):
+        concat_gaussians(parts, masks, to=to)
 
 
 # -- options ------------------------------------------------------------------------------------------------------
