@@ -74,6 +74,7 @@ from .heap import release_heap
 from .numba_cache import njit, threadsafe
 from .render import FIELDS, Gaussians
 from .rig import Rig, load_rig
+from .viewpoints import morton_code
 
 MAX_SPEED_MPS = 100.0          # an ego faster than this between two frames is a pose error (360 km/h)
 DEFAULT_SPACING_M = 1.5        # keyframe spacing: a drive posted at ~2 m spacing is used whole
@@ -962,10 +963,36 @@ class _Kept:
         """Keyframe ``n``'s cells that the shared Gaussians keep from another keyframe (its parts' unshared)."""
         return [self.drawn(i, ~self.shared[i]) for i in self._own(n)]
 
-    def own_layer_rows(self, n: int) -> tuple[np.ndarray, np.ndarray] | None:
-        """own_of(n)'s Gaussians (in its order: a split cell as its four quarters) as rows of keyframe ``n``'s
-        camera layer file ([M] int32) and the centres of their cells ([M, 3] float32, metres, the scene's frame: a
-        quarter's its cell's); None when one of its parts has no rows there."""
+    def own_layer_rows(self, n: int) -> np.ndarray | None:
+        """own_of(n)'s Gaussians as rows of keyframe ``n``'s camera layer file ([M] int32) in spatial order
+        (runtime.viewpoints.spatial_order of their cells' centres, a split cell's four quarters at its centre: a
+        view's projection skips runs of neighbours whole), without a copy of the centres: the box of the parts' kept
+        cells, then each row's Morton code beside it, sorted (own_layer_rows_reference, tested equal); None when
+        one of its parts has no rows there."""
+        from .render import kernels as K
+        from .viewpoints import SPATIAL_BITS, box_steps, grow_box
+
+        own = self._own(n)
+        if any(self.layer[i] is None for i in own):
+            return None
+        masks = [~self.shared[i] for i in own]
+        lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
+        total = 0
+        for i, m in zip(own, masks):
+            grow_box(self.means[i], m, lo, hi)
+            total += int(m.sum()) + (0 if self.split[i] is None else 3 * int((self.split[i][m] >= 0).sum()))
+        rows, codes = np.empty(total, np.int32), np.empty(total, np.uint32)
+        step, at = box_steps(lo, hi, SPATIAL_BITS), 0
+        for i, m in zip(own, masks):
+            split = self.split[i]
+            at = _rows_and_codes(self.layer[i], self.means[i], m, _NO_SPLIT if split is None else split,
+                                 split is not None, lo, step, SPATIAL_BITS, rows, codes, at)
+        return K.depth_order(rows, codes) if total else rows
+
+    def own_layer_rows_reference(self, n: int) -> np.ndarray | None:
+        """own_layer_rows with the centres made (_layer_take) and put in spatial_order (its test)."""
+        from .viewpoints import spatial_order
+
         rows, centres = [], []
         for i in self._own(n):
             if self.layer[i] is None:
@@ -974,8 +1001,9 @@ class _Kept:
             rows.append(r)
             centres.append(c)
         if not rows:
-            return np.zeros(0, np.int32), np.zeros((0, 3), np.float32)
-        return np.concatenate(rows), np.concatenate(centres)
+            return np.zeros(0, np.int32)
+        rows, centres = np.concatenate(rows), np.concatenate(centres)
+        return rows[spatial_order(centres)]
 
     def _layer_take(self, i: int, m: np.ndarray, centres: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
         """Part i's cells where ``m`` ([N_i] bool) holds as rows of its keyframe's camera layer file, in drawn's
@@ -990,6 +1018,30 @@ class _Kept:
                 if centres:
                     c = np.concatenate([c[~q], np.repeat(c[q], 4, axis=0)])
         return r, c
+
+
+_NO_SPLIT = np.zeros(0, np.int32)
+
+
+@njit(cache=True, nogil=True)
+def _rows_and_codes(layer, means, mask, split, has_split, lo, step, bits, rows, codes, at):
+    """_Kept._layer_take's rows of one part where ``mask`` holds (the cells that do not split, then each split
+    cell's four quarters: rows layer[i] + 0..3) written to rows[at:], and beside each its cell's Morton code
+    (runtime.viewpoints.morton_code in the box from ``lo``, box_steps ``step``) to codes[at:]; returns the next at."""
+    for i in range(mask.shape[0]):
+        if mask[i] and not (has_split and split[i] >= 0):
+            rows[at] = layer[i]
+            codes[at] = morton_code(means, i, lo, step, bits)
+            at += 1
+    if has_split:
+        for i in range(mask.shape[0]):
+            if mask[i] and split[i] >= 0:
+                c = morton_code(means, i, lo, step, bits)
+                for k in range(4):
+                    rows[at] = layer[i] + k
+                    codes[at] = c
+                    at += 1
+    return at
 
 
 _DEFAULT = object()
@@ -1019,7 +1071,7 @@ def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None,
     from .inference import DEFAULT_DETAIL
     from .scene import Scene
     from .tiles import in_tile_order
-    from .viewpoints import LayerRows, Viewpoints, spatial_order
+    from .viewpoints import LayerRows, Viewpoints
 
     say = progress or (lambda msg: None)
     detail = DEFAULT_DETAIL if detail is _DEFAULT else detail
@@ -1190,11 +1242,10 @@ def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None,
     # that keeps neighbours together (spatial_order: a view's projection skips runs of them whole)
     def chunk(n: int) -> Gaussians | tuple[Gaussians, LayerRows]:
         release_heap()                          # the chunk before was written and let go of
-        own = detail_kept.own_layer_rows(n) if layers is not None else None
-        if own is None:
+        rows = detail_kept.own_layer_rows(n) if layers is not None else None
+        if rows is None:
             return _concat(coarse_kept.own_of(n) + detail_kept.own_of(n))
-        rows, centres = own
-        return _concat(coarse_kept.own_of(n)), LayerRows(layers.keyframes[n].file, rows[spatial_order(centres)])
+        return _concat(coarse_kept.own_of(n)), LayerRows(layers.keyframes[n].file, rows)
 
     def write_chunks() -> Viewpoints | None:
         out = Viewpoints.spilled([[n] for n in range(len(keys))], _in_order(chunk, len(keys), CHUNKS_AHEAD), spill,

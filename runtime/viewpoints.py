@@ -132,24 +132,60 @@ def _morton_codes(means, bits):
     definition)."""
     lo = np.full(3, np.inf)
     hi = np.full(3, -np.inf)
+    grow_box(means, np.ones(0, np.bool_), lo, hi)
+    step = box_steps(lo, hi, bits)
+    out = np.empty(means.shape[0], np.uint32)
     for i in range(means.shape[0]):
-        for a in range(3):
-            x = np.float64(means[i, a])
-            lo[a] = min(lo[a], x)
-            hi[a] = max(hi[a], x)
+        out[i] = morton_code(means, i, lo, step, bits)
+    return out
+
+
+@njit(cache=True, nogil=True)
+def grow_box(means, mask, lo, hi):
+    """lo, hi [3] float64 (written) grown to hold the points means [N, 3] (float64 of each value) where ``mask``
+    [N] holds (an empty mask: all)."""
+    every = mask.shape[0] == 0
+    for i in range(means.shape[0]):
+        if every or mask[i]:
+            for a in range(3):
+                x = np.float64(means[i, a])
+                lo[a] = min(lo[a], x)
+                hi[a] = max(hi[a], x)
+
+
+@njit(cache=True, nogil=True)
+def box_steps(lo, hi, bits):
+    """[3]: 2^bits cells across the box (lo, hi) an axis (morton_code's step)."""
     step = np.empty(3)
     for a in range(3):
         step[a] = (1 << bits) / max(hi[a] - lo[a], 1e-9)
+    return step
+
+
+@njit(cache=True, nogil=True)
+def morton_code(means, i, lo, step, bits):
+    """Point i of means [N, 3]'s Morton code in the box from lo with box_steps ``step`` (_morton_codes)."""
     top = (1 << bits) - 1
-    out = np.empty(means.shape[0], np.uint32)
-    for i in range(means.shape[0]):
-        code = 0
-        for a in range(3):
-            q = min(max(int((np.float64(means[i, a]) - lo[a]) * step[a]), 0), top)
+    code = 0
+    for a in range(3):
+        q = min(max(int((np.float64(means[i, a]) - lo[a]) * step[a]), 0), top)
+        if bits <= 10:
+            code |= _spread3(q) << a
+        else:
             for b in range(bits):
                 code |= ((q >> b) & 1) << (3 * b + a)
-        out[i] = code
-    return out
+    return code
+
+
+@njit(cache=True, nogil=True)
+def _spread3(q):
+    """The bits of q (< 2^10) moved to every third place (bit b to bit 3 b): the 'magic numbers' of a Morton
+    code, four shifts and masks instead of a loop over the bits (the same code)."""
+    q &= 0x3FF
+    q = (q | (q << 16)) & 0x030000FF
+    q = (q | (q << 8)) & 0x0300F00F
+    q = (q | (q << 4)) & 0x030C30C3
+    return (q | (q << 2)) & 0x09249249
 
 
 class LayerRows(NamedTuple):

@@ -227,6 +227,43 @@ def test_voxel_owners_grow_their_tables_and_drop_lost_cells_entries(box_m, frame
         assert owners.n_ent < added                                        # lost cells' entries compacted
 
 
+def test_own_layer_rows_are_the_spatial_order_of_their_cells(tmp_path):
+    """A keyframe's own cells as rows of its camera layer file in spatial order (_Kept.own_layer_rows: Morton codes
+    beside the rows, no copy of the centres) against the reference (the centres made, spatial_order): parts with
+    split cells (four rows each at the cell's centre) and without, an empty one, cells shared and not; a part
+    without layer rows gives None."""
+    from xyzcyl.runtime.drive import _Kept
+    from xyzcyl.runtime.render import Gaussians
+
+    rng = np.random.default_rng(5)
+    kept = _Kept(np.zeros((2, 3)), tmp_path)
+    kept.source = lambda n: tmp_path / f"layer_{n}.ply"          # never read here
+    for n in (0, 1):
+        start = 0
+        for size, splits in ((4000, True), (2500, False), (0, False), (900, True)):
+            g = Gaussians(rng.normal(scale=30.0, size=(size, 3)).astype(np.float32),
+                          np.tile(np.float32([1, 0, 0, 0]), (size, 1)), np.full((size, 3), -2.0, np.float32),
+                          np.zeros(size, np.float32), np.zeros((size, 1, 3), np.float32))
+            split = None
+            if splits:
+                rows = np.where(rng.random(size) < 0.3, 0, -1)
+                rows[rows == 0] = np.arange(int((rows == 0).sum()))
+                split = (rows, np.zeros((int((rows >= 0).sum()), 4, 3), np.float32),
+                         np.zeros((int((rows >= 0).sum()), 4, 3), np.float32))
+            quarters = 0 if split is None else 3 * (split[0] >= 0)
+            layer = (start + np.arange(size) + np.cumsum(quarters) - quarters).astype(np.int32)
+            start += size + int(np.sum(quarters))
+            kept.add(g, np.zeros(size, np.int8), n, split, layer)
+    for i in range(len(kept.shared)):
+        kept.shared[i] = rng.random(len(kept.shared[i])) < 0.6
+    for n in (0, 1):
+        got, want = kept.own_layer_rows(n), kept.own_layer_rows_reference(n)
+        assert got.dtype == np.int32 and len(got) > 1000
+        np.testing.assert_array_equal(got, want)
+    kept.layer[0] = None
+    assert kept.own_layer_rows(0) is None and kept.own_layer_rows(1) is not None
+
+
 def test_spilled_parts_keep_the_rows_they_keep_in_memory(tmp_path):
     """A drive's kept cells spilled to disk (runtime.drive._Kept with a spill folder) are written once; each keep()
     after that narrows the rows of the file that part() reads: the same Gaussians as parts kept in memory."""

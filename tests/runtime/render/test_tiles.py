@@ -62,6 +62,34 @@ def test_tile_order_puts_tiles_then_keyframes_then_neighbours_together():
     assert order.tolist() == [3, 1, 2, 0]
 
 
+def test_tile_boxes_are_numpys_reduceat_and_in_tile_order_joins_parts_in_place():
+    """build_tiles' boxes in one numba pass (tiles._run_boxes) against numpy's reduceat, runs of one row among them;
+    in_tile_order of several parts: the tile order of their concatenation, each row moved with its keyframe."""
+    from xyzcyl.runtime.tiles import _run_boxes, in_tile_order, run_boxes_reference
+
+    rng = np.random.default_rng(7)
+    g, kf = _street(rng)
+    lone = g.slice(0, 1).transformed(np.array([[1, 0, 0, 500], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1.0]]))
+    g = Gaussians.joined(**{f: np.concatenate([getattr(g, f), getattr(lone, f)]) for f in
+                            ("means", "quats", "log_scales", "opacity_logits", "sh")})     # a tile of one
+    kf = np.r_[kf, kf[:1]]
+    order, cells = tile_order(g.means, kf)
+    t = g.subset(order)
+    starts = np.r_[0, np.flatnonzero(np.any(cells[1:] != cells[:-1], axis=1)) + 1]
+    stops = np.r_[starts[1:], len(t)]
+    assert (stops - starts).min() == 1 < (stops - starts).max()
+    for got, want in zip(_run_boxes(t.means, t.log_scales, starts, stops), run_boxes_reference(t.means, t.log_scales,
+                                                                                                  starts)):
+        np.testing.assert_array_equal(got, want)
+    parts = [g.slice(0, 1000), g.slice(1000, 1001), g.slice(1001, len(g))]
+    joined, kf_t, tiles = in_tile_order(parts, kf, 4)
+    for f in ("means", "quats", "log_scales", "opacity_logits", "sh"):
+        np.testing.assert_array_equal(getattr(joined, f), getattr(t, f), err_msg=f)
+    np.testing.assert_array_equal(kf_t, kf[order])
+    assert [(x.cell, x.start, x.count, x.lo, x.hi) for x in tiles.tiles] == \
+        [(x.cell, x.start, x.count, x.lo, x.hi) for x in build_tiles(t, cells)]
+
+
 @pytest.mark.parametrize("name", list(_cameras()))
 def test_a_tile_left_out_changes_no_pixel(name):
     """Drawing only the tiles `visible` gives is drawing every tile (exactly: the renderer culls each of the left-out

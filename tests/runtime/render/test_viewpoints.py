@@ -118,6 +118,14 @@ def test_a_chunk_changed_after_loading_is_an_error_naming_it(tmp_path):
         back.viewpoints.gaussians(0)
 
 
+def test_spread3_puts_each_bit_at_every_third_place():
+    """The Morton code's magic numbers (viewpoints._spread3) against the loop over the bits, every 10-bit value."""
+    from xyzcyl.runtime.viewpoints import _spread3
+
+    for q in range(1024):
+        assert _spread3(q) == sum(((q >> b) & 1) << (3 * b) for b in range(10)), q
+
+
 def test_spatial_order_is_the_morton_order_of_the_points_in_their_box():
     """spatial_order against a plain definition: each point's 10-bit cell per axis in the box of all points, the
     bits interleaved (x lowest), sorted, ties in index order; and it keeps neighbours together."""
