@@ -75,6 +75,7 @@ from .numba_cache import njit, threadsafe
 from .render import FIELDS, Gaussians
 from .rig import Rig, load_rig
 from .viewpoints import morton_code
+from .voxelhash import capacity, cell_voxel, compact, empty_table, local_owners, rehash, take_over
 
 MAX_SPEED_MPS = 100.0          # an ego faster than this between two frames is a pose error (360 km/h)
 DEFAULT_SPACING_M = 1.5        # keyframe spacing: a drive posted at ~2 m spacing is used whole
@@ -511,6 +512,7 @@ def _owners_up(owners: tuple, points: np.ndarray, level: np.ndarray, frame: np.n
 
 
 _NO_ORIGINS = np.zeros((0, 3), np.float64)
+_NO_ORIGIN = np.zeros(3, np.float64)
 
 
 @njit(cache=True, parallel=True, nogil=True)
@@ -519,22 +521,13 @@ def _cell_voxels(points, size, frame, origins, with_origins, coords, keys, dists
     distance to its keyframe's origin (frame [N], origins [K, 3]; _voxel_distance_reference; 0 without origins),
     written to coords [N, 3], keys [N], dists [N] (the numpy's operations
     and order: the same bits)."""
-    lim = (1 << 21) - 1
     for i in numba.prange(points.shape[0]):
-        key = 0
-        for a in range(3):
-            c = np.int64(math.floor(np.float64(points[i, a]) / size))
-            coords[i, a] = c
-            key = (key << 21) | min(max(c + (1 << 20), 0), lim)
-        keys[i] = key
         if with_origins:
-            o = frame[i]
-            dx = (np.float64(coords[i, 0]) + 0.5) * size - origins[o, 0]
-            dy = (np.float64(coords[i, 1]) + 0.5) * size - origins[o, 1]
-            dz = (np.float64(coords[i, 2]) + 0.5) * size - origins[o, 2]
-            dists[i] = math.sqrt(dx * dx + dy * dy + dz * dz)
+            c0, c1, c2, key, d = cell_voxel(points, i, size, origins[frame[i]], True)
         else:
-            dists[i] = 0.0
+            c0, c1, c2, key, d = cell_voxel(points, i, size, _NO_ORIGIN, False)
+        coords[i, 0], coords[i, 1], coords[i, 2] = c0, c1, c2
+        keys[i], dists[i] = key, d
 
 
 @njit(cache=True, nogil=True)
@@ -577,8 +570,6 @@ class VoxelOwners:
     whatever the order (the tests)."""
 
     def __init__(self, origins: np.ndarray | None = None):
-        from .voxelhash import capacity, empty_table
-
         self.origins = None if origins is None else np.asarray(origins, np.float64)
         slots = capacity(0)
         # per level: the voxels with an owner (keys), their owner's rank (level, distance, keyframe) and the first of
@@ -598,8 +589,6 @@ class VoxelOwners:
 
     def _room(self, L: int, more: int) -> None:
         """Level L's table with room for ``more`` keys (a load of at most one half)."""
-        from .voxelhash import capacity, empty_table, rehash
-
         need = capacity(self.voxels[L] + more)
         if need <= len(self.keys[L]):
             return
@@ -610,8 +599,6 @@ class VoxelOwners:
 
     def _entries(self, more: int) -> None:
         """Room for ``more`` entries; the lost ones dropped first when they are most of them."""
-        from .voxelhash import compact
-
         if self.n_ent + more <= len(self.ent_id):
             return
         size = max(2 * len(self.ent_id), 2 * (self.live + more))
@@ -629,8 +616,6 @@ class VoxelOwners:
         """One keyframe's cells (points [M, 3] metres, level [M] voxel_levels, all of keyframe ``frame``, ``ids`` [M]
         int64 the caller's names for them) -> (keep [M] bool: the cells that own their voxel, the ids of cells added
         before that are lost to them)."""
-        from .voxelhash import capacity, empty_table, local_owners, take_over
-
         level = np.clip(np.asarray(level, np.int64), 0, VOXEL_LEVELS - 1)
         ids = np.ascontiguousarray(ids, np.int64)
         points = np.ascontiguousarray(points)

@@ -60,6 +60,24 @@ def _pack1(c0, c1, c2):
 
 
 @njit(cache=True, nogil=True)
+def cell_voxel(points, p, size, origin, with_origin):
+    """Point p of points [N, 3] (metres)'s voxel of edge ``size``: (its integer coordinates floor(point / size) in
+    float64, its packed key, the distance from its centre to ``origin`` [3] metres when ``with_origin``, else 0):
+    the arithmetic of runtime.drive._pack and _voxel_distance_reference, the same bits (drive._cell_voxels,
+    local_owners)."""
+    c0 = np.int64(math.floor(np.float64(points[p, 0]) / size))
+    c1 = np.int64(math.floor(np.float64(points[p, 1]) / size))
+    c2 = np.int64(math.floor(np.float64(points[p, 2]) / size))
+    d = 0.0
+    if with_origin:
+        dx = (np.float64(c0) + 0.5) * size - origin[0]
+        dy = (np.float64(c1) + 0.5) * size - origin[1]
+        dz = (np.float64(c2) + 0.5) * size - origin[2]
+        d = math.sqrt(dx * dx + dy * dy + dz * dz)
+    return c0, c1, c2, _pack1(c0, c1, c2), d
+
+
+@njit(cache=True, nogil=True)
 def local_owners(prev_c, prev_l, prev_d, points, idx, size, level, origin, with_origin, scratch, scratch_v,
                  out_c, out_l, out_d, out_k, cell_owner):
     """One voxel level of one keyframe's own dedupe (runtime.drive.dedupe_frames within one keyframe, whose cells
@@ -96,17 +114,7 @@ def local_owners(prev_c, prev_l, prev_d, points, idx, size, level, origin, with_
     for i in range(len(idx)):
         if v >= full:
             break
-        p = idx[i]
-        c0 = np.int64(math.floor(np.float64(points[p, 0]) / size))
-        c1 = np.int64(math.floor(np.float64(points[p, 1]) / size))
-        c2 = np.int64(math.floor(np.float64(points[p, 2]) / size))
-        key = _pack1(c0, c1, c2)
-        d = 0.0
-        if with_origin:
-            dx = (np.float64(c0) + 0.5) * size - origin[0]
-            dy = (np.float64(c1) + 0.5) * size - origin[1]
-            dz = (np.float64(c2) + 0.5) * size - origin[2]
-            d = math.sqrt(dx * dx + dy * dy + dz * dz)
+        c0, c1, c2, key, d = cell_voxel(points, idx[i], size, origin, with_origin)
         s = _find(scratch, key, mask, shift)
         if scratch[s] == EMPTY:
             scratch[s] = key
