@@ -101,9 +101,10 @@ class CameraLayers:
             self._pending.result()
         if self._writer is None:
             self._writer = ThreadPoolExecutor(1, thread_name_prefix="xyzcyl-camera-layers")
-        # without normals (nx ny nz, zeros that no reader uses): a sixth of the drive's largest files
+        # without normals (nx ny nz, zeros that no reader uses): a sixth of the drive's largest files; past the
+        # page cache (runtime.directio: read once at the reconstruction's end, by Gaussians.read_ply_take)
         self._pending = self._writer.submit(save_ply_parts, self._folder / file, parts or [Gaussians.empty()],
-                                            normals=False)
+                                            normals=False, direct=True)
         self.keyframes.append(KeyframeLayers(file, tuple(runs)))
 
     def finish(self) -> None:

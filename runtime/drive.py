@@ -55,7 +55,7 @@ import tempfile
 import time
 from collections import deque
 from collections.abc import Callable, Sequence
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -86,6 +86,8 @@ DEFAULT_MAX_GAP_S = 2.0        # a keyframe at least this often, moving or not
 # `if __name__ == "__main__":` guard of every multiprocessing program; machines with cores to spare ask for them
 DEFAULT_WORKERS = 0            # 0: keyframes made in this process, one ahead in a thread (_keyframes_made)
 CHUNKS_AHEAD = 2               # keyframes' chunks made at once at the end (_in_order): two cores
+LAYER_READS = 2                # camera layer files read at once at the end (_Kept._from_layers): one's rows taken while
+                               # the disk reads the other
 CARVE_WINDOW = 2               # keyframes before and after whose cameras may carve a keyframe's cells
 VOXEL_BASE_M = 0.02            # dedupe_frames: the finest voxel (2 cm); a cell's voxel is the power of two above
 VOXEL_LEVELS = 12              # VOXEL_CELLS x its footprint, up to 2 cm x 2^11 = 41 m
@@ -913,29 +915,54 @@ class _Kept:
                              for k in ("means", "colours"))
         return expand_rows(g, self.split[i][m], *quarters)
 
-    def _from_layers(self, items: list[tuple[int, np.ndarray]]) -> list[Gaussians]:
+    def _from_layers(self, items: list[tuple[int, np.ndarray]],
+                     found: Callable[[int, np.ndarray], None] | None = None) -> list[Gaussians]:
         """drawn(i, m) of each (i, m) of ``items``, parts whose Gaussians are rows of their keyframe's camera layer
-        file (``source``): each keyframe's file read once for all its parts (Gaussians.load_ply_take)."""
+        file (``source``): each keyframe's file read once for all its parts (Gaussians.read_ply_take), in keyframe
+        order; ``found``: called with each keyframe and the box of the means of its own rows there (own_layer_rows'
+        rows, [2, 3] float64: min; max; its chunk's box, runtime.viewpoints.LayerRows) as soon as the same reads
+        find it."""
         out: list[Gaussians | None] = [None] * len(items)
         by_key: dict[int, list[int]] = {}
         for j, (i, _) in enumerate(items):
             by_key.setdefault(int(self.frame[i][0]) if len(self.frame[i]) else -1, []).append(j)
-        for n, js in by_key.items():
+        if found is not None:
+            for f, layer in zip(self.frame, self.layer):
+                if len(f) and layer is not None:
+                    by_key.setdefault(int(f[0]), [])
+
+        def read(n: int, js: list[int]) -> tuple[list[np.ndarray], Gaussians]:
             rows = [self._layer_take(*items[j], centres=False)[0] for j in js]
-            if n < 0 or not sum(map(len, rows)):
+            own, box = None, None
+            if found is not None and n >= 0:
+                own = [self._layer_take(i, ~self.shared[i], centres=False)[0] for i in self._own(n)
+                       if self.layer[i] is not None]
+                own = np.concatenate(own) if own else None
+                box = np.array([[np.inf] * 3, [-np.inf] * 3])
+            if n < 0 or not (sum(map(len, rows)) or own is not None and len(own)):
                 g = Gaussians.empty()
             else:
-                g = Gaussians.load_ply_take(self.source(n), np.concatenate(rows))
+                g = Gaussians.read_ply_take(self.source(n), np.concatenate(rows) if rows else np.zeros(0, np.int32),
+                                            box_of=own, box=box)
+            if box is not None:
+                found(n, box)
+            return rows, g
+
+        # LAYER_READS files at a time: one's rows found and taken while the disk reads another's
+        keyed = sorted(by_key.items())
+        for (n, js), (rows, g) in zip(keyed, _in_order(lambda k: read(*keyed[k]), len(keyed), LAYER_READS)):
             at = 0
             for j, r in zip(js, rows):
                 out[j] = g.slice(at, at + len(r)) if len(r) else Gaussians.empty()
                 at += len(r)
         return out
 
-    def shared_parts(self) -> tuple[list[Gaussians], list[np.ndarray]]:
-        """(each part's shared Gaussians, their keyframes)."""
+    def shared_parts(self, found: Callable[[int, np.ndarray], None] | None = None
+                     ) -> tuple[list[Gaussians], list[np.ndarray]]:
+        """(each part's shared Gaussians, their keyframes); ``found``: told the box of each keyframe's own rows of
+        its camera layer file as they are read (_from_layers)."""
         read = [i for i, s in enumerate(self.store) if s is None]
-        got = dict(zip(read, self._from_layers([(i, self.shared[i]) for i in read])))
+        got = dict(zip(read, self._from_layers([(i, self.shared[i]) for i in read], found)))
         out = [got[i] if i in got else self.drawn(i, s) for i, s in enumerate(self.shared)]
         return out, [np.full(len(g), f[0] if len(f) else 0, f.dtype) for g, f in zip(out, self.frame)]
 
@@ -1212,16 +1239,10 @@ def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None,
         commit(window.pop(0))
     coarse_kept.dedupe()
     coarse_parts, coarse_frames = coarse_kept.shared_parts()
-    detail_parts, detail_frames = detail_kept.shared_parts()
-    for kept in (detail_kept, coarse_kept):
-        kept.deduped_all()
-    n_coarse, n_detail = sum(map(len, coarse_parts)), sum(map(len, detail_parts))
-    # one run per keyframe (its model Gaussians, then its cells); in_tile_order puts them in tiles, each tile's
-    # keyframes one run each, which a view draws without a copy
-    pieces = sorted(zip(coarse_parts + detail_parts, coarse_frames + detail_frames),
-                    key=lambda p: int(p[1][0]) if len(p[1]) else -1)
-    del coarse_parts, detail_parts
-    keyframe_of = np.concatenate([f for _, f in pieces]).astype(np.int16)
+    # each chunk's box (of its rows of its keyframe's camera layer file), found as the shared cells are read there
+    own_boxes: list[Future] = [Future() for _ in keys]
+    shared_read: Future = Future()          # the shared cells read: the parts may go (write_chunks)
+
     # each keyframe's chunk (with its viewpoint group) written beside the spilled parts, one at a time, and read
     # back when a view needs it: its model Gaussians, and its cells as rows of its camera layer file, in an order
     # that keeps neighbours together (spatial_order: a view's projection skips runs of them whole)
@@ -1230,22 +1251,40 @@ def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None,
         rows = detail_kept.own_layer_rows(n) if layers is not None else None
         if rows is None:
             return _concat(coarse_kept.own_of(n) + detail_kept.own_of(n))
-        return _concat(coarse_kept.own_of(n)), LayerRows(layers.keyframes[n].file, rows)
+        return _concat(coarse_kept.own_of(n)), LayerRows(layers.keyframes[n].file, rows, own_boxes[n].result())
 
     def write_chunks() -> Viewpoints | None:
         out = Viewpoints.spilled([[n] for n in range(len(keys))], _in_order(chunk, len(keys), CHUNKS_AHEAD), spill,
                                  [int(h) for h in heads]) if len(keys) > 1 else None
+        shared_read.result()
         for kept in (detail_kept, coarse_kept):     # every cell is in the scene or a chunk now: their files and
             kept.release()                          # maps go
         release_heap()
         return out
 
-    # the chunks are written in a thread while this one puts the shared Gaussians in tiles, makes the moving objects
-    # and fills the ground under them: the keyframes are all made, the two cores are this work's (each
-    # side is mostly numpy and numba, which release the GIL); one after the other where numba's threading layer
-    # cannot run two threads' kernels at once (numba_cache.threadsafe)
+    # the chunks are written in a thread while this one reads the shared cells from the camera layer files (the
+    # disk's time: runtime.directio) and puts them in tiles, makes the moving objects and fills the ground under
+    # them: the keyframes are all made, the two cores are this work's (each side is mostly numpy and numba, which
+    # release the GIL); one after the other where numba's threading layer cannot run two threads' kernels at once
+    # (numba_cache.threadsafe)
     with ThreadPoolExecutor(1, thread_name_prefix="xyzcyl-chunks") as pool:
         written = pool.submit(write_chunks) if threadsafe() else None
+        try:
+            detail_parts, detail_frames = detail_kept.shared_parts(lambda n, box: own_boxes[n].set_result(box))
+        finally:                    # a chunk whose box was not found (none, or the reads failed) reads it itself
+            for f in own_boxes:
+                if not f.done():
+                    f.set_result(None)
+            shared_read.set_result(None)
+        for kept in (detail_kept, coarse_kept):
+            kept.deduped_all()
+        n_coarse, n_detail = sum(map(len, coarse_parts)), sum(map(len, detail_parts))
+        # one run per keyframe (its model Gaussians, then its cells); in_tile_order puts them in tiles, each tile's
+        # keyframes one run each, which a view draws without a copy
+        pieces = sorted(zip(coarse_parts + detail_parts, coarse_frames + detail_frames),
+                        key=lambda p: int(p[1][0]) if len(p[1]) else -1)
+        del coarse_parts, detail_parts
+        keyframe_of = np.concatenate([f for _, f in pieces]).astype(np.int16)
         viewpoints = write_chunks() if written is None else None
         tiles = None
         if len(keys) > 1 and len(keyframe_of):

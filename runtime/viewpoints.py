@@ -190,10 +190,13 @@ def _spread3(q):
 
 class LayerRows(NamedTuple):
     """A chunk's Gaussians that are rows of a camera layer file: ``file`` (relative to the scene folder, a keyframe's
-    runtime.cameralayers file) and ``rows`` ([M] int32, the rows in the chunk's order)."""
+    runtime.cameralayers file) and ``rows`` ([M] int32, the rows in the chunk's order); ``box`` the box of their
+    means ([2, 3] float64: min; max) where known (a drive's reconstruction finds it as it reads the file:
+    Gaussians.read_ply_take), else None: read from the file when the chunk is made."""
 
     file: str
     rows: np.ndarray
+    box: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -237,33 +240,25 @@ def _chunk(i: int, keyframes: Sequence[int], g: Gaussians, viewpoints: Sequence[
     ks, file = tuple(int(k) for k in keyframes), f"{CHUNKS_DIR}/group_{i:03d}.ply"
     if rows is None:
         return Chunk(ks, len(g), _bbox(g.means), file, vpt)
-    from .render.gaussians import ply_rows_layout
+    from .render.gaussians import ply_rows_layout, rows_box
 
     n, dtype, header = ply_rows_layout(folder / rows.file)
     at = np.asarray(rows.rows, np.int64)
     box = np.array([[np.inf] * 3, [-np.inf] * 3])
-    if len(at):
-        if int(at.min()) < 0 or int(at.max()) >= n:
-            raise ValueError(f"rows of {rows.file!r} outside its {n} rows")
+    if len(at) and (int(at.min()) < 0 or int(at.max()) >= n):
+        raise ValueError(f"rows of {rows.file!r} outside its {n} rows")
+    if len(at) and rows.box is not None:
+        box = np.asarray(rows.box, np.float64)
+    elif len(at):
         x = dtype.names.index("x")
         if dtype.names[x:x + 3] != ("x", "y", "z") or any(dtype.fields[k][0] != np.dtype("<f4") for k in "xyz"):
             raise ValueError(f"{rows.file!r}: x, y, z are not float32 one after the other")
         # only the means of the rows, through a map of the file (its records as [n, P/4] float32 words)
         words = np.memmap(folder / rows.file, "<u1", mode="r", offset=header, shape=(n * dtype.itemsize,))
-        _rows_box(words.view("<f4").reshape(n, dtype.itemsize // 4), dtype.fields["x"][1] // 4, at, box)
+        rows_box(words.view("<f4").reshape(n, dtype.itemsize // 4), dtype.fields["x"][1] // 4, at, box)
     means = np.concatenate([g.means.astype(np.float64), box]) if len(at) else g.means
     return Chunk(ks, len(g) + len(at), _bbox(means), file, vpt, f"{CHUNKS_DIR}/group_{i:03d}_rows.npy", rows.file,
                  len(at))
-
-
-@njit(cache=True, nogil=True)
-def _rows_box(block, col, rows, box):
-    """box [2, 3] (min; max) widened to hold block[r, col:col + 3] of each of ``rows``."""
-    for r in rows:
-        for a in range(3):
-            v = np.float64(block[r, col + a])
-            box[0, a] = min(box[0, a], v)
-            box[1, a] = max(box[1, a], v)
 
 
 def _bbox(means: np.ndarray) -> dict[str, list[float]] | None:

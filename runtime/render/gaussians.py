@@ -8,19 +8,25 @@ term (colour = SH_C0 * dc + 0.5 + higher bands, clamped at 0). See docs/renderer
 from __future__ import annotations
 
 import os
+from collections import deque
 from collections.abc import Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 from numba import prange
 
+from ..directio import ALIGN, DirectReader, DirectWriter, aligned_buffer
 from ..errors import FieldError
 from ..numba_cache import njit
 from .kernels import prefetch_row
 
 SH_C0 = 0.28209479177387814
 PLY_WRITE_ROWS = 1 << 18         # rows a PLY is written in at a time (18 MB of them at SH degree 0)
+READ_WINDOW_BYTES = 16 << 20     # read_ply_take's reads (the disk measured: 1.2 GB/s in 16 MB reads, 1.4 in 64 MB)
+READ_AHEAD = 3                   # and the windows it has asked for beyond the one it takes rows from (the disk kept
+                                 # busy while the cores do other work too: a drive's chunks)
 DEFAULT_MAX_POINTS = 20_000_000  # PLY reader refuses headers claiming more vertices (memory guard)
 _PLY_DTYPES = {"char": "i1", "uchar": "u1", "int8": "i1", "uint8": "u1", "short": "<i2", "ushort": "<u2",
                "int16": "<i2", "uint16": "<u2", "int": "<i4", "uint": "<u4", "int32": "<i4", "uint32": "<u4",
@@ -310,16 +316,10 @@ class Gaussians:
         path = Path(path)
         where = _ply_where(path)
         n, dtype, header_len = ply_rows_layout(path)
-        rows = np.asarray(rows)
-        if rows.ndim != 1 or not (np.issubdtype(rows.dtype, np.integer) or rows.size == 0):
-            raise GaussianError("rows", f"must be a 1-D array of integers, got {rows.dtype} {list(rows.shape)}", where)
-        if rows.size and (int(rows.min()) < 0 or int(rows.max()) >= n):
-            raise GaussianError("rows", f"rows {int(rows.min())}..{int(rows.max())} outside the file's {n} vertices",
-                                where)
-        rows = rows.astype(np.intp, copy=False)
+        rows = _checked_rows(rows, n, where)
         p = len(dtype.names or ())
         names = dtype.names or ()
-        packed = n > 0 and dtype.itemsize == 4 * p and all(dtype.fields[k][0] == np.dtype("<f4") for k in names)
+        packed = _packed(n, dtype)
         degree = _n_rest_to_degree(sum(1 for k in names if k.startswith("f_rest_"))) or 0
         # head's rows written into the result's arrays by the unpacking (one allocation, no concatenation after)
         fused = packed and head is not None and len(head) > 0 and head.sh.shape[1] == (degree + 1) ** 2
@@ -342,6 +342,72 @@ class Gaussians:
         if fused or head is None or not len(head):
             return taken
         return concat_gaussians([head, taken]) if len(taken) else head
+
+    @classmethod
+    def read_ply_take(cls, path: str | os.PathLike, rows: np.ndarray, box_of: np.ndarray | None = None,
+                      box: np.ndarray | None = None) -> Gaussians:
+        """load_ply_take(path, rows) of a file read once and not again soon (a drive's camera layer files at the end
+        of its reconstruction, written past the page cache: save_ply_parts(direct=True)): the windows of
+        READ_WINDOW_BYTES that hold a row read past the page cache too (runtime.directio), the next on a thread
+        while the rows of one are taken. ``box_of`` ([K] integers, checked as ``rows``): rows whose means widen
+        ``box`` ([2, 3] float64: min; max) in the same pass (a drive's chunk's box, runtime.viewpoints). A file
+        whose records are not packed float32 at a float32's alignment (a header of a length not a multiple of 4)
+        is read through a map of it, as load_ply_take does."""
+        path = Path(path)
+        where = _ply_where(path)
+        n, dtype, header_len = ply_rows_layout(path)
+        rows = _checked_rows(rows, n, where)
+        more = _checked_rows(np.zeros(0, np.intp) if box_of is None else box_of, n, where)
+        names = list(dtype.names or ())
+        if len(more) and (box is None or names[names.index("x"):names.index("x") + 3] != ["x", "y", "z"]):
+            raise ValueError("box_of: a box [2, 3] to widen, and x y z one after the other in the file")
+        if not (len(rows) or len(more)):
+            return cls.empty()
+        if not _packed(n, dtype) or header_len % 4:
+            if len(more):
+                block = np.memmap(path, "<f4", mode="r", offset=header_len, shape=(n, len(names)))
+                rows_box(block, names.index("x"), more.astype(np.int64), box)
+            return cls.load_ply_take(path, rows)
+        k = ((_n_rest_to_degree(sum(1 for p in names if p.startswith("f_rest_"))) or 0) + 1) ** 2
+        cols = ply_columns(names, k)
+        order = np.argsort(rows, kind="stable")
+        ordered = rows[order].astype(np.int64)
+        per = max(1, READ_WINDOW_BYTES // dtype.itemsize)                  # records a window
+        # box_of's rows marked, not sorted (a drive's chunk: most of the file)
+        marked = np.zeros(-(-n // per) * per, bool)
+        marked[more] = True
+        windows = np.union1d(ordered // per, np.flatnonzero(marked.reshape(-1, per).any(axis=1)))
+        cuts = np.searchsorted(ordered, np.concatenate([windows, windows[-1:] + 1]) * per)
+        out = _empty_fields(len(rows), k)
+        sh = out["sh"].reshape(len(rows), 3 * k)
+        bad = np.zeros(6, np.int64)
+        bufs = [aligned_buffer(DirectReader.buffer_bytes(per * dtype.itemsize))
+                for _ in range(min(READ_AHEAD + 1, len(windows)))]
+
+        def read(w: int, buf: np.ndarray) -> np.ndarray:      # window w's records [records, P] float32
+            lo, hi = int(windows[w]) * per, min(int(windows[w] + 1) * per, n)
+            got = reader.read(header_len + lo * dtype.itemsize, header_len + hi * dtype.itemsize, buf)
+            return got.view("<f4").reshape(hi - lo, len(names))
+
+        try:
+            with DirectReader(path) as reader, ThreadPoolExecutor(1, thread_name_prefix="xyzcyl-ply-read") as pool:
+                ahead = deque(pool.submit(read, w, bufs[w]) for w in range(len(bufs) - 1))
+                for w in range(len(windows)):
+                    if w + len(bufs) - 1 < len(windows):     # the buffer the window before used is free again
+                        ahead.append(pool.submit(read, w + len(bufs) - 1, bufs[(w + len(bufs) - 1) % len(bufs)]))
+                    block = ahead.popleft().result()
+                    first = int(windows[w]) * per
+                    a, b = cuts[w], cuts[w + 1]
+                    if b > a:
+                        bad += _unpack_kernel(block, ordered[a:b] - first, True, order[a:b], True, cols,
+                                              out["means"], out["quats"], out["log_scales"], out["opacity_logits"],
+                                              sh)
+                    if len(more):
+                        rows_box(block, names.index("x"), np.flatnonzero(marked[first:first + len(block)]), box)
+        except OSError as exc:             # shorter than its header says (changed since checked), unreadable
+            raise GaussianError("body", f"not read: {exc}", where) from None
+        _raise_bad(bad, where)
+        return cls.joined(**out)
 
     @classmethod
     def _from_vertices(cls, vert: np.ndarray, where: str, rows: np.ndarray | None = None,
@@ -466,10 +532,13 @@ class Gaussians:
         return cls.from_splat_bytes(path.read_bytes(), max_points)
 
 
-def save_ply_parts(path: str | os.PathLike, parts: Sequence[Gaussians], normals: bool = True) -> None:
+def save_ply_parts(path: str | os.PathLike, parts: Sequence[Gaussians], normals: bool = True,
+                   direct: bool = False) -> None:
     """Write ``parts`` (one SH degree) as one 3DGS PLY of their concatenation, in order (Gaussians.save_ply's
     layout; ``normals`` False: without nx ny nz, a sixth fewer bytes at SH degree 0), a block of each at a time: the
-    parts are never joined in memory (a drive's camera layers: runtime.cameralayers)."""
+    parts are never joined in memory (a drive's camera layers: runtime.cameralayers). ``direct``: past the page
+    cache (runtime.directio: a file that is read once, if at all, while it is written), its header padded by a
+    comment to a multiple of 4 bytes so that every record lies at a float32's alignment (read_ply_take)."""
     parts = list(parts)
     if not parts:
         raise ValueError("parts: at least one Gaussians")
@@ -478,6 +547,11 @@ def save_ply_parts(path: str | os.PathLike, parts: Sequence[Gaussians], normals:
     names = parts[0].ply_names(normals)
     header = "".join(["ply\nformat binary_little_endian 1.0\n", f"element vertex {sum(map(len, parts))}\n",
                       *(f"property float {name}\n" for name in names), "end_header\n"])
+    if direct:
+        pad = -(len(header) + len("comment records aligned\n")) % 4
+        header = header.replace("element", f"comment records aligned{' ' * pad}\nelement", 1)
+        _save_ply_parts_direct(path, parts, header.encode("ascii"), len(names), normals)
+        return
     # a block at a time through one buffer: no copy of the whole scene, and no fresh pages to fault in for each block
     # (3.4 M Gaussians written, median of 7: 0.47 -> 0.43 s at SH degree 0, 0.98 -> 0.74 s at degree 3)
     rows = np.empty((min(PLY_WRITE_ROWS, max(map(len, parts))), len(names)), "<f4")
@@ -488,6 +562,37 @@ def save_ply_parts(path: str | os.PathLike, parts: Sequence[Gaussians], normals:
                 b = min(a + PLY_WRITE_ROWS, len(p))
                 p._fill_ply_rows(a, b, rows, normals)
                 f.write(rows[:b - a])
+
+
+def _save_ply_parts_direct(path: str | os.PathLike, parts: Sequence[Gaussians], header: bytes, props: int,
+                           normals: bool) -> None:
+    """save_ply_parts(direct=True)'s writing: each block of rows filled in place in the writer's buffer (``header``
+    a multiple of 4 bytes long: the rows' floats aligned)."""
+    row_bytes = 4 * props
+    with DirectWriter(path, PLY_WRITE_ROWS * row_bytes + 2 * ALIGN) as w:
+        w.write(header)
+        for p in parts:
+            for a in range(0, len(p), PLY_WRITE_ROWS):
+                b = min(a + PLY_WRITE_ROWS, len(p))
+                p._fill_ply_rows(a, b, w.space((b - a) * row_bytes).view("<f4").reshape(b - a, props), normals)
+                w.advance((b - a) * row_bytes)
+
+
+def _checked_rows(rows: np.ndarray, n: int, where: str) -> np.ndarray:
+    """``rows`` as [M] intp rows of a PLY of ``n`` vertices (GaussianError "rows" naming what is wrong)."""
+    rows = np.asarray(rows)
+    if rows.ndim != 1 or not (np.issubdtype(rows.dtype, np.integer) or rows.size == 0):
+        raise GaussianError("rows", f"must be a 1-D array of integers, got {rows.dtype} {list(rows.shape)}", where)
+    if rows.size and (int(rows.min()) < 0 or int(rows.max()) >= n):
+        raise GaussianError("rows", f"rows {int(rows.min())}..{int(rows.max())} outside the file's {n} vertices",
+                            where)
+    return rows.astype(np.intp, copy=False)
+
+
+def _packed(n: int, dtype: np.dtype) -> bool:
+    """A PLY's records (``n`` of ``dtype``) are packed float32 (what save_ply writes)."""
+    names = dtype.names or ()
+    return n > 0 and dtype.itemsize == 4 * len(names) and all(dtype.fields[k][0] == np.dtype("<f4") for k in names)
 
 
 def _ply_where(path: Path) -> str:
@@ -595,20 +700,35 @@ def _unpacked(block: np.ndarray, order: Sequence[str], k: int, rows: np.ndarray 
     m = len(block) if rows is None else len(rows)
     h = 0 if head is None else len(head)
     take = np.zeros(0, np.int64) if rows is None else np.ascontiguousarray(rows, np.int64)    # one signature
-    out = dict(means=np.empty((h + m, 3), np.float32), quats=np.empty((h + m, 4), np.float32),
-               log_scales=np.empty((h + m, 3), np.float32), opacity_logits=np.empty(h + m, np.float32),
-               sh=np.empty((h + m, k, 3), np.float32))
+    out = _empty_fields(h + m, k)
     if h:
         for name, dst in out.items():
             dst[:h] = getattr(head, name)
-    bad = _unpack_kernel(block, take, rows is not None, ply_columns(order, k), out["means"][h:], out["quats"][h:],
-                         out["log_scales"][h:], out["opacity_logits"][h:], out["sh"][h:].reshape(m, 3 * k))
+    bad = _unpack_kernel(block, take, rows is not None, _NO_ROWS, False, ply_columns(order, k), out["means"][h:],
+                         out["quats"][h:], out["log_scales"][h:], out["opacity_logits"][h:],
+                         out["sh"][h:].reshape(m, 3 * k))
+    _raise_bad(bad, where)
+    return Gaussians.joined(**out)
+
+
+_NO_ROWS = np.zeros(0, np.int64)
+
+
+def _empty_fields(m: int, k: int) -> dict[str, np.ndarray]:
+    """Uninitialised arrays of m Gaussians with k SH coefficients, by field."""
+    return dict(means=np.empty((m, 3), np.float32), quats=np.empty((m, 4), np.float32),
+                log_scales=np.empty((m, 3), np.float32), opacity_logits=np.empty(m, np.float32),
+                sh=np.empty((m, k, 3), np.float32))
+
+
+def _raise_bad(bad: np.ndarray, where: str) -> None:
+    """GaussianError for _unpack_kernel's counts ``bad`` [6] (the first field with non-finite values, or zero
+    quaternions), as the Gaussians' own checks name them."""
     for name, count in zip(FIELDS, bad[:5]):
         if count:
             raise GaussianError(name, f"{int(count)} non-finite values", where)
     if bad[5]:
         raise GaussianError("quats", f"{int(bad[5])} quaternions with zero norm", where)
-    return Gaussians.joined(**out)
 
 
 PREFETCH_ROWS = 32      # _unpack_kernel asks the CPU for the record this many rows ahead of the one it reads: a chunk's
@@ -618,20 +738,21 @@ PREFETCH_ROWS = 32      # _unpack_kernel asks the CPU for the record this many r
 
 
 @njit(cache=True, parallel=True, nogil=True)
-def _unpack_kernel(block, take, taking, cols, means, quats, scales, opacity, sh):
+def _unpack_kernel(block, take, taking, put, putting, cols, means, quats, scales, opacity, sh):
     """Row i of the outputs from record take[i] of block [N, P] float32 (``taking``; else record i), each value
-    from its column in ``cols`` (ply_columns); returns [6] int64: the non-finite values written to means, quats,
-    log scales, opacities, SH, and the quaternions whose float64 squared norm is below 1e-20 (the Gaussians'
-    checks)."""
-    m = means.shape[0]
+    from its column in ``cols`` (ply_columns); ``putting``: into output row put[i] instead (take's length of rows
+    written: read_ply_take's windows); returns [6] int64: the non-finite values written to means, quats, log
+    scales, opacities, SH, and the quaternions whose float64 squared norm is below 1e-20 (the Gaussians' checks)."""
+    m = take.shape[0] if taking else means.shape[0]
     nsh = sh.shape[1]
     b_m = b_q = b_s = b_o = b_sh = b_z = 0
-    for i in prange(m):
-        r = np.int64(i)
+    for j in prange(m):
+        r = np.int64(j)
         if taking:
-            r = take[i]
-            if i + PREFETCH_ROWS < m:
-                prefetch_row(block, take[i + PREFETCH_ROWS])
+            r = take[j]
+            if j + PREFETCH_ROWS < m:
+                prefetch_row(block, take[j + PREFETCH_ROWS])
+        i = put[j] if putting else np.int64(j)
         for c in range(3):
             v = block[r, cols[c]]
             means[i, c] = v
@@ -698,6 +819,17 @@ def put_rows(src, rows, dst, at):
         for k in range(c, cd):
             dst[at + i, k] = 0
 
+
+
+@njit(cache=True, nogil=True)
+def rows_box(block, col, rows, box):
+    """box [2, 3] float64 (min; max) widened to hold block[r, col:col + 3] of each of ``rows`` ([K] int64 rows of
+    block [N, P] float32: a PLY's records, x y z from column ``col``)."""
+    for r in rows:
+        for a in range(3):
+            v = np.float64(block[r, col + a])
+            box[0, a] = min(box[0, a], v)
+            box[1, a] = max(box[1, a], v)
 
 def transformed_reference(g: Gaussians, T: np.ndarray) -> Gaussians:
     """Gaussians.transformed in numpy: means R x + t in float64 (back to their dtype), quaternions q_R q (the

@@ -94,7 +94,7 @@ def test_a_failed_write_is_raised_when_the_layers_are_finished(tmp_path, monkeyp
     reconstruction), not lost with the thread."""
     from xyzcyl.runtime import cameralayers
 
-    def fail(path, parts, normals=True):
+    def fail(path, parts, normals=True, direct=False):
         raise OSError(28, "No space left on device")
 
     monkeypatch.setattr(cameralayers, "save_ply_parts", fail)

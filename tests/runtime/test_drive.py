@@ -264,6 +264,62 @@ def test_own_layer_rows_are_the_spatial_order_of_their_cells(tmp_path):
     assert kept.own_layer_rows(0) is None and kept.own_layer_rows(1) is not None
 
 
+@pytest.mark.parametrize("reads", [1, 2])
+def test_shared_parts_are_read_from_the_layer_files_with_each_chunks_box(tmp_path, monkeypatch, reads):
+    """A drive's shared cells read from their keyframes' camera layer files (_Kept.shared_parts: past the page
+    cache, Gaussians.read_ply_take, ``reads`` files at once) are those files' rows, a split cell's four quarters
+    each its own row; each keyframe's box of its own rows (its chunk's box) found in the same reads is the box of
+    own_layer_rows' rows' means in the file."""
+    from xyzcyl.runtime import drive as D
+    from xyzcyl.runtime.drive import _Kept
+    from xyzcyl.runtime.render import Gaussians
+    from xyzcyl.runtime.render import gaussians as G
+    from xyzcyl.runtime.render.gaussians import save_ply_parts
+
+    monkeypatch.setattr(D, "LAYER_READS", reads)
+    monkeypatch.setattr(G, "READ_WINDOW_BYTES", 1 << 16)           # many windows a file
+    rng = np.random.default_rng(6)
+
+    def random(n):
+        return Gaussians(rng.normal(scale=30.0, size=(n, 3)).astype(np.float32),
+                         rng.normal(size=(n, 4)).astype(np.float32), rng.normal(size=(n, 3)).astype(np.float32),
+                         rng.normal(size=n).astype(np.float32), rng.normal(size=(n, 1, 3)).astype(np.float32))
+
+    kept = _Kept(np.zeros((3, 3)), tmp_path)
+    kept.source = lambda n: tmp_path / f"layer_{n}.ply"
+    files = {}
+    for n in (0, 1, 2):
+        start = 0
+        for size, splits in ((4000, True), (2500, False), (0, False), (900, True)):
+            split = None
+            if splits:
+                rows = np.where(rng.random(size) < 0.3, 0, -1)
+                rows[rows == 0] = np.arange(int((rows == 0).sum()))
+                s = int((rows >= 0).sum())
+                split = (rows, np.zeros((s, 4, 3), np.float32), np.zeros((s, 4, 3), np.float32))
+            quarters = 0 if split is None else 3 * (split[0] >= 0)
+            layer = (start + np.arange(size) + np.cumsum(quarters) - quarters).astype(np.int32)
+            start += size + int(np.sum(quarters))
+            kept.add(random(size), np.zeros(size, np.int8), n, split, layer)
+        files[n] = random(start)                    # the keyframe's layer file: its cells' rows, quarters apart
+        save_ply_parts(kept.source(n), [files[n]], normals=False, direct=True)
+    for i in range(len(kept.shared)):
+        kept.shared[i] = rng.random(len(kept.shared[i])) < 0.4
+    kept.shared[-1][:] = True                       # keyframe 2's last part: nothing of its own
+    boxes = {}
+    parts, frames = kept.shared_parts(lambda n, box: boxes.__setitem__(n, box))
+    for i, (g, f) in enumerate(zip(parts, frames)):
+        n = int(kept.frame[i][0]) if len(kept.frame[i]) else 0
+        want = files[n].subset(kept._layer_take(i, kept.shared[i], centres=False)[0])
+        for name in ("means", "quats", "log_scales", "opacity_logits", "sh"):
+            np.testing.assert_array_equal(getattr(g, name), getattr(want, name))
+        assert len(f) == len(g) and (f == n).all()
+    assert sorted(boxes) == [0, 1, 2]
+    for n in (0, 1, 2):
+        m = files[n].means[kept.own_layer_rows(n)].astype(np.float64)
+        np.testing.assert_array_equal(boxes[n], [m.min(axis=0), m.max(axis=0)])
+
+
 def test_spilled_parts_keep_the_rows_they_keep_in_memory(tmp_path):
     """A drive's kept cells spilled to disk (runtime.drive._Kept with a spill folder) are written once; each keep()
     after that narrows the rows of the file that part() reads: the same Gaussians as parts kept in memory."""
