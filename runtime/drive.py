@@ -105,7 +105,8 @@ SEE_THROUGH_PHOTO = (12.0, 0.15)
 TRACK_GROW = 1.1               # a moving object's box, grown by this factor, holds its Gaussians
 # commit: the C heap handed back between keyframes only when it holds more than this free (runtime.heap). Each
 # keyframe allocates and frees ~0.5 GB of the same sizes: handed back every time, they were fresh pages to fault
-# in and zero at the next (20 PandaSet keyframes: ~1/3 of the drive's CPU time in the kernel)
+# in and zero at the next (20 PandaSet keyframes: ~1/3 of the drive's CPU time in the kernel). The same between the
+# chunks at the end (handed back before each, 0.7-0.9 GB each time: 5 pairs, median 1.02x slower, the same peak)
 HEAP_KEPT_BYTES = 1 << 30
 SPILL_MIN_M = 0.25             # spill_boxes' least margin (a box's annotation is a few centimetres off the object)
 
@@ -817,7 +818,7 @@ class _Kept:
         self.layer.append(None if layer is None else np.asarray(layer, np.int32))     # (a file's rows < 2^31)
         self.means.append(np.array(g.means, np.float32))
         self.level.append(level)
-        self.frame.append(np.full(len(g), n, np.int32))
+        self.frame.append(_same(n, len(g)))
         self.shared.append(np.ones(len(g), bool))
 
     def keep(self, i: int, m: np.ndarray) -> None:
@@ -832,7 +833,8 @@ class _Kept:
                 else:
                     r[np.flatnonzero(r)[~m]] = False
             self.means[i], self.level[i] = self.means[i][m], self.level[i][m]
-            self.frame[i], self.shared[i] = self.frame[i][m], self.shared[i][m]
+            f = self.frame[i]
+            self.frame[i], self.shared[i] = _same(f[0] if len(f) else 0, int(m.sum())), self.shared[i][m]
             if self.split[i] is not None:
                 self.split[i] = self.split[i][m]
             if self.layer[i] is not None:
@@ -1030,6 +1032,12 @@ class _Kept:
                 if centres:
                     c = np.concatenate([c[~q], np.repeat(c[q], 4, axis=0)])
         return r, c
+
+
+def _same(n: int, count: int) -> np.ndarray:
+    """[count] int32 all ``n`` (a part's keyframe, each of its cells'): one value seen ``count`` times (read-only, no
+    memory: 53 M cells of a 20-keyframe drive held 213 MB of copies)."""
+    return np.broadcast_to(np.int32(n), (count,))
 
 
 _NO_SPLIT = np.zeros(0, np.int32)
@@ -1230,7 +1238,7 @@ def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None,
     finally:
         made.close()              # a failed keyframe: the workers stop
     t1 = time.perf_counter()
-    release_heap()              # the fusion below allocates other sizes: what the keyframes freed goes back
+    release_heap(HEAP_KEPT_BYTES)   # the fusion below allocates other sizes: what the keyframes freed, above that
     if layers is not None:
         t_l = time.perf_counter()
         layers.finish()                         # the last keyframe's written: the scene's cells are read there
@@ -1247,7 +1255,7 @@ def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None,
     # back when a view needs it: its model Gaussians, and its cells as rows of its camera layer file, in an order
     # that keeps neighbours together (spatial_order: a view's projection skips runs of them whole)
     def chunk(n: int) -> Gaussians | tuple[Gaussians, LayerRows]:
-        release_heap()                          # the chunk before was written and let go of
+        release_heap(HEAP_KEPT_BYTES)           # the chunk before was written and let go of
         rows = detail_kept.own_layer_rows(n) if layers is not None else None
         if rows is None:
             return _concat(coarse_kept.own_of(n) + detail_kept.own_of(n))
@@ -1259,7 +1267,7 @@ def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None,
         shared_read.result()
         for kept in (detail_kept, coarse_kept):     # every cell is in the scene or a chunk now: their files and
             kept.release()                          # maps go
-        release_heap()
+        release_heap(HEAP_KEPT_BYTES)
         return out
 
     # the chunks are written in a thread while this one reads the shared cells from the camera layer files (the
