@@ -148,6 +148,16 @@ class DirectWriter:
             self._fd = -1
 
 
+def _pread_into(fd: int, view: memoryview, at: int) -> int:
+    """Bytes of ``fd`` from offset ``at`` read into ``view``: their count (os.preadv; where the platform has none,
+    macOS, os.pread and a copy)."""
+    if hasattr(os, "preadv"):
+        return os.preadv(fd, [view], at)
+    got = os.pread(fd, len(view), at)
+    view[:len(got)] = got
+    return len(got)
+
+
 class DirectReader:
     """A file's byte ranges read past the page cache into a caller's aligned buffer (``read``); where O_DIRECT is
     refused, through the cache. A context manager (closes the file)."""
@@ -184,7 +194,7 @@ class DirectReader:
         view = memoryview(buf[:hi - lo])
         at = lo
         while len(view):
-            got = _transfer(self, lambda: os.preadv(self._fd, [view], at))
+            got = _transfer(self, lambda: _pread_into(self._fd, view, at))
             if got == 0:                # the end of the file (its last block partial)
                 break
             view, at = view[got:], at + got

@@ -348,8 +348,8 @@ class Gaussians:
                       box: np.ndarray | None = None) -> Gaussians:
         """load_ply_take(path, rows) of a file read once and not again soon (a drive's camera layer files at the end
         of its reconstruction, written past the page cache: save_ply_parts(direct=True)): the windows of
-        READ_WINDOW_BYTES that hold a row read past the page cache too (runtime.directio), the next on a thread
-        while the rows of one are taken. ``box_of`` ([K] integers, checked as ``rows``): rows whose means widen
+        READ_WINDOW_BYTES that hold a row read past the page cache too (runtime.directio), the next READ_AHEAD on a
+        thread while the rows of one are taken. ``box_of`` ([K] integers, checked as ``rows``): rows whose means widen
         ``box`` ([2, 3] float64: min; max) in the same pass (a drive's chunk's box, runtime.viewpoints). A file
         whose records are not packed float32 at a float32's alignment (a header of a length not a multiple of 4)
         is read through a map of it, as load_ply_take does."""
@@ -361,12 +361,11 @@ class Gaussians:
         names = list(dtype.names or ())
         if len(more) and (box is None or names[names.index("x"):names.index("x") + 3] != ["x", "y", "z"]):
             raise ValueError("box_of: a box [2, 3] to widen, and x y z one after the other in the file")
-        if not (len(rows) or len(more)):
-            return cls.empty()
-        if not _packed(n, dtype) or header_len % 4:
-            if len(more):
-                block = np.memmap(path, "<f4", mode="r", offset=header_len, shape=(n, len(names)))
-                rows_box(block, names.index("x"), more.astype(np.int64), box)
+        if not _packed(n, dtype) or header_len % 4 or not (len(rows) or len(more)):
+            if len(more):             # the records as they are (any property types)
+                body = np.memmap(path, dtype, mode="r", offset=header_len, shape=(n,))[more]
+                xyz = np.stack([body[c].astype(np.float64) for c in "xyz"], axis=1)
+                box[0], box[1] = np.minimum(box[0], xyz.min(axis=0)), np.maximum(box[1], xyz.max(axis=0))
             return cls.load_ply_take(path, rows)
         k = ((_n_rest_to_degree(sum(1 for p in names if p.startswith("f_rest_"))) or 0) + 1) ** 2
         cols = ply_columns(names, k)

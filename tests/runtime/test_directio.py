@@ -35,10 +35,11 @@ def test_aligned_buffer_is_aligned():
 @pytest.mark.parametrize("refuse", [False, True])
 def test_writer_and_reader_move_the_same_bytes(tmp_path, monkeypatch, refuse):
     """Pieces of every size (less than a block, more than the buffer, in place through space/advance) make the
-    file they add up to, cut back to its size; any byte range reads back. ``refuse``: the platform without
-    O_DIRECT, the page cache's way."""
+    file they add up to, cut back to its size; any byte range reads back. ``refuse``: a platform without O_DIRECT
+    or os.preadv (macOS), the page cache's way."""
     if refuse:
         monkeypatch.setattr(directio, "_O_DIRECT", 0)
+        monkeypatch.delattr(directio.os, "preadv")
     rng = np.random.default_rng(0)
     want = bytearray()
     path = tmp_path / "f.bin"
