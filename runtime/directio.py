@@ -19,7 +19,6 @@ both go through the page cache as any file does: the same bytes, only slower her
 from __future__ import annotations
 
 import errno
-import fcntl
 import os
 from collections.abc import Callable
 from pathlib import Path
@@ -62,6 +61,9 @@ def _transfer(file: DirectWriter | DirectReader, move: Callable[[], int]) -> int
     except OSError as exc:
         if not (file.direct and _refused(exc)):
             raise
+    # POSIX only (Windows has none): reached only where O_DIRECT is
+    import fcntl
+
     fcntl.fcntl(file._fd, fcntl.F_SETFL, fcntl.fcntl(file._fd, fcntl.F_GETFL) & ~_O_DIRECT)
     file.direct = False
     return move()
@@ -70,8 +72,8 @@ def _transfer(file: DirectWriter | DirectReader, move: Callable[[], int]) -> int
 class DirectWriter:
     """A new file ``path`` written from the start, past the page cache: ``write`` bytes, or ``space`` then
     ``advance`` to fill the buffer in place (no copy of what a caller makes there); ``close`` writes the rest. One
-    buffer of ``buffer_bytes`` (rounded up to ALIGN, two blocks at least) holds what is not written yet. A context manager: on an
-    exception the file is closed as far as it was written (the caller removes it)."""
+    buffer of ``buffer_bytes`` (rounded up to ALIGN, two blocks at least) holds what is not written yet. A context
+    manager: on an exception the file is closed as far as it was written (the caller removes it)."""
 
     def __init__(self, path: str | os.PathLike, buffer_bytes: int):
         self.path = Path(path)
