@@ -55,7 +55,7 @@ DEFAULT_BAKE_SCALE = 4
 DEFAULT_DETAIL = DetailOptions()   # the detail layer is on by default (docs/inference.md, "Detail Gaussians")
 DETAIL_THREADS = 2                 # cameras whose detail layer is made at once (Reconstructor.camera_details)
 PREPARE_THREADS = 2                # cameras whose image is converted (as_rgb) and resized at once: numpy's conversion
-#                                    and OpenCV's resize run outside the GIL (Reconstructor.prepare, rgb_of)
+#                                    and OpenCV's resize run outside the GIL (Reconstructor.prepare, rgb_of, rgb_images)
 # the encode graph split where the depth enters (model_export.split): both halves in model.json, the runtime runs
 # them in turn instead of "encode" and a second pass with another depth (LiDAR) runs only the second
 ENCODE_SPLIT = ("encode_image", "encode_depth")
@@ -92,7 +92,8 @@ def as_rgb(img: np.ndarray, cam: Camera) -> np.ndarray:
         a = np.repeat(a, 3, axis=2)
     a = a[..., :3]
     if np.issubdtype(a.dtype, np.integer):
-        out = a.astype(np.float32) / float(np.iinfo(a.dtype).max)
+        out = a.astype(np.float32)          # a new array (the caller's stays as it is), scaled in place
+        out /= float(np.iinfo(a.dtype).max)
     elif np.issubdtype(a.dtype, np.floating):
         # one pass to check (a NaN or an inf makes the float64 sum non-finite; float32 values cannot overflow it),
         # one to clip into a new array (the caller's stays as it is)
@@ -104,14 +105,17 @@ def as_rgb(img: np.ndarray, cam: Camera) -> np.ndarray:
     return np.ascontiguousarray(out)
 
 
-def rgb_images(rig: Rig) -> list[np.ndarray]:
-    """Each camera's image of ``rig`` as as_rgb makes it ([H, W, 3] float32 0..1), in the rig's camera order."""
-    return [as_rgb(img, cam) for img, cam in zip(rig.load_images(), rig.cameras)]
-
-
 class RgbImages(list):
     """A rig's images already made [H, W, 3] float32 0..1 by as_rgb, in rig order (rgb_of): Reconstructor.prepare
     and camera_details take them as they are instead of converting (and checking) each again."""
+
+
+def rgb_images(rig: Rig, threads: int = 1) -> RgbImages:
+    """Each camera's image file of ``rig`` as as_rgb makes it ([H, W, 3] float32 0..1), in the rig's camera order:
+    decoded in the file's own type and converted once (an 8-bit file's pixels / 255 in place: no float copy to
+    check and clip again), ``threads`` cameras at a time (the decoder and numpy release the GIL)."""
+    return RgbImages(in_threads(lambda k: as_rgb(rig.load_image(k, native=True), rig.cameras[k]),
+                                range(len(rig.cameras)), threads))
 
 
 def rgb_of(rig: Rig, images: Sequence[np.ndarray], threads: int = 1) -> RgbImages:
@@ -393,7 +397,7 @@ class Reconstructor:
         t0 = time.perf_counter()
         if images is None:
             say("decode images")
-            images = rig.load_images()
+            images = rgb_images(rig, PREPARE_THREADS)
         if depths is None and any(c.depth is not None for c in rig.cameras):
             depths = rig.load_depths()
         t["decode"] = time.perf_counter() - t0

@@ -194,18 +194,21 @@ class Rig(PicklableExtra):
                     raise RigError(key, f"{name!r} is {w}x{h}, but width x height is "
                                    f"{c.width}x{c.height}", c.where)
 
-    def load_images(self) -> list[np.ndarray]:
-        """Each camera's image as [H, W, 3] float32 RGB (8/16-bit scaled to 0..1; float files as stored)."""
-        out = []
-        for c in self.cameras:
-            if c.image is None:
-                raise RigError("image", "is null, nothing to load", c.where)
-            img = read_image(self.path(c.image), "image", where=c.where)
-            if img.shape[:2] != (c.height, c.width):
-                raise RigError("image", f"is {img.shape[1]}x{img.shape[0]}, but width x height "
-                               f"is {c.width}x{c.height}", c.where)
-            out.append(img)
-        return out
+    def load_images(self, native: bool = False) -> list[np.ndarray]:
+        """Each camera's image as [H, W, 3] float32 RGB (8/16-bit scaled to 0..1; float files as stored); with
+        ``native``, in its file's own type (decode_image: runtime.inference.as_rgb converts those in one pass)."""
+        return [self.load_image(k, native) for k in range(len(self.cameras))]
+
+    def load_image(self, k: int, native: bool = False) -> np.ndarray:
+        """Camera k's image (load_images)."""
+        c = self.cameras[k]
+        if c.image is None:
+            raise RigError("image", "is null, nothing to load", c.where)
+        img = (decode_image if native else read_image)(self.path(c.image), "image", where=c.where)
+        if img.shape[:2] != (c.height, c.width):
+            raise RigError("image", f"is {img.shape[1]}x{img.shape[0]}, but width x height "
+                           f"is {c.width}x{c.height}", c.where)
+        return img
 
     def check_arrays(self, images: Sequence[np.ndarray], what: str = "image") -> None:
         """Refuse in-memory images (e.g. uploaded) that do not match the rig: one [H, W, C] (or [H, W]) array per
@@ -406,6 +409,21 @@ def verify_image(path: Path, what: str, label: str | None = None, where: str | N
     _decode(path, what, label, where)
 
 
+def decode_image(path: Path, what: str, channels: int = 3, label: str | None = None,
+                 where: str | None = None) -> np.ndarray:
+    """An image file's pixels in the file's own type (uint8, uint16, float) as [H, W, channels] (RGB order; grey
+    replicated, alpha dropped; possibly a view of the decoded array, not contiguous). RigError as read_image's."""
+    a = _decode(path, what, label, where)
+    if a.ndim == 2:
+        a = a[..., None]
+    n = a.shape[-1]
+    if n >= channels:
+        return a[..., :channels]
+    if n == 1:
+        return np.repeat(a, channels, axis=-1)
+    raise RigError(what, f"{_label(path, label)} has {n} channels, expected {channels}", where)
+
+
 def read_image(path: Path, what: str, channels: int = 3, scale: bool = True, label: str | None = None,
                where: str | None = None) -> np.ndarray:
     """Read an image file as float32 [H, W, channels] (RGB order; grey replicated, alpha dropped).
@@ -413,22 +431,10 @@ def read_image(path: Path, what: str, channels: int = 3, scale: bool = True, lab
     Integer files are scaled to 0..1 when `scale` (8-bit /255, 16-bit /65535); float files (EXR, HDR) are
     returned as stored. Raises RigError naming `what` when the file is missing, unreadable, cut short or corrupt.
     """
-    a = _decode(path, what, label, where)
-    if a.ndim == 2:
-        a = a[..., None]
-    if np.issubdtype(a.dtype, np.integer):
-        img = a.astype(np.float32)
-        if scale:
-            img /= float(np.iinfo(a.dtype).max)
-    else:
-        img = a.astype(np.float32)
-    n = img.shape[-1]
-    if n >= channels:
-        img = img[..., :channels]
-    elif n == 1:
-        img = np.repeat(img, channels, axis=-1)
-    else:
-        raise RigError(what, f"{_label(path, label)} has {n} channels, expected {channels}", where)
+    a = decode_image(path, what, channels, label, where)
+    img = a.astype(np.float32)
+    if scale and np.issubdtype(a.dtype, np.integer):
+        img /= float(np.iinfo(a.dtype).max)
     return np.ascontiguousarray(img)
 
 

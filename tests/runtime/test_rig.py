@@ -411,3 +411,43 @@ def test_numbers_in_messages_are_plain():
     with pytest.raises(RigError) as info:
         cam.replace(K=np.diag([np.float32(-2.0), 1.0, 1.0]))
     assert "np." not in str(info.value) and "(got -2.0)" in str(info.value), str(info.value)
+
+
+def test_images_decoded_in_their_own_type_convert_to_what_the_float_reader_gives(tmp_path):
+    """Rig.load_images(native=True) keeps each file's type (8/16-bit, half/float EXR; grey replicated, alpha
+    dropped) and runtime.inference.rgb_images converts those once: the same float32 0..1 RGB, bit for bit, as
+    as_rgb of the float images read_image makes (the path every keyframe took before), for every kind of file."""
+    import OpenImageIO as oiio
+    from xyzcyl.runtime.inference import as_rgb, rgb_images
+
+    rng = np.random.default_rng(3)
+    files = {"rgb8.png": ("uint8", 3), "grey8.png": ("uint8", 1), "rgba8.png": ("uint8", 4),
+             "rgb16.png": ("uint16", 3), "half.exr": ("half", 3), "float.exr": ("float", 3)}
+    d = _rig_dict(len(files))
+    for cam, (name, (kind, channels)) in zip(d["cameras"], files.items()):
+        cam["image"] = name
+        if kind in ("uint8", "uint16"):
+            a = rng.integers(0, np.iinfo(kind).max + 1, (48, 64, channels)).astype(kind)
+        else:                                   # float files: out of 0..1 too (as_rgb clips those)
+            a = rng.uniform(-0.5, 1.5, (48, 64, channels)).astype(np.float32)
+        out = oiio.ImageOutput.create(str(tmp_path / name))
+        out.open(str(tmp_path / name), oiio.ImageSpec(64, 48, channels, kind))
+        out.write_image(a)
+        out.close()
+    (tmp_path / "rig.json").write_text(json.dumps(d))
+    rig = load_rig(tmp_path / "rig.json")
+    native = rig.load_images(native=True)
+    assert [a.dtype.name for a in native] == ["uint8", "uint8", "uint8", "uint16", "float16", "float32"]
+    assert all(a.shape == (48, 64, 3) for a in native)
+    want = [as_rgb(img, cam) for img, cam in zip(rig.load_images(), rig.cameras)]
+    for threads in (1, 2):
+        got = rgb_images(rig, threads)
+        for g, w in zip(got, want):
+            assert g.dtype == np.float32 and g.flags.c_contiguous and 0 <= g.min() and g.max() <= 1
+            np.testing.assert_array_equal(g, w)
+    # a file of another size than the rig says is refused the same way both ways, naming the camera
+    d["cameras"][0]["width"] = 65
+    (tmp_path / "rig.json").write_text(json.dumps(d))
+    for native in (False, True):
+        with pytest.raises(RigError, match="is 64x48, but width x height is 65x48"):
+            load_rig(tmp_path / "rig.json").load_images(native=native)
