@@ -54,7 +54,7 @@ import shutil
 import tempfile
 import time
 from collections import deque
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -69,7 +69,7 @@ from .boxes import box_members, inside_boxes, snap_into_boxes
 from .camera import check_pose
 from .egobody import EgoBody
 from .errors import FieldError, RigError
-from .groundfill import fill_under
+from .groundfill import fill_lattice, fill_lattice_under
 from .heap import release_heap
 from .numba_cache import njit, threadsafe
 from .render import FIELDS, Gaussians
@@ -1118,13 +1118,20 @@ def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None,
     timings: dict[str, float] = {}
     harmoniser = Harmoniser(len(drive.frames[0].rig.cameras)) if exposure else None
     found = EgoBody()
-    if ego_body:
+    finding: Future | None = None       # the ego's body, found in a thread beside the first keyframe's making
+
+    def find() -> EgoBody:
         t_e = time.perf_counter()
-        found = find_drive_ego_body(drive, lidar)
+        out = find_drive_ego_body(drive, lidar)
         timings["ego_body"] = time.perf_counter() - t_e
-        say("ego body: " + (", ".join(f"{k} {v:.0%}" for k, v in found.fractions.items() if v > 0) or
-                            f"none found ({found.travelled_m:.1f} m travelled)"))
-        counts["ego_body_cameras"] = len(found.masks)
+        return out
+
+    def ego_found(body: EgoBody) -> EgoBody:
+        say("ego body: " + (", ".join(f"{k} {v:.0%}" for k, v in body.fractions.items() if v > 0) or
+                            f"none found ({body.travelled_m:.1f} m travelled)"))
+        counts["ego_body_cameras"] = len(body.masks)
+        return body
+
     positions = np.array([drive.relative(k)[:3, 3] for k in keys])
     heads = viewpoint_groups(positions)
     origins = positions[heads]
@@ -1139,6 +1146,7 @@ def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None,
     # file or None (_layer_rows))
     window: list[tuple[int, list, list[Gaussians], list[np.ndarray], bool, list[np.ndarray], list | None]] = []
     moved: list[tuple[int, Gaussians]] = []
+    stacks: dict = {}           # the window's keyframes' cameras stacked for carving (_carve_pair)
     background = None
     moved_out = 0
     copies: list[tuple[int, float, Gaussians]] = []
@@ -1169,14 +1177,28 @@ def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None,
         detail_kept.dedupe()
         release_heap(HEAP_KEPT_BYTES)
 
-    opts = dict(lidar=lidar, stereo=stereo, detail=detail, masks=found.masks)
-    made = _keyframes_made(rec, drive, keys, n_workers, opts, say) if make_keyframes is None else \
-        make_keyframes(drive, keys, opts)
+    ego_pool = ThreadPoolExecutor(1, thread_name_prefix="xyzcyl-ego-body")
+    if ego_body and make_keyframes is None and n_workers == 0 and threadsafe():
+        # the first keyframe's decoding, network and LiDAR depth need no masks: only its detail layer waits for
+        # them (_Later); the search for the body alone kept a core idle (20 PandaSet keyframes: it took 1.2-1.9 s)
+        finding = ego_pool.submit(find)
+    elif ego_body:
+        found = ego_found(find())
+    masks = found.masks if finding is None else _Later(finding, lambda body: body.masks)
+    opts = dict(lidar=lidar, stereo=stereo, detail=detail, masks=masks)
+    try:
+        made = _keyframes_made(rec, drive, keys, n_workers, opts, say) if make_keyframes is None else \
+            make_keyframes(drive, keys, opts)
+    except BaseException:
+        ego_pool.shutdown(wait=True)
+        raise
     try:
         for n, k in enumerate(keys):
             fr = drive.frames[k]
             say(f"keyframe {n + 1}/{len(keys)}: frame {k} ({fr.timestamp_s - drive.frames[0].timestamp_s:.2f} s)")
             points, kf, coarse, parts, details, note = next(made)
+            if finding is not None:
+                found, finding = ego_found(finding.result()), None
             if note:
                 say(note)
             for key, v in kf.timings.items():
@@ -1229,20 +1251,23 @@ def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None,
             coarse_kept.add(coarse, voxel_levels(_footprint(coarse)), n)
             entry = (n, details, parts, own, points is not None, [np.zeros(len(k), bool) for k in own], lrows)
             for prev in window:
-                _carve_pair(entry, prev, tol)
-                _carve_pair(prev, entry, tol)
+                _carve_pair(entry, prev, tol, stacks)
+                _carve_pair(prev, entry, tol, stacks)
             window.append(entry)
             while len(window) > CARVE_WINDOW:
+                stacks.pop(window[0][0], None)
                 commit(window.pop(0))
             say(f"fused: {detail_kept.count()} detail cells so far")
     finally:
         made.close()              # a failed keyframe: the workers stop
+        ego_pool.shutdown(wait=True)
     t1 = time.perf_counter()
     release_heap(HEAP_KEPT_BYTES)   # the fusion below allocates other sizes: what the keyframes freed, above that
     if layers is not None:
         t_l = time.perf_counter()
         layers.finish()                         # the last keyframe's written: the scene's cells are read there
         timings["camera_layers"] = timings.get("camera_layers", 0.0) + time.perf_counter() - t_l
+    stacks.clear()
     while window:
         commit(window.pop(0))
     coarse_kept.dedupe()
@@ -1275,8 +1300,22 @@ def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None,
     # them: the keyframes are all made, the two cores are this work's (each side is mostly numpy and numba, which
     # release the GIL); one after the other where numba's threading layer cannot run two threads' kernels at once
     # (numba_cache.threadsafe)
-    with ThreadPoolExecutor(1, thread_name_prefix="xyzcyl-chunks") as pool:
+    def objects():
+        """The moving objects (actors_of) and the lattice under their footprints (fill_lattice; its seconds): they
+        need none of the shared cells, so they are made while those are read."""
+        actors = actors_of(drive, copies, moved, keys)
+        if actors is None:
+            return None, None, 0.0
+        t_f = time.perf_counter()
+        tracked = actors.pose_track < len(moving_tracks(drive))
+        lattice = fill_lattice([(int(a), T, actors.track_size[a]) for a, T in
+                                zip(actors.pose_track[tracked], actors.pose[tracked])], len(actors))
+        return actors, lattice, time.perf_counter() - t_f
+
+    with ThreadPoolExecutor(1, thread_name_prefix="xyzcyl-chunks") as pool, \
+            ThreadPoolExecutor(1, thread_name_prefix="xyzcyl-actors") as beside:
         written = pool.submit(write_chunks) if threadsafe() else None
+        made_objects = beside.submit(objects) if threadsafe() else None
         try:
             detail_parts, detail_frames = detail_kept.shared_parts(lambda n, box: own_boxes[n].set_result(box))
         finally:                    # a chunk whose box was not found (none, or the reads failed) reads it itself
@@ -1301,15 +1340,12 @@ def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None,
         else:
             gauss = _concat([p for p, _ in pieces])
         del pieces
-        actors = actors_of(drive, copies, moved, keys)
+        actors, lattice, lattice_s = objects() if made_objects is None else made_objects.result()
         fill_s, fill_counts = None, {}
         if actors is not None:
             # the ground under the tracked objects that no keyframe saw: filled, drawn where a view hides or moves one
             t_f = time.perf_counter()
-            tracked = actors.pose_track < len(moving_tracks(drive))
-            fill, fill_track, filled = fill_under(gauss, [(int(a), T, actors.track_size[a]) for a, T in
-                                                          zip(actors.pose_track[tracked], actors.pose[tracked])],
-                                                  len(actors))
+            fill, fill_track, filled = fill_lattice_under(gauss, lattice)
             if len(fill):
                 actors = replace(actors, fill=fill, fill_track=fill_track)
             fill_counts = {"ground_filled": len(fill), "ground_filled_m2": round(float(filled.sum()), 2)}
@@ -1322,8 +1358,8 @@ def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None,
             viewpoints = written.result()
     scene.viewpoints = viewpoints
     timings["fusion"] = time.perf_counter() - t1 - (fill_s or 0.0)
-    if fill_s is not None:
-        timings["ground_fill"] = fill_s
+    if fill_s is not None:              # its lattice was laid beside the fusion (objects)
+        timings["ground_fill"] = fill_s + lattice_s
     timings["total"] = time.perf_counter() - t0
     counts.update({"coarse": n_coarse, "detail": n_detail, "moving_removed": moved_out,
                    "moved_away": int(sum(len(g) for _, g in moved)), "total": len(gauss)})
@@ -1409,6 +1445,26 @@ def _stereo_sweep(drive: Drive, k: int, masks: dict[str, np.ndarray]):
     boxes = [(inv, half) for _, inv, half in moving_boxes(drive, k)]
     pts = stereo_points(cams, imgs, T, [loaded(j) for j in parts], ego, boxes, tracked=tracked)
     return (pts if len(pts) else None), imgs, f"stereo: {len(pts)} points from frames {parts}"
+
+
+class _Later(Mapping):
+    """A mapping that a thread is still making: ``of(future.result())``, waited for when first read (the first
+    keyframe's ego masks while the ego's body is still being found: reconstruct_drive)."""
+
+    def __init__(self, future: Future, of: Callable[[Any], Mapping]):
+        self._future, self._of = future, of
+
+    def _now(self) -> Mapping:
+        return self._of(self._future.result())
+
+    def __getitem__(self, key):
+        return self._now()[key]
+
+    def __iter__(self):
+        return iter(self._now())
+
+    def __len__(self) -> int:
+        return len(self._now())
 
 
 def make_keyframe(rec, drive: Drive, k: int, lidar: bool, stereo: bool, detail, masks: dict[str, np.ndarray],
@@ -1549,7 +1605,7 @@ def save_drive_scene(rec, drive: Drive, keys: Sequence[int], out: str | os.PathL
 
 
 
-def _carve_pair(a, b, tolerance: float) -> None:
+def _carve_pair(a, b, tolerance: float, stacks: dict | None = None) -> None:
     """Clear a's keep masks for the cells that b's cameras see through (runtime.detail.carve_details' free-space
     rule, dedupe 0: another keyframe never takes over a surface here; dedupe_frames does, on voxels), when b's
     depth was measured (its keyframe had a LiDAR sweep). The model's depth from images alone is too far off to
@@ -1559,14 +1615,19 @@ def _carve_pair(a, b, tolerance: float) -> None:
     colour is the same surface that the two sweeps put at other depths (glass, a fence, an edge).
     A cell of a that a's own LiDAR placed (CONF_MEASURED) and b sees through was there at a's time and gone at
     b's: it moved away (a car, a pedestrian, tracked or not). It is marked in a's moved masks (the entry's sixth
-    field) and drawn only around a's time (actors_of), not dropped."""
+    field) and drawn only around a's time (actors_of), not dropped. ``stacks``: keyframe -> its cameras stacked
+    (CarveCameras), kept there for the next pair (a keyframe carves and is carved by each in its window)."""
     from .detail import CONF_MEASURED, CarveCameras, carve_against
 
     _, details_a, _, keep_a, measured_a, moved_a = a[:6]
     _, details_b, _, _, measured, _ = b[:6]
     if not measured:
         return
-    cameras_b = CarveCameras.of(details_b)         # stacked once for a's cameras
+    cameras_b = None if stacks is None else stacks.get(b[0])
+    if cameras_b is None:
+        cameras_b = CarveCameras.of(details_b)      # stacked once for a's cameras
+        if stacks is not None:
+            stacks[b[0]] = cameras_b
     for d, keep, gone in zip(details_a, keep_a, moved_a):
         before = keep.copy() if measured_a else None
         carve_against(d, cameras_b, keep, tolerance, SEE_THROUGH_PHOTO)

@@ -14,6 +14,7 @@ when there are none). The filled area is counted per object (lattice points x sp
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import dataclass
 
 import numba
 import numpy as np
@@ -43,16 +44,25 @@ def _pack(k: np.ndarray) -> np.ndarray:
     return k[:, 0] * (1 << 32) + (k[:, 1] & 0xFFFFFFFF)
 
 
-def fill_under(static: Gaussians, footprints: Sequence[tuple[int, np.ndarray, np.ndarray]], n_objects: int
-               ) -> tuple[Gaussians, np.ndarray, np.ndarray]:
-    """(fill Gaussians [F] (scene frame, SH degree 0), the object under which each lies [F] int, the filled area
-    per object [n_objects] m^2) for ``footprints``:
-    (object index, box -> scene [4, 4], size [3] metres: length, width, height) of the moving objects' annotated
-    poses, against the ``static`` Gaussians (scene frame; module docstring)."""
-    area = np.zeros(n_objects, np.float64)
-    if not len(footprints):
-        return Gaussians.empty(0), np.zeros(0, np.int64), area
+@dataclass(frozen=True, eq=False)
+class FillLattice:
+    """The lattice of fill_under over the moving objects' footprints (fill_lattice): one point per lattice cell."""
+
+    n_objects: int
+    packed: np.ndarray      # [L] int64 ascending: the cells (_pack'ed keys)
+    key: np.ndarray         # [L, 2] int64: floor(x / s), floor(y / s) of each cell
+    z: np.ndarray           # [L] float64 metres, scene frame: its ground height
+    owner: np.ndarray       # [L] int64: the object whose footprint (or ring) it is
+    inner: np.ndarray       # [L] bool: in a footprint (else in a ring around one)
+
+
+def fill_lattice(footprints: Sequence[tuple[int, np.ndarray, np.ndarray]], n_objects: int) -> FillLattice:
+    """fill_under's lattice over ``footprints`` (fill_under's): it needs no static Gaussian, so a drive lays it
+    while its shared cells are still being read (runtime.drive.reconstruct_drive)."""
     s = FILL_SPACING_M
+    if not len(footprints):
+        none = np.zeros(0, np.int64)
+        return FillLattice(n_objects, none, np.zeros((0, 2), np.int64), np.zeros(0), none, np.zeros(0, bool))
     keys, heights, owners, inner = [], [], [], []
     for a, T, size in footprints:
         F = _frame(np.asarray(T, np.float64), np.asarray(size, np.float64))
@@ -72,7 +82,25 @@ def fill_under(static: Gaussians, footprints: Sequence[tuple[int, np.ndarray, np
     first = np.ones(len(packed), bool)
     first[1:] = packed[1:] != packed[:-1]
     pick = order[first]
-    packed, key, z, owner, inner = packed[first], key[pick], z[pick], owner[pick], inner[pick]
+    return FillLattice(n_objects, packed[first], key[pick], z[pick], owner[pick], inner[pick])
+
+
+def fill_under(static: Gaussians, footprints: Sequence[tuple[int, np.ndarray, np.ndarray]], n_objects: int
+               ) -> tuple[Gaussians, np.ndarray, np.ndarray]:
+    """(fill Gaussians [F] (scene frame, SH degree 0), the object under which each lies [F] int, the filled area
+    per object [n_objects] m^2) for ``footprints``:
+    (object index, box -> scene [4, 4], size [3] metres: length, width, height) of the moving objects' annotated
+    poses, against the ``static`` Gaussians (scene frame; module docstring)."""
+    return fill_lattice_under(static, fill_lattice(footprints, n_objects))
+
+
+def fill_lattice_under(static: Gaussians, lattice: FillLattice) -> tuple[Gaussians, np.ndarray, np.ndarray]:
+    """fill_under on a lattice laid already (fill_lattice)."""
+    s = FILL_SPACING_M
+    area = np.zeros(lattice.n_objects, np.float64)
+    if not len(lattice.packed):
+        return Gaussians.empty(0), np.zeros(0, np.int64), area
+    packed, key, z, owner, inner = lattice.packed, lattice.key, lattice.z, lattice.owner, lattice.inner
 
     # the static Gaussians on the ground of a lattice cell (within GROUND_TOL_M of its height)
     lo, hi = key.min(axis=0) * s, (key.max(axis=0) + 1) * s
@@ -90,7 +118,7 @@ def fill_under(static: Gaussians, footprints: Sequence[tuple[int, np.ndarray, np
         return Gaussians.empty(0), np.zeros(0, np.int64), area
 
     # each object's ground colour: the median SH DC of the static Gaussians on its ring's cells
-    colour = np.full((n_objects, 3), GREY_DC)
+    colour = np.full((lattice.n_objects, 3), GREY_DC)
     ring = ~inner[j]
     dc = np.asarray(static.sh[cand[ring], 0, :], np.float64)
     who = owner[j[ring]]
@@ -154,4 +182,4 @@ def _ground_kernel(means, lo_x, lo_y, hi_x, hi_y, s, packed, z, tol):
     return out
 
 
-__all__ = ["FILL_SPACING_M", "fill_under", "ground_cells", "ground_cells_reference"]
+__all__ = ["FILL_SPACING_M", "FillLattice", "fill_lattice", "fill_lattice_under", "fill_under", "ground_cells", "ground_cells_reference"]

@@ -595,6 +595,54 @@ def test_a_found_ego_body_gets_no_cells_and_travels_with_the_scene(tmp_path, shi
         Scene.load(tmp_path / "scene")
 
 
+def test_the_ego_body_is_found_beside_the_first_keyframes_network(tmp_path, shipped, monkeypatch):
+    """reconstruct_drive looks for the ego's body in a thread while its first keyframe is decoded and run through the
+    network (they need no mask: only the detail layer waits for the masks): the search here waits until that
+    keyframe's encoder has run, which it never would if the keyframe waited for the search; the detail layer then
+    gets the masks found."""
+    import threading
+
+    from xyzcyl.runtime import drive as D
+    from xyzcyl.runtime.detail import DetailOptions
+    from xyzcyl.runtime.egobody import EgoBody
+    from xyzcyl.runtime.inference import Reconstructor
+    from xyzcyl.runtime.numba_cache import threadsafe
+
+    if not threadsafe():
+        pytest.skip("numba has no thread-safe threading layer here: the search runs first")
+    E = np.array(_pose(7, 3, 20))
+    drive = load_drive(write_drive(tmp_path, [E.tolist(), (E @ np.array(_pose(3.0, 0.0))).tolist()], [0.0, 0.5]))
+    cam = next(c for c in drive.frames[0].rig.cameras if c.model == "pinhole")
+    body = np.zeros((cam.height, cam.width), bool)
+    body[: cam.height // 2] = True
+    encoded, waited = threading.Event(), []
+
+    def find(drive, lidar=True):
+        waited.append(encoded.wait(60))         # 60 s: the first keyframe's encoder runs within a second here
+        return EgoBody(masks={cam.name: body}, fractions={cam.name: 0.5}, frames=(0, 1), travelled_m=3.0)
+
+    encode, details = Reconstructor.encode, Reconstructor.camera_details
+    masks_seen = []
+
+    def encode_spy(self, *a, **k):
+        encoded.set()
+        return encode(self, *a, **k)
+
+    def details_spy(self, rig, rgb, gauss, lidar, detail, counts, ego_masks=None, *a, **k):
+        masks_seen.append({name: np.array(m) for name, m in (ego_masks or {}).items()})
+        return details(self, rig, rgb, gauss, lidar, detail, counts, ego_masks, *a, **k)
+
+    monkeypatch.setattr(D, "find_drive_ego_body", find)
+    monkeypatch.setattr(Reconstructor, "encode", encode_spy)
+    monkeypatch.setattr(Reconstructor, "camera_details", details_spy)
+    scene = D.reconstruct_drive(shipped, drive, detail=DetailOptions(stride=8))
+    assert waited == [True]
+    assert len(masks_seen) == 2 and all(list(m) == [cam.name] for m in masks_seen)
+    for m in masks_seen:
+        np.testing.assert_array_equal(m[cam.name], body)
+    assert scene.counts["ego_body_cameras"] == 1 and "ego_body" in scene.timings
+
+
 def test_only_a_keyframe_with_measured_depth_carves_its_neighbours(monkeypatch):
     """runtime.drive._carve_pair: b's cameras carve a's cells when b had a LiDAR sweep, never on the model's depth
     alone (each of a's cameras against all of b's)."""
@@ -612,6 +660,27 @@ def test_only_a_keyframe_with_measured_depth_carves_its_neighbours(monkeypatch):
     assert calls == []
     _carve_pair(a, b_lidar, 0.1)
     assert calls == [("a0", ["b0"], 0.1, SEE_THROUGH_PHOTO), ("a1", ["b0"], 0.1, SEE_THROUGH_PHOTO)]
+
+
+def test_a_keyframes_cameras_are_stacked_once_for_all_its_pairs(monkeypatch):
+    """runtime.drive._carve_pair with ``stacks``: b's cameras are stacked (CarveCameras.of) the first time b carves
+    and that stack carves each later keyframe; without ``stacks`` each pair stacks them again."""
+    from xyzcyl.runtime import detail
+    from xyzcyl.runtime.drive import _carve_pair
+
+    built, used = [], []
+    monkeypatch.setattr(detail, "carve_against", lambda d, others, keep, tol, photo: used.append((d, others)))
+    monkeypatch.setattr(detail.CarveCameras, "of", staticmethod(lambda ds: built.append(list(ds)) or ("stack", *ds)))
+    b = (4, ["b0"], [], [np.ones(1, bool)], True, [np.zeros(1, bool)])
+    a1 = (2, ["a0"], [], [np.ones(2, bool)], False, [np.zeros(2, bool)])
+    a2 = (3, ["c0", "c1"], [], [np.ones(2, bool), np.ones(1, bool)], False, [np.zeros(2, bool), np.zeros(1, bool)])
+    stacks = {}
+    _carve_pair(a1, b, 0.1, stacks)
+    _carve_pair(a2, b, 0.1, stacks)
+    assert built == [["b0"]] and stacks == {4: ("stack", "b0")}
+    assert used == [("a0", ("stack", "b0")), ("c0", ("stack", "b0")), ("c1", ("stack", "b0"))]
+    _carve_pair(a1, b, 0.1)
+    assert built == [["b0"], ["b0"]]
 
 
 def test_measured_cells_a_neighbour_sees_through_moved_away(monkeypatch):

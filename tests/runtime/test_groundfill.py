@@ -135,3 +135,15 @@ def test_ground_cells_kernel_equals_its_numpy_reference():
                                                                                                 hi - 1.0, s, packed, z)
     np.testing.assert_array_equal(got[0], want[0])
     np.testing.assert_array_equal(got[1], want[1])
+
+
+def test_no_footprint_lays_no_lattice_and_fills_nothing():
+    """fill_lattice of no footprints (a drive whose moving objects have no annotated pose in the scene) is empty, and
+    fill_lattice_under fills nothing on it: an empty fill, zero area for every object."""
+    from xyzcyl.runtime.groundfill import fill_lattice, fill_lattice_under
+
+    lattice = fill_lattice([], 3)
+    assert lattice.n_objects == 3 and len(lattice.packed) == len(lattice.key) == len(lattice.z) == 0
+    fill, owner, area = fill_lattice_under(_ground((-1.0, 1.0, -1.0, 1.0)), lattice)
+    assert len(fill) == 0 and len(owner) == 0
+    np.testing.assert_array_equal(area, np.zeros(3))
