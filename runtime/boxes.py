@@ -24,7 +24,9 @@ def box_members(points: np.ndarray, boxes: Sequence[tuple[np.ndarray, np.ndarray
     """[N] int: the index of the (first) box each point ([N, 3] metres) lies in, -1 for none (boxes: (frame -> box
     [4, 4], half-sizes [3])). A point is tested against a box only when it lies within the box's reach along x and
     y (a drive's keyframe holds millions of cells and dozens of boxes)."""
-    p = np.ascontiguousarray(points, np.float64).reshape(-1, 3)
+    p = np.asarray(points).reshape(-1, 3)
+    # float32 centres as they are (a keyframe's cells: no float64 copy of millions; the kernel widens each exactly)
+    p = np.ascontiguousarray(p, p.dtype if p.dtype in (np.float32, np.float64) else np.float64)
     if not len(p) or not boxes:
         return np.full(len(p), -1, np.int32)
     inv = np.array([np.asarray(b[0], np.float64)[:3] for b in boxes])          # [B, 3, 4]
@@ -37,7 +39,7 @@ def box_members(points: np.ndarray, boxes: Sequence[tuple[np.ndarray, np.ndarray
 def _box_members(p, inv, half, centre_xy, reach):
     out = np.full(len(p), -1, np.int32)
     for i in range(len(p)):
-        x, y, z = p[i, 0], p[i, 1], p[i, 2]
+        x, y, z = np.float64(p[i, 0]), np.float64(p[i, 1]), np.float64(p[i, 2])
         for b in range(len(inv)):
             # a point in the box is within its half-diagonal of the centre, so within it along x and along y
             if abs(x - centre_xy[b, 0]) > reach[b] or abs(y - centre_xy[b, 1]) > reach[b]:

@@ -729,12 +729,13 @@ def dedupe_frames_reference(points: np.ndarray, level: np.ndarray, frame: np.nda
     return keep
 
 
-def _footprint(g: Gaussians) -> np.ndarray:
+def _footprint(g: Gaussians | np.ndarray) -> np.ndarray:
     """[N] metres: a Gaussian's footprint for dedupe_frames, twice its largest standard deviation: a model Gaussian's;
     a detail cell's from its disc (the disc's standard deviation is DetailOptions.footprint = 0.5 cell footprints
     across: twice its larger in-plane deviation). The largest log-scale taken column by column (numpy's max over a
-    3-wide axis is six times slower), then exp: the same value as the largest of the exps."""
-    ls = g.log_scales
+    3-wide axis is six times slower), then exp: the same value as the largest of the exps. ``g``: the Gaussians, or
+    their log-scales [N, 3]."""
+    ls = g.log_scales if isinstance(g, Gaussians) else g
     return 2.0 * np.exp(np.maximum(np.maximum(ls[:, 0], ls[:, 1]), ls[:, 2]).astype(np.float64))
 
 
@@ -804,22 +805,33 @@ class _Kept:
         the part's split cells or -1 [N], their quarters' means and colours [S, 4, 3]) or None. Split cells are
         deduped as cells and drawn as their quarters (runtime.detail.expand_rows: shared_parts, own_of). ``layer``:
         each cell's row in its keyframe's camera layer file ([N] int32, _layer_rows), or None."""
-        self.start.append(self.next_id)
-        self.next_id += len(g)
-        self.now.append(None)
         if layer is not None and self.source is not None:
-            stored, quarters = None, None       # its rows of the keyframe's camera layer file hold it (_from_layers)
-        else:
-            stored, quarters = self._put(g, None if split is None else split[1:])
+            # its rows of the keyframe's camera layer file hold it (_from_layers)
+            self.add_cells(np.array(g.means, np.float32), level, n, split, layer)
+            return
+        self._add(np.array(g.means, np.float32), level, n, split, layer, *self._put(g, None if split is None
+                                                                                   else split[1:]))
+
+    def add_cells(self, means: np.ndarray, level: np.ndarray, n: int, split: tuple | None, layer: np.ndarray) -> None:
+        """add of a part whose Gaussians are rows of keyframe n's camera layer file (``layer``: each one's row there,
+        with ``source`` set): only their centres ``means`` [N, 3] float32 (scene frame, metres; kept as given) and
+        voxel levels are kept."""
+        self._add(np.asarray(means, np.float32), level, n, split, layer, None, None)
+
+    def _add(self, means: np.ndarray, level: np.ndarray, n: int, split: tuple | None, layer: np.ndarray | None,
+             stored: Gaussians | Path | None, quarters: tuple | None) -> None:
+        self.start.append(self.next_id)
+        self.next_id += len(means)
+        self.now.append(None)
         self.store.append(stored)
         self.quarters.append(quarters)
         self.split.append(None if split is None else np.asarray(split[0], np.int32))
         self.rows.append(None)
         self.layer.append(None if layer is None else np.asarray(layer, np.int32))     # (a file's rows < 2^31)
-        self.means.append(np.array(g.means, np.float32))
+        self.means.append(means)
         self.level.append(level)
-        self.frame.append(_same(n, len(g)))
-        self.shared.append(np.ones(len(g), bool))
+        self.frame.append(_same(n, len(means)))
+        self.shared.append(np.ones(len(means), bool))
 
     def keep(self, i: int, m: np.ndarray) -> None:
         """Part i keeps only the cells ``m`` selects (shared or not)."""
@@ -1171,8 +1183,13 @@ def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None,
         if at is not None and any((r < 0).any() for r in at):
             at = None                   # (never met: then the keyframe's chunk is written whole)
         for i, (g, d, k) in enumerate(zip(parts, details, keep)):
-            g = g.subset(k)             # deduped as cells; a split cell drawn as its quarters (_Kept.drawn)
             split = None if d.split is None else (split_rows(len(k), d.split)[k], d.split.means, d.split.colours)
+            if at is not None and detail_kept.source is not None:
+                # its rows of the camera layer file hold the cells: only their centres and footprints are taken
+                rows = np.flatnonzero(k)
+                detail_kept.add_cells(g.means[rows], voxel_levels(_footprint(g.log_scales[rows])), n, split, at[i])
+                continue
+            g = g.subset(k)             # deduped as cells; a split cell drawn as its quarters (_Kept.drawn)
             detail_kept.add(g, voxel_levels(_footprint(g)), n, split, None if at is None else at[i])
         detail_kept.dedupe()
         release_heap(HEAP_KEPT_BYTES)

@@ -433,6 +433,11 @@ def test_voxel_levels_and_boxes():
         direct[np.all(np.abs(q) <= half, axis=1)] = b
     np.testing.assert_array_equal(box_members(many, boxes), direct)
     assert (direct >= 0).sum() > 100
+    # float32 points (a keyframe's cells) as they are: the same as their float64 values (each widened exactly)
+    few = many.astype(np.float32)
+    np.testing.assert_array_equal(box_members(few, boxes), box_members(few.astype(np.float64), boxes))
+    # footprints from the log-scales alone (a part whose cells are rows of a camera layer file) are the same
+    np.testing.assert_array_equal(_footprint(ls), _footprint(g))
 
 
 @pytest.fixture(scope="module")

@@ -220,3 +220,18 @@ def test_camera_errors_name_their_field_as_an_attribute():
         assert isinstance(e, FieldError) and e.root_field == field and str(e) == f"{e.field}: {e.message}"
         again = pickle.loads(pickle.dumps(e))
         assert (type(again), again.field, again.message) == (CameraError, e.field, e.message)
+
+
+def test_zero_quaternions_counted_as_numpy_counts_them():
+    """Gaussians' check of zero quaternions (a kernel: _zero_quats) counts the rows numpy's float64 squared norms
+    put below 1e-20, float32 and float64 rows, those just above and below the bound included."""
+    from xyzcyl.runtime.render.gaussians import _zero_quats, _zero_quats_reference
+
+    rng = np.random.default_rng(4)
+    q = rng.normal(size=(20000, 4))
+    q[::97] = 0.0
+    q[1] = [1e-11, 0, 0, 0]                 # 1e-22: zero
+    q[2] = [1e-9, 0, 0, 0]                  # 1e-18: not
+    q[3] = [0, 0, -2e-11, 1e-11]            # 5e-22: zero
+    for a in (q, q.astype(np.float32)):
+        assert _zero_quats(np.ascontiguousarray(a)) == _zero_quats_reference(a) == len(range(0, len(q), 97)) + 2
