@@ -1159,6 +1159,7 @@ def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None,
     window: list[tuple[int, list, list[Gaussians], list[np.ndarray], bool, list[np.ndarray], list | None]] = []
     moved: list[tuple[int, Gaussians]] = []
     stacks: dict = {}           # the window's keyframes' cameras stacked for carving (_carve_pair)
+    made_pyramids: dict = {}    # the window's keyframes' detail_pyramids (commit)
     background = None
     moved_out = 0
     copies: list[tuple[int, float, Gaussians]] = []
@@ -1171,7 +1172,9 @@ def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None,
             # not the spill of a tracked object's cells beside its box: it is drawn from its copy
             moved.append((n, without_spill(_concat([g.subset(m) for g, m in zip(parts, gone) if m.any()]),
                                            spill_boxes(drive, keys[n]))))
-        pyramids = detail_pyramids(details) if details and len(coarse_kept.store) else None    # once for all
+        pyramids = made_pyramids.pop(n, None)      # made when its own model Gaussians were culled, else here
+        if pyramids is None and details and len(coarse_kept.store):
+            pyramids = detail_pyramids(details)     # once for all
         for i in range(len(coarse_kept.store)):
             g = coarse_kept.part(i)
             if details and len(g):
@@ -1231,7 +1234,10 @@ def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None,
             # this keyframe as one rig: its model Gaussians under its cells culled, its cells carved against its own
             # cameras; later against its neighbours' (see-through, by a keyframe with a LiDAR sweep: _carve_pair)
             if details and len(coarse):
-                coarse = coarse.subset(cull_covered(coarse, details, tol))
+                # its cameras' depth pyramids, kept for its commit (the same details: made once; ~85 MB a PandaSet
+                # keyframe, CARVE_WINDOW + 1 of them)
+                made_pyramids[n] = detail_pyramids(details)
+                coarse = coarse.subset(cull_covered(coarse, details, tol, made_pyramids[n]))
             # without a sweep the cameras' depths are the model's (scaled per camera to a few stereo points), up to
             # 2x apart: one camera sees through another's cell only where it also sees another colour there
             photo = SEE_THROUGH_PHOTO if points is None else None

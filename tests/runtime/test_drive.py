@@ -648,6 +648,23 @@ def test_the_ego_body_is_found_beside_the_first_keyframes_network(tmp_path, ship
     assert scene.counts["ego_body_cameras"] == 1 and "ego_body" in scene.timings
 
 
+def test_a_keyframes_detail_pyramids_are_made_once(tmp_path, shipped, monkeypatch):
+    """The depth pyramids of a keyframe's detail layers (detail_pyramids) cull its own model Gaussians when it
+    arrives and, kept, the scene's model Gaussians when it is committed: made once a keyframe, not twice."""
+    from xyzcyl.runtime import detail
+    from xyzcyl.runtime import drive as D
+    from xyzcyl.runtime.detail import DetailOptions
+
+    made, real = [], detail.CameraDetail.max_pyramid
+    monkeypatch.setattr(detail.CameraDetail, "max_pyramid", lambda d: made.append(id(d)) or real(d))
+    E = np.array(_pose(7, 3, 20))
+    drive = load_drive(write_drive(tmp_path, [E.tolist(), (E @ np.array(_pose(3.0, 0.0))).tolist()], [0.0, 0.5]))
+    scene = D.reconstruct_drive(shipped, drive, detail=DetailOptions(stride=8))
+    # each keyframe's pinhole cameras' detail layers (the lens cameras' too): one pyramid each, two keyframes
+    cameras = len(drive.frames[0].rig.cameras)
+    assert scene.counts["keyframes"] == 2 and len(made) == 2 * cameras
+
+
 def test_only_a_keyframe_with_measured_depth_carves_its_neighbours(monkeypatch):
     """runtime.drive._carve_pair: b's cameras carve a's cells when b had a LiDAR sweep, never on the model's depth
     alone (each of a's cameras against all of b's)."""
