@@ -138,10 +138,11 @@ def main() -> None:
         if "reconstruct" not in cases and not (out / "scene.json").is_file():
             raise SystemExit(f"--cases without reconstruct: no scene in {out}")
         for case in cases:
-            if case != "reconstruct":
-                # the scene just written (~9 GB for 20 keyframes) flushed to disk first: the kernel's writeback of
-                # it made the views 0.61 s instead of 0.48-0.50 (docs/results.md "Drives: camera layers")
-                os.sync()
+            # the scene just written (~5-9 GB for 20 keyframes) flushed to disk first: the kernel's writeback of
+            # it made the views 0.61 s instead of 0.48-0.50 (docs/results.md "Drives: camera layers"); a reconstruct
+            # is not timed against the other tree's writeback either (docs/results.md "Speed, session of 2026-12-03
+            # (night)")
+            os.sync()
             r = run(tree, case, args, out)
             r["tree"] = name
             results[(name, case)] = r
