@@ -1318,11 +1318,11 @@ def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None,
         release_heap(HEAP_KEPT_BYTES)
         return out
 
-    # the chunks are written in a thread while this one reads the shared cells from the camera layer files (the
-    # disk's time: runtime.directio) and puts them in tiles, makes the moving objects and fills the ground under
-    # them: the keyframes are all made, the two cores are this work's (each side is mostly numpy and numba, which
-    # release the GIL); one after the other where numba's threading layer cannot run two threads' kernels at once
-    # (numba_cache.threadsafe)
+    # the chunks are written in a thread, and the moving objects and the lattice under them made in another, while
+    # this one reads the shared cells from the camera layer files (the disk's time: runtime.directio), puts them in
+    # tiles and fills the ground under the objects: the keyframes are all made, the two cores are this work's (each
+    # side is mostly numpy and numba, which release the GIL); one after the other where numba's threading layer
+    # cannot run two threads' kernels at once (numba_cache.threadsafe)
     def objects():
         """The moving objects (actors_of) and the lattice under their footprints (fill_lattice; its seconds): they
         need none of the shared cells, so they are made while those are read."""
