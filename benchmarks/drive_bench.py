@@ -15,10 +15,13 @@ per case:
 With ``--cases render,sequence`` a scene already in WORK/now (and WORK/baseline) is drawn again without rebuilding it.
 
     .venv/bin/python benchmarks/drive_bench.py [--drive D] [--every 2] [--work /tmp/xyzcyl-drive-bench]
-        [--threads 2] [--workers N] [--baseline DIR] [--cases reconstruct,render,sequence]
+        [--threads 2] [--workers N] [--baseline DIR] [--rounds 1] [--cases reconstruct,render,sequence]
 
-With --baseline DIR (DIR/xyzcyl: an older tree, e.g. `git archive <commit> | tar -x -C DIR/xyzcyl`), both cases run
-again with that tree right after, and a ``ratio`` line gives baseline / now.
+With --baseline DIR (DIR/xyzcyl: an older tree, e.g. `git archive <commit> | tar -x -C DIR/xyzcyl`), the cases run
+again with that tree, and a ``ratio`` line gives baseline / now. ``--rounds N`` reconstructs N times a tree in ABBA
+order (now, baseline, baseline, now, ...; the ratio from the medians): on a machine whose speed drifts, the tree run
+second in every pair looked 8-17 % faster than in the other order (docs/results.md "Speed, session of 2026-12-03
+(night)"). Every case starts after os.sync().
 """
 
 from __future__ import annotations
@@ -26,6 +29,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import statistics
 import subprocess
 import sys
 import tempfile
@@ -121,7 +125,11 @@ def main() -> None:
     ap.add_argument("--cases", default="reconstruct,render,sequence",
                     help="comma-separated, in this order: reconstruct (writes WORK/now, WORK/baseline), render, "
                          "sequence (default: all three)")
+    ap.add_argument("--rounds", type=int, default=1,
+                    help="reconstructs of each tree, in ABBA order with --baseline (the ratio from the medians)")
     args = ap.parse_args()
+    if args.rounds < 1:
+        raise SystemExit(f"--rounds: at least 1, got {args.rounds}")
     cases = [c.strip() for c in args.cases.split(",") if c.strip()]
     unknown = sorted(set(cases) - set(CASES))
     if unknown or not cases:
@@ -132,21 +140,32 @@ def main() -> None:
     trees: list[tuple[str, Path | None]] = [("now", None)]
     if args.baseline is not None:
         trees.append(("baseline", args.baseline.resolve()))
+    for name, _ in trees:
+        if "reconstruct" not in cases and not (args.work / name / "scene.json").is_file():
+            raise SystemExit(f"--cases without reconstruct: no scene in {args.work / name}")
+
+    def one(name: str, tree: Path | None, case: str) -> dict:
+        # the scene just written (~5-9 GB for 20 keyframes) flushed to disk first: the kernel's writeback of it made
+        # the views 0.61 s instead of 0.48-0.50 (docs/results.md "Drives: camera layers"); a reconstruct is not timed
+        # against the other tree's writeback either
+        os.sync()
+        r = run(tree, case, args, args.work / name)
+        r["tree"] = name
+        print(json.dumps(r), flush=True)
+        return r
+
     results = {}
+    if "reconstruct" in cases:      # ABBA: each round the other tree first
+        made: dict[str, list[dict]] = {}
+        for k in range(args.rounds):
+            for name, tree in (trees if k % 2 == 0 else trees[::-1]):
+                made.setdefault(name, []).append(one(name, tree, "reconstruct"))
+        for name, rs in made.items():
+            results[(name, "reconstruct")] = {"seconds": statistics.median(r["seconds"] for r in rs)}
     for name, tree in trees:
-        out = args.work / name
-        if "reconstruct" not in cases and not (out / "scene.json").is_file():
-            raise SystemExit(f"--cases without reconstruct: no scene in {out}")
         for case in cases:
-            # the scene just written (~5-9 GB for 20 keyframes) flushed to disk first: the kernel's writeback of
-            # it made the views 0.61 s instead of 0.48-0.50 (docs/results.md "Drives: camera layers"); a reconstruct
-            # is not timed against the other tree's writeback either (docs/results.md "Speed, session of 2026-12-03
-            # (night)")
-            os.sync()
-            r = run(tree, case, args, out)
-            r["tree"] = name
-            results[(name, case)] = r
-            print(json.dumps(r), flush=True)
+            if case != "reconstruct":
+                results[(name, case)] = one(name, tree, case)
     if args.baseline is not None:
         ratio = {"case": "ratio", "what": "baseline / now"}
         for case, key in (("reconstruct", "seconds"), ("render", "median_s"), ("sequence", "median_s"),
