@@ -20,7 +20,7 @@ With ``--cases render,sequence`` a scene already in WORK/now (and WORK/baseline)
 With --baseline DIR (DIR/xyzcyl: an older tree, e.g. `git archive <commit> | tar -x -C DIR/xyzcyl`), the cases run
 again with that tree, and a ``ratio`` line gives baseline / now. ``--rounds N`` reconstructs N times a tree in ABBA
 order (now, baseline, baseline, now, ...; the ratio from the medians): on a machine whose speed drifts, the tree run
-second in every pair looked 8-17 % faster than in the other order (docs/results.md "Speed, session of 2026-12-03
+second in every pair looked 8-21 % faster than in the other order (docs/results.md "Speed, session of 2026-12-03
 (night)"). Every case starts after os.sync().
 """
 
