@@ -1137,8 +1137,8 @@ def _cell_of(grid: Camera, m: np.ndarray) -> tuple[int, int, float] | None:
 
 
 @njit(cache=True, parallel=True, nogil=True)
-def _carve_kernel(means, conf, rank, keep, photo, colour, R, t, K, hw, off, depth, cell_conf, image, has_image,
-                  skip, tolerance, dedupe, p_abs, p_rel):
+def _carve_kernel(means, conf, rank, keep, free, photo, colour, R, t, K, hw, off, depth, cell_conf, image,
+                  has_image, skip, tolerance, dedupe, p_abs, p_rel):
     """Clear keep[k] for the cells ``means`` [M, 3] (ego; confidence conf [M], footprint rank [M]) that one of the
     pinhole cameras c of a CarveCameras stack contradicts (see carve_details), camera ``skip`` left out (-1: none):
     world-to-camera rotations R [C, 3, 3] (rotation^T), centres t [C, 3], K [C, 4] (fx, fy, cx, cy), sizes hw [C, 2];
@@ -1146,10 +1146,12 @@ def _carve_kernel(means, conf, rank, keep, photo, colour, R, t, K, hw, off, dept
     pixel (u, v) at off[c] + v w + u. A cell dropped by one camera is not tested against the next (the tests are
     independent). ``photo``: the free-space drop only where the cell's colour (colour [M, 3] uint8) is not seen in
     camera c's image (has_image[c]) at the pixel or its 8 neighbours, within p_abs + p_rel x the larger value
-    (colour_seen is its reference). One pass over the cells for all the cameras: each cell read once, not once a
-    camera."""
+    (colour_seen is its reference). ``free`` [M] bool (or [0]: none): cleared by the free-space rule alone, in the
+    same pass (what a second pass with dedupe 0 would leave of it: carve_details_both). One pass over the cells for
+    all the cameras: each cell read once, not once a camera."""
+    track = free.shape[0] > 0
     for k in numba.prange(means.shape[0]):
-        if not keep[k]:
+        if not keep[k] and not (track and free[k]):
             continue
         mx, my, mz = means[k, 0], means[k, 1], means[k, 2]
         for c in range(R.shape[0]):
@@ -1181,16 +1183,22 @@ def _carve_kernel(means, conf, rank, keep, photo, colour, R, t, K, hw, off, dept
                 if not (photo and has_image[c]) or not _seen_near(colour, k, image, off[c], h, w, u, v, p_abs,
                                                                   p_rel):
                     keep[k] = False
+                    if track:
+                        free[k] = False
                     break
-            elif abs(z - dc) <= tolerance * dc:
+            elif dedupe > 0.0 and keep[k] and abs(z - dc) <= tolerance * dc:
+                # (dedupe 0, carve_against's: the footprint would be computed for a test that never drops; 20
+                # PandaSet keyframes' carving against their neighbours ~23 % less CPU, the same cells)
                 xi, yi = (u - cx) / fx, (v - cy) / fy
                 rank_i = dc * math.sqrt(1.0 + xi * xi + yi * yi) / (0.5 * (fx + fy))
                 if rank_i < dedupe * rank[k]:
                     keep[k] = False
-                    break
+                    if not (track and free[k]):     # the free-space rule is still to be tested for ``free``
+                        break
 
 
 _NO_COLOUR = np.zeros((0, 3), np.uint8)      # _carve_kernel's colour when it has no colour test
+_NO_FREE = np.zeros(0, bool)                 # _carve_kernel's free when only keep is carved
 
 
 @njit(inline="always")
@@ -1264,14 +1272,31 @@ def carve_details(details: list[CameraDetail], tolerance: float, dedupe: float =
       < 1: only a clearly finer camera takes over a cell, 0: never).
     A cell dropped by one camera is not tested against the next (the order does not matter: the tests are
     independent of each other)."""
-    out = []
+    return _carve_all(details, tolerance, dedupe, photo, False)[0]
+
+
+def carve_details_both(details: list[CameraDetail], tolerance: float, dedupe: float,
+                       photo: tuple[float, float] | None = None) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """(carve_details(details, tolerance, dedupe, photo), carve_details(details, tolerance, 0.0, photo)) from one
+    pass over the cells: the fused cells and each camera's cells that no other camera saw through (a drive's
+    camera layers, runtime.cameralayers)."""
+    return _carve_all(details, tolerance, dedupe, photo, True)
+
+
+def _carve_all(details: list[CameraDetail], tolerance: float, dedupe: float, photo: tuple[float, float] | None,
+               free: bool) -> tuple[list[np.ndarray], list[np.ndarray]]:
+    """carve_details' keep masks, and with ``free`` the free-space rule's alone (else an empty list)."""
+    keeps, frees = [], []
     stack = CarveCameras.of(details, images=photo is not None)
     for dj in details:
         keep = np.ones(len(dj.means), bool)
+        f = np.ones(len(dj.means), bool) if free else None
         if len(dj.means):
-            _carve_by(dj, stack, keep, tolerance, dedupe, photo)
-        out.append(keep)
-    return out
+            _carve_by(dj, stack, keep, tolerance, dedupe, photo, f)
+        keeps.append(keep)
+        if f is not None:
+            frees.append(f)
+    return keeps, frees
 
 
 def carve_against(dj: CameraDetail, others: Sequence[CameraDetail] | CarveCameras, keep: np.ndarray,
@@ -1289,21 +1314,23 @@ def carve_against(dj: CameraDetail, others: Sequence[CameraDetail] | CarveCamera
 
 
 def _carve_by(dj: CameraDetail, others: CarveCameras, keep: np.ndarray, tolerance: float, dedupe: float,
-              photo: tuple[float, float] | None) -> None:
+              photo: tuple[float, float] | None, free: np.ndarray | None = None) -> None:
     """carve_details' rules for camera j's cells against each of ``others`` but j itself (the colour test on the
-    free-space rule where ``photo`` is given and both cameras have colours)."""
+    free-space rule where ``photo`` is given and both cameras have colours); ``free`` ([M_j] bool, or None): cleared
+    by the free-space rule alone."""
     conf_j = np.ascontiguousarray(dj.cell_conf())
     col_j = np.ascontiguousarray(dj.cell_colours()) if photo is not None and dj.colours is not None else None
     if len(others.pinholes):
         skip = next((c for c, d in enumerate(others.pinholes) if d is dj), -1)
-        _carve_kernel(dj.means, conf_j, dj.rank, keep, col_j is not None, _NO_COLOUR if col_j is None else col_j,
+        _carve_kernel(dj.means, conf_j, dj.rank, keep, _NO_FREE if free is None else free, col_j is not None,
+                      _NO_COLOUR if col_j is None else col_j,
                       others.R, others.t, others.K, others.hw, others.off, others.depth, others.conf, others.image,
                       others.has_image, skip, float(tolerance), float(dedupe),
                       0.0 if photo is None else float(photo[0]), 0.0 if photo is None else float(photo[1]))
     for di in others.lenses:
         if di is not dj:
             _carve_lens(dj.means, conf_j, dj.rank, di, float(tolerance), float(dedupe), keep,
-                        (col_j, photo) if col_j is not None and di.colours is not None else None)
+                        (col_j, photo) if col_j is not None and di.colours is not None else None, free)
 
 
 def colour_seen(cell: np.ndarray, image: np.ndarray, u: np.ndarray, v: np.ndarray, photo: tuple[float, float]
@@ -1327,20 +1354,25 @@ def colour_seen(cell: np.ndarray, image: np.ndarray, u: np.ndarray, v: np.ndarra
 
 
 def _carve_lens(means: np.ndarray, conf: np.ndarray, rank: np.ndarray, di: CameraDetail, tolerance: float,
-                dedupe: float, keep: np.ndarray, photo=None) -> None:
+                dedupe: float, keep: np.ndarray, photo=None, free: np.ndarray | None = None) -> None:
     """_carve_kernel's rule for a camera i with a lens (numpy; its cells found through Camera.project_depth);
-    ``photo`` (the cells' colours [M, 3] uint8, (abs, rel)): _carve_kernel's colour test (see carve_against)."""
+    ``photo`` (the cells' colours [M, 3] uint8, (abs, rel)): _carve_kernel's colour test (see carve_against);
+    ``free``: _carve_kernel's."""
     idx, u, v, z = _grid_pixels(di.grid, means)
     c = di.conf[v, u]
-    ok = keep[idx] & (c != 0) & (c >= conf[idx])
+    ok = (keep[idx] if free is None else keep[idx] | free[idx]) & (c != 0) & (c >= conf[idx])
     idx, u, v, z = idx[ok], u[ok], v[ok], z[ok]
     dc = di.depth[v, u].astype(np.float64)
-    rank_i = cell_footprint(di.grid, u, v, dc)
     through = z < dc * (1.0 - tolerance)
     if photo is not None:
         colours, p = photo
         through &= ~colour_seen(colours[idx], di.colours, u, v, p)
-    keep[idx[through | ((np.abs(z - dc) <= tolerance * dc) & (rank_i < dedupe * rank[idx]))]] = False
+    keep[idx[through]] = False
+    if free is not None:
+        free[idx[through]] = False
+    if dedupe > 0:              # (a footprint is >= 0: with dedupe 0 the rule drops nothing)
+        rank_i = cell_footprint(di.grid, u, v, dc)
+        keep[idx[(np.abs(z - dc) <= tolerance * dc) & (rank_i < dedupe * rank[idx])]] = False
 
 
 def carve_details_reference(details: list[CameraDetail], tolerance: float, dedupe: float = 1.0,

@@ -1098,7 +1098,7 @@ def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None,
     drive, k, **opts) for each of ``keys`` in order; ``rec`` is then only asked for ``scene_model()``, and a
     one-frame drive is refused (make it with Reconstructor.reconstruct)."""
     from .cameralayers import CameraLayers
-    from .detail import carve_details, cull_covered, detail_pyramids, split_rows
+    from .detail import carve_details, carve_details_both, cull_covered, detail_pyramids, split_rows
     from .exposure import Harmoniser
     from .inference import DEFAULT_DETAIL
     from .scene import Scene
@@ -1241,9 +1241,12 @@ def reconstruct_drive(rec, drive: Drive, keyframes: Sequence[int] | None = None,
             # without a sweep the cameras' depths are the model's (scaled per camera to a few stereo points), up to
             # 2x apart: one camera sees through another's cell only where it also sees another colour there
             photo = SEE_THROUGH_PHOTO if points is None else None
-            own = carve_details(details, tol, detail.dedupe, photo) if details else []
-            # each camera's camera layer: its cells that no other camera of the keyframe saw through (no dedupe)
-            seen = carve_details(details, tol, 0.0, photo) if details and layers is not None else []
+            # and each camera's camera layer: its cells that no other camera of the keyframe saw through (no dedupe),
+            # from the same pass over the cells
+            if details and layers is not None:
+                own, seen = carve_details_both(details, tol, detail.dedupe, photo)
+            else:
+                own, seen = carve_details(details, tol, detail.dedupe, photo) if details else [], []
             boxes = moving_boxes(drive, k)
             if boxes:                       # what moves is not the static scene's: each object's copy, in its box
                 geo = [(inv, half) for _, inv, half in boxes]

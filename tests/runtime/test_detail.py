@@ -23,6 +23,7 @@ from xyzcyl.runtime.detail import (
     carve_against,
     carve_against_reference,
     carve_details,
+    carve_details_both,
     carve_details_reference,
     cell_gaussians,
     cell_gaussians_reference,
@@ -300,6 +301,10 @@ def test_carve_details_matches_reference(dedupe):
         np.testing.assert_array_equal(g, w)
     dropped = sum(int((~g).sum()) for g in got)
     assert dropped > 20 and all(g.sum() > 0.5 * len(g) for g in got)
+    keep, free = carve_details_both(details, 0.15, dedupe)
+    for k, f, g, w in zip(keep, free, got, carve_details_reference(details, 0.15, 0.0)):
+        np.testing.assert_array_equal(k, g)
+        np.testing.assert_array_equal(f, w)
 
 
 def test_carve_details_with_the_colour_test_matches_reference():
@@ -320,6 +325,13 @@ def test_carve_details_with_the_colour_test_matches_reference():
         assert all((b <= g).all() for b, g in zip(by_depth, got))      # the colour test only keeps more
         assert sum(int((~g).sum()) for g in got) < sum(int((~b).sum()) for b in by_depth)
         assert (~got[2]).sum() > 0
+    # both rules and the free-space rule alone from one pass (a drive's fused cells and camera layers)
+    both = carve_details_both(details, 0.15, 1.0, photo)
+    for keep, free, wk, wf in zip(*both, carve_details_reference(details, 0.15, 1.0, photo),
+                                  carve_details_reference(details, 0.15, 0.0, photo)):
+        np.testing.assert_array_equal(keep, wk)
+        np.testing.assert_array_equal(free, wf)
+    assert sum(int((b & ~a).sum()) for a, b in zip(*both)) > 20         # the dedupe dropped what free keeps
 
 
 @pytest.mark.parametrize("photo", [None, (12.0, 0.15)])

@@ -14,6 +14,7 @@ from xyzcyl.runtime.detail import (
     carve_against,
     carve_against_reference,
     carve_details,
+    carve_details_both,
     carve_details_reference,
     cell_footprint,
     cell_gaussians,
@@ -161,6 +162,10 @@ def test_fusion_through_lenses_matches_references(lens):
         for a, b in zip(got, want):
             np.testing.assert_array_equal(a, b)
         assert sum(int((~a).sum()) for a in got) > 10
+        keep, free = carve_details_both(details, 0.15, dedupe)       # and the free-space rule alone, one pass
+        for a, b, c, d in zip(keep, free, want, carve_details_reference(details, 0.15, 0.0)):
+            np.testing.assert_array_equal(a, c)
+            np.testing.assert_array_equal(b, d)
     rng = np.random.default_rng(5)
     n = 300
     dirs = rng.normal(size=(n, 3))

@@ -450,7 +450,7 @@ def shipped():
 
 def test_a_keyframe_without_a_sweep_carves_its_own_cameras_only_where_they_see_another_colour(
         tmp_path, shipped, monkeypatch):
-    """reconstruct_drive: a keyframe's cameras carve each other's cells (carve_details: the fused cells with the
+    """reconstruct_drive: a keyframe's cameras carve each other's cells (carve_details_both: the fused cells with the
     dedupe, the camera layers without) with the colour test (SEE_THROUGH_PHOTO) when it has no LiDAR sweep (the
     model's depths, scaled per camera), by depth alone when it has one."""
     from xyzcyl.runtime import detail
@@ -459,18 +459,18 @@ def test_a_keyframe_without_a_sweep_carves_its_own_cameras_only_where_they_see_a
     from xyzcyl.runtime.drive import SEE_THROUGH_PHOTO, reconstruct_drive
 
     calls = []
-    carve = detail.carve_details
-    monkeypatch.setattr(detail, "carve_details", lambda d, tol, dedupe, photo=None: calls.append(photo) or
+    carve = detail.carve_details_both       # the fused cells and the camera layers from one pass
+    monkeypatch.setattr(detail, "carve_details_both", lambda d, tol, dedupe, photo=None: calls.append(photo) or
                         carve(d, tol, dedupe, photo))
     drive = load_drive(write_drive(tmp_path, [_pose(0, 0, 0), _pose(3, 0, 0)], [0.0, 1.0]))
     reconstruct_drive(shipped, drive, detail=DetailOptions(stride=8), stereo=False)
-    assert calls == [SEE_THROUGH_PHOTO] * 4
+    assert calls == [SEE_THROUGH_PHOTO] * 2
     ring = np.array([[10 * math.cos(a), 10 * math.sin(a), z] for a in np.linspace(0, 2 * math.pi, 720)
                      for z in (-1.5, 0.0, 1.0)], np.float32)               # a wall 10 m around the ego
     monkeypatch.setattr(drive_mod, "_sweep", lambda drive, k, lidar: ring if k == 1 else None)
     calls.clear()
     reconstruct_drive(shipped, drive, detail=DetailOptions(stride=8), stereo=False)
-    assert calls == [SEE_THROUGH_PHOTO] * 2 + [None] * 2
+    assert calls == [SEE_THROUGH_PHOTO, None]
 
 
 def test_a_still_ego_posted_twice_is_kept_once(tmp_path, shipped):
